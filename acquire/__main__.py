@@ -1,0 +1,3 @@
+from acquire.cli import main
+
+main()

@@ -1,0 +1,1 @@
+"""One module per ``acquire`` sub-command; each exposes ``register(app: typer.Typer)``."""

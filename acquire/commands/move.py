@@ -1,0 +1,133 @@
+"""``acquire move``: move a robot to one joint target through its real-time commander, safely.
+
+Example::
+
+    acquire move --robot fixtures/robots/kuka_kr6_r900_2.yaml \\
+        --commander rsi://0.0.0.0:49152 --to 0,-90,90,0,45,0 --speed 0.1
+
+Connects (waits for the controller's packets), shows the link's state and timing (cycle,
+jitter, answer latency, measured position), checks the target against the model's limits,
+asks for confirmation unless ``--yes``, moves along a jerk-limited synchronised trajectory,
+waits until the measured position has settled, prints it, and (by default) ends the RSI
+session with the Stop flag. Angles on the command line are degrees in the controller's
+convention.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import numpy as np
+import typer
+
+from calib.model import load_robot_model
+from calib.yamlfile import ConfigError
+from drivers.errors import DriverError
+from drivers.protocols import JointLimits
+from drivers.registry import load_driver
+from drivers.trajectory import motion_time, scaled_limits
+
+
+def _target(text: str, n: int) -> np.ndarray:
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise typer.BadParameter(f"expected {n} comma-separated angles in degrees, given {text!r}", param_hint="--to") from None
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise typer.BadParameter(
+            f"expected {n} comma-separated angles in degrees (the robot has {n} axes), given {text!r}",
+            param_hint="--to",
+        )
+    return np.radians(values)
+
+
+def _fmt(values_rad, names) -> str:
+    return "  ".join(f"{a}={v:9.4f}" for a, v in zip(names, np.degrees(values_rad)))
+
+
+def _link_report(cmd, names) -> str:
+    st = cmd.link_stats()
+    state = cmd.joint_state()
+    lines = [
+        f"link: {st.packets} packets, cycle {st.period_mean_s * 1e3:.3f} ms "
+        f"(jitter σ {st.period_std_s * 1e3:.3f} ms, max {st.period_max_s * 1e3:.3f} ms)",
+        f"answers: latency p50 {st.latency_p50_s * 1e6:.0f} µs, p99 {st.latency_p99_s * 1e6:.0f} µs, "
+        f"max {st.latency_max_s * 1e6:.0f} µs; late {st.late_answers}, missing cycles {st.gaps}, "
+        f"malformed {st.malformed}, controller Delay {st.delay}",
+        f"real-time priority: {'yes' if st.realtime else 'no (see log)'}",
+        f"measured (deg): {_fmt(state.position_rad, names)}",
+    ]
+    return "\n".join(lines)
+
+
+def move(
+    robot: Path = typer.Option(..., "--robot", help="Robot model YAML file (fixtures/robots/...)."),
+    commander: str = typer.Option(
+        "rsi://0.0.0.0:49152", "--commander", help="Commander URL, e.g. rsi://0.0.0.0:49152?cycle_ms=4."
+    ),
+    to: str = typer.Option(..., "--to", help="Target J1,…,Jn in degrees (controller convention)."),
+    speed: float = typer.Option(0.1, "--speed", help="Fraction (0, 1] of the model's speed; acceleration scales with its square."),
+    yes: bool = typer.Option(False, "--yes", "-y", help="Do not ask for confirmation."),
+    tolerance: float = typer.Option(0.01, "--tolerance", help="Settled when every axis stays within this many degrees."),
+    window: float = typer.Option(0.2, "--window", help="… for this many seconds."),
+    timeout: float = typer.Option(120.0, "--timeout", help="Give up on the move (and on settling) after this many seconds."),
+    end_session: bool = typer.Option(
+        True, "--end-session/--keep-session", help="Send the RSI Stop flag at the end so the controller's program continues."
+    ),
+) -> None:
+    """Move the robot to one joint target, safely, and print where it settled."""
+    try:
+        model = load_robot_model(robot)
+    except ConfigError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--robot") from exc
+    limits = JointLimits.from_model(model)
+    names = limits.names or tuple(f"J{i + 1}" for i in range(limits.n_axes))
+    target = _target(to, limits.n_axes)
+    if not 0 < speed <= 1:
+        raise typer.BadParameter(f"must be in (0, 1], given {speed}", param_hint="--speed")
+    if tolerance <= 0 or window <= 0 or timeout <= window:
+        raise typer.BadParameter(
+            f"need tolerance > 0, window > 0 and timeout > window; given {tolerance}, {window}, {timeout}"
+        )
+    scheme = urlsplit(commander).scheme
+    try:
+        cls = load_driver(scheme)
+        cmd = cls.from_url(commander, limits=limits)
+    except (ValueError, TypeError, DriverError) as exc:
+        raise typer.BadParameter(str(exc), param_hint="--commander") from exc
+    try:
+        cmd.connect()
+        time.sleep(0.5)  # half a second of cycles for the timing figures
+        typer.echo(f"robot: {model.name} ({limits.n_axes} axes), commander {commander}")
+        typer.echo(_link_report(cmd, names))
+        start = cmd.joint_state().position_rad
+        checked = cmd.check_target(target, speed)  # refuse before asking
+        v, a, j = scaled_limits(limits.max_velocity_rad_s, limits.max_acceleration_rad_s2, speed)
+        duration = motion_time(start, checked, v, a, j)
+        typer.echo(f"target   (deg): {_fmt(checked, names)}")
+        typer.echo(f"move: speed {speed:g}, {duration:.2f} s, largest axis motion {np.degrees(np.abs(checked - start)).max():.3f}°")
+        if not yes and not typer.confirm("Move the robot now?", default=False):
+            typer.echo("not moved")
+            raise typer.Exit(1)
+        cmd.move_to(checked, speed, timeout)
+        final = cmd.wait_settled(math.radians(tolerance), window, timeout)
+        typer.echo(f"settled  (deg): {_fmt(final.position_rad, names)}")
+        typer.echo(f"error    (deg): {_fmt(final.position_rad - checked, names)}")
+        st = cmd.link_stats()
+        typer.echo(f"link after the move: late answers {st.late_answers}, missing cycles {st.gaps}, Delay {st.delay}")
+        if end_session:
+            cmd.stop()
+    except DriverError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    finally:
+        cmd.close()
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``move`` sub-command to ``app``."""
+    app.command("move")(move)

@@ -1,0 +1,114 @@
+"""Values to enter on the robot controller, with the sign convention spelled out.
+
+The fit's zero-offset δ_i (degrees, the controller's axis convention) means
+
+    true axis angle = angle the controller reports + δ_i.
+
+What to type depends on how the controller turns an encoder reading into an axis angle:
+
+``kss``      KUKA KR C4/C5: the zero positions are ``$MAMES[1..6]`` (external axes 7–12) in the
+             machine data, degrees. *Assuming* KSS computes axis angle = encoder angle − $MAMES,
+             the new value is ``$MAMES[i] − δ_i`` (correction −δ_i). This sign is UNVERIFIED on a
+             real controller (``/work/shared/PROTOCOLS.md``): check it on one axis first — after
+             entering it, a fresh measurement must give δ_i ≈ 0, not 2·δ_i.
+``sunrise``  KUKA LBR iiwa: mastering is electronic and has no public file format; a per-axis
+             table (δ and the correction −δ to the axis zero) to enter through the vendor's
+             tools.
+other        a per-axis table in the same form.
+
+An axis whose offset is not identifiable (undetermined, or not fitted) gets "leave unchanged"
+and no number.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+from calib.model import RobotModel
+
+CONVENTION = "δ = fitted zero-offset: true axis angle = reported axis angle + δ (degrees, controller's axis sense)"
+
+KSS_CONVENTION = (
+    "KSS: assumed axis angle = encoder angle − $MAMES[i], so new $MAMES[i] = old $MAMES[i] − δ_i "
+    "(correction −δ_i). UNVERIFIED sign convention: change one axis first and re-measure — the "
+    "new fit must give δ_i ≈ 0 (if it gives ≈ 2·δ_i, the sign is the other way round)."
+)
+SUNRISE_CONVENTION = (
+    "Sunrise (LBR iiwa): no public mastering file; correct each axis zero so the reported angle "
+    "grows by δ_i (correction to the zero position: −δ_i if the zero is subtracted from the "
+    "encoder angle). UNVERIFIED on a real controller."
+)
+GENERIC_CONVENTION = (
+    "Generic controller: add δ_i to the reported axis angle, i.e. shift the axis zero by −δ_i if "
+    "the controller subtracts the zero from the encoder angle. Check the sign on one axis first."
+)
+
+
+@dataclass(frozen=True)
+class AxisValue:
+    """One axis: δ and the correction (−δ) in degrees, or ``None`` with action "leave unchanged"."""
+
+    axis: str
+    index: int
+    delta_deg: float | None
+    std_deg: float | None
+    correction_deg: float | None
+    action: str
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class ControllerValues:
+    controller: str
+    convention: str
+    sign_convention: str
+    verified: bool
+    axes: list[AxisValue]
+    lines: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["axes"] = [asdict(a) for a in self.axes]
+        return d
+
+    def format(self) -> str:
+        """Human-readable block for the terminal and the report."""
+        out = [f"values to enter ({self.controller}):", f"  {self.convention}", f"  {self.sign_convention}"]
+        if self.lines:
+            out += [f"  {line}" for line in self.lines]
+        else:
+            out.append(f"  {'axis':<6} {'δ (deg)':>10} {'± std':>8} {'correction':>11}  action")
+            for a in self.axes:
+                if a.delta_deg is None:
+                    out.append(f"  {a.axis:<6} {'—':>10} {'':>8} {'—':>11}  leave unchanged ({a.reason})")
+                else:
+                    out.append(f"  {a.axis:<6} {a.delta_deg:+10.4f} {a.std_deg:8.4f} {a.correction_deg:+11.4f}  {a.action}")
+        return "\n".join(out)
+
+
+def controller_values(model: RobotModel, joint_offsets: list[dict]) -> ControllerValues:
+    """Values to enter from ``joint_offsets`` (the ``result.json`` entries, degrees)."""
+    if len(joint_offsets) != model.n_joints:
+        raise ValueError(f"{len(joint_offsets)} offsets given for a {model.n_joints}-axis model")
+    axes = []
+    for entry in joint_offsets:
+        if entry["identifiable"] and entry["value_deg"] is not None:
+            d = float(entry["value_deg"])
+            axes.append(AxisValue(entry["joint"], int(entry["index"]), d, float(entry["std_deg"]), -d, "enter"))
+        else:
+            reason = entry.get("status", "") or "not identifiable"
+            axes.append(AxisValue(entry["joint"], int(entry["index"]), None, None, None, "leave unchanged", reason))
+    if model.controller == "kss":
+        lines = []
+        for a in axes:
+            if a.delta_deg is None:
+                lines.append(f"$MAMES[{a.index}]: leave unchanged ({a.axis}: {a.reason})")
+            else:
+                lines.append(
+                    f"$MAMES[{a.index}] = $MAMES[{a.index}] {a.correction_deg:+.4f}   "
+                    f"; {a.axis}: δ = {a.delta_deg:+.4f}° ± {a.std_deg:.4f}°, correction {a.correction_deg:+.4f}° (UNVERIFIED sign)"
+                )
+        return ControllerValues("kss", CONVENTION, KSS_CONVENTION, False, axes, lines)
+    if model.controller == "sunrise":
+        return ControllerValues("sunrise", CONVENTION, SUNRISE_CONVENTION, False, axes)
+    return ControllerValues(model.controller, CONVENTION, GENERIC_CONVENTION, False, axes)

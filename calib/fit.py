@@ -1,0 +1,351 @@
+"""Zero-offset fitting: from a dataset and a robot model to offsets with honest uncertainty.
+
+``fit_offsets`` runs the whole method:
+
+1. an initial registration per sensor (least squares on the nominal model, or the paper's three
+   points);
+2. identifiability at the start: exactly undetermined combinations (e.g. the first joint's
+   offset against a rotation of the registration about the base z axis) are resolved by fixing
+   one parameter at its nominal value, with the reason recorded;
+3. the posterior mode (Gauss–Newton/Levenberg–Marquardt; IRLS for Student-t errors);
+4. samples: the fast exact independence sampler (default) or the paper's Metropolis;
+5. identifiability again at the estimate, and offsets whose posterior spread is too wide to be
+   useful are reported as undetermined, not given a number to type in.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from calib.dataset import Dataset, DatasetError
+from calib.identifiability import Identifiability, analyse
+from calib.kinematics import Chain
+from calib.model import RobotModel
+from calib.posterior import REG_NAMES, OffsetPosterior, ParamMask
+from calib.registration import register_least_squares, register_three_points
+from calib.sampling import Chains, effective_sample_size, independence_mh, paper_metropolis, split_rhat
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """What to fit and how.
+
+    joints: 1-based axis numbers to fit (None: all); others stay at nominal.
+    fix_registration: keep each sensor's registration at ``registration`` (or the initial one).
+    registration: known base2sensor (4, 4) per sensor, e.g. from a base-mounted reference.
+    error: "gaussian" (the paper's) or "student" (heavy-tailed, ν = ``nu``).
+    initial_registration: "least-squares" or "three-point" (the paper's).
+    max_std_deg: an offset whose posterior std exceeds this is reported as undetermined.
+    """
+
+    method: str = "fast"
+    joints: tuple[int, ...] | None = None
+    fix_registration: bool = False
+    registration: dict[str, np.ndarray] | None = None
+    error: str = "gaussian"
+    nu: float = 4.0
+    initial_registration: str = "least-squares"
+    seed: int = 0
+    n_chains: int = 4
+    n_draws: int = 1000
+    paper_samples: int = 200_000
+    paper_burn_in: int = 175_000
+    max_std_deg: float = 1.0
+
+
+@dataclass
+class FitResult:
+    """Everything a report needs. Angles in rad unless a name says deg."""
+
+    model: RobotModel
+    posterior: OffsetPosterior
+    chains: Chains
+    mode: np.ndarray  # (dim + S,) free θ then log σ per sensor
+    offsets_rad: np.ndarray  # (n,) posterior mean (0 where fixed)
+    offsets_std_rad: np.ndarray  # (n,) NaN where fixed or undetermined
+    offsets_ci95_rad: np.ndarray  # (n, 2)
+    offset_status: list[str]  # per joint: "fitted", "fixed: …", "undetermined: …"
+    base2sensor: dict[str, np.ndarray]  # final registration per sensor
+    base2sensor0: dict[str, np.ndarray]
+    sigma_mm: dict[str, tuple[float, float]]  # mean, std per sensor
+    identifiability_start: Identifiability
+    identifiability: Identifiability
+    diagnostics: dict = field(default_factory=dict)
+
+    @property
+    def full_samples(self) -> np.ndarray:
+        """Posterior draws as full vectors (n_draws_total, n + 6·S)."""
+        dim = self.posterior.dim
+        return self.posterior.full_vector(self.chains.flat[:, :dim])
+
+    @property
+    def offset_samples_rad(self) -> np.ndarray:
+        return self.full_samples[:, : self.model.n_joints]
+
+    def identifiable(self) -> np.ndarray:
+        return np.array([s == "fitted" for s in self.offset_status])
+
+    @property
+    def applied_offsets_rad(self) -> np.ndarray:
+        """(n,) the offsets to enter: the estimate where identifiable, 0 (unchanged) elsewhere."""
+        return np.where(self.identifiable(), self.offsets_rad, 0.0)
+
+    @property
+    def pooled_sigma_mm(self) -> float:
+        """One isotropic error scale for all sensors: RMS of σ_s weighted by their rows, mm."""
+        counts = self.posterior.rows_per_sensor
+        sig = np.array([self.sigma_mm[s][0] for s in self.posterior.sensors])
+        return float(np.sqrt(np.sum(counts * sig**2) / np.sum(counts)))
+
+
+def initial_registrations(chain: Chain, data: Dataset, method: str, seed: int) -> dict[str, np.ndarray]:
+    """base2sensor (4, 4) per sensor from the nominal model."""
+    pred = chain.marker_positions(data.q_rad)
+    idx = np.array([chain.marker_names.index(m) for m in data.marker])
+    p_base = pred[np.arange(len(data)), idx]
+    out = {}
+    rng = np.random.default_rng(seed)
+    for s in data.sensors:
+        rows = np.flatnonzero(data.sensor == s)
+        if rows.size < 3:
+            raise DatasetError(f"sensor {s!r} has {rows.size} measurements; a registration needs at least 3")
+        if method == "least-squares":
+            out[s] = register_least_squares(p_base[rows], data.xyz_mm[rows]).base2sensor
+        elif method == "three-point":
+            # The paper samples three non-collinear points; we take the widest of a few draws.
+            best, best_area = None, 0.0
+            for _ in range(64):
+                tri = rng.choice(rows, size=3, replace=False)
+                a, b, c = p_base[tri]
+                area = 0.5 * np.linalg.norm(np.cross(b - a, c - a))
+                if area > best_area:
+                    best, best_area = tri, area
+            out[s] = register_three_points(p_base[best], data.xyz_mm[best]).base2sensor
+        else:
+            raise ValueError(f"initial_registration {method!r} unknown; use 'least-squares' or 'three-point'")
+    return out
+
+
+def _scale(post: OffsetPosterior, lever_mm: float) -> np.ndarray:
+    """Per free parameter: mm per unit (lever arm for angles, 1 for translations)."""
+    out = []
+    for name in post.free_names:
+        kind = name.rsplit(".", 1)[1]
+        out.append(1.0 if kind in ("x", "y", "z") else lever_mm)
+    return np.array(out)
+
+
+def _resolve_null_space(post_factory, mask: ParamMask, lever_mm: float) -> tuple[ParamMask, Identifiability]:
+    """Fix parameters until the Jacobian at the start has full rank; record why."""
+    first = None
+    for _ in range(64):
+        post = post_factory(mask)
+        ident = analyse(post.jacobian(np.zeros(post.dim)), post.free_names, _scale(post, lever_mm))
+        first = first or ident
+        if not ident.deficient:
+            return mask, first
+        combo = ident.null_space[0]
+        offsets = {k: v for k, v in combo.loadings.items() if k.endswith(".offset")}
+        pick_from = offsets or combo.loadings
+        name = max(pick_from, key=lambda k: abs(pick_from[k]))
+        others = [k for k in combo.loadings if k != name]
+        reason = (
+            f"not determined by this data: it moves the markers exactly like "
+            f"{', '.join(others) if others else 'nothing'} (combination {combo.describe()}); "
+            f"kept at its nominal value"
+        )
+        if name == f"{post.chain.model.axis_names[0]}.offset" and mask.registration.any():
+            reason += "; the first axis's offset needs a base-fixed reference (fix the registration) to be measured"
+        mask = mask.fix(post.names.index(name), reason, post.names)
+    raise RuntimeError("could not resolve the undetermined parameters")  # pragma: no cover
+
+
+def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior mode: θ (dim,) and log σ (S,)."""
+    s_idx = post.sensor_index
+    n_s = post.rows_per_sensor
+    theta = np.zeros(post.dim)
+    sigma = np.ones(post.S)
+    weights = np.ones(post.n_rows)
+    for _ in range(12 if error == "student" else 3):
+        w = np.sqrt(weights / sigma[s_idx] ** 2)[:, None]
+
+        def fun(t, w=w):
+            return (post.residuals(t) * w).ravel()
+
+        def jac(t, w=w):
+            return -(post.jacobian(t).reshape(post.n_rows, 3, -1) * w[:, :, None]).reshape(post.n_rows * 3, -1)
+
+        sol = least_squares(fun, theta, jac=jac, method="lm", xtol=1e-12, ftol=1e-12)
+        theta = sol.x
+        r2 = np.sum(post.residuals(theta) ** 2, axis=-1)
+        if error == "gaussian":
+            # Mode of σ in (θ, log σ) coordinates: ∂/∂logσ [−(3n+1) log σ − E/2σ²] = 0.
+            sigma = np.sqrt(np.bincount(s_idx, r2, minlength=post.S) / (3 * n_s + 1))
+        else:
+            weights = (nu + 3) / (nu + r2 / sigma[s_idx] ** 2)
+            sigma = np.sqrt(np.bincount(s_idx, weights * r2, minlength=post.S) / (3 * n_s + 1))
+    return theta, np.log(sigma)
+
+
+def _laplace_covariance(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray) -> np.ndarray:
+    """Gauss–Newton covariance of (θ, log σ) at the mode."""
+    j = post.jacobian(theta).reshape(post.n_rows, 3, -1)
+    w = np.exp(-2 * log_sigma)[post.sensor_index]
+    h = np.einsum("kip,k,kiq->pq", j, w, j)
+    cov_t = np.linalg.pinv(h)
+    cov = np.zeros((post.dim + post.S,) * 2)
+    cov[: post.dim, : post.dim] = 0.5 * (cov_t + cov_t.T)
+    cov[post.dim :, post.dim :] = np.diag(1.0 / (2.0 * (3 * post.rows_per_sensor + 1)))
+    return cov
+
+
+def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptions()) -> FitResult:
+    """Fit joint zero-offsets (and registration corrections and σ) to ``data``."""
+    t_start = time.perf_counter()
+    if data.n_joints != model.n_joints:
+        raise DatasetError(f"the dataset has {data.n_joints} joints, the model '{model.name}' has {model.n_joints}")
+    if len(data) == 0:
+        raise DatasetError("the dataset is empty")
+    if not (np.all(np.isfinite(data.q_rad)) and np.all(np.isfinite(data.xyz_mm))):
+        raise DatasetError("the dataset contains NaN or infinite values")
+    if options.method not in ("fast", "paper"):
+        raise ValueError(f"method {options.method!r} unknown; use 'fast' or 'paper'")
+    chain = Chain(model)
+    b2s0 = initial_registrations(chain, data, options.initial_registration, options.seed)
+    if options.registration:
+        missing = set(data.sensors) - set(options.registration)
+        if missing:
+            raise ValueError(f"a registration was given for {sorted(options.registration)} but not for {sorted(missing)}")
+        b2s0 = {s: np.asarray(options.registration[s], dtype=float) for s in data.sensors}
+    n = model.n_joints
+    fit_joint = np.ones(n, bool)
+    reasons: dict[str, str] = {}
+    if options.joints is not None:
+        bad = [j for j in options.joints if not 1 <= j <= n]
+        if bad:
+            raise ValueError(f"joints {bad} do not exist; the model has axes 1…{n}")
+        fit_joint = np.isin(np.arange(1, n + 1), options.joints)
+        for i in np.flatnonzero(~fit_joint):
+            reasons[f"{model.axis_names[i]}.offset"] = "not fitted (excluded by the options)"
+    sensors = sorted(b2s0)
+    reg_mask = np.full((len(sensors), 6), not options.fix_registration)
+    if options.fix_registration:
+        for s in sensors:
+            for r in REG_NAMES:
+                reasons[f"{s}.{r}"] = "registration fixed by the options"
+    mask = ParamMask(fit_joint, reg_mask, reasons)
+
+    # Too few measurements for the free parameters?
+    n_free = int(mask.full.sum()) + len(sensors)
+    if 3 * len(data) < 2 * n_free:
+        raise DatasetError(
+            f"{len(data)} measurements give {3 * len(data)} coordinates for {n_free} free parameters; "
+            f"measure at least {math.ceil(2 * n_free / 3)} configurations (more is much better)"
+        )
+
+    def factory(m: ParamMask) -> OffsetPosterior:
+        return OffsetPosterior(chain, data, b2s0, m, error=options.error, nu=options.nu)
+
+    p_base = chain.marker_positions(data.q_rad)
+    lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
+    mask, ident0 = _resolve_null_space(factory, mask, lever)
+    post = factory(mask)
+    theta, log_sigma = _mode(post, options.error, options.nu)
+    mode = np.concatenate([theta, log_sigma])
+    t_mode = time.perf_counter()
+
+    def log_density(x: np.ndarray) -> np.ndarray:
+        return post.log_posterior(x[..., : post.dim], x[..., post.dim :])
+
+    if options.method == "fast":
+        cov = _laplace_covariance(post, theta, log_sigma)
+        chains = independence_mh(
+            log_density, mode, cov, n_chains=options.n_chains, n_draws=options.n_draws, seed=options.seed
+        )
+    else:
+        unit = np.array([1.0 if nm.rsplit(".", 1)[1] in ("x", "y", "z") else 180.0 / math.pi for nm in post.free_names] + [1.0] * post.S)
+
+        def paper_density(x: np.ndarray) -> np.ndarray:
+            sig = x[post.dim :]
+            if np.any(sig <= 0):
+                return np.array(-np.inf)
+            return log_density(np.concatenate([x[: post.dim], np.log(sig)])) - np.log(sig).sum()
+
+        x0 = np.concatenate([np.zeros(post.dim), np.ones(post.S)])
+        raw = paper_metropolis(
+            paper_density, x0, unit_scale=unit, n_samples=options.paper_samples, burn_in=options.paper_burn_in, seed=options.seed
+        )
+        s = raw.samples.copy()
+        s[..., post.dim :] = np.log(s[..., post.dim :])
+        chains = Chains(s, raw.acceptance, raw.seconds, raw.method)
+    t_sample = time.perf_counter()
+
+    full = post.full_vector(chains.flat[:, : post.dim])
+    mean_full = full.mean(axis=0)
+    offsets = mean_full[:n]
+    std = full[:, :n].std(axis=0, ddof=1)
+    ci = np.percentile(full[:, :n], [2.5, 97.5], axis=0).T
+    status = []
+    max_std = math.radians(options.max_std_deg)
+    for i, ax in enumerate(model.axis_names):
+        key = f"{ax}.offset"
+        if key in mask.reasons:
+            r = mask.reasons[key]
+            status.append(("fixed: " if r.startswith("not fitted") else "undetermined: ") + r)
+            std[i] = np.nan
+            ci[i] = np.nan
+        elif std[i] > max_std:
+            status.append(f"undetermined: the data determine it only to ±{math.degrees(std[i]):.2f}° (limit {options.max_std_deg}°)")
+        else:
+            status.append("fitted")
+    rot, trans = post.corrections(mean_full)
+    b2s = {s: _compose(rot[k], trans[k], post.b2s0[k]) for k, s in enumerate(post.sensors)}
+    sig = np.exp(chains.flat[:, post.dim :])
+    sigma = {s: (float(sig[:, k].mean()), float(sig[:, k].std(ddof=1))) for k, s in enumerate(post.sensors)}
+    ident = analyse(post.jacobian(theta), post.free_names, _scale(post, lever))
+    diag = {
+        "method": options.method,
+        "sampler": chains.method,
+        "n_chains": int(chains.samples.shape[0]),
+        "n_draws": int(chains.samples.shape[1]),
+        "acceptance": [float(a) for a in chains.acceptance],
+        "parameters": post.free_names + [f"{s}.log_sigma" for s in post.sensors],
+        "seconds_mode": t_mode - t_start,
+        "seconds_sampling": t_sample - t_mode,
+        "seconds_total": time.perf_counter() - t_start,
+        "n_measurements": len(data),
+        "lever_arm_mm": lever,
+    }
+    if chains.samples.shape[0] > 1:
+        diag["rhat"] = [float(v) for v in split_rhat(chains.samples)]
+    if chains.samples.shape[1] >= 4:
+        diag["ess"] = [float(v) for v in effective_sample_size(chains.samples)]
+    return FitResult(
+        model=model,
+        posterior=post,
+        chains=chains,
+        mode=mode,
+        offsets_rad=offsets,
+        offsets_std_rad=std,
+        offsets_ci95_rad=ci,
+        offset_status=status,
+        base2sensor=b2s,
+        base2sensor0=dict(zip(post.sensors, post.b2s0)),
+        sigma_mm=sigma,
+        identifiability_start=ident0,
+        identifiability=ident,
+        diagnostics=diag,
+    )
+
+
+def _compose(rot: np.ndarray, trans: np.ndarray, b2s0: np.ndarray) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3] = rot
+    t[:3, 3] = trans
+    return t @ b2s0

@@ -1,0 +1,417 @@
+"""Full kinematic identification: every identifiable model parameter by Levenberg–Marquardt.
+
+Jointly with the sensor registration (per sensor) and the marker offsets on the tool, as in the
+pose-selection seed (Sec. 2 and 4) — but with the analytic Jacobian of ``calib.kinematics``
+instead of finite differences.
+
+Which parameters are identifiable is decided from the Jacobian, not assumed: columns (scaled to
+mm of marker motion, angles × lever arm) are taken in a preferred order — registration, joint
+offsets, link lengths a, offsets d, twists α, torsions β (``mdh`` models only), marker offsets —
+and a column that the columns already kept reproduce (relative residual below ``rank_tol``) is
+excluded, with a reason naming the parameters it duplicates. Excluded parameters stay at their
+nominal values.
+
+Residuals: positions (mm). Where orientation is measured (``rotation`` given), the fused
+objective of the seed's eq. 19 is used: Σ L·(|Δn|² + |Δo|² + |Δa|²) + |Δp|² with L = 100 by
+default (rotation columns are unitless, so L has units of mm²).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+from scipy.optimize import least_squares
+
+from calib.dataset import Dataset, DatasetError
+from calib.fit import initial_registrations
+from calib.kinematics import KINDS, Chain
+from calib.model import RobotModel
+from calib.transforms import euler_zyx_to_matrix
+
+log = logging.getLogger(__name__)
+
+REG = ("x", "y", "z", "alpha", "beta", "gamma")
+
+
+@dataclass(frozen=True)
+class IdentOptions:
+    """``orientation_weight``: L of eq. 19 (mm²); ``rank_tol``: relative residual below which a
+    column counts as a combination of the kept ones; ``exclude``: parameter names to keep nominal;
+    ``cond_warn``: scaled condition number above which the fit is called ill-conditioned."""
+
+    orientation_weight: float = 100.0
+    rank_tol: float = 1e-6
+    exclude: tuple[str, ...] = ()
+    fit_markers: bool = True
+    max_nfev: int = 200
+    cond_warn: float = 1e4
+    initial_registration: str = "least-squares"
+
+
+@dataclass
+class IdentResult:
+    model: RobotModel
+    params: np.ndarray  # full Chain vector (P,)
+    std: np.ndarray  # (P,) NaN where not identified
+    free_names: list[str]
+    excluded: dict[str, str]
+    base2sensor: dict[str, np.ndarray]
+    rms_mm: float
+    condition_number: float
+    iterations: int
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def chain_names(self) -> list[str]:
+        return Chain(self.model).param_names
+
+    def corrected_model(self) -> RobotModel:
+        return corrected_model(self.model, self.params)
+
+
+def _lookup(values: np.ndarray, names: list[str]) -> np.ndarray:
+    """Index of each value in ``names``: (k,) int."""
+    table = {n: i for i, n in enumerate(names)}
+    return np.fromiter((table[v] for v in values.tolist()), dtype=np.intp, count=len(values))
+
+
+class _Problem:
+    """Residuals and Jacobian of the identification for a fixed set of free columns."""
+
+    def __init__(self, chain: Chain, data: Dataset, b2s0: dict[str, np.ndarray], rotation: np.ndarray | None, weight: float):
+        self.chain, self.data = chain, data
+        self.sensors = sorted(b2s0)
+        self.b2s0 = np.stack([b2s0[s] for s in self.sensors])
+        self.sidx = _lookup(data.sensor, self.sensors)
+        self.midx = _lookup(data.marker, chain.marker_names)
+        self.rows_of = [np.flatnonzero(self.sidx == s) for s in range(len(self.sensors))]
+        self.uq, self.inv = np.unique(data.q_rad, axis=0, return_inverse=True)
+        self.inv = self.inv.ravel()
+        self.rotation = rotation
+        self.sqrt_w = math.sqrt(weight)
+        self.P = chain.n_params
+        self.names = list(chain.param_names) + [f"{s}.{r}" for s in self.sensors for r in REG]
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return x[: self.P], x[self.P :].reshape(len(self.sensors), 6)
+
+    def residuals_and_jacobian(self, x: np.ndarray, want_jac: bool = True):
+        """Residuals (measured − predicted; positions then weighted rotations) and, if asked,
+        their Jacobian with respect to the full vector x = [chain params | registrations].
+
+        Kinematics run once per distinct configuration and marker; each sensor's rows are then
+        rotated with one matrix product.
+        """
+        params, reg = self.split(x)
+        k = len(self.data)
+        rot = euler_zyx_to_matrix(reg[:, 3], reg[:, 4], reg[:, 5])  # (S,3,3) T* rotations
+        need_kin_jac = want_jac or self.rotation is not None
+        if need_kin_jac:
+            fj = self.chain.flange_jacobian(self.uq, params)
+            f_rot, f_pos = fj.rotation, fj.position  # (u,3,3), (u,3)
+        else:
+            f_rot, f_pos = self.chain.flange_pose(self.uq, params)
+        mk = params[self.chain.marker_slice()].reshape(-1, 3)  # (m,3)
+        arm = np.einsum("uij,mj->umi", f_rot, mk)  # (u,m,3)
+        p_base = f_pos[self.inv] + arm[self.inv, self.midx]  # (k,3)
+        pred = np.empty((k, 3))
+        sensor_r = rot @ self.b2s0[:, :3, :3]  # (S,3,3): sensor-from-base rotation, total
+        for s, rows in enumerate(self.rows_of):
+            rp = (p_base[rows] @ self.b2s0[s, :3, :3].T + self.b2s0[s, :3, 3]) @ rot[s].T
+            pred[rows] = rp + reg[s, :3]
+        res = [(self.data.xyz_mm - pred).ravel()]
+        if self.rotation is not None:
+            r_pred = sensor_r[self.sidx] @ f_rot[self.inv]
+            res.append(self.sqrt_w * (self.rotation - r_pred).reshape(k, 9).ravel())
+        r = np.concatenate(res)
+        if not want_jac:
+            return r, None
+        n_reg = 6 * len(self.sensors)
+        n_cols = self.P + n_reg
+        # d(p_base)/d(chain params) per distinct configuration and marker: (u,m,3,P).
+        jw = fj.jw[:, None]  # (u,1,3,P)
+        a = arm[..., None]  # (u,m,3,1)
+        cross = np.stack(
+            [jw[:, :, 1] * a[:, :, 2] - jw[:, :, 2] * a[:, :, 1],
+             jw[:, :, 2] * a[:, :, 0] - jw[:, :, 0] * a[:, :, 2],
+             jw[:, :, 0] * a[:, :, 1] - jw[:, :, 1] * a[:, :, 0]],
+            axis=2,
+        )
+        jk = fj.jp[:, None] + cross
+        ms = self.chain.marker_slice()
+        for mi in range(self.chain.m):
+            jk[:, mi, :, ms.start + 3 * mi : ms.start + 3 * mi + 3] = f_rot
+        jp = np.zeros((k, 3, n_cols))
+        axes = self._reg_axes(reg)
+        for s, rows in enumerate(self.rows_of):
+            jrows = jk[self.inv[rows], self.midx[rows]]  # (ks,3,P)
+            jp[rows, :, : self.P] = np.einsum("ij,kjp->kip", sensor_r[s], jrows)
+            c = self.P + 6 * s
+            jp[rows, :, c : c + 3] = np.eye(3)
+            rp = pred[rows] - reg[s, :3]
+            for ax in range(3):
+                jp[rows, :, c + 3 + ax] = np.cross(axes[ax][s], rp)
+        blocks = [-jp.reshape(3 * k, -1)]
+        if self.rotation is not None:
+            # d(R_total R_f)/dξ column by column: ω × column (ω in the sensor frame).
+            jr = np.zeros((k, 3, 3, n_cols))
+            wk = np.einsum("kij,kjp->kip", sensor_r[self.sidx], fj.jw[self.inv])  # (k,3,P)
+            for col in range(3):
+                jr[:, :, col, : self.P] = np.cross(wk, r_pred[:, :, col][:, :, None], axis=1)
+            for s, rows in enumerate(self.rows_of):
+                c = self.P + 6 * s
+                for ax in range(3):
+                    for col in range(3):
+                        jr[rows, :, col, c + 3 + ax] = np.cross(axes[ax][s], r_pred[rows, :, col])
+            blocks.append(-self.sqrt_w * jr.reshape(9 * k, -1))
+        return r, np.concatenate(blocks)
+
+    @staticmethod
+    def _reg_axes(reg: np.ndarray) -> list[np.ndarray]:
+        """Rotation axes of the ZYX correction's three angles, in the sensor frame: (S,3) each."""
+        ca, sa = np.cos(reg[:, 3]), np.sin(reg[:, 3])
+        cb, sb = np.cos(reg[:, 4]), np.sin(reg[:, 4])
+        return [
+            np.broadcast_to([0.0, 0.0, 1.0], (reg.shape[0], 3)),
+            np.stack([-sa, ca, np.zeros_like(ca)], -1),
+            np.stack([ca * cb, sa * cb, -sb], -1),
+        ]
+
+    def scale(self, lever: float) -> np.ndarray:
+        out = []
+        for name in self.names:
+            kind = name.rsplit(".", 1)[1]
+            out.append(1.0 if kind in ("d", "a", "x", "y", "z") else lever)
+        return np.array(out)
+
+
+def _preference(problem: _Problem, chain: Chain) -> list[int]:
+    """Column order in which parameters are kept."""
+    order = list(range(problem.P, len(problem.names)))  # registration first
+    for kind in KINDS:
+        order += list(chain.index(kind))
+    order += list(range(chain.marker_slice().start, chain.marker_slice().stop))
+    return order
+
+
+def select_identifiable(jac: np.ndarray, names: list[str], scale: np.ndarray, order: list[int], excluded: dict[str, str], rank_tol: float) -> list[int]:
+    """Greedy rank-revealing selection (modified Gram–Schmidt in preference order).
+
+    Works on the R factor of the scaled Jacobian: an orthogonal transform keeps every column
+    norm and every linear relation between columns, and R is only P×P.
+    """
+    j = np.linalg.qr(jac / scale, mode="r")
+    kept: list[int] = []
+    basis: list[np.ndarray] = []
+    biggest = float(np.linalg.norm(j, axis=0).max())
+    for c in order:
+        if names[c] in excluded:
+            continue
+        v = j[:, c].copy()
+        norm = np.linalg.norm(v)
+        if norm <= rank_tol * biggest:
+            excluded[names[c]] = "does not move any measured marker in these configurations"
+            continue
+        for b in basis:
+            v -= (b @ v) * b
+        if np.linalg.norm(v) / norm < rank_tol:
+            coef, *_ = np.linalg.lstsq(j[:, kept], j[:, c], rcond=None)
+            top = np.argsort(-np.abs(coef))[:3]
+            combo = " ".join(f"{coef[t]:+.3g}·{names[kept[t]]}" for t in top if abs(coef[t]) > 1e-9)
+            excluded[names[c]] = f"not identifiable: moves the markers exactly like {combo} (kept nominal)"
+            continue
+        basis.append(v / np.linalg.norm(v))
+        kept.append(c)
+    return sorted(kept)
+
+
+def identify(
+    model: RobotModel,
+    data: Dataset,
+    options: IdentOptions = IdentOptions(),
+    *,
+    rotation: np.ndarray | None = None,
+    registration: dict[str, np.ndarray] | None = None,
+) -> IdentResult:
+    """Identify all identifiable parameters from ``data`` (and measured flange rotations
+    ``rotation`` (k, 3, 3) in the sensor frame, if any)."""
+    if data.n_joints != model.n_joints:
+        raise DatasetError(f"the dataset has {data.n_joints} joints, the model '{model.name}' has {model.n_joints}")
+    chain = Chain(model)
+    b2s0 = registration or initial_registrations(chain, data, options.initial_registration, 0)
+    problem = _Problem(chain, data, b2s0, rotation, options.orientation_weight)
+    x0 = np.concatenate([chain.nominal, np.zeros(6 * len(problem.sensors))])
+    excluded: dict[str, str] = {n: "excluded by the options" for n in options.exclude}
+    if model.convention == "dh":
+        for i in chain.index("beta"):
+            excluded[problem.names[i]] = "β is not a parameter of the standard DH convention (use mdh for near-parallel axes)"
+    if not options.fit_markers:
+        for i in range(chain.marker_slice().start, chain.marker_slice().stop):
+            excluded[problem.names[i]] = "marker offsets fixed by the options"
+    p_base = chain.marker_positions(data.q_rad)
+    lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
+    _, j0 = problem.residuals_and_jacobian(x0)
+    scale = problem.scale(lever)
+    free = select_identifiable(j0, problem.names, scale, _preference(problem, chain), excluded, options.rank_tol)
+    if 3 * len(data) < 2 * len(free):
+        raise DatasetError(
+            f"{len(data)} measurements give {3 * len(data)} coordinates for {len(free)} identifiable parameters; "
+            f"measure at least {math.ceil(2 * len(free) / 3)}"
+        )
+
+    def fun(z):
+        x = x0.copy()
+        x[free] = x0[free] + z / scale[free]
+        return problem.residuals_and_jacobian(x, want_jac=False)[0]
+
+    def jac(z):
+        x = x0.copy()
+        x[free] = x0[free] + z / scale[free]
+        return problem.residuals_and_jacobian(x)[1][:, free] / scale[free]
+
+    sol = least_squares(fun, np.zeros(len(free)), jac=jac, method="lm", max_nfev=options.max_nfev, xtol=1e-12, ftol=1e-12)
+    x = x0.copy()
+    x[free] = x0[free] + sol.x / scale[free]
+    r = sol.fun
+    n_pos = 3 * len(data)
+    rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
+    dof = max(r.size - len(free), 1)
+    s2 = float(r @ r) / dof
+    js = sol.jac
+    sv = np.linalg.svd(js, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else math.inf
+    cov = np.linalg.pinv(js.T @ js) * s2
+    std = np.full(len(problem.names), np.nan)
+    std[free] = np.sqrt(np.diag(cov)) / scale[free]
+    warnings = []
+    if cond > options.cond_warn:
+        warnings.append(
+            f"ill-conditioned: scaled condition number {cond:.3g} > {options.cond_warn:g}; the weakest directions are "
+            "poorly determined — measure more varied configurations (see `acquire select`)"
+        )
+        log.warning(warnings[-1])
+    params, reg = problem.split(x)
+    rot = euler_zyx_to_matrix(reg[:, 3], reg[:, 4], reg[:, 5])
+    b2s = {}
+    for k, s in enumerate(problem.sensors):
+        t = np.eye(4)
+        t[:3, :3] = rot[k]
+        t[:3, 3] = reg[k, :3]
+        b2s[s] = t @ problem.b2s0[k]
+    return IdentResult(
+        model=model,
+        params=params,
+        std=std[: problem.P],
+        free_names=[problem.names[i] for i in free],
+        excluded=excluded,
+        base2sensor=b2s,
+        rms_mm=rms,
+        condition_number=cond,
+        iterations=int(sol.nfev),
+        warnings=warnings,
+    )
+
+
+def corrected_model(model: RobotModel, params: np.ndarray) -> RobotModel:
+    """A robot model with identified parameters written in (mm, degrees, controller convention).
+
+    The zero-offset δ folds into the DH angle offset: theta' = theta + sign·δ.
+    """
+    chain = Chain(model)
+    n = model.n_joints
+    d = model.model_dump()
+    for i, j in enumerate(d["joints"]):
+        j["theta"] = float(j["theta"] + model.joints[i].sign * math.degrees(params[i]))
+        j["d"] = float(params[n + i])
+        j["a"] = float(params[2 * n + i])
+        j["alpha"] = float(math.degrees(params[3 * n + i]))
+        j["beta"] = float(math.degrees(params[4 * n + i]))
+    mk = params[chain.marker_slice()].reshape(-1, 3)
+    for i, m in enumerate(d["tool"]["markers"]):
+        m["xyz"] = tuple(float(v) for v in mk[i])
+    d["name"] = f"{model.name} (identified)"
+    d["source"] = f"identified by remaster from nominal: {model.source}".strip()
+    return RobotModel.model_validate(d)
+
+
+def write_model_yaml(model: RobotModel, path: str | Path) -> None:
+    """Write a model in the YAML format ``calib.model.load_robot_model`` reads."""
+    d = model.model_dump(mode="json")
+
+    def clean(o):
+        if isinstance(o, float):
+            return round(o, 9)
+        if isinstance(o, (list, tuple)):
+            return [clean(v) for v in o]
+        if isinstance(o, dict):
+            return {k: clean(v) for k, v in o.items()}
+        return o
+
+    Path(path).write_text(
+        "# Written by remaster (mm, degrees, controller convention).\n" + yaml.safe_dump(clean(d), sort_keys=False),
+        encoding="utf-8",
+    )
+
+
+def information_blocks(model: RobotModel, q_rad: np.ndarray, options: IdentOptions = IdentOptions()) -> tuple[np.ndarray, list[str], dict[str, str]]:
+    """Per-configuration information blocks for observability and pose selection.
+
+    q_rad: (N, n) candidate configurations. Every marker of the tool is assumed measured by one
+    sensor whose registration is free. Returns blocks (N, L, L) of the scaled identification
+    Jacobian over the L parameters identifiable from all candidates together, their names, and
+    the excluded parameters with reasons.
+    """
+    from calib.dataset import from_arrays
+
+    chain = Chain(model)
+    q = np.asarray(q_rad, dtype=float)
+    n_cfg = q.shape[0]
+    m = chain.m
+    qq = np.repeat(q, m, axis=0)
+    markers = np.tile(np.array(chain.marker_names), n_cfg)
+    pos = chain.marker_positions(q).reshape(-1, 3)
+    data = from_arrays(qq, pos, marker=markers)
+    problem = _Problem(chain, data, {"sensor": np.eye(4)}, None, options.orientation_weight)
+    x0 = np.concatenate([chain.nominal, np.zeros(6)])
+    excluded: dict[str, str] = {n: "excluded by the options" for n in options.exclude}
+    if model.convention == "dh":
+        for i in chain.index("beta"):
+            excluded[problem.names[i]] = "β is not a parameter of the standard DH convention"
+    if not options.fit_markers:
+        for i in range(chain.marker_slice().start, chain.marker_slice().stop):
+            excluded[problem.names[i]] = "marker offsets fixed by the options"
+    _, j = problem.residuals_and_jacobian(x0)
+    lever = float(np.sqrt(np.mean(np.sum(pos**2, axis=-1))))
+    scale = problem.scale(lever)
+    free = select_identifiable(j, problem.names, scale, _preference(problem, chain), excluded, options.rank_tol)
+    js = (j[:, free] / scale[free]).reshape(n_cfg, 3 * m, len(free))
+    return np.einsum("nri,nrj->nij", js, js), [problem.names[i] for i in free], excluded
+
+
+def pose_errors(model: RobotModel, params: np.ndarray, data: Dataset, base2sensor: dict[str, np.ndarray]) -> np.ndarray:
+    """Position error per row |measured − predicted| (mm) with the given parameters and registration."""
+    chain = Chain(model)
+    pos = chain.marker_positions(data.q_rad, params)
+    idx = np.array([chain.marker_names.index(mk) for mk in data.marker])
+    p = pos[np.arange(len(data)), idx]
+    t = np.stack([base2sensor[s] for s in data.sensor])
+    pred = np.einsum("kij,kj->ki", t[:, :3, :3], p) + t[:, :3, 3]
+    return np.linalg.norm(data.xyz_mm - pred, axis=1)
+
+
+def comprehensive_errors(position_err_mm: np.ndarray, attitude_err_rad: np.ndarray | None = None) -> dict[str, float | None]:
+    """The seed's EACPE / EMCPE (mean / max position error, mm) and EACAE / EMCAE (mean / max
+    attitude error, rad; None when orientation was not measured)."""
+    p = np.asarray(position_err_mm, dtype=float)
+    out: dict[str, float | None] = {"EACPE": float(p.mean()), "EMCPE": float(p.max())}
+    if attitude_err_rad is None:
+        out.update(EACAE=None, EMCAE=None)
+    else:
+        a = np.asarray(attitude_err_rad, dtype=float)
+        out.update(EACAE=float(a.mean()), EMCAE=float(a.max()))
+    return out

@@ -1,0 +1,582 @@
+"""Inverse kinematics: every solution of a flange pose, for 6R spherical-wrist and 7R S-R-S arms.
+
+Public API (mm, rad, controller convention — the numbers the pendant shows, in radians):
+
+``solve_all(model, pose, *, arm_angle=None, within_limits=True, params=None) -> IkSolutions``
+``solve_many(model, poses, **same) -> list[IkSolutions]`` (vectorised over poses)
+``arm_angle_intervals(model, pose, *, params=None) -> list[(lo, hi)]`` (7R)
+``pick_arm_angle(model, pose, *, prefer=None, params=None) -> float`` (7R)
+``arm_angle_of(model, q, *, params=None) -> ψ`` (7R, the inverse of the arm-angle parameter)
+
+Which solver runs is decided from the model's own chain: 6 joints → ``calib.ik_spherical_wrist``
+(8 branches), 7 joints → ``calib.ik_srs`` (8 global configurations at one arm angle). Both check
+the structure numerically and raise ``ValueError`` for a model outside their class.
+
+What comes back (``IkSolutions``):
+
+- every row reproduces the pose — each candidate is run through ``Chain.fk`` and kept only if
+  the position is within ``POSITION_TOLERANCE_MM`` (1e-6 mm) and the orientation within
+  ``ORIENTATION_TOLERANCE_RAD`` (1e-9 rad); nothing else is ever returned;
+- with ``within_limits=True`` (default) every row is inside the model's joint limits, and a
+  joint whose range exceeds 360° contributes each of its ±360° equivalents that fits (the KR 6's
+  A4 and A6, the TX60's J4 and J6): they are distinct configurations for the robot, labelled
+  with a suffix such as ``" A6-360"``. With ``within_limits=False`` the principal branches are
+  returned, angles wrapped to (−π, π];
+- ``status`` ``"ok"``; ``"unreachable"`` (no real solution, message says why);
+  ``"singular"`` (rows are returned but the pose is within 1e-6 of a singularity — the message
+  names it, e.g. A4 and A6 determined only as a sum at A5 = 0; at an exact singularity the
+  rows are representatives of a continuum); ``"limits"`` (solutions exist, none within limits;
+  the message names the least-violated limit).
+
+``params``: a ``Chain`` parameter vector (P,), e.g. a fitted model. If its geometry still
+belongs to the solver's class (zero-offsets only, say) the closed form is built from it and is
+exact; otherwise the closed form runs on the nominal geometry with the given zero-offsets and
+each branch is polished by Gauss–Newton steps on ``Chain.flange_jacobian``. For the 7R arm the
+polish takes minimum-norm steps, so the arm angle of a polished solution may move by the order
+of the model error.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.ik_spherical_wrist import REACH_SLACK, RawSolutions, WristArmGeometry
+from calib.ik_spherical_wrist import branch_labels as wrist_arm_labels
+from calib.ik_srs import SrsGeometry
+from calib.ik_srs import branch_labels as srs_labels
+from calib.ik_subproblems import ScrewAxes
+from calib.kinematics import Chain
+from calib.model import RobotModel
+from calib.transforms import log_so3, rotation_angle
+
+log = logging.getLogger(__name__)
+
+POSITION_TOLERANCE_MM = 1e-6
+ORIENTATION_TOLERANCE_RAD = 1e-9
+#: Two solutions closer than this (max over joints, rad) are one.
+DUPLICATE_TOLERANCE_RAD = 1e-7
+POLISH_ITERATIONS = 12
+#: With a polished (perturbed) model, poses up to this relative excess over the nominal reach
+#: are still tried: the clamped nominal solution is polished, and kept only if it converges.
+POLISH_REACH_SLACK = 0.02
+
+_STATUSES = ("ok", "unreachable", "singular", "limits")
+
+
+@dataclass(frozen=True)
+class IkSolutions:
+    """All inverse-kinematics solutions of one flange pose.
+
+    q (n_sol, n_joints) rad, controller convention, every row reproduces the pose;
+    branch: one label per row (6R ``"shoulder=front elbow=up wrist=noflip"``, 7R
+    ``"GC2=+1 GC4=+1 GC6=-1"``, plus e.g. ``" A6-360"`` for a ±360° equivalent);
+    status: ``"ok" | "unreachable" | "singular" | "limits"``; message: plain-language detail,
+    empty when ok.
+    """
+
+    q: np.ndarray
+    branch: list[str]
+    status: str
+    message: str
+
+    def __len__(self) -> int:
+        return int(self.q.shape[0])
+
+
+class NoFeasibleArmAngle(ValueError):
+    """No arm angle puts the 7R arm's joints within limits for this pose (or it is out of reach)."""
+
+
+# --- solver set-up (cached per model and parameter vector) ---------------------------------------
+@dataclass
+class _Solver:
+    model: RobotModel
+    chain: Chain
+    kind: str  # "6r" | "7r"
+    geometry: WristArmGeometry | SrsGeometry
+    labels: list[str]
+    params: np.ndarray | None  # the parameter vector FK checks use (None: nominal)
+    polish: bool  # closed form is on an approximation: polish every row
+    shifts: np.ndarray  # (n_combos, n) multiples of 2π to try for ±360° equivalents
+    shift_labels: list[str]
+
+
+_CACHE: dict[tuple[int, bytes | None], tuple[RobotModel, _Solver]] = {}
+_CACHE_SIZE = 32
+
+
+def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
+    """Every combination of ±360° multiples that can bring a wrapped angle into the limits.
+
+    For joint j the multiples k with [lo − 2πk, hi − 2πk] overlapping (−π, π]; joints whose
+    limits lie inside (−π, π] only get k = 0. Returns shifts (C, n) rad (row 0 all zeros) and
+    label suffixes such as " A6-360".
+    """
+    lo, hi = model.lower_limits_rad, model.upper_limits_rad
+    n = model.n_joints
+    per_joint = []
+    for j in range(n):
+        ks = [k for k in range(-3, 4) if lo[j] - 2 * np.pi * k <= np.pi and hi[j] - 2 * np.pi * k > -np.pi]
+        per_joint.append(sorted(ks, key=lambda k: (abs(k), k)))
+    combos = np.array(list(itertools.product(*per_joint)), dtype=float).reshape(-1, n)
+    labels = ["".join(f" {model.axis_names[j]}{int(360 * c[j]):+d}" for j in range(n) if c[j] != 0) for c in combos]
+    return combos * 2 * math.pi, labels
+
+
+def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solver:
+    n = model.n_joints
+    names = tuple(model.axis_names)
+    if n == 6:
+        cls, labels, kind = WristArmGeometry, wrist_arm_labels(), "6r"
+    elif n == 7:
+        cls, labels, kind = SrsGeometry, srs_labels(), "7r"
+    else:
+        raise ValueError(
+            f"{model.name} has {n} joints; analytic IK covers 6-joint arms with a spherical wrist and "
+            f"7-joint S-R-S arms (use calib.ik_numeric.solve_numeric for others)"
+        )
+    polish = False
+    if params is None:
+        geometry = cls.from_axes(ScrewAxes.from_chain(chain), names, model.name)
+    else:
+        try:
+            geometry = cls.from_axes(ScrewAxes.from_chain(chain, params), names, model.name)
+        except ValueError:
+            # the fitted geometry left the class (link errors): nominal structure + offsets, then polish
+            geometry = cls.from_axes(ScrewAxes.from_chain(chain, chain.with_offsets(params[:n])), names, model.name)
+            polish = True
+    shifts, shift_labels = _wide_shifts(model)
+    return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels)
+
+
+def _solver(model: RobotModel, params: np.ndarray | None) -> _Solver:
+    if not isinstance(model, RobotModel):
+        raise TypeError(f"model must be a calib.model.RobotModel, got {type(model).__name__}")
+    p = None
+    if params is not None:
+        p = np.asarray(params, dtype=float)
+        n_params = 5 * model.n_joints + 3 * len(model.tool.markers)
+        if p.shape != (n_params,):
+            raise ValueError(f"params must be one Chain parameter vector of shape ({n_params},), got {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise ValueError("params contains NaN or infinite entries")
+    key = (id(model), None if p is None else p.tobytes())
+    hit = _CACHE.get(key)
+    if hit is not None and hit[0] is model:
+        return hit[1]
+    nominal = _CACHE.get((id(model), None))
+    chain = nominal[1].chain if nominal is not None and nominal[0] is model else Chain(model)
+    solver = _build(model, chain, p)
+    if len(_CACHE) >= _CACHE_SIZE:
+        _CACHE.pop(next(iter(_CACHE)))
+    _CACHE[key] = (model, solver)
+    return solver
+
+
+def _check_poses(poses: np.ndarray) -> np.ndarray:
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must have shape (k, 4, 4) (flange frames in the base frame, mm), got {poses.shape}")
+    if not np.all(np.isfinite(poses)):
+        raise ValueError("poses contain NaN or infinite entries")
+    r = poses[:, :3, :3]
+    ortho = np.abs(np.swapaxes(r, -1, -2) @ r - np.eye(3)).max(axis=(-1, -2))
+    det = np.linalg.det(r)
+    bad = np.flatnonzero((ortho > 1e-6) | (det < 0) | np.any(np.abs(poses[:, 3, :] - [0, 0, 0, 1]) > 1e-12, axis=-1))
+    if bad.size:
+        raise ValueError(
+            f"pose {int(bad[0])} is not a rigid transform (rotation must be orthonormal with det +1 to 1e-6, "
+            f"last row [0, 0, 0, 1]); {bad.size} such pose(s) given"
+        )
+    return poses
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return np.pi - np.mod(np.pi - a, 2 * np.pi)
+
+
+# --- verification and polishing ---------------------------------------------------------------
+def _pose_errors(chain: Chain, q: np.ndarray, targets: np.ndarray, params: np.ndarray | None):
+    rot, pos = chain.flange_pose(q, params)
+    dp = np.linalg.norm(pos - targets[:, :3, 3], axis=-1)
+    dr = rotation_angle(np.swapaxes(targets[:, :3, :3], -1, -2) @ rot)
+    return dp, dr
+
+
+def _polish(
+    s: _Solver, q: np.ndarray, targets: np.ndarray, psi: np.ndarray | None = None
+) -> np.ndarray:
+    """Gauss–Newton on the flange pose: q (m, n), targets (m, 4, 4) → refined q (m, n).
+
+    For the 7R arm with ``psi`` (m,) the arm angle is a seventh equation, so the polished
+    solution keeps the requested arm angle (as ``arm_angle_of`` measures it).
+    """
+    chain, params = s.chain, s.params
+    n = chain.n
+    q = q.copy()
+    rows = 6 if psi is None else 7
+    act = np.arange(q.shape[0])
+    for _ in range(POLISH_ITERATIONS):
+        qa, ta = q[act], targets[act]
+        fj = chain.flange_jacobian(qa, params)
+        e = np.concatenate([ta[:, :3, 3] - fj.position, log_so3(ta[:, :3, :3] @ np.swapaxes(fj.rotation, -1, -2))], -1)
+        jac = np.concatenate([fj.jp[..., :n], fj.jw[..., :n]], -2)  # (m, 6, n)
+        if psi is not None:
+            h = 1e-7
+            base = s.geometry.arm_angle(qa)
+            grad = _wrap(s.geometry.arm_angle(qa[:, None, :] + h * np.eye(n)) - base[:, None]) / h
+            e = np.concatenate([e, _wrap(psi[act] - base)[:, None]], -1)
+            jac = np.concatenate([jac, grad[:, None, :]], -2)
+        done = np.all(np.abs(e[:, :3]) < 1e-10, axis=-1) & np.all(np.abs(e[:, 3:]) < 1e-13, axis=-1)
+        if done.all():
+            break
+        act, e, jac, qa = act[~done], e[~done], jac[~done], qa[~done]
+        jjt = jac @ np.swapaxes(jac, -1, -2)
+        damp = 1e-14 * np.trace(jjt, axis1=-2, axis2=-1)[:, None, None] * np.eye(rows)
+        step = np.einsum("mji,mj->mi", jac, np.linalg.solve(jjt + damp, e[..., None])[..., 0])
+        # limit wild steps near singularities
+        big = np.abs(step).max(axis=-1, keepdims=True)
+        q[act] = qa + step * np.minimum(1.0, 0.5 / np.maximum(big, 1e-300))
+    return q
+
+
+def _verified(s: _Solver, raw: RawSolutions, poses: np.ndarray, psi: np.ndarray | None = None) -> np.ndarray:
+    """raw.q with failing rows marked NaN; polishes where needed. Returns q (k, B, n)."""
+    k, nb, n = raw.q.shape
+    q = raw.q.reshape(-1, n).copy()
+    valid = raw.valid.reshape(-1)
+    targets = np.repeat(poses, nb, axis=0)
+    psis = None if psi is None else np.repeat(psi, nb)
+    idx = np.flatnonzero(valid)
+    if s.polish and idx.size:
+        q[idx] = _polish(s, q[idx], targets[idx], None if psis is None else psis[idx])
+    ok = np.zeros(k * nb, dtype=bool)
+    if idx.size:
+        dp, dr = _pose_errors(s.chain, q[idx], targets[idx], s.params)
+        good = (dp <= POSITION_TOLERANCE_MM) & (dr <= ORIENTATION_TOLERANCE_RAD)
+        bad = idx[~good]
+        if bad.size:  # numerical safety net (near singularities): polish and check again
+            q[bad] = _polish(s, q[bad], targets[bad], None if psis is None else psis[bad])
+            dp2, dr2 = _pose_errors(s.chain, q[bad], targets[bad], s.params)
+            good2 = (dp2 <= POSITION_TOLERANCE_MM) & (dr2 <= ORIENTATION_TOLERANCE_RAD)
+            if not good2.all():
+                log.debug("discarded %d IK candidate(s) that did not reproduce the pose", int((~good2).sum()))
+            good[~good] = good2
+        ok[idx] = good
+    q = _wrap(q)
+    q[~ok] = np.nan
+    return q.reshape(k, nb, n)
+
+
+def _limits_message(model: RobotModel, q: np.ndarray) -> str:
+    """Which limit the closest solution (rows q (m, n), principal) violates."""
+    lo, hi = model.lower_limits_rad, model.upper_limits_rad
+    best = None
+    for row in q:
+        over = np.maximum(lo - row, 0) + np.maximum(row - hi, 0)
+        # a ±360° equivalent may fit one joint better
+        for j in range(len(row)):
+            for sh in (-2 * np.pi, 2 * np.pi):
+                alt = row[j] + sh
+                o = max(lo[j] - alt, 0) + max(alt - hi[j], 0)
+                if o < over[j]:
+                    over[j] = o
+                    row = row.copy()
+                    row[j] = alt
+        total = over.sum()
+        if best is None or total < best[0]:
+            best = (total, row, over)
+    _, row, over = best
+    worst = int(np.argmax(over))
+    return (
+        f"{len(q)} solution(s) reproduce the pose but none is within the joint limits; the closest has "
+        f"{model.axis_names[worst]} = {np.degrees(row[worst]):.3f}° (limits {model.joints[worst].limits[0]:g}° … "
+        f"{model.joints[worst].limits[1]:g}°)"
+    )
+
+
+def _recheck_singular(s: _Solver, raw: RawSolutions, q: np.ndarray) -> RawSolutions:
+    """With a polished model the nominal geometry's singularity flags can be spurious: keep a
+    flag only if some polished solution's Jacobian is within ~1e-6 of rank deficiency."""
+    flagged = [i for i, m in enumerate(raw.singular) if m]
+    if not flagged:
+        return raw
+    singular = list(raw.singular)
+    n = q.shape[-1]
+    for i in flagged:
+        rows = q[i][~np.isnan(q[i, :, 0])]
+        if rows.size == 0:
+            continue
+        fj = s.chain.flange_jacobian(rows, s.params)
+        jac = np.concatenate([fj.jp[..., :n], 1000.0 * fj.jw[..., :n]], -2)  # rad rows scaled to mm at 1 m
+        sv = np.linalg.svd(jac, compute_uv=False)
+        if np.all(sv[:, -1] > 1e-6 * sv[:, 0]):
+            singular[i] = ""
+    return RawSolutions(q=raw.q, valid=raw.valid, unreachable=raw.unreachable, singular=singular)
+
+
+def _assemble(s: _Solver, raw: RawSolutions, q: np.ndarray, within_limits: bool) -> list[IkSolutions]:
+    model = s.model
+    k, nb, n = q.shape
+    if s.polish:
+        raw = _recheck_singular(s, raw, q)
+    lo, hi = model.lower_limits_rad, model.upper_limits_rad
+    ok = ~np.isnan(q[..., 0])
+    # duplicates among branches (exact singularities, branches polished onto one another)
+    diff = np.abs(_wrap(q[:, :, None, :] - q[:, None, :, :])).max(-1)  # (k, B, B)
+    same = (diff < DUPLICATE_TOLERANCE_RAD) & np.tril(np.ones((nb, nb), dtype=bool), -1)
+    ok &= ~np.any(same & ok[:, None, :], axis=-1)
+    if within_limits:
+        cand = q[:, :, None, :] + s.shifts[None, None, :, :]  # (k, B, C, n)
+        inside = np.all((cand >= lo) & (cand <= hi), axis=-1) & ok[..., None]
+    out = []
+    empty = np.zeros((0, n))
+    for i in range(k):
+        if raw.unreachable[i]:
+            out.append(IkSolutions(empty, [], "unreachable", raw.unreachable[i]))
+            continue
+        rows = np.flatnonzero(ok[i])
+        if rows.size == 0:
+            why = raw.singular[i] or "the pose is numerically degenerate"
+            status = "unreachable" if s.polish else "singular"
+            msg = "no branch reproduces the pose to tolerance" + (" for the given parameters" if s.polish else "")
+            out.append(IkSolutions(empty, [], status, f"{msg} ({why})"))
+            continue
+        if within_limits:
+            b_idx, c_idx = np.nonzero(inside[i])
+            if b_idx.size == 0:
+                msg = _limits_message(model, q[i, rows])
+                if raw.singular[i]:
+                    msg += "; also " + raw.singular[i]
+                out.append(IkSolutions(empty, [], "limits", msg))
+                continue
+            sol = cand[i, b_idx, c_idx]
+            labels = [s.labels[b] + s.shift_labels[c] for b, c in zip(b_idx, c_idx)]
+        else:
+            sol = q[i, rows]
+            labels = [s.labels[b] for b in rows]
+        status = "singular" if raw.singular[i] else "ok"
+        out.append(IkSolutions(np.ascontiguousarray(sol), labels, status, raw.singular[i]))
+    return out
+
+
+def _slack(s: _Solver) -> float:
+    """Reach slack: a perturbed model may reach a little beyond the nominal one."""
+    return POLISH_REACH_SLACK if s.polish else REACH_SLACK
+
+
+# --- public API --------------------------------------------------------------------------------
+def solve_many(
+    model: RobotModel,
+    poses: np.ndarray,
+    *,
+    arm_angle: float | np.ndarray | None = None,
+    within_limits: bool = True,
+    params: np.ndarray | None = None,
+) -> list[IkSolutions]:
+    """Every IK solution of each flange pose; poses (k, 4, 4) mm in the robot base frame.
+
+    ``arm_angle`` (7R only): ψ rad, one float for all poses or an array (k,). ``None``: with
+    ``within_limits`` the centre of the widest feasible arm-angle interval of each pose
+    (``pick_arm_angle``), else ψ = 0. Passing it for a 6R arm raises ``ValueError``.
+    Returns one ``IkSolutions`` per pose (see the module docstring).
+    """
+    s = _solver(model, params)
+    poses = _check_poses(poses)
+    k = poses.shape[0]
+    if s.kind == "6r":
+        if arm_angle is not None:
+            raise ValueError(f"arm_angle applies to 7-joint arms; {model.name} has 6 joints (pass None)")
+        raw = s.geometry.solve(poses, reach_slack=_slack(s))
+        return _assemble(s, raw, _verified(s, raw, poses), within_limits)
+    no_angle: list[str] = [""] * k
+    if arm_angle is None:
+        psi = np.zeros(k)
+        if within_limits:
+            for i in range(k):
+                try:
+                    psi[i] = pick_arm_angle(model, poses[i], params=params)
+                except NoFeasibleArmAngle as exc:
+                    no_angle[i] = str(exc)
+    else:
+        psi = np.broadcast_to(np.asarray(arm_angle, dtype=float), (k,)).copy()
+        if not np.all(np.isfinite(psi)):
+            raise ValueError(f"arm_angle must be finite (rad), got {arm_angle!r}")
+    raw = s.geometry.solve(poses, psi, reach_slack=_slack(s))
+    out = _assemble(s, raw, _verified(s, raw, poses, psi if s.polish else None), within_limits)
+    for i in range(k):
+        if no_angle[i] and out[i].status != "unreachable":
+            out[i] = IkSolutions(np.zeros((0, model.n_joints)), [], "limits", no_angle[i])
+    return out
+
+
+def solve_all(
+    model: RobotModel,
+    pose: np.ndarray,
+    *,
+    arm_angle: float | None = None,
+    within_limits: bool = True,
+    params: np.ndarray | None = None,
+) -> IkSolutions:
+    """Every IK solution of one flange pose (4, 4) mm; see ``solve_many``."""
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape != (4, 4):
+        raise ValueError(f"pose must be one (4, 4) flange frame, got shape {pose.shape}")
+    return solve_many(model, pose[None], arm_angle=arm_angle, within_limits=within_limits, params=params)[0]
+
+
+# --- 7R arm angle ------------------------------------------------------------------------------
+def _srs(model: RobotModel, params: np.ndarray | None) -> _Solver:
+    s = _solver(model, params)
+    if s.kind != "7r":
+        raise ValueError(f"arm angles apply to 7-joint S-R-S arms; {model.name} has {model.n_joints} joints")
+    return s
+
+
+def arm_angle_of(model: RobotModel, q: np.ndarray, *, params: np.ndarray | None = None) -> np.ndarray:
+    """Arm angle ψ (...) rad of joint vectors q (..., 7) rad (7R): ``solve_all(fk(q), arm_angle=ψ)`` contains q."""
+    s = _srs(model, params)
+    q = np.asarray(q, dtype=float)
+    if q.shape[-1] != 7:
+        raise ValueError(f"joint vectors must have 7 entries, got shape {q.shape}")
+    return s.geometry.arm_angle(q)
+
+
+def _feasible(s: _Solver, pose: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """(len(ψ), 8) — configuration exists and (some ±360° equivalent of) it is within limits."""
+    raw = s.geometry.solve(np.broadcast_to(pose, (psi.size, 4, 4)), psi)
+    lo, hi = s.model.lower_limits_rad, s.model.upper_limits_rad
+    cand = raw.q[:, :, None, :] + s.shifts[None, None, :, :]
+    inside = np.all((cand >= lo) & (cand <= hi), axis=-1).any(axis=-1)
+    return inside & raw.valid
+
+
+def arm_angle_intervals_by_configuration(
+    model: RobotModel, pose: np.ndarray, *, params: np.ndarray | None = None
+) -> dict[str, list[tuple[float, float]]]:
+    """Feasible arm-angle intervals (rad, within [−π, π]) per global configuration label (7R).
+
+    Method (Shimizu et al. 2008): every joint angle is a closed-form function of ψ, so the arm
+    angles where any joint meets a limit are roots of ``a sin ψ + b cos ψ + c = 0``
+    (``SrsGeometry.limit_crossings``). Between consecutive roots feasibility cannot change; it is
+    tested once at each gap's midpoint. Boundaries are therefore exact to rounding (≈1e-12 rad;
+    ≈1e-8 rad where a joint only grazes its limit) and no interval is missed however narrow.
+    An interval through ±π is split into (lo, π) and (−π, hi). With ``params`` the intervals
+    are those of the analytic geometry (nominal + zero-offsets when the fitted geometry is
+    outside the class), so boundaries may differ from the polished model's by the link error.
+    """
+    s = _srs(model, params)
+    pose = _check_poses(np.asarray(pose, dtype=float)[None])[0]
+    cuts = np.unique(s.geometry.limit_crossings(pose, s.model.lower_limits_rad, s.model.upper_limits_rad))
+    if not s.geometry.solve(pose[None], np.zeros(1)).valid.any():
+        return {label: [] for label in s.labels}
+    if cuts.size == 0:
+        feas = _feasible(s, pose, np.zeros(1))  # (1, 8)
+        return {label: ([(-np.pi, np.pi)] if feas[0, c] else []) for c, label in enumerate(s.labels)}
+    ends = np.append(cuts[1:], cuts[0] + 2 * np.pi)  # gap g runs from cuts[g] to ends[g]
+    feas = _feasible(s, pose, _wrap(0.5 * (cuts + ends)))  # (n_gaps, 8)
+    out: dict[str, list[tuple[float, float]]] = {}
+    for c, label in enumerate(s.labels):
+        col = feas[:, c]
+        if col.all():
+            out[label] = [(-np.pi, np.pi)]
+            continue
+        intervals: list[tuple[float, float]] = []
+        if col.any():
+            g0 = int(np.flatnonzero(~col)[0])
+            order = np.roll(np.arange(col.size), -g0)  # starts on an infeasible gap
+            run = None
+            for g in order[1:]:
+                if col[g] and run is None:
+                    run = [cuts[g], ends[g]]
+                elif col[g]:
+                    run[1] = ends[g]
+                elif run is not None:
+                    intervals.extend(_split(*run))
+                    run = None
+            if run is not None:
+                intervals.extend(_split(*run))
+        out[label] = _merge(intervals)
+    return out
+
+
+def _split(lo: float, hi: float) -> list[tuple[float, float]]:
+    """Arc from lo to hi (hi ≥ lo, hi − lo ≤ 2π) as intervals within [−π, π]."""
+    if hi - lo >= 2 * np.pi:
+        return [(-np.pi, np.pi)]
+    lo, hi = float(_wrap(lo)), float(_wrap(hi))
+    if hi >= lo:
+        return [(lo, hi)]
+    return [(lo, np.pi), (-np.pi, hi)]
+
+
+def _merge(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    merged: list[list[float]] = []
+    for lo, hi in sorted(intervals):
+        if merged and lo <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], hi)
+        else:
+            merged.append([lo, hi])
+    return [(a, b) for a, b in merged]
+
+
+def arm_angle_intervals(model: RobotModel, pose: np.ndarray, *, params: np.ndarray | None = None) -> list[tuple[float, float]]:
+    """Arm angles ψ (rad) at which at least one global configuration is within limits (7R).
+
+    The union over the 8 configurations of ``arm_angle_intervals_by_configuration`` (see there
+    for the accuracy), as sorted disjoint (lo, hi) pairs within [−π, π]; an arc through ±π
+    appears as (lo, π) and (−π, hi). Empty when the pose is out of reach or no arm angle works.
+    """
+    per = arm_angle_intervals_by_configuration(model, pose, params=params)
+    return _merge([iv for ivs in per.values() for iv in ivs])
+
+
+def _arcs(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Join (lo, π) and (−π, hi) into one arc (lo, hi + 2π)."""
+    arcs = list(intervals)
+    if len(arcs) >= 2 and arcs[0][0] <= -np.pi + 1e-12 and arcs[-1][1] >= np.pi - 1e-12:
+        first, last = arcs.pop(0), arcs.pop()
+        arcs.append((last[0], first[1] + 2 * np.pi))
+    return arcs
+
+
+def pick_arm_angle(
+    model: RobotModel, pose: np.ndarray, *, prefer: float | None = None, params: np.ndarray | None = None
+) -> float:
+    """An arm angle ψ (rad, in (−π, π]) at which some configuration is within limits (7R).
+
+    ``prefer=None``: the centre of the widest feasible arc. Otherwise ``prefer`` itself if
+    feasible, else the feasible ψ closest to it (on the circle), 1e-6 rad inside the arc's end
+    (or its centre if the arc is narrower). Raises ``NoFeasibleArmAngle`` (a ``ValueError``)
+    when there is none.
+    """
+    ivs = arm_angle_intervals(model, pose, params=params)
+    if not ivs:
+        raise NoFeasibleArmAngle(
+            f"no arm angle puts every joint of {model.name} within limits for this pose "
+            f"(or the pose is out of reach): {len(ivs)} feasible intervals"
+        )
+    arcs = _arcs(ivs)
+    if prefer is None:
+        lo, hi = max(arcs, key=lambda a: a[1] - a[0])
+        return float(_wrap(0.5 * (lo + hi)))
+    prefer = float(prefer)
+    if not math.isfinite(prefer):
+        raise ValueError(f"prefer must be a finite arm angle in rad, got {prefer!r}")
+    best, best_d = None, math.inf
+    for lo, hi in arcs:
+        off = float(_wrap(prefer - lo))
+        off = off if off >= 0 else off + 2 * np.pi
+        if off <= hi - lo:
+            return float(_wrap(prefer))
+        margin = min(1e-6, 0.5 * (hi - lo))
+        for edge, inward in ((lo, margin), (hi, -margin)):
+            d = abs(float(_wrap(prefer - edge)))
+            if d < best_d:
+                best, best_d = edge + inward, d
+    return float(_wrap(best))

@@ -1,0 +1,197 @@
+"""Accuracy metrics of the remastering paper, before and after a fit (all in mm).
+
+``relative_errors``    eq. 17: within each pose group, every pair of configurations (same sensor,
+                       same marker): | |p_ref,i − p_ref,j| − |p_robot,i − p_robot,j| |. Needs no
+                       registration — distances are frame-independent.
+``absolute_errors``    eq. 18: per point |E_i| after a least-squares rigid registration of the
+                       robot's predicted points to the measured ones (per sensor).
+``theoretical_errors`` Sec. V-C, Tables V–VII: distances between the TCP with the estimated
+                       offsets (or the nominal "before" ones) and the TCP with posterior draws of
+                       the offsets, with and without the isotropic error σ, at given
+                       configurations. The TCP is the flange origin.
+Each metric is summarised as mean, 2.5/97.5 percentiles and maximum.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from calib.dataset import Dataset
+from calib.kinematics import Chain, offset_kinematics
+from calib.registration import register_least_squares
+from calib.transforms import apply
+
+
+@dataclass(frozen=True)
+class Summary:
+    mean: float
+    p2_5: float
+    p97_5: float
+    max: float
+    count: int
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def summarize(values: np.ndarray) -> Summary:
+    v = np.asarray(values, dtype=float).ravel()
+    if v.size == 0:
+        nan = float("nan")
+        return Summary(nan, nan, nan, nan, 0)
+    lo, hi = np.percentile(v, [2.5, 97.5])
+    return Summary(float(v.mean()), float(lo), float(hi), float(v.max()), int(v.size))
+
+
+def predicted_base(chain: Chain, data: Dataset, offsets_rad: np.ndarray) -> np.ndarray:
+    """The robot's idea of each row's marker in its base frame, (k, 3) mm."""
+    pos = chain.marker_positions(data.q_rad, chain.with_offsets(offsets_rad))
+    idx = np.array([chain.marker_names.index(m) for m in data.marker])
+    return pos[np.arange(len(data)), idx]
+
+
+def relative_errors(data: Dataset, p_robot: np.ndarray) -> np.ndarray:
+    """Eq. 17 over every pose group with two or more configurations; (n_pairs,) mm."""
+    out = []
+    groups = {}
+    for i, (pose, sensor, marker) in enumerate(zip(data.pose, data.sensor, data.marker)):
+        if pose:
+            groups.setdefault((pose, sensor, marker), []).append(i)
+    for rows in groups.values():
+        if len(rows) < 2:
+            continue
+        r = np.array(rows)
+        i, j = np.triu_indices(r.size, k=1)
+        d_ref = np.linalg.norm(data.xyz_mm[r[i]] - data.xyz_mm[r[j]], axis=1)
+        d_rob = np.linalg.norm(p_robot[r[i]] - p_robot[r[j]], axis=1)
+        out.append(np.abs(d_ref - d_rob))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def absolute_errors(data: Dataset, p_robot: np.ndarray) -> np.ndarray:
+    """Eq. 18 per point after registering ``p_robot`` to the measurements per sensor; (k,) mm."""
+    err = np.empty(len(data))
+    for s in data.sensors:
+        rows = np.flatnonzero(data.sensor == s)
+        reg = register_least_squares(p_robot[rows], data.xyz_mm[rows])
+        err[rows] = np.linalg.norm(apply(reg.base2sensor, p_robot[rows]) - data.xyz_mm[rows], axis=1)
+    return err
+
+
+def theoretical_errors(
+    chain: Chain,
+    q_rad: np.ndarray,
+    reference_offsets_rad: np.ndarray,
+    offset_draws_rad: np.ndarray,
+    sigma_mm: float | None,
+    *,
+    rng: np.random.Generator,
+    n_draws: int = 2000,
+) -> np.ndarray:
+    """Sec. V-C: |TCP(reference) − (TCP(draw) + ε)|, ε ~ N(0, σ² I) (omitted if σ is None).
+
+    q_rad: (k, n) configurations; offset_draws_rad: (m, n) posterior draws (a random subset of
+    ``n_draws`` is used). Returns (n_draws · k,) mm.
+    """
+    pick = rng.choice(offset_draws_rad.shape[0], size=min(n_draws, offset_draws_rad.shape[0]), replace=False)
+    draws = offset_draws_rad[pick]
+    # The TCP is the flange origin; only the offsets change, so fold the rest of the chain once.
+    fk = offset_kinematics(chain, q_rad, np.zeros(3))
+    ref = fk.positions(np.asarray(reference_offsets_rad, dtype=float))  # (k, 3)
+    out = np.empty((draws.shape[0], q_rad.shape[0]))
+    for start in range(0, draws.shape[0], 256):
+        block = draws[start : start + 256]
+        tcp = fk.positions(block)  # (b, k, 3)
+        if sigma_mm is not None:
+            tcp = tcp + rng.normal(0.0, sigma_mm, size=tcp.shape)
+        out[start : start + block.shape[0]] = np.linalg.norm(tcp - ref, axis=-1)
+    return out.ravel()
+
+
+def random_configurations(chain: Chain, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``n`` joint vectors uniformly within the model's limits, (n, n_joints) rad."""
+    m = chain.model
+    return rng.uniform(m.lower_limits_rad, m.upper_limits_rad, size=(n, m.n_joints))
+
+
+def before_after(chain: Chain, data: Dataset, offsets_rad: np.ndarray) -> dict[str, dict]:
+    """Relative and absolute metrics with nominal (before) and fitted (after) offsets."""
+    before = predicted_base(chain, data, np.zeros(chain.n))
+    after = predicted_base(chain, data, offsets_rad)
+    out = {}
+    rel_b, rel_a = relative_errors(data, before), relative_errors(data, after)
+    if rel_b.size:
+        out["relative"] = {"before": summarize(rel_b).to_dict(), "after": summarize(rel_a).to_dict()}
+    out["absolute"] = {
+        "before": summarize(absolute_errors(data, before)).to_dict(),
+        "after": summarize(absolute_errors(data, after)).to_dict(),
+    }
+    return out
+
+
+def _pair(before: np.ndarray, after: np.ndarray) -> dict:
+    return {"before": summarize(before).to_dict(), "after": summarize(after).to_dict()}
+
+
+def accuracy_metrics(
+    chain: Chain,
+    data: Dataset,
+    applied_offsets_rad: np.ndarray,
+    offset_draws_rad: np.ndarray,
+    sigma_mm: float,
+    *,
+    validation: Dataset | None = None,
+    n_random: int = 1000,
+    n_draws: int = 2000,
+    seed: int = 0,
+) -> dict:
+    """Every metric of the paper's Sec. V–VI, before (nominal offsets) and after (applied ones).
+
+    applied_offsets_rad: (n,) the offsets that would be entered (0 where left unchanged);
+    offset_draws_rad: (m, n) posterior draws; sigma_mm: the isotropic error scale.
+    Returns a dict of metric name → {"before": Summary dict, "after": Summary dict} (mm):
+
+    ``relative`` (eq. 17, Table III; only with pose groups), ``absolute`` (eq. 18, Table IV),
+    ``theoretical_measured`` (Table V: offsets draws + σ at the measured configurations),
+    ``theoretical_measured_offsets_only`` (the same without σ), ``theoretical_workspace``
+    (Table VI: ``n_random`` uniform configurations within the joint limits),
+    ``theoretical_workspace_offsets_only`` (Table VII), and with ``validation`` the
+    ``validation_relative`` / ``validation_absolute`` of Table VIII. Plus ``offsets_share``:
+    mean error from the offsets alone ÷ mean error with σ, over the workspace (the paper's
+    "95 % before, 15 % after"), and ``settings`` (n_random, n_draws, σ, seed).
+    """
+    rng = np.random.default_rng(seed)
+    zero = np.zeros(chain.n)
+    applied = np.asarray(applied_offsets_rad, dtype=float)
+    out: dict = {}
+    before, after = predicted_base(chain, data, zero), predicted_base(chain, data, applied)
+    rel_b, rel_a = relative_errors(data, before), relative_errors(data, after)
+    if rel_b.size:
+        out["relative"] = _pair(rel_b, rel_a)
+    out["absolute"] = _pair(absolute_errors(data, before), absolute_errors(data, after))
+    q_meas = np.unique(data.q_rad, axis=0)
+    q_rand = random_configurations(chain, n_random, rng)
+    for where, q in (("measured", q_meas), ("workspace", q_rand)):
+        for suffix, sig in (("", sigma_mm), ("_offsets_only", None)):
+            b = theoretical_errors(chain, q, zero, offset_draws_rad, sig, rng=rng, n_draws=n_draws)
+            a = theoretical_errors(chain, q, applied, offset_draws_rad, sig, rng=rng, n_draws=n_draws)
+            out[f"theoretical_{where}{suffix}"] = _pair(b, a)
+    ws, wo = out["theoretical_workspace"], out["theoretical_workspace_offsets_only"]
+    out["offsets_share"] = {k: (wo[k]["mean"] / ws[k]["mean"] if ws[k]["mean"] > 0 else float("nan")) for k in ("before", "after")}
+    if validation is not None and len(validation):
+        vb, va = predicted_base(chain, validation, zero), predicted_base(chain, validation, applied)
+        vrel_b, vrel_a = relative_errors(validation, vb), relative_errors(validation, va)
+        if vrel_b.size:
+            out["validation_relative"] = _pair(vrel_b, vrel_a)
+        out["validation_absolute"] = _pair(absolute_errors(validation, vb), absolute_errors(validation, va))
+    out["settings"] = {
+        "n_random_configurations": int(n_random),
+        "n_measured_configurations": int(q_meas.shape[0]),
+        "n_draws": int(min(n_draws, offset_draws_rad.shape[0])),
+        "sigma_mm": float(sigma_mm),
+        "seed": int(seed),
+        "tcp": "flange origin",
+    }
+    return out

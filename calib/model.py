@@ -1,0 +1,177 @@
+"""Robot models: the YAML file format, its validation, and the numbers kinematics needs.
+
+A model file (mm and degrees) describes a serial arm as a chain of joints in one of two
+conventions:
+
+``dh``   standard Denavit–Hartenberg, link transform ``Rz(θ) Tz(d) Tx(a) Rx(α)``;
+``mdh``  the same with Hayati's torsion β appended, ``Rz(θ) Tz(d) Tx(a) Rx(α) Ry(β)`` — the
+         "modified DH" of the pose-selection seed (eq. 1), which stays well conditioned for
+         near-parallel axes (β is then the free parameter instead of d).
+
+The controller's axis convention is part of the model: for joint i the DH angle is
+``θ_i = theta_i + sign_i · q_i`` where ``q_i`` is the angle the controller shows for that axis.
+Joint limits and speeds are in the controller's convention too, so everything a user types or
+reads is in the pendant's numbers. A fitted zero-offset ``δ_i`` adds to ``q_i``.
+
+Inside the package everything is mm and radians (see ``calib/__init__``).
+"""
+
+from __future__ import annotations
+
+import math
+from functools import cached_property
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from calib.transforms import pose_to_matrix
+from calib.yamlfile import load_validated
+
+Convention = Literal["dh", "mdh"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Frame(_Strict):
+    """A fixed transform: translation (mm) then ZYX Euler rotation (deg, yaw-pitch-roll)."""
+
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    zyx: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> np.ndarray:
+        """(4, 4) homogeneous, mm."""
+        return pose_to_matrix(np.array(self.xyz), np.radians(self.zyx))
+
+
+class Joint(_Strict):
+    """One revolute joint: its link's nominal parameters and the controller's view of the axis."""
+
+    axis: str = Field(description="Controller's name for the axis, e.g. A1 or J1.")
+    theta: float = Field(0.0, description="DH joint-angle offset, deg: θ = theta + sign·q.")
+    d: float = Field(0.0, description="Link offset along the previous z, mm.")
+    a: float = Field(0.0, description="Link length along the new x, mm.")
+    alpha: float = Field(0.0, description="Link twist about the new x, deg.")
+    beta: float = Field(0.0, description="Hayati torsion about the new y, deg (mdh only).")
+    sign: Literal[1, -1] = Field(1, description="+1 if the controller's positive sense is the DH one.")
+    limits: tuple[float, float] = Field(description="[lower, upper] in controller degrees.")
+    max_speed: float = Field(gt=0, description="deg/s at 100 % override.")
+    max_accel: float = Field(gt=0, description="deg/s² used for planning.")
+
+    @field_validator("limits")
+    @classmethod
+    def _ordered(cls, v: tuple[float, float]) -> tuple[float, float]:
+        lo, hi = v
+        if not lo < hi:
+            raise ValueError(f"lower limit {lo} must be below upper limit {hi}")
+        if lo < -720 or hi > 720:
+            raise ValueError("limits are in degrees and must lie within ±720")
+        return v
+
+
+class Marker(_Strict):
+    """A target on the tool, position in the flange frame (mm)."""
+
+    name: str = Field(min_length=1)
+    xyz: tuple[float, float, float]
+    kind: Literal["retroreflector", "infrared", "other"] = "other"
+
+
+class Tool(_Strict):
+    name: str = "tool"
+    markers: list[Marker] = Field(min_length=1)
+
+    @field_validator("markers")
+    @classmethod
+    def _unique(cls, v: list[Marker]) -> list[Marker]:
+        names = [m.name for m in v]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"marker names must be unique; repeated: {sorted(dup)}")
+        return v
+
+
+class RobotModel(_Strict):
+    """A validated robot model. Load with ``load_robot_model(path)``."""
+
+    name: str
+    manufacturer: str = ""
+    controller: Literal["kss", "sunrise", "cs8", "generic"] = "generic"
+    convention: Convention
+    base: Frame = Frame()
+    flange: Frame = Frame()
+    joints: list[Joint] = Field(min_length=1, max_length=12)
+    tool: Tool
+    source: str = Field("", description="Where the nominal numbers come from.")
+
+    @model_validator(mode="after")
+    def _beta_only_in_mdh(self) -> "RobotModel":
+        if self.convention == "dh":
+            bad = [j.axis for j in self.joints if j.beta != 0.0]
+            if bad:
+                raise ValueError(f"beta is only allowed with convention 'mdh'; set on {bad}")
+        axes = [j.axis for j in self.joints]
+        if len(set(axes)) != len(axes):
+            raise ValueError(f"axis names must be unique, got {axes}")
+        return self
+
+    # --- numbers for kinematics (mm, rad, controller convention) -------------------------
+    @property
+    def n_joints(self) -> int:
+        return len(self.joints)
+
+    @property
+    def axis_names(self) -> list[str]:
+        return [j.axis for j in self.joints]
+
+    @property
+    def marker_names(self) -> list[str]:
+        return [m.name for m in self.tool.markers]
+
+    @cached_property
+    def lower_limits_rad(self) -> np.ndarray:
+        return np.radians([j.limits[0] for j in self.joints])
+
+    @cached_property
+    def upper_limits_rad(self) -> np.ndarray:
+        return np.radians([j.limits[1] for j in self.joints])
+
+    @cached_property
+    def max_velocity_rad_s(self) -> np.ndarray:
+        return np.radians([j.max_speed for j in self.joints])
+
+    @cached_property
+    def max_acceleration_rad_s2(self) -> np.ndarray:
+        return np.radians([j.max_accel for j in self.joints])
+
+    def within_limits(self, q_rad: np.ndarray, margin_rad: float = 0.0) -> np.ndarray:
+        """Boolean mask over leading dims: every axis of ``q_rad`` (..., n) inside limits − margin."""
+        q = np.asarray(q_rad)
+        return np.all((q >= self.lower_limits_rad + margin_rad) & (q <= self.upper_limits_rad - margin_rad), axis=-1)
+
+    def marker_index(self, name: str) -> int:
+        try:
+            return self.marker_names.index(name)
+        except ValueError:
+            raise ValueError(f"unknown marker {name!r}; the tool has {self.marker_names}") from None
+
+
+def load_robot_model(path: str | Path) -> RobotModel:
+    """Read and validate a robot model YAML file (mm, degrees).
+
+    Raises ``calib.yamlfile.ConfigError`` naming file, line, column and field on any problem.
+    """
+    return load_validated(path, RobotModel)
+
+
+def robot_model_from_dict(data: dict) -> RobotModel:
+    """Validate an in-memory model (same layout as the YAML file)."""
+    return RobotModel.model_validate(data)
+
+
+def wrap_to_pi(a: np.ndarray) -> np.ndarray:
+    """Angles wrapped to (−π, π]."""
+    return np.pi - np.mod(np.pi - np.asarray(a), 2 * math.pi)

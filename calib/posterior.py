@@ -1,0 +1,194 @@
+"""The zero-offset posterior of the remastering paper (eqs. 8–15), generalised.
+
+Model (eq. 8): a marker measured by sensor s in configuration i is predicted at
+
+    p_pred = T*_s · base2sensor0_s · p_base(q_i + δ)
+
+where ``base2sensor0_s`` is the initial registration (from three points, eq. 8, or least
+squares), ``T*_s = Trans(x, y, z) · Rz(α) Ry(β) Rx(γ)`` its correction and ``δ`` the joint
+zero-offsets added to the measured joint angles. Errors are isotropic with scale σ_s per sensor:
+Gaussian (eqs. 10–13) or, for robustness, multivariate Student-t with ν degrees of freedom.
+Priors: flat on δ and the corrections, Jeffreys 1/σ on each σ (eq. 14) — so with one sensor and
+Gaussian errors the posterior is eq. 15: p ∝ σ^(−3n−2) exp(−E / 2σ²).
+
+The **free vector** θ holds only what is being fitted, in SI-like units: offsets (rad),
+then per sensor (x, y, z mm, α, β, γ rad). σ is carried separately as log σ (mm).
+``ParamMask`` says which entries are free; everything fixed sits at zero (nominal).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.special import gammaln
+
+from calib.dataset import Dataset
+from calib.kinematics import Chain, offset_kinematics
+from calib.transforms import apply, euler_zyx_to_matrix
+
+REG_NAMES = ("x", "y", "z", "alpha", "beta", "gamma")
+
+
+@dataclass(frozen=True)
+class ParamMask:
+    """Which parameters are free. ``offsets``: (n,) bool; ``registration``: (S, 6) bool."""
+
+    offsets: np.ndarray
+    registration: np.ndarray
+    reasons: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def full(self) -> np.ndarray:
+        return np.concatenate([self.offsets, self.registration.ravel()])
+
+    def fix(self, full_index: int, reason: str, names: list[str]) -> "ParamMask":
+        full = self.full.copy()
+        full[full_index] = False
+        n = self.offsets.size
+        reasons = dict(self.reasons)
+        reasons[names[full_index]] = reason
+        return ParamMask(full[:n], full[n:].reshape(self.registration.shape), reasons)
+
+
+class OffsetPosterior:
+    """Log posterior of zero-offsets, registration corrections and σ for one dataset.
+
+    ``base2sensor0``: dict sensor name → (4, 4) initial registration.
+    """
+
+    def __init__(
+        self,
+        chain: Chain,
+        data: Dataset,
+        base2sensor0: dict[str, np.ndarray],
+        mask: ParamMask,
+        *,
+        error: str = "gaussian",
+        nu: float = 4.0,
+    ) -> None:
+        if error not in ("gaussian", "student"):
+            raise ValueError(f"error model {error!r} not known; use 'gaussian' or 'student'")
+        if error == "student" and not nu > 2:
+            raise ValueError(f"Student-t needs nu > 2 for a finite variance, got {nu}")
+        self.chain, self.data, self.mask = chain, data, mask
+        self.error, self.nu = error, float(nu)
+        self.sensors = sorted(base2sensor0)
+        missing = set(data.sensors) - set(self.sensors)
+        if missing:
+            raise ValueError(f"no initial registration for sensor(s) {sorted(missing)}")
+        self.b2s0 = np.stack([base2sensor0[s] for s in self.sensors])  # (S, 4, 4)
+        self.sensor_index = np.array([self.sensors.index(s) for s in data.sensor])
+        self.marker_index = np.array([chain.marker_names.index(m) for m in data.marker])
+        self.n_rows = len(data)
+        self.n = chain.n
+        self.S = len(self.sensors)
+        self.free = np.flatnonzero(mask.full)
+        self.names = [f"{ax}.offset" for ax in chain.model.axis_names] + [
+            f"{s}.{r}" for s in self.sensors for r in REG_NAMES
+        ]
+        self.free_names = [self.names[i] for i in self.free]
+        self.rows_per_sensor = np.bincount(self.sensor_index, minlength=self.S)
+        self._rows_of_sensor = [np.flatnonzero(self.sensor_index == k_s) for k_s in range(self.S)]
+        # Only the offsets move inside the fit: fold the rest of the kinematics once.
+        markers_flange = np.array([mk.xyz for mk in chain.model.tool.markers], dtype=float)
+        self._offset_fk = offset_kinematics(chain, data.q_rad, markers_flange[self.marker_index])
+
+    # --- parameter packing -----------------------------------------------------------
+    @property
+    def dim(self) -> int:
+        return int(self.free.size)
+
+    def full_vector(self, theta: np.ndarray) -> np.ndarray:
+        """Free vector(s) (..., dim) → full vector(s) (..., n + 6·S) with fixed entries at 0."""
+        theta = np.asarray(theta, dtype=float)
+        full = np.zeros(theta.shape[:-1] + (self.n + 6 * self.S,))
+        full[..., self.free] = theta
+        return full
+
+    def corrections(self, full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """T*_s rotation (..., S, 3, 3) and translation (..., S, 3) from full vector(s)."""
+        reg = full[..., self.n :].reshape(full.shape[:-1] + (self.S, 6))
+        return euler_zyx_to_matrix(reg[..., 3], reg[..., 4], reg[..., 5]), reg[..., :3]
+
+    # --- prediction and residuals ----------------------------------------------------
+    def predict(self, theta: np.ndarray) -> np.ndarray:
+        """Predicted marker positions in each row's sensor frame: (..., k, 3) mm."""
+        full = self.full_vector(theta)
+        p_base = self._offset_fk.positions(full[..., : self.n])  # (..., k, 3)
+        rot, trans = self.corrections(full)  # (..., S, 3, 3), (..., S, 3)
+        # Compose T*_s · base2sensor0_s once per draw and sensor, then apply it to that sensor's rows.
+        r_total = rot @ self.b2s0[:, :3, :3]  # (..., S, 3, 3)
+        t_total = np.einsum("...ij,...j->...i", rot, self.b2s0[:, :3, 3]) + trans  # (..., S, 3)
+        if self.S == 1:
+            return p_base @ np.swapaxes(r_total[..., 0, :, :], -1, -2) + t_total[..., 0, None, :]
+        out = np.empty_like(p_base)
+        for k_s, rows in enumerate(self._rows_of_sensor):
+            out[..., rows, :] = p_base[..., rows, :] @ np.swapaxes(r_total[..., k_s, :, :], -1, -2) + t_total[..., k_s, None, :]
+        return out
+
+    def residuals(self, theta: np.ndarray) -> np.ndarray:
+        """measured − predicted, (..., k, 3) mm."""
+        return self.data.xyz_mm - self.predict(theta)
+
+    def jacobian(self, theta: np.ndarray) -> np.ndarray:
+        """∂ predicted / ∂ θ_free for one θ: (k·3, dim)."""
+        full = self.full_vector(theta)
+        params = self.chain.with_offsets(full[: self.n])
+        pos, jac = self.chain.marker_jacobian(self.data.q_rad, params)  # (k, m, 3), (k, m, 3, P)
+        rows = np.arange(self.n_rows)
+        p_base = pos[rows, self.marker_index]
+        j_off = jac[rows, self.marker_index][..., : self.n]  # (k, 3, n)
+        b2s0 = self.b2s0[self.sensor_index]
+        rot, trans = self.corrections(full)  # (S,3,3), (S,3)
+        r_rows = rot[self.sensor_index]
+        total = r_rows @ b2s0[:, :3, :3]  # (k, 3, 3)
+        j = np.zeros((self.n_rows, 3, self.n + 6 * self.S))
+        j[..., : self.n] = total @ j_off
+        p_s0 = apply(b2s0, p_base)
+        rp = np.einsum("kij,kj->ki", r_rows, p_s0)  # R* p_s0
+        reg = full[self.n :].reshape(self.S, 6)
+        ca, sa = np.cos(reg[:, 3]), np.sin(reg[:, 3])
+        cb, sb = np.cos(reg[:, 4]), np.sin(reg[:, 4])
+        ez = np.array([0.0, 0.0, 1.0])
+        ey_rot = np.stack([-sa, ca, np.zeros_like(ca)], -1)  # Rz(α) e_y
+        ex_rot = np.stack([ca * cb, sa * cb, -sb], -1)  # Rz(α) Ry(β) e_x
+        s = self.sensor_index
+        for k_s in range(self.S):
+            rows_s = s == k_s
+            col = self.n + 6 * k_s
+            j[rows_s, :, col : col + 3] = np.eye(3)
+            j[rows_s, :, col + 3] = np.cross(ez, rp[rows_s])
+            j[rows_s, :, col + 4] = np.cross(ey_rot[k_s], rp[rows_s])
+            j[rows_s, :, col + 5] = np.cross(ex_rot[k_s], rp[rows_s])
+        return j.reshape(self.n_rows * 3, -1)[:, self.free]
+
+    # --- densities ---------------------------------------------------------------------
+    def log_posterior(self, theta: np.ndarray, log_sigma: np.ndarray) -> np.ndarray:
+        """log p(θ, σ | data) up to a constant; batched: θ (..., dim), log σ (..., S).
+
+        The prior on each σ is the paper's: eq. 14 writes p(Θ, σ²) ∝ σ⁻² and eq. 16 samples
+        eq. 15 as a density over σ, i.e. p(σ) ∝ σ⁻². The density here is with respect to
+        (θ, log σ), so it carries the Jacobian σ: −log σ per sensor in total. (Jeffreys' 1/σ
+        would differ by one power of σ out of 3n + 2 — immaterial, but we follow the paper so the
+        reference sampler and the fast one target exactly the same distribution.)
+        """
+        log_sigma = np.asarray(log_sigma, dtype=float)
+        r2 = np.sum(self.residuals(theta) ** 2, axis=-1)  # (..., k)
+        sig2 = np.exp(2 * log_sigma)[..., self.sensor_index]  # (..., k)
+        if self.error == "gaussian":
+            ll = -0.5 * r2 / sig2 - 3.0 * log_sigma[..., self.sensor_index]
+        else:
+            nu = self.nu
+            # Multivariate t in 3-D with scale σ: density ∝ σ^-3 (1 + r²/(ν σ²))^(-(ν+3)/2).
+            ll = -0.5 * (nu + 3) * np.log1p(r2 / (nu * sig2)) - 3.0 * log_sigma[..., self.sensor_index]
+            ll = ll + gammaln((nu + 3) / 2) - gammaln(nu / 2)
+        return ll.sum(axis=-1) - log_sigma.sum(axis=-1)
+
+    def sse(self, theta: np.ndarray) -> np.ndarray:
+        """E of eq. 7 per sensor: (..., S) mm²."""
+        r2 = np.sum(self.residuals(theta) ** 2, axis=-1)
+        out = np.zeros(r2.shape[:-1] + (self.S,))
+        for k_s in range(self.S):
+            out[..., k_s] = r2[..., self.sensor_index == k_s].sum(axis=-1)
+        return out

@@ -1,0 +1,93 @@
+"""YAML files validated by pydantic, with errors that name file, line, column and field.
+
+Used for robot models here and for plans in ``acquire``. A bad file raises ``ConfigError``
+(a ``ValueError``) whose message lists every problem as
+``path:line:column: field: message (given: …)``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+M = TypeVar("M", bound=BaseModel)
+
+Marks = dict[tuple, tuple[int, int]]
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used; the message says where and why."""
+
+
+def _construct(node: yaml.Node, path: tuple, marks: Marks) -> Any:
+    marks[path] = (node.start_mark.line + 1, node.start_mark.column + 1)
+    if isinstance(node, yaml.MappingNode):
+        out: dict = {}
+        for key_node, value_node in node.value:
+            key = yaml.SafeLoader.construct_object(_LOADER, key_node)
+            out[key] = _construct(value_node, path + (key,), marks)
+        return out
+    if isinstance(node, yaml.SequenceNode):
+        return [_construct(v, path + (i,), marks) for i, v in enumerate(node.value)]
+    return _LOADER.construct_object(node, deep=True)
+
+
+class _Loader(yaml.SafeLoader):
+    pass
+
+
+_LOADER = _Loader("")
+
+
+def load_yaml_with_marks(path: str | Path) -> tuple[Any, Marks]:
+    """Parse a YAML file; return the data and a map from field path to (line, column), 1-based."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark else str(path)
+        raise ConfigError(f"{where}: not valid YAML: {getattr(exc, 'problem', exc)}") from exc
+    if node is None:
+        raise ConfigError(f"{path}: the file is empty")
+    marks: Marks = {}
+    return _construct(node, (), marks), marks
+
+
+def _locate(loc: tuple, marks: Marks) -> tuple[int, int] | None:
+    for n in range(len(loc), -1, -1):
+        if loc[:n] in marks:
+            return marks[loc[:n]]
+    return None
+
+
+def format_validation_error(path: str | Path, exc: ValidationError, marks: Marks, data: Any) -> str:
+    """Every pydantic error as ``path:line:col: field: message (given: value)``."""
+    lines = []
+    for err in exc.errors(include_url=False):
+        loc = tuple(err["loc"])
+        # Drop pydantic's discriminator/function tags that are not keys in the file.
+        file_loc = tuple(p for p in loc if not (isinstance(p, str) and ("[" in p or "function-" in p)))
+        where = _locate(file_loc, marks)
+        field = ".".join(str(p) for p in file_loc) or "(top level)"
+        prefix = f"{path}:{where[0]}:{where[1]}" if where else str(path)
+        given = err.get("input")
+        given_txt = "" if isinstance(given, (dict, list)) else f" (given: {given!r})"
+        lines.append(f"{prefix}: {field}: {err['msg']}{given_txt}")
+    return "\n".join(lines)
+
+
+def load_validated(path: str | Path, model: type[M]) -> M:
+    """Load ``path`` and validate it as ``model``; raise ConfigError naming line and field."""
+    data, marks = load_yaml_with_marks(path)
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(path, exc, marks, data)) from None

@@ -1,0 +1,204 @@
+"""Shared driver machinery: time stamps, timeouts, validation, averaging, target checks.
+
+A driver subclasses ``SensorBase`` or ``CommanderBase`` and fills in only the device-specific
+``_read_internal`` / ``_move_internal`` parts (python-can's ``recv`` / ``_recv_internal``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from typing import Callable
+
+import numpy as np
+
+from drivers.errors import DeviceTimeoutError, LimitError, TargetLostError
+from drivers.protocols import JointLimits, JointState, MarkerMeasurement, MarkerSample
+
+Clock = Callable[[], float]
+
+
+def check_timeout(timeout: float) -> float:
+    """Validate a timeout in seconds: finite and positive."""
+    if not (isinstance(timeout, (int, float)) and math.isfinite(timeout) and timeout > 0):
+        raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
+    return float(timeout)
+
+
+class DeviceBase:
+    """Name, logger, monotonic clock and context-manager plumbing for every driver."""
+
+    def __init__(self, name: str, *, clock: Clock = time.monotonic) -> None:
+        self.name = name
+        self.clock = clock
+        self.log = logging.getLogger(f"remaster.device.{name}")
+
+    def connect(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def close(self) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def __enter__(self):
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class SensorBase(DeviceBase):
+    """A ``PositionSensor`` whose subclass implements ``_read_internal``."""
+
+    def read(self, timeout: float) -> list[MarkerSample]:
+        samples = self._read_internal(check_timeout(timeout))
+        for s in samples:
+            if s.visible and not np.all(np.isfinite(s.position_mm)):
+                raise ValueError(f"{self.name}: visible marker {s.marker!r} has a non-finite position")
+        return samples
+
+    def _read_internal(self, timeout: float) -> list[MarkerSample]:  # pragma: no cover
+        raise NotImplementedError
+
+    def measure(self, marker: str, n: int, timeout: float) -> MarkerMeasurement:
+        """Average ``n`` visible samples of ``marker``.
+
+        Raises TargetLostError when the marker is reported invisible (the caller decides whether
+        to wait, re-acquire or skip) and DeviceTimeoutError when ``n`` samples do not arrive
+        within ``timeout`` seconds in total.
+        """
+        if n < 1:
+            raise ValueError(f"n must be at least 1, got {n}")
+        timeout = check_timeout(timeout)
+        deadline = self.clock() + timeout
+        got: list[MarkerSample] = []
+        while len(got) < n:
+            remaining = deadline - self.clock()
+            if remaining <= 0:
+                raise DeviceTimeoutError(
+                    f"{self.name}: {len(got)} of {n} samples of {marker!r} in {timeout:.3g} s"
+                )
+            for s in self.read(remaining):
+                if s.marker != marker:
+                    continue
+                if not s.visible:
+                    raise TargetLostError(f"{self.name}: marker {marker!r} is not visible")
+                got.append(s)
+        pos = np.stack([s.position_mm for s in got[:n]])
+        return MarkerMeasurement(
+            marker=marker,
+            mean_mm=pos.mean(axis=0),
+            std_mm=pos.std(axis=0, ddof=1) if n > 1 else np.zeros(3),
+            count=n,
+            device_time=got[n - 1].device_time,
+            host_time=got[n - 1].host_time,
+        )
+
+
+class CommanderBase(DeviceBase):
+    """A ``JointCommander`` whose subclass implements ``_move_internal`` and ``joint_state``.
+
+    ``max_speed`` is the highest speed fraction the plan allows (0–1]; ``limit_margin_rad`` is
+    kept clear of every joint limit; a measured state older than ``max_state_age_s`` is stale.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        limits: JointLimits,
+        *,
+        max_speed: float = 1.0,
+        limit_margin_rad: float = math.radians(0.5),
+        max_state_age_s: float = 0.1,
+        clock: Clock = time.monotonic,
+    ) -> None:
+        super().__init__(name, clock=clock)
+        if not 0 < max_speed <= 1:
+            raise ValueError(f"max_speed must be in (0, 1], got {max_speed}")
+        self.limits = limits
+        self.max_speed = max_speed
+        self.limit_margin_rad = limit_margin_rad
+        self.max_state_age_s = max_state_age_s
+
+    def joint_state(self) -> JointState:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def check_state(self, state: JointState) -> JointState:
+        """Refuse a stale, wrongly sized or non-finite measured state."""
+        q = np.asarray(state.position_rad, dtype=float)
+        if q.shape != (self.limits.n_axes,):
+            raise LimitError(
+                f"{self.name}: controller reports {q.shape[0] if q.ndim else 0} axes, "
+                f"the robot model has {self.limits.n_axes}"
+            )
+        if not np.all(np.isfinite(q)):
+            raise LimitError(f"{self.name}: measured joint state is not finite: {q}")
+        age = self.clock() - state.host_time
+        if age > self.max_state_age_s:
+            raise LimitError(
+                f"{self.name}: measured joint state is {age * 1e3:.0f} ms old "
+                f"(allowed {self.max_state_age_s * 1e3:.0f} ms); is the controller streaming?"
+            )
+        return state
+
+    def check_target(self, target_rad: np.ndarray, speed: float) -> np.ndarray:
+        """Validate a move before anything moves; returns the target as a float array."""
+        t = np.asarray(target_rad, dtype=float)
+        lim = self.limits
+        if t.shape != (lim.n_axes,):
+            raise LimitError(f"{self.name}: target has shape {t.shape}, expected ({lim.n_axes},)")
+        if not np.all(np.isfinite(t)):
+            raise LimitError(f"{self.name}: target is not finite: {t}")
+        if not (isinstance(speed, (int, float)) and 0 < speed <= self.max_speed):
+            raise LimitError(
+                f"{self.name}: speed {speed!r} is not allowed; the plan allows (0, {self.max_speed}]"
+            )
+        lo = lim.lower_rad + self.limit_margin_rad
+        hi = lim.upper_rad - self.limit_margin_rad
+        bad = np.flatnonzero((t < lo) | (t > hi))
+        if bad.size:
+            names = lim.names or tuple(f"J{i + 1}" for i in range(lim.n_axes))
+            details = ", ".join(
+                f"{names[i]}={math.degrees(t[i]):.3f}° not in "
+                f"[{math.degrees(lo[i]):.3f}, {math.degrees(hi[i]):.3f}]°"
+                for i in bad
+            )
+            raise LimitError(f"{self.name}: target outside joint limits (with margin): {details}")
+        return t
+
+    def move_to(self, target_rad: np.ndarray, speed: float, timeout: float) -> None:
+        target = self.check_target(target_rad, speed)
+        timeout = check_timeout(timeout)
+        start = self.check_state(self.joint_state())
+        self._move_internal(start, target, speed, timeout)
+
+    def _move_internal(
+        self, start: JointState, target_rad: np.ndarray, speed: float, timeout: float
+    ) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def wait_settled(
+        self, tolerance_rad: float, window_s: float, timeout: float, *, poll_s: float = 0.004
+    ) -> JointState:
+        """Stability-window status (ophyd style): the window restarts whenever any axis leaves
+        ``tolerance_rad`` of the window's first reading; rejects a window longer than the timeout."""
+        timeout = check_timeout(timeout)
+        if window_s >= timeout:
+            raise ValueError(f"settle window {window_s} s must be shorter than timeout {timeout} s")
+        deadline = self.clock() + timeout
+        ref = self.check_state(self.joint_state())
+        t0 = ref.host_time
+        while True:
+            now = self.clock()
+            if now > deadline:
+                raise DeviceTimeoutError(f"{self.name}: not settled within {timeout:.3g} s")
+            state = self.check_state(self.joint_state())
+            if np.max(np.abs(state.position_rad - ref.position_rad)) > tolerance_rad:
+                ref, t0 = state, state.host_time
+            elif state.host_time - t0 >= window_s:
+                return state
+            self._sleep(poll_s)
+
+    def _sleep(self, dt: float) -> None:
+        time.sleep(dt)

@@ -1,0 +1,39 @@
+"""Error classes raised by drivers.
+
+Each also inherits from the built-in a caller would naturally catch (python-can / ophyd
+style), so ``except TimeoutError`` still works around a driver call.
+"""
+
+from __future__ import annotations
+
+
+class DriverError(Exception):
+    """Base class of every error a driver raises on purpose."""
+
+
+class DriverUnavailableError(DriverError, ImportError):
+    """A registered driver could not be imported (missing dependency, broken plug-in)."""
+
+
+class ProtocolError(DriverError, ValueError):
+    """Bytes or a line from a device (or a peer) that do not follow the protocol."""
+
+
+class DeviceTimeoutError(DriverError, TimeoutError):
+    """The device did not answer, or stopped streaming, within the allowed time."""
+
+
+class ConnectionLostError(DriverError, ConnectionError):
+    """The transport to the device closed or failed."""
+
+
+class DeviceFaultError(DriverError, RuntimeError):
+    """The device reported a fault (error reply, controller stop, drive fault)."""
+
+
+class TargetLostError(DriverError, RuntimeError):
+    """The sensor cannot see the requested marker (occluded, beam broken)."""
+
+
+class LimitError(DriverError, ValueError):
+    """A command was refused before anything moved: outside limits, too fast, bad state."""

@@ -1,0 +1,312 @@
+"""``FriCommander``: the ``JointCommander`` for a KUKA LBR iiwa over FRI.
+
+The controller (Sunrise) is the sender: it sends a monitoring message every send period to
+this client's UDP port (30200 by default); the client answers to the sender's address. The
+exchange runs in its own thread (``fri-rt``, SCHED_FIFO when permitted) around
+``FriClientSession``; ``move_to`` only plans, hands the trajectory over and waits.
+
+URL: ``fri://HOST:PORT?option=value&...`` where HOST:PORT is the local address to bind
+(``0.0.0.0:30200`` on the cell PC, ``127.0.0.1:0`` in tests). Options:
+
+- ``controller=IP``: accept monitoring messages only from this address (default: any).
+- ``rt_priority=N``: SCHED_FIFO priority of the exchange thread, 0 to not ask (default 50).
+- ``timeout_ms=N``: silence after which a running motion fails with DeviceTimeoutError
+  (default 100).
+- ``max_speed=F``: highest speed fraction the plan allows, (0, 1] (default 1).
+- ``start_tolerance_deg=F``: allowed gap between measured and held position when a move
+  starts (default 2).
+- ``max_state_age_ms=N``: a measured state older than this is stale (default 100).
+- ``name=S``: device name for logs (default ``fri``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import socket
+import threading
+import time
+from typing import Callable, Optional
+from urllib.parse import parse_qsl, urlsplit
+
+import numpy as np
+
+from drivers.base import Clock, CommanderBase
+from drivers.errors import ConnectionLostError, DeviceTimeoutError, ProtocolError
+from drivers.kuka_fri.messages import SessionState, decode_monitoring, encode_command
+from drivers.kuka_fri.session import (
+    N_JOINTS,
+    FriClientSession,
+    MotionStoppedError,
+    SessionSnapshot,
+    joint_state_of,
+)
+from drivers.protocols import JointLimits, JointState
+
+__all__ = ["FriCommander", "MotionStoppedError"]
+
+DEFAULT_PORT = 30200
+_URL_OPTIONS = ("controller", "rt_priority", "timeout_ms", "max_speed", "start_tolerance_deg",
+                "max_state_age_ms", "name")
+
+
+class FriCommander(CommanderBase):
+    """Joint-position commander over FRI for a 7-axis LBR iiwa.
+
+    limits: the model's limits, shape (7,) arrays (radians, rad/s, rad/s²).
+    bind: local (host, port) to receive monitoring messages on; port 0 picks a free one.
+    controller_host: accept datagrams only from this IP (None: any sender).
+    receive_timeout_s: silence (client clock) after which a running motion fails.
+    clock / sleep: client time source and sleep (inject a ``SimClock``'s ``now``/``sleep``).
+    """
+
+    def __init__(
+        self,
+        limits: JointLimits,
+        *,
+        bind: tuple[str, int] = ("0.0.0.0", DEFAULT_PORT),
+        controller_host: Optional[str] = None,
+        name: str = "fri",
+        rt_priority: int = 50,
+        receive_timeout_s: float = 0.1,
+        start_tolerance_rad: float = math.radians(2.0),
+        max_speed: float = 1.0,
+        max_state_age_s: float = 0.1,
+        limit_margin_rad: float = math.radians(0.5),
+        clock: Clock = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        if limits.n_axes != N_JOINTS:
+            raise ValueError(f"{name}: an LBR iiwa has {N_JOINTS} axes; the model limits have {limits.n_axes}")
+        super().__init__(
+            name, limits, max_speed=max_speed, limit_margin_rad=limit_margin_rad,
+            max_state_age_s=max_state_age_s, clock=clock,
+        )
+        if not (isinstance(rt_priority, int) and 0 <= rt_priority <= 99):
+            raise ValueError(f"rt_priority must be an integer in [0, 99], got {rt_priority!r}")
+        if not receive_timeout_s > 0:
+            raise ValueError(f"receive_timeout_s must be positive, got {receive_timeout_s}")
+        self.bind = (bind[0], int(bind[1]))
+        self.controller_host = controller_host
+        self.rt_priority = rt_priority
+        self.receive_timeout_s = float(receive_timeout_s)
+        self._sleep_fn = sleep
+        self.session = FriClientSession(limits, start_tolerance_rad=start_tolerance_rad, logger=self.log)
+        self.rt_scheduling: str = "not started"
+        self.malformed_messages = 0
+        self.foreign_datagrams = 0
+        self._sock: Optional[socket.socket] = None
+        self._thread: Optional[threading.Thread] = None
+        self._running = threading.Event()
+        self._last_warning = -math.inf
+
+    # ------------------------------------------------------------------ construction
+
+    @classmethod
+    def from_url(cls, url: str, *, limits: JointLimits, **kwargs) -> "FriCommander":
+        """Build from ``fri://HOST:PORT?options`` (see the module docstring)."""
+        parts = urlsplit(url)
+        if parts.scheme != "fri":
+            raise ValueError(f"FRI URL must start with fri://, got {url!r}")
+        try:
+            port = parts.port
+        except ValueError as exc:
+            raise ValueError(f"bad port in FRI URL {url!r}: {exc}") from exc
+        host = parts.hostname or "0.0.0.0"
+        opts = dict(parse_qsl(parts.query, keep_blank_values=True, strict_parsing=False))
+        unknown = sorted(set(opts) - set(_URL_OPTIONS))
+        if unknown:
+            raise ValueError(f"unknown FRI URL option(s) {unknown}; allowed: {', '.join(_URL_OPTIONS)}")
+        conv = {
+            "controller": ("controller_host", str),
+            "rt_priority": ("rt_priority", int),
+            "timeout_ms": ("receive_timeout_s", lambda v: float(v) / 1000.0),
+            "max_speed": ("max_speed", float),
+            "start_tolerance_deg": ("start_tolerance_rad", lambda v: math.radians(float(v))),
+            "max_state_age_ms": ("max_state_age_s", lambda v: float(v) / 1000.0),
+            "name": ("name", str),
+        }
+        args = {}
+        for key, raw in opts.items():
+            arg, fn = conv[key]
+            try:
+                args[arg] = fn(raw)
+            except ValueError as exc:
+                raise ValueError(f"FRI URL option {key}={raw!r} is not valid: {exc}") from exc
+        args.update(kwargs)
+        return cls(limits, bind=(host, DEFAULT_PORT if port is None else port), **args)
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """The bound local (host, port); the controller sends here."""
+        if self._sock is None:
+            raise RuntimeError(f"{self.name}: not connected")
+        return self._sock.getsockname()
+
+    def connect(self) -> None:
+        """Bind the UDP port and start the exchange thread (answers start with the controller)."""
+        if self._thread is not None:
+            return
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind(self.bind)
+        except OSError as exc:
+            sock.close()
+            raise ConnectionLostError(f"{self.name}: cannot bind UDP {self.bind[0]}:{self.bind[1]}: {exc}") from exc
+        sock.settimeout(min(0.02, self.receive_timeout_s / 2))
+        self._sock = sock
+        self._running.set()
+        self._thread = threading.Thread(target=self._rt_loop, name=f"{self.name}-rt", daemon=True)
+        self._thread.start()
+        self.log.info("FRI client listening on %s:%d", *self.address)
+
+    def close(self) -> None:
+        """Stop a running motion (decelerating), end the exchange thread and close the port."""
+        if self._thread is None:
+            return
+        if self.session.motion_active():
+            try:
+                self.stop()
+            except DeviceTimeoutError as exc:
+                self.log.warning("stop on close did not finish: %s", exc)
+        self._running.clear()
+        self._thread.join(timeout=2.0)
+        self._thread = None
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+    # ------------------------------------------------------------------ the exchange thread
+
+    def _set_realtime(self) -> None:
+        if self.rt_priority == 0:
+            self.rt_scheduling = "normal (rt_priority=0)"
+            return
+        if not hasattr(os, "sched_setscheduler"):
+            self.rt_scheduling = "normal (no SCHED_FIFO on this platform)"
+            self.log.warning("SCHED_FIFO is not available on this platform; FRI runs at normal priority")
+            return
+        try:  # pid 0: the calling thread on Linux
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
+            self.rt_scheduling = f"SCHED_FIFO {self.rt_priority}"
+            self.log.info("FRI exchange thread runs SCHED_FIFO priority %d", self.rt_priority)
+        except PermissionError as exc:
+            self.rt_scheduling = "normal (SCHED_FIFO not permitted)"
+            self.log.warning(
+                "SCHED_FIFO priority %d not permitted (%s): the FRI exchange runs at normal priority "
+                "and may answer late under load. Grant it with LimitRTPRIO=%d in the systemd unit, "
+                "an rtprio limit in /etc/security/limits.d, or CAP_SYS_NICE.",
+                self.rt_priority, exc, self.rt_priority,
+            )
+
+    def _rt_loop(self) -> None:
+        self._set_realtime()
+        sock = self._sock
+        assert sock is not None
+        session = self.session
+        while self._running.is_set():
+            try:
+                data, addr = sock.recvfrom(4096)
+            except socket.timeout:
+                session.check_silence(self.clock(), self.receive_timeout_s)
+                continue
+            except OSError as exc:
+                if not self._running.is_set():
+                    break
+                self._warn(f"receive failed: {exc}")
+                continue
+            now = self.clock()
+            if self.controller_host is not None and addr[0] != self.controller_host:
+                self.foreign_datagrams += 1
+                continue
+            try:
+                msg = decode_monitoring(data)
+            except ProtocolError as exc:
+                self.malformed_messages += 1
+                self._warn(f"malformed monitoring message ({len(data)} bytes) from {addr[0]}:{addr[1]}: {exc}")
+                session.check_silence(now, self.receive_timeout_s)
+                continue
+            reply = session.on_monitoring(msg, now)
+            if reply is not None:
+                try:
+                    sock.sendto(encode_command(reply), addr)
+                except OSError as exc:
+                    self._warn(f"send to {addr[0]}:{addr[1]} failed: {exc}")
+
+    def _warn(self, text: str) -> None:
+        """Rate-limited warning: at most one per second from the exchange thread."""
+        t = time.monotonic()
+        if t - self._last_warning >= 1.0:
+            self._last_warning = t
+            self.log.warning("%s", text)
+
+    # ------------------------------------------------------------------ JointCommander
+
+    @property
+    def session_state(self) -> Optional[SessionState]:
+        """The session state of the latest monitoring message (None before the first)."""
+        return self.session.session_state
+
+    def wait_session(self, state: SessionState, timeout: float) -> None:
+        """Wait until the controller reports ``state``; DeviceTimeoutError after ``timeout``."""
+        deadline = self.clock() + timeout
+        while self.session.session_state != state:
+            if self.clock() > deadline:
+                raise DeviceTimeoutError(
+                    f"{self.name}: session is {getattr(self.session.session_state, 'name', None)}, "
+                    f"not {state.name}, after {timeout} s"
+                )
+            self._sleep(0.005)
+
+    def joint_state(self) -> JointState:
+        """Latest measured joint positions, shape (7,), radians; DeviceTimeoutError if stale."""
+        snap: Optional[SessionSnapshot] = self.session.snapshot()
+        if snap is None:
+            raise DeviceTimeoutError(f"{self.name}: no monitoring message received yet")
+        age = self.clock() - snap.host_time
+        if age > self.max_state_age_s:
+            raise DeviceTimeoutError(
+                f"{self.name}: last monitoring message is {age * 1e3:.0f} ms old "
+                f"(allowed {self.max_state_age_s * 1e3:.0f} ms); is the controller sending?"
+            )
+        if snap.measured_rad is None:
+            raise DeviceTimeoutError(f"{self.name}: controller sends no measured joint position")
+        return joint_state_of(snap)
+
+    def _move_internal(self, start: JointState, target_rad: np.ndarray, speed: float, timeout: float) -> None:
+        motion = self.session.begin_move(target_rad, speed, self.name)
+        self.log.info(
+            "move to %s deg at speed %.3g: %.3f s", np.round(np.degrees(target_rad), 3).tolist(),
+            speed, motion.trajectory.duration,
+        )
+        deadline = self.clock() + timeout
+        while not motion.done.wait(0.005):
+            if self.clock() > deadline:
+                self.session.request_stop()
+                motion.done.wait(self._stop_wait_s(motion))
+                raise DeviceTimeoutError(
+                    f"{self.name}: move not finished within {timeout:.3g} s "
+                    f"(planned {motion.trajectory.duration:.3g} s); stopped"
+                )
+        if motion.error is not None:
+            raise motion.error
+
+    def _stop_wait_s(self, motion) -> float:
+        """Wall time to wait for a stop to finish: the worst stop time plus slack."""
+        v, a, _ = motion.limits_scaled
+        return float(np.max(v / a)) * 2.0 + 10 * motion.dt + 0.5
+
+    def stop(self) -> None:
+        """Decelerate the current motion within the limits and hold (no-op when idle).
+        A ``move_to`` waiting on it raises ``MotionStoppedError``."""
+        motion = self.session.request_stop()
+        if motion is None:
+            return
+        if not motion.done.wait(self._stop_wait_s(motion)):
+            raise DeviceTimeoutError(f"{self.name}: stop did not complete; is the controller sending?")
+
+    def _sleep(self, dt: float) -> None:
+        self._sleep_fn(dt)

@@ -1,0 +1,608 @@
+"""``FakeSunrise``: a Sunrise controller's FRI side, over real UDP on 127.0.0.1.
+
+It is the sender, as the real controller is: every ``send_period_ms`` (simulated time when a
+``SimClock`` is given) it sends an ``FRIMonitoringMessage`` to the client address and collects
+the ``FRICommandMessage`` answers that arrive before the next one. It walks the session state
+machine, runs the commanded positions through a second-order servo, checks the client's
+counters, timing, echo and step sizes, and exposes fault hooks for the failure paths.
+
+Session state machine (see ``PROTOCOL.md``)::
+
+    IDLE --(open_session / auto after idle_cycles)--> MONITORING_WAIT
+    MONITORING_WAIT --(ready_after consecutive answered windows, quality >= GOOD)--> MONITORING_READY
+    MONITORING_READY --(start_commanding(): the robot application's FRI overlay motion)--> COMMANDING_WAIT
+    COMMANDING_WAIT --(commanding_wait_cycles answers echoing the ipo position)--> COMMANDING_ACTIVE
+    COMMANDING_* --(stop_commanding / violation / fault)--> MONITORING_READY
+    any non-IDLE --(max_missed consecutive unanswered windows)--> MONITORING_WAIT
+    any --(close_session / restart)--> IDLE
+
+An answer *window* is ``receive_multiplier`` consecutive monitoring messages; the client must
+answer one message of each window before the window's last message is followed by the next.
+An answer reflecting an older message is *late*; a window without a timely answer is *missed*.
+Quality is taken over the last ``quality_window`` windows: no miss EXCELLENT, up to 10 % GOOD,
+up to 30 % FAIR, else POOR.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import select
+import socket
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from drivers.errors import ProtocolError
+from drivers.kuka_fri.messages import (
+    COMMAND_MESSAGE_ID,
+    MONITORING_MESSAGE_ID,
+    ClientCommandMode,
+    ConnectionInfo,
+    ConnectionQuality,
+    ControlMode,
+    DriveState,
+    FRIMonitoringMessage,
+    IpoData,
+    MessageHeader,
+    MonitorData,
+    OperationMode,
+    OverlayType,
+    RobotInfo,
+    SafetyState,
+    SessionState,
+    TimeStamp,
+    decode_command,
+)
+from drivers.protocols import JointLimits
+
+log = logging.getLogger("remaster.fake.sunrise")
+
+N_JOINTS = 7
+_LOOPBACK = {"127.0.0.1", "localhost", "::1"}
+
+
+@dataclass
+class FakeSunriseStats:
+    """What the fake saw of the client. ``commands``: (controller time s, shape (7,) rad) of
+    every set-point the fake applied in COMMANDING_ACTIVE, in order."""
+
+    sent: int = 0
+    answers: int = 0
+    late_answers: int = 0
+    missed_windows: int = 0
+    bad_reflections: int = 0
+    malformed_answers: int = 0
+    answers_in_idle: int = 0
+    session_drops: int = 0
+    violations: list[str] = field(default_factory=list)
+    commands: list[tuple[float, np.ndarray]] = field(default_factory=list)
+
+
+class FakeSunrise:
+    """A fake Sunrise FRI controller.
+
+    client_address: (host, port) of the FRI client, loopback only.
+    limits: used to check what the client commands (per-cycle speed, position range) and,
+        when ``abort_on_violation``, to end the motion as Sunrise does; None skips the checks.
+    initial_position_rad: shape (7,); default the scene's pose or zeros.
+    servo_frequency_hz, servo_damping: second-order servo from set-point to actual position.
+    max_missed: consecutive missed windows that drop the session to MONITORING_WAIT.
+    jitter_ms: each send is delayed by a uniform random 0..jitter_ms (simulated ms).
+    loss_out / loss_in: probability that a monitoring message / an answer is lost.
+    max_runtime_s: wall seconds after which the sending thread stops by itself.
+    """
+
+    def __init__(
+        self,
+        client_address: tuple[str, int],
+        *,
+        limits: Optional[JointLimits] = None,
+        send_period_ms: int = 5,
+        receive_multiplier: int = 1,
+        initial_position_rad: Optional[np.ndarray] = None,
+        scene=None,
+        clock=None,
+        servo_frequency_hz: float = 6.0,
+        servo_damping: float = 0.7,
+        noise_rad: float = 0.0,
+        seed: int = 0,
+        auto_open: bool = True,
+        idle_cycles: int = 3,
+        ready_after: int = 10,
+        commanding_wait_cycles: int = 10,
+        max_missed: int = 20,
+        quality_window: int = 50,
+        start_tolerance_rad: float = 1e-3,
+        echo_tolerance_rad: float = 1e-6,
+        speed_tolerance: float = 1e-6,
+        abort_on_violation: bool = True,
+        jitter_ms: float = 0.0,
+        loss_out: float = 0.0,
+        loss_in: float = 0.0,
+        max_runtime_s: float = 300.0,
+    ) -> None:
+        host, port = client_address
+        if host not in _LOOPBACK:
+            raise ValueError(f"the fake Sunrise only talks to loopback, got client host {host!r}")
+        if not (isinstance(send_period_ms, int) and 1 <= send_period_ms <= 100):
+            raise ValueError(f"send_period_ms must be an integer in [1, 100], got {send_period_ms!r}")
+        if not (isinstance(receive_multiplier, int) and 1 <= receive_multiplier <= 10):
+            raise ValueError(f"receive_multiplier must be an integer in [1, 10], got {receive_multiplier!r}")
+        for name, p in (("loss_out", loss_out), ("loss_in", loss_in)):
+            if not 0 <= p < 1:
+                raise ValueError(f"{name} must be a probability in [0, 1), got {p}")
+        if limits is not None and limits.n_axes != N_JOINTS:
+            raise ValueError(f"an LBR iiwa has {N_JOINTS} joints; limits have {limits.n_axes}")
+        self.client_address = ("127.0.0.1" if host == "localhost" else host, int(port))
+        self.limits = limits
+        self.send_period_ms = send_period_ms
+        self.receive_multiplier = receive_multiplier
+        self.scene = scene
+        self.clock = clock
+        self.noise_rad = float(noise_rad)
+        self.auto_open = auto_open
+        self.idle_cycles = idle_cycles
+        self.ready_after = ready_after
+        self.commanding_wait_cycles = commanding_wait_cycles
+        self.max_missed = max_missed
+        self.start_tolerance_rad = start_tolerance_rad
+        self.echo_tolerance_rad = echo_tolerance_rad
+        self.speed_tolerance = speed_tolerance
+        self.abort_on_violation = abort_on_violation
+        self.jitter_ms = float(jitter_ms)
+        self.loss_out = float(loss_out)
+        self.loss_in = float(loss_in)
+        self.max_runtime_s = float(max_runtime_s)
+        self._rng = np.random.default_rng(seed)
+        self._omega = 2 * math.pi * servo_frequency_hz
+        self._zeta = servo_damping
+
+        if initial_position_rad is None:
+            initial_position_rad = (
+                np.asarray(scene.joint_positions(), dtype=float) if scene is not None else np.zeros(N_JOINTS)
+            )
+        q0 = np.asarray(initial_position_rad, dtype=float).copy()
+        if q0.shape != (N_JOINTS,):
+            raise ValueError(f"initial_position_rad must have shape ({N_JOINTS},), got {q0.shape}")
+        self._q = q0  # actual position, rad
+        self._qd = np.zeros(N_JOINTS)  # actual velocity, rad/s
+        self._setpoint = q0.copy()  # commanded (ipo) position, rad
+        self._prev_setpoint_step: Optional[np.ndarray] = None
+
+        self.stats = FakeSunriseStats()
+        self._lock = threading.Lock()
+        self._state_changed = threading.Condition(self._lock)
+        self._state = SessionState.IDLE
+        self._seq = 0  # our counter, next message
+        self._client_seq = 0  # last counter the client sent
+        self._cycles_in_state = 0
+        self._window_first_seq = 0
+        self._window_count = 0
+        self._window_answered = False
+        self._windows: deque[bool] = deque(maxlen=quality_window)
+        self._consecutive_missed = 0
+        self._consecutive_good = 0
+        self._first_active_command = True
+        self._drop_next = 0
+        self._malformed_next: list[str] = []
+        self._sending = True
+        self._safety = SafetyState.NORMAL_OPERATION
+        self._drives = DriveState.ACTIVE
+        self._sim_time = 0.0
+        self._sock: Optional[socket.socket] = None
+        self._thread: Optional[threading.Thread] = None
+        self._stop = threading.Event()
+
+    # ------------------------------------------------------------------ public API
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """The fake's own (host, port): where the client's answers go."""
+        if self._sock is None:
+            raise RuntimeError("FakeSunrise is not started")
+        return self._sock.getsockname()
+
+    @property
+    def session_state(self) -> SessionState:
+        with self._lock:
+            return self._state
+
+    @property
+    def quality(self) -> ConnectionQuality:
+        with self._lock:
+            return self._quality()
+
+    def actual_position(self) -> np.ndarray:
+        """The servo's actual joint positions, shape (7,), radians."""
+        with self._lock:
+            return self._q.copy()
+
+    def start(self) -> "FakeSunrise":
+        """Bind 127.0.0.1:0 and start sending."""
+        if self._thread is not None:
+            raise RuntimeError("FakeSunrise already started")
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind(("127.0.0.1", 0))
+        self._sock.setblocking(False)
+        self._thread = threading.Thread(target=self._run, name="fake-sunrise", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop sending and close the socket (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        if self._sock is not None:
+            self._sock.close()
+
+    def __enter__(self) -> "FakeSunrise":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def wait_state(self, state: SessionState, timeout: float) -> None:
+        """Block until the session is in ``state``; TimeoutError after ``timeout`` wall s."""
+        with self._state_changed:
+            if not self._state_changed.wait_for(lambda: self._state == state, timeout):
+                raise TimeoutError(
+                    f"fake Sunrise: session is {self._state.name}, not {state.name}, after {timeout} s"
+                )
+
+    def open_session(self) -> None:
+        """The robot application opens its FRI session: IDLE → MONITORING_WAIT."""
+        with self._lock:
+            if self._state == SessionState.IDLE:
+                self._set_state(SessionState.MONITORING_WAIT, "session opened")
+
+    def close_session(self) -> None:
+        with self._lock:
+            self._set_state(SessionState.IDLE, "session closed")
+
+    def start_commanding(self) -> None:
+        """The robot application starts a motion with a joint-position FRI overlay."""
+        with self._lock:
+            if self._state != SessionState.MONITORING_READY:
+                raise RuntimeError(
+                    f"start_commanding needs MONITORING_READY, the session is {self._state.name}"
+                )
+            self._set_state(SessionState.COMMANDING_WAIT, "application started an FRI motion")
+
+    def stop_commanding(self) -> None:
+        """The robot application ends its FRI motion."""
+        with self._lock:
+            if self._state in (SessionState.COMMANDING_WAIT, SessionState.COMMANDING_ACTIVE):
+                self._set_state(SessionState.MONITORING_READY, "application ended the FRI motion")
+
+    # fault hooks ------------------------------------------------------
+
+    def drop_next(self, n: int = 1) -> None:
+        """Lose the next ``n`` monitoring messages (their counters are used up)."""
+        with self._lock:
+            self._drop_next += n
+
+    def send_malformed(self, n: int = 1, kind: str = "garbage") -> None:
+        """Replace the next ``n`` monitoring messages by bad bytes: ``garbage`` (random bytes),
+        ``truncated`` (a valid message cut short) or ``wrong_id`` (a command identifier)."""
+        if kind not in ("garbage", "truncated", "wrong_id"):
+            raise ValueError(f"kind must be garbage, truncated or wrong_id, got {kind!r}")
+        with self._lock:
+            self._malformed_next.extend([kind] * n)
+
+    def restart(self) -> None:
+        """Controller restart: counters back to zero, session IDLE (re-opens after idle_cycles
+        when ``auto_open``)."""
+        with self._lock:
+            self._seq = 0
+            self._client_seq = 0
+            self._windows.clear()
+            self._consecutive_good = self._consecutive_missed = 0
+            self._set_state(SessionState.IDLE, "controller restart")
+
+    def stop_sending(self) -> None:
+        with self._lock:
+            self._sending = False
+
+    def resume_sending(self) -> None:
+        with self._lock:
+            self._sending = True
+
+    def inject_fault(self, kind: str) -> None:
+        """``drives_off`` (drive states OFF, brakes hold), ``safety_stop`` (safety stop level 1,
+        brakes hold) or ``session_drop`` (the session falls back to MONITORING_WAIT)."""
+        with self._lock:
+            if kind == "drives_off":
+                self._drives = DriveState.OFF
+            elif kind == "safety_stop":
+                self._safety = SafetyState.SAFETY_STOP_LEVEL_1
+            elif kind == "session_drop":
+                self._drop_session("injected session drop")
+            else:
+                raise ValueError(f"kind must be drives_off, safety_stop or session_drop, got {kind!r}")
+            self._qd[:] = 0.0
+
+    def clear_fault(self) -> None:
+        with self._lock:
+            self._drives = DriveState.ACTIVE
+            self._safety = SafetyState.NORMAL_OPERATION
+            self._setpoint = self._q.copy()
+
+    # ------------------------------------------------------------------ internals (lock held)
+
+    def _set_state(self, new: SessionState, why: str) -> None:
+        if new != self._state:
+            log.info("fake Sunrise: %s -> %s (%s)", self._state.name, new.name, why)
+            self._state = new
+            self._cycles_in_state = 0
+            self._consecutive_good = 0
+            if new == SessionState.COMMANDING_ACTIVE:
+                self._first_active_command = True
+                self._prev_setpoint_step = None
+            if new == SessionState.IDLE:
+                self._setpoint = self._q.copy()
+            self._state_changed.notify_all()
+
+    def _drop_session(self, why: str) -> None:
+        if self._state != SessionState.IDLE:
+            self.stats.session_drops += 1
+            self._set_state(SessionState.MONITORING_WAIT, why)
+
+    def _violation(self, text: str) -> None:
+        log.warning("fake Sunrise: %s", text)
+        self.stats.violations.append(text)
+        if self.abort_on_violation and self._state in (
+            SessionState.COMMANDING_WAIT,
+            SessionState.COMMANDING_ACTIVE,
+        ):
+            self._set_state(SessionState.MONITORING_READY, f"motion aborted: {text}")
+
+    def _quality(self) -> ConnectionQuality:
+        if not self._windows:
+            return ConnectionQuality.POOR
+        miss = sum(self._windows) / len(self._windows)
+        if miss == 0:
+            return ConnectionQuality.EXCELLENT
+        if miss <= 0.1:
+            return ConnectionQuality.GOOD
+        if miss <= 0.3:
+            return ConnectionQuality.FAIR
+        return ConnectionQuality.POOR
+
+    def _receive_period_s(self) -> float:
+        return self.send_period_ms * self.receive_multiplier / 1000.0
+
+    def _handle_answer(self, data: bytes) -> None:
+        if self._rng.random() < self.loss_in:
+            return
+        try:
+            msg = decode_command(data)
+        except ProtocolError as exc:
+            self.stats.malformed_answers += 1
+            log.warning("fake Sunrise: malformed answer (%d bytes): %s", len(data), exc)
+            return
+        self.stats.answers += 1
+        if self._state == SessionState.IDLE:
+            self.stats.answers_in_idle += 1
+            self.stats.violations.append("client answered while the session is IDLE")
+            return
+        r = msg.header.reflected_sequence_counter
+        last_sent = self._seq - 1
+        if r > last_sent:
+            self.stats.bad_reflections += 1
+            log.warning("fake Sunrise: answer reflects %d, never sent (last %d)", r, last_sent)
+            return
+        if r < self._window_first_seq:
+            self.stats.late_answers += 1
+            return
+        if self._window_answered:
+            return  # a second answer in one window: nothing more to apply
+        self._window_answered = True
+        self._client_seq = msg.header.sequence_counter
+        jp = None if msg.command_data is None else msg.command_data.joint_position
+        if self._state == SessionState.COMMANDING_WAIT:
+            if jp is None or len(jp) != N_JOINTS:
+                self.stats.violations.append("COMMANDING_WAIT answer without 7 joint positions")
+                self._consecutive_good = -1
+            elif np.max(np.abs(np.asarray(jp) - self._setpoint)) > self.echo_tolerance_rad:
+                self.stats.violations.append("COMMANDING_WAIT answer does not echo the ipo position")
+                self._consecutive_good = -1
+        elif self._state == SessionState.COMMANDING_ACTIVE:
+            self._apply_command(jp)
+
+    def _apply_command(self, jp) -> None:
+        if jp is None or len(jp) != N_JOINTS:
+            self._violation(
+                f"command without {N_JOINTS} joint positions ({'none' if jp is None else len(jp)})"
+            )
+            return
+        if self._drives != DriveState.ACTIVE or self._safety != SafetyState.NORMAL_OPERATION:
+            return  # brakes hold; the set-point is not taken
+        cmd = np.asarray(jp, dtype=float)
+        if not np.all(np.isfinite(cmd)):
+            self._violation(f"non-finite command {cmd}")
+            return
+        if self._first_active_command:
+            self._first_active_command = False
+            jump = np.max(np.abs(cmd - self._q))
+            if jump > self.start_tolerance_rad:
+                self._violation(
+                    f"first command is {jump:.4g} rad from the measured position "
+                    f"(allowed {self.start_tolerance_rad:.3g})"
+                )
+                return
+        dt = self._receive_period_s()
+        step = cmd - self._setpoint
+        if self.limits is not None:
+            lim = self.limits
+            out = (cmd < lim.lower_rad) | (cmd > lim.upper_rad)
+            if np.any(out):
+                self._violation(f"command outside joint limits on axes {np.flatnonzero(out) + 1}")
+                return
+            speed = np.abs(step) / dt
+            if np.any(speed > lim.max_velocity_rad_s * (1 + self.speed_tolerance)):
+                i = int(np.argmax(speed / lim.max_velocity_rad_s))
+                self._violation(
+                    f"commanded speed {speed[i]:.4g} rad/s on A{i + 1} above "
+                    f"{lim.max_velocity_rad_s[i]:.4g} rad/s"
+                )
+                return
+        self._setpoint = cmd
+        self.stats.commands.append((self._sim_time, cmd.copy()))
+
+    def _step_servo(self, dt: float) -> None:
+        if self._drives != DriveState.ACTIVE or self._safety != SafetyState.NORMAL_OPERATION:
+            self._qd[:] = 0.0
+            return
+        n_sub = max(1, int(math.ceil(dt / 0.0005)))
+        h = dt / n_sub
+        w, z = self._omega, self._zeta
+        for _ in range(n_sub):  # semi-implicit Euler, stable for w*h << 1
+            acc = w * w * (self._setpoint - self._q) - 2 * z * w * self._qd
+            self._qd += acc * h
+            self._q += self._qd * h
+
+    def _close_window(self) -> None:
+        """End of a receive window: score it, update quality, walk the state machine."""
+        if self._state == SessionState.IDLE:
+            self._window_answered = False
+            return
+        missed = not self._window_answered
+        self._windows.append(missed)
+        if missed:
+            self.stats.missed_windows += 1
+            self._consecutive_missed += 1
+            self._consecutive_good = 0
+        else:
+            self._consecutive_missed = 0
+            self._consecutive_good += 1
+        self._window_answered = False
+        if self._consecutive_missed >= self.max_missed and self._state != SessionState.MONITORING_WAIT:
+            self._drop_session(f"{self._consecutive_missed} answer windows missed in a row")
+            return
+        good = self._quality() >= ConnectionQuality.GOOD
+        if self._state == SessionState.MONITORING_WAIT and good and self._consecutive_good >= self.ready_after:
+            self._set_state(SessionState.MONITORING_READY, "connection quality good")
+        elif (
+            self._state == SessionState.COMMANDING_WAIT
+            and good
+            and self._consecutive_good >= self.commanding_wait_cycles
+        ):
+            self._set_state(SessionState.COMMANDING_ACTIVE, "client echoes the ipo position")
+
+    def _build(self) -> FRIMonitoringMessage:
+        q = self._q + (self._rng.normal(0.0, self.noise_rad, N_JOINTS) if self.noise_rad else 0.0)
+        commanding = self._state in (SessionState.COMMANDING_WAIT, SessionState.COMMANDING_ACTIVE)
+        t = self.clock.now() if self.clock is not None else time.time()
+        return FRIMonitoringMessage(
+            header=MessageHeader(MONITORING_MESSAGE_ID, self._seq, self._client_seq),
+            robot_info=RobotInfo(
+                number_of_joints=N_JOINTS,
+                safety_state=self._safety,
+                drive_state=(self._drives,) * N_JOINTS,
+                operation_mode=OperationMode.AUTOMATIC_MODE,
+                control_mode=ControlMode.POSITION_CONTROL_MODE,
+            ),
+            monitor_data=MonitorData(
+                measured_joint_position=tuple(q.tolist()),
+                measured_torque=(0.0,) * N_JOINTS,
+                commanded_joint_position=tuple(self._setpoint.tolist()),
+                timestamp=TimeStamp.from_seconds(t),
+            ),
+            connection_info=ConnectionInfo(
+                self._state, self._quality(), self.send_period_ms, self.receive_multiplier
+            ),
+            ipo_data=IpoData(
+                joint_position=tuple(self._setpoint.tolist()) if commanding else None,
+                client_command_mode=ClientCommandMode.POSITION if commanding else ClientCommandMode.NO_COMMAND_MODE,
+                overlay_type=OverlayType.JOINT if commanding else OverlayType.NO_OVERLAY,
+            ),
+        )
+
+    def _malformed_bytes(self, kind: str, good: bytes) -> bytes:
+        if kind == "garbage":
+            return self._rng.integers(0, 256, size=int(self._rng.integers(1, 64)), dtype=np.uint8).tobytes()
+        if kind == "truncated":
+            return good[: max(1, len(good) // 2)]
+        # wrong_id: a well-formed message of the other type
+        msg = FRIMonitoringMessage(header=MessageHeader(COMMAND_MESSAGE_ID, self._seq, self._client_seq))
+        return msg.encode()
+
+    def _cycle(self) -> Optional[bytes]:
+        """One controller cycle (lock held): servo, window scoring, next message bytes."""
+        dt = self.send_period_ms / 1000.0
+        self._sim_time += dt
+        self._step_servo(dt)
+        if self.scene is not None:
+            self.scene.set_joint_positions(self._q.copy())
+        self._window_count += 1
+        if self._window_count >= self.receive_multiplier:
+            self._window_count = 0
+            self._close_window()
+            self._window_first_seq = self._seq
+        self._cycles_in_state += 1
+        if self._state == SessionState.IDLE and self.auto_open and self._cycles_in_state > self.idle_cycles:
+            self._set_state(SessionState.MONITORING_WAIT, "session opened")
+        if not self._sending:
+            return None
+        data = self._build().encode()
+        if self._malformed_next:
+            data = self._malformed_bytes(self._malformed_next.pop(0), data)
+        self._seq = (self._seq + 1) & 0xFFFF_FFFF
+        self.stats.sent += 1
+        if self._drop_next > 0:
+            self._drop_next -= 1
+            return None
+        if self.loss_out and self._rng.random() < self.loss_out:
+            return None
+        return data
+
+    def _wall(self, sim_s: float) -> float:
+        return self.clock.wall_duration(sim_s) if self.clock is not None else sim_s
+
+    def _run(self) -> None:
+        sock = self._sock
+        assert sock is not None
+        period = self._wall(self.send_period_ms / 1000.0)
+        t_end = time.monotonic() + self.max_runtime_s
+        next_t = time.monotonic()
+        while not self._stop.is_set() and time.monotonic() < t_end:
+            # collect answers until the next send time
+            while True:
+                remaining = next_t - time.monotonic()
+                if remaining <= 0:
+                    break
+                ready, _, _ = select.select([sock], [], [], remaining)
+                if ready:
+                    self._drain(sock)
+            with self._lock:
+                data = self._cycle()
+                jitter = self._rng.uniform(0.0, self.jitter_ms / 1000.0) if self.jitter_ms else 0.0
+            if data is not None:
+                if jitter:
+                    time.sleep(self._wall(jitter))
+                try:
+                    sock.sendto(data, self.client_address)
+                except OSError as exc:  # e.g. ECONNREFUSED from an earlier ICMP: keep sending
+                    log.debug("fake Sunrise: send failed: %s", exc)
+            next_t += period
+            if next_t < time.monotonic() - 10 * period:
+                next_t = time.monotonic()  # we were descheduled for long: do not burst
+        log.info("fake Sunrise: stopped after %d messages", self.stats.sent)
+
+    def _drain(self, sock: socket.socket) -> None:
+        while True:
+            try:
+                data, _addr = sock.recvfrom(65536)
+            except BlockingIOError:
+                return
+            except OSError as exc:  # ICMP port unreachable surfaces here on Linux
+                log.debug("fake Sunrise: receive failed: %s", exc)
+                return
+            with self._lock:
+                self._handle_answer(data)

@@ -1,0 +1,570 @@
+"""FRI messages as dataclasses, with their proto2 encoding and decoding.
+
+The field numbers and wire types are ours to state (``drivers/kuka_fri/PROTOCOL.md``), taken
+from the public facts in ``PROTOCOLS.md``. Joint values are tuples of floats (radians for
+positions, N·m for torques); ``None`` means the field was absent, ``()`` that it was present
+but empty. Enumerations decode to their ``IntEnum`` when the value is known; an unknown value
+of a state the client acts on (session state, quality) is a ``ProtocolError``, an unknown value
+of the others is kept as a plain ``int`` (a newer controller may add values; the commander
+treats anything but the known good value as not good).
+
+Decoding follows proto2: fields in any order, the last value of a repeated scalar wins,
+a singular embedded message given twice is merged (we parse the concatenation of its parts,
+which is the same thing), unknown fields are skipped, required fields are checked, and
+``repeated double`` is accepted packed or not. Nothing but ``ProtocolError`` escapes a decode.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Optional
+
+from drivers.errors import ProtocolError
+from drivers.kuka_fri import wire
+from drivers.kuka_fri.wire import I64, LEN, VARINT
+
+MONITORING_MESSAGE_ID = 0x245142
+COMMAND_MESSAGE_ID = 0x34001
+
+
+class SessionState(IntEnum):
+    IDLE = 0
+    MONITORING_WAIT = 1
+    MONITORING_READY = 2
+    COMMANDING_WAIT = 3
+    COMMANDING_ACTIVE = 4
+
+
+class ConnectionQuality(IntEnum):
+    POOR = 0
+    FAIR = 1
+    GOOD = 2
+    EXCELLENT = 3
+
+
+class SafetyState(IntEnum):
+    NORMAL_OPERATION = 0
+    SAFETY_STOP_LEVEL_0 = 1
+    SAFETY_STOP_LEVEL_1 = 2
+    SAFETY_STOP_LEVEL_2 = 3
+
+
+class DriveState(IntEnum):
+    OFF = 0
+    TRANSITIONING = 1
+    ACTIVE = 2
+
+
+class OperationMode(IntEnum):
+    TEST_MODE_1 = 0
+    TEST_MODE_2 = 1
+    AUTOMATIC_MODE = 2
+
+
+class ControlMode(IntEnum):
+    POSITION_CONTROL_MODE = 0
+    CARTESIAN_IMPEDANCE_CONTROL_MODE = 1
+    JOINT_IMPEDANCE_CONTROL_MODE = 2
+    NO_CONTROL = 3
+
+
+class ClientCommandMode(IntEnum):
+    NO_COMMAND_MODE = 0
+    POSITION = 1
+    WRENCH = 2
+    TORQUE = 3
+
+
+class OverlayType(IntEnum):
+    NO_OVERLAY = 0
+    JOINT = 1
+    CARTESIAN = 2
+
+
+JointValues = tuple[float, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class MessageHeader:
+    """All three fields required: identifier, the sender's counter, the peer's counter echoed."""
+
+    message_identifier: int
+    sequence_counter: int
+    reflected_sequence_counter: int
+
+
+@dataclass(frozen=True, slots=True)
+class TimeStamp:
+    """Controller time: whole seconds and nanoseconds (both required)."""
+
+    sec: int
+    nanosec: int
+
+    @property
+    def seconds(self) -> float:
+        return self.sec + self.nanosec * 1e-9
+
+    @classmethod
+    def from_seconds(cls, t: float) -> "TimeStamp":
+        sec = int(t)
+        return cls(sec, min(int(round((t - sec) * 1e9)), 999_999_999))
+
+
+@dataclass(frozen=True, slots=True)
+class ConnectionInfo:
+    """Session state and quality are required; send period in ms."""
+
+    session_state: SessionState
+    quality: ConnectionQuality
+    send_period: Optional[int] = None
+    receive_multiplier: Optional[int] = None
+
+
+@dataclass(frozen=True, slots=True)
+class RobotInfo:
+    number_of_joints: Optional[int] = None
+    safety_state: Optional[int] = None
+    drive_state: tuple[int, ...] = ()
+    operation_mode: Optional[int] = None
+    control_mode: Optional[int] = None
+
+
+@dataclass(frozen=True, slots=True)
+class MonitorData:
+    """Joint positions in radians, torques in N·m, each shape (n_joints,) when present."""
+
+    measured_joint_position: Optional[JointValues] = None
+    measured_torque: Optional[JointValues] = None
+    commanded_joint_position: Optional[JointValues] = None
+    commanded_torque: Optional[JointValues] = None
+    external_torque: Optional[JointValues] = None
+    timestamp: Optional[TimeStamp] = None
+
+
+@dataclass(frozen=True, slots=True)
+class IpoData:
+    """The controller's interpolated set-point (radians) and the commanding mode it expects."""
+
+    joint_position: Optional[JointValues] = None
+    client_command_mode: Optional[int] = None
+    overlay_type: Optional[int] = None
+    tracking_performance: Optional[float] = None
+
+
+@dataclass(frozen=True, slots=True)
+class EndOfMessage:
+    message_length: Optional[int] = None
+    crc32: Optional[int] = None
+
+
+@dataclass(frozen=True, slots=True)
+class FRIMonitoringMessage:
+    header: MessageHeader
+    robot_info: Optional[RobotInfo] = None
+    monitor_data: Optional[MonitorData] = None
+    connection_info: Optional[ConnectionInfo] = None
+    ipo_data: Optional[IpoData] = None
+    end_of_message: Optional[EndOfMessage] = None
+
+    def encode(self) -> bytes:
+        return encode_monitoring(self)
+
+    @staticmethod
+    def decode(data: bytes) -> "FRIMonitoringMessage":
+        return decode_monitoring(data)
+
+
+@dataclass(frozen=True, slots=True)
+class CommandData:
+    """Joint positions to command (radians) or joint torques (N·m), shape (n_joints,)."""
+
+    joint_position: Optional[JointValues] = None
+    joint_torque: Optional[JointValues] = None
+
+
+@dataclass(frozen=True, slots=True)
+class FRICommandMessage:
+    header: MessageHeader
+    command_data: Optional[CommandData] = None
+    end_of_message: Optional[EndOfMessage] = None
+
+    def encode(self) -> bytes:
+        return encode_command(self)
+
+    @staticmethod
+    def decode(data: bytes) -> "FRICommandMessage":
+        return decode_command(data)
+
+
+# ============================================================================ encoding
+
+
+def _enc_joint_values(field_number: int, values: Optional[JointValues]) -> bytes:
+    if values is None:
+        return b""
+    return wire.encode_bytes(field_number, wire.encode_repeated_double(1, values))
+
+
+def _enc_message(field_number: int, payload: Optional[bytes]) -> bytes:
+    return b"" if payload is None else wire.encode_bytes(field_number, payload)
+
+
+def _enc_enum(field_number: int, value: Optional[int]) -> bytes:
+    return b"" if value is None else wire.encode_int32(field_number, int(value))
+
+
+def encode_header(h: MessageHeader) -> bytes:
+    return (
+        wire.encode_uint32(1, h.message_identifier)
+        + wire.encode_uint32(2, h.sequence_counter)
+        + wire.encode_uint32(3, h.reflected_sequence_counter)
+    )
+
+
+def _enc_timestamp(t: TimeStamp) -> bytes:
+    return wire.encode_uint32(1, t.sec) + wire.encode_uint32(2, t.nanosec)
+
+
+def _enc_connection_info(c: ConnectionInfo) -> bytes:
+    out = wire.encode_int32(1, int(c.session_state)) + wire.encode_int32(2, int(c.quality))
+    if c.send_period is not None:
+        out += wire.encode_uint32(3, c.send_period)
+    if c.receive_multiplier is not None:
+        out += wire.encode_uint32(4, c.receive_multiplier)
+    return out
+
+
+def _enc_robot_info(r: RobotInfo) -> bytes:
+    out = b""
+    if r.number_of_joints is not None:
+        out += wire.encode_int32(1, r.number_of_joints)
+    out += _enc_enum(2, r.safety_state)
+    for d in r.drive_state:  # repeated enum, not packed (proto2 default)
+        out += wire.encode_int32(5, int(d))
+    return out + _enc_enum(6, r.operation_mode) + _enc_enum(7, r.control_mode)
+
+
+def _enc_monitor_data(m: MonitorData) -> bytes:
+    return (
+        _enc_joint_values(1, m.measured_joint_position)
+        + _enc_joint_values(2, m.measured_torque)
+        + _enc_joint_values(3, m.commanded_joint_position)
+        + _enc_joint_values(4, m.commanded_torque)
+        + _enc_joint_values(5, m.external_torque)
+        + (b"" if m.timestamp is None else wire.encode_bytes(15, _enc_timestamp(m.timestamp)))
+    )
+
+
+def _enc_ipo_data(p: IpoData) -> bytes:
+    out = _enc_joint_values(1, p.joint_position)
+    out += _enc_enum(10, p.client_command_mode) + _enc_enum(11, p.overlay_type)
+    if p.tracking_performance is not None:
+        out += wire.encode_double(12, p.tracking_performance)
+    return out
+
+
+def _enc_end_of_message(e: EndOfMessage) -> bytes:
+    out = b""
+    if e.message_length is not None:
+        out += wire.encode_int32(1, e.message_length)
+    if e.crc32 is not None:
+        out += wire.encode_bytes(2, wire.encode_int32(1, e.crc32))
+    return out
+
+
+def encode_monitoring(msg: FRIMonitoringMessage) -> bytes:
+    """Serialise a monitoring message, fields in ascending number order."""
+    return (
+        wire.encode_bytes(1, encode_header(msg.header))
+        + _enc_message(2, None if msg.robot_info is None else _enc_robot_info(msg.robot_info))
+        + _enc_message(3, None if msg.monitor_data is None else _enc_monitor_data(msg.monitor_data))
+        + _enc_message(
+            4, None if msg.connection_info is None else _enc_connection_info(msg.connection_info)
+        )
+        + _enc_message(5, None if msg.ipo_data is None else _enc_ipo_data(msg.ipo_data))
+        + _enc_message(
+            15, None if msg.end_of_message is None else _enc_end_of_message(msg.end_of_message)
+        )
+    )
+
+
+def encode_command(msg: FRICommandMessage) -> bytes:
+    """Serialise a command message, fields in ascending number order."""
+    cd = msg.command_data
+    payload = None
+    if cd is not None:
+        payload = _enc_joint_values(1, cd.joint_position) + _enc_joint_values(3, cd.joint_torque)
+    return (
+        wire.encode_bytes(1, encode_header(msg.header))
+        + _enc_message(2, payload)
+        + _enc_message(
+            15, None if msg.end_of_message is None else _enc_end_of_message(msg.end_of_message)
+        )
+    )
+
+
+# ============================================================================ decoding
+
+
+def _expect(wt: int, expected: int, what: str) -> None:
+    if wt != expected:
+        names = {0: "varint", 1: "64-bit", 2: "length-delimited", 5: "32-bit"}
+        raise ProtocolError(
+            f"{what}: wire type {names.get(wt, wt)}, expected {names.get(expected, expected)}"
+        )
+
+
+def _strict_enum(cls: type[IntEnum], value: int, what: str) -> IntEnum:
+    v = wire.as_int32(value, what)
+    try:
+        return cls(v)
+    except ValueError:
+        allowed = ", ".join(f"{m.value} {m.name}" for m in cls)
+        raise ProtocolError(f"{what}: unknown value {v}; allowed: {allowed}") from None
+
+
+def _lenient_enum(cls: type[IntEnum], value: int, what: str) -> int:
+    v = wire.as_int32(value, what)
+    try:
+        return cls(v)
+    except ValueError:
+        return v
+
+
+def _merged(parts: list) -> Optional[bytes]:
+    if not parts:
+        return None
+    return bytes(parts[0]) if len(parts) == 1 else b"".join(bytes(p) for p in parts)
+
+
+_JOINT_STRUCTS: dict[int, struct.Struct] = {}
+
+
+def decode_joint_values(payload, what: str) -> JointValues:
+    """A ``JointValues`` message: field 1 ``repeated double``, packed or not."""
+    raw = bytes(payload)
+    n, rest = divmod(len(raw), 9)
+    if rest == 0 and raw[::9] == b"\x09" * n:  # fast path: n non-packed doubles, nothing else
+        st = _JOINT_STRUCTS.get(n)
+        if st is None:
+            st = _JOINT_STRUCTS.setdefault(n, struct.Struct("<" + "Bd" * n))
+        return st.unpack(raw)[1::2]
+    values: list[float] = []
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn != 1:
+            continue
+        if wt == I64:
+            values.append(wire.decode_double(val))
+        elif wt == LEN:
+            values.extend(wire.decode_packed_doubles(val, f"{what}.value"))
+        else:
+            _expect(wt, I64, f"{what}.value")
+    return tuple(values)
+
+
+def decode_header(payload, what: str = "MessageHeader") -> MessageHeader:
+    got: dict[int, int] = {}
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn in (1, 2, 3):
+            _expect(wt, VARINT, f"{what} field {fn}")
+            got[fn] = wire.as_uint32(val, f"{what} field {fn}")
+    for fn, name in ((1, "messageIdentifier"), (2, "sequenceCounter"), (3, "reflectedSequenceCounter")):
+        if fn not in got:
+            raise ProtocolError(f"{what}: required field {name} ({fn}) is missing")
+    return MessageHeader(got[1], got[2], got[3])
+
+
+def _dec_timestamp(payload) -> TimeStamp:
+    got: dict[int, int] = {}
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn in (1, 2):
+            _expect(wt, VARINT, f"TimeStamp field {fn}")
+            got[fn] = wire.as_uint32(val, f"TimeStamp field {fn}")
+    for fn, name in ((1, "sec"), (2, "nanosec")):
+        if fn not in got:
+            raise ProtocolError(f"TimeStamp: required field {name} ({fn}) is missing")
+    return TimeStamp(got[1], got[2])
+
+
+def _dec_connection_info(payload) -> ConnectionInfo:
+    state = quality = period = mult = None
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn == 1:
+            _expect(wt, VARINT, "ConnectionInfo.sessionState")
+            state = _strict_enum(SessionState, val, "ConnectionInfo.sessionState")
+        elif fn == 2:
+            _expect(wt, VARINT, "ConnectionInfo.quality")
+            quality = _strict_enum(ConnectionQuality, val, "ConnectionInfo.quality")
+        elif fn == 3:
+            _expect(wt, VARINT, "ConnectionInfo.sendPeriod")
+            period = wire.as_uint32(val, "ConnectionInfo.sendPeriod")
+        elif fn == 4:
+            _expect(wt, VARINT, "ConnectionInfo.receiveMultiplier")
+            mult = wire.as_uint32(val, "ConnectionInfo.receiveMultiplier")
+    if state is None:
+        raise ProtocolError("ConnectionInfo: required field sessionState (1) is missing")
+    if quality is None:
+        raise ProtocolError("ConnectionInfo: required field quality (2) is missing")
+    return ConnectionInfo(state, quality, period, mult)
+
+
+def _dec_robot_info(payload) -> RobotInfo:
+    n = safety = op = ctrl = None
+    drives: list[int] = []
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn == 1:
+            _expect(wt, VARINT, "RobotInfo.numberOfJoints")
+            n = wire.as_int32(val, "RobotInfo.numberOfJoints")
+        elif fn == 2:
+            _expect(wt, VARINT, "RobotInfo.safetyState")
+            safety = _lenient_enum(SafetyState, val, "RobotInfo.safetyState")
+        elif fn == 5:
+            if wt == LEN:  # packed repeated enum
+                drives.extend(
+                    _lenient_enum(DriveState, v, "RobotInfo.driveState")
+                    for v in wire.decode_packed_varints(val)
+                )
+            else:
+                _expect(wt, VARINT, "RobotInfo.driveState")
+                drives.append(_lenient_enum(DriveState, val, "RobotInfo.driveState"))
+        elif fn == 6:
+            _expect(wt, VARINT, "RobotInfo.operationMode")
+            op = _lenient_enum(OperationMode, val, "RobotInfo.operationMode")
+        elif fn == 7:
+            _expect(wt, VARINT, "RobotInfo.controlMode")
+            ctrl = _lenient_enum(ControlMode, val, "RobotInfo.controlMode")
+    return RobotInfo(n, safety, tuple(drives), op, ctrl)
+
+
+_MONITOR_JOINT_FIELDS = {
+    1: "measured_joint_position",
+    2: "measured_torque",
+    3: "commanded_joint_position",
+    4: "commanded_torque",
+    5: "external_torque",
+}
+
+
+def _collect(payload, wanted: set[int], what: str) -> dict[int, list]:
+    """Group the length-delimited parts of ``wanted`` fields (for proto2 merging)."""
+    parts: dict[int, list] = {}
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn in wanted:
+            _expect(wt, LEN, f"{what} field {fn}")
+            parts.setdefault(fn, []).append(val)
+    return parts
+
+
+def _dec_monitor_data(payload) -> MonitorData:
+    parts = _collect(payload, {1, 2, 3, 4, 5, 15}, "MessageMonitorData")
+    kwargs = {}
+    for fn, name in _MONITOR_JOINT_FIELDS.items():
+        raw = _merged(parts.get(fn, []))
+        if raw is not None:
+            kwargs[name] = decode_joint_values(raw, f"MessageMonitorData.{name}")
+    raw = _merged(parts.get(15, []))
+    if raw is not None:
+        kwargs["timestamp"] = _dec_timestamp(raw)
+    return MonitorData(**kwargs)
+
+
+def _dec_ipo_data(payload) -> IpoData:
+    jp_parts: list = []
+    mode = overlay = perf = None
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn == 1:
+            _expect(wt, LEN, "MessageIpoData.jointPosition")
+            jp_parts.append(val)
+        elif fn == 10:
+            _expect(wt, VARINT, "MessageIpoData.clientCommandMode")
+            mode = _lenient_enum(ClientCommandMode, val, "MessageIpoData.clientCommandMode")
+        elif fn == 11:
+            _expect(wt, VARINT, "MessageIpoData.overlayType")
+            overlay = _lenient_enum(OverlayType, val, "MessageIpoData.overlayType")
+        elif fn == 12:
+            _expect(wt, I64, "MessageIpoData.trackingPerformance")
+            perf = wire.decode_double(val)
+    raw = _merged(jp_parts)
+    jp = None if raw is None else decode_joint_values(raw, "MessageIpoData.jointPosition")
+    return IpoData(jp, mode, overlay, perf)
+
+
+def _dec_end_of_message(payload) -> EndOfMessage:
+    length = crc = None
+    crc_parts: list = []
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn == 1:
+            _expect(wt, VARINT, "MessageEndOf.messageLength")
+            length = wire.as_int32(val, "MessageEndOf.messageLength")
+        elif fn == 2:
+            _expect(wt, LEN, "MessageEndOf.messageChecksum")
+            crc_parts.append(val)
+    raw = _merged(crc_parts)
+    if raw is not None:
+        for fn, wt, val in wire.iter_fields(raw):
+            if fn == 1:
+                _expect(wt, VARINT, "Checksum.crc32")
+                crc = wire.as_int32(val, "Checksum.crc32")
+    return EndOfMessage(length, crc)
+
+
+def _check_id(header: MessageHeader, expected: int, what: str) -> None:
+    if header.message_identifier != expected:
+        raise ProtocolError(
+            f"{what}: message identifier 0x{header.message_identifier:X}, expected 0x{expected:X}"
+        )
+
+
+def decode_monitoring(data: bytes) -> FRIMonitoringMessage:
+    """Parse a monitoring message; ``ProtocolError`` for anything malformed or of another type."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError(f"expected bytes, got {type(data).__name__}")
+    parts = _collect(data, {1, 2, 3, 4, 5, 15}, "FRIMonitoringMessage")
+    raw = _merged(parts.get(1, []))
+    if raw is None:
+        raise ProtocolError("FRIMonitoringMessage: required field header (1) is missing")
+    header = decode_header(raw)
+    _check_id(header, MONITORING_MESSAGE_ID, "FRIMonitoringMessage")
+
+    def sub(fn, fun):
+        r = _merged(parts.get(fn, []))
+        return None if r is None else fun(r)
+
+    return FRIMonitoringMessage(
+        header=header,
+        robot_info=sub(2, _dec_robot_info),
+        monitor_data=sub(3, _dec_monitor_data),
+        connection_info=sub(4, _dec_connection_info),
+        ipo_data=sub(5, _dec_ipo_data),
+        end_of_message=sub(15, _dec_end_of_message),
+    )
+
+
+def decode_command(data: bytes) -> FRICommandMessage:
+    """Parse a command message; ``ProtocolError`` for anything malformed or of another type."""
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise ProtocolError(f"expected bytes, got {type(data).__name__}")
+    parts = _collect(data, {1, 2, 15}, "FRICommandMessage")
+    raw = _merged(parts.get(1, []))
+    if raw is None:
+        raise ProtocolError("FRICommandMessage: required field header (1) is missing")
+    header = decode_header(raw)
+    _check_id(header, COMMAND_MESSAGE_ID, "FRICommandMessage")
+    command_data = None
+    raw = _merged(parts.get(2, []))
+    if raw is not None:
+        cparts = _collect(raw, {1, 3}, "MessageCommandData")
+        jp = _merged(cparts.get(1, []))
+        jt = _merged(cparts.get(3, []))
+        command_data = CommandData(
+            joint_position=None if jp is None else decode_joint_values(jp, "MessageCommandData.jointPosition"),
+            joint_torque=None if jt is None else decode_joint_values(jt, "MessageCommandData.jointTorque"),
+        )
+    raw = _merged(parts.get(15, []))
+    return FRICommandMessage(
+        header=header,
+        command_data=command_data,
+        end_of_message=None if raw is None else _dec_end_of_message(raw),
+    )

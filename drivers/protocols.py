@@ -1,0 +1,143 @@
+"""The two capability protocols every device driver implements, and the records they return.
+
+Units: positions in millimetres in the *sensor* frame, joint angles in radians in the
+*controller's* axis convention (see ``calib.model``), times in seconds.
+
+Every record carries two stamps: ``device_time`` from the device's own clock (seconds, its
+epoch is the device's), and ``host_time`` from ``time.monotonic()`` when the host received it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+@dataclass(frozen=True, slots=True)
+class MarkerSample:
+    """One marker seen once.
+
+    position_mm: shape (3,), sensor frame, mm. ``visible`` is False for an occluded marker
+    (its position is then the last known or NaN and must not be averaged).
+    """
+
+    marker: str
+    position_mm: np.ndarray
+    device_time: float
+    host_time: float
+    visible: bool = True
+    std_mm: float | None = None
+    residual_mm: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class MarkerMeasurement:
+    """N samples of one marker averaged while the robot stood still.
+
+    mean_mm, std_mm: shape (3,), sensor frame, mm (std is the per-axis sample spread).
+    """
+
+    marker: str
+    mean_mm: np.ndarray
+    std_mm: np.ndarray
+    count: int
+    device_time: float
+    host_time: float
+
+
+@dataclass(frozen=True, slots=True)
+class JointState:
+    """Measured joint positions as the controller reports them.
+
+    position_rad: shape (n_axes,), controller convention, radians.
+    """
+
+    position_rad: np.ndarray
+    device_time: float
+    host_time: float
+    commanded_rad: np.ndarray | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class JointLimits:
+    """What a commander may command, in the controller's convention.
+
+    lower_rad, upper_rad, max_velocity_rad_s, max_acceleration_rad_s2: shape (n_axes,).
+    """
+
+    lower_rad: np.ndarray
+    upper_rad: np.ndarray
+    max_velocity_rad_s: np.ndarray
+    max_acceleration_rad_s2: np.ndarray
+    names: tuple[str, ...] = field(default=())
+
+    @property
+    def n_axes(self) -> int:
+        return int(np.asarray(self.lower_rad).shape[0])
+
+    @classmethod
+    def from_model(cls, model) -> "JointLimits":
+        """Limits of a ``calib.model.RobotModel`` (duck-typed to keep layers one-way)."""
+        return cls(
+            lower_rad=np.asarray(model.lower_limits_rad, dtype=float),
+            upper_rad=np.asarray(model.upper_limits_rad, dtype=float),
+            max_velocity_rad_s=np.asarray(model.max_velocity_rad_s, dtype=float),
+            max_acceleration_rad_s2=np.asarray(model.max_acceleration_rad_s2, dtype=float),
+            names=tuple(model.axis_names),
+        )
+
+
+@runtime_checkable
+class PositionSensor(Protocol):
+    """Streams marker positions (mm, sensor frame)."""
+
+    name: str
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def marker_names(self) -> list[str]:
+        """Markers this sensor can report, by the names the plan uses."""
+        ...
+
+    def read(self, timeout: float) -> list[MarkerSample]:
+        """The next sample of every selected marker (occluded ones with ``visible=False``)."""
+        ...
+
+    def measure(self, marker: str, n: int, timeout: float) -> MarkerMeasurement:
+        """Average ``n`` visible samples of one marker; raise TargetLostError if it vanishes."""
+        ...
+
+
+@runtime_checkable
+class JointCommander(Protocol):
+    """Streams measured joint positions and moves the robot safely to joint targets."""
+
+    name: str
+    limits: JointLimits
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def joint_state(self) -> JointState:
+        """The latest measured state; raise DeviceTimeoutError if it is stale."""
+        ...
+
+    def move_to(self, target_rad: np.ndarray, speed: float, timeout: float) -> None:
+        """Move to ``target_rad`` (controller convention) at ``speed`` (0–1 of the model's
+        limits) and return once the trajectory has been commanded to its end. Refuse with
+        LimitError before anything moves if the target or speed is not allowed."""
+        ...
+
+    def wait_settled(self, tolerance_rad: float, window_s: float, timeout: float) -> JointState:
+        """Return once the measured position has held within ``tolerance_rad`` for
+        ``window_s``; raise DeviceTimeoutError after ``timeout``."""
+        ...
+
+    def stop(self) -> None:
+        """Decelerate within limits and hold."""
+        ...

@@ -1,0 +1,207 @@
+"""Configuration of the simulated cell (``SimConfig``), loadable from YAML.
+
+File units are mm and degrees (converted to radians inside ``SimCell``). Layout, with the
+defaults this module applies (see ``fixtures/sim/default.yaml`` for a documented example):
+
+    seed: 0                       # every random draw of the cell derives from this
+    robot: ../robots/x.yaml       # robot model; a relative path is taken from the YAML's folder
+    initial_joint_positions_deg: [..]   # n values (default all zero)
+    end_stop_margin_deg: 2.0      # the arm refuses positions this far beyond its limits
+    truth:                        # the hidden errors of the real robot
+      offsets_deg: null           # n explicit zero-offsets, or null → drawn N(0, offset_std_deg)
+      offset_std_deg: 0.3
+      link_errors: {d_std_mm, a_std_mm, alpha_std_deg, beta_std_deg, d_mm, a_mm, alpha_deg, beta_deg}
+      marker_std_mm: 0.0          # true marker positions vs the tool's nominal ones
+    deflection: {gravity_m_s2, link_masses_kg, tool_mass_kg, tool_com_mm, compliance_rad_per_nm}
+    occlusion: {link_radii_mm, obstacles: [{a_mm, b_mm, radius_mm}]}
+    cones_deg: {retroreflector: 30, infrared: 60, other: 90}
+    sensors: [{name, kind, origin_mm + look_at_mm | frame, noise_mm, noise_mm_per_m,
+               field_of_view_deg, markers}]
+
+Lists whose length depends on the robot (n joints) are checked against the model when the
+cell is built, with an error naming the field, the length given and the length needed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from calib.model import Frame
+from calib.yamlfile import load_validated
+
+Vec3 = tuple[float, float, float]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class LinkErrors(_Strict):
+    """Small errors of the true link parameters relative to the model's nominal ones.
+
+    Each kind is either given explicitly (a list with one value per joint) or drawn from a
+    seeded normal with the given standard deviation. ``beta`` errors are only drawn for
+    ``mdh`` models (a standard-DH model has no β to fit); explicit β values always apply.
+    """
+
+    d_std_mm: float = Field(0.2, ge=0)
+    a_std_mm: float = Field(0.2, ge=0)
+    alpha_std_deg: float = Field(0.02, ge=0)
+    beta_std_deg: float = Field(0.02, ge=0)
+    d_mm: list[float] | None = None
+    a_mm: list[float] | None = None
+    alpha_deg: list[float] | None = None
+    beta_deg: list[float] | None = None
+
+
+class Truth(_Strict):
+    """What the real robot is, hidden from everything but tests and the ``--fake`` summary."""
+
+    offsets_deg: list[float] | None = Field(
+        None, description="Explicit true zero-offsets (controller convention, deg), one per joint."
+    )
+    offset_std_deg: float = Field(
+        0.3, ge=0, description="Std of drawn zero-offsets; the paper's Table I is 0.1–0.5°, one ≈1°."
+    )
+    link_errors: LinkErrors = LinkErrors()
+    marker_std_mm: float = Field(0.0, ge=0, description="Std per axis of the true marker positions' error.")
+
+
+class Deflection(_Strict):
+    """Joint-compliance model of the arm sagging under gravity.
+
+    Each link's mass sits at the middle of the segment between its joint origins, the tool's at
+    ``tool_com_mm`` (flange frame). Joint i's gravity torque is τ_i = z_i · Σ_j (c_j − o_i) ×
+    m_j g over the masses beyond it; the joint yields by Δθ_i = compliance_i · τ_i (DH sense).
+    """
+
+    gravity_m_s2: Vec3 = Field((0.0, 0.0, -9.81), description="Gravity in the robot base frame.")
+    link_masses_kg: list[float] | None = Field(None, description="One per link (joint); None → no deflection.")
+    tool_mass_kg: float = Field(0.0, ge=0)
+    tool_com_mm: Vec3 = (0.0, 0.0, 0.0)
+    compliance_rad_per_nm: list[float] | None = Field(None, description="One per joint, rad/(N·m); None → rigid.")
+
+    @field_validator("link_masses_kg", "compliance_rad_per_nm")
+    @classmethod
+    def _non_negative(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and any(x < 0 for x in v):
+            raise ValueError(f"values must be non-negative, got {v}")
+        return v
+
+
+class Obstacle(_Strict):
+    """A fixed capsule in the robot base frame (a column, a fixture, a person)."""
+
+    a_mm: Vec3
+    b_mm: Vec3
+    radius_mm: float = Field(gt=0)
+
+
+class Occlusion(_Strict):
+    """Bodies that can block a sight line: one capsule per link, plus fixed obstacles.
+
+    Link i's capsule runs between the origins of DH frames i−1 and i; the last link's ends
+    flush with the flange face (its axis stops one radius short of the flange) so the plate's
+    markers are never inside it.
+    """
+
+    link_radii_mm: list[float] | None = Field(None, description="One per link; None → the arm occludes nothing.")
+    obstacles: list[Obstacle] = []
+
+    @field_validator("link_radii_mm")
+    @classmethod
+    def _non_negative(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and any(x < 0 for x in v):
+            raise ValueError(f"radii must be non-negative, got {v}")
+        return v
+
+
+class Cones(_Strict):
+    """Acceptance half-angles (deg) about the marker normal (the flange's z axis), per kind."""
+
+    retroreflector: float = Field(30.0, gt=0, le=180)
+    infrared: float = Field(60.0, gt=0, le=180)
+    other: float = Field(90.0, gt=0, le=180)
+
+
+class SensorConfig(_Strict):
+    """One reference sensor: where it is, how noisy, which markers it measures.
+
+    The pose is either ``origin_mm`` + ``look_at_mm`` (its +z looks at that point, +x
+    horizontal) or ``frame``: the sensor's pose in the robot base frame (xyz mm, ZYX deg),
+    i.e. ``sensor2base``. Noise per axis has std ``noise_mm + noise_mm_per_m · range_m``.
+    """
+
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_.-]+$")
+    kind: Literal["mocap", "tracker"]
+    origin_mm: Vec3 | None = None
+    look_at_mm: Vec3 | None = None
+    frame: Frame | None = None
+    noise_mm: float = Field(ge=0, description="Constant part of the per-axis noise std, mm.")
+    noise_mm_per_m: float = Field(0.0, ge=0, description="Range-proportional part, mm per m of range.")
+    field_of_view_deg: float = Field(180.0, gt=0, le=180, description="Half-angle about +z; 180 = everywhere.")
+    markers: list[str] | None = Field(
+        None, description="Tool markers this sensor measures; None → infrared/other for mocap, retroreflector for a tracker."
+    )
+
+    @model_validator(mode="after")
+    def _one_pose(self) -> "SensorConfig":
+        look = self.origin_mm is not None or self.look_at_mm is not None
+        if look and (self.origin_mm is None or self.look_at_mm is None):
+            raise ValueError(f"sensor {self.name!r}: give both origin_mm and look_at_mm, or a frame")
+        if look == (self.frame is not None):
+            raise ValueError(f"sensor {self.name!r}: give exactly one pose: origin_mm + look_at_mm, or frame")
+        return self
+
+
+class SimConfig(_Strict):
+    """The whole simulated cell. Build a cell with ``SimCell(config)``."""
+
+    seed: int = Field(0, ge=0)
+    robot: str = Field(description="Robot model YAML; relative paths are taken from the config file's folder.")
+    initial_joint_positions_deg: list[float] | None = None
+    end_stop_margin_deg: float = Field(
+        2.0,
+        ge=0,
+        le=10,
+        description="The mechanical end stops sit this far beyond the model's (software) limits: "
+        "a servo may overshoot a limit a little, but the arm cannot pass its stops.",
+    )
+    truth: Truth = Truth()
+    deflection: Deflection = Deflection()
+    occlusion: Occlusion = Occlusion()
+    cones_deg: Cones = Cones()
+    sensors: list[SensorConfig] = Field(min_length=1)
+
+    @field_validator("sensors")
+    @classmethod
+    def _unique_names(cls, v: list[SensorConfig]) -> list[SensorConfig]:
+        names = [s.name for s in v]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"sensor names must be unique; repeated: {dup}")
+        return v
+
+    @property
+    def sensor_names(self) -> list[str]:
+        return [s.name for s in self.sensors]
+
+
+#: The documented default cell: an iiwa 14, a motion-capture bar and a tracker.
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "fixtures" / "sim" / "default.yaml"
+
+
+def load_sim_config(path: str | Path) -> SimConfig:
+    """Read and validate a cell YAML file; the robot path becomes absolute (from the file's folder).
+
+    Raises ``calib.yamlfile.ConfigError`` naming file, line, column and field on any problem.
+    """
+    path = Path(path)
+    config = load_validated(path, SimConfig)
+    robot = Path(config.robot)
+    if not robot.is_absolute():
+        robot = (path.resolve().parent / robot).resolve()
+    return config.model_copy(update={"robot": str(robot)})

@@ -1,0 +1,224 @@
+"""Start every fake device of a simulated cell on loopback around one ``SimCell``.
+
+``SimLaunch(cell).start()`` brings up, on 127.0.0.1 only:
+
+- a fake Motive (NatNet over UDP) for every ``mocap`` sensor of the cell;
+- a fake laser tracker (the project's line protocol over TCP, a ``socket://`` URL) for every
+  ``tracker`` sensor; the cell already adds the sensor's noise, so the fake adds none;
+- the robot controller named by the robot model: a fake Sunrise (FRI) for ``sunrise``, a fake
+  KR C4 (RSI) for ``kss``. Both are UDP *senders*, as the real controllers are: they send to
+  the commander's port on 127.0.0.1 (``fri_port`` / ``rsi_port``), and the commander answers.
+
+Every fake reads from or writes to the same cell, so a commander that moves the fake
+controller moves the markers the fake sensors see. ``addresses`` says where each one is;
+``close()`` (or leaving the ``with`` block) stops them all. Controllers stop by themselves
+after ``max_runtime_s``; a fake KR C4 ends its RSI session after too many late answers, as the
+real one does (``restart_stopped_rsi`` brings it back, like an operator restarting the program).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.sim.cell import SimCell
+from drivers.sim.scene import MarkerObservation
+
+log = logging.getLogger(__name__)
+
+#: The commanders' listening ports by default (drivers.kuka_fri / drivers.kuka_rsi).
+FRI_CLIENT_PORT = 30200
+RSI_CLIENT_PORT = 49152
+
+
+@dataclass(frozen=True)
+class DeviceAddress:
+    """Where one fake device is. ``url`` is what a client is given (``natnet://host:command_port``,
+    ``socket://host:port``, ``udp://host:port``); ``note`` says the rest in words."""
+
+    name: str
+    kind: str  # "natnet" | "tracker" | "fri" | "rsi"
+    host: str
+    port: int
+    url: str
+    note: str
+
+
+class _SensorView:
+    """A ``MarkerScene`` that answers every ``observe`` with one named sensor of the cell (the
+    fake tracker always asks for ``"tracker"``)."""
+
+    def __init__(self, cell: SimCell, sensor: str) -> None:
+        self.cell = cell
+        self.sensor = sensor
+
+    def observe(self, sensor: str) -> list[MarkerObservation]:
+        return self.cell.observe(self.sensor)
+
+
+class SimLaunch:
+    """The fakes of one cell. Parameters:
+
+    fri_port / rsi_port: the commander's UDP port the fake controller sends to (127.0.0.1).
+    mocap_rate_hz: NatNet frame rate (120–360). natnet_version: the fake Motive's version.
+    max_runtime_s: wall seconds after which the fake controllers stop sending by themselves.
+    controller: False starts no controller (sensors only).
+    """
+
+    def __init__(
+        self,
+        cell: SimCell,
+        *,
+        fri_port: int = FRI_CLIENT_PORT,
+        rsi_port: int = RSI_CLIENT_PORT,
+        mocap_rate_hz: float = 120.0,
+        natnet_version: tuple[int, int] = (3, 0),
+        max_runtime_s: float = 3600.0,
+        controller: bool = True,
+    ) -> None:
+        for name, port in (("fri_port", fri_port), ("rsi_port", rsi_port)):
+            if not (isinstance(port, int) and 1 <= port <= 65535):
+                raise ValueError(f"{name} must be a UDP port 1..65535, got {port!r}")
+        if not max_runtime_s > 0:
+            raise ValueError(f"max_runtime_s must be positive, got {max_runtime_s}")
+        self.cell = cell
+        self.fri_port = fri_port
+        self.rsi_port = rsi_port
+        self.mocap_rate_hz = mocap_rate_hz
+        self.natnet_version = natnet_version
+        self.max_runtime_s = float(max_runtime_s)
+        self.want_controller = controller
+        self.addresses: dict[str, DeviceAddress] = {}
+        self.motives: dict[str, object] = {}
+        self.trackers: dict[str, tuple[object, object]] = {}  # name → (FakeTracker, TcpTrackerServer)
+        self.controller: object | None = None
+        self._closers: list = []
+
+    # --- lifecycle ----------------------------------------------------------------------
+    def start(self) -> "SimLaunch":
+        """Start every fake; on any failure the ones already started are stopped again."""
+        if self._closers:
+            raise RuntimeError("SimLaunch already started")
+        try:
+            for sensor in self.cell.config.sensors:
+                if sensor.kind == "mocap":
+                    self._start_motive(sensor.name)
+                else:
+                    self._start_tracker(sensor.name)
+            if self.want_controller:
+                self._start_controller()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def close(self) -> None:
+        """Stop every fake (in reverse order of starting); idempotent."""
+        while self._closers:
+            name, close = self._closers.pop()
+            try:
+                close()
+            except OSError as exc:
+                log.warning("closing fake %s: %s", name, exc)
+        self.addresses.clear()
+
+    def __enter__(self) -> "SimLaunch":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- devices ------------------------------------------------------------------------
+    def _start_motive(self, sensor: str) -> None:
+        from drivers.natnet.fake import FakeMotive
+
+        motive = FakeMotive(
+            self.cell, sensor=sensor, rate_hz=self.mocap_rate_hz, natnet_version=self.natnet_version,
+            seed=self.cell.config.seed,
+        )
+        motive.start()
+        self._closers.append((sensor, motive.close))
+        self.motives[sensor] = motive
+        self.addresses[sensor] = DeviceAddress(
+            sensor, "natnet", "127.0.0.1", motive.command_port, f"natnet://127.0.0.1:{motive.command_port}",
+            f"fake Motive NatNet {self.natnet_version[0]}.{self.natnet_version[1]}, unicast: command port "
+            f"{motive.command_port}, data port {motive.data_port}, {self.mocap_rate_hz:.0f} Hz, "
+            f"markers {self.cell.sensor_markers(sensor)}",
+        )
+
+    def _start_tracker(self, sensor: str) -> None:
+        from drivers.tracker.fake import FakeTracker, TcpTrackerServer
+
+        device = FakeTracker(
+            _SensorView(self.cell, sensor), clock=self.cell.clock, reflector=self.cell.sensor_markers(sensor)[0],
+            noise_um=0.0, noise_um_per_m=0.0, seed=self.cell.config.seed,
+        )
+        server = TcpTrackerServer(device, seed=self.cell.config.seed)
+        self._closers.append((sensor, server.close))
+        self.trackers[sensor] = (device, server)
+        self.addresses[sensor] = DeviceAddress(
+            sensor, "tracker", server.host, server.port, server.url,
+            f"fake laser tracker, line protocol over TCP, reflector {device.reflector!r}",
+        )
+
+    def _start_controller(self) -> None:
+        kind = self.cell.model.controller
+        if kind == "sunrise":
+            from drivers.kuka_fri.fake import FakeSunrise
+            from drivers.protocols import JointLimits
+
+            fake = FakeSunrise(
+                ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.cell,
+                clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
+            )
+            fake.start()
+            self._closers.append(("controller", fake.stop))
+            host, port = fake.address
+            self.addresses["controller"] = DeviceAddress(
+                "controller", "fri", host, port, f"udp://{host}:{port}",
+                f"fake Sunrise (FRI) sending to the FRI client on 127.0.0.1:{self.fri_port}",
+            )
+        elif kind == "kss":
+            fake = self._new_krc4()
+            self.addresses["controller"] = DeviceAddress(
+                "controller", "rsi", fake.address[0], fake.address[1], f"udp://{fake.address[0]}:{fake.address[1]}",
+                f"fake KR C4 (RSI) sending to the RSI commander on 127.0.0.1:{self.rsi_port}",
+            )
+        else:
+            log.warning("no fake controller for a %r controller; the robot stays where the cell put it", kind)
+            return
+        self.controller = fake
+
+    def _new_krc4(self):
+        from drivers.kuka_rsi.fake import FakeKrc4
+
+        fake = FakeKrc4(
+            ("127.0.0.1", self.rsi_port), n_axes=self.cell.model.n_joints, scene=self.cell, clock=self.cell.clock,
+            seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
+        )
+        fake.start()
+        self._closers.append(("controller", fake.close))
+        return fake
+
+    def restart_stopped_rsi(self) -> bool:
+        """Start a new fake KR C4 (same ports, from the cell's current pose) if the RSI session
+        of the running one has ended (late answers, Stop flag). True if it did."""
+        fake = self.controller
+        if fake is None or self.cell.model.controller != "kss" or not fake.wait_stopped(0):
+            return False
+        reason = fake.stats().stopped_reason
+        self._closers = [(n, c) for n, c in self._closers if c != fake.close]
+        fake.close()
+        self.controller = self._new_krc4()
+        log.info("fake KR C4 restarted after: %s (now from %s)", reason, self.controller.address)
+        return True
+
+    def describe(self) -> list[str]:
+        """One line per device, for a person."""
+        q = np.degrees(self.cell.joint_positions())
+        lines = [f"cell: {self.cell.model.name}, seed {self.cell.config.seed}, "
+                 f"time scale {self.cell.clock.time_scale:g}, joints (deg) {np.round(q, 2).tolist()}"]
+        lines += [f"{a.name:<10} {a.url:<28} {a.note}" for a in self.addresses.values()]
+        return lines

@@ -1,0 +1,107 @@
+"""``acquire move`` against the fake KR C4 on loopback: link report, confirmation, safe move."""
+
+from __future__ import annotations
+
+import re
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from acquire.commands import move as move_command
+from drivers.kuka_rsi.fake import FakeKrc4
+
+ROOT = Path(__file__).resolve().parents[2]
+KR6 = ROOT / "fixtures" / "robots" / "kuka_kr6_r900_2.yaml"
+HOME = [0.0, -90.0, 90.0, 0.0, 45.0, 0.0]
+
+
+@pytest.fixture()
+def app():
+    app = typer.Typer()
+
+    @app.callback()
+    def _root() -> None:
+        """remaster"""
+
+    move_command.register(app)
+    return app
+
+
+@pytest.fixture()
+def controller():
+    """A fake KR C4 sending to a free loopback port; yields (port, fake)."""
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    fake = FakeKrc4(("127.0.0.1", port), initial_deg=HOME, rt_priority=40, max_runtime_s=30)
+    fake.start()
+    yield port, fake
+    fake.close()
+
+
+def run(app, port, *args, input=None):
+    return CliRunner().invoke(
+        app,
+        ["move", "--robot", str(KR6), "--commander", f"rsi://127.0.0.1:{port}?connect_timeout=3", *args],
+        input=input,
+    )
+
+
+def test_move_with_yes_reports_the_link_moves_settles_and_ends_the_session(app, controller):
+    port, fake = controller
+    result = run(app, port, "--to", "10,-80,80,5,50,-20", "--speed", "0.5", "--yes", "--tolerance", "0.001")
+    assert result.exit_code == 0, result.output
+    out = result.output
+    assert "cycle 4.0" in out and "latency p50" in out and "measured (deg): A1=   0.0000  A2= -90.0000" in out
+    settled = [line for line in out.splitlines() if line.startswith("settled")][0]
+    values = [float(v) for v in re.findall(r"A\d=\s*(-?[\d.]+)", settled)]
+    np.testing.assert_allclose(values, [10, -80, 80, 5, 50, -20], atol=2e-3)
+    assert fake.wait_stopped(1.0)
+    stats = fake.stats()
+    assert stats.stopped_reason == "Stop flag from the sensor"
+    # the only unanswered packets are those sent before the command started listening
+    assert stats.late == (fake.received()[0].ipoc - 4_000_000) // 4
+    assert stats.stale_answers == 0
+    np.testing.assert_allclose(fake.actual_deg(), [10, -80, 80, 5, 50, -20], atol=2e-3)
+
+
+def test_declining_the_confirmation_moves_nothing(app, controller):
+    port, fake = controller
+    result = run(app, port, "--to", "10,-80,80,5,50,-20", input="n\n")
+    assert result.exit_code == 1
+    assert "Move the robot now?" in result.output and "not moved" in result.output
+    ak = np.array([r.correction_deg for r in fake.received()])
+    assert np.abs(ak).max() < 1e-6
+
+
+def test_target_outside_limits_is_refused_before_asking(app, controller):
+    port, fake = controller
+    result = run(app, port, "--to", "10,-80,80,5,130,-20")
+    assert result.exit_code == 2
+    assert "A5=130.000° not in [-119.500, 119.500]°" in result.output
+    assert "Move the robot now?" not in result.output
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--to", "1,2,3"], "expected 6 comma-separated angles"),
+        (["--to", "1,2,3,4,5,x"], "expected 6 comma-separated angles"),
+        (["--to", "0,-90,90,0,45,0", "--speed", "1.5"], "must be in (0, 1]"),
+    ],
+)
+def test_bad_arguments_are_usage_errors(app, args, message):
+    result = CliRunner().invoke(app, ["move", "--robot", str(KR6), *args])
+    assert result.exit_code == 2
+    assert message in result.output
+
+
+def test_unknown_commander_scheme_lists_the_known_drivers(app):
+    result = CliRunner().invoke(app, ["move", "--robot", str(KR6), "--commander", "xyz://h:1", "--to", "0,0,0,0,0,0"])
+    assert result.exit_code == 2
+    assert "unknown driver 'xyz'" in result.output and "rsi" in result.output
