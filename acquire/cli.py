@@ -33,6 +33,11 @@ def configure_logging(verbose: bool = False) -> None:
     logging.basicConfig(level=level, format=fmt, stream=sys.stderr, force=True)
 
 
+@app.callback()
+def _root() -> None:
+    """remaster: in-situ robot remastering — plan, measure, fit, prove."""
+
+
 for _name in COMMAND_MODULES:
     importlib.import_module(_name).register(app)
 

@@ -3,14 +3,19 @@
 Public API (mm, rad, controller convention — the numbers the pendant shows, in radians):
 
 ``solve_all(model, pose, *, arm_angle=None, within_limits=True, params=None) -> IkSolutions``
-``solve_many(model, poses, **same) -> list[IkSolutions]`` (vectorised over poses)
-``arm_angle_intervals(model, pose, *, params=None) -> list[(lo, hi)]`` (7R)
+``solve_many(model, poses, **same) -> list[IkSolutions]`` — vectorised over poses: one call for
+    many poses is ~50× faster than a ``solve_all`` loop (see tests/bench/bench_ik.py)
+``arm_angle_intervals(model, pose, *, params=None) -> list[(lo, hi)]`` (7R; merged over the
+    global configurations; ``arm_angle_intervals_by_configuration`` gives them per label,
+    ``arm_angle_intervals_many`` for many poses at once)
 ``pick_arm_angle(model, pose, *, prefer=None, params=None) -> float`` (7R)
-``arm_angle_of(model, q, *, params=None) -> ψ`` (7R, the inverse of the arm-angle parameter)
+``arm_angle_of(model, q, *, params=None) -> ψ`` (7R, the arm angle of joint vectors)
+``branch_labels(model) -> list[str]`` (the 8 principal labels)
 
 Which solver runs is decided from the model's own chain: 6 joints → ``calib.ik_spherical_wrist``
 (8 branches), 7 joints → ``calib.ik_srs`` (8 global configurations at one arm angle). Both check
-the structure numerically and raise ``ValueError`` for a model outside their class.
+the structure numerically and raise ``ValueError`` for a model outside their class
+(``calib.ik_numeric.solve_numeric`` is the slow numeric fallback for such arms).
 
 What comes back (``IkSolutions``):
 
@@ -18,22 +23,26 @@ What comes back (``IkSolutions``):
   the position is within ``POSITION_TOLERANCE_MM`` (1e-6 mm) and the orientation within
   ``ORIENTATION_TOLERANCE_RAD`` (1e-9 rad); nothing else is ever returned;
 - with ``within_limits=True`` (default) every row is inside the model's joint limits, and a
-  joint whose range exceeds 360° contributes each of its ±360° equivalents that fits (the KR 6's
-  A4 and A6, the TX60's J4 and J6): they are distinct configurations for the robot, labelled
-  with a suffix such as ``" A6-360"``. With ``within_limits=False`` the principal branches are
-  returned, angles wrapped to (−π, π];
+  joint whose limits reach beyond ±180° contributes each of its ±360° equivalents that fits
+  (the KR 6's A4 and A6, and A2 near −180°; the TX60's J4 and J6): they are distinct
+  configurations for the robot, labelled with a suffix such as ``" A6-360"``. With
+  ``within_limits=False`` the 8 principal branches are returned, angles wrapped to (−π, π];
 - ``status`` ``"ok"``; ``"unreachable"`` (no real solution, message says why);
-  ``"singular"`` (rows are returned but the pose is within 1e-6 of a singularity — the message
-  names it, e.g. A4 and A6 determined only as a sum at A5 = 0; at an exact singularity the
-  rows are representatives of a continuum); ``"limits"`` (solutions exist, none within limits;
-  the message names the least-violated limit).
+  ``"singular"`` (rows are returned but the pose is within 1e-6 (rad, or mm for the shoulder)
+  of a singularity — the message names it, e.g. A4 and A6 determined only as a sum at A5 = 0;
+  at an exact singularity the rows are representatives of a continuum, e.g. A4 = 0);
+  ``"limits"`` (solutions exist, none within limits; the message names the least-violated limit).
+
+7R arm angle: given as a float (or one per pose); ``None`` picks, per pose, the centre of the
+widest feasible interval when ``within_limits`` (status ``"limits"`` if there is none), else 0.
 
 ``params``: a ``Chain`` parameter vector (P,), e.g. a fitted model. If its geometry still
 belongs to the solver's class (zero-offsets only, say) the closed form is built from it and is
 exact; otherwise the closed form runs on the nominal geometry with the given zero-offsets and
-each branch is polished by Gauss–Newton steps on ``Chain.flange_jacobian``. For the 7R arm the
-polish takes minimum-norm steps, so the arm angle of a polished solution may move by the order
-of the model error.
+each branch is polished by Gauss–Newton steps on ``Chain.flange_jacobian`` (7R: with the arm
+angle as a seventh equation, so the requested ψ is kept). Near singularities a branch of the
+perturbed model can then be missed or two merge (their solutions move far for small errors);
+poses up to ``POLISH_REACH_SLACK`` beyond the nominal reach are tried too.
 """
 
 from __future__ import annotations
@@ -64,9 +73,6 @@ POLISH_ITERATIONS = 12
 #: With a polished (perturbed) model, poses up to this relative excess over the nominal reach
 #: are still tried: the clamped nominal solution is polished, and kept only if it converges.
 POLISH_REACH_SLACK = 0.02
-
-_STATUSES = ("ok", "unreachable", "singular", "limits")
-
 
 @dataclass(frozen=True)
 class IkSolutions:
@@ -398,17 +404,21 @@ def solve_many(
     if arm_angle is None:
         psi = np.zeros(k)
         if within_limits:
-            for i in range(k):
-                try:
-                    psi[i] = pick_arm_angle(model, poses[i], params=params)
-                except NoFeasibleArmAngle as exc:
-                    no_angle[i] = str(exc)
+            for i, per in enumerate(_intervals_many(s, poses)):
+                ivs = _merge([iv for v in per.values() for iv in v])
+                if ivs:
+                    psi[i] = _pick(ivs, None)
+                else:
+                    no_angle[i] = f"no arm angle puts every joint of {model.name} within limits for this pose"
     else:
-        psi = np.broadcast_to(np.asarray(arm_angle, dtype=float), (k,)).copy()
+        psi = np.asarray(arm_angle, dtype=float)
+        if psi.ndim > 1 or (psi.ndim == 1 and psi.shape[0] != k):
+            raise ValueError(f"arm_angle must be one float or one per pose (shape ({k},)), got shape {psi.shape}")
+        psi = np.broadcast_to(psi, (k,)).copy()
         if not np.all(np.isfinite(psi)):
             raise ValueError(f"arm_angle must be finite (rad), got {arm_angle!r}")
     raw = s.geometry.solve(poses, psi, reach_slack=_slack(s))
-    out = _assemble(s, raw, _verified(s, raw, poses, psi if s.polish else None), within_limits)
+    out = _assemble(s, raw, _verified(s, raw, poses, psi), within_limits)
     for i in range(k):
         if no_angle[i] and out[i].status != "unreachable":
             out[i] = IkSolutions(np.zeros((0, model.n_joints)), [], "limits", no_angle[i])
@@ -430,6 +440,11 @@ def solve_all(
     return solve_many(model, pose[None], arm_angle=arm_angle, within_limits=within_limits, params=params)[0]
 
 
+def branch_labels(model: RobotModel) -> list[str]:
+    """The 8 principal branch labels of ``model``'s solver, in branch order (no ±360° suffixes)."""
+    return list(_solver(model, None).labels)
+
+
 # --- 7R arm angle ------------------------------------------------------------------------------
 def _srs(model: RobotModel, params: np.ndarray | None) -> _Solver:
     s = _solver(model, params)
@@ -447,13 +462,68 @@ def arm_angle_of(model: RobotModel, q: np.ndarray, *, params: np.ndarray | None 
     return s.geometry.arm_angle(q)
 
 
-def _feasible(s: _Solver, pose: np.ndarray, psi: np.ndarray) -> np.ndarray:
-    """(len(ψ), 8) — configuration exists and (some ±360° equivalent of) it is within limits."""
-    raw = s.geometry.solve(np.broadcast_to(pose, (psi.size, 4, 4)), psi)
+def _feasible(s: _Solver, poses: np.ndarray, psi: np.ndarray) -> np.ndarray:
+    """(m, 8) — configuration exists and (some ±360° equivalent of) it is within limits;
+    poses (m, 4, 4) or (4, 4) broadcast, ψ (m,)."""
+    raw = s.geometry.solve(np.broadcast_to(poses, (psi.size, 4, 4)), psi)
     lo, hi = s.model.lower_limits_rad, s.model.upper_limits_rad
     cand = raw.q[:, :, None, :] + s.shifts[None, None, :, :]
     inside = np.all((cand >= lo) & (cand <= hi), axis=-1).any(axis=-1)
     return inside & raw.valid
+
+
+def _intervals_many(s: _Solver, poses: np.ndarray) -> list[dict[str, list[tuple[float, float]]]]:
+    """Per pose (k, 4, 4): feasible arm-angle intervals per configuration label."""
+    k = poses.shape[0]
+    cuts_all = s.geometry.limit_crossings(poses, s.model.lower_limits_rad, s.model.upper_limits_rad)
+    reach = ~np.array([bool(u) for u in s.geometry.solve(poses, np.zeros(k)).unreachable], dtype=bool)
+    cuts_per, mids, owner = [], [], []
+    for i in range(k):
+        cuts = np.unique(cuts_all[i][np.isfinite(cuts_all[i])]) if reach[i] else np.zeros(0)
+        cuts_per.append(cuts)
+        if not reach[i]:
+            continue
+        if cuts.size == 0:
+            mids.append(np.zeros(1))
+        else:
+            ends = np.append(cuts[1:], cuts[0] + 2 * np.pi)  # gap g runs from cuts[g] to ends[g]
+            mids.append(_wrap(0.5 * (cuts + ends)))
+        owner.append(np.full(mids[-1].size, i))
+    feas_all = _feasible(s, poses[np.concatenate(owner)], np.concatenate(mids)) if owner else np.zeros((0, 8), bool)
+    out: list[dict[str, list[tuple[float, float]]]] = []
+    start = 0
+    for i in range(k):
+        if not reach[i]:
+            out.append({label: [] for label in s.labels})
+            continue
+        cuts = cuts_per[i]
+        n_gaps = max(cuts.size, 1)
+        feas = feas_all[start : start + n_gaps]
+        start += n_gaps
+        ends = np.append(cuts[1:], cuts[0] + 2 * np.pi) if cuts.size else None
+        per: dict[str, list[tuple[float, float]]] = {}
+        for c, label in enumerate(s.labels):
+            col = feas[:, c]
+            if col.all():
+                per[label] = [(-np.pi, np.pi)]
+                continue
+            intervals: list[tuple[float, float]] = []
+            if col.any():
+                g0 = int(np.flatnonzero(~col)[0])
+                run = None
+                for g in np.roll(np.arange(col.size), -g0)[1:]:  # starts after an infeasible gap
+                    if col[g] and run is None:
+                        run = [cuts[g], ends[g]]
+                    elif col[g]:
+                        run[1] = ends[g]
+                    elif run is not None:
+                        intervals.extend(_split(*run))
+                        run = None
+                if run is not None:
+                    intervals.extend(_split(*run))
+            per[label] = _merge(intervals)
+        out.append(per)
+    return out
 
 
 def arm_angle_intervals_by_configuration(
@@ -471,38 +541,8 @@ def arm_angle_intervals_by_configuration(
     outside the class), so boundaries may differ from the polished model's by the link error.
     """
     s = _srs(model, params)
-    pose = _check_poses(np.asarray(pose, dtype=float)[None])[0]
-    cuts = np.unique(s.geometry.limit_crossings(pose, s.model.lower_limits_rad, s.model.upper_limits_rad))
-    if not s.geometry.solve(pose[None], np.zeros(1)).valid.any():
-        return {label: [] for label in s.labels}
-    if cuts.size == 0:
-        feas = _feasible(s, pose, np.zeros(1))  # (1, 8)
-        return {label: ([(-np.pi, np.pi)] if feas[0, c] else []) for c, label in enumerate(s.labels)}
-    ends = np.append(cuts[1:], cuts[0] + 2 * np.pi)  # gap g runs from cuts[g] to ends[g]
-    feas = _feasible(s, pose, _wrap(0.5 * (cuts + ends)))  # (n_gaps, 8)
-    out: dict[str, list[tuple[float, float]]] = {}
-    for c, label in enumerate(s.labels):
-        col = feas[:, c]
-        if col.all():
-            out[label] = [(-np.pi, np.pi)]
-            continue
-        intervals: list[tuple[float, float]] = []
-        if col.any():
-            g0 = int(np.flatnonzero(~col)[0])
-            order = np.roll(np.arange(col.size), -g0)  # starts on an infeasible gap
-            run = None
-            for g in order[1:]:
-                if col[g] and run is None:
-                    run = [cuts[g], ends[g]]
-                elif col[g]:
-                    run[1] = ends[g]
-                elif run is not None:
-                    intervals.extend(_split(*run))
-                    run = None
-            if run is not None:
-                intervals.extend(_split(*run))
-        out[label] = _merge(intervals)
-    return out
+    pose = _check_poses(np.asarray(pose, dtype=float)[None])
+    return _intervals_many(s, pose)[0]
 
 
 def _split(lo: float, hi: float) -> list[tuple[float, float]]:
@@ -536,6 +576,15 @@ def arm_angle_intervals(model: RobotModel, pose: np.ndarray, *, params: np.ndarr
     return _merge([iv for ivs in per.values() for iv in ivs])
 
 
+def arm_angle_intervals_many(
+    model: RobotModel, poses: np.ndarray, *, params: np.ndarray | None = None
+) -> list[list[tuple[float, float]]]:
+    """``arm_angle_intervals`` for poses (k, 4, 4), vectorised (much faster than a loop)."""
+    s = _srs(model, params)
+    per_pose = _intervals_many(s, _check_poses(poses))
+    return [_merge([iv for ivs in per.values() for iv in ivs]) for per in per_pose]
+
+
 def _arcs(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
     """Join (lo, π) and (−π, hi) into one arc (lo, hi + 2π)."""
     arcs = list(intervals)
@@ -543,6 +592,25 @@ def _arcs(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
         first, last = arcs.pop(0), arcs.pop()
         arcs.append((last[0], first[1] + 2 * np.pi))
     return arcs
+
+
+def _pick(ivs: list[tuple[float, float]], prefer: float | None) -> float:
+    arcs = _arcs(ivs)
+    if prefer is None:
+        lo, hi = max(arcs, key=lambda a: a[1] - a[0])
+        return float(_wrap(0.5 * (lo + hi)))
+    best, best_d = prefer, math.inf
+    for lo, hi in arcs:
+        off = float(_wrap(prefer - lo))
+        off = off if off >= 0 else off + 2 * np.pi
+        if off <= hi - lo:
+            return float(_wrap(prefer))
+        margin = min(1e-6, 0.5 * (hi - lo))
+        for edge, inward in ((lo, margin), (hi, -margin)):
+            d = abs(float(_wrap(prefer - edge)))
+            if d < best_d:
+                best, best_d = edge + inward, d
+    return float(_wrap(best))
 
 
 def pick_arm_angle(
@@ -555,28 +623,12 @@ def pick_arm_angle(
     (or its centre if the arc is narrower). Raises ``NoFeasibleArmAngle`` (a ``ValueError``)
     when there is none.
     """
+    if prefer is not None and not math.isfinite(float(prefer)):
+        raise ValueError(f"prefer must be a finite arm angle in rad, got {prefer!r}")
     ivs = arm_angle_intervals(model, pose, params=params)
     if not ivs:
-        raise NoFeasibleArmAngle(
-            f"no arm angle puts every joint of {model.name} within limits for this pose "
-            f"(or the pose is out of reach): {len(ivs)} feasible intervals"
-        )
-    arcs = _arcs(ivs)
-    if prefer is None:
-        lo, hi = max(arcs, key=lambda a: a[1] - a[0])
-        return float(_wrap(0.5 * (lo + hi)))
-    prefer = float(prefer)
-    if not math.isfinite(prefer):
-        raise ValueError(f"prefer must be a finite arm angle in rad, got {prefer!r}")
-    best, best_d = None, math.inf
-    for lo, hi in arcs:
-        off = float(_wrap(prefer - lo))
-        off = off if off >= 0 else off + 2 * np.pi
-        if off <= hi - lo:
-            return float(_wrap(prefer))
-        margin = min(1e-6, 0.5 * (hi - lo))
-        for edge, inward in ((lo, margin), (hi, -margin)):
-            d = abs(float(_wrap(prefer - edge)))
-            if d < best_d:
-                best, best_d = edge + inward, d
-    return float(_wrap(best))
+        s = _srs(model, params)
+        raw = s.geometry.solve(np.asarray(pose, dtype=float)[None], np.zeros(1), reach_slack=_slack(s))
+        why = raw.unreachable[0] or f"no arm angle puts every joint of {model.name} within limits for this pose"
+        raise NoFeasibleArmAngle(why)
+    return _pick(ivs, None if prefer is None else float(prefer))

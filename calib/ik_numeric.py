@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.ik import arm_angle_of
 from calib.kinematics import Chain
 from calib.model import RobotModel
 from calib.transforms import log_so3
@@ -59,8 +60,6 @@ def solve_numeric(
     if n == 7:
         if arm_angle is None:
             raise ValueError("a 7-joint arm has a continuum of solutions: pass arm_angle (rad)")
-        from calib.ik import arm_angle_of  # local: calib.ik is the analytic side
-
         def arm_angle_fn(qq):
             return arm_angle_of(model, qq, params=params)
 

@@ -51,7 +51,6 @@ from calib.ik_subproblems import (
     rotation,
     solve_cosine,
     subproblem1,
-    unit,
 )
 
 N_BRANCHES = 8
@@ -179,7 +178,8 @@ class WristArmGeometry:
         b1c = np.where(on_axis, self.facing_sign, b1c)
         lat = np.where(on_axis & (abs(self.lateral) < 1e-9), 0.0, self.lateral)
         sh = solve_cosine(a1c, b1c, lat)
-        # front root: f·v > 0 with f = σ·Rot(ω1,q1)(ω1×ω2)  ⇒  q1 = φ − σβ (derivation in the docs)
+        # front root: f·v > 0 with f = σ·Rot(ω1,q1)(ω1×ω2) = σ(cos q1 (ω1×ω2) − sin q1 ω2), so
+        # f·v = σ r sin(φ − q1) with q1 = φ ± β: the front root is q1 = φ − σβ
         if self.facing_sign > 0:
             q1_pair = np.stack([sh.minus, sh.plus], 1)  # (k, 2): front, back
         else:

@@ -69,7 +69,6 @@ class SrsGeometry:
     shoulder: np.ndarray  # S (3,), mm
     wrist_point: np.ndarray  # W0 (3,), mm, at q = 0
     facing: np.ndarray  # f0 (3,): the direction the shoulder faces at A1 = 0, ⟂ axis 1
-    gc4_plus: float  # GC4 of the "+" root of the elbow equation (±1)
     reach: tuple[float, float]  # |S − W| band, mm
     q3_ref: float  # the A3 that makes the elbow axis parallel to axis 2 (0 for the iiwa)
     shoulder_triple: SphericalTriple
@@ -111,8 +110,6 @@ class SrsGeometry:
         # smaller turn of the two, so models with other A3 conventions share the arm angle.
         turns = [float(subproblem1(w[2], w[3], sgn * w[1])[0]) for sgn in (1.0, -1.0)]
         q3_ref = min(turns, key=abs)
-        # GC4 is the sign of sin(q4 − stretched), stretched = folded + π; the "+" root is
-        # folded + β with β ∈ [0, π], so sin(β − π) = −sin β ≤ 0.
         xa, ya = dot(w[3], w0 - p[3]), dot(w[3], s - p[3])
         rx, ry = np.linalg.norm(perp(w[3], w0 - p[3])), np.linalg.norm(perp(w[3], s - p[3]))
         return cls(
@@ -121,7 +118,6 @@ class SrsGeometry:
             shoulder=s,
             wrist_point=w0,
             facing=sigma * unit(n12),
-            gc4_plus=-1.0,
             reach=(float(np.hypot(abs(rx - ry), xa - ya)), float(np.hypot(rx + ry, xa - ya))),
             q3_ref=q3_ref,
             shoulder_triple=SphericalTriple.of(w[0], w[1], w[2]),
@@ -173,8 +169,9 @@ class SrsGeometry:
         k = poses.shape[0]
         t_rel, v, el = self._elbow(poses)
         out_of_reach = np.abs(el.ratio) > 1.0 + reach_slack
-        q4_pair = np.stack([el.minus, el.plus], 1) if self.gc4_plus < 0 else np.stack([el.plus, el.minus], 1)
-        # (k, 2): GC4 = +1, −1
+        # GC4 = sign of sin(q4 − stretched), stretched = folded + π. The roots are folded ± β
+        # (β ∈ [0, π]); sin(±β − π) = ∓sin β, so the "−" root is GC4 = +1. (k, 2): GC4 = +1, −1
+        q4_pair = np.stack([el.minus, el.plus], 1)
         q4 = q4_pair.reshape(-1)
         vv = np.repeat(v, 2, axis=0)
         r_ref, off_axis = self._reference(q4, vv)
@@ -229,7 +226,7 @@ class SrsGeometry:
             singular[i] = "; ".join(parts)
         return RawSolutions(q=q, valid=valid, unreachable=unreachable, singular=singular)
 
-    def limit_crossings(self, pose: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
+    def limit_crossings(self, poses: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> np.ndarray:
         """Every arm angle ψ (rad) at which some joint of some configuration may cross a limit.
 
         Shimizu et al.'s observation, in this module's notation: the shoulder rotation
@@ -244,30 +241,33 @@ class SrsGeometry:
         returns all of them for both limits of joints 1–3 and 5–7, both elbow roots, plus the
         shoulder/wrist singular arm angles (t2 = aligned or aligned + π) where t1 and t3 jump.
         Some roots are spurious (the other half-turn of the tangent): harmless, the caller
-        tests feasibility between consecutive candidates. Empty when the pose is out of reach.
-        pose (4, 4) mm; lower, upper (7,) rad (controller convention).
+        tests feasibility between consecutive candidates.
+
+        poses (k, 4, 4) mm; lower, upper (7,) rad (controller convention). Returns ψ (k, M) rad
+        in (−π, π], NaN where an equation has no real root (all NaN for a pose out of reach).
         """
         w = self.axes.omega
-        t_rel, v, el = self._elbow(pose[None])
-        if abs(el.ratio[0]) > 1.0 + REACH_SLACK:
-            return np.zeros(0)
-        q4 = np.array([el.plus[0], el.minus[0]])
-        vhat = unit(np.repeat(v, 2, axis=0))
-        r_ref, _ = self._reference(q4, np.repeat(v, 2, axis=0))  # (2, 3, 3)
-        k = skew(vhat)
+        kp = poses.shape[0]
+        t_rel, v, el = self._elbow(poses)
+        reach = np.abs(el.ratio) <= 1.0 + REACH_SLACK  # (k,)
+        q4 = np.stack([el.plus, el.minus], 1)  # (k, 2)
+        vv = np.broadcast_to(v[:, None, :], (kp, 2, 3))
+        r_ref, _ = self._reference(q4, vv)  # (k, 2, 3, 3)
+        k = skew(unit(vv))
+        k2 = k @ k
         # Rot(v̂, ψ) = I + sin ψ K + (1 − cos ψ) K²
-        a_s, b_s, c_s = k @ r_ref, -(k @ k) @ r_ref, r_ref + (k @ k) @ r_ref
+        a_s, b_s, c_s = k @ r_ref, -k2 @ r_ref, r_ref + k2 @ r_ref
         m = np.swapaxes(rotation(w[3], q4), -1, -2)  # R4ᵀ
-        rel = t_rel[0, :3, :3]
+        rel = t_rel[:, None, :3, :3]
         a_w, b_w, c_w = (m @ np.swapaxes(x, -1, -2) @ rel for x in (a_s, b_s, c_s))
         lims_lo, lims_hi = np.pi - np.mod(np.pi - lower, 2 * np.pi), np.pi - np.mod(np.pi - upper, 2 * np.pi)
         roots = []
 
-        def add(a, b, c):  # a sin ψ + b cos ψ + c = 0, arrays broadcast
+        def add(a, b, c):  # a sin ψ + b cos ψ + c = 0, arrays (k, 2)
             sol = solve_cosine(b, a, -c)
-            ok = np.abs(sol.ratio) <= 1.0 + 1e-12
-            roots.append(sol.plus[ok])
-            roots.append(sol.minus[ok])
+            ok = (np.abs(sol.ratio) <= 1.0 + 1e-12) & reach[:, None]
+            roots.append(np.where(ok, sol.plus, np.nan))
+            roots.append(np.where(ok, sol.minus, np.nan))
 
         for (aa, bb, cc), triple, joints in (
             ((a_s, b_s, c_s), self.shoulder_triple, (0, 1, 2)),
@@ -275,8 +275,8 @@ class SrsGeometry:
         ):
             a1, a2, a3 = triple.a1, triple.a2, triple.a3
 
-            def coef(u, x):  # uᵀ R x for R = A s + B c + C → three (2,) arrays
-                return tuple(np.einsum("i,kij,j->k", u, mat, x) for mat in (aa, bb, cc))
+            def coef(u, x):  # uᵀ R x for R = A s + B c + C → three (k, 2) arrays
+                return tuple(np.einsum("i,...ij,j->...", u, mat, x) for mat in (aa, bb, cc))
 
             f2 = coef(a1, a3)
             n1, d1 = coef(a2, a3), coef(-cross(a1, a2), a3)
@@ -290,7 +290,7 @@ class SrsGeometry:
                 for lim in (lims_lo[j], lims_hi[j]):
                     cl, sl = np.cos(lim), np.sin(lim)
                     add(n_[0] * cl - d_[0] * sl, n_[1] * cl - d_[1] * sl, n_[2] * cl - d_[2] * sl)
-        out = np.concatenate(roots) if roots else np.zeros(0)
+        out = np.concatenate(roots, axis=1)  # (k, M)
         return np.pi - np.mod(np.pi - out, 2 * np.pi)
 
     def arm_angle(self, q: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from calib.transforms import pose_to_matrix
 from calib.yamlfile import load_validated
@@ -107,15 +107,29 @@ class RobotModel(_Strict):
     tool: Tool
     source: str = Field("", description="Where the nominal numbers come from.")
 
-    @model_validator(mode="after")
-    def _beta_only_in_mdh(self) -> "RobotModel":
+    def deferred_errors(self) -> list[tuple[tuple, str]]:
+        """Checks across fields, as (field path, message), so a file loader can point at the
+        line of the offending field rather than at the top of the document."""
+        errors: list[tuple[tuple, str]] = []
         if self.convention == "dh":
-            bad = [j.axis for j in self.joints if j.beta != 0.0]
-            if bad:
-                raise ValueError(f"beta is only allowed with convention 'mdh'; set on {bad}")
+            for i, j in enumerate(self.joints):
+                if j.beta != 0.0:
+                    errors.append(
+                        (("joints", i, "beta"), f"beta is only allowed with convention 'mdh' (axis {j.axis}, given {j.beta})")
+                    )
         axes = [j.axis for j in self.joints]
-        if len(set(axes)) != len(axes):
-            raise ValueError(f"axis names must be unique, got {axes}")
+        for i, ax in enumerate(axes):
+            if axes.index(ax) != i:
+                errors.append((("joints", i, "axis"), f"axis names must be unique; {ax!r} repeats"))
+        return errors
+
+    @model_validator(mode="after")
+    def _cross_field_checks(self, info: ValidationInfo) -> "RobotModel":
+        if info.context and info.context.get("defer_cross_field_checks"):
+            return self
+        errors = self.deferred_errors()
+        if errors:
+            raise ValueError("; ".join(f"{'.'.join(map(str, loc))}: {msg}" for loc, msg in errors))
         return self
 
     # --- numbers for kinematics (mm, rad, controller convention) -------------------------

@@ -85,9 +85,24 @@ def format_validation_error(path: str | Path, exc: ValidationError, marks: Marks
 
 
 def load_validated(path: str | Path, model: type[M]) -> M:
-    """Load ``path`` and validate it as ``model``; raise ConfigError naming line and field."""
+    """Load ``path`` and validate it as ``model``; raise ConfigError naming line and field.
+
+    A model may check relations between fields in ``deferred_errors()`` (returning
+    ``(field path, message)`` pairs) and skip them in its validators when the validation
+    context has ``defer_cross_field_checks``; they are then reported at the right line here.
+    """
     data, marks = load_yaml_with_marks(path)
     try:
-        return model.model_validate(data)
+        obj = model.model_validate(data, context={"defer_cross_field_checks": True})
     except ValidationError as exc:
         raise ConfigError(format_validation_error(path, exc, marks, data)) from None
+    deferred = getattr(obj, "deferred_errors", None)
+    problems = deferred() if deferred else []
+    if problems:
+        lines = []
+        for loc, msg in problems:
+            where = _locate(tuple(loc), marks)
+            prefix = f"{path}:{where[0]}:{where[1]}" if where else str(path)
+            lines.append(f"{prefix}: {'.'.join(map(str, loc))}: {msg}")
+        raise ConfigError("\n".join(lines))
+    return obj

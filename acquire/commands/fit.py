@@ -71,6 +71,10 @@ def metric_notes(result: FitResult) -> list[str]:
             f"offsets of {', '.join(held)} are not determined (or not fitted) and held at nominal in the posterior draws: "
             "the theoretical metrics do not include their error."
         )
+    notes.append(
+        "the standard deviations assume independent isotropic errors (eq. 10); systematic errors the model lacks "
+        "(link lengths, sag) bias the offsets beyond them — compare the validation metrics with the calibration ones."
+    )
     return notes
 
 
@@ -101,7 +105,9 @@ def format_summary(doc: dict, controller_text: str) -> str:
         f"acceptance {min(d['acceptance']):.2f}–{max(d['acceptance']):.2f}, {d['seconds_total']:.2f} s"
     )
     if rhat is not None and rhat > 1.05:
-        lines.append(f"WARNING: R-hat {rhat:.3f} > 1.05 — the chains disagree; do not enter these values")
+        lines.append(f"WARNING: R-hat {rhat:.3f} > 1.05 — the sampler has not converged; do not enter these values")
+    if ess is not None and ess < 100:
+        lines.append(f"WARNING: ESS {ess:.0f} < 100 — too few effective draws for reliable means and standard deviations")
     metrics = doc.get("metrics", {})
     if metrics:
         lines += ["", f"{'accuracy (mm)':<40} {'before: mean [2.5 %, 97.5 %]':>30} {'after: mean [2.5 %, 97.5 %]':>30}"]

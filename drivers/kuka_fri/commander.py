@@ -25,6 +25,7 @@ import logging
 import math
 import os
 import socket
+import sys
 import threading
 import time
 from typing import Callable, Optional
@@ -58,6 +59,7 @@ class FriCommander(CommanderBase):
     bind: local (host, port) to receive monitoring messages on; port 0 picks a free one.
     controller_host: accept datagrams only from this IP (None: any sender).
     receive_timeout_s: silence (client clock) after which a running motion fails.
+    switch_interval_s: interpreter thread switch interval while connected (None: leave it).
     clock / sleep: client time source and sleep (inject a ``SimClock``'s ``now``/``sleep``).
     """
 
@@ -74,6 +76,7 @@ class FriCommander(CommanderBase):
         max_speed: float = 1.0,
         max_state_age_s: float = 0.1,
         limit_margin_rad: float = math.radians(0.5),
+        switch_interval_s: Optional[float] = 0.0005,
         clock: Clock = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
@@ -92,6 +95,10 @@ class FriCommander(CommanderBase):
         self.rt_priority = rt_priority
         self.receive_timeout_s = float(receive_timeout_s)
         self._sleep_fn = sleep
+        if switch_interval_s is not None and not switch_interval_s > 0:
+            raise ValueError(f"switch_interval_s must be positive or None, got {switch_interval_s}")
+        self.switch_interval_s = switch_interval_s
+        self._saved_switch_interval: Optional[float] = None
         self.session = FriClientSession(limits, start_tolerance_rad=start_tolerance_rad, logger=self.log)
         self.rt_scheduling: str = "not started"
         self.malformed_messages = 0
@@ -159,6 +166,7 @@ class FriCommander(CommanderBase):
         sock.settimeout(min(0.02, self.receive_timeout_s / 2))
         self._sock = sock
         self._running.set()
+        self._shorten_switch_interval()
         self._thread = threading.Thread(target=self._rt_loop, name=f"{self.name}-rt", daemon=True)
         self._thread.start()
         self.log.info("FRI client listening on %s:%d", *self.address)
@@ -175,11 +183,28 @@ class FriCommander(CommanderBase):
         self._running.clear()
         self._thread.join(timeout=2.0)
         self._thread = None
+        if self._saved_switch_interval is not None:
+            if sys.getswitchinterval() == self.switch_interval_s:
+                sys.setswitchinterval(self._saved_switch_interval)
+            self._saved_switch_interval = None
         if self._sock is not None:
             self._sock.close()
             self._sock = None
 
     # ------------------------------------------------------------------ the exchange thread
+
+    def _shorten_switch_interval(self) -> None:
+        """A Python thread holding the GIL keeps it for up to ``sys.getswitchinterval()``
+        (5 ms by default): a whole FRI period. While connected we lower it so the exchange
+        thread gets the interpreter within ``switch_interval_s`` of its datagram."""
+        if self.switch_interval_s is None or sys.getswitchinterval() <= self.switch_interval_s:
+            return
+        self._saved_switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(self.switch_interval_s)
+        self.log.info(
+            "thread switch interval lowered from %.1f ms to %.2f ms for the FRI exchange",
+            self._saved_switch_interval * 1e3, self.switch_interval_s * 1e3,
+        )
 
     def _set_realtime(self) -> None:
         if self.rt_priority == 0:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import select
 import socket
 import threading
@@ -87,6 +88,9 @@ class FakeSunrise:
     """A fake Sunrise FRI controller.
 
     client_address: (host, port) of the FRI client, loopback only.
+    idle_cycles: IDLE messages sent before the session opens by itself (``auto_open``).
+    ready_after / commanding_wait_cycles: consecutive answered windows needed to leave
+        MONITORING_WAIT / COMMANDING_WAIT.
     limits: used to check what the client commands (per-cycle speed, position range) and,
         when ``abort_on_violation``, to end the motion as Sunrise does; None skips the checks.
     initial_position_rad: shape (7,); default the scene's pose or zeros.
@@ -95,6 +99,7 @@ class FakeSunrise:
     jitter_ms: each send is delayed by a uniform random 0..jitter_ms (simulated ms).
     loss_out / loss_in: probability that a monitoring message / an answer is lost.
     max_runtime_s: wall seconds after which the sending thread stops by itself.
+    rt_priority: SCHED_FIFO priority of the sending thread when permitted (0: normal).
     """
 
     def __init__(
@@ -125,6 +130,7 @@ class FakeSunrise:
         loss_out: float = 0.0,
         loss_in: float = 0.0,
         max_runtime_s: float = 300.0,
+        rt_priority: int = 0,
     ) -> None:
         host, port = client_address
         if host not in _LOOPBACK:
@@ -158,6 +164,8 @@ class FakeSunrise:
         self.loss_out = float(loss_out)
         self.loss_in = float(loss_in)
         self.max_runtime_s = float(max_runtime_s)
+        self.rt_priority = int(rt_priority)
+        self.overruns = 0
         self._rng = np.random.default_rng(seed)
         self._omega = 2 * math.pi * servo_frequency_hz
         self._zeta = servo_damping
@@ -172,7 +180,7 @@ class FakeSunrise:
         self._q = q0  # actual position, rad
         self._qd = np.zeros(N_JOINTS)  # actual velocity, rad/s
         self._setpoint = q0.copy()  # commanded (ipo) position, rad
-        self._prev_setpoint_step: Optional[np.ndarray] = None
+        self._windows_since_applied = 1
 
         self.stats = FakeSunriseStats()
         self._lock = threading.Lock()
@@ -343,7 +351,7 @@ class FakeSunrise:
             self._consecutive_good = 0
             if new == SessionState.COMMANDING_ACTIVE:
                 self._first_active_command = True
-                self._prev_setpoint_step = None
+                self._windows_since_applied = 1
             if new == SessionState.IDLE:
                 self._setpoint = self._q.copy()
             self._state_changed.notify_all()
@@ -436,7 +444,10 @@ class FakeSunrise:
                     f"(allowed {self.start_tolerance_rad:.3g})"
                 )
                 return
-        dt = self._receive_period_s()
+        # The client advances one step per answer; a window whose answer was lost or late
+        # leaves the robot a step behind, so the speed is judged over the windows since the
+        # last set-point we took.
+        dt = self._receive_period_s() * self._windows_since_applied
         step = cmd - self._setpoint
         if self.limits is not None:
             lim = self.limits
@@ -453,6 +464,7 @@ class FakeSunrise:
                 )
                 return
         self._setpoint = cmd
+        self._windows_since_applied = 0
         self.stats.commands.append((self._sim_time, cmd.copy()))
 
     def _step_servo(self, dt: float) -> None:
@@ -474,6 +486,7 @@ class FakeSunrise:
             return
         missed = not self._window_answered
         self._windows.append(missed)
+        self._windows_since_applied += 1
         if missed:
             self.stats.missed_windows += 1
             self._consecutive_missed += 1
@@ -565,7 +578,16 @@ class FakeSunrise:
     def _wall(self, sim_s: float) -> float:
         return self.clock.wall_duration(sim_s) if self.clock is not None else sim_s
 
+    def _set_realtime(self) -> None:
+        if self.rt_priority <= 0 or not hasattr(os, "sched_setscheduler"):
+            return
+        try:  # pid 0: this thread (Linux)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
+        except PermissionError as exc:
+            log.info("fake Sunrise: SCHED_FIFO %d not permitted (%s); normal priority", self.rt_priority, exc)
+
     def _run(self) -> None:
+        self._set_realtime()
         sock = self._sock
         assert sock is not None
         period = self._wall(self.send_period_ms / 1000.0)
@@ -580,6 +602,9 @@ class FakeSunrise:
                 ready, _, _ = select.select([sock], [], [], remaining)
                 if ready:
                     self._drain(sock)
+            # Whatever is queued now arrived by the deadline as far as we can tell: our own
+            # thread may have been descheduled past it, which is not the client's fault.
+            self._drain(sock)
             with self._lock:
                 data = self._cycle()
                 jitter = self._rng.uniform(0.0, self.jitter_ms / 1000.0) if self.jitter_ms else 0.0
@@ -591,8 +616,13 @@ class FakeSunrise:
                 except OSError as exc:  # e.g. ECONNREFUSED from an earlier ICMP: keep sending
                     log.debug("fake Sunrise: send failed: %s", exc)
             next_t += period
-            if next_t < time.monotonic() - 10 * period:
-                next_t = time.monotonic()  # we were descheduled for long: do not burst
+            now = time.monotonic()
+            if next_t < now + 0.5 * period:
+                # We were descheduled past a send time. A real controller never sends two
+                # messages back to back; re-anchor instead of catching up, so the client always
+                # has a whole period to answer the message just sent.
+                self.overruns += 1
+                next_t = now + period
         log.info("fake Sunrise: stopped after %d messages", self.stats.sent)
 
     def _drain(self, sock: socket.socket) -> None:

@@ -269,10 +269,28 @@ class RsiCommander(CommanderBase):
                     self.switch_interval_s * 1e3,
                 )
                 sys.setswitchinterval(self.switch_interval_s)
+            self._warm_up()
             self._running.set()
             self._thread = threading.Thread(target=self._rt_main, name=f"{self.name}-rt", daemon=True)
             self._thread.start()
         return self._sock.getsockname()
+
+    def _warm_up(self) -> None:
+        """Run every code path of a cycle and of a move once before the exchange starts, so
+        lazy imports and first-call costs (which hold the interpreter lock) happen now."""
+        n = self.limits.n_axes
+        f = SenFormatter(min(n, 6), max(n - 6, 0), self.sen_type)
+        probe = (
+            '<Rob Type="KUKA"><AIPos A1="0.0"/><ASPos A1="0.0"/><Delay D="0"/><IPOC>1</IPOC></Rob>'
+        ).encode()
+        parse_rob(probe)
+        f.format(np.zeros(n), False, 1)
+        v, a, j = scaled_limits(self.limits.max_velocity_rad_s, self.limits.max_acceleration_rad_s2, 0.5, self.max_jerk_rad_s3)
+        lo = np.asarray(self.limits.lower_rad, dtype=float)
+        traj = JointTrajectory.plan(lo, lo + 1e-3, v, a, j)
+        traj.sample(np.arange(3) * self.dt)
+        JointTrajectory.stop(lo, v * 0.5, a * 0.0, v, a, j).sample(0.0)
+        np.percentile(np.zeros(4), [50, 99])
 
     def connect(self) -> None:
         """Listen, start the exchange thread and wait for the controller's first packet.
@@ -343,10 +361,10 @@ class RsiCommander(CommanderBase):
         )
 
     def link_stats(self) -> LinkStats:
-        """Timing of the last cycles (see ``LinkStats``)."""
-        n = min(self._count, self._W)
-        lat = self._lat[:n] if self._count <= self._W else self._lat
-        rx = np.sort(self._rx[:n]) if n else self._rx[:0]
+        """Timing of the last cycles (see ``LinkStats``). Costs O(window); not for the RT path."""
+        lat = self.latencies()
+        rx = self._ordered(self._rx)
+        n = lat.shape[0]
         per = np.diff(rx) if n > 1 else np.zeros(1)
         q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
         return LinkStats(
@@ -367,13 +385,16 @@ class RsiCommander(CommanderBase):
             realtime=self._rt_ok,
         )
 
+    def _ordered(self, ring: np.ndarray) -> np.ndarray:
+        count = self._count
+        if count <= self._W:
+            return ring[:count].copy()
+        i = count % self._W
+        return np.concatenate([ring[i:], ring[:i]])
+
     def latencies(self) -> np.ndarray:
         """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),)."""
-        n = min(self._count, self._W)
-        if self._count <= self._W:
-            return self._lat[:n].copy()
-        i = self._count % self._W
-        return np.concatenate([self._lat[i:], self._lat[:i]])
+        return self._ordered(self._lat)
 
     # -- motion -------------------------------------------------------------------------------
 
@@ -422,9 +443,9 @@ class RsiCommander(CommanderBase):
         )
         self._pending = motion
         if not motion.done.wait(timeout):
+            self._pending = None  # never adopted: nothing to stop
             self._stop_req = True
             motion.done.wait(2.0)
-            self._pending = None
             raise DeviceTimeoutError(f"{self.name}: move not completed within {timeout:.3g} s; stopped")
         if motion.error is not None:
             if self._fault is motion.error:
@@ -445,7 +466,9 @@ class RsiCommander(CommanderBase):
                 self.log.warning("%s: no controller packet to carry the Stop flag", self.name)
 
     def _stop_motion(self, timeout: float) -> None:
-        self._pending = None
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.done.set()  # a move that had not started yet ends without moving
         motion = self._motion
         if motion is None:
             return

@@ -69,6 +69,7 @@ class FakeKrc4Stats:
     running: bool = False
     stopped_reason: str | None = None
     errors: list[str] = field(default_factory=list)
+    late_events: list[str] = field(default_factory=list)  # the first 100, for diagnosis
 
 
 class FakeKrc4:
@@ -196,6 +197,7 @@ class FakeKrc4:
         with self._lock:
             s = FakeKrc4Stats(**{k: getattr(self._stats, k) for k in self._stats.__dataclass_fields__})
             s.errors = list(self._stats.errors)
+            s.late_events = list(self._stats.late_events)
             return s
 
     def actual_deg(self) -> np.ndarray:
@@ -334,6 +336,8 @@ class FakeKrc4:
                         st.late += 1
                         st.late_total += 1
                         st.late_consecutive += 1
+                        if len(st.late_events) < 100:
+                            st.late_events.append(f"IPOC {ipoc}: no answer in time")
                 # servo over one cycle, set-point = start position + correction (zero-order hold)
                 r = self._aspos + self._ak
                 x, xd = self._x, self._xd
@@ -385,6 +389,11 @@ class FakeKrc4:
                 self._received.append(ReceivedCommand(cmd.ipoc, values, cmd.stop, on_time))
                 if not on_time:
                     self._stats.stale_answers += 1
+                    if len(self._stats.late_events) < 100:
+                        self._stats.late_events.append(
+                            f"answer IPOC {cmd.ipoc} arrived {(arrived - deadline_wall) * 1e3:+.2f} ms after the "
+                            f"deadline of IPOC {ipoc}"
+                        )
                     continue
                 if len(cmd.axis_correction_deg) != self.n_axes or len(cmd.external_correction_deg) != self.n_external:
                     self._stats.malformed_answers += 1

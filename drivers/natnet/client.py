@@ -391,6 +391,8 @@ class NatNetSensor(SensorBase):
                     for i, m in enumerate(self._responses):
                         if isinstance(m, cls):
                             return self._responses.pop(i)
+                        if isinstance(m, ProtocolError) and cls is codec.ModelDef:
+                            raise self._responses.pop(i)
                     left = until - self.clock()
                     if left <= 0:
                         break
@@ -433,7 +435,19 @@ class NatNetSensor(SensorBase):
             self._last_rx = self.clock()
         if self.multicast is not None:
             self._open_multicast(self.data_port or info.data_port or 1511)
-        md = self._wait_for(codec.ModelDef, codec.RequestModelDef(), "MODELDEF")
+        try:
+            md = self._wait_for(codec.ModelDef, codec.RequestModelDef(), "MODELDEF")
+        except ProtocolError as exc:
+            by_name = [k for k, v in self.selectors.items()
+                       if v.kind == "ms" or (v.kind == "rb" and isinstance(v.body, str))]
+            if by_name:
+                raise ProtocolError(
+                    f"{self.name}: cannot read Motive's model definitions ({exc}), so markers "
+                    f"{by_name} cannot be found by name; select them by id "
+                    "('lm:<model id>:<marker id>' or 'rb:<body id>')"
+                ) from exc
+            self.log.warning("cannot read Motive's model definitions (%s); markers are selected by id", exc)
+            md = None
         resolved = self._resolve(md)
         with self._cond:
             self.model_def = md
@@ -535,6 +549,10 @@ class NatNetSensor(SensorBase):
             msg = codec.decode_packet(data, self.stream_version or codec.MIN_VERSION)
         except ProtocolError as exc:
             self.bad_packets += 1
+            if data[:2] == b"\x05\x00" and self.model_def is None:  # MODELDEF during handshake
+                with self._cond:
+                    self._responses.append(exc)
+                    self._cond.notify_all()
             if self.bad_packets <= 5 or self.bad_packets % 1000 == 0:
                 self.log.warning(
                     "undecodable NatNet packet #%d (%d bytes): %s", self.bad_packets, len(data), exc

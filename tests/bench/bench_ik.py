@@ -7,8 +7,9 @@ plan produces them). Measured per robot:
 
 - ``solve_many``: all poses in one vectorised call (what the pose plan should use);
 - ``solve_all`` loop: one call per pose;
-- 7R: at the pose's own arm angle, and with ``arm_angle=None`` (the solver picks the centre of
-  the widest feasible arm-angle interval first — ``arm_angle_intervals`` per pose).
+- 7R: at the pose's own arm angle, and with ``arm_angle=None`` (the solver first finds each
+  pose's feasible arm-angle intervals and picks the centre of the widest); the interval
+  computation alone, vectorised (``arm_angle_intervals_many``) and one pose per call.
 
 Rates are poses/s and solutions/s (rows returned: every branch and ±360° equivalent within
 limits). Baseline, in the same run: ``calib.ik_numeric.solve_numeric`` — random-start
@@ -90,8 +91,10 @@ def main() -> None:
             m7 = min(len(poses), 200)
             t, res = best_of(lambda: ik.solve_many(model, poses[:m7]), 1)
             rows.append(("solve_many, ψ picked (intervals)", m7 / t, sum(map(len, res)) / t, res))
+            t, _ = best_of(lambda: ik.arm_angle_intervals_many(model, poses[:m7]), 1)
+            rows.append(("arm_angle_intervals_many alone", m7 / t, float("nan"), None))
             t, _ = best_of(lambda: [ik.arm_angle_intervals(model, poses[i]) for i in range(m7)], 1)
-            rows.append(("arm_angle_intervals alone", m7 / t, float("nan"), None))
+            rows.append(("arm_angle_intervals loop", m7 / t, float("nan"), None))
         for what, rate, sol_rate, res in rows:
             per_pose = sum(map(len, res)) / len(res) if res else float("nan")
             print(f"{model.name:<22} {what:<34} {rate:>10.1f} {sol_rate:>12.1f} {per_pose:>9.2f} {rate / numeric_rate:>10.0f}x")

@@ -364,8 +364,6 @@ def test_beta_in_a_dh_model_is_refused_naming_the_file_and_the_joint(tmp_path):
     assert str(path) in msg and "beta is only allowed with convention 'mdh'" in msg and "A3" in msg
 
 
-@pytest.mark.xfail(strict=True, reason="model-level validator: the error points at the document start "
-                   "('(top level)'), not at joints.2.beta on the A3 line; calib/model.py owns the fix")
 def test_beta_in_a_dh_model_points_at_the_joint_line(tmp_path):
     text = KR6_TEXT.replace("{axis: A3, theta: 90,", "{axis: A3, theta: 90, beta: 2,", 1)
     path = tmp_path / "robot.yaml"

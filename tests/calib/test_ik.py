@@ -131,7 +131,9 @@ def test_wrist_equivalents_within_limits_are_returned_and_labelled():
 
 
 # --- completeness against a brute-force numeric search ---------------------------------------------
-@pytest.mark.parametrize("name,n_poses,n_starts", [("kuka_kr6_r900_2", 3, 1000), ("staubli_tx60", 3, 1000), ("kuka_iiwa14_r820", 2, 500)])
+@pytest.mark.parametrize(
+    "name,n_poses,n_starts", [("kuka_kr6_r900_2", 12, 1000), ("staubli_tx60", 12, 1000), ("kuka_iiwa14_r820", 4, 500)]
+)
 def test_solution_count_matches_brute_force_numeric_search(name, n_poses, n_starts):
     m = model(name)
     chain = Chain(m)
@@ -174,6 +176,27 @@ def test_kr6_labels_follow_kuka_status_bits_computed_from_fk():
         assert ("shoulder=front" in label) == (along > 0), (np.degrees(row), label)
         assert ("elbow=up" in label) == (bend > 0), (np.degrees(row), label)
         assert ("wrist=noflip" in label) == (row[4] > 0), (np.degrees(row), label)
+
+
+def test_tx60_labels_front_and_wrist_follow_geometry_and_j5_sign():
+    m = model("staubli_tx60")
+    chain = Chain(m)
+    q = random_q(m, 300, seed=12)
+    q = q[(np.abs(np.sin(q[:, 4])) > 0.05) & (np.abs(np.sin(q[:, 2])) > 0.05)]
+    res = ik.solve_many(m, chain.fk(q))
+    checked = 0
+    for row, r in zip(q, res):
+        t = chain.fk(row)
+        wc = t[:3, 3] - 70.0 * t[:3, 2]  # wrist centre: 70 mm behind the flange
+        facing = np.array([math.cos(row[0]), math.sin(row[0])])  # the arm faces +x at J1 = 0
+        along = facing @ wc[:2]
+        if abs(along) < 5:
+            continue
+        label = r.branch[int(np.argmin(np.abs(r.q - row).max(-1)))]
+        assert ("shoulder=front" in label) == (along > 0), (np.degrees(row), label)
+        assert ("wrist=noflip" in label) == (row[4] > 0), (np.degrees(row), label)
+        checked += 1
+    assert checked > 150
 
 
 def test_iiwa_labels_are_the_signs_of_a2_a4_a6():
@@ -292,7 +315,7 @@ def test_arm_angle_intervals_inside_within_limits_just_outside_not():
     for row in q:
         pose = chain.fk(row)
         per = ik.arm_angle_intervals_by_configuration(m, pose)
-        assert set(per) == set(ik.srs_labels())
+        assert set(per) == set(ik.branch_labels(m))
         probes = []  # (label, ψ, expected within limits)
         for label, ivs in per.items():
             for lo, hi in ivs:
@@ -332,6 +355,17 @@ def test_arm_angle_intervals_agree_with_a_dense_sweep():
         # the pose's own arm angle is feasible (row is within limits)
         psi = float(ik.arm_angle_of(m, row))
         assert any(lo <= psi <= hi for lo, hi in merged)
+
+
+def test_arm_angle_intervals_many_equals_one_by_one():
+    m = model("kuka_iiwa14_r820")
+    chain = Chain(m)
+    poses = chain.fk(random_q(m, 12, seed=23))
+    poses[3, :3, 3] = [2000.0, 0.0, 0.0]  # out of reach: no interval
+    many = ik.arm_angle_intervals_many(m, poses)
+    assert many[3] == []
+    for i in range(len(poses)):
+        assert many[i] == ik.arm_angle_intervals(m, poses[i])
 
 
 def test_pick_arm_angle_centre_and_closest_to_preference():
@@ -465,5 +499,7 @@ def test_bad_input_raises_value_error_saying_what_is_allowed():
         ik.arm_angle_intervals(m6, np.eye(4))
     with pytest.raises(ValueError, match="finite"):
         ik.solve_all(m7, np.eye(4), arm_angle=float("nan"))
+    with pytest.raises(ValueError, match=r"one per pose \(shape \(2,\)\)"):
+        ik.solve_many(m7, np.stack([np.eye(4)] * 2), arm_angle=np.zeros(3))
     with pytest.raises(TypeError, match="RobotModel"):
         ik.solve_all({"joints": []}, np.eye(4))

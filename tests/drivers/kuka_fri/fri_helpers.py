@@ -86,3 +86,27 @@ def assert_commands_within_limits(commands, limits: JointLimits, dt: float, spee
         a_max = limits.max_acceleration_rad_s2 * speed**2
         worst = float(np.max(acc / a_max))
         assert worst <= 1 + rtol, f"acceleration {worst:.6f} × limit"
+
+
+def assert_timed_commands_within_limits(timed, limits: JointLimits, dt: float, speed: float = 1.0,
+                                        rtol: float = 1e-6) -> None:
+    """Like ``assert_commands_within_limits`` for the set-points a ``FakeSunrise`` applied:
+    ``timed`` is a sequence of (controller time s, shape (7,) rad). Speeds are taken over the
+    real time between set-points (a lost answer leaves a gap); accelerations over runs of
+    set-points exactly ``dt`` apart."""
+    t = np.array([x[0] for x in timed])
+    q = np.array([x[1] for x in timed], dtype=float)
+    assert np.all(q >= limits.lower_rad) and np.all(q <= limits.upper_rad)
+    if len(q) < 2:
+        return
+    gaps = np.diff(t)
+    assert np.all(gaps > 0.5 * dt), "set-points closer than one receive period"
+    vel = np.abs(np.diff(q, axis=0)) / gaps[:, None]
+    worst = float(np.max(vel / (limits.max_velocity_rad_s * speed)))
+    assert worst <= 1 + rtol, f"speed {worst:.6f} × limit"
+    regular = np.isclose(gaps, dt, rtol=1e-6, atol=1e-9)
+    both = regular[1:] & regular[:-1]
+    if np.any(both):
+        acc = np.abs(np.diff(q, n=2, axis=0))[both] / dt**2
+        worst = float(np.max(acc / (limits.max_acceleration_rad_s2 * speed**2)))
+        assert worst <= 1 + rtol, f"acceleration {worst:.6f} × limit"

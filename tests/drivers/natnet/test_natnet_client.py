@@ -5,13 +5,14 @@ a silent server and a restarted one."""
 from __future__ import annotations
 
 import socket
+import struct
 import time
 
 import numpy as np
 import pytest
 from natnet_helpers import PLATE_MM, PLATE_ORIGIN_MM, PlateScene, wait_until
 
-from drivers.errors import DeviceTimeoutError, TargetLostError
+from drivers.errors import DeviceTimeoutError, ProtocolError, TargetLostError
 from drivers.natnet import codec
 from drivers.natnet.client import NatNetSensor
 from drivers.natnet.fake import FakeMotive
@@ -325,3 +326,25 @@ def test_fake_rigid_body_pose_maps_its_layout_onto_the_markers():
     predicted_mm = (layout @ r.T + frame.rigid_bodies["pos"][0]) * 1000.0
     np.testing.assert_allclose(predicted_mm, frame.labeled_positions_mm(), atol=0.01)
     assert frame.model_ids.tolist() == [7] * 4 and frame.marker_ids.tolist() == [1, 2, 3, 4]
+
+
+class BrokenModelDefMotive(FakeMotive):
+    """Sends a MODELDEF with a dataset type nobody can read in NatNet 3.0."""
+
+    def _send(self, packet, addr):
+        if packet[:2] == struct.pack("<H", codec.NAT_MODELDEF):
+            packet = struct.pack("<HHiiii", codec.NAT_MODELDEF, 16, 1, 99, 0, 0)
+        super()._send(packet, addr)
+
+
+def test_unreadable_model_definitions_only_matter_for_markers_chosen_by_name(still_scene):
+    with BrokenModelDefMotive(still_scene, rate_hz=240) as fake:
+        with sensor_for(fake, markers={"far": "lm:1:4", "plate": "rb:1"}) as sensor:
+            assert sensor.model_def is None
+            s = by_name(sensor.read(1.0))
+            np.testing.assert_allclose(s["far"].position_mm, TRUE_MM[3], atol=1e-3)
+        sensor = sensor_for(fake, markers={"corner": "ms:tool:m1"})
+        t0 = time.monotonic()
+        with pytest.raises(ProtocolError, match=r"model definitions .*dataset type 99.*\['corner'\]"):
+            sensor.connect()
+        assert time.monotonic() - t0 < sensor.handshake_timeout_s  # told at once, not timed out

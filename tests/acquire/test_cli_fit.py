@@ -1,0 +1,174 @@
+"""``acquire fit``: summary, result.json, report.html, and a non-zero exit on bad input."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from acquire.commands import fit as fit_command
+from calib.dataset import from_arrays, read_csv, write_csv
+from calib.kinematics import Chain
+from calib.model import load_robot_model
+from calib.transforms import apply, pose_to_matrix
+
+ROOT = Path(__file__).resolve().parents[2]
+IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
+KR6 = ROOT / "fixtures" / "robots" / "kuka_kr6_r900_2.yaml"
+CAL = ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv"
+VAL = ROOT / "fixtures" / "datasets" / "iiwa14_sim_val.csv"
+TRUE_OFFSETS_DEG = [0.477, -0.192, 0.139, 0.099, 0.392, -0.114, 0.936]  # make_sim.py: Table I
+QUICK = ["--draws", "300", "--random-configs", "100"]
+
+
+@pytest.fixture()
+def app():
+    app = typer.Typer()
+
+    @app.callback()
+    def _root() -> None:
+        """remaster"""
+
+    fit_command.register(app)
+    return app
+
+
+def run(app, *args):
+    return CliRunner().invoke(app, ["fit", *map(str, args)])
+
+
+def flat(text: str) -> str:
+    """Error panels wrap lines and draw boxes: compare without either."""
+    return re.sub(r"[\s│╭╮╰╯─]+", "", text)
+
+
+def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
+    out, rep = tmp_path / "result.json", tmp_path / "report.html"
+    res = run(app, CAL, "--robot", IIWA, "--validate", VAL, "-o", out, "--report", rep, "--seed", 3, *QUICK)
+    assert res.exit_code == 0, res.output
+    text = res.output
+    doc = json.loads(out.read_text())
+    # Summary: each joint, its status, σ, diagnostics, metrics, values to enter.
+    assert re.search(r"^A1\s+—\s+—\s+—\s+undetermined: ", text, flags=re.M)
+    for j in doc["joint_offsets"][1:]:
+        value = re.escape(f"{j['value_deg']:+.4f}")
+        assert re.search(rf"^{j['joint']}\s+{value}\s+{j['std_deg']:.4f}\s+\[.*\]\s+fitted$", text, flags=re.M)
+    assert re.search(r"sensor mocap: σ = 0\.\d{3} ± 0\.\d{3} mm", text)
+    assert re.search(r"R-hat max 1\.0\d\d, ESS min \d+", text)
+    assert "validation_absolute" in text and "theoretical_workspace_offsets_only" in text
+    assert "values to enter (sunrise):" in text and "leave unchanged" in text
+    # The fitted offsets are close to the simulated truth (link errors and sag bias them a little).
+    fitted = np.array([j["value_deg"] for j in doc["joint_offsets"][1:]])
+    np.testing.assert_allclose(fitted, TRUE_OFFSETS_DEG[1:], atol=0.05)
+    # result.json: the sections of issue 3.
+    assert set(doc) >= {"joint_offsets", "registration", "sigma_mm", "diagnostics", "identifiability", "metrics", "controller"}
+    assert doc["joint_offsets"][0]["value_deg"] is None and doc["joint_offsets"][0]["identifiable"] is False
+    m = doc["metrics"]
+    for key in ("relative", "absolute", "theoretical_workspace", "validation_relative", "validation_absolute"):
+        assert m[key]["after"]["mean"] < m[key]["before"]["mean"] / 2, key
+    assert m["settings"]["n_random_configurations"] == 100
+    assert doc["diagnostics"]["method"] == "fast" and doc["diagnostics"]["rhat_max"] < 1.05
+    assert [a["action"] for a in doc["controller"]["axes"]] == ["leave unchanged"] + ["enter"] * 6
+    # report.html: self-contained (embedded PNGs, nothing fetched).
+    html = rep.read_text()
+    assert html.count('src="data:image/png;base64,') == 2
+    assert not re.search(r'(src|href)="(http|//)', html)
+    for heading in ("Values to enter", "Zero-offsets", "Accuracy before and after", "Identifiability", "Sampler diagnostics"):
+        assert heading in html
+    assert f"wrote {out}" in text and f"wrote {rep}" in text
+
+
+def test_validation_rows_in_the_same_file_are_used(app, tmp_path):
+    model = load_robot_model(IIWA)
+    both = read_csv(CAL, model).concat(read_csv(VAL, model))
+    path = tmp_path / "both.csv"
+    write_csv(both, path)
+    out = tmp_path / "r.json"
+    res = run(app, path, "--robot", IIWA, "-o", out, *QUICK)
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["data"]["n_measurements"] == len(both.calibration())
+    assert "validation_absolute" in doc["metrics"]
+
+
+def test_paper_method_fixed_registration_and_joint_selection(app, tmp_path):
+    out = tmp_path / "r.json"
+    res = run(app, CAL, "--robot", IIWA, "--method", "paper", "--paper-samples", 4000, "--joints", "1,2,3",
+              "--fix-registration", "--error", "student", "-o", out, "--random-configs", 50)
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["diagnostics"]["sampler"] == "paper" and doc["diagnostics"]["n_draws"] == 500
+    statuses = [j["status"] for j in doc["joint_offsets"]]
+    # With the registration fixed, A1 is no longer confounded: it is fitted.
+    assert statuses[:3] == ["fitted"] * 3 and statuses[3:] == ["fixed"] * 4
+    assert all(not c["free"] for c in doc["registration"]["mocap"]["corrections"].values())
+
+
+def _simulated_csv(tmp_path: Path, k: int, scale: float = 1.0) -> Path:
+    model = load_robot_model(IIWA)
+    chain = Chain(model)
+    q = np.random.default_rng(0).uniform(model.lower_limits_rad * 0.8, model.upper_limits_rad * 0.8, size=(k, 7))
+    b2s = pose_to_matrix(np.array([2000.0, 0.0, 0.0]), np.radians([180.0, 0.0, 0.0]))
+    path = tmp_path / f"sim{k}.csv"
+    write_csv(from_arrays(q, apply(b2s, chain.marker_positions(q)[:, 0]) * scale, marker="smr"), path)
+    return path
+
+
+def _broken_copy(tmp_path: Path, line: int, edit) -> Path:
+    lines = CAL.read_text().splitlines()
+    lines[line - 1] = edit(lines[line - 1])
+    path = tmp_path / "broken.csv"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        ("nan", "broken.csv:9:column'x':'nan'isnotafinitenumber"),
+        ("columns", "broken.csv:10:18columns,theheaderhas17"),
+        ("joints", "7jointcolumns(q1…q7)buttherobotmodel'KUKAKR6R900-2'has6joints"),
+        ("metres", "positionslooklikemetres"),
+        ("too-few", "8measurementsgive24coordinatesfor14freeparameters;measureatleast10"),
+        ("suffix", "noloaderfor'.txt';known:['.csv']"),
+        ("joints-option", "axisnumbersmustliein1…7,given'2,9'"),
+        ("robot", "--robot"),
+    ],
+)
+def test_bad_input_exits_non_zero_with_a_clear_message(app, tmp_path, case, expected):
+    args = [CAL, "--robot", IIWA]
+    if case == "nan":
+        args[0] = _broken_copy(tmp_path, 9, lambda s: ",".join(s.split(",")[:9] + ["nan"] + s.split(",")[10:]))
+    elif case == "columns":
+        args[0] = _broken_copy(tmp_path, 10, lambda s: s + ",1")
+    elif case == "joints":
+        args[2] = KR6
+    elif case == "metres":
+        args[0] = _simulated_csv(tmp_path, 30, scale=0.001)
+    elif case == "too-few":
+        args[0] = _simulated_csv(tmp_path, 8)
+    elif case == "suffix":
+        txt = tmp_path / "data.txt"
+        txt.write_text(CAL.read_text())
+        args[0] = txt
+    elif case == "joints-option":
+        args += ["--joints", "2,9"]
+    elif case == "robot":
+        args[2] = tmp_path / "missing.yaml"
+    res = run(app, *args, *QUICK)
+    assert res.exit_code != 0
+    assert expected in flat(res.output), res.output
+
+
+def test_fit_is_a_subcommand_of_acquire():
+    res = subprocess.run([sys.executable, "-m", "acquire.cli", "fit", "--help"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    for option in ("--robot", "--validate", "--method", "--joints", "--fix-registration", "--error", "--seed", "--report"):
+        assert option in res.stdout
