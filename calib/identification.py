@@ -190,6 +190,18 @@ class _Problem:
         return np.array(out)
 
 
+def _excluded_by_choice(model: RobotModel, chain: Chain, names: list[str], options: IdentOptions) -> dict[str, str]:
+    """Parameters left out before looking at the data: by the options, or by the convention."""
+    excluded: dict[str, str] = {n: "excluded by the options" for n in options.exclude}
+    if model.convention == "dh":
+        for i in chain.index("beta"):
+            excluded[names[i]] = "β is not a parameter of the standard DH convention (use mdh for near-parallel axes)"
+    if not options.fit_markers:
+        for i in range(chain.marker_slice().start, chain.marker_slice().stop):
+            excluded[names[i]] = "marker offsets fixed by the options"
+    return excluded
+
+
 def _preference(problem: _Problem, chain: Chain) -> list[int]:
     """Column order in which parameters are kept."""
     order = list(range(problem.P, len(problem.names)))  # registration first
@@ -246,13 +258,7 @@ def identify(
     b2s0 = registration or initial_registrations(chain, data, options.initial_registration, 0)
     problem = _Problem(chain, data, b2s0, rotation, options.orientation_weight)
     x0 = np.concatenate([chain.nominal, np.zeros(6 * len(problem.sensors))])
-    excluded: dict[str, str] = {n: "excluded by the options" for n in options.exclude}
-    if model.convention == "dh":
-        for i in chain.index("beta"):
-            excluded[problem.names[i]] = "β is not a parameter of the standard DH convention (use mdh for near-parallel axes)"
-    if not options.fit_markers:
-        for i in range(chain.marker_slice().start, chain.marker_slice().stop):
-            excluded[problem.names[i]] = "marker offsets fixed by the options"
+    excluded = _excluded_by_choice(model, chain, problem.names, options)
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
     _, j0 = problem.residuals_and_jacobian(x0)
@@ -378,13 +384,7 @@ def information_blocks(model: RobotModel, q_rad: np.ndarray, options: IdentOptio
     data = from_arrays(qq, pos, marker=markers)
     problem = _Problem(chain, data, {"sensor": np.eye(4)}, None, options.orientation_weight)
     x0 = np.concatenate([chain.nominal, np.zeros(6)])
-    excluded: dict[str, str] = {n: "excluded by the options" for n in options.exclude}
-    if model.convention == "dh":
-        for i in chain.index("beta"):
-            excluded[problem.names[i]] = "β is not a parameter of the standard DH convention"
-    if not options.fit_markers:
-        for i in range(chain.marker_slice().start, chain.marker_slice().stop):
-            excluded[problem.names[i]] = "marker offsets fixed by the options"
+    excluded = _excluded_by_choice(model, chain, problem.names, options)
     _, j = problem.residuals_and_jacobian(x0)
     lever = float(np.sqrt(np.mean(np.sum(pos**2, axis=-1))))
     scale = problem.scale(lever)

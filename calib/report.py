@@ -125,19 +125,25 @@ def render_report(result: FitResult, data: Dataset, doc: dict, controller_text: 
     parts.append("<h2>Zero-offsets</h2>")
     parts.append(
         _table(
-            ["joint", "value (°)", "std (°)", "95 % interval (°)", "status", "reason"],
+            ["joint", "value (°)", "std (°)", "95 % interval (°)", "sandwich ÷ std", "status", "reason"],
             [
                 [
                     j["joint"],
                     j["value_deg"],
                     j["std_deg"],
                     "—" if j["ci95_deg"] is None else f"[{j['ci95_deg'][0]:.4f}, {j['ci95_deg'][1]:.4f}]",
+                    j.get("sandwich_std_ratio"),
                     j["status"],
                     j["reason"],
                 ]
                 for j in doc["joint_offsets"]
             ],
         ).replace("<td class=\"\">undetermined", "<td class=\"warn\">undetermined")
+    )
+    parts.append(
+        "<p class='small'>sandwich ÷ std: a model-robust standard deviation (configurations independent, errors of "
+        "any shape) over the posterior's; well above 1 means the errors are not isotropic and the interval is too "
+        "narrow. Systematic errors shared by all configurations (link lengths) show in neither.</p>"
     )
     parts.append("<h2>Registration corrections and σ</h2>")
     for s, reg in doc["registration"].items():

@@ -5,7 +5,8 @@ Layout (``format: "remaster.fit/1"``; angles in degrees, lengths in mm)::
     robot            name, controller, axes
     data             source, n_measurements, n_configurations, sensors, markers
     joint_offsets    per joint: joint, value_deg, std_deg, ci95_deg [lo, hi], identifiable,
-                     status ("fitted" | "undetermined" | "fixed"), reason
+                     status ("fitted" | "undetermined" | "fixed"), reason, sandwich_std_ratio
+                     (model-robust std ÷ posterior std, ``calib.fit.sandwich_std``)
     registration     per sensor: base2sensor (4×4, p_sensor = M · p_base, mm),
                      base2sensor_initial, corrections {x_mm, y_mm, z_mm, alpha_deg, beta_deg,
                      gamma_deg: {value, std, free}} (T* = Trans(x,y,z)·Rz(α)Ry(β)Rx(γ), applied
@@ -15,6 +16,8 @@ Layout (``format: "remaster.fit/1"``; angles in degrees, lengths in mm)::
                      rhat_max, ess_min, timings (s)
     identifiability  start / estimate: singular values (mm per scaled unit), condition number,
                      rank, undetermined combinations; fixed_parameters [{parameter, reason}]
+                     (fixed before sampling); undetermined_at_estimate [{parameter, reason}]
+                     (sampled, but the posterior is too wide to enter a value)
     metrics          see ``calib.metrics.accuracy_metrics`` (each metric: before / after with
                      mean, p2_5, p97_5, max in mm)
     controller       see ``calib.controller``
@@ -74,6 +77,7 @@ def split_status(status: str) -> tuple[str, str]:
 def joint_offsets(result: FitResult) -> list[dict]:
     """Per-joint entries of ``joint_offsets`` (degrees)."""
     out = []
+    ratios = dict(zip(result.posterior.free_names, result.diagnostics.get("sandwich_std_ratio", [])))
     for i, (axis, status) in enumerate(zip(result.model.axis_names, result.offset_status)):
         kind, reason = split_status(status)
         fitted = kind == "fitted"
@@ -84,6 +88,7 @@ def joint_offsets(result: FitResult) -> list[dict]:
             "std_deg": math.degrees(result.offsets_std_rad[i]) if fitted else None,
             "ci95_deg": [math.degrees(v) for v in result.offsets_ci95_rad[i]] if fitted else None,
             "identifiable": fitted,
+            "sandwich_std_ratio": ratios.get(f"{axis}.offset") if fitted else None,
             "status": kind,
             "reason": reason,
         }
@@ -136,10 +141,17 @@ def identifiability(result: FitResult) -> dict:
         {"parameter": name, "reason": reason}
         for name, reason in result.posterior.mask.reasons.items()
     ]
+    reasons = result.posterior.mask.reasons
+    too_wide = [
+        {"parameter": f"{axis}.offset", "reason": split_status(status)[1]}
+        for axis, status in zip(result.model.axis_names, result.offset_status)
+        if status.startswith("undetermined") and f"{axis}.offset" not in reasons
+    ]
     return {
         "start": result.identifiability_start.to_dict(),
         "estimate": result.identifiability.to_dict(),
         "fixed_parameters": fixed,
+        "undetermined_at_estimate": too_wide,
     }
 
 

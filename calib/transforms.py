@@ -35,8 +35,17 @@ def rot_z(a: np.ndarray | float) -> np.ndarray:
 
 
 def euler_zyx_to_matrix(yaw: np.ndarray | float, pitch: np.ndarray | float, roll: np.ndarray | float) -> np.ndarray:
-    """R = Rz(yaw) · Ry(pitch) · Rx(roll) (ZYX Euler, KUKA's A, B, C); shape (..., 3, 3)."""
-    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+    """R = Rz(yaw) · Ry(pitch) · Rx(roll) (ZYX Euler, KUKA's A, B, C); shape (..., 3, 3).
+
+    Written out rather than multiplied: samplers call this once per step.
+    """
+    yaw, pitch, roll = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (yaw, pitch, roll)))
+    ca, sa, cb, sb, cg, sg = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
+    r = np.empty(yaw.shape + (3, 3))
+    r[..., 0, 0], r[..., 0, 1], r[..., 0, 2] = ca * cb, ca * sb * sg - sa * cg, ca * sb * cg + sa * sg
+    r[..., 1, 0], r[..., 1, 1], r[..., 1, 2] = sa * cb, sa * sb * sg + ca * cg, sa * sb * cg - ca * sg
+    r[..., 2, 0], r[..., 2, 1], r[..., 2, 2] = -sb, cb * sg, cb * cg
+    return r
 
 
 def matrix_to_euler_zyx(r: np.ndarray) -> np.ndarray:

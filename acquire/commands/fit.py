@@ -106,6 +106,13 @@ def format_summary(doc: dict, controller_text: str) -> str:
     )
     if rhat is not None and rhat > 1.05:
         lines.append(f"WARNING: R-hat {rhat:.3f} > 1.05 — the sampler has not converged; do not enter these values")
+    ratios = {j["joint"]: j["sandwich_std_ratio"] for j in doc["joint_offsets"] if j.get("sandwich_std_ratio")}
+    if ratios and max(ratios.values()) > 1.25:
+        worst = max(ratios, key=ratios.get)
+        lines.append(
+            f"WARNING: the errors are not independent and isotropic as the model assumes: a model-robust "
+            f"(sandwich) std of {worst} is {ratios[worst]:.2f}× the posterior's — its interval is too narrow"
+        )
     if ess is not None and ess < 100:
         lines.append(f"WARNING: ESS {ess:.0f} < 100 — too few effective draws for reliable means and standard deviations")
     metrics = doc.get("metrics", {})

@@ -112,7 +112,7 @@ def main() -> None:
         ("per-configuration joint error 0.035 deg", dict(iso_mm=0.0, jitter_deg=0.035)),
         ("systematic link-length errors 0.1 mm + 0.2 mm isotropic", dict(iso_mm=0.2, link_mm=0.1)),
     ):
-        hits, z, sig = 0, [], []
+        hits, z, sig, sand = 0, [], [], []
         t0 = time.perf_counter()
         for rep in range(20):
             d, tr, w = simulate(1000 + rep, 100, **kw)
@@ -121,9 +121,11 @@ def main() -> None:
             hits += int(np.sum((tr[1:] >= lo) & (tr[1:] <= hi)))
             z.append((r.offsets_rad[1:] - tr[1:]) / r.offsets_std_rad[1:])
             sig.append(r.sigma_mm["sensor"][0])
+            sand.append(r.diagnostics["sandwich_std_ratio"][:6])
         zs = np.std(np.array(z), axis=0)
         print(f"  {label:<58} coverage {hits}/120 = {hits / 120:.3f}; sigma {min(sig):.2f}-{max(sig):.2f} mm; "
-              f"z-score std per offset {np.array2string(zs, precision=2)}; {time.perf_counter() - t0:.1f} s")
+              f"{time.perf_counter() - t0:.1f} s\n    z-score std per offset {np.array2string(zs, precision=2)}; "
+              f"sandwich/posterior std {np.array2string(np.mean(sand, axis=0), precision=2)}")
 
 
 if __name__ == "__main__":

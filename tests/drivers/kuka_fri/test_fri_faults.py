@@ -1,0 +1,155 @@
+"""``FriCommander`` against a misbehaving ``FakeSunrise``: malformed packets, packet loss,
+lost answers, session drop, drive and safety faults, restart, silence. Plus the property that
+over real UDP with random targets, timing jitter and loss, no set-point the controller takes
+exceeds the limits."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+from fri_helpers import assert_timed_commands_within_limits, fri_pair, iiwa14_limits
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from drivers.errors import DeviceFaultError, DeviceTimeoutError
+from drivers.kuka_fri.messages import SessionState
+
+Q0 = np.radians([0.0, 30.0, 0.0, -45.0, 0.0, 30.0, 0.0])
+FAR = np.radians([80.0, 70.0, -60.0, -100.0, 90.0, 80.0, 120.0])
+
+
+class MoveInThread:
+    """Runs ``move_to`` in a thread and keeps what it raised."""
+
+    def __init__(self, commander, target, speed=1.0, timeout=20.0) -> None:
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, args=(commander, target, speed, timeout))
+        self.thread.start()
+
+    def _run(self, commander, target, speed, timeout) -> None:
+        try:
+            commander.move_to(target, speed, timeout)
+        except (DeviceFaultError, DeviceTimeoutError) as exc:
+            self.error = exc
+
+    def join(self) -> BaseException | None:
+        self.thread.join(15.0)
+        assert not self.thread.is_alive()
+        return self.error
+
+
+def wait_commands(fake, n: int) -> None:
+    """Block until the fake has applied ``n`` set-points (bounded)."""
+    done = threading.Event()
+    for _ in range(1000):
+        if len(fake.stats.commands) >= n:
+            return
+        done.wait(0.005)
+    raise AssertionError(f"only {len(fake.stats.commands)} set-points applied")
+
+
+@pytest.mark.parametrize("kind", ["garbage", "truncated", "wrong_id"])
+def test_malformed_packets_are_skipped_and_the_move_completes(limits, kind):
+    with fri_pair(limits, initial_position_rad=Q0) as (c, fake):
+        target = Q0 + np.radians([10, -10, 10, 10, -10, 10, 10])
+        mover = MoveInThread(c, target)
+        wait_commands(fake, 20)
+        fake.send_malformed(5, kind)
+        assert mover.join() is None
+        assert c.malformed_messages == 5
+        state = c.wait_settled(1e-5, 0.05, 5.0)
+        np.testing.assert_allclose(state.position_rad, target, atol=1e-4)
+        assert fake.stats.violations == []
+        assert_timed_commands_within_limits(fake.stats.commands, limits, 0.005)
+
+
+def test_packet_loss_both_ways_slows_nothing_unsafe(limits):
+    with fri_pair(limits, initial_position_rad=Q0, loss_out=0.05, loss_in=0.05, seed=7) as (c, fake):
+        target = Q0 + np.radians([20, -15, 10, 25, -10, 15, 30])
+        c.move_to(target, 1.0, timeout=10.0)
+        state = c.wait_settled(1e-5, 0.05, 5.0)
+        np.testing.assert_allclose(state.position_rad, target, atol=1e-4)
+        assert fake.stats.missed_windows > 10
+        assert fake.stats.violations == []
+        assert_timed_commands_within_limits(fake.stats.commands, limits, 0.005)
+
+
+def test_too_many_lost_answers_drop_the_session_and_end_the_move(limits):
+    with fri_pair(limits, initial_position_rad=Q0, max_missed=3, seed=3) as (c, fake):
+        mover = MoveInThread(c, FAR)
+        wait_commands(fake, 20)
+        fake.loss_in = 0.9
+        error = mover.join()
+        assert isinstance(error, DeviceFaultError)
+        assert "session left COMMANDING_ACTIVE (now MONITORING_WAIT" in str(error)
+        assert fake.stats.session_drops == 1
+
+
+@pytest.mark.parametrize(
+    "fault, message",
+    [
+        ("session_drop", "session left COMMANDING_ACTIVE (now MONITORING_WAIT"),
+        ("drives_off", "drives not ACTIVE on axes [1, 2, 3, 4, 5, 6, 7] (OFF)"),
+        ("safety_stop", "controller reports safety state SAFETY_STOP_LEVEL_1"),
+    ],
+)
+def test_a_controller_fault_ends_the_move_with_a_device_fault(limits, fault, message):
+    with fri_pair(limits, initial_position_rad=Q0) as (c, fake):
+        mover = MoveInThread(c, FAR)
+        wait_commands(fake, 30)
+        fake.inject_fault(fault)
+        error = mover.join()
+        assert isinstance(error, DeviceFaultError)
+        assert message in str(error)
+        assert not c.session.motion_active()
+        assert fake.stats.violations == []
+
+
+def test_a_controller_restart_ends_the_move_and_the_session_comes_back(limits):
+    with fri_pair(limits, initial_position_rad=Q0) as (c, fake):
+        mover = MoveInThread(c, FAR)
+        wait_commands(fake, 30)
+        fake.restart()
+        error = mover.join()
+        assert isinstance(error, DeviceFaultError)
+        assert "left COMMANDING_ACTIVE (now IDLE" in str(error) or "restarted" in str(error)
+        fake.wait_state(SessionState.MONITORING_READY, 5.0)  # the client answers again
+        assert c.session.counters.restarts == 1
+        assert fake.stats.answers_in_idle == 0
+
+
+def test_a_controller_that_stops_sending_ends_the_move_with_a_timeout(limits):
+    with fri_pair(limits, initial_position_rad=Q0, url_query="rt_priority=0&timeout_ms=60") as (c, fake):
+        mover = MoveInThread(c, FAR)
+        wait_commands(fake, 30)
+        fake.stop_sending()
+        error = mover.join()
+        assert isinstance(error, DeviceTimeoutError)
+        assert "controller stopped sending: no monitoring message for" in str(error)
+        with pytest.raises(DeviceTimeoutError, match="is the controller sending"):
+            c.wait_settled(1e-5, 0.05, 1.0)
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(
+    seed=st.integers(0, 2**31),
+    speed=st.floats(0.3, 1.0),
+    accel_factor=st.floats(2.0, 8.0),
+    jitter_ms=st.floats(0.0, 2.0),
+    loss=st.floats(0.0, 0.05),
+)
+def test_over_udp_no_set_point_exceeds_the_limits(seed, speed, accel_factor, jitter_ms, loss):
+    limits = iiwa14_limits(accel_factor)
+    rng = np.random.default_rng(seed)
+    target = np.clip(Q0 + rng.uniform(-1, 1, 7) * math.radians(20), limits.lower_rad + 0.01,
+                     limits.upper_rad - 0.01)
+    with fri_pair(limits, initial_position_rad=Q0, jitter_ms=jitter_ms, loss_out=loss, loss_in=loss,
+                  seed=seed) as (c, fake):
+        c.move_to(target, speed, timeout=10.0)
+        stats = fake.stats
+        assert stats.violations == []
+        assert_timed_commands_within_limits(stats.commands, limits, 0.005, speed=speed)
+        np.testing.assert_allclose(stats.commands[-1][1], target, atol=1e-9)

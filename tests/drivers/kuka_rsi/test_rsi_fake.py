@@ -1,0 +1,111 @@
+"""The fake KR C4 on its own, driven by a raw UDP socket: lateness rules, servo transient."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from drivers.kuka_rsi.codec import SenFormatter, parse_rob
+from drivers.kuka_rsi.fake import FakeKrc4
+
+FMT = SenFormatter(6)
+
+
+class RawClient:
+    """A hand-written RSI peer: answers each packet with ``policy(state) -> (ak, ipoc) | None``."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.5)
+        self.states = []
+
+    def run(self, policy, cycles: int) -> None:
+        for _ in range(cycles):
+            try:
+                data, addr = self.sock.recvfrom(4096)
+            except TimeoutError:
+                return
+            state = parse_rob(data)
+            self.states.append((time.monotonic(), state))
+            answer = policy(len(self.states) - 1, state)
+            if answer is not None:
+                ak, ipoc = answer
+                self.sock.sendto(FMT.format(ak, False, ipoc), addr)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.fixture
+def client():
+    c = RawClient()
+    yield c
+    c.close()
+
+
+def fake_for(client, **kw) -> FakeKrc4:
+    kw.setdefault("initial_deg", [0, -90, 90, 0, 45, 0])
+    kw.setdefault("rt_priority", 40)
+    return FakeKrc4(client.sock.getsockname(), max_runtime_s=20, **kw)
+
+
+def test_wrong_ipoc_answers_count_as_late_and_total_rule_stops_the_robot(client):
+    with fake_for(client, late_limit=5, late_consecutive=False) as f:
+        # every other answer carries a wrong IPOC: never 2 in a row, but 5 in total
+        client.run(lambda i, s: ([0.0] * 6, s.ipoc + (7 if i % 2 else 0)), 40)
+        assert f.wait_stopped(1.0)
+        stats = f.stats()
+    assert stats.stopped_reason == "RSI timeout: 5 late answers (limit 5)"
+    assert stats.late == 5 and stats.answers_on_time == 5
+    delays = [s.delay for _, s in client.states]
+    assert delays == sorted(delays) and delays[-1] == 4  # the Delay element reports the count
+
+
+def test_consecutive_rule_tolerates_isolated_late_answers(client):
+    with fake_for(client, late_limit=3, late_consecutive=True, lockstep=True) as f:
+        client.run(lambda i, s: ([0.0] * 6, s.ipoc + (7 if i % 2 else 0)), 60)
+        stats = f.stats()
+        assert stats.stopped_reason is None and stats.late == 30
+        client.run(lambda i, s: None, 10)  # silence: three in a row
+        assert f.wait_stopped(1.0)
+        assert f.stats().stopped_reason == "RSI timeout: 3 late answers (limit 3)"
+
+
+def test_servo_follows_a_step_correction_with_a_realistic_transient(client):
+    with fake_for(client, lockstep=True) as f:
+        client.run(lambda i, s: ([1.0, 0, 0, 0, 0, 0], s.ipoc), 100)  # 1° step on A1, 0.4 s
+    a1 = np.array([s.axis_actual_deg[0] for _, s in client.states])
+    t = 0.004 * np.arange(len(a1))
+    assert a1[0] == 0.0
+    assert a1[int(0.012 / 0.004)] < 0.5  # not instantaneous
+    overshoot = a1.max() - 1.0
+    assert 0.02 < overshoot < 0.2  # under-damped, ~10 %
+    outside = np.flatnonzero(np.abs(a1 - 1.0) > 0.02)
+    settle = t[outside[-1] + 1]
+    assert 0.03 < settle < 0.12  # a few tens of ms
+    assert a1[-1] == pytest.approx(1.0, abs=1e-4)
+    assert all(s.axis_setpoint_deg == (0, -90, 90, 0, 45, 0) for _, s in client.states)  # ASPos fixed
+
+
+def test_restart_starts_a_new_ipoc_sequence_from_the_current_set_point(client):
+    with fake_for(client, lockstep=True) as f:
+        client.run(lambda i, s: ([2.0, 0, 0, 0, 0, 0], s.ipoc), 30)
+        f.restart(ipoc_start=1000)
+        client.run(lambda i, s: ([0.0] * 6, s.ipoc), 30)
+        stats = f.stats()
+    ipocs = [s.ipoc for _, s in client.states]
+    k = next(i for i in range(1, len(ipocs)) if ipocs[i] < ipocs[i - 1])
+    assert ipocs[k] == 1000 and np.all(np.diff(ipocs[k:]) == 4)
+    assert client.states[k][1].axis_setpoint_deg[0] == pytest.approx(2.0)
+    assert stats.sessions == 2
+
+
+def test_fake_refuses_non_loopback_targets_and_odd_cycles():
+    with pytest.raises(ValueError, match="loopback"):
+        FakeKrc4(("192.168.1.10", 49152))
+    with pytest.raises(ValueError, match="4 \\(#IPO_FAST\\) or 12"):
+        FakeKrc4(("127.0.0.1", 49152), cycle_ms=8)
