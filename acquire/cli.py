@@ -16,11 +16,14 @@ app = typer.Typer(
 
 #: Sub-command modules, each with ``register(app)``. Order is the order of ``--help``.
 COMMAND_MODULES = [
+    "acquire.commands.run",
     "acquire.commands.poses",
     "acquire.commands.fit",
     "acquire.commands.select",
     "acquire.commands.sim",
     "acquire.commands.move",
+    "acquire.commands.daemon",
+    "acquire.commands.watch",
 ]
 
 

@@ -93,6 +93,7 @@ def wait_settled(
     timeout: float,
     clock: Callable[[], float],
     read_timeout_s: float = 1.0,
+    on_reading: Callable[[str, list], None] | None = None,
 ) -> SettleResult:
     """Return once the robot is still and every sensor's markers are stable.
 
@@ -100,7 +101,8 @@ def wait_settled(
     marker's window allows ``sensor_stable_mm + 4 σ`` per axis, so noise alone does not
     restart it. Raises DeviceTimeoutError after ``timeout`` (clock seconds) and
     TargetLostError when a marker is reported invisible (the caller suspends). ValueError for
-    a window not shorter than the timeout.
+    a window not shorter than the timeout. ``on_reading(sensor name, samples)`` sees every
+    reading (for the log and the bus).
     """
     timeout = check_timeout(timeout)
     if not window_s < timeout:
@@ -133,7 +135,10 @@ def wait_settled(
             held = {k: False for k in windows}
         for sensor, markers, _ in sensors:
             wanted = set(markers)
-            for s in sensor.read(min(read_timeout_s, max(deadline - clock(), 1e-3))):
+            samples = sensor.read(min(read_timeout_s, max(deadline - clock(), 1e-3)))
+            if on_reading is not None:
+                on_reading(sensor.name, samples)
+            for s in samples:
                 if s.marker not in wanted:
                     continue
                 if not s.visible:

@@ -415,3 +415,62 @@ def comprehensive_errors(position_err_mm: np.ndarray, attitude_err_rad: np.ndarr
         a = np.asarray(attitude_err_rad, dtype=float)
         out.update(EACAE=float(a.mean()), EMCAE=float(a.max()))
     return out
+
+
+def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = None) -> dict:
+    """``result.json`` content for a full identification (mm, degrees).
+
+    ``metrics``: the seed's EACPE/EMCPE (position; EACAE/EMCAE are null without orientation
+    data) on the calibration set and, if given, the validation set — ``before`` with the nominal
+    model (registered by least squares), ``after`` with the identified model and registration.
+    """
+    from calib.metrics import absolute_errors, predicted_base
+
+    chain = Chain(result.model)
+    nominal = chain.nominal
+    params = []
+    for i, name in enumerate(chain.param_names):
+        kind = name.rsplit(".", 1)[1]
+        angle = kind in ("offset", "alpha", "beta")
+        to_unit = math.degrees if angle else float
+        entry = {
+            "name": name,
+            "unit": "deg" if angle else "mm",
+            "nominal": to_unit(nominal[i]),
+            "value": to_unit(result.params[i]),
+            "change": to_unit(result.params[i] - nominal[i]),
+            "std": None if math.isnan(result.std[i]) else to_unit(result.std[i]),
+            "identified": name in result.free_names,
+        }
+        if name in result.excluded:
+            entry["reason"] = result.excluded[name]
+        params.append(entry)
+
+    def scored(data: Dataset) -> dict:
+        before = comprehensive_errors(absolute_errors(data, predicted_base(chain, data, np.zeros(chain.n))))
+        if set(data.sensors) <= set(result.base2sensor):
+            after_err = pose_errors(result.model, result.params, data, result.base2sensor)
+        else:  # another sensor: register the identified model to it by least squares
+            after_err = absolute_errors(data, _marker_rows(chain, data, result.params))
+        return {"before": before, "after": comprehensive_errors(after_err)}
+
+    metrics = {"calibration": scored(cal)}
+    if val is not None and len(val):
+        metrics["validation"] = scored(val)
+    return {
+        "method": "full",
+        "robot": result.model.name,
+        "parameters": params,
+        "excluded": result.excluded,
+        "registration": {s: np.asarray(t).round(9).tolist() for s, t in result.base2sensor.items()},
+        "rms_mm": result.rms_mm,
+        "condition_number": result.condition_number,
+        "evaluations": result.iterations,
+        "warnings": result.warnings,
+        "metrics": metrics,
+    }
+
+
+def _marker_rows(chain: Chain, data: Dataset, params: np.ndarray) -> np.ndarray:
+    pos = chain.marker_positions(data.q_rad, params)
+    return pos[np.arange(len(data)), _lookup(data.marker, chain.marker_names)]

@@ -25,7 +25,7 @@ from scipy.special import gammaln
 
 from calib.dataset import Dataset
 from calib.kinematics import Chain, offset_kinematics
-from calib.transforms import apply
+from calib.transforms import apply, euler_zyx_to_matrix
 
 REG_NAMES = ("x", "y", "z", "alpha", "beta", "gamma")
 
@@ -49,17 +49,6 @@ class ParamMask:
         reasons = dict(self.reasons)
         reasons[names[full_index]] = reason
         return ParamMask(full[:n], full[n:].reshape(self.registration.shape), reasons)
-
-
-def _euler_zyx(yaw: np.ndarray, pitch: np.ndarray, roll: np.ndarray) -> np.ndarray:
-    """Rz(yaw)·Ry(pitch)·Rx(roll) written out, (..., 3, 3): ``euler_zyx_to_matrix`` without the
-    intermediate products — the paper's sampler calls this once per step."""
-    ca, sa, cb, sb, cg, sg = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch), np.cos(roll), np.sin(roll)
-    r = np.empty(np.shape(yaw) + (3, 3))
-    r[..., 0, 0], r[..., 0, 1], r[..., 0, 2] = ca * cb, ca * sb * sg - sa * cg, ca * sb * cg + sa * sg
-    r[..., 1, 0], r[..., 1, 1], r[..., 1, 2] = sa * cb, sa * sb * sg + ca * cg, sa * sb * cg - ca * sg
-    r[..., 2, 0], r[..., 2, 1], r[..., 2, 2] = -sb, cb * sg, cb * cg
-    return r
 
 
 class OffsetPosterior:
@@ -120,7 +109,7 @@ class OffsetPosterior:
     def corrections(self, full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """T*_s rotation (..., S, 3, 3) and translation (..., S, 3) from full vector(s)."""
         reg = full[..., self.n :].reshape(full.shape[:-1] + (self.S, 6))
-        return _euler_zyx(reg[..., 3], reg[..., 4], reg[..., 5]), reg[..., :3]
+        return euler_zyx_to_matrix(reg[..., 3], reg[..., 4], reg[..., 5]), reg[..., :3]
 
     # --- prediction and residuals ----------------------------------------------------
     def predict(self, theta: np.ndarray) -> np.ndarray:

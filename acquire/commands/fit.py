@@ -21,9 +21,11 @@ from typing import Callable, Optional
 import numpy as np
 import typer
 
+from acquire.recorder import dataset_from_run
 from calib.controller import controller_values
 from calib.dataset import Dataset, DatasetError, read_csv
 from calib.fit import FitOptions, FitResult, fit_offsets
+from calib.identification import ident_result_dict, identify, write_model_yaml
 from calib.kinematics import Chain
 from calib.metrics import accuracy_metrics
 from calib.model import RobotModel, load_robot_model
@@ -36,7 +38,7 @@ log = logging.getLogger(__name__)
 Loader = Callable[[Path, RobotModel], Dataset]
 
 #: Input loaders by lower-case file suffix.
-LOADERS: dict[str, Loader] = {".csv": read_csv}
+LOADERS: dict[str, Loader] = {".csv": read_csv, ".mcap": dataset_from_run}
 
 
 def load_dataset(path: Path, model: RobotModel) -> Dataset:
@@ -136,7 +138,10 @@ def fit(
     data: Path = typer.Argument(..., help="Measurements: CSV (calib.dataset format)."),
     robot: Path = typer.Option(..., "--robot", help="Robot model YAML file (fixtures/robots/...)."),
     validate: Optional[Path] = typer.Option(None, "--validate", help="Validation measurements (Table VIII)."),
-    method: str = typer.Option("fast", "--method", help="fast (exact independence sampler) or paper (the paper's Metropolis)."),
+    method: str = typer.Option(
+        "fast", "--method",
+        help="fast (exact independence sampler), paper (the paper's Metropolis), or full (identify every identifiable kinematic parameter by Levenberg–Marquardt).",
+    ),
     joints: Optional[str] = typer.Option(None, "--joints", help="Axes to fit, e.g. 2,3,4,5,6,7 (default: all)."),
     fix_registration: bool = typer.Option(False, "--fix-registration", help="Keep the initial registration (no T* correction)."),
     error: str = typer.Option("gaussian", "--error", help="Error model: gaussian (the paper's) or student (robust)."),
@@ -146,10 +151,13 @@ def fit(
     n_random: int = typer.Option(1000, "--random-configs", help="Random workspace configurations for the theoretical metric."),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="Write result.json here."),
     report: Optional[Path] = typer.Option(None, "--report", help="Write a self-contained report.html here."),
+    model_out: Optional[Path] = typer.Option(
+        None, "--model-out", help="full: write the identified robot model YAML here (default: beside -o as <name>.model.yaml)."
+    ),
 ) -> None:
     """Fit the joint zero-offsets (and the sensor registration and σ) to measured marker positions."""
-    if method not in ("fast", "paper"):
-        raise typer.BadParameter(f"expected fast or paper, given {method!r}", param_hint="--method")
+    if method not in ("fast", "paper", "full"):
+        raise typer.BadParameter(f"expected fast, paper or full, given {method!r}", param_hint="--method")
     if error not in ("gaussian", "student"):
         raise typer.BadParameter(f"expected gaussian or student, given {error!r}", param_hint="--error")
     for name, value, low in (("--draws", draws, 10), ("--paper-samples", paper_samples, 80), ("--random-configs", n_random, 1)):
@@ -172,6 +180,9 @@ def fit(
     elif np.any(ds.split == "val"):
         val = ds.validation()
     cal = ds.calibration()
+    if method == "full":
+        _fit_full(model, cal, val, output, model_out)
+        return
     options = FitOptions(
         method=method,
         joints=_joints(joints, model.n_joints),
@@ -184,8 +195,9 @@ def fit(
     )
     try:
         result = fit_offsets(model, cal, options)
-    except DatasetError as exc:
+    except ValueError as exc:  # DatasetError, or data a registration cannot use (e.g. collinear points)
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
+    log.info("fitted %d measurements in %.2f s (%s)", len(cal), result.diagnostics["seconds_total"], method)
     metrics = accuracy_metrics(
         Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad, result.pooled_sigma_mm,
         validation=val, n_random=n_random, seed=seed,
@@ -204,6 +216,37 @@ def fit(
         typer.echo(f"wrote {report}")
     if not math.isfinite(result.pooled_sigma_mm):
         raise typer.Exit(1)
+
+
+def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None) -> None:
+    """``--method full``: Levenberg–Marquardt identification, corrected model YAML, EACPE/EMCPE."""
+    try:
+        result = identify(model, cal)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="DATA") from exc
+    doc = ident_result_dict(result, cal, val)
+    lines = [f"full identification of {model.name}: {len(result.free_names)} parameters from {len(cal)} measurements",
+             f"rms residual {doc['rms_mm']:.4f} mm, scaled condition number {doc['condition_number']:.3g}"]
+    lines += [f"warning: {w}" for w in result.warnings]
+    lines.append(f"{'parameter':<14}{'nominal':>12}{'identified':>14}{'± std':>10}")
+    for p in doc["parameters"]:
+        if p["identified"] and abs(p["change"]) > 0:
+            lines.append(f"{p['name']:<14}{p['nominal']:>12.4f}{p['value']:>14.4f}{p['std']:>10.4f} {p['unit']}")
+    lines.append(f"kept nominal ({len(result.excluded)}):")
+    lines += [f"  {k}: {v}" for k, v in result.excluded.items()]
+    for part, m in doc["metrics"].items():
+        b, a = m["before"], m["after"]
+        lines.append(f"{part}: EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → {a['EMCPE']:.3f} mm")
+    typer.echo("\n".join(lines))
+    if model_out is None and output is not None:
+        model_out = output.with_name(output.stem + ".model.yaml")
+    if model_out is not None:
+        write_model_yaml(result.corrected_model(), model_out)
+        doc["model_file"] = str(model_out)
+        typer.echo(f"wrote {model_out}")
+    if output is not None:
+        write_result(output, doc)
+        typer.echo(f"wrote {output}")
 
 
 def register(app: typer.Typer) -> None:

@@ -3,7 +3,9 @@
 The controller (Sunrise) is the sender: it sends a monitoring message every send period to
 this client's UDP port (30200 by default); the client answers to the sender's address. The
 exchange runs in its own thread (``fri-rt``, SCHED_FIFO when permitted) around
-``FriClientSession``; ``move_to`` only plans, hands the trajectory over and waits.
+``FriClientSession``; ``move_to`` only plans, hands the trajectory over and waits. Because a
+Python thread holding the GIL keeps it up to the interpreter's switch interval (5 ms, a whole
+FRI period), ``connect`` lowers that interval to 0.5 ms and ``close`` restores it.
 
 URL: ``fri://HOST:PORT?option=value&...`` where HOST:PORT is the local address to bind
 (``0.0.0.0:30200`` on the cell PC, ``127.0.0.1:0`` in tests). Options:
@@ -21,7 +23,6 @@ URL: ``fri://HOST:PORT?option=value&...`` where HOST:PORT is the local address t
 
 from __future__ import annotations
 
-import logging
 import math
 import os
 import socket
@@ -34,7 +35,7 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from drivers.base import Clock, CommanderBase
-from drivers.errors import ConnectionLostError, DeviceTimeoutError, ProtocolError
+from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, ProtocolError
 from drivers.kuka_fri.messages import SessionState, decode_monitoring, encode_command
 from drivers.kuka_fri.session import (
     N_JOINTS,
@@ -246,6 +247,7 @@ class FriCommander(CommanderBase):
             now = self.clock()
             if self.controller_host is not None and addr[0] != self.controller_host:
                 self.foreign_datagrams += 1
+                session.check_silence(now, self.receive_timeout_s)
                 continue
             try:
                 msg = decode_monitoring(data)
@@ -254,7 +256,12 @@ class FriCommander(CommanderBase):
                 self._warn(f"malformed monitoring message ({len(data)} bytes) from {addr[0]}:{addr[1]}: {exc}")
                 session.check_silence(now, self.receive_timeout_s)
                 continue
-            reply = session.on_monitoring(msg, now)
+            try:
+                reply = session.on_monitoring(msg, now)
+            except Exception as exc:  # noqa: BLE001 - the exchange thread must survive a bug
+                self.log.exception("FRI cycle failed; ending any motion")
+                session.abort(DeviceFaultError(f"{self.name}: FRI cycle failed: {exc!r}"))
+                continue
             if reply is not None:
                 try:
                     sock.sendto(encode_command(reply), addr)
@@ -305,7 +312,7 @@ class FriCommander(CommanderBase):
         motion = self.session.begin_move(target_rad, speed, self.name)
         self.log.info(
             "move to %s deg at speed %.3g: %.3f s", np.round(np.degrees(target_rad), 3).tolist(),
-            speed, motion.trajectory.duration,
+            speed, motion.planned_s,
         )
         deadline = self.clock() + timeout
         while not motion.done.wait(0.005):
@@ -314,7 +321,7 @@ class FriCommander(CommanderBase):
                 motion.done.wait(self._stop_wait_s(motion))
                 raise DeviceTimeoutError(
                     f"{self.name}: move not finished within {timeout:.3g} s "
-                    f"(planned {motion.trajectory.duration:.3g} s); stopped"
+                    f"(planned {motion.planned_s:.3g} s); stopped"
                 )
         if motion.error is not None:
             raise motion.error

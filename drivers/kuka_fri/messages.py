@@ -325,12 +325,16 @@ def _strict_enum(cls: type[IntEnum], value: int, what: str) -> IntEnum:
         raise ProtocolError(f"{what}: unknown value {v}; allowed: {allowed}") from None
 
 
+_ENUM_MEMBERS: dict[type, dict[int, IntEnum]] = {}
+
+
 def _lenient_enum(cls: type[IntEnum], value: int, what: str) -> int:
-    v = wire.as_int32(value, what)
-    try:
-        return cls(v)
-    except ValueError:
-        return v
+    members = _ENUM_MEMBERS.get(cls)
+    if members is None:
+        members = _ENUM_MEMBERS.setdefault(cls, {m.value: m for m in cls})
+    if value in members:
+        return members[value]
+    return wire.as_int32(value, what)
 
 
 def _merged(parts: list) -> Optional[bytes]:

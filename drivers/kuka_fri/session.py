@@ -84,6 +84,7 @@ class Motion:
     max_step_rad: np.ndarray  # shape (n,): per-answer bound, rad
     limits_scaled: tuple  # (v, a, j) of this motion, for the stop plan
     k: int = 0
+    planned_s: float = 0.0  # duration of the move as planned (the trajectory becomes the stop's)
     stopping: bool = False
     stop_requested: bool = False
     done: threading.Event = field(default_factory=threading.Event)
@@ -170,7 +171,7 @@ class FriClientSession:
         v, a, j = scaled_limits(lim.max_velocity_rad_s, lim.max_acceleration_rad_s2, speed)
         traj = JointTrajectory.plan(hold, target_rad, v, a, j)
         dt = snap.receive_period_s
-        motion = Motion(traj, dt, v * dt * (1 + 1e-9) + 1e-12, (v, a, j))
+        motion = Motion(traj, dt, v * dt * (1 + 1e-9) + 1e-12, (v, a, j), planned_s=traj.duration)
         with self._lock:
             if self._motion is not None:
                 raise LimitError(f"{name}: a move is already in progress; stop() it first")
@@ -214,6 +215,12 @@ class FriClientSession:
             if m is not None:
                 m.stop_requested = True
             return m
+
+    def abort(self, error: BaseException) -> None:
+        """End the current motion (if any) with ``error``; the held command stays."""
+        with self._lock:
+            if self._motion is not None:
+                self._fail(error)
 
     def check_silence(self, now: float, timeout_s: float) -> None:
         """Called by the RT thread when no message came: fail the motion after ``timeout_s``."""

@@ -165,13 +165,21 @@ def iter_fields(buf: bytes | memoryview, start: int = 0, end: int | None = None)
     mv = buf if isinstance(buf, memoryview) else memoryview(buf)
     pos = start
     while pos < end:
-        key, pos = decode_varint(mv, pos, end)
+        key = mv[pos]
+        if key < 0x80:  # one-byte key: every FRI field
+            pos += 1
+        else:
+            key, pos = decode_varint(mv, pos, end)
         field_number = key >> 3
         wire_type = key & 7
         if field_number == 0 or field_number > _MAX_FIELD_NUMBER:
             raise ProtocolError(f"invalid field number {field_number} before byte {pos}")
         if wire_type == VARINT:
-            value, pos = decode_varint(mv, pos, end)
+            if pos < end and mv[pos] < 0x80:  # one-byte value: enums, small counters
+                value = mv[pos]
+                pos += 1
+            else:
+                value, pos = decode_varint(mv, pos, end)
             yield field_number, wire_type, value
         elif wire_type == I64:
             if pos + 8 > end:

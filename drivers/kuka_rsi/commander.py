@@ -12,6 +12,13 @@ command stream obeys the limits cycle by cycle whatever the timing jitter or pac
 is additionally checked (position, velocity, acceleration per cycle) and a violating row is
 clamped and the motion stopped.
 
+Real-time notes: the thread asks for SCHED_FIFO (logs a clear warning when not permitted),
+the interpreter's switch interval is lowered so it gets the GIL within ~0.2 ms, every code path
+is warmed up before the first packet, and lateness is measured from the kernel's arrival stamp.
+What a thread cannot fix in CPython is another thread of the same process holding the GIL while
+the OS has preempted it (a saturated host): expect rare late answers there (see
+``tests/bench/bench_rsi.py``); an isolated core or a separate exchange process removes them.
+
 Faults end the motion with a clear error: no packet for ``timeout_cycles`` cycles
 (``DeviceTimeoutError``), the controller's ``Delay`` growing by more than ``delay_limit`` within
 ``delay_window`` cycles or the RSI session restarting mid-motion (``DeviceFaultError``).
@@ -250,6 +257,8 @@ class RsiCommander(CommanderBase):
         """Open the UDP socket and start answering (``connect`` does it too); returns the bound
         address, so a controller (or fake) can be pointed at it before ``connect`` waits."""
         if self._sock is None:
+            if self._thread is None:
+                self._warm_up()  # before listening: no packet waits for it
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             try:
                 sock.bind((self.host, self.port))
@@ -269,7 +278,6 @@ class RsiCommander(CommanderBase):
                     self.switch_interval_s * 1e3,
                 )
                 sys.setswitchinterval(self.switch_interval_s)
-            self._warm_up()
             self._running.set()
             self._thread = threading.Thread(target=self._rt_main, name=f"{self.name}-rt", daemon=True)
             self._thread.start()
@@ -503,12 +511,26 @@ class RsiCommander(CommanderBase):
 
     def _rt_main(self) -> None:
         self._set_realtime()
+        self._drain()
         try:
             self._rt_loop()
         except OSError as exc:
             if self._running.is_set():
                 self.log.error("%s: RSI socket failed: %s", self.name, exc)
                 self._abort(ConnectionLostError(f"{self.name}: RSI socket failed: {exc}"))
+
+    def _drain(self) -> None:
+        """Discard packets queued before the thread ran: their cycle is over, answering them
+        now would only be late; the next packet starts the exchange."""
+        sock = self._sock
+        sock.setblocking(False)
+        try:
+            while True:
+                sock.recvfrom(4096)
+        except (BlockingIOError, InterruptedError):
+            pass
+        finally:
+            sock.settimeout(self.dt)
 
     def _abort(self, error: DriverError) -> None:
         """Record a fault; a running motion ends with it and is turned into a stop."""

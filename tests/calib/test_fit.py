@@ -234,3 +234,23 @@ def test_sandwich_ratio_flags_anisotropic_errors_the_model_does_not_describe():
     joint_errors = mean_ratio(jitter_deg=0.035, unmodelled_mm=0.0)  # backlash seen through the Jacobian
     assert np.all(np.abs(isotropic - 1) < 0.12), isotropic
     assert joint_errors.max() > 1.2, joint_errors
+
+
+@pytest.mark.parametrize("name", ["kuka_iiwa14_r820", "kuka_kr6_r900_2", "staubli_tx60"])
+def test_offsets_only_kinematics_equals_the_full_chain(name):
+    """The fitter's folded path (calib.kinematics.offset_kinematics) against Chain.marker_positions."""
+    from calib.kinematics import offset_kinematics
+
+    model = load_robot_model(ROOT / "fixtures" / "robots" / f"{name}.yaml")
+    chain = Chain(model)
+    rng = np.random.default_rng(12)
+    q = rng.uniform(model.lower_limits_rad, model.upper_limits_rad, size=(40, chain.n))
+    params = chain.nominal + rng.normal(0.0, 0.01, chain.n_params)  # every parameter off nominal
+    rows = rng.integers(0, chain.m, 40)
+    fk = offset_kinematics(chain, q, params[chain.marker_slice()].reshape(chain.m, 3)[rows], params)
+    offsets = rng.normal(0.0, 0.02, (5, chain.n))
+    batch = np.repeat(params[None], 5, axis=0)
+    batch[:, : chain.n] = offsets
+    expected = chain.marker_positions(q, batch)[:, np.arange(40), rows]
+    np.testing.assert_allclose(fk.positions(offsets), expected, atol=1e-9)
+    np.testing.assert_allclose(fk.positions(offsets[0]), expected[0], atol=1e-9)

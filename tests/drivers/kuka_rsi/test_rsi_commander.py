@@ -194,8 +194,11 @@ def test_packet_loss_is_survived_within_limits_and_counted(limits):
         gaps = c.link_stats().gaps
         stats = f.stats()
     np.testing.assert_allclose(np.degrees(state.position_rad), SEQUENCE_DEG[1], atol=1e-3)
-    assert gaps == stats.cycles - stats.sent > 5
-    assert stats.late == stats.cycles - stats.sent  # only the lost packets went unanswered
+    lost = stats.cycles - stats.sent
+    assert lost > 5
+    assert abs(gaps - lost) <= 1  # (a loss in the last cycle is seen with the next packet)
+    # the lost packets went unanswered; + slack for a rare late answer on a loaded host
+    assert lost <= stats.late <= lost + 1
     assert_stream_within_limits(f.received(), HOME_DEG, limits)
 
 

@@ -10,6 +10,7 @@ import pytest
 
 from drivers.kuka_rsi.codec import SenFormatter, parse_rob
 from drivers.kuka_rsi.fake import FakeKrc4
+from drivers.sim.clock import SimClock
 
 FMT = SenFormatter(6)
 
@@ -54,25 +55,27 @@ def fake_for(client, **kw) -> FakeKrc4:
 
 
 def test_wrong_ipoc_answers_count_as_late_and_total_rule_stops_the_robot(client):
-    with fake_for(client, late_limit=5, late_consecutive=False) as f:
+    with fake_for(client, late_limit=5, late_consecutive=False, clock=SimClock(0.5)) as f:
         # every other answer carries a wrong IPOC: never 2 in a row, but 5 in total
         client.run(lambda i, s: ([0.0] * 6, s.ipoc + (7 if i % 2 else 0)), 40)
         assert f.wait_stopped(1.0)
         stats = f.stats()
     assert stats.stopped_reason == "RSI timeout: 5 late answers (limit 5)"
-    assert stats.late == 5 and stats.answers_on_time == 5
+    assert stats.late == 5 and 3 <= stats.answers_on_time <= 5 and stats.late_consecutive <= 2
     delays = [s.delay for _, s in client.states]
     assert delays == sorted(delays) and delays[-1] == 4  # the Delay element reports the count
 
 
 def test_consecutive_rule_tolerates_isolated_late_answers(client):
-    with fake_for(client, late_limit=3, late_consecutive=True, lockstep=True) as f:
-        client.run(lambda i, s: ([0.0] * 6, s.ipoc + (7 if i % 2 else 0)), 60)
+    # simulated time at half speed: the (non-real-time) test client has 8 ms of wall time per cycle
+    with fake_for(client, late_limit=4, late_consecutive=True, clock=SimClock(0.5)) as f:
+        client.run(lambda i, s: ([0.0] * 6, s.ipoc + (7 if i % 2 else 0)), 40)
         stats = f.stats()
-        assert stats.stopped_reason is None and stats.late == 30
-        client.run(lambda i, s: None, 10)  # silence: three in a row
+        # 20 wrong answers; the snapshot may fall before the last one is judged
+        assert stats.stopped_reason is None and 19 <= stats.late <= 21
+        client.run(lambda i, s: None, 10)  # silence: four in a row
         assert f.wait_stopped(1.0)
-        assert f.stats().stopped_reason == "RSI timeout: 3 late answers (limit 3)"
+        assert f.stats().stopped_reason == "RSI timeout: 4 late answers (limit 4)"
 
 
 def test_servo_follows_a_step_correction_with_a_realistic_transient(client):
@@ -95,13 +98,16 @@ def test_restart_starts_a_new_ipoc_sequence_from_the_current_set_point(client):
     with fake_for(client, lockstep=True) as f:
         client.run(lambda i, s: ([2.0, 0, 0, 0, 0, 0], s.ipoc), 30)
         f.restart(ipoc_start=1000)
-        client.run(lambda i, s: ([0.0] * 6, s.ipoc), 30)
+        # the old session's offset until the new sequence starts, then offsets from the new start
+        client.run(lambda i, s: ([2.0 if s.ipoc >= 4_000_000 else 0.0, 0, 0, 0, 0, 0], s.ipoc), 30)
         stats = f.stats()
     ipocs = [s.ipoc for _, s in client.states]
     k = next(i for i in range(1, len(ipocs)) if ipocs[i] < ipocs[i - 1])
     assert ipocs[k] == 1000 and np.all(np.diff(ipocs[k:]) == 4)
     assert client.states[k][1].axis_setpoint_deg[0] == pytest.approx(2.0)
     assert stats.sessions == 2
+    a1 = [s.axis_actual_deg[0] for _, s in client.states[k:]]
+    assert min(a1) > 1.99  # zero offset in the new session keeps the robot where it was
 
 
 def test_fake_refuses_non_loopback_targets_and_odd_cycles():

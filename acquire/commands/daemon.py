@@ -1,0 +1,236 @@
+"""``acquire daemon`` (the service) and its thin clients ``acquire status|start|pause|resume|abort|runs``.
+
+Examples::
+
+    acquire daemon --config /etc/remaster/daemon.yaml
+    acquire status --cell lab1
+    acquire start fixtures/plans/example.yaml --cell lab1 --client operator --token-file ~/.config/remaster/token
+    acquire start --inline my-plan.yaml --cell lab1 --client operator --token-file …
+    acquire pause|resume|abort --cell lab1 --client operator --token-file …
+    acquire runs --cell lab1
+
+The clients connect to the daemon's Zenoh router (``--connect``, default
+``tcp/127.0.0.1:7447``); a remote daemon needs ``tls/host:7447`` with ``--tls-ca``,
+``--tls-cert`` and ``--tls-key`` (mTLS). Credentials: ``--client NAME`` and the token from
+``--token-file`` or the environment (``REMASTER_CLIENT``, ``REMASTER_TOKEN``). Replies are printed
+as JSON with ``--json``, otherwise as a few readable lines. Exit status: 0 done, 2 bad usage or
+bad request, 3 refused, 4 no daemon answered, 1 other failures.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+log = logging.getLogger(__name__)
+
+#: syslog priorities for the ``<N>`` prefix journald understands (sd-daemon(3)).
+_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
+
+
+class JournalFormatter(logging.Formatter):
+    """``<N>level name: message`` — journald reads the ``<N>`` prefix as the line's priority;
+    every line of a multi-line message (tracebacks) carries it."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        prio = _PRIORITY.get(record.levelno, 6 if record.levelno < logging.WARNING else 3)
+        return "\n".join(f"<{prio}>{line}" for line in text.splitlines())
+
+
+def configure_daemon_logging(verbose: bool) -> None:
+    """The CLI's logging (acquire.cli.configure_logging) plus journald priorities when stderr
+    is connected to the journal (``JOURNAL_STREAM`` set). ``REMASTER_LOG_LEVEL`` overrides."""
+    from acquire.cli import configure_logging
+
+    configure_logging(verbose)
+    level = os.environ.get("REMASTER_LOG_LEVEL")
+    if level:
+        if level.upper() not in ("DEBUG", "INFO", "WARNING", "ERROR"):
+            raise typer.BadParameter(f"REMASTER_LOG_LEVEL must be DEBUG, INFO, WARNING or ERROR, given {level!r}")
+        logging.getLogger().setLevel(level.upper())
+    if os.environ.get("JOURNAL_STREAM"):
+        for handler in logging.getLogger().handlers:
+            handler.setFormatter(JournalFormatter("%(levelname)s %(name)s: %(message)s"))
+
+
+def daemon(
+    config: Path = typer.Option(..., "--config", help="Daemon configuration YAML (see systemd/daemon.yaml.example)."),
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logging."),
+) -> None:
+    """Run the cell's service: Zenoh router, devices, control queries, systemd notification."""
+    from acquire.daemon import run_daemon
+    from acquire.daemon_config import ConfigError, load_daemon_config
+
+    configure_daemon_logging(verbose)
+    try:
+        cfg = load_daemon_config(config)
+    except ConfigError as exc:
+        log.error("configuration not valid:\n%s", exc)
+        raise typer.Exit(2) from None
+    raise typer.Exit(run_daemon(cfg))
+
+
+# ---------------------------------------------------------------------------------- clients
+_CONNECT = typer.Option("tcp/127.0.0.1:7447", "--connect", help="The daemon's Zenoh endpoint.")
+_CELL = typer.Option(None, "--cell", help="Cell id (default: $REMASTER_CELL).")
+_CLIENT = typer.Option(None, "--client", help="Client name (default: $REMASTER_CLIENT).")
+_TOKEN_FILE = typer.Option(None, "--token-file", help="File holding the client's token (else $REMASTER_TOKEN).")
+_CA = typer.Option(None, "--tls-ca", help="CA certificate (PEM) that signed the daemon's certificate.")
+_CERT = typer.Option(None, "--tls-cert", help="This client's certificate (PEM), for mTLS.")
+_KEY = typer.Option(None, "--tls-key", help="This client's private key (PEM), for mTLS.")
+_TIMEOUT = typer.Option(10.0, "--timeout", help="Seconds to wait for the daemon's reply.")
+_JSON = typer.Option(False, "--json", help="Print the reply as JSON.")
+
+
+def _fail(message: str, code: int) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code)
+
+
+def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], client: Optional[str],
+          token_file: Optional[Path], tls_ca: Optional[Path], tls_cert: Optional[Path], tls_key: Optional[Path],
+          timeout: float, as_json: bool) -> dict:
+    from acquire.bus import Bus, BusError, is_loopback_endpoint
+    from acquire.control import BadRequest, Conflict, ControlClient, ControlError, NoReply, Refused
+
+    cell = cell or os.environ.get("REMASTER_CELL")
+    if not cell:
+        _fail("give --cell (or set REMASTER_CELL)", 2)
+    client = client or os.environ.get("REMASTER_CLIENT")
+    token = None
+    if token_file is not None:
+        try:
+            token = token_file.read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            _fail(f"cannot read --token-file {token_file}: {exc.strerror or exc}", 2)
+    else:
+        token = os.environ.get("REMASTER_TOKEN")
+    if client and not token:
+        _fail(f"client {client!r} needs a token (--token-file or REMASTER_TOKEN)", 2)
+    if token and not client:
+        _fail("a token needs --client (or REMASTER_CLIENT)", 2)
+    tls = {}
+    if tls_ca is not None:
+        tls = {"root_ca_certificate": str(tls_ca)}
+        if (tls_cert is None) != (tls_key is None):
+            _fail("give both --tls-cert and --tls-key, or neither", 2)
+        if tls_cert is not None:
+            tls.update(connect_certificate=str(tls_cert), connect_private_key=str(tls_key), enable_mtls=True)
+    config = {"mode": "client", "connect": [connect], "zenoh": {"transport/link/tls": tls} if tls else {}}
+    try:
+        with Bus(cell, config=config, listen_loopback_only=is_loopback_endpoint(connect)) as bus:
+            reply = ControlClient(bus.session, cell, client=client, token=token).call(op, request, timeout=timeout)
+    except Refused as exc:
+        _fail(str(exc), 3)
+    except NoReply as exc:
+        _fail(str(exc), 4)
+    except (BadRequest, Conflict) as exc:
+        _fail(str(exc), 2)
+    except (ControlError, BusError) as exc:
+        _fail(str(exc), 1)
+    if as_json:
+        typer.echo(json.dumps(reply, indent=2, sort_keys=True))
+    else:
+        _print_reply(op, reply)
+    return reply
+
+
+def _print_reply(op: str, reply: dict) -> None:
+    if op == "status":
+        typer.echo(f"cell {reply['cell']}: daemon {reply['daemon']}, "
+                   f"{'healthy' if reply['healthy'] else 'UNHEALTHY: ' + reply['health']}, "
+                   f"devices {', '.join(reply['devices']) or 'none'}{' (fake)' if reply.get('fake') else ''}")
+        run = reply.get("run")
+        if run:
+            eta = run.get("eta_s")
+            typer.echo(f"run {run['run_id']}: {run['state']} {run['done']}/{run['total']} "
+                       f"(failed {run['failed']}, skipped {run['skipped']}"
+                       f"{f', eta {eta:.0f} s' if isinstance(eta, (int, float)) else ''}); log {run.get('log')}")
+        else:
+            typer.echo("no run")
+    elif op == "runs":
+        for r in reply["runs"]:
+            typer.echo(f"{r['run_id']}  {r['modified']}  {r['bytes']:>10} B"
+                       f"{'  (current)' if r['current'] else ''}{'  result' if r['result'] else ''}")
+        if not reply["runs"]:
+            typer.echo("no runs")
+    else:
+        typer.echo(" ".join(f"{k} {v}" for k, v in reply.items() if k != "ok"))
+
+
+def status(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+           token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
+           tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
+    """Show the daemon's and the current run's state."""
+    _call("status", None, **locals())
+
+
+def runs(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+         token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
+         tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
+    """List the runs in the daemon's state folder."""
+    _call("runs", None, **locals())
+
+
+def start(
+    plan: Optional[str] = typer.Argument(None, help="Plan path ON THE CELL PC (inside the daemon's plan_dirs)."),
+    inline: Optional[Path] = typer.Option(None, "--inline", help="Send this local plan file's text instead."),
+    resume: Optional[str] = typer.Option(None, "--resume", help="Run id to resume (its log in the state folder)."),
+    connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+    token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
+    tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON,
+) -> None:
+    """Start a run on the daemon (the robot will move)."""
+    if (plan is None) == (inline is None):
+        _fail("give a plan path on the cell PC, or --inline FILE", 2)
+    request: dict = {"plan": plan} if plan is not None else {}
+    if inline is not None:
+        try:
+            request["plan_text"] = inline.read_text(encoding="utf-8")
+        except OSError as exc:
+            _fail(f"cannot read --inline {inline}: {exc.strerror or exc}", 2)
+    if resume:
+        request["resume"] = resume
+    _call("start", request, connect=connect, cell=cell, client=client, token_file=token_file, tls_ca=tls_ca,
+          tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
+
+
+def pause(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+          token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
+          tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
+    """Pause the run after its current configuration."""
+    _call("pause", None, **locals())
+
+
+def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+           token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
+           tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
+    """Resume a paused run (the robot will move)."""
+    _call("resume", None, **locals())
+
+
+def abort(reason: str = typer.Option("aborted by operator", "--reason", help="Why (goes into the log)."),
+          connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+          token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
+          tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
+    """Stop the run safely now; its log is closed."""
+    _call("abort", {"reason": reason}, connect=connect, cell=cell, client=client, token_file=token_file,
+          tls_ca=tls_ca, tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``daemon`` and its clients to ``app``."""
+    app.command("daemon")(daemon)
+    for fn in (status, start, pause, resume, abort, runs):
+        app.command(fn.__name__)(fn)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit("use: acquire daemon --config FILE")

@@ -1,0 +1,200 @@
+"""``acquire run``: the measurement run — plan → order → move, settle, measure → MCAP log → fit.
+
+Examples::
+
+    acquire run fixtures/plans/example.yaml --fake          # against the simulated cell
+    acquire run plan.yaml --dry-run                         # what would happen; connects to nothing
+    acquire run plan.yaml --resume runs/<id>/<id>.mcap      # continue a killed or aborted run
+
+A bad plan exits 2 before anything connects or moves. Ctrl-C (SIGINT) or SIGTERM stops the
+robot safely (the commander decelerates), closes a complete, resumable log and exits 130;
+a failed run exits 1. Under ``--fake`` the summary puts the fitted offsets next to the
+simulated cell's true ones.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import signal
+import threading
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+log = logging.getLogger(__name__)
+
+
+def _load(plan: Path):
+    from acquire.plan import load_plan, resolve_configurations
+
+    try:
+        lp = load_plan(plan)
+        configs = resolve_configurations(lp)
+    except (ValueError, OSError) as exc:  # ConfigError is a ValueError
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    if not configs:
+        typer.echo(f"error: {plan}: the plan resolves to no configurations", err=True)
+        raise typer.Exit(2)
+    return lp, configs
+
+
+def dry_run_text(lp, configs) -> str:
+    """What ``--dry-run`` prints: configurations in order and the estimated cell time."""
+    from acquire.run import SENSOR_RATE_HZ, plan_settings
+    from acquire.sequencer import estimate_measure_s, estimate_settle_s, move_times, order_configurations
+    from drivers.protocols import JointLimits
+
+    plan = lp.plan
+    s = plan_settings(plan)
+    limits = JointLimits.from_model(lp.model)
+    fake = getattr(plan, "fake", None)
+    start = _initial_q(lp, fake)
+    order = order_configurations(configs, start, limits, s.speed)
+    moves = move_times(order, start, limits, s.speed)
+    settle = estimate_settle_s(s.settle_window_s)
+    measure = estimate_measure_s(s.samples, [SENSOR_RATE_HZ.get(x.driver, 100.0) for x in plan.sensors])
+    names = limits.names or tuple(f"J{i + 1}" for i in range(limits.n_axes))
+    lines = [
+        f"plan: {lp.path}  cell {plan.cell}  robot {lp.model.name}",
+        f"commander: {plan.commander.driver} {plan.commander.url}",
+    ]
+    lines += [f"sensor: {x.name} ({x.driver}) {x.url} markers {sorted(x.markers)}" for x in plan.sensors]
+    lines.append(f"start (deg): {np.round(np.degrees(start), 3).tolist()}")
+    lines.append(f"{len(order)} configurations in run order (speed {s.speed:g}):")
+    lines.append(f"{'#':>4} {'config':<14} {'pose':<8} {'branch':<24} {'move s':>7}  " + " ".join(f"{n:>8}" for n in names))
+    for i, (c, t) in enumerate(zip(order, moves)):
+        q = " ".join(f"{v:8.2f}" for v in np.degrees(c.q_rad))
+        lines.append(f"{i + 1:>4} {c.config_id:<14} {c.pose:<8} {c.branch:<24} {t:7.2f}  {q}")
+    total = float(moves.sum() + len(order) * (settle + measure))
+    lines.append(
+        f"estimated cell time: {total:.0f} s ({total / 60:.1f} min) = motion {moves.sum():.0f} s + "
+        f"settle {len(order) * settle:.0f} s ({settle:.2f} s each) + measure {len(order) * measure:.0f} s "
+        f"({measure:.2f} s each)"
+    )
+    return "\n".join(lines)
+
+
+def _initial_q(lp, fake) -> np.ndarray:
+    """Where the robot starts for the estimate: the simulated cell's initial pose when the plan
+    has a ``fake`` section with a config, else the middle of the joint ranges."""
+    try:
+        if fake is not None and getattr(fake, "sim_config", None) is not None:
+            from drivers.sim.config import load_sim_config
+
+            path = Path(fake.sim_config)
+            if not path.is_absolute():
+                path = Path(lp.path).parent / path
+            q = load_sim_config(path).initial_joint_positions_deg
+            if q is not None:
+                return np.radians(np.asarray(q, dtype=float))
+    except (ValueError, OSError) as exc:
+        log.debug("no initial pose from the sim config: %s", exc)
+    return 0.5 * (lp.model.lower_limits_rad + lp.model.upper_limits_rad)
+
+
+def format_run_summary(summary, lp) -> str:
+    lines = [
+        f"run {summary.run_id}: {summary.state}" + (f" ({summary.reason})" if summary.reason else ""),
+        f"configurations: {summary.total} total, {summary.measured} measured, {summary.skipped} skipped, "
+        f"{summary.failed} failed; {summary.wall_seconds:.1f} s wall, {summary.cell_seconds:.1f} s cell time",
+        f"log: {summary.log_path}",
+    ]
+    for cid, reason in list(summary.skipped_reasons.items())[:20]:
+        lines.append(f"  not measured {cid}: {reason}")
+    if summary.fit is not None:
+        names = lp.model.axis_names
+        truth = summary.truth_offsets_deg
+        head = f"{'joint':<6} {'fitted (deg)':>13} {'± std':>8}"
+        if truth is not None:
+            head += f" {'truth (deg)':>12} {'error':>8}"
+        lines += ["", head]
+        for i, j in enumerate(summary.fit["joint_offsets"]):
+            v, sd = j.get("value_deg"), j.get("std_deg")
+            row = f"{names[i]:<6} " + (f"{v:+13.4f}" if v is not None else f"{'—':>13}") + " " + (
+                f"{sd:8.4f}" if sd is not None else f"{'—':>8}")
+            if truth is not None:
+                row += f" {truth[i]:+12.4f}" + (f" {v - truth[i]:+8.4f}" if v is not None else f" {'—':>8}")
+            if not j.get("identifiable", True):
+                row += f"  {j.get('status', '')}"
+            lines.append(row)
+        lines.append("")
+        lines.append(f"result: {summary.result_path}")
+        if summary.report_path is not None:
+            lines.append(f"report: {summary.report_path}")
+    return "\n".join(lines)
+
+
+def run(
+    plan: Path = typer.Argument(..., help="The plan YAML file."),
+    fake: bool = typer.Option(False, "--fake", help="Run against the simulated cell's fakes on loopback."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Print configurations, order and cell time; connect to nothing."),
+    resume: Optional[Path] = typer.Option(None, "--resume", help="Continue the run recorded in this MCAP log."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for the run (default: the plan's output.folder)."),
+    no_fit: bool = typer.Option(False, "--no-fit", help="Do not fit at the end (use `acquire fit RUN.mcap` later)."),
+    no_bus: bool = typer.Option(False, "--no-bus", help="Do not open the Zenoh bus (nothing published)."),
+) -> None:
+    """Run the measurement plan: move, settle, measure every configuration; log; fit."""
+    lp, configs = _load(plan)
+    if dry_run:
+        typer.echo(dry_run_text(lp, configs))
+        return
+    if resume is not None and not resume.is_file():
+        typer.echo(f"error: --resume {resume}: no such file", err=True)
+        raise typer.Exit(2)
+    from acquire.progress import Progress
+    from acquire.run import RunController
+
+    bus = None
+    if not no_bus:
+        try:
+            from acquire.bus import Bus
+
+            bus = Bus(lp.plan.cell)
+        except Exception as exc:  # noqa: BLE001 - a run without a bus still measures
+            log.warning("no Zenoh bus (%s); the run is not published", exc)
+            bus = None
+    progress = Progress()
+    controller = RunController(lp, fake=fake, resume=resume, bus=bus, out_dir=out, on_progress=progress.update,
+                               fit=not no_fit)
+    interrupted = threading.Event()
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        name = signal.Signals(signum).name
+        if interrupted.is_set():
+            log.warning("%s again: still stopping safely", name)
+            return
+        interrupted.set()
+        log.warning("%s: stopping safely (the robot decelerates, the log is closed)", name)
+        threading.Thread(target=controller.abort, args=(f"interrupted ({name})",), daemon=True).start()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        controller.start()
+        while True:
+            try:
+                summary = controller.wait(0.2)
+                break
+            except TimeoutError:
+                continue
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+        progress.close()
+        if bus is not None:
+            bus.close()
+    typer.echo(format_run_summary(summary, lp))
+    if summary.state != "finished":
+        if summary.log_path is not None:
+            typer.echo(f"resume with: acquire run {plan} --resume {summary.log_path}" + (" --fake" if fake else ""))
+        raise typer.Exit(summary.exit_code)
+    if summary.fit is None and not no_fit and summary.measured >= 3:
+        raise typer.Exit(1)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``run`` sub-command to ``app``."""
+    app.command("run")(run)

@@ -1,0 +1,344 @@
+"""Control queries of the daemon (``remaster/<cell>/control/<operation>``) and who may send them.
+
+Operations and the permission each needs (``acquire.daemon_config.PERMISSIONS``):
+
+=========  ==========  ===========================================================
+operation  permission  what it does
+=========  ==========  ===========================================================
+status     observe     the daemon's and the current run's state (no plan text)
+runs       observe     the runs in the state folder
+plan       read        the plan text of a run (``{"run_id": …}``; default: current)
+pause      control     finish the current configuration, then hold
+abort      control     stop safely now (``{"reason": …}``)
+start      motion      start a run: ``{"plan": "/path/on/the/cell/pc.yaml"}`` or
+                       ``{"plan_text": "…yaml…"}``; optional ``{"resume": "RUN.mcap"}``
+resume     motion      continue a paused run
+=========  ==========  ===========================================================
+
+Two lines of defence. First, Zenoh itself: loopback-only listeners by default; remote
+listeners need mTLS or an access-control block (see ``daemon_config``), so the router drops a
+query from a subject the ACL does not allow before it reaches us. Second, this module checks
+every query in its handler: the query's attachment carries ``{"client": NAME, "token": TOKEN}``
+and is compared (constant time) with the SHA-256 the configuration holds for ``NAME``; a
+client configured with ``cert_common_names`` must moreover come over a TLS link whose
+certificate common name is one of them (the link of the query's source Zenoh id, as the session
+sees it). Without a valid token the query holds only ``auth.anonymous`` (default: observe).
+Every refusal is logged as a warning naming the operation, the claimed client and the reason.
+
+Replies are JSON objects. A success is ``{"ok": true, …}``; a failure is an error reply
+``{"ok": false, "error": KIND, "message": …}`` with KIND one of ``refused``, ``bad-request``,
+``conflict``, ``failed``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import logging
+import threading
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol
+
+from acquire.daemon_config import PERMISSIONS, AuthSection
+
+log = logging.getLogger(__name__)
+
+#: Operation → the permission it needs.
+OPERATIONS: dict[str, str] = {
+    "status": "observe",
+    "runs": "observe",
+    "plan": "read",
+    "pause": "control",
+    "abort": "control",
+    "start": "motion",
+    "resume": "motion",
+}
+
+#: Operations that can make the robot move.
+MOTION_OPERATIONS = frozenset(op for op, perm in OPERATIONS.items() if perm == "motion")
+
+#: Largest accepted request payload or attachment (bytes): an inline plan fits easily.
+MAX_REQUEST_BYTES = 1 << 20
+
+
+class ControlError(Exception):
+    """A control query that failed; ``kind`` is the reply's ``error`` field."""
+
+    kind = "failed"
+
+
+class Refused(ControlError, PermissionError):
+    """The sender may not do this (no or wrong token, missing permission, wrong TLS subject)."""
+
+    kind = "refused"
+
+
+class BadRequest(ControlError, ValueError):
+    """The request is malformed or names something not allowed (e.g. a plan outside plan_dirs)."""
+
+    kind = "bad-request"
+
+
+class Conflict(ControlError, RuntimeError):
+    """The request does not fit the current state (start while a run is active, …)."""
+
+    kind = "conflict"
+
+
+class NoReply(ControlError, TimeoutError):
+    """No daemon answered within the timeout (not running, or a router dropped the query)."""
+
+    kind = "no-reply"
+
+
+_KINDS = {cls.kind: cls for cls in (ControlError, Refused, BadRequest, Conflict, NoReply)}
+
+
+def hash_token(token: str) -> str:
+    """The SHA-256 hex digest the configuration stores for ``token``."""
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+@dataclass(frozen=True)
+class Identity:
+    """Who sent a query, as far as the daemon can tell."""
+
+    client: str | None          # authenticated client name, None for anonymous
+    claimed: str | None         # the name the attachment claimed (even if the token was wrong)
+    cert_cn: str | None         # TLS certificate common name of the source link, if known
+    permissions: frozenset = field(default_factory=frozenset)
+
+    def describe(self) -> str:
+        who = self.client or (f"unauthenticated (claimed {self.claimed!r})" if self.claimed else "anonymous")
+        return who + (f", TLS CN {self.cert_cn!r}" if self.cert_cn else "")
+
+
+class Authorizer:
+    """Decides what a query may do from its attachment and (when known) its TLS subject.
+
+    link_subject: source Zenoh id (hex str) → TLS certificate CN of that peer's link, or None.
+    """
+
+    def __init__(self, auth: AuthSection, link_subject: Callable[[str], str | None] | None = None) -> None:
+        self.auth = auth
+        self._link_subject = link_subject or (lambda zid: None)
+        self.refusals = 0
+        self._lock = threading.Lock()
+
+    def identify(self, attachment: bytes | None, source_zid: str | None) -> tuple[Identity, str | None]:
+        """The sender's identity and, if its credentials were rejected, why."""
+        cert_cn = self._link_subject(source_zid) if source_zid else None
+        anonymous = frozenset(self.auth.anonymous)
+        if not attachment:
+            return Identity(None, None, cert_cn, anonymous), None
+        try:
+            cred = json.loads(bytes(attachment).decode())
+            name, token = cred["client"], cred["token"]
+            if not (isinstance(name, str) and isinstance(token, str)):
+                raise TypeError("client and token must be strings")
+        except (UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
+            return Identity(None, None, cert_cn, anonymous), f"attachment is not {{client, token}} JSON ({exc})"
+        client = next((c for c in self.auth.clients if c.name == name), None)
+        # Compare against a dummy digest for unknown names too: the answer takes the same time.
+        want = client.token_sha256 if client else "0" * 64
+        if not hmac.compare_digest(hash_token(token), want) or client is None:
+            return Identity(None, name, cert_cn, anonymous), f"wrong token for client {name!r}"
+        if client.cert_common_names and cert_cn not in client.cert_common_names:
+            return Identity(None, name, cert_cn, anonymous), (
+                f"client {name!r} must connect over TLS with a certificate CN in "
+                f"{client.cert_common_names}; the link's CN is {cert_cn!r}"
+            )
+        return Identity(name, name, cert_cn, frozenset(client.allow) | anonymous), None
+
+    def check(self, operation: str, identity: Identity, credential_problem: str | None) -> None:
+        """Raise Refused (and log it) unless ``identity`` may perform ``operation``."""
+        need = OPERATIONS[operation]
+        if need in identity.permissions:
+            return
+        reason = f"needs permission {need!r}; {identity.describe()} holds {sorted(identity.permissions)}"
+        if credential_problem:
+            reason += f" ({credential_problem})"
+        with self._lock:
+            self.refusals += 1
+        log.warning("refused control/%s: %s", operation, reason)
+        raise Refused(f"{operation} refused: {reason}")
+
+
+class ControlBackend(Protocol):
+    """What the control queries act on (the daemon)."""
+
+    def status(self, *, include_plan: bool) -> dict: ...
+
+    def runs(self) -> dict: ...
+
+    def plan(self, run_id: str | None) -> dict: ...
+
+    def start(self, request: dict, identity: Identity) -> dict: ...
+
+    def pause(self) -> dict: ...
+
+    def resume(self) -> dict: ...
+
+    def abort(self, reason: str) -> dict: ...
+
+
+def _zid_hex(source_info) -> str | None:
+    if source_info is None:
+        return None
+    try:
+        return str(source_info.source_id.zid)
+    except AttributeError:
+        return None
+
+
+class ControlServer:
+    """Declares one queryable per operation on a Zenoh session and dispatches to ``backend``.
+
+    Declared on the session directly (not through ``Bus.queryable``) because the handler needs
+    the query's source info to find the TLS subject of the sender's link.
+    """
+
+    def __init__(self, session, cell: str, backend: ControlBackend, authorizer: Authorizer) -> None:
+        self.session = session
+        self.cell = cell
+        self.backend = backend
+        self.authorizer = authorizer
+        self.handled = 0
+        self._queryables = []
+        for op in OPERATIONS:
+            self._queryables.append(
+                session.declare_queryable(control_key(cell, op), self._make_handler(op))
+            )
+
+    def close(self) -> None:
+        """Undeclare every queryable (idempotent)."""
+        while self._queryables:
+            q = self._queryables.pop()
+            q.undeclare()
+
+    def _make_handler(self, op: str) -> Callable:
+        def handler(query) -> None:
+            self._handle(op, query)
+
+        return handler
+
+    def _handle(self, op: str, query) -> None:
+        """Answer one query; never raises into Zenoh's thread."""
+        self.handled += 1
+        try:
+            reply = self.dispatch(op, _payload_bytes(query.payload), _payload_bytes(query.attachment),
+                                  _zid_hex(query.source_info))
+            query.reply(query.key_expr, json.dumps({"ok": True, **reply}, default=str))
+        except ControlError as exc:
+            query.reply_err(json.dumps({"ok": False, "error": exc.kind, "message": str(exc)}))
+        except Exception as exc:  # noqa: BLE001 - a bug must become an error reply, never a hang
+            log.exception("control/%s failed", op)
+            query.reply_err(json.dumps({"ok": False, "error": "failed", "message": f"{type(exc).__name__}: {exc}"}))
+
+    def dispatch(self, op: str, payload: bytes | None, attachment: bytes | None, source_zid: str | None) -> dict:
+        """Authorise and perform ``op``; returns the reply body or raises ControlError."""
+        if op not in OPERATIONS:
+            raise BadRequest(f"unknown operation {op!r}; allowed: {', '.join(OPERATIONS)}")
+        for what, data in (("payload", payload), ("attachment", attachment)):
+            if data is not None and len(data) > MAX_REQUEST_BYTES:
+                log.warning("refused control/%s: %s of %d bytes (limit %d)", op, what, len(data), MAX_REQUEST_BYTES)
+                raise BadRequest(f"{what} of {len(data)} bytes is too large (limit {MAX_REQUEST_BYTES})")
+        identity, problem = self.authorizer.identify(attachment, source_zid)
+        self.authorizer.check(op, identity, problem)
+        request = _request(payload)
+        log.log(logging.DEBUG if op in ("status", "runs") else logging.INFO, "control/%s from %s", op,
+                identity.describe())
+        b = self.backend
+        if op == "status":
+            return b.status(include_plan="read" in identity.permissions)
+        if op == "runs":
+            return b.runs()
+        if op == "plan":
+            return b.plan(_opt_str(request, "run_id"))
+        if op == "start":
+            return b.start(request, identity)
+        if op == "pause":
+            return b.pause()
+        if op == "resume":
+            return b.resume()
+        return b.abort(_opt_str(request, "reason") or f"aborted by {identity.describe()}")
+
+
+def _payload_bytes(z) -> bytes | None:
+    if z is None:
+        return None
+    data = z.to_bytes()
+    return data or None
+
+
+def _request(payload: bytes | None) -> dict:
+    if not payload:
+        return {}
+    try:
+        req = json.loads(payload.decode())
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise BadRequest(f"request payload is not JSON: {exc}") from exc
+    if not isinstance(req, dict):
+        raise BadRequest(f"request payload must be a JSON object, given {type(req).__name__}")
+    return req
+
+
+def _opt_str(req: dict, name: str) -> str | None:
+    value = req.get(name)
+    if value is not None and not isinstance(value, str):
+        raise BadRequest(f"{name} must be a string, given {value!r}")
+    return value
+
+
+def control_key(cell: str, op: str) -> str:
+    """``remaster/<cell>/control/<op>`` (through ``acquire.bus.key`` when available)."""
+    try:
+        from acquire.bus import key
+    except ImportError:  # pragma: no cover - bus.py is always present in a full checkout
+        return f"remaster/{cell}/control/{op}"
+    return key(cell, "control", op)
+
+
+class ControlClient:
+    """A thin client of the control queries over an open Zenoh session.
+
+    client / token: credentials sent in the attachment (None: anonymous).
+    """
+
+    def __init__(self, session, cell: str, *, client: str | None = None, token: str | None = None) -> None:
+        if (client is None) != (token is None):
+            raise ValueError("give both client and token, or neither")
+        self.session = session
+        self.cell = cell
+        self._attachment = json.dumps({"client": client, "token": token}).encode() if client else None
+
+    def call(self, op: str, request: dict[str, Any] | None = None, *, timeout: float = 10.0) -> dict:
+        """Send ``op`` and return the reply body; raise the matching ControlError on an error
+        reply and NoReply when nothing answers within ``timeout`` seconds."""
+        import zenoh  # a thin client needs nothing else of the daemon
+
+        if op not in OPERATIONS:
+            raise ValueError(f"unknown operation {op!r}; allowed: {', '.join(OPERATIONS)}")
+        kwargs: dict[str, Any] = {}
+        if request:
+            kwargs["payload"] = json.dumps(request)
+        if self._attachment:
+            kwargs["attachment"] = self._attachment
+        # A querier has an entity id; sending it as source info lets the daemon find our link
+        # (and its TLS subject). The daemon never trusts it alone: the token decides.
+        querier = self.session.declare_querier(control_key(self.cell, op), timeout=timeout)
+        try:
+            kwargs["source_info"] = zenoh.SourceInfo(querier.id, 0)
+            for reply in querier.get(**kwargs):
+                if reply.ok is not None:
+                    return json.loads(reply.ok.payload.to_bytes())
+                body = json.loads(reply.err.payload.to_bytes())
+                cls = _KINDS.get(body.get("error"), ControlError)
+                raise cls(body.get("message", "control query failed"))
+        finally:
+            querier.undeclare()
+        raise NoReply(
+            f"no reply to control/{op} for cell {self.cell!r} within {timeout:g} s "
+            f"(is the daemon running, and are you allowed by its access control?)"
+        )

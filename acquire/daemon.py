@@ -1,0 +1,640 @@
+"""``acquire daemon``: the service on the cell PC.
+
+Start-up (``Daemon.run``):
+
+1. open the Zenoh session (``acquire.bus.Bus``) — by default the cell's *router*, listening on
+   loopback only; remote listeners need mTLS or access control (``acquire.daemon_config``);
+2. bring up the cell's devices (``DeviceHost``): the configured commander and sensors, or with
+   ``fake`` the simulated cell (``drivers.sim.launch.SimLaunch``) with a commander exchanging
+   real-time packets with its fake controller; announce each with a liveliness token
+   ``remaster/<cell>/device/<name>`` (and the daemon itself as ``remaster/<cell>/daemon``);
+3. serve the control queries (``acquire.control``) and tell systemd ``READY=1``.
+
+Then, every ``tick`` (half the systemd watchdog interval, or ``status_interval_s``), a health
+check (``HealthMonitor``): the commander's measured state is fresh and its late real-time
+answers are not growing, and a running run's log is being written. While healthy the daemon
+sends ``WATCHDOG=1``; while not, it stops pinging (systemd then restarts it) and says why in
+``STATUS=``.
+
+A run (``start`` query) gets the devices: the daemon closes its own connections (the run opens
+the plan's drivers at the same ports), watches the run's commander instead, and takes the
+devices back once the run ends.
+
+SIGTERM/SIGINT: ``STOPPING=1``; a running run is paused (it finishes the configuration it is
+measuring) or aborted (``shutdown.on_sigterm``), then aborted after ``shutdown.timeout_s`` at the
+latest — the robot decelerates and the run's log is closed; then devices, queryables and the
+session are closed. Exit status 0 after a clean stop, 1 when start-up failed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable
+
+from acquire.control import Authorizer, BadRequest, Conflict, ControlServer, Identity
+from acquire.daemon_config import DaemonConfig
+from acquire.sdnotify import SdNotifier
+from drivers.errors import DeviceTimeoutError, DriverError
+
+log = logging.getLogger(__name__)
+
+#: Run states in which the run holds the devices.
+ACTIVE_STATES = ("starting", "running", "paused", "suspended", "stopping")
+#: Wall seconds the fake controller of the idle simulated cell keeps sending (a month).
+IDLE_FAKE_RUNTIME_S = 30 * 24 * 3600.0
+#: Wall seconds to wait for the idle devices to come up.
+DEVICE_START_TIMEOUT_S = 20.0
+
+
+@dataclass(frozen=True)
+class Health:
+    """The outcome of one health check."""
+
+    ok: bool
+    reason: str
+
+
+class HealthMonitor:
+    """Decides whether the real-time exchange and the recorder are healthy.
+
+    Real-time exchange (the commander that currently drives the robot, the daemon's or the
+    run's): ``joint_state()`` must not raise and must be at most ``max_state_age_s`` old (in the
+    commander's clock) whenever the exchange is expected to stream; when the driver reports
+    ``link_stats()`` (RSI), its ``late_answers`` may grow by at most ``max_late_answers_per_check``
+    between two checks. Recorder: the log of a running run must exist and have been written
+    within ``recorder_max_silence_s`` (file modification time, wall clock).
+    """
+
+    def __init__(self, health_cfg, *, wall_clock: Callable[[], float] = time.time) -> None:
+        self.cfg = health_cfg
+        self.wall_clock = wall_clock
+        self._late: dict[int, int] = {}
+
+    def check(self, commander, *, expect_stream: bool, run_status: dict | None) -> Health:
+        problems = []
+        if commander is not None:
+            problems += self._check_commander(commander, expect_stream)
+        elif expect_stream:
+            problems.append("no commander")
+        if run_status is not None and run_status.get("state") == "running":
+            problems += self._check_recorder(run_status.get("log"))
+        return Health(not problems, "; ".join(problems) or "ok")
+
+    def forget(self, commander) -> None:
+        """Drop the late-answer baseline of a commander that went away."""
+        self._late.pop(id(commander), None)
+
+    def _check_commander(self, cmd, expect_stream: bool) -> list[str]:
+        out = []
+        name = getattr(cmd, "name", "commander")
+        stats = getattr(cmd, "link_stats", None)
+        if callable(stats):
+            try:
+                late = int(stats().late_answers)
+            except (AttributeError, ValueError, TypeError, DriverError) as exc:
+                out.append(f"{name}: link stats unavailable ({exc})")
+            else:
+                before = self._late.get(id(cmd))
+                self._late[id(cmd)] = late
+                if before is not None and late - before > self.cfg.max_late_answers_per_check:
+                    out.append(f"{name}: {late - before} late real-time answers since the last check "
+                               f"(allowed {self.cfg.max_late_answers_per_check})")
+        if expect_stream:
+            try:
+                state = cmd.joint_state()
+            except (DeviceTimeoutError, DriverError) as exc:
+                out.append(f"{name}: {exc}")
+            else:
+                clock = getattr(cmd, "clock", time.monotonic)
+                age = clock() - state.host_time
+                if age > self.cfg.max_state_age_s:
+                    out.append(f"{name}: measured state is {age:.3f} s old (allowed {self.cfg.max_state_age_s} s)")
+        return out
+
+    def _check_recorder(self, log_path: str | None) -> list[str]:
+        if not log_path:
+            return []
+        p = Path(log_path)
+        try:
+            st = p.stat()
+        except OSError as exc:
+            return [f"run log {p}: {exc.strerror or exc}"]
+        silence = self.wall_clock() - st.st_mtime
+        if silence > self.cfg.recorder_max_silence_s:
+            return [f"run log {p.name} not written for {silence:.0f} s (allowed {self.cfg.recorder_max_silence_s:g} s)"]
+        return []
+
+
+class DeviceHost:
+    """The cell's devices while no run holds them.
+
+    Real devices: the configured commander (``connect`` binds its port and starts its exchange
+    thread) and sensors. ``fake``: the simulated cell's fake devices on loopback, and a commander
+    of the cell's controller kind exchanging real-time packets with the fake controller.
+    """
+
+    def __init__(self, cfg: DaemonConfig) -> None:
+        self.cfg = cfg
+        self.commander = None
+        self.sensors: list = []
+        self.launch = None
+        self.expect_stream = False
+        self.names: list[str] = []
+
+    def open(self) -> list[str]:
+        """Bring every device up; returns their names. On failure everything is closed again."""
+        try:
+            if self.cfg.fake_cell is not None:
+                self._open_fake()
+            else:
+                self._open_real()
+        except BaseException:
+            self.close()
+            raise
+        return list(self.names)
+
+    def _open_real(self) -> None:
+        from acquire.run import open_commander, open_sensor
+        from calib.model import load_robot_model
+        from drivers.protocols import JointLimits
+
+        names = []
+        if self.cfg.commander is not None:
+            model = load_robot_model(self.cfg.robot)
+            cmd = open_commander(self.cfg.commander, JointLimits.from_model(model))
+            cmd.name = self.cfg.commander.name
+            self.commander = cmd
+            cmd.connect()
+            names.append(self.cfg.commander.name)
+        for spec in self.cfg.sensors:
+            self.sensors.append(open_sensor(spec))
+            names.append(spec.name)
+        # A real controller streams only while its robot program runs: no stream expected idle.
+        self.expect_stream = False
+        self.names = names
+
+    def _open_fake(self) -> None:
+        from drivers.protocols import JointLimits
+        from drivers.registry import load_driver
+        from drivers.sim.cell import SimCell
+        from drivers.sim.clock import SimClock
+        from drivers.sim.config import DEFAULT_CONFIG_PATH
+        from drivers.sim.launch import SimLaunch
+
+        fc = self.cfg.fake_cell
+        clock = SimClock(fc.time_scale)
+        cell = SimCell.from_yaml(fc.sim_config or DEFAULT_CONFIG_PATH, seed=fc.seed, clock=clock)
+        driver = {"sunrise": "fri", "kss": "rsi"}.get(cell.model.controller)
+        if driver is None:
+            raise ValueError(f"the simulated cell's controller {cell.model.controller!r} has no commander; "
+                             "allowed: sunrise (fri), kss (rsi)")
+        cls = load_driver(driver)
+        cmd = cls.from_url(f"{driver}://127.0.0.1:0?rt_priority=0", limits=JointLimits.from_model(cell.model),
+                           clock=clock.now)
+        cmd.name = "controller"
+        self.commander = cmd
+        port = cmd.bind()[1] if callable(getattr(cmd, "bind", None)) else (cmd.connect() or cmd.address[1])
+        self.launch = SimLaunch(cell, fri_port=port, rsi_port=port, max_runtime_s=IDLE_FAKE_RUNTIME_S).start()
+        for line in self.launch.describe():
+            log.info("fake: %s", line)
+        cmd.connect()
+        if driver == "fri":
+            from drivers.kuka_fri.messages import SessionState
+
+            self.launch.controller.wait_state(SessionState.MONITORING_READY, DEVICE_START_TIMEOUT_S)
+        deadline = time.monotonic() + DEVICE_START_TIMEOUT_S
+        while True:  # up = the first measured state has arrived
+            try:
+                cmd.joint_state()
+                break
+            except DeviceTimeoutError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.01)
+        self.expect_stream = True
+        self.names = ["controller"] + [a for a in self.launch.addresses if a != "controller"]
+
+    def maintain(self) -> None:
+        """Periodic upkeep: bring a fake KR C4 back after its RSI session ended."""
+        if self.launch is not None and self.launch.restart_stopped_rsi():
+            log.warning("the fake KR C4 had stopped its RSI session; restarted")
+
+    def close(self) -> None:
+        """Stop and close every device (idempotent)."""
+        cmd, self.commander = self.commander, None
+        if cmd is not None:
+            try:
+                cmd.close()
+            except (OSError, DriverError) as exc:
+                log.warning("closing %s: %s", getattr(cmd, "name", "commander"), exc)
+        for s in self.sensors:
+            try:
+                s.close()
+            except (OSError, DriverError) as exc:
+                log.warning("closing %s: %s", getattr(s, "name", "sensor"), exc)
+        self.sensors = []
+        if self.launch is not None:
+            self.launch.close()
+            self.launch = None
+        self.expect_stream = False
+
+
+class Daemon:
+    """The service (see the module docstring). ``run()`` blocks until ``request_stop()``.
+
+    controller_factory: builds a run controller, ``(lp, **kwargs) -> RunController``
+    (``acquire.run.RunController`` by default).
+    """
+
+    def __init__(
+        self,
+        cfg: DaemonConfig,
+        *,
+        notifier: SdNotifier | None = None,
+        controller_factory: Callable[..., Any] | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.notifier = notifier or SdNotifier()
+        self._factory = controller_factory
+        self.health = HealthMonitor(cfg.health)
+        self.devices = DeviceHost(cfg)
+        self.bus = None
+        self.control: ControlServer | None = None
+        self.controller = None
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._state = "starting"
+        self._healthy = Health(False, "starting")
+        self._tokens: dict[str, Any] = {}
+        self._device_names: list[str] = []
+        self._t0 = time.monotonic()
+        self.pings = 0
+        self._last_status = ""
+        self.runs_dir = cfg.state_dir / "runs"
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def tick_s(self) -> float:
+        """Seconds between health checks: half the watchdog interval, at most status_interval_s."""
+        wd = self.notifier.watchdog_s
+        return min(self.cfg.status_interval_s, wd / 2) if wd else self.cfg.status_interval_s
+
+    def request_stop(self, *_args) -> None:
+        """Ask the main loop to stop (signal handler; thread-safe)."""
+        self._stop.set()
+
+    def install_signal_handlers(self) -> None:
+        """SIGTERM and SIGINT stop the daemon cleanly (main thread only)."""
+        signal.signal(signal.SIGTERM, self.request_stop)
+        signal.signal(signal.SIGINT, self.request_stop)
+
+    def run(self) -> int:
+        """Start up, serve until stopped, shut down. Returns the process exit status."""
+        try:
+            try:
+                self._startup()
+            except (OSError, ValueError, RuntimeError, DriverError, TimeoutError) as exc:
+                log.error("start-up failed: %s", exc)
+                self.notifier.notify(STATUS=f"start-up failed: {exc}".replace("\n", " "), ERRNO=1)
+                return 1
+            while not self._stop.wait(self.tick_s):
+                self._tick()
+            return 0
+        finally:
+            self._shutdown()
+
+    def _startup(self) -> None:
+        from acquire.bus import Bus
+
+        cfg = self.cfg
+        self.runs_dir.mkdir(parents=True, exist_ok=True)
+        zc = cfg.zenoh
+        overrides: dict[str, Any] = {}
+        full = zc.zenoh_config()
+        if "transport" in full:
+            overrides["transport/link/tls"] = full["transport"]["link"]["tls"]
+        if "access_control" in full:
+            overrides["access_control"] = full["access_control"]
+        remote = bool(zc.remote_endpoints)
+        if remote and zc.multicast_scouting:
+            overrides["scouting/multicast/enabled"] = True
+        self.bus = Bus(
+            cfg.cell,
+            config={"mode": zc.mode, "listen": list(zc.listen), "connect": list(zc.connect), "zenoh": overrides},
+            listen_loopback_only=not remote,
+        )
+        log.info("Zenoh %s for cell %s listening on %s%s", zc.mode, cfg.cell, ", ".join(zc.listen),
+                 " (mTLS)" if zc.tls and zc.tls.enable_mtls else "")
+        self._status("bringing up devices")
+        self._bring_up_devices()
+        self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))
+        authorizer = Authorizer(cfg.auth, self._link_subject)
+        self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer)
+        with self._lock:
+            self._state = "ready"
+        self._healthy = self._check_health()
+        self.notifier.ready(self._status_line())
+        log.info("ready: devices %s up; control queries on remaster/%s/control/*", self._device_names, cfg.cell)
+        if self._healthy.ok:
+            self._ping()
+
+    def _bring_up_devices(self) -> None:
+        names = self.devices.open()
+        for name in names:
+            if name not in self._tokens:
+                self._tokens[name] = self.bus.liveliness_token(self.bus.key("device", name))
+        self._device_names = names
+        log.info("devices up: %s", ", ".join(names))
+
+    def _tick(self) -> None:
+        self._after_run()
+        if self.controller is None:
+            self.devices.maintain()
+        health = self._check_health()
+        if health.ok != self._healthy.ok:
+            if health.ok:
+                log.info("healthy again")
+            else:
+                log.warning("unhealthy, watchdog pings stopped: %s", health.reason)
+        self._healthy = health
+        if health.ok:
+            self._ping()
+        line = self._status_line()
+        if line != self._last_status:
+            self.notifier.status(line)
+            self._last_status = line
+
+    def _ping(self) -> None:
+        if self.notifier.watchdog():
+            self.pings += 1
+
+    def _check_health(self) -> Health:
+        with self._lock:
+            ctl = self.controller
+        if ctl is not None:
+            st = ctl.status()
+            cmd = getattr(ctl, "commander", None)
+            streaming = st["state"] in ("running", "paused", "suspended") and cmd is not None
+            return self.health.check(cmd, expect_stream=streaming, run_status=st)
+        return self.health.check(self.devices.commander, expect_stream=self.devices.expect_stream, run_status=None)
+
+    def _after_run(self) -> None:
+        """When the current run has ended: take the devices back, then forget the run (until
+        then ``status`` still shows the ended run and ``start`` is refused)."""
+        with self._lock:
+            ctl = self.controller
+        if ctl is None or ctl.status()["state"] not in ("finished", "aborted", "failed"):
+            return
+        st = ctl.status()
+        log.info("run %s ended: %s%s", st["run_id"], st["state"], f" ({st['reason']})" if st.get("reason") else "")
+        self.health.forget(getattr(ctl, "commander", None))
+        if not self._stop.is_set():
+            try:
+                self._bring_up_devices()
+            except (OSError, ValueError, RuntimeError, DriverError, TimeoutError) as exc:
+                log.error("devices did not come back after the run: %s", exc)
+                self._device_names = []
+                for name in list(self._tokens):
+                    if name != "daemon":
+                        self._tokens.pop(name).undeclare()
+        with self._lock:
+            self.controller = None
+
+    def _status(self, text: str) -> None:
+        self.notifier.status(text)
+        self._last_status = text
+
+    def _status_line(self) -> str:
+        with self._lock:
+            ctl = self.controller
+            state = self._state
+        parts = [state]
+        if ctl is not None:
+            st = ctl.status()
+            parts.append(f"run {st['run_id']} {st['state']} {st['done']}/{st['total']}")
+        else:
+            parts.append("idle")
+        parts.append(f"devices {len(self._device_names)}")
+        parts.append("healthy" if self._healthy.ok else f"UNHEALTHY: {self._healthy.reason}")
+        return "; ".join(parts)
+
+    def _shutdown(self) -> None:
+        with self._lock:
+            self._state = "stopping"
+            ctl = self.controller
+        self.notifier.stopping("stopping")
+        log.info("stopping")
+        if ctl is not None:
+            self._stop_run(ctl)
+        if self.control is not None:
+            self.control.close()
+            self.control = None
+        self.devices.close()
+        for tok in self._tokens.values():
+            tok.undeclare()
+        self._tokens.clear()
+        if self.bus is not None:
+            self.bus.close()
+            self.bus = None
+        log.info("stopped")
+        self.notifier.status("stopped")
+        self.notifier.close()
+
+    def _stop_run(self, ctl) -> None:
+        """Pause (finish the current configuration) or abort, then abort and wait for the log."""
+        sd = self.cfg.shutdown
+        st = ctl.status()
+        if st["state"] in ("finished", "aborted", "failed"):
+            return
+        self.notifier.extend_timeout(sd.timeout_s + 10)
+        deadline = time.monotonic() + sd.timeout_s
+        if sd.on_sigterm == "pause" and st["state"] in ("starting", "running", "suspended"):
+            self._status(f"stopping: finishing configuration {st.get('current')} of run {st['run_id']}")
+            log.info("stopping: pausing run %s after its current configuration", st["run_id"])
+            ctl.pause()
+            while time.monotonic() < deadline and ctl.status()["state"] not in ("paused",) + ("finished", "aborted", "failed"):
+                time.sleep(0.05)
+        self._status(f"stopping: aborting run {st['run_id']}")
+        ctl.abort("daemon stopping (SIGTERM)")
+        try:
+            ctl.wait(max(1.0, deadline - time.monotonic()))
+        except TimeoutError:
+            log.error("run %s did not stop within %g s", st["run_id"], sd.timeout_s)
+        else:
+            st = ctl.status()
+            log.info("run %s %s; log %s closed", st["run_id"], st["state"], st.get("log"))
+
+    def _link_subject(self, zid: str) -> str | None:
+        bus = self.bus
+        if bus is None:
+            return None
+        for link in bus.session.info.links():
+            if str(link.zid) == zid:
+                return link.auth_identifier or None
+        return None
+
+    # ------------------------------------------------------------------ control backend
+    def status(self, *, include_plan: bool) -> dict:
+        with self._lock:
+            ctl = self.controller
+            state = self._state
+        run = None
+        if ctl is not None:
+            run = dict(ctl.status())
+            if include_plan:
+                run["plan"] = str(ctl.lp.path)
+        return {
+            "cell": self.cfg.cell,
+            "daemon": state,
+            "healthy": self._healthy.ok,
+            "health": self._healthy.reason,
+            "devices": list(self._device_names),
+            "fake": self.cfg.fake_cell is not None,
+            "uptime_s": round(time.monotonic() - self._t0, 3),
+            "watchdog_pings": self.pings,
+            "run": run,
+        }
+
+    def runs(self) -> dict:
+        with self._lock:
+            current = self.controller.run_id if self.controller is not None else None
+        out = []
+        for p in sorted(self.runs_dir.glob("*/*.mcap")):
+            st = p.stat()
+            out.append({
+                "run_id": p.parent.name,
+                "file": p.name,
+                "bytes": st.st_size,
+                "modified": datetime.fromtimestamp(st.st_mtime, timezone.utc).isoformat(timespec="seconds"),
+                "current": p.parent.name == current,
+                "result": (p.parent / "result.json").exists() or any(p.parent.glob("*result.json")),
+            })
+        return {"runs": out}
+
+    def plan(self, run_id: str | None) -> dict:
+        with self._lock:
+            ctl = self.controller
+        if run_id is None or (ctl is not None and run_id == ctl.run_id):
+            if ctl is None:
+                raise Conflict("no run is active; give run_id")
+            return {"run_id": ctl.run_id, "plan_text": ctl.lp.text}
+        from acquire.recorder import read_run
+
+        path = self._run_log(run_id)
+        return {"run_id": run_id, "plan_text": read_run(path).plan_text}
+
+    def _run_log(self, run_id: str) -> Path:
+        if "/" in run_id or run_id in ("", ".", ".."):
+            raise BadRequest(f"run_id {run_id!r} is not a run id")
+        path = self.runs_dir / run_id / f"{run_id}.mcap"
+        if not path.is_file():
+            known = sorted(p.name for p in self.runs_dir.iterdir() if p.is_dir())
+            raise BadRequest(f"no run {run_id!r} in {self.runs_dir}; known: {known}")
+        return path
+
+    def _plan_path(self, request: dict) -> Path:
+        plan, text = request.get("plan"), request.get("plan_text")
+        if (plan is None) == (text is None):
+            raise BadRequest("start needs exactly one of 'plan' (a path on the cell PC) or 'plan_text' (YAML)")
+        if text is not None:
+            if not self.cfg.allow_inline_plans:
+                raise BadRequest("inline plans are disabled (allow_inline_plans: false); give 'plan'")
+            if not isinstance(text, str):
+                raise BadRequest(f"plan_text must be a string, given {type(text).__name__}")
+            folder = self.cfg.state_dir / "plans"
+            folder.mkdir(parents=True, exist_ok=True)
+            stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%f")
+            path = folder / f"inline-{stamp}.yaml"
+            path.write_text(text, encoding="utf-8")
+            return path
+        if not isinstance(plan, str) or not plan:
+            raise BadRequest(f"plan must be a path string, given {plan!r}")
+        dirs = [d.resolve() for d in self.cfg.plan_dirs]
+        if not dirs:
+            raise BadRequest("no plan_dirs configured: plans can only be sent inline ('plan_text')")
+        p = Path(plan)
+        p = (p if p.is_absolute() else dirs[0] / p).resolve()
+        if not any(p.is_relative_to(d) for d in dirs):
+            raise BadRequest(f"plan {plan!r} is not inside the allowed plan folders {[str(d) for d in dirs]}")
+        if not p.is_file():
+            raise BadRequest(f"plan {str(p)!r} does not exist")
+        return p
+
+    def start(self, request: dict, identity: Identity) -> dict:
+        from acquire.plan import load_plan
+        from calib.yamlfile import ConfigError
+
+        with self._lock:
+            if self._state != "ready":
+                raise Conflict(f"the daemon is {self._state}; not starting a run")
+            if self.controller is not None:
+                st = self.controller.status()
+                if st["state"] in ("finished", "aborted", "failed"):
+                    raise Conflict(f"run {st['run_id']} has just ended ({st['state']}); the devices are being "
+                                   "taken back — try again in a few seconds")
+                raise Conflict(f"run {st['run_id']} is {st['state']}; abort it or wait for it to end")
+            path = self._plan_path(request)
+            try:
+                lp = load_plan(path)
+            except ConfigError as exc:
+                raise BadRequest(f"plan not valid:\n{exc}") from exc
+            plan_cell = getattr(lp.plan.cell, "id", lp.plan.cell)
+            if plan_cell != self.cfg.cell:
+                raise BadRequest(f"the plan is for cell {plan_cell!r}; this daemon serves {self.cfg.cell!r}")
+            resume = request.get("resume")
+            resume_path = self._run_log(resume) if resume else None
+            factory = self._factory
+            if factory is None:
+                from acquire.run import RunController as factory
+            # Hand the devices over: the run opens the plan's drivers at the same ports.
+            self.health.forget(self.devices.commander)
+            self.devices.close()
+            try:
+                ctl = factory(lp, fake=self.cfg.fake_cell is not None, resume=resume_path, bus=self.bus,
+                              out_dir=self.runs_dir)
+                run_id = ctl.start()
+            except (OSError, ValueError, RuntimeError, DriverError) as exc:
+                log.error("run did not start: %s", exc)
+                self._bring_up_devices()
+                raise
+            self.controller = ctl
+        log.info("run %s started by %s from %s%s", run_id, identity.describe(), path,
+                 f" (resuming {resume})" if resume else "")
+        return {"run_id": run_id, "plan": str(path), "state": ctl.status()["state"]}
+
+    def _active(self, verb: str):
+        with self._lock:
+            ctl = self.controller
+        if ctl is None or ctl.status()["state"] not in ACTIVE_STATES:
+            raise Conflict(f"no active run to {verb}")
+        return ctl
+
+    def pause(self) -> dict:
+        ctl = self._active("pause")
+        ctl.pause()
+        return {"run_id": ctl.run_id, "state": ctl.status()["state"]}
+
+    def resume(self) -> dict:
+        ctl = self._active("resume")
+        ctl.resume()
+        return {"run_id": ctl.run_id, "state": ctl.status()["state"]}
+
+    def abort(self, reason: str) -> dict:
+        ctl = self._active("abort")
+        ctl.abort(reason)
+        return {"run_id": ctl.run_id, "state": ctl.status()["state"]}
+
+
+def run_daemon(cfg: DaemonConfig) -> int:
+    """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status."""
+    d = Daemon(cfg)
+    d.install_signal_handlers()
+    log.info("acquire daemon pid %d, cell %s, state %s", os.getpid(), cfg.cell, cfg.state_dir)
+    return d.run()

@@ -1,0 +1,325 @@
+"""The daemon's configuration file (``/etc/remaster/daemon.yaml``), validated by pydantic.
+
+``load_daemon_config(path)`` returns a ``DaemonConfig`` or raises ``calib.yamlfile.ConfigError``
+whose lines read ``file:line:col: field: message (given: …)``. Relative paths in the file are
+taken from the file's folder. See ``systemd/daemon.yaml.example`` for a documented example.
+
+Sections:
+
+- ``cell``: the cell id, ``[a-z0-9_-]+`` — key expressions are ``remaster/<cell>/…``.
+- ``state_dir``: where runs are written (one folder per run; the systemd unit's StateDirectory).
+- ``plan_dirs``: folders a ``start`` query may name a plan from (anything else is refused);
+  inline plans are written to ``<state_dir>/plans/``.
+- ``fake``: ``true`` or ``{sim_config, seed, time_scale}`` — bring up the simulated cell
+  (drivers/sim/launch.py) instead of real devices, and run every plan with ``fake=True``.
+- ``robot``, ``commander``, ``sensors``: the cell's real devices ({name, driver, url, markers,
+  options}, as in a plan). The daemon holds them while idle (READY only once they are up; the
+  watchdog watches the commander's real-time exchange) and hands them over to a run, which
+  opens the drivers its plan names at the same addresses; they come back when the run ends.
+- ``zenoh``: the session. ``mode`` router (the daemon is the cell's router) or peer;
+  ``listen`` endpoints (loopback by default); ``connect``; ``tls`` (server certificate, client
+  CA, ``enable_mtls``); ``access_control`` (Zenoh's own ACL block: rules, subjects with
+  ``cert_common_names`` or ``usernames``, policies) passed through unchanged. Listening on
+  anything but loopback is refused unless every remote endpoint is ``tls/``/``quic/`` with
+  mTLS, or access control is enabled with ``default_permission: deny``.
+- ``auth``: the clients allowed to act, by name: the SHA-256 of their token (never the token),
+  optional TLS common names, and the permissions they hold: ``observe`` (status, runs),
+  ``read`` (plan texts), ``control`` (pause, abort), ``motion`` (start, resume). A query with no
+  or a wrong token holds only ``anonymous`` (default: observe).
+- ``health``: the watchdog's limits. ``shutdown``: what SIGTERM does to a running run.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+
+from calib.yamlfile import ConfigError, load_validated
+
+__all__ = [
+    "PERMISSIONS",
+    "ConfigError",
+    "DaemonConfig",
+    "endpoint_is_loopback",
+    "load_daemon_config",
+]
+
+#: Every permission a client can hold, weakest first.
+PERMISSIONS = ("observe", "read", "control", "motion")
+Permission = Literal["observe", "read", "control", "motion"]
+
+_ID = r"^[a-z0-9_-]+$"
+_LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
+_SECURE_PROTOCOLS = ("tls", "quic")
+
+
+def endpoint_is_loopback(endpoint: str) -> bool:
+    """True if a Zenoh endpoint (``proto/host:port[#config]``) only accepts local connections:
+    a loopback IP, ``localhost``, or a Unix-socket protocol. Raises ValueError if malformed."""
+    proto, sep, rest = endpoint.partition("/")
+    if not sep or not proto or not rest:
+        raise ValueError(f"Zenoh endpoint {endpoint!r} is not of the form proto/address (e.g. tcp/127.0.0.1:7447)")
+    if proto in _LOCAL_PROTOCOLS:
+        return True
+    address = rest.split("#", 1)[0].split("?", 1)[0]
+    if address.startswith("["):
+        host = address[1:].split("]", 1)[0]
+    else:
+        host = address.rsplit(":", 1)[0]
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name other than localhost: reachable from elsewhere
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class FakeCell(_Strict):
+    """The simulated cell the daemon brings up instead of hardware."""
+
+    sim_config: Path | None = Field(None, description="drivers/sim YAML; None: fixtures/sim/default.yaml")
+    seed: int = Field(0, ge=0)
+    time_scale: float = Field(1.0, gt=0, description="simulated seconds per wall second")
+
+
+class DeviceSpec(_Strict):
+    """A real device of the cell (the same fields as a plan's commander / sensor), brought up
+    while no run holds it and announced as ``remaster/<cell>/device/<name>``."""
+
+    name: str = Field(pattern=_ID)
+    driver: str = Field(description="a registered driver name (drivers.registry): fri, rsi, natnet, tracker, …")
+    url: str
+    markers: dict[str, str] = Field(default_factory=dict, description="sensors: plan marker name → driver selector")
+    noise_mm: float = Field(0.0, ge=0)
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class ZenohTls(_Strict):
+    """TLS for the daemon's listeners (Zenoh ``transport.link.tls``); PEM files."""
+
+    root_ca_certificate: Path = Field(description="CA that signed the clients' certificates (and the server's)")
+    listen_certificate: Path
+    listen_private_key: Path
+    enable_mtls: bool = Field(True, description="require a client certificate signed by root_ca_certificate")
+
+
+class ZenohSection(_Strict):
+    """The daemon's Zenoh session."""
+
+    mode: Literal["router", "peer"] = "router"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    multicast_scouting: bool = Field(False, description="off by default: nothing announced on the LAN")
+    tls: ZenohTls | None = None
+    access_control: dict[str, Any] | None = Field(None, description="Zenoh's access_control block, as is")
+
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, value: list[str]) -> list[str]:
+        for ep in value:
+            endpoint_is_loopback(ep)  # raises on a malformed endpoint
+        return value
+
+    @property
+    def remote_endpoints(self) -> list[str]:
+        """Listen endpoints reachable from other hosts."""
+        return [ep for ep in self.listen if not endpoint_is_loopback(ep)]
+
+    @property
+    def acl_enforcing(self) -> bool:
+        """True if the ACL block is enabled with ``default_permission: deny``."""
+        acl = self.access_control or {}
+        return bool(acl.get("enabled")) and acl.get("default_permission") == "deny"
+
+    def security_problems(self) -> list[tuple[tuple, str]]:
+        """(field path, message) for remote listening without authentication."""
+        problems = []
+        if self.access_control is not None and not isinstance(self.access_control.get("enabled", False), bool):
+            problems.append((("zenoh", "access_control", "enabled"), "must be true or false"))
+        remote = self.remote_endpoints
+        if not remote or self.acl_enforcing:
+            return problems
+        mtls = self.tls is not None and self.tls.enable_mtls
+        for i, ep in enumerate(self.listen):
+            if ep not in remote:
+                continue
+            if ep.split("/", 1)[0] in _SECURE_PROTOCOLS and mtls:
+                continue
+            problems.append((
+                ("zenoh", "listen", i),
+                f"endpoint {ep!r} is reachable from other hosts without authentication; allowed: "
+                f"loopback endpoints, tls/ or quic/ endpoints with zenoh.tls.enable_mtls: true, or "
+                f"zenoh.access_control with enabled: true and default_permission: deny",
+            ))
+        return problems
+
+    def zenoh_config(self) -> dict[str, Any]:
+        """The Zenoh configuration as a dict of top-level keys (JSON-serialisable)."""
+        cfg: dict[str, Any] = {
+            "mode": self.mode,
+            "listen": {"endpoints": list(self.listen)},
+            "connect": {"endpoints": list(self.connect)},
+            "scouting": {"multicast": {"enabled": self.multicast_scouting}, "gossip": {"enabled": False}},
+        }
+        if self.tls is not None:
+            cfg["transport"] = {"link": {"tls": {
+                "root_ca_certificate": str(self.tls.root_ca_certificate),
+                "listen_certificate": str(self.tls.listen_certificate),
+                "listen_private_key": str(self.tls.listen_private_key),
+                "enable_mtls": self.tls.enable_mtls,
+            }}}
+        if self.access_control is not None:
+            cfg["access_control"] = dict(self.access_control)
+        return cfg
+
+
+class Client(_Strict):
+    """One named client and what it may do."""
+
+    name: str = Field(pattern=_ID)
+    token_sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 hex digest of the client's token")
+    allow: list[Permission] = Field(min_length=1)
+    cert_common_names: list[str] = Field(
+        default_factory=list,
+        description="if given, the query must also come over a TLS link whose certificate CN is one of these",
+    )
+
+
+class AuthSection(_Strict):
+    """Who may do what; see the module docstring."""
+
+    clients: list[Client] = Field(default_factory=list)
+    anonymous: list[Permission] = Field(default_factory=lambda: ["observe"])
+
+    @field_validator("anonymous")
+    @classmethod
+    def _anonymous_never_moves(cls, value: list[str]) -> list[str]:
+        if "motion" in value or "read" in value:
+            raise ValueError(
+                f"anonymous clients may not hold 'motion' or 'read' (given {value}); allowed: observe, control"
+            )
+        return value
+
+    @model_validator(mode="after")
+    def _unique_names(self) -> "AuthSection":
+        names = [c.name for c in self.clients]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"client names must be unique; repeated: {dup}")
+        return self
+
+
+class HealthSection(_Strict):
+    """Limits of the watchdog: pings stop while any is exceeded."""
+
+    max_state_age_s: float = Field(0.5, gt=0, description="the commander's measured state must be this fresh")
+    max_late_answers_per_check: int = Field(
+        0, ge=0, description="late real-time answers allowed to appear between two health checks"
+    )
+    recorder_max_silence_s: float = Field(
+        120.0, gt=0, description="a running run's log must have been written within this (when reported)"
+    )
+
+
+class ShutdownSection(_Strict):
+    """What SIGTERM does to a running run."""
+
+    on_sigterm: Literal["pause", "abort"] = Field(
+        "pause", description="pause: finish the current configuration, then stop; abort: stop now, safely"
+    )
+    timeout_s: float = Field(60.0, gt=0, description="after this the run is aborted anyway")
+
+
+class DaemonConfig(_Strict):
+    """The whole daemon configuration (see the module docstring)."""
+
+    cell: str = Field(pattern=_ID)
+    state_dir: Path = Path("/var/lib/remaster")
+    plan_dirs: list[Path] = Field(default_factory=list)
+    allow_inline_plans: bool = True
+    fake: bool | FakeCell = False
+    robot: Path | None = Field(None, description="robot model YAML: the commander's joint limits")
+    commander: DeviceSpec | None = None
+    sensors: list[DeviceSpec] = Field(default_factory=list)
+    zenoh: ZenohSection = ZenohSection()
+    auth: AuthSection = AuthSection()
+    health: HealthSection = HealthSection()
+    shutdown: ShutdownSection = ShutdownSection()
+    status_interval_s: float = Field(1.0, gt=0, le=60, description="health check / STATUS period without a watchdog")
+
+    @model_validator(mode="after")
+    def _cross_checks(self, info: ValidationInfo) -> "DaemonConfig":
+        if info.context and info.context.get("defer_cross_field_checks"):
+            return self
+        problems = self.deferred_errors()
+        if problems:
+            raise ValueError("; ".join(f"{'.'.join(map(str, loc)) or '(top level)'}: {msg}" for loc, msg in problems))
+        return self
+
+    def deferred_errors(self) -> list[tuple[tuple, str]]:
+        """Checks between fields, reported at the right line by ``load_validated``."""
+        problems = list(self.zenoh.security_problems())
+        names = [d.name for d in self.sensors] + ([self.commander.name] if self.commander else [])
+        for i, d in enumerate(self.sensors):
+            if names.count(d.name) > 1:
+                problems.append((("sensors", i, "name"), f"device names must be unique; {d.name!r} repeats"))
+        if self.fake_cell is None and self.commander is not None and self.robot is None:
+            problems.append((("commander",), "a real commander needs 'robot' (the model whose joint limits it enforces)"))
+        if self.fake_cell is None and self.commander is None and not self.sensors:
+            problems.append(((), "no devices: give 'commander' and/or 'sensors', or 'fake: true' for the simulated cell"))
+        return problems
+
+    @property
+    def fake_cell(self) -> FakeCell | None:
+        """The simulated cell to bring up, or None for real devices."""
+        if self.fake is True:
+            return FakeCell()
+        return self.fake or None
+
+    def resolved(self, base: Path) -> "DaemonConfig":
+        """A copy with every relative path taken from ``base`` (the config file's folder)."""
+
+        def fix(p: Path | None) -> Path | None:
+            return None if p is None else (p if p.is_absolute() else (base / p).resolve())
+
+        update: dict[str, Any] = {
+            "state_dir": fix(self.state_dir),
+            "robot": fix(self.robot),
+            "plan_dirs": [fix(p) for p in self.plan_dirs],
+        }
+        fc = self.fake_cell
+        if fc is not None and fc.sim_config is not None:
+            update["fake"] = fc.model_copy(update={"sim_config": fix(fc.sim_config)})
+        if self.zenoh.tls is not None:
+            t = self.zenoh.tls
+            tls = t.model_copy(update={
+                "root_ca_certificate": fix(t.root_ca_certificate),
+                "listen_certificate": fix(t.listen_certificate),
+                "listen_private_key": fix(t.listen_private_key),
+            })
+            update["zenoh"] = self.zenoh.model_copy(update={"tls": tls})
+        return self.model_copy(update=update)
+
+    def client(self, name: str) -> Client | None:
+        """The configured client called ``name``, or None."""
+        for c in self.auth.clients:
+            if c.name == name:
+                return c
+        return None
+
+
+def load_daemon_config(path: str | Path) -> DaemonConfig:
+    """Read and validate the daemon configuration; relative paths resolved from its folder.
+
+    Raises ConfigError (a ValueError) with ``file:line:col: field: message`` lines.
+    """
+    path = Path(path)
+    cfg = load_validated(path, DaemonConfig)
+    return cfg.resolved(path.resolve().parent)

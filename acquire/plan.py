@@ -1,0 +1,985 @@
+"""The measurement plan: ``plan.yaml``, its validation, and the joint configurations it names.
+
+A plan says which robot, which controller and sensors, which configurations to visit, how to
+visit them, where to write the log and how to fit it. ``load_plan(path)`` reads and checks it
+completely — schema, then every relation between fields and against the robot model — before
+anything connects or moves; ``resolve_configurations(lp)`` turns its ``poses`` section into
+joint configurations (seeded: the same plan gives the same configurations, with the same ids).
+
+Units: a file holds mm and degrees (each field's name or description says which); inside,
+everything is mm and radians. Relative paths are taken from the plan file's folder.
+
+Plan format (every section; defaults in brackets; ``fixtures/plans/example.yaml`` is a
+commented example)::
+
+    cell: lab1                       # cell id: [a-z0-9_-], the Zenoh key prefix remaster/<cell>/…
+    robot: ../robots/kuka_iiwa14_r820.yaml   # robot model YAML (calib.model)
+    commander:                       # the robot controller's JointCommander
+      driver: fri                    # a name from drivers.registry (built-in: fri, rsi)
+      url: fri://127.0.0.1:30200     # the driver's URL (scheme fri:// for fri, rsi:// for rsi)
+      options: {}                    # extra keyword arguments for the driver [{}]
+    sensors:                         # one or more PositionSensors
+      - name: mocap                  # [A-Za-z0-9_-]; the fake cell's sensor of that name in --fake
+        driver: natnet               # built-in: natnet, tracker
+        url: natnet://127.0.0.1:1510
+        markers: {sir: "ms:tool:sir"}   # tool marker (robot model) → driver selector
+        noise_mm: 0.03               # expected noise, 1σ per axis, mm
+        options: {}                  # [{}]
+    poses:                           # exactly ONE of generated / cartesian / joints
+      generated:                     # the remastering paper's plan (calib.poses.plan_poses)
+        n: 60                        # Latin-hypercube candidate poses
+        seed: 1
+        sensor_origin_mm: [2000, 0, 900]   # where the flange z-axis aims (robot base frame)
+        radius_mm: [200, 500]        # [low, high] in the base X–Y plane [200, 500]
+        height_mm: [400, 800]        # [400, 800]
+        angle_deg: [0, 360]          # base angle about Z [0, 360]
+        roll_deg: [0, 360]           # extra tool roll about the aimed z-axis [0, 360]
+        arm_angles_deg: [180]        # 7-axis arms: also solve at these arm angles [none]
+        min_solutions: 2             # drop poses with fewer feasible IK solutions [2]
+        limit_margin_deg: 0          # keep configurations this far inside the limits [0]
+      # cartesian:                   # explicit flange poses, every IK solution within limits
+      #   - {xyz_mm: [500, 0, 600], zyx_deg: [0, 90, 0], group: front, arm_angle_deg: 30}
+      # joints: [[0, 30, 0, -60, 0, 45, 0], ...]     # explicit configurations, degrees
+      # joints: {file: configs.csv}  # or a configurations file (calib.poses format)
+    selection:                       # optional: keep the m most informative (IOOPS)
+      index: O6                      # O1 … O6 [O6]
+      m: 40
+      seed: 0                        # [0]
+      k: null                        # weight of O3 in O6 [null: O1/O3 of the start set]
+    sequencing:
+      speed: 0.3                     # fraction (0, 1] of the model's joint speeds [0.3]
+      settle_window_s: 0.5           # robot still and sensor stable this long [0.5]
+      settle_tolerance_deg: 0.01     # "still": every joint within this [0.01]
+      sensor_stable_mm: 0.05         # "stable": readings within this [0.05]
+      samples: 20                    # samples averaged per sensor and configuration [20]
+      move_timeout_s: 120            # [120]
+      measure_timeout_s: 10          # [10]
+      retries: 2                     # re-tries of a failed configuration [2]
+      on_lost_target: reacquire      # wait | reacquire | ask | skip [reacquire]
+      lost_target_wait_s: 30         # how long "wait" (and re-acquisition) may take [30]
+    output:
+      folder: runs                   # where RUN.mcap, result.json and report.html go [runs]
+    fit:
+      method: fast                   # fast | paper [fast]
+      joints: null                   # axis numbers to fit, e.g. [2, 3, 4] [null: all]
+      error: gaussian                # gaussian | student [gaussian]
+      fix_registration: false        # [false]
+      validate_fraction: null        # share of configurations held out for validation, (0, 0.5] [null]
+    fake:                            # optional: what --fake runs against
+      sim_config: ../sim/default.yaml   # [null: fixtures/sim/default.yaml]
+      seed: null                     # overrides the cell's seed [null]
+      time_scale: 1.0                # simulated seconds per wall second [1.0]
+
+Errors: ``load_plan`` raises ``ConfigError`` (a ``ValueError``) listing every problem, one a
+line, sorted by position, as ``file:line:col: field: message (given …; allowed …)``, e.g.
+``plan.yaml:14:10: sequencing.speed: Input should be less than or equal to 1 (given 1.5;
+allowed (0, 1])``. Relations are checked too: driver names (the known ones are listed), a
+sensor marker the tool does not carry, joint lists of the wrong length or outside the model's
+limits (the joint and its limit are named), a robot or configurations file that does not exist
+(pointing at its line), a selection larger than the configurations it selects from.
+
+Configuration ids (``PlannedConfig.config_id``; a resumed run matches on them):
+
+- generated: ``p07-b3`` — candidate pose 7 (index in the seeded candidate list, zero-padded to
+  the width of ``n - 1``), its 4th feasible IK solution; pose group ``p07``;
+- cartesian: ``<group>-b<k>``, group defaulting to ``c00``, ``c01``, … (the pose's index);
+- joints list: ``j000``, ``j001``, … (pose and branch empty);
+- joints file: ``c<config>`` from the file's config column; pose group ``p<pose>``.
+
+A selection keeps the ids of the configurations it keeps.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import annotated_types
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    Tag,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+from pydantic.fields import FieldInfo
+
+from calib.model import RobotModel, load_robot_model
+from calib.yamlfile import ConfigError, Marks, load_yaml_with_marks
+
+log = logging.getLogger(__name__)
+
+Vec3 = tuple[float, float, float]
+Range = tuple[float, float]
+
+#: Commander drivers that speak to one kind of controller (RobotModel.controller).
+CONTROLLER_OF_DRIVER = {"fri": "sunrise", "rsi": "kss"}
+#: URL schemes of the built-in drivers (the tracker takes any pyserial URL).
+URL_SCHEMES = {"fri": ("fri",), "rsi": ("rsi",), "natnet": ("natnet",)}
+
+OnLostTarget = Literal["wait", "reacquire", "ask", "skip"]
+#: What the run may do when a sensor loses its target (``sequencing.on_lost_target``).
+ON_LOST_TARGET: tuple[str, ...] = typing.get_args(OnLostTarget)
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_booleans_for_numbers(cls, v: Any, info: ValidationInfo) -> Any:
+        # YAML's true/false would otherwise pass as 1/0 for a number.
+        if isinstance(v, bool) and info.field_name is not None:
+            ann, _ = _unwrap(cls.model_fields[info.field_name].annotation)
+            if ann in (int, float):
+                raise ValueError(f"expected a number, not {str(v).lower()}")
+        return v
+
+
+# --- sections ------------------------------------------------------------------------------
+class CommanderSpec(_Strict):
+    """The robot controller's JointCommander: a registry driver name, its URL and options."""
+
+    driver: str = Field(min_length=1, description="Driver name from drivers.registry (built-in: fri, rsi).")
+    url: str = Field(min_length=1, description="Where the controller is, e.g. fri://127.0.0.1:30200.")
+    options: dict[str, Any] = Field(default_factory=dict, description="Extra keyword arguments for the driver.")
+
+
+class SensorSpec(_Strict):
+    """One reference PositionSensor and the tool markers it measures."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_-]+$", max_length=64, description="Device name on the bus.")
+    driver: str = Field(min_length=1, description="Driver name from drivers.registry (built-in: natnet, tracker).")
+    url: str = Field(min_length=1, description="natnet://host[:port]?… or a pyserial URL (socket://host:port).")
+    markers: dict[str, str] = Field(
+        min_length=1, description="Tool marker name (from the robot model) → the driver's selector for it."
+    )
+    noise_mm: float = Field(gt=0, le=100, description="Expected measurement noise, 1σ per axis, mm.")
+    options: dict[str, Any] = Field(default_factory=dict, description="Extra keyword arguments for the driver.")
+
+
+class GeneratedPoses(_Strict):
+    """The paper's plan: seeded Latin-hypercube poses aimed at ``sensor_origin_mm``, every IK
+    solution of each (``calib.poses.plan_poses``)."""
+
+    n: int = Field(ge=1, le=10000, description="Number of candidate poses.")
+    seed: int = Field(ge=0, description="Seed of the Latin hypercube.")
+    sensor_origin_mm: Vec3 = Field(description="Aim point of the flange z-axis, robot base frame, mm.")
+    radius_mm: Range = Field((200.0, 500.0), description="[low, high] radius in the base X–Y plane, mm.")
+    height_mm: Range = Field((400.0, 800.0), description="[low, high] height along base Z, mm.")
+    angle_deg: Range = Field((0.0, 360.0), description="[low, high] base angle about Z, degrees.")
+    roll_deg: Range = Field((0.0, 360.0), description="[low, high] tool roll about the aimed axis, degrees.")
+    arm_angles_deg: list[float] | None = Field(
+        None, description="7-axis arms: further arm angles (degrees) at which to solve every pose."
+    )
+    min_solutions: int = Field(2, ge=1, le=64, description="Poses with fewer feasible IK solutions are dropped.")
+    limit_margin_deg: float = Field(0.0, ge=0, le=45, description="Keep configurations this far inside the limits, degrees.")
+
+
+class CartesianPose(_Strict):
+    """One explicit flange pose (robot base frame): every IK solution within limits is visited."""
+
+    xyz_mm: Vec3 = Field(description="Flange position, mm.")
+    zyx_deg: Vec3 = Field(description="Flange orientation, ZYX Euler (A, B, C), degrees.")
+    group: str | None = Field(
+        None, pattern=r"^[A-Za-z0-9_-]+$", max_length=32, description="Pose group id (default c<index>)."
+    )
+    arm_angle_deg: float | None = Field(None, description="7-axis arms: arm angle, degrees (default: picked).")
+
+
+class JointsFile(_Strict):
+    """Explicit configurations from a configurations file (``calib.poses`` format, degrees)."""
+
+    file: str = Field(min_length=1, description="Path of the CSV file, relative to the plan's folder.")
+
+
+def _joints_kind(v: Any) -> str:
+    return "joint-file" if isinstance(v, dict) else "joint-list"
+
+
+JointsSpec = Annotated[
+    Union[
+        Annotated[list[list[float]], Tag("joint-list")],
+        Annotated[JointsFile, Tag("joint-file")],
+    ],
+    Discriminator(_joints_kind),
+]
+_TAGS = {"joint-list", "joint-file"}
+
+
+class PosesSpec(_Strict):
+    """Exactly one of ``generated``, ``cartesian`` or ``joints``."""
+
+    generated: GeneratedPoses | None = None
+    cartesian: list[CartesianPose] | None = Field(None, min_length=1)
+    joints: JointsSpec | None = Field(None, description="Lists of joint angles in degrees, or {file: …}.")
+
+    @property
+    def kind(self) -> str:
+        """"generated", "cartesian", "joints" or "file"."""
+        if self.generated is not None:
+            return "generated"
+        if self.cartesian is not None:
+            return "cartesian"
+        return "file" if isinstance(self.joints, JointsFile) else "joints"
+
+
+class SelectionSpec(_Strict):
+    """Keep the ``m`` configurations that maximise an observability index (IOOPS)."""
+
+    index: Literal["O1", "O2", "O3", "O4", "O5", "O6"] = "O6"
+    m: int = Field(ge=1, description="How many configurations to keep.")
+    seed: int = Field(0, ge=0, description="Seed of the random start and exchanges.")
+    k: float | None = Field(None, gt=0, description="Weight of O3 in O6 = O1 + k·O3 (default: O1/O3 of the start set).")
+
+
+class SequencingSpec(_Strict):
+    """How each configuration is visited and measured."""
+
+    speed: float = Field(0.3, gt=0, le=1, description="Fraction of the model's joint speeds and accelerations.")
+    settle_window_s: float = Field(0.5, gt=0, le=60, description="Robot still and sensor stable for this long, s.")
+    settle_tolerance_deg: float = Field(0.01, gt=0, le=1, description="Robot 'still': every joint within this, degrees.")
+    sensor_stable_mm: float = Field(0.05, gt=0, le=10, description="Sensor 'stable': readings within this, mm.")
+    samples: int = Field(20, ge=1, le=10000, description="Samples averaged per sensor and configuration.")
+    move_timeout_s: float = Field(120.0, gt=0, le=3600, description="Longest a move plus settling may take, s.")
+    measure_timeout_s: float = Field(10.0, gt=0, le=600, description="Longest one measurement may take, s.")
+    retries: int = Field(2, ge=0, le=10, description="Re-tries of a configuration that failed.")
+    on_lost_target: OnLostTarget = Field(
+        "reacquire", description="On a lost target: wait for it, re-acquire (aim + search), ask the operator, or skip."
+    )
+    lost_target_wait_s: float = Field(30.0, ge=0, le=3600, description="How long waiting / re-acquiring may take, s.")
+
+
+class OutputSpec(_Strict):
+    folder: str = Field("runs", min_length=1, description="Folder of the run logs and results, relative to the plan.")
+
+
+class FitSpec(_Strict):
+    """Options of the fit that runs on the log at the end (as ``acquire fit``)."""
+
+    method: Literal["fast", "paper"] = "fast"
+    joints: list[int] | None = Field(None, min_length=1, description="Axis numbers (1-based) to fit; default all.")
+    error: Literal["gaussian", "student"] = "gaussian"
+    fix_registration: bool = False
+    validate_fraction: float | None = Field(None, gt=0, le=0.5, description="Share of the measured configurations held out for validation.")
+
+
+class FakeSpec(_Strict):
+    """The simulated cell ``--fake`` runs against."""
+
+    sim_config: str | None = Field(None, min_length=1, description="Cell YAML (drivers.sim.config); default the bundled one.")
+    seed: int | None = Field(None, ge=0, description="Overrides the cell's seed.")
+    time_scale: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall second.")
+
+
+class Plan(_Strict):
+    """The ``plan.yaml`` schema; see the module docstring."""
+
+    cell: str = Field(pattern=r"^[a-z0-9_-]+$", max_length=64, description="Cell id, the Zenoh key prefix.")
+    robot: str = Field(min_length=1, description="Robot model YAML, relative to the plan's folder.")
+    commander: CommanderSpec
+    sensors: list[SensorSpec] = Field(min_length=1)
+    poses: PosesSpec
+    selection: SelectionSpec | None = None
+    sequencing: SequencingSpec = SequencingSpec()
+    output: OutputSpec = OutputSpec()
+    fit: FitSpec = FitSpec()
+    fake: FakeSpec | None = None
+
+    def deferred_errors(self) -> list[tuple[tuple, str]]:
+        """Relations between fields that need no robot model, as (field path, message)."""
+        errors: list[tuple[tuple, str]] = []
+        given = [k for k in ("generated", "cartesian", "joints") if getattr(self.poses, k) is not None]
+        if len(given) != 1:
+            errors.append((("poses",), f"give exactly one pose source (given: {', '.join(given) or 'none'}; "
+                                       "allowed: one of generated, cartesian, joints)"))
+        names = [s.name for s in self.sensors]
+        for i, name in enumerate(names):
+            if names.index(name) != i:
+                errors.append((("sensors", i, "name"), f"sensor names must be unique (given {name!r} again; "
+                                                       f"allowed: a name not yet used by {', '.join(names[:i])})"))
+        g = self.poses.generated
+        if g is not None:
+            for key in ("radius_mm", "height_mm", "angle_deg", "roll_deg"):
+                lo, hi = getattr(g, key)
+                if lo > hi:
+                    errors.append((("poses", "generated", key), f"low must not exceed high (given [{lo:g}, {hi:g}]; "
+                                                                 "allowed [low, high] with low ≤ high)"))
+            if g.radius_mm[0] < 0:
+                errors.append((("poses", "generated", "radius_mm"),
+                               f"a radius cannot be negative (given low {g.radius_mm[0]:g}; allowed ≥ 0 mm)"))
+        if self.poses.cartesian:
+            groups = [c.group or f"c{i:02d}" for i, c in enumerate(self.poses.cartesian)]
+            for i, grp in enumerate(groups):
+                if groups.index(grp) != i:
+                    errors.append((("poses", "cartesian", i, "group"),
+                                   f"pose groups must be unique (given {grp!r}, also pose {groups.index(grp)}; "
+                                   "allowed: a new name)"))
+        if isinstance(self.poses.joints, list) and self.selection is not None:
+            n = len(self.poses.joints)
+            if self.selection.m > n:
+                errors.append((("selection", "m"), f"cannot select more configurations than the plan has "
+                                                   f"(given {self.selection.m}; allowed 1…{n})"))
+        s = self.sequencing
+        if s.settle_window_s >= s.move_timeout_s:
+            errors.append((("sequencing", "settle_window_s"),
+                           f"the settle window must be shorter than the move timeout (given {s.settle_window_s:g} s; "
+                           f"allowed < move_timeout_s = {s.move_timeout_s:g} s)"))
+        if self.fit.joints is not None:
+            for i, j in enumerate(self.fit.joints):
+                if self.fit.joints.index(j) != i:
+                    errors.append((("fit", "joints", i), f"axis {j} is listed twice (given {self.fit.joints}; "
+                                                         "allowed: each axis once)"))
+        return errors
+
+    @model_validator(mode="after")
+    def _cross_field_checks(self, info: ValidationInfo) -> "Plan":
+        if info.context and info.context.get("defer_cross_field_checks"):
+            return self
+        errors = self.deferred_errors()
+        if errors:
+            raise ValueError("; ".join(f"{'.'.join(map(str, loc))}: {msg}" for loc, msg in errors))
+        return self
+
+
+# --- loaded and resolved plans ---------------------------------------------------------------
+@dataclass(frozen=True)
+class LoadedPlan:
+    """A validated plan with its robot model, and the exact texts that go into the run log."""
+
+    plan: Plan
+    path: Path  # the plan file
+    text: str  # its exact text
+    model: RobotModel
+    model_path: Path
+    model_text: str
+    marks: Marks = field(default_factory=dict, repr=False, compare=False)  # field path → (line, col)
+
+    @property
+    def folder(self) -> Path:
+        """The plan file's folder: relative paths in the plan start here."""
+        return self.path.resolve().parent
+
+    @property
+    def output_dir(self) -> Path:
+        """``output.folder`` resolved against the plan's folder."""
+        return _resolve(self.folder, self.plan.output.folder)
+
+    @property
+    def sim_config_path(self) -> Path:
+        """The simulated cell's YAML for ``--fake`` (the bundled default without a ``fake`` section)."""
+        if self.plan.fake is not None and self.plan.fake.sim_config:
+            return _resolve(self.folder, self.plan.fake.sim_config)
+        from drivers.sim.config import DEFAULT_CONFIG_PATH
+
+        return DEFAULT_CONFIG_PATH
+
+    def error(self, loc: tuple, message: str) -> ConfigError:
+        """A ConfigError ``file:line:col: field: message`` for a problem found after loading."""
+        return ConfigError(_line(self.path, self.marks, loc, message))
+
+
+@dataclass(frozen=True, eq=False)
+class PlannedConfig:
+    """One configuration to visit. q_rad: (n_joints,) rad, controller convention (read-only).
+
+    Equal when id, pose, branch and angles are; hashed by ``config_id`` (usable in sets and
+    as dict keys).
+    """
+
+    config_id: str  # stable id, e.g. "p07-b3"; unique in the run; resume matches on it
+    pose: str  # pose group id ("" for explicit joint lists)
+    branch: str  # IK branch label ("" when not from IK)
+    q_rad: np.ndarray
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, PlannedConfig):
+            return NotImplemented
+        return (self.config_id, self.pose, self.branch) == (other.config_id, other.pose, other.branch) and bool(
+            np.array_equal(self.q_rad, other.q_rad)
+        )
+
+    def __hash__(self) -> int:
+        return hash(self.config_id)
+
+
+@dataclass(frozen=True)
+class ResolvedPlan:
+    """What ``poses`` (and ``selection``) resolve to, with the numbers a dry run reports.
+
+    source: "generated" | "cartesian" | "joints" | "file"; candidates: poses tried (or rows
+    read); pose_groups: the kept pose groups in order; dropped: (pose group, reason);
+    before_selection: configuration count before ``selection``; selection: the IOOPS result
+    (``calib.observability.Selection``) or None.
+    """
+
+    configs: list[PlannedConfig]
+    source: str
+    candidates: int
+    pose_groups: list[str]
+    dropped: list[tuple[str, str]]
+    before_selection: int
+    selection: Any = None
+
+
+# --- errors ------------------------------------------------------------------------------------
+def _locate(loc: tuple, marks: Marks) -> tuple[int, int] | None:
+    for n in range(len(loc), -1, -1):
+        if loc[:n] in marks:
+            return marks[loc[:n]]
+    return None
+
+
+def _line(path: Path | str, marks: Marks, loc: tuple, message: str) -> str:
+    where = _locate(tuple(loc), marks)
+    prefix = f"{path}:{where[0]}:{where[1]}" if where else str(path)
+    field_name = ".".join(str(p) for p in loc) or "(top level)"
+    return f"{prefix}: {field_name}: {message}"
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    """``value`` as the plan file spells it (YAML's true/false/null), cut to ``limit`` characters."""
+    text = {True: "true", False: "false", None: "null"}.get(value, None) if isinstance(value, (bool, type(None))) else None
+    text = text or repr(value)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
+
+
+def _unwrap(ann: Any) -> tuple[Any, list]:
+    """Strip Annotated (keeping its metadata) and Optional."""
+    meta: list = []
+    while True:
+        if typing.get_origin(ann) is Annotated:
+            meta += list(ann.__metadata__)
+            ann = ann.__origin__
+            continue
+        if typing.get_origin(ann) in (Union, types.UnionType):
+            members = [a for a in typing.get_args(ann) if a is not type(None)]
+            if len(members) == 1:
+                ann = members[0]
+                continue
+        return ann, meta
+
+
+def _union_member(ann: Any, tag: str) -> Any | None:
+    for member in typing.get_args(ann):
+        for m in getattr(member, "__metadata__", ()):
+            if isinstance(m, Tag) and m.tag == tag:
+                return member
+    return None
+
+
+def _field_at(loc: tuple) -> tuple[Any, FieldInfo | None, list]:
+    """The annotation, FieldInfo and metadata at ``loc`` (raw pydantic loc) inside ``Plan``."""
+    ann: Any = Plan
+    info: FieldInfo | None = None
+    meta: list = []
+    for part in loc:
+        ann, extra = _unwrap(ann)
+        meta += extra
+        if isinstance(part, str) and part in _TAGS:
+            member = _union_member(ann, part)
+            if member is None:
+                return None, None, []
+            ann = member
+            continue
+        if isinstance(ann, type) and issubclass(ann, BaseModel) and isinstance(part, str):
+            f = ann.model_fields.get(part)
+            if f is None:
+                return None, None, []
+            ann, info, meta = f.annotation, f, list(f.metadata)
+            continue
+        origin, args = typing.get_origin(ann), typing.get_args(ann)
+        if origin in (list, tuple) and isinstance(part, int) and args:
+            ann, info, meta = args[0], None, []
+        elif origin is dict and len(args) == 2:
+            ann, info, meta = args[1], None, []
+        else:
+            return None, None, []
+    ann, extra = _unwrap(ann)
+    return ann, info, meta + extra
+
+
+def _describe(ann: Any, plural: bool = False) -> str:
+    """Plain words for what a field of type ``ann`` takes (``plural``: for items of a list)."""
+    ann, _ = _unwrap(ann)
+    origin, args = typing.get_origin(ann), typing.get_args(ann)
+    if ann is float:
+        return "finite numbers" if plural else "a finite number"
+    if ann is int:
+        return "integers" if plural else "an integer"
+    if ann is bool:
+        return "true or false"
+    if ann is str:
+        return "texts" if plural else "text"
+    if origin is Literal:
+        return "one of " + ", ".join(str(a) for a in args)
+    if origin is tuple:
+        names = {2: "[low, high]", 3: "[x, y, z]"}.get(len(args), "")
+        return f"{len(args)} numbers {names}".rstrip()
+    if origin is list:
+        inner = _describe(args[0], plural=True) if args else "items"
+        return f"lists of {inner}" if plural else f"a list of {inner}"
+    if origin is dict:
+        return "mappings" if plural else "a mapping"
+    if origin in (Union, types.UnionType):
+        return " or ".join(_describe(a, plural) for a in args if a is not type(None))
+    if isinstance(ann, type) and issubclass(ann, BaseModel):
+        keys = ", ".join(ann.model_fields)
+        return f"mappings with keys {keys}" if plural else f"a mapping with keys {keys}"
+    return getattr(ann, "__name__", str(ann))
+
+
+def _bounds(meta: list) -> str | None:
+    lo = hi = None
+    lo_open = hi_open = False
+    for m in meta:
+        if isinstance(m, annotated_types.Gt):
+            lo, lo_open = m.gt, True
+        elif isinstance(m, annotated_types.Ge):
+            lo, lo_open = m.ge, False
+        elif isinstance(m, annotated_types.Lt):
+            hi, hi_open = m.lt, True
+        elif isinstance(m, annotated_types.Le):
+            hi, hi_open = m.le, False
+    if lo is None and hi is None:
+        return None
+    if hi is None:
+        return f"{'>' if lo_open else '≥'} {lo:g}"
+    if lo is None:
+        return f"{'<' if hi_open else '≤'} {hi:g}"
+    return f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+
+
+def _allowed(err: dict) -> str:
+    loc = tuple(err["loc"])
+    kind = err["type"]
+    ctx = err.get("ctx") or {}
+    if kind == "extra_forbidden":
+        parent, _, _ = _field_at(loc[:-1])
+        if isinstance(parent, type) and issubclass(parent, BaseModel):
+            return "keys " + ", ".join(parent.model_fields)
+        return "no other keys"
+    if loc and loc[-1] in _TAGS and kind in ("list_type", "model_type", "dict_type"):
+        return "lists of joint angles in degrees, or {file: <configurations file>}"
+    ann, _, meta = _field_at(loc)
+    if kind == "literal_error":
+        return str(ctx.get("expected", ""))
+    if kind == "string_pattern_mismatch":
+        return f"text matching {ctx.get('pattern')}"
+    if kind in ("too_short", "too_long") and typing.get_origin(ann) is tuple:
+        return _describe(ann)
+    if kind in ("too_short", "too_long", "string_too_short", "string_too_long"):
+        lo = ctx.get("min_length")
+        hi = ctx.get("max_length")
+        what = "characters" if kind.startswith("string") else "items"
+        if kind.endswith("too_short"):
+            return f"at least {lo} {what}"
+        return f"at most {hi} {what}"
+    bounds = _bounds(meta)
+    if bounds is not None and kind in ("greater_than", "greater_than_equal", "less_than", "less_than_equal"):
+        return bounds
+    if ann is not None:
+        text = _describe(ann)
+        if not bounds:
+            return text
+        return f"{text} in {bounds}" if bounds[0] in "([" else f"{text} {bounds}"
+    return "see the plan format in acquire/plan.py"
+
+
+def format_plan_errors(path: Path | str, exc: ValidationError, marks: Marks) -> list[tuple[tuple[int, int], str]]:
+    """Each pydantic error as ((line, col), ``file:line:col: field: message (given …; allowed …)``)."""
+    out = []
+    for err in exc.errors(include_url=False):
+        raw = tuple(err["loc"])
+        if err["type"] == "missing" and raw and isinstance(raw[-1], int):
+            # A fixed-length tuple given too few values: report the tuple, not its missing slot.
+            ann, _, _ = _field_at(raw[:-1])
+            err = {**err, "loc": raw[:-1], "type": "too_short",
+                   "msg": f"Expected {len(typing.get_args(ann)) or 'more'} values"}
+            raw = raw[:-1]
+        loc = tuple(p for p in raw if not (isinstance(p, str) and (p in _TAGS or "[" in p or "function-" in p)))
+        where = _locate(loc, marks) or (0, 0)
+        msg = err["msg"]
+        allowed = _allowed(err)
+        if err["type"] == "missing":
+            detail = f"(given nothing; allowed: {allowed})"
+        elif err["type"] == "extra_forbidden":
+            detail = f"(given {loc[-1]!r}; allowed {allowed})"
+        else:
+            detail = f"(given {_short(err.get('input'))}; allowed {allowed})"
+        out.append((where, _line(path, marks, loc, f"{msg} {detail}")))
+    return out
+
+
+# --- loading -----------------------------------------------------------------------------------
+def _resolve(folder: Path, name: str) -> Path:
+    p = Path(name).expanduser()
+    return p if p.is_absolute() else (folder / p).resolve()
+
+
+def _driver_role(name: str) -> tuple[str | None, str | None]:
+    """("sensor" | "commander" | None, problem) for registry driver ``name`` (imports it)."""
+    from drivers.registry import load_driver
+
+    try:
+        cls = load_driver(name)
+    except (ValueError, ImportError) as exc:
+        return None, str(exc)
+    if callable(getattr(cls, "move_to", None)):
+        return "commander", None
+    if callable(getattr(cls, "measure", None)):
+        return "sensor", None
+    return None, f"driver {name!r} ({cls.__module__}.{cls.__qualname__}) is neither a sensor nor a commander"
+
+
+def _check_driver(loc: tuple, name: str, role: str) -> list[tuple[tuple, str]]:
+    from drivers.registry import known_drivers
+
+    known = known_drivers()
+    if name not in known:
+        return [(loc, f"unknown driver (given {name!r}; allowed: {', '.join(sorted(known))})")]
+    got, problem = _driver_role(name)
+    if problem:
+        return [(loc, f"{problem} (given {name!r})")]
+    if got != role:
+        want = [n for n in sorted(known) if _driver_role(n)[0] == role]
+        return [(loc, f"driver {name!r} is a {got}, not a {role} (given {name!r}; allowed {', '.join(want)})")]
+    return []
+
+
+def _check_url(loc: tuple, driver: str, url: str) -> list[tuple[tuple, str]]:
+    schemes = URL_SCHEMES.get(driver)
+    if not schemes:
+        return []
+    scheme = url.partition("://")[0] if "://" in url else ""
+    if scheme not in schemes:
+        return [(loc, f"the {driver} driver takes a {schemes[0]}:// URL "
+                      f"(given {url!r}; allowed {schemes[0]}://host:port[?options])")]
+    return []
+
+
+def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tuple, str]]:
+    """Relations between the plan, the robot model, the driver registry and the files it names."""
+    errors: list[tuple[tuple, str]] = []
+    c = plan.commander
+    errors += _check_driver(("commander", "driver"), c.driver, "commander")
+    errors += _check_url(("commander", "url"), c.driver, c.url)
+    wanted = CONTROLLER_OF_DRIVER.get(c.driver)
+    if wanted and model.controller not in (wanted, "generic"):
+        ok = [d for d, ctl in CONTROLLER_OF_DRIVER.items() if ctl == model.controller]
+        errors.append((("commander", "driver"),
+                       f"{model.name} has a {model.controller!r} controller, the {c.driver} driver speaks to "
+                       f"{wanted!r} (given {c.driver!r}; allowed {', '.join(ok) or 'a driver for ' + model.controller})"))
+
+    tool = model.marker_names
+    for i, s in enumerate(plan.sensors):
+        errors += _check_driver(("sensors", i, "driver"), s.driver, "sensor")
+        errors += _check_url(("sensors", i, "url"), s.driver, s.url)
+        for name, selector in s.markers.items():
+            loc = ("sensors", i, "markers", name)
+            if name not in tool:
+                errors.append((loc, f"marker not on the robot's tool {model.tool.name!r} "
+                                    f"(given {name!r}; allowed {', '.join(tool)})"))
+            if s.driver == "natnet":
+                from drivers.natnet.client import MarkerSelector
+
+                try:
+                    MarkerSelector.parse(selector)
+                except (TypeError, ValueError):
+                    errors.append((loc, f"not a NatNet marker selector (given {selector!r}; "
+                                        f"allowed {MarkerSelector.SYNTAX})"))
+        if s.driver == "tracker" and len(s.markers) != 1:
+            errors.append((("sensors", i, "markers"), f"a laser tracker follows one reflector "
+                                                      f"(given {len(s.markers)}: {', '.join(s.markers)}; allowed 1)"))
+
+    n = model.n_joints
+    p = plan.poses
+    if p.generated is not None and p.generated.arm_angles_deg and n != 7:
+        errors.append((("poses", "generated", "arm_angles_deg"),
+                       f"arm angles apply to 7-axis arms; {model.name} has {n} axes "
+                       f"(given {p.generated.arm_angles_deg}; allowed: leave out)"))
+    for i, cp in enumerate(p.cartesian or []):
+        if cp.arm_angle_deg is not None and n != 7:
+            errors.append((("poses", "cartesian", i, "arm_angle_deg"),
+                           f"arm angles apply to 7-axis arms; {model.name} has {n} axes "
+                           f"(given {cp.arm_angle_deg:g}; allowed: leave out)"))
+    if isinstance(p.joints, list):
+        errors += _joint_list_errors(p.joints, model)
+    elif isinstance(p.joints, JointsFile):
+        errors += _joints_file_errors(p.joints, model, folder, plan.selection)
+
+    if plan.fit.joints is not None:
+        for i, j in enumerate(plan.fit.joints):
+            if not 1 <= j <= n:
+                errors.append((("fit", "joints", i), f"no such axis on {model.name} (given {j}; allowed 1…{n}: "
+                                                     f"{', '.join(model.axis_names)})"))
+    out = _resolve(folder, plan.output.folder)
+    if out.exists() and not out.is_dir():
+        errors.append((("output", "folder"), f"exists and is not a folder (given {plan.output.folder!r} → {out}; "
+                                             "allowed: a folder, created if missing)"))
+    if plan.fake is not None:
+        errors += _fake_errors(plan, model, folder)
+    return errors
+
+
+def _joint_list_errors(rows: list[list[float]], model: RobotModel) -> list[tuple[tuple, str]]:
+    errors: list[tuple[tuple, str]] = []
+    n = model.n_joints
+    for i, row in enumerate(rows):
+        if len(row) != n:
+            errors.append((("poses", "joints", i), f"wrong number of joint angles for {model.name} "
+                                                   f"(given {len(row)}; allowed {n}: {', '.join(model.axis_names)})"))
+            continue
+        for j, (v, joint) in enumerate(zip(row, model.joints)):
+            lo, hi = joint.limits
+            if not lo <= v <= hi:
+                errors.append((("poses", "joints", i, j), f"{joint.axis} outside its limits "
+                                                          f"(given {v:g}°; allowed [{lo:g}, {hi:g}]°)"))
+    return errors
+
+
+def _joints_file_errors(spec: JointsFile, model: RobotModel, folder: Path, selection: SelectionSpec | None):
+    from calib.poses import read_configurations
+
+    loc = ("poses", "joints", "file")
+    path = _resolve(folder, spec.file)
+    if not path.is_file():
+        return [(loc, f"file not found (given {spec.file!r} → {path}; allowed: a configurations file, "
+                      f"relative to the plan's folder {folder})")]
+    try:
+        cf = read_configurations(path, model)
+    except ConfigError as exc:
+        return [(loc, f"the configurations file is not usable: {exc}")]
+    errors: list[tuple[tuple, str]] = []
+    if not cf.configurations:
+        errors.append((loc, f"the configurations file has no rows (given {path}; allowed: at least one configuration)"))
+    numbers = [c.config for c in cf.configurations]
+    dup = sorted({k for k in numbers if numbers.count(k) > 1})
+    if dup:
+        errors.append((loc, f"config numbers repeat in {path.name} (given {dup[:5]}; allowed: each number once)"))
+    if selection is not None and selection.m > len(numbers):
+        errors.append((("selection", "m"), f"cannot select more configurations than {path.name} has "
+                                           f"(given {selection.m}; allowed 1…{len(numbers)})"))
+    return errors
+
+
+def _fake_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tuple, str]]:
+    from drivers.sim.config import DEFAULT_CONFIG_PATH, load_sim_config
+
+    fake = plan.fake
+    assert fake is not None
+    loc = ("fake", "sim_config")
+    path = _resolve(folder, fake.sim_config) if fake.sim_config else DEFAULT_CONFIG_PATH
+    if not path.is_file():
+        return [(loc, f"file not found (given {fake.sim_config!r} → {path}; allowed: a simulated cell YAML, "
+                      f"relative to the plan's folder {folder})")]
+    try:
+        cfg = load_sim_config(path)
+        sim_model = load_robot_model(cfg.robot)
+    except ConfigError as exc:
+        return [(loc, f"the simulated cell is not usable: {exc}")]
+    errors: list[tuple[tuple, str]] = []
+    if sim_model.name != model.name:
+        errors.append((loc, f"the simulated cell has another robot (given a cell with {sim_model.name!r}; "
+                            f"allowed: a cell with {model.name!r})"))
+    for i, s in enumerate(plan.sensors):
+        if s.name not in cfg.sensor_names:
+            errors.append((("sensors", i, "name"), f"no sensor of that name in the simulated cell {path.name} "
+                                                   f"(given {s.name!r}; allowed {', '.join(cfg.sensor_names)})"))
+    return errors
+
+
+def load_plan(path: str | Path) -> LoadedPlan:
+    """Read, validate and cross-check a plan file; load its robot model.
+
+    Raises ``ConfigError`` (a ValueError) listing every problem found, one a line, as
+    ``file:line:col: field: message (given …; allowed …)``. Connects to nothing.
+    """
+    path = Path(path)
+    data, marks = load_yaml_with_marks(path)
+    text = path.read_text(encoding="utf-8")
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}:1:1: (top level): a plan is a mapping of sections "
+                          f"(given {type(data).__name__}; allowed keys {', '.join(Plan.model_fields)})")
+    try:
+        plan = Plan.model_validate(data, context={"defer_cross_field_checks": True})
+    except ValidationError as exc:
+        problems = format_plan_errors(path, exc, marks)
+        raise ConfigError("\n".join(msg for _, msg in sorted(problems, key=lambda p: p[0]))) from None
+
+    errors = plan.deferred_errors()
+    folder = path.resolve().parent
+    model_path = _resolve(folder, plan.robot)
+    model: RobotModel | None = None
+    if not model_path.is_file():
+        here = sorted(q.name for q in model_path.parent.glob("*.yaml")) if model_path.parent.is_dir() else []
+        hint = f"; models in {model_path.parent}: {', '.join(here)}" if here else ""
+        errors.append((("robot",), f"robot model file not found (given {plan.robot!r} → {model_path}; "
+                                   f"allowed: a robot model YAML, relative to the plan's folder{hint})"))
+    else:
+        try:
+            model = load_robot_model(model_path)
+        except ConfigError as exc:
+            errors.append((("robot",), f"the robot model is not valid (given {plan.robot!r}):\n{exc}"))
+    if model is not None:
+        errors += model_errors(plan, model, folder)
+    if errors:
+        located = sorted(((_locate(tuple(loc), marks) or (0, 0)), _line(path, marks, loc, msg)) for loc, msg in errors)
+        raise ConfigError("\n".join(msg for _, msg in located))
+    assert model is not None
+    lp = LoadedPlan(plan=plan, path=path, text=text, model=model, model_path=model_path,
+                    model_text=model_path.read_text(encoding="utf-8"), marks=marks)
+    log.info("plan %s: cell %s, robot %s, %s poses, %d sensor(s)", path, plan.cell, model.name,
+             plan.poses.kind, len(plan.sensors))
+    return lp
+
+
+# --- resolution --------------------------------------------------------------------------------
+def _frozen(q: np.ndarray) -> np.ndarray:
+    a = np.array(q, dtype=float)
+    a.flags.writeable = False
+    return a
+
+
+def _generated(lp: LoadedPlan) -> ResolvedPlan:
+    from calib.poses import PoseRanges, plan_poses
+
+    g = lp.plan.poses.generated
+    assert g is not None
+    ranges = PoseRanges(
+        radius_mm=g.radius_mm,
+        height_mm=g.height_mm,
+        angle_rad=(math.radians(g.angle_deg[0]), math.radians(g.angle_deg[1])),
+        roll_rad=(math.radians(g.roll_deg[0]), math.radians(g.roll_deg[1])),
+    )
+    try:
+        pp = plan_poses(
+            lp.model, g.sensor_origin_mm, n=g.n, seed=g.seed, ranges=ranges,
+            extra_arm_angles_rad=[math.radians(a) for a in (g.arm_angles_deg or [])],
+            min_solutions=g.min_solutions, limit_margin_rad=math.radians(g.limit_margin_deg),
+        )
+    except ValueError as exc:  # a sample on the sensor origin, a model the IK cannot solve
+        raise lp.error(("poses", "generated"), f"cannot plan these poses: {exc}") from exc
+    width = max(2, len(str(g.n - 1)))
+    configs: list[PlannedConfig] = []
+    within: dict[int, int] = {}
+    for c in pp.configurations:
+        b = within.get(c.pose, 0)
+        within[c.pose] = b + 1
+        group = f"p{c.pose:0{width}d}"
+        configs.append(PlannedConfig(f"{group}-b{b}", group, c.branch, _frozen(c.q)))
+    return ResolvedPlan(
+        configs=configs, source="generated", candidates=pp.candidates.n,
+        pose_groups=[f"p{k:0{width}d}" for k in pp.valid],
+        dropped=[(f"p{d.pose:0{width}d}", d.reason) for d in pp.dropped],
+        before_selection=len(configs),
+    )
+
+
+def _cartesian(lp: LoadedPlan) -> ResolvedPlan:
+    from calib import ik
+    from calib.transforms import pose_to_matrix
+
+    poses = lp.plan.poses.cartesian or []
+    configs: list[PlannedConfig] = []
+    groups: list[str] = []
+    for i, cp in enumerate(poses):
+        group = cp.group or f"c{i:02d}"
+        pose = pose_to_matrix(np.array(cp.xyz_mm), np.radians(cp.zyx_deg))
+        psi = None if cp.arm_angle_deg is None else math.radians(cp.arm_angle_deg)
+        try:
+            sol = ik.solve_all(lp.model, pose, arm_angle=psi, within_limits=True)
+        except ValueError as exc:  # e.g. no feasible arm angle, a model outside the solvers' class
+            raise lp.error(("poses", "cartesian", i), f"no inverse kinematics for this pose: {exc}") from exc
+        if len(sol) == 0:
+            raise lp.error(("poses", "cartesian", i),
+                           f"no IK solution of {lp.model.name} within its joint limits "
+                           f"(given xyz_mm {list(cp.xyz_mm)}, zyx_deg {list(cp.zyx_deg)}; allowed: a pose it reaches "
+                           f"within its limits) — {sol.status}: {sol.message}")
+        if sol.status == "singular":
+            log.warning("cartesian pose %s is singular: %s", group, sol.message)
+        groups.append(group)
+        for b, (q, label) in enumerate(zip(sol.q, sol.branch)):
+            configs.append(PlannedConfig(f"{group}-b{b}", group, label, _frozen(q)))
+    return ResolvedPlan(configs=configs, source="cartesian", candidates=len(poses), pose_groups=groups,
+                        dropped=[], before_selection=len(configs))
+
+
+def _joints(lp: LoadedPlan) -> ResolvedPlan:
+    from calib.poses import read_configurations
+
+    spec = lp.plan.poses.joints
+    if isinstance(spec, JointsFile):
+        cf = read_configurations(_resolve(lp.folder, spec.file), lp.model)
+        configs = [PlannedConfig(f"c{c.config:03d}", f"p{c.pose:02d}", c.branch, _frozen(c.q)) for c in cf.configurations]
+        groups = list(dict.fromkeys(c.pose for c in configs))
+        return ResolvedPlan(configs=configs, source="file", candidates=len(configs), pose_groups=groups,
+                            dropped=[], before_selection=len(configs))
+    rows = spec or []
+    width = max(3, len(str(len(rows) - 1)))
+    configs = [PlannedConfig(f"j{i:0{width}d}", "", "", _frozen(np.radians(r))) for i, r in enumerate(rows)]
+    return ResolvedPlan(configs=configs, source="joints", candidates=len(configs), pose_groups=[],
+                        dropped=[], before_selection=len(configs))
+
+
+def _select(lp: LoadedPlan, resolved: ResolvedPlan) -> ResolvedPlan:
+    from calib.identification import information_blocks
+    from calib.observability import ioops
+
+    sel = lp.plan.selection
+    assert sel is not None
+    n = len(resolved.configs)
+    if sel.m > n:
+        raise lp.error(("selection", "m"), f"cannot select more configurations than the poses give "
+                                           f"(given {sel.m}; allowed 1…{n})")
+    if sel.m == n:
+        log.info("selection keeps all %d configurations", n)
+        return resolved
+    q = np.stack([c.q_rad for c in resolved.configs])
+    blocks, names, _ = information_blocks(lp.model, q)
+    chosen = ioops(blocks, sel.m, index=sel.index, k=sel.k, seed=sel.seed)
+    keep = [resolved.configs[i] for i in chosen.chosen]
+    log.info("selection: %d of %d configurations by IOOPS on %s (%d parameters): %.6g → %.6g",
+             sel.m, n, sel.index, len(names), chosen.start_value, chosen.value)
+    groups = [g for g in resolved.pose_groups if any(c.pose == g for c in keep)]
+    return ResolvedPlan(configs=keep, source=resolved.source, candidates=resolved.candidates, pose_groups=groups,
+                        dropped=resolved.dropped, before_selection=n, selection=chosen)
+
+
+def resolve_plan(lp: LoadedPlan) -> ResolvedPlan:
+    """The configurations of ``lp`` with what a dry run reports (dropped poses, selection).
+
+    Deterministic: generated poses and the selection are seeded. Raises ConfigError pointing
+    at the plan's line when a pose has no IK solution or a selection is larger than the
+    configurations it selects from.
+    """
+    kind = lp.plan.poses.kind
+    if kind == "generated":
+        resolved = _generated(lp)
+    elif kind == "cartesian":
+        resolved = _cartesian(lp)
+    else:
+        resolved = _joints(lp)
+    if not resolved.configs:
+        raise lp.error(("poses",), f"the poses give no configuration within the limits of {lp.model.name} "
+                                   f"(given {resolved.candidates} candidate(s); allowed: at least one configuration)")
+    if lp.plan.selection is not None:
+        resolved = _select(lp, resolved)
+    ids = [c.config_id for c in resolved.configs]
+    assert len(set(ids)) == len(ids), "configuration ids must be unique"
+    return resolved
+
+
+def resolve_configurations(lp: LoadedPlan) -> list[PlannedConfig]:
+    """The plan's joint configurations (not yet ordered), each with a stable id."""
+    return resolve_plan(lp).configs

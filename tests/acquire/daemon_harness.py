@@ -1,0 +1,256 @@
+"""Test harness for ``acquire daemon``: a fake systemd notify socket, a daemon subprocess, a
+control client, and test certificates made with ``openssl``.
+
+Everything on loopback. The notify socket is a real Unix datagram socket in the abstract
+namespace (``NOTIFY_SOCKET=@name``), read by a thread that keeps every datagram with its
+arrival time, as systemd would receive them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[2]
+PLANS = REPO / "fixtures" / "plans"
+CELL = "example"  # the cell id of fixtures/plans/example.yaml
+OPERATOR_TOKEN = "operator-secret-token"
+VIEWER_TOKEN = "viewer-secret-token"
+
+
+def sha256(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@dataclass
+class Notification:
+    t: float
+    fields: dict[str, str]
+
+
+class NotifySocket:
+    """A stand-in for systemd's notification socket (abstract namespace)."""
+
+    def __init__(self) -> None:
+        self.name = f"@remaster-test-{uuid.uuid4().hex[:12]}"
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind("\0" + self.name[1:])
+        self.sock.settimeout(0.05)
+        self.messages: list[Notification] = []
+        self._cond = threading.Condition()
+        self._run = True
+        self._thread = threading.Thread(target=self._loop, name="notify-socket", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        while self._run:
+            try:
+                data = self.sock.recv(65536)
+            except socket.timeout:
+                continue
+            except OSError:
+                return
+            fields = dict(line.split("=", 1) for line in data.decode().splitlines() if "=" in line)
+            with self._cond:
+                self.messages.append(Notification(time.monotonic(), fields))
+                self._cond.notify_all()
+
+    def wait_for(self, pred: Callable[[dict], bool], timeout: float) -> Notification:
+        """The first notification (past or future) whose fields satisfy ``pred``."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                for m in self.messages:
+                    if pred(m.fields):
+                        return m
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(f"no matching notification in {timeout} s; got {self.all_fields()}")
+                self._cond.wait(left)
+
+    def all_fields(self) -> list[dict]:
+        with self._cond:
+            return [m.fields for m in self.messages]
+
+    def count(self, key: str, value: str | None = None) -> int:
+        return sum(1 for f in self.all_fields() if key in f and (value is None or f[key] == value))
+
+    def close(self) -> None:
+        self._run = False
+        self._thread.join(2)
+        self.sock.close()
+
+
+def copy_example_plan(folder: Path) -> Path:
+    """fixtures/plans/example.yaml copied into ``folder`` (its relative paths made absolute), so
+    a test reads back exactly the plan text it ran."""
+    folder.mkdir(parents=True, exist_ok=True)
+    text = (PLANS / "example.yaml").read_text()
+    for rel in ("../robots/", "../sim/"):
+        text = text.replace(rel, str((PLANS / rel).resolve()) + "/")
+    dst = folder / "example.yaml"
+    dst.write_text(text)
+    return dst
+
+
+def write_config(tmp_path: Path, port: int, **extra) -> Path:
+    """A daemon.yaml for the simulated cell on loopback with an operator and a viewer client;
+    its plan folder holds a copy of the example plan."""
+    copy_example_plan(tmp_path / "plans")
+    cfg = {
+        "cell": CELL,
+        "state_dir": str(tmp_path / "state"),
+        "plan_dirs": [str(tmp_path / "plans")],
+        "fake": True,
+        "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
+        "auth": {
+            "clients": [
+                {"name": "operator", "token_sha256": sha256(OPERATOR_TOKEN),
+                 "allow": ["observe", "read", "control", "motion"]},
+                {"name": "viewer", "token_sha256": sha256(VIEWER_TOKEN), "allow": ["observe", "control"]},
+            ],
+        },
+        "shutdown": {"on_sigterm": "pause", "timeout_s": 30},
+    }
+    for k, v in extra.items():
+        cfg[k] = v
+    path = tmp_path / "daemon.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+class DaemonProcess:
+    """``python -m acquire daemon --config …`` with a fake notify socket and a watchdog."""
+
+    def __init__(self, config: Path, notify: NotifySocket, *, watchdog_usec: int = 1_000_000,
+                 env: dict | None = None) -> None:
+        self.log_path = config.parent / "daemon.log"
+        e = dict(os.environ, NOTIFY_SOCKET=notify.name, WATCHDOG_USEC=str(watchdog_usec), PYTHONUNBUFFERED="1")
+        e.pop("JOURNAL_STREAM", None)
+        e.update(env or {})
+        self._log = open(self.log_path, "wb")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "acquire", "daemon", "--config", str(config)],
+            cwd=REPO, env=e, stdin=subprocess.DEVNULL, stdout=self._log, stderr=subprocess.STDOUT,
+        )
+        self.pid = self.proc.pid
+        self.notify = notify
+
+    def wait_ready(self, timeout: float = 30.0) -> Notification:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise AssertionError(f"daemon exited with {self.proc.returncode}:\n{self.log()}")
+            try:
+                return self.notify.wait_for(lambda f: f.get("READY") == "1", 0.2)
+            except AssertionError:
+                continue
+        raise AssertionError(f"daemon not READY in {timeout} s:\n{self.log()}")
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+    def stop(self, sig: int = signal.SIGTERM, timeout: float = 40.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+        try:
+            return self.proc.wait(timeout)
+        finally:
+            self._log.close()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+        self._log.close()
+
+    # /proc figures of the daemon process
+    def threads(self) -> int:
+        return len(os.listdir(f"/proc/{self.pid}/task"))
+
+    def fds(self) -> int:
+        return len(os.listdir(f"/proc/{self.pid}/fd"))
+
+    def rss_kb(self) -> int:
+        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+        raise AssertionError("no VmRSS in /proc status")
+
+
+def open_client(port: int, *, tls: dict | None = None, proto: str = "tcp"):
+    """A client-mode Bus connected to the daemon's router, returned once the daemon's
+    liveliness token is visible through it (the route is up)."""
+    from acquire.bus import Bus
+
+    config = {"mode": "client", "connect": [f"{proto}/127.0.0.1:{port}"], "zenoh": {}}
+    if tls:
+        config["zenoh"]["transport/link/tls"] = tls
+    bus = Bus(CELL, config=config)
+    try:
+        wait_until(lambda: bus.alive(f"remaster/{CELL}/daemon", timeout=1.0), 10, "the daemon's liveliness token")
+    except BaseException:
+        bus.close()
+        raise
+    return bus
+
+
+def control(bus, client: str | None = None, token: str | None = None):
+    from acquire.control import ControlClient
+
+    return ControlClient(bus.session, CELL, client=client, token=token)
+
+
+def wait_until(fn: Callable[[], object], timeout: float, what: str, poll: float = 0.05):
+    """Poll ``fn`` until it returns something truthy; that value, or AssertionError naming ``what``."""
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        last = fn()
+        if last:
+            return last
+        time.sleep(poll)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
+
+
+def make_certs(folder: Path, names: list[str]) -> dict[str, tuple[Path, Path]]:
+    """A throw-away CA and one certificate per name (CN=name, SAN localhost/127.0.0.1), made
+    with ``openssl`` in ``folder``. Returns {"ca": (cert, key), name: (cert, key), …}."""
+    folder.mkdir(parents=True, exist_ok=True)
+
+    def run(*args: str) -> None:
+        subprocess.run(["openssl", *args], check=True, capture_output=True, cwd=folder)
+
+    run("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-keyout", "ca.key",
+        "-out", "ca.pem", "-days", "1", "-subj", "/CN=remaster-test-ca")
+    (folder / "ext.cnf").write_text(
+        "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n"
+        "extendedKeyUsage=serverAuth,clientAuth\n"
+    )
+    out = {"ca": (folder / "ca.pem", folder / "ca.key")}
+    for n in names:
+        run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-keyout", f"{n}.key",
+            "-out", f"{n}.csr", "-subj", f"/CN={n}")
+        run("x509", "-req", "-in", f"{n}.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial",
+            "-out", f"{n}.pem", "-days", "1", "-extfile", "ext.cnf")
+        out[n] = (folder / f"{n}.pem", folder / f"{n}.key")
+    return out

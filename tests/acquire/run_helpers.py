@@ -1,0 +1,45 @@
+"""Small plans for the run tests: the bundled example / tracker plans, shrunk, in a temp folder."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def small_plan(tmp_path: Path, base: str = "example.yaml", *, n: int = 8, name: str = "plan.yaml", **overrides) -> Path:
+    """Write a shrunk copy of ``fixtures/plans/<base>`` (``n`` candidate poses, output in
+    ``tmp_path/runs``); ``overrides`` are ``section={key: value}`` updates."""
+    doc = yaml.safe_load((ROOT / "fixtures" / "plans" / base).read_text())
+    doc["robot"] = str((ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml").resolve())
+    doc["fake"]["sim_config"] = str((ROOT / "fixtures" / "sim" / "default.yaml").resolve())
+    doc["poses"]["generated"]["n"] = n
+    doc["output"]["folder"] = str(tmp_path / "runs")
+    for section, values in overrides.items():
+        if isinstance(values, dict):
+            doc.setdefault(section, {}).update(values)
+        else:
+            doc[section] = values
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def acquire_cmd(*args: str) -> list[str]:
+    return [sys.executable, "-m", "acquire", *args]
+
+
+def popen(*args: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.Popen(acquire_cmd(*args), cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+
+
+def run_logs(folder: Path) -> list[Path]:
+    """The first segment of every run log under ``folder``."""
+    return sorted(p for p in folder.rglob("*.mcap") if ".resume" not in p.name)

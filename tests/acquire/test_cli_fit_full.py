@@ -1,0 +1,38 @@
+"""`acquire fit --method full`: identification result, corrected model file the tools can load."""
+
+import json
+from pathlib import Path
+
+from typer.testing import CliRunner
+
+from acquire.cli import app
+from calib.kinematics import Chain
+from calib.model import load_robot_model
+
+ROOT = Path(__file__).resolve().parents[2]
+ROBOT = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
+CAL = ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv"
+VAL = ROOT / "fixtures" / "datasets" / "iiwa14_sim_val.csv"
+
+
+def test_full_identification_writes_result_and_a_loadable_corrected_model(tmp_path):
+    out = tmp_path / "full.json"
+    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--validate", str(VAL), "--method", "full", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["method"] == "full"
+    assert "A1.offset" in doc["excluded"] and "not identifiable" in doc["excluded"]["A1.offset"]
+    val = doc["metrics"]["validation"]
+    assert val["after"]["EACPE"] < 0.2 * val["before"]["EACPE"]
+    assert val["after"]["EACAE"] is None  # no orientation measured
+    model = load_robot_model(doc["model_file"])
+    identified = {p["name"]: p for p in doc["parameters"]}
+    # The corrected model carries the identified link lengths.
+    a3 = [j for j in model.joints if j.axis == "A3"][0]
+    assert abs(a3.d - identified["A3.d"]["value"]) < 1e-6
+    assert Chain(model).n_params == Chain(load_robot_model(ROBOT)).n_params
+
+
+def test_unknown_method_is_refused():
+    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--method", "magic"])
+    assert res.exit_code != 0 and "fast, paper or full" in res.output

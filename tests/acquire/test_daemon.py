@@ -1,0 +1,306 @@
+"""``acquire daemon``: configuration, sd_notify, health, and the service end to end.
+
+The end-to-end tests start the daemon as a subprocess with a fake notify socket (NOTIFY_SOCKET,
+WATCHDOG_USEC), drive the example plan on the simulated cell through the control queries, and
+check the log, the run's MCAP file and the notifications.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from acquire.commands.daemon import JournalFormatter
+from acquire.control import Conflict, BadRequest
+from acquire.daemon import Daemon
+from acquire.daemon_config import ConfigError, DaemonConfig, endpoint_is_loopback, load_daemon_config
+from acquire.sdnotify import SdNotifier, socket_address, watchdog_interval_s
+
+from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
+    CELL,
+    OPERATOR_TOKEN,
+    DaemonProcess,
+    NotifySocket,
+    control,
+    free_port,
+    open_client,
+    wait_until,
+    write_config,
+)
+
+
+# ----------------------------------------------------------------------------- configuration
+def test_config_refuses_remote_listener_without_authentication(tmp_path):
+    path = tmp_path / "d.yaml"
+    path.write_text(
+        "cell: lab1\nfake: true\nzenoh:\n  listen:\n    - tcp/127.0.0.1:7447\n    - tcp/0.0.0.0:7447\n"
+    )
+    with pytest.raises(ConfigError) as exc:
+        load_daemon_config(path)
+    msg = str(exc.value)
+    assert f"{path}:6:7: zenoh.listen.1:" in msg
+    assert "'tcp/0.0.0.0:7447' is reachable from other hosts without authentication" in msg
+    assert "enable_mtls" in msg and "access_control" in msg
+
+
+def test_config_accepts_remote_tls_with_mtls_and_resolves_paths(tmp_path):
+    path = tmp_path / "d.yaml"
+    path.write_text(
+        "cell: lab1\nfake: true\nstate_dir: state\nzenoh:\n  listen: [tls/0.0.0.0:7447]\n  tls:\n"
+        "    root_ca_certificate: pki/ca.pem\n    listen_certificate: pki/srv.pem\n"
+        "    listen_private_key: pki/srv.key\n"
+    )
+    cfg = load_daemon_config(path)
+    assert cfg.state_dir == tmp_path / "state"
+    tls = cfg.zenoh.zenoh_config()["transport"]["link"]["tls"]
+    assert tls == {"root_ca_certificate": str(tmp_path / "pki/ca.pem"), "listen_certificate": str(tmp_path / "pki/srv.pem"),
+                   "listen_private_key": str(tmp_path / "pki/srv.key"), "enable_mtls": True}
+    # …but the same endpoint over plain TCP is refused even with TLS files configured.
+    path.write_text(path.read_text().replace("tls/0.0.0.0", "tcp/0.0.0.0"))
+    with pytest.raises(ConfigError, match="reachable from other hosts"):
+        load_daemon_config(path)
+
+
+def test_config_anonymous_may_not_move_and_names_the_line(tmp_path):
+    path = tmp_path / "d.yaml"
+    path.write_text("cell: lab1\nfake: true\nauth:\n  anonymous: [observe, motion]\n")
+    with pytest.raises(ConfigError) as exc:
+        load_daemon_config(path)
+    assert f"{path}:4:14: auth.anonymous:" in str(exc.value)
+    assert "given ['observe', 'motion']" in str(exc.value)
+
+
+def test_config_needs_devices_or_fake(tmp_path):
+    path = tmp_path / "d.yaml"
+    path.write_text("cell: lab1\n")
+    with pytest.raises(ConfigError, match="no devices"):
+        load_daemon_config(path)
+    path.write_text("cell: lab1\ncommander: {name: robot, driver: rsi, url: 'rsi://0.0.0.0:49152'}\n")
+    with pytest.raises(ConfigError, match="needs 'robot'"):
+        load_daemon_config(path)
+
+
+@pytest.mark.parametrize("endpoint, loopback", [
+    ("tcp/127.0.0.1:7447", True), ("tcp/[::1]:7447", True), ("tls/localhost:7447", True),
+    ("unixsock-stream//run/remaster.sock", True), ("tcp/0.0.0.0:7447", False), ("tcp/[::]:7447", False),
+    ("tls/192.168.10.2:7447#iface=eth0", False), ("tcp/cellpc.lan:7447", False),
+])
+def test_endpoint_loopback_classification(endpoint, loopback):
+    assert endpoint_is_loopback(endpoint) is loopback
+
+
+# ----------------------------------------------------------------------------- sd_notify client
+def test_sdnotify_sends_datagrams_to_abstract_and_path_sockets(tmp_path):
+    abstract = NotifySocket()
+    path_sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    path_sock.bind(str(tmp_path / "notify"))
+    try:
+        n = SdNotifier(env={"NOTIFY_SOCKET": abstract.name})
+        assert n.ready("up") and n.watchdog() and n.status("busy") and n.stopping()
+        abstract.wait_for(lambda f: f.get("STOPPING") == "1", 2)
+        assert abstract.all_fields() == [{"READY": "1", "STATUS": "up"}, {"WATCHDOG": "1"}, {"STATUS": "busy"},
+                                         {"STOPPING": "1"}]
+        p = SdNotifier(env={"NOTIFY_SOCKET": str(tmp_path / "notify")})
+        assert p.notify(STATUS="x", EXTEND_TIMEOUT_USEC=5)
+        assert path_sock.recv(100) == b"STATUS=x\nEXTEND_TIMEOUT_USEC=5"
+        with pytest.raises(ValueError, match="one line"):
+            n.status("two\nlines")
+        n.close()
+        p.close()
+    finally:
+        abstract.close()
+        path_sock.close()
+
+
+def test_sdnotify_disabled_and_failures_do_not_raise(tmp_path, caplog):
+    assert SdNotifier(env={}).ready() is False
+    gone = SdNotifier(env={"NOTIFY_SOCKET": str(tmp_path / "nobody-listens")})
+    with caplog.at_level(logging.WARNING):
+        assert gone.watchdog() is False
+        assert gone.watchdog() is False
+    gone.close()
+    assert len([r for r in caplog.records if "sd_notify" in r.getMessage()]) == 1  # logged once
+    with pytest.raises(ValueError, match="not supported"):
+        socket_address("vsock:2:1234")
+
+
+def test_watchdog_interval_from_environment():
+    assert watchdog_interval_s({"WATCHDOG_USEC": "2500000"}) == 2.5
+    assert watchdog_interval_s({}) is None
+    assert watchdog_interval_s({"WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}, pid=2) is None
+    assert watchdog_interval_s({"WATCHDOG_USEC": "1000", "WATCHDOG_PID": "2"}, pid=2) == 0.001
+    with pytest.raises(ValueError, match="given 'ten'"):
+        watchdog_interval_s({"WATCHDOG_USEC": "ten"})
+
+
+def test_journal_formatter_prefixes_every_line_with_its_priority():
+    fmt = JournalFormatter("%(levelname)s %(name)s: %(message)s")
+    rec = logging.LogRecord("acquire.daemon", logging.WARNING, __file__, 1, "late\nanswers", None, None)
+    assert fmt.format(rec) == "<4>WARNING acquire.daemon: late\n<4>answers"
+    rec = logging.LogRecord("x", logging.INFO, __file__, 1, "ok", None, None)
+    assert fmt.format(rec) == "<6>INFO x: ok"
+
+
+# ----------------------------------------------------------------------------- health (in-process)
+def test_watchdog_pings_stop_when_the_controller_stops_sending(tmp_path):
+    """In-process daemon on the simulated cell: pings while the FRI exchange streams, none once
+    the fake controller falls silent, and STATUS says why."""
+    notify = NotifySocket()
+    port = free_port()
+    cfg = load_daemon_config(write_config(tmp_path, port))
+    d = Daemon(cfg, notifier=SdNotifier(env={"NOTIFY_SOCKET": notify.name, "WATCHDOG_USEC": "400000"}))
+    t = threading.Thread(target=d.run, name="daemon-under-test")
+    t.start()
+    try:
+        notify.wait_for(lambda f: f.get("READY") == "1", 30)
+        wait_until(lambda: notify.count("WATCHDOG", "1") >= 3, 10, "three watchdog pings")
+        d.devices.launch.controller.stop()  # the controller falls silent
+        unhealthy = notify.wait_for(lambda f: "UNHEALTHY" in f.get("STATUS", ""), 10)
+        assert "old" in unhealthy.fields["STATUS"] or "no monitoring" in unhealthy.fields["STATUS"]
+        pings = notify.count("WATCHDOG", "1")
+        time.sleep(4 * d.tick_s)  # four health checks, no pings
+        assert notify.count("WATCHDOG", "1") == pings
+        assert d.status(include_plan=False)["healthy"] is False
+    finally:
+        d.request_stop()
+        t.join(30)
+        notify.close()
+    assert not t.is_alive()
+    assert notify.all_fields()[-2].get("STOPPING") == "1"
+
+
+def test_start_refuses_plans_outside_plan_dirs_and_second_runs(tmp_path):
+    """The control backend's own checks, without Zenoh in between."""
+    from acquire.control import Identity
+
+    cfg = DaemonConfig(cell=CELL, fake=True, state_dir=tmp_path / "state", plan_dirs=[tmp_path / "plans"])
+    d = Daemon(cfg, notifier=SdNotifier(env={}))
+    d._state = "ready"
+    who = Identity("operator", "operator", None, frozenset({"motion"}))
+    (tmp_path / "plans").mkdir()
+    (tmp_path / "elsewhere.yaml").write_text("cell: example\n")
+    with pytest.raises(BadRequest, match="not inside the allowed plan folders"):
+        d.start({"plan": str(tmp_path / "elsewhere.yaml")}, who)
+    with pytest.raises(BadRequest, match="not inside"):
+        d.start({"plan": "../elsewhere.yaml"}, who)
+    with pytest.raises(BadRequest, match="exactly one of"):
+        d.start({}, who)
+    with pytest.raises(Conflict, match="no active run"):
+        d.pause()
+
+
+# ----------------------------------------------------------------------------- end to end
+@pytest.fixture
+def daemon(tmp_path):
+    notify = NotifySocket()
+    port = free_port()
+    proc = DaemonProcess(write_config(tmp_path, port), notify, watchdog_usec=1_000_000)
+    try:
+        yield proc, port, tmp_path
+    finally:
+        proc.kill()
+        notify.close()
+
+
+def _run_state(ctl) -> dict:
+    return ctl.call("status")["run"] or {}
+
+
+def test_daemon_runs_pauses_resumes_aborts_a_fake_plan_and_stops_on_sigterm(daemon):
+    proc, port, tmp_path = daemon
+    ready = proc.wait_ready()
+    notify = proc.notify
+    # READY only after the devices were up, and they are announced on the bus.
+    assert "devices up: controller, mocap, tracker" in proc.log()
+    with open_client(port) as bus:
+        alive = bus.alive(f"remaster/{CELL}/**")
+        assert alive == sorted(f"remaster/{CELL}/{k}" for k in
+                               ("daemon", "device/controller", "device/mocap", "device/tracker"))
+        op = control(bus, "operator", OPERATOR_TOKEN)
+        st = op.call("status")
+        assert st["daemon"] == "ready" and st["healthy"] and st["run"] is None
+        wait_until(lambda: notify.count("WATCHDOG", "1") >= 2, 5, "watchdog pings after READY")
+        assert all(m.t >= ready.t for m in notify.messages if m.fields.get("WATCHDOG"))
+
+        started = op.call("start", {"plan": "example.yaml"})
+        run_id = started["run_id"]
+        assert run_id.startswith(f"{CELL}-")
+        wait_until(lambda: _run_state(op).get("done", 0) >= 2, 60, "two configurations measured")
+
+        op.call("pause")
+        paused = wait_until(lambda: (s := _run_state(op)).get("state") == "paused" and s, 30, "paused")
+        done_at_pause = paused["done"]
+        time.sleep(1.0)  # paused: nothing more is measured
+        assert _run_state(op)["done"] == done_at_pause
+        notify.wait_for(lambda f: f"run {run_id} paused" in f.get("STATUS", ""), 5)
+
+        op.call("resume")
+        pings_at_resume = notify.count("WATCHDOG", "1")
+        wait_until(lambda: _run_state(op).get("done", 0) > done_at_pause, 30, "progress after resume")
+        # The watchdog is fed during the run (the run's own commander and log are watched).
+        pings_before_abort = notify.count("WATCHDOG", "1")
+        assert pings_before_abort > pings_at_resume
+
+        op.call("abort", {"reason": "test abort"})
+        wait_until(lambda: op.call("status")["run"] is None, 30, "run ended and devices taken back")
+        st = op.call("status")
+        assert st["healthy"] and st["devices"] == ["controller", "mocap", "tracker"]
+        runs = op.call("runs")["runs"]
+        assert [r["run_id"] for r in runs] == [run_id] and runs[0]["bytes"] > 0
+        plan = op.call("plan", {"run_id": run_id})
+        assert plan["plan_text"] == (tmp_path / "plans" / "example.yaml").read_text()
+        # The watchdog is fed again once the devices are back.
+        wait_until(lambda: notify.count("WATCHDOG", "1") > pings_before_abort, 5, "pings after the run")
+
+    from acquire.recorder import read_run
+
+    contents = read_run(tmp_path / "state" / "runs" / run_id / f"{run_id}.mcap")
+    assert contents.complete and contents.run_id == run_id
+    assert len(contents.samples) >= done_at_pause + 1
+    kinds = [e.get("kind") for e in contents.events]
+    states = [e.get("state") for e in contents.events if e.get("kind") == "state"]
+    assert states[:3] == ["running", "paused", "running"], states
+    aborted = [e for e in contents.events if e.get("kind") == "aborted"]
+    assert [e["reason"] for e in aborted] == ["test abort"], kinds
+
+    assert proc.stop(signal.SIGTERM) == 0
+    fields = notify.all_fields()
+    stopping = [i for i, f in enumerate(fields) if f.get("STOPPING") == "1"]
+    assert stopping and stopping[0] > [i for i, f in enumerate(fields) if f.get("READY") == "1"][0]
+    log = proc.log()
+    for line in (f"control/start from operator", f"run {run_id} started by operator", "run {} ended: aborted",
+                 "stopping", "stopped"):
+        assert line.replace("{}", run_id) in log, line
+    assert "\x1b[" not in log  # no colour when not on a terminal
+    assert all(line.split(" ", 1)[0] in ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL") or line.startswith(("  ", "Traceback"))
+               for line in log.splitlines() if line), log
+
+
+def test_sigterm_during_a_run_finishes_the_configuration_and_closes_the_log(daemon):
+    proc, port, tmp_path = daemon
+    proc.wait_ready()
+    with open_client(port) as bus:
+        op = control(bus, "operator", OPERATOR_TOKEN)
+        run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
+        wait_until(lambda: _run_state(op).get("done", 0) >= 1, 60, "one configuration measured")
+    assert proc.stop(signal.SIGTERM) == 0
+    log = proc.log()
+    assert f"stopping: pausing run {run_id} after its current configuration" in log
+    assert f"run {run_id} aborted; log" in log
+    proc.notify.wait_for(lambda f: f.get("STOPPING") == "1", 1)
+    from acquire.recorder import read_run
+
+    contents = read_run(tmp_path / "state" / "runs" / run_id / f"{run_id}.mcap")
+    assert contents.complete, "the run's log was not closed cleanly"
+    states = [e.get("state") for e in contents.events if e.get("kind") == "state"]
+    assert "paused" in states, states  # it finished the configuration it was at, then held
+    assert [e["reason"] for e in contents.events if e.get("kind") == "aborted"] == ["daemon stopping (SIGTERM)"]
+    # every configuration that was moved to was also measured: nothing left half-done
+    moved = {e["config_id"] for e in contents.events if e.get("kind") == "moved"}
+    assert moved and moved == {s["config_id"] for s in contents.samples}
