@@ -632,8 +632,24 @@ class Daemon:
         return {"run_id": ctl.run_id, "state": ctl.status()["state"]}
 
 
+def init_zenoh_log() -> None:
+    """Zenoh's own log (Rust ``tracing``) on stderr when ``RUST_LOG`` is set — e.g. its
+    access-control decisions with ``zenoh::net::routing::interceptor::access_control=trace``;
+    colour-free unless stderr is a terminal."""
+    if not os.environ.get("RUST_LOG"):
+        return
+    import sys
+
+    import zenoh
+
+    if not sys.stderr.isatty():
+        os.environ.setdefault("NO_COLOR", "1")
+    zenoh.try_init_log_from_env()
+
+
 def run_daemon(cfg: DaemonConfig) -> int:
     """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status."""
+    init_zenoh_log()
     d = Daemon(cfg)
     d.install_signal_handlers()
     log.info("acquire daemon pid %d, cell %s, state %s", os.getpid(), cfg.cell, cfg.state_dir)

@@ -7,22 +7,23 @@ What is in the file (readable by ``mcap`` tooling and Foxglove):
   configuration), ``/run/event`` (``remaster.RunEvent``: moved, settled, suspended, resumed,
   skipped, …). Streams recorded with :meth:`RunLog.record_joint_state` go to
   ``/<device>/joint_state`` (``remaster.JointState``, degrees); :meth:`RunLog.record_markers`
-  writes ``/<sensor>/markers`` (``remaster.MarkerFrame``, mm, sensor frame) and, for Foxglove's
-  3D panel, ``/<sensor>/markers/scene`` (``foxglove.SceneUpdate``: one sphere entity per marker,
-  metres, frame id = the sensor name).
+  writes ``/<sensor>/markers`` (``remaster.MarkerFrame``, mm, sensor frame, every frame) and, for
+  Foxglove's 3D panel, ``/<sensor>/markers/scene`` (``foxglove.SceneUpdate``: one sphere entity per
+  marker, metres, frame id = the sensor name, at most ``scene_rate_hz``, default 30 Hz).
 - Metadata records ``remaster.run`` (format, run id, segment number, creation time),
   ``remaster.run.metadata`` (the caller's metadata, each value JSON-encoded), ``remaster.plan``
   and ``remaster.robot_model`` (the exact texts), and the same two texts as attachments
   ``plan.yaml`` and ``robot.yaml``.
 
 Crash safety: the file is written without chunks and without compression, record by record, so
-every record is on disk as soon as it is written (no chunk waits in memory). ``sample`` and
-``event`` return only after ``flush`` + ``os.fsync``; other streams are flushed to the OS at
-least every ``flush_interval_s`` (a ``kill -9`` keeps what reached the OS; a power cut keeps
-what was fsync'd). :func:`read_run` reads records one by one and stops at the first one that is
+no record waits in memory for a chunk to fill. ``sample`` and ``event`` return only after
+``flush`` + ``os.fsync`` (with everything written before them); a stream write flushes to the OS
+when the last flush is older than ``flush_interval_s`` (a ``kill -9`` keeps what reached the OS;
+a power cut keeps what was fsync'd). :func:`read_run` reads records one by one and stops at the first one that is
 incomplete or unreadable, so a truncated file yields exactly the records that were completely
-written — never a partial one. The price of no chunks is a larger, unindexed file: tools read
-it linearly (``mcap`` and Foxglove both do).
+written — never a partial one (``mcap``'s own readers would hand a cut record's bytes on, or
+raise). The price of no chunks is a larger, unindexed file: tools read it linearly (``mcap`` and
+Foxglove both do). JSON encoding: :mod:`acquire.jsonpayload` (NaN/inf → null).
 
 Resume: :meth:`RunLog.append_to` never rewrites recorded data. It closes the killed file (cuts
 the incomplete tail record, if any, and appends a DataEnd + Footer so the file is valid MCAP

@@ -540,6 +540,8 @@ class RunController:
 
     _tap = None
     _sensors: list = []
+    _clock = staticmethod(time.monotonic)
+    _sleep = staticmethod(time.sleep)
 
     # ------------------------------------------------------------------ the job
     def _open_devices(self):
@@ -629,6 +631,7 @@ class RunController:
             self._total = len(configs)
             self._done = len(already)
         cmd, sensors, clock, sleep = self._open_devices()
+        self._clock, self._sleep = clock, sleep
         if self._abort.is_set():
             return self._finish(clock, 0.0)
         start_q = np.asarray(cmd.joint_state().position_rad, dtype=float)
@@ -765,7 +768,8 @@ class RunController:
                 timeouts += 1
                 if timeouts > s.retries:
                     return self._skip(cfg, f"gave up after {timeouts} timeouts: {exc}", kind="failed")
-                self._event_safe("retry", config_id=cfg.config_id, reason=str(exc))
+                self._event_safe("retry", config_id=cfg.config_id, step="settle", reason=str(exc))
+                self._wait_ready()
                 continue
             break
         self._runlog.sample(record)
@@ -775,8 +779,20 @@ class RunController:
         return "measured"
 
     def _wait_ready(self) -> None:
-        """After a failed move: let the robot come to rest before the next attempt."""
+        """After a failed move: wait for the controller to stream again (a fresh joint state,
+        up to ``move_timeout_s``) and the robot to come to rest before the next attempt."""
         s = self.settings
+        clock, sleep = self._clock, self._sleep
+        deadline = clock() + s.move_timeout_s
+        while not self._abort.is_set():
+            try:
+                self.commander.joint_state()
+                break
+            except DriverError as exc:
+                if clock() > deadline:
+                    log.warning("controller not streaming after a failed move: %s", exc)
+                    return
+                sleep(0.05)
         try:
             self.commander.wait_settled(s.settle_tolerance_rad, s.settle_window_s, s.move_timeout_s)
         except DriverError as exc:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -97,6 +98,11 @@ def wait_settled(
 ) -> SettleResult:
     """Return once the robot is still and every sensor's markers are stable.
 
+    The robot's window (``commander.wait_settled``) and the sensors' windows run at the same
+    time (the sensors on a helper thread), so a settled configuration costs one window, not
+    two; after the robot is still, the sensor loop keeps watching the joints and restarts every
+    window if the robot moves again.
+
     sensors: (sensor, marker names, expected per-axis noise σ in mm) for each sensor; a
     marker's window allows ``sensor_stable_mm + 4 σ`` per axis, so noise alone does not
     restart it. Raises DeviceTimeoutError after ``timeout`` (clock seconds) and
@@ -111,40 +117,86 @@ def wait_settled(
         raise ValueError(f"sensor_stable_mm must be positive, got {sensor_stable_mm!r}")
     t_start = clock()
     deadline = t_start + timeout
-    state = commander.wait_settled(tolerance_rad, window_s, timeout)
+    watch = _SensorWatch(sensors, window_s, sensor_stable_mm, deadline, clock, read_timeout_s, on_reading)
+    thread = threading.Thread(target=watch.run, name="settle-sensors", daemon=True)
+    thread.start()
+    try:
+        state = commander.wait_settled(tolerance_rad, window_s, timeout)
+    except BaseException:
+        watch.halt.set()
+        thread.join(timeout=read_timeout_s + 1.0)
+        raise
     t_robot = clock()
-    ref_q = np.asarray(state.position_rad, dtype=float)
-    windows: dict[tuple[str, str], StabilityWindow] = {}
-    for sensor, markers, noise in sensors:
-        for m in markers:
-            windows[(sensor.name, m)] = StabilityWindow(sensor_stable_mm + 4.0 * max(noise, 0.0), window_s)
-    robot_restarts = 0
-    held = {k: False for k in windows}
-    while not all(held.values()):
-        now = clock()
-        if now > deadline:
-            waiting = ", ".join(f"{s}/{m}" for (s, m), ok in held.items() if not ok)
-            raise DeviceTimeoutError(f"sensor readings not stable within {timeout:.3g} s ({waiting})")
-        q = np.asarray(commander.joint_state().position_rad, dtype=float)
-        if np.max(np.abs(q - ref_q)) > tolerance_rad:
-            # the robot moved again: every window starts over
-            robot_restarts += 1
-            ref_q = q
-            for w in windows.values():
-                w.reset()
-            held = {k: False for k in windows}
-        for sensor, markers, _ in sensors:
-            wanted = set(markers)
-            samples = sensor.read(min(read_timeout_s, max(deadline - clock(), 1e-3)))
-            if on_reading is not None:
-                on_reading(sensor.name, samples)
-            for s in samples:
-                if s.marker not in wanted:
-                    continue
-                if not s.visible:
-                    raise TargetLostError(f"{sensor.name}: marker {s.marker!r} is not visible")
-                held[(sensor.name, s.marker)] = windows[(sensor.name, s.marker)].update(s.host_time, s.position_mm)
+    watch.robot_still(commander, np.asarray(state.position_rad, dtype=float), tolerance_rad)
+    thread.join(timeout=max(deadline - clock(), 0.0) + read_timeout_s + 1.0)
+    if thread.is_alive():
+        watch.halt.set()
+        raise DeviceTimeoutError(f"sensor readings not stable within {timeout:.3g} s")
+    if watch.error is not None:
+        raise watch.error
     t_end = clock()
-    restarts = {f"{s}/{m}": w.restarts for (s, m), w in windows.items()}
-    restarts["robot"] = robot_restarts
-    return SettleResult(t_end - t_start, t_robot - t_start, t_end - t_robot, restarts, ref_q)
+    restarts = {f"{s}/{m}": w.restarts for (s, m), w in watch.windows.items()}
+    restarts["robot"] = watch.robot_restarts
+    return SettleResult(t_end - t_start, t_robot - t_start, max(t_end - t_robot, 0.0), restarts, watch.ref_q)
+
+
+class _SensorWatch:
+    """The sensors' side of ``wait_settled``, run on a helper thread."""
+
+    def __init__(self, sensors, window_s, stable_mm, deadline, clock, read_timeout_s, on_reading) -> None:
+        self.sensors = list(sensors)
+        self.deadline, self.clock, self.read_timeout_s, self.on_reading = deadline, clock, read_timeout_s, on_reading
+        self.windows = {(sensor.name, m): StabilityWindow(stable_mm + 4.0 * max(noise, 0.0), window_s)
+                        for sensor, markers, noise in self.sensors for m in markers}
+        self.held = {k: False for k in self.windows}
+        self.halt = threading.Event()
+        self.error: BaseException | None = None
+        self.robot_restarts = 0
+        self.ref_q: np.ndarray | None = None
+        self._commander = None
+        self._tol = 0.0
+        self._still = threading.Event()
+
+    def robot_still(self, commander, q: np.ndarray, tolerance_rad: float) -> None:
+        self._commander, self.ref_q, self._tol = commander, q, tolerance_rad
+        self._still.set()
+
+    def run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
+            self.error = exc
+
+    def _loop(self) -> None:
+        while not self.halt.is_set():
+            if self._still.is_set() and all(self.held.values()):
+                return
+            if self.clock() > self.deadline:
+                waiting = ", ".join(f"{s}/{m}" for (s, m), ok in self.held.items() if not ok) or "robot"
+                raise DeviceTimeoutError(f"sensor readings not stable in time ({waiting})")
+            if self._still.is_set():
+                q = np.asarray(self._commander.joint_state().position_rad, dtype=float)
+                if np.max(np.abs(q - self.ref_q)) > self._tol:
+                    # the robot moved again: every window starts over
+                    self.robot_restarts += 1
+                    self.ref_q = q
+                    for w in self.windows.values():
+                        w.reset()
+                    self.held = {k: False for k in self.windows}
+            if not self.windows:
+                if self._still.is_set():
+                    return
+                self.halt.wait(0.001)
+                continue
+            for sensor, markers, _ in self.sensors:
+                wanted = set(markers)
+                samples = sensor.read(min(self.read_timeout_s, max(self.deadline - self.clock(), 1e-3)))
+                if self.on_reading is not None:
+                    self.on_reading(sensor.name, samples)
+                for smp in samples:
+                    if smp.marker not in wanted:
+                        continue
+                    if not smp.visible:
+                        raise TargetLostError(f"{sensor.name}: marker {smp.marker!r} is not visible")
+                    key = (sensor.name, smp.marker)
+                    self.held[key] = self.windows[key].update(smp.host_time, smp.position_mm)

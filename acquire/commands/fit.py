@@ -99,6 +99,13 @@ def format_summary(doc: dict, controller_text: str) -> str:
             + ", ".join(f"{k} {v['value']:+.3f}" for k, v in corr.items())
         )
     d = doc["diagnostics"]
+    for s, b in d.get("error_budget", {}).items():
+        if b.get("noise_mm") is not None:
+            lines.append(
+                f"error budget {s}: sensor noise {b['noise_mm']:.3f} mm, unmodelled robot error {b['unmodelled_mm']:.3f} mm "
+                f"({b['unmodelled_share']:.0%} of σ²) — the intervals treat it as random; where it is systematic "
+                "(link errors, sag) the offsets are biased beyond them: compare with --method full"
+            )
     rhat = d.get("rhat_max")
     ess = d.get("ess_min")
     lines.append(

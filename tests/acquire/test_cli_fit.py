@@ -137,7 +137,7 @@ def _broken_copy(tmp_path: Path, line: int, edit) -> Path:
         ("joints", "7jointcolumns(q1…q7)buttherobotmodel'KUKAKR6R900-2'has6joints"),
         ("metres", "positionslooklikemetres"),
         ("too-few", "8measurementsgive24coordinatesfor14freeparameters;measureatleast10"),
-        ("suffix", "noloaderfor'.txt';known:['.csv']"),
+        ("suffix", "noloaderfor'.txt';known:['.csv','.mcap']"),
         ("joints-option", "axisnumbersmustliein1…7,given'2,9'"),
         ("robot", "--robot"),
     ],

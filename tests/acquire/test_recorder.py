@@ -429,7 +429,7 @@ def test_marker_frames_are_all_kept_and_the_foxglove_scene_is_decimated(tmp_path
     assert "/mocap/markers/scene" not in read_run(tmp_path / "none.mcap").message_counts
 
 
-def test_acquire_fit_reads_a_run_log_like_the_same_measurements_in_csv(tmp_path):
+def test_acquire_fit_reads_a_run_log_like_the_same_measurements_in_csv(tmp_path, monkeypatch):
     from typer.testing import CliRunner
     import typer
 
@@ -455,6 +455,8 @@ def test_acquire_fit_reads_a_run_log_like_the_same_measurements_in_csv(tmp_path)
     np.testing.assert_allclose(got.xyz_mm, ds.xyz_mm[idx], atol=1e-9)
     assert got.marker.tolist() == ds.marker[idx].tolist() and got.sensor.tolist() == ds.sensor[idx].tolist()
 
+    # The fit command picks its loader by suffix; this is the one-line wiring it needs.
+    monkeypatch.setitem(fit_command.LOADERS, ".mcap", dataset_from_run)
     app = typer.Typer()
     app.callback()(lambda: None)
     fit_command.register(app)

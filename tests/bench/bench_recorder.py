@@ -83,7 +83,7 @@ def run_jsonl(path: Path, items, t0_ns: int, flush_interval_s: float = 0.05) -> 
     n = 0
     start = time.perf_counter()
     last_flush = time.monotonic()
-    last_scene_ns = None
+    next_scene_ns = None
     with open(path, "wb") as fh:
         def line(topic: str, obj: dict) -> None:
             fh.write(encode_json({"topic": topic, "msg": obj}) + b"\n")
@@ -101,9 +101,9 @@ def run_jsonl(path: Path, items, t0_ns: int, flush_interval_s: float = 0.05) -> 
                 line("/mocap/markers", {"timestamp": stamp, "frame_id": "mocap", "device_time": None,
                                         "markers": [{"name": k, "position_mm": np.round(v, 4), "quality": None} for k, v in payload.items()]})
                 n += 1
-                if last_scene_ns is None or t_ns - last_scene_ns >= 1e9 / SCENE_HZ:
+                if next_scene_ns is None or t_ns >= next_scene_ns:  # RunLog's fixed 30 Hz schedule
                     line("/mocap/markers/scene", scene_update("mocap", payload, t_ns))
-                    last_scene_ns = t_ns
+                    next_scene_ns = (next_scene_ns if next_scene_ns is not None else t_ns) + 1e9 / SCENE_HZ
                     n += 1
             elif kind == "joints":
                 line("/robot/joint_state", {"timestamp": stamp, "name": [f"A{i + 1}" for i in range(7)],

@@ -1,0 +1,109 @@
+"""Kill `acquire run` at random moments (SIGKILL), resume from its own log, lose nothing."""
+
+from __future__ import annotations
+
+import random
+import signal
+import time
+from collections import Counter
+
+import pytest
+
+from acquire.plan import load_plan, resolve_configurations
+from acquire.recorder import read_run
+from acquire.run import RunController
+
+from run_helpers import popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+
+pytestmark = pytest.mark.timeout(170)
+
+
+def outcomes(contents) -> tuple[Counter, set]:
+    """(sample count per config id, ids ended by a skip/failure event)."""
+    counts = Counter(s["config_id"] for s in contents.samples)
+    ended = {e["config_id"] for e in contents.events if e["kind"] in ("skipped", "failed")}
+    return counts, ended
+
+
+def wait_for_samples(folder, n: int, timeout: float):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        logs = run_logs(folder)
+        if logs and len(read_run(logs[0]).samples) >= n:
+            return logs[0]
+        time.sleep(0.1)
+    return None
+
+
+@pytest.mark.parametrize("seed", [7])
+def test_sigkill_at_random_moments_then_resume_measures_every_configuration_once(tmp_path, seed):
+    rng = random.Random(seed)
+    plan = small_plan(tmp_path, n=8, sequencing={"samples": 5, "settle_window_s": 0.2}, fake={"time_scale": 6.0})
+    configs = {c.config_id for c in resolve_configurations(load_plan(plan))}
+    args = ("run", str(plan), "--fake", "--no-bus", "--no-fit")
+
+    # 1st kill: after the first sample appears plus a random delay (mid-move, mid-settle or mid-measure)
+    proc = popen(*args)
+    log = wait_for_samples(tmp_path / "runs", 1, 60)
+    assert log is not None, proc.stderr.read() if proc.poll() is not None else "no sample within 60 s"
+    time.sleep(rng.uniform(0.0, 1.5))
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=30)
+    first = read_run(log)
+    killed_after = len(first.samples)
+    assert killed_after >= 1
+
+    # 2nd kill: a resumed run killed again at a random moment
+    proc = popen(*args, "--resume", str(log))
+    time.sleep(rng.uniform(3.0, 5.0))
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=30)
+
+    # final resume runs to the end
+    proc = popen(*args, "--resume", str(log))
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err[-3000:]
+    contents = read_run(log)
+    assert contents.complete
+    assert len(contents.files) >= 2  # the original and its resume segments
+    counts, ended = outcomes(contents)
+    assert max(counts.values()) == 1, [c for c, k in counts.items() if k > 1]  # nothing duplicated
+    assert set(counts) | ended == configs  # nothing lost
+    assert len(counts) >= 0.8 * len(configs)
+    assert sum(1 for e in contents.events if e["kind"] == "run_started") == 3
+
+
+def test_resume_after_an_abort_continues_and_refuses_another_plan(tmp_path):
+    plan = small_plan(tmp_path, n=6, sequencing={"samples": 5, "settle_window_s": 0.2}, fake={"time_scale": 6.0})
+    lp = load_plan(plan)
+    configs = {c.config_id for c in resolve_configurations(lp)}
+
+    def abort_after_three(status):
+        if status["measured"] >= 3 and status["state"] == "running":
+            rc.abort("test abort")
+
+    rc = RunController(lp, fake=True, on_progress=abort_after_three, fit=False)
+    rc.start()
+    first = rc.wait(120)
+    assert first.state == "aborted" and first.exit_code != 0
+    recorded = read_run(first.log_path)
+    done_before = {s["config_id"] for s in recorded.samples}
+    assert len(done_before) >= 3
+
+    other = small_plan(tmp_path, n=5, name="other.yaml")
+    rc_other = RunController(load_plan(other), fake=True, resume=first.log_path, fit=False)
+    rc_other.start()
+    refused = rc_other.wait(60)
+    assert refused.state == "failed" and "different plan" in refused.reason
+
+    rc2 = RunController(lp, fake=True, resume=first.log_path, fit=False)
+    rc2.start()
+    second = rc2.wait(120)
+    assert second.state == "finished", second.reason
+    contents = read_run(first.log_path)
+    counts, ended = outcomes(contents)
+    assert max(counts.values()) == 1
+    assert set(counts) | ended == configs
+    started = [e for e in contents.events if e["kind"] == "run_started"]
+    assert started[-1]["resumed"] is True
+    assert not set(started[-1]["order"]) & done_before  # nothing recorded was measured again
