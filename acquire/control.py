@@ -10,8 +10,10 @@ runs       observe     the runs in the state folder
 plan       read        the plan text of a run (``{"run_id": …}``; default: current)
 pause      control     finish the current configuration, then hold
 abort      control     stop safely now (``{"reason": …}``)
-start      motion      start a run: ``{"plan": "/path/on/the/cell/pc.yaml"}`` or
-                       ``{"plan_text": "…yaml…"}``; optional ``{"resume": "RUN.mcap"}``
+start      motion      start a run: ``{"plan": "/path/on/the/cell/pc.yaml"}`` (inside
+                       ``plan_dirs``; relative: from the first) or ``{"plan_text": "…"}``
+                       (saved in ``<state_dir>/plans/``; its relative paths resolve
+                       from there); optional ``{"resume": RUN_ID}``
 resume     motion      continue a paused run
 =========  ==========  ===========================================================
 
@@ -40,7 +42,8 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
-from acquire.daemon_config import PERMISSIONS, AuthSection
+from acquire.bus import control_key
+from acquire.daemon_config import AuthSection
 
 log = logging.getLogger(__name__)
 
@@ -289,15 +292,6 @@ def _opt_str(req: dict, name: str) -> str | None:
     if value is not None and not isinstance(value, str):
         raise BadRequest(f"{name} must be a string, given {value!r}")
     return value
-
-
-def control_key(cell: str, op: str) -> str:
-    """``remaster/<cell>/control/<op>`` (through ``acquire.bus.key`` when available)."""
-    try:
-        from acquire.bus import key
-    except ImportError:  # pragma: no cover - bus.py is always present in a full checkout
-        return f"remaster/{cell}/control/{op}"
-    return key(cell, "control", op)
 
 
 class ControlClient:

@@ -383,6 +383,8 @@ class Daemon:
             cmd = getattr(ctl, "commander", None)
             streaming = st["state"] in ("running", "paused", "suspended") and cmd is not None
             return self.health.check(cmd, expect_stream=streaming, run_status=st)
+        if not self._device_names:
+            return Health(False, "the devices are not up")
         return self.health.check(self.devices.commander, expect_stream=self.devices.expect_stream, run_status=None)
 
     def _after_run(self) -> None:
@@ -589,6 +591,8 @@ class Daemon:
             if plan_cell != self.cfg.cell:
                 raise BadRequest(f"the plan is for cell {plan_cell!r}; this daemon serves {self.cfg.cell!r}")
             resume = request.get("resume")
+            if resume is not None and not isinstance(resume, str):
+                raise BadRequest(f"resume must be a run id string, given {resume!r}")
             resume_path = self._run_log(resume) if resume else None
             factory = self._factory
             if factory is None:

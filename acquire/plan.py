@@ -272,6 +272,10 @@ class FitSpec(_Strict):
     error: Literal["gaussian", "student"] = "gaussian"
     fix_registration: bool = False
     validate_fraction: float | None = Field(None, gt=0, le=0.5, description="Share of the measured configurations held out for validation.")
+    link_tolerance_mm: float | None = Field(
+        0.2, gt=0, le=5, description="Prior std of link lengths/offsets d, a (mm) marginalised by the fast fit; null: the paper's model."
+    )
+    link_tolerance_deg: float | None = Field(0.02, gt=0, le=1, description="Prior std of link twists α (and β), degrees.")
 
 
 class FakeSpec(_Strict):

@@ -212,35 +212,12 @@ class FakeCell:
     def start(self, controller_port: int | None):
         from drivers.sim.launch import SimLaunch
 
-        period_ms = self.fri_send_period_ms()
-
-        class _Launch(SimLaunch):
-            def _start_controller(self) -> None:
-                if self.cell.model.controller != "sunrise":
-                    return super()._start_controller()
-                from drivers.kuka_fri.fake import FakeSunrise
-
-                fake = FakeSunrise(
-                    ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.cell,
-                    clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
-                    send_period_ms=period_ms,
-                )
-                fake.start()
-                self._closers.append(("controller", fake.stop))
-                host, port = fake.address
-                self.addresses["controller"] = DeviceAddress(
-                    "controller", "fri", host, port, f"udp://{host}:{port}",
-                    f"fake Sunrise (FRI, {period_ms} ms send period) sending to the FRI client on "
-                    f"127.0.0.1:{self.fri_port}",
-                )
-                self.controller = fake
-
-        from drivers.sim.launch import DeviceAddress
-
         kw = {}
         if controller_port is not None:
             kw = {"fri_port": controller_port, "rsi_port": controller_port}
-        self.launch = _Launch(self.cell, controller=controller_port is not None, **kw).start()
+        self.launch = SimLaunch(
+            self.cell, controller=controller_port is not None, fri_send_period_ms=self.fri_send_period_ms(), **kw
+        ).start()
         for line in self.launch.describe():
             log.info("fake: %s", line)
         return self.launch
@@ -429,9 +406,13 @@ class RunController:
                 log.debug("progress display: %s", exc)
 
     def _eta(self) -> float | None:
+        """Wall seconds left: the remaining estimated cell time, scaled by how the configurations
+        done so far compared with their estimates (before any, by the fake's time scale)."""
         if not self._remaining_est:
             return 0.0 if self._total else None
         remaining = float(sum(self._remaining_est))
+        if self._est_done > 0 and self._loop_wall0 is not None:
+            return remaining * (time.monotonic() - self._loop_wall0) / self._est_done
         return remaining / self._time_scale
 
     def _event_safe(self, kind: str, **fields) -> None:
@@ -540,6 +521,8 @@ class RunController:
 
     _tap = None
     _sensors: list = []
+    _est_done = 0.0
+    _loop_wall0: Optional[float] = None
     _clock = staticmethod(time.monotonic)
     _sleep = staticmethod(time.sleep)
 
@@ -610,14 +593,17 @@ class RunController:
             raise RunError(f"{self.resume_path}: the log was recorded with a different plan; resume it with "
                            "the plan it was recorded with")
         done = {s["config_id"] for s in rc.samples}
-        ended = {e.get("config_id") for e in rc.events if e.get("kind") in ("skipped", "failed")}
+        skipped = {e.get("config_id") for e in rc.events if e.get("kind") == "skipped"} - done
+        failed = {e.get("config_id") for e in rc.events if e.get("kind") == "failed"} - done - skipped
+        ended = skipped | failed
         known = {c.config_id for c in configs}
         stray = done - known
         if stray:
             raise RunError(f"{self.resume_path}: samples for configurations the plan does not have: {sorted(stray)[:5]}")
         with self._lock:
             self._measured = len(done)
-            self._skipped = len(ended - done)
+            self._skipped = len(skipped)
+            self._failed = len(failed)
         return [c for c in configs if c.config_id not in done and c.config_id not in ended], done | ended
 
     def _run(self) -> RunSummary:
@@ -682,6 +668,7 @@ class RunController:
                                on_reading=self._record_reading)
         self._set_state("running")
         t_cell0 = clock()
+        self._loop_wall0 = time.monotonic()
         streak = 0
         for cfg in order:
             if not self._checkpoint():
@@ -693,11 +680,14 @@ class RunController:
                 self._event_safe("controller_restarted", config_id=cfg.config_id,
                                  reason="fake controller session restarted (simulated operator)")
             outcome = self._one(cfg, proc, suspender, predictor)
+            if outcome == "abort":  # the interrupted configuration is not done: a resume measures it
+                self._abort.set()
+                break
             streak = streak + 1 if outcome == "failed" else 0
             with self._lock:
                 self._done += 1
                 if self._remaining_est:
-                    self._remaining_est.pop(0)
+                    self._est_done += self._remaining_est.pop(0)
                 if outcome == "measured":
                     self._measured += 1
                 elif outcome == "skipped":
@@ -706,9 +696,6 @@ class RunController:
                     self._failed += 1
                 self._current = None
             self._progress()
-            if outcome == "abort":
-                self._abort.set()
-                break
             if streak >= MAX_CONSECUTIVE_FAILURES:
                 raise RunError(f"{streak} configurations failed in a row (last: {self._skip_reasons.get(cfg.config_id)}); "
                                "the cell is not usable — fix it and resume the run")
@@ -742,6 +729,7 @@ class RunController:
                 self._wait_ready()
         attempts = 0
         timeouts = 0
+        suspensions = 0
         while True:
             if self._abort.is_set():
                 return "abort"
@@ -749,10 +737,16 @@ class RunController:
             try:
                 record = proc.settle_and_measure(cfg, attempts, t_start)
             except TargetLostError as exc:
+                suspensions += 1
+                if suspensions > s.retries + 1:
+                    return self._skip(cfg, f"target lost {suspensions} times at this configuration: {exc}")
                 self._set_state("suspended", str(exc))
                 sensor = self._sensor_of(exc)
                 marker = sensor.markers[0] if sensor is not None else ""
-                q = self.commander.joint_state().position_rad
+                try:
+                    q = self.commander.joint_state().position_rad
+                except DriverError:
+                    q = np.asarray(cfg.q_rad, dtype=float)
                 rec = suspender.recover(sensor.sensor if sensor else self._sensors[0].sensor, marker,
                                         cfg.config_id, q, str(exc))
                 if self._abort.is_set():
@@ -898,6 +892,12 @@ class JointStateTap:
 
 
 # ------------------------------------------------------------------------------ hand-off
+def _link_tolerance(fit) -> tuple[float, float] | None:
+    """The plan's link-parameter prior (mm, deg), or None for the paper's model."""
+    mm, deg = getattr(fit, "link_tolerance_mm", 0.2), getattr(fit, "link_tolerance_deg", 0.02)
+    return None if mm is None or deg is None else (float(mm), float(deg))
+
+
 def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path, Path | None]:
     """Fit the zero-offsets from a run log; write ``result.json`` and ``report.html`` beside it.
 
@@ -931,10 +931,11 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
         joints=tuple(joints) if joints else None,
         fix_registration=bool(getattr(fit, "fix_registration", False)),
         error=getattr(fit, "error", "gaussian") or "gaussian",
+        link_tolerance=_link_tolerance(fit),
     )
     result = fit_offsets(model, cal, options)
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
-                               result.pooled_sigma_mm, validation=val, n_random=n_random, seed=0)
+                               result.applied_sigma_mm, validation=val, n_random=n_random, seed=0)
     doc = result_dict(result, cal, metrics=metrics)
     values = controller_values(model, doc["joint_offsets"])
     doc["controller"] = values.to_dict()

@@ -5,7 +5,9 @@ duration of the commander's synchronised jerk-limited move under the plan's spee
 (``drivers.trajectory.motion_time`` on ``scaled_limits``) — the slowest axis decides, not the
 joint-space distance. A nearest-neighbour tour from the robot's current position is improved by
 2-opt (segment reversals of the open path; the start stays fixed) until no reversal shortens it.
-``order_by_proximity`` is the paper's baseline (nearest neighbour in joint-space distance).
+``order_by_pose_proximity`` is the paper's procedure (Cartesian poses in nearest-neighbour
+order, all configurations of a pose in a row); ``order_by_proximity`` is nearest neighbour in
+joint-space distance.
 
 Per configuration (``ConfigProcedure.run``): move (``commander.move_to``; a refusal is fatal
 for that configuration, with its reason); wait until settled (``acquire.settle.wait_settled``:
@@ -115,6 +117,25 @@ def order_by_proximity(configs, start_q_rad) -> list:
     return [configs[i - 1] for i in _nearest_neighbour(dist)[1:]]
 
 
+def order_by_pose_proximity(configs, start_q_rad, chain) -> list:
+    """The paper's procedure: Cartesian poses "ordered based on proximity to current pose" —
+    nearest neighbour over poses by flange position (mm, nominal ``chain.fk``), every
+    configuration of a pose in a row in the order given. Configurations without a pose id
+    are their own pose."""
+    configs = list(configs)
+    if len(configs) <= 1:
+        return configs
+    groups: dict[str, list] = {}
+    for i, c in enumerate(configs):
+        groups.setdefault(c.pose or f"#{i}", []).append(c)
+    names = list(groups)
+    xyz = np.array([chain.fk(np.asarray(groups[g][0].q_rad, dtype=float))[:3, 3] for g in names])
+    here = chain.fk(np.asarray(start_q_rad, dtype=float))[:3, 3]
+    pts = np.vstack([here[None, :], xyz])
+    dist = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1)
+    return [c for i in _nearest_neighbour(dist)[1:] for c in groups[names[i - 1]]]
+
+
 def move_times(configs, start_q_rad, limits, speed) -> np.ndarray:
     """(k,) duration (s) of each move of the sequence, the first from ``start_q_rad``."""
     if not configs:
@@ -141,10 +162,11 @@ class CellTimeEstimate:
         return float(self.per_config_s.sum())
 
 
-def estimate_settle_s(window_s: float, servo_settle_s: float = 0.4) -> float:
-    """Expected settling time (s): the servo's own settling after the trajectory ends plus the
-    robot window and the sensor window (``wait_settled`` runs them one after the other)."""
-    return servo_settle_s + 2.0 * window_s
+def estimate_settle_s(window_s: float, servo_settle_s: float = 0.05) -> float:
+    """Expected settling time (s): the servo's own settling after the trajectory ends plus one
+    window (``wait_settled`` runs the robot's and the sensors' windows at the same time). The
+    fake cell settles in ≈ window + 0.02 s (see tests/bench/bench_run.py)."""
+    return servo_settle_s + window_s
 
 
 def estimate_measure_s(samples: int, sensor_rates_hz: Sequence[float]) -> float:

@@ -43,6 +43,10 @@ class FitOptions:
     max_std_deg: an offset whose posterior std exceeds this is reported as undetermined.
     paper_start: where the paper's sampler starts — "zero" (the paper: all corrections 0,
     σ = 1 mm) or "mode" (the posterior mode, so a short run is not all burn-in).
+    link_tolerance: (mm, deg) prior standard deviations of the link parameters d, a and α, β
+    (β in mdh models) that the fast method marginalises, so the offsets' intervals include what
+    link errors of that size could bias (see ``calib.posterior``); None gives the paper's model.
+    The paper's method always uses the paper's model.
     """
 
     method: str = "fast"
@@ -59,6 +63,7 @@ class FitOptions:
     paper_burn_in: int = 175_000
     max_std_deg: float = 1.0
     paper_start: str = "zero"
+    link_tolerance: tuple[float, float] | None = (0.2, 0.02)
 
 
 @dataclass
@@ -97,6 +102,18 @@ class FitResult:
     def applied_offsets_rad(self) -> np.ndarray:
         """(n,) the offsets to enter: the estimate where identifiable, 0 (unchanged) elsewhere."""
         return np.where(self.identifiable(), self.offsets_rad, 0.0)
+
+    @property
+    def applied_sigma_mm(self) -> float:
+        """Per-axis RMS error (mm) of the robot as it will be corrected: the applied offsets with
+        the nominal link parameters, registered per sensor by least squares. This — not the
+        posterior σ, which with the link prior also explains link errors the controller will not
+        be told about — is the isotropic error for the theoretical metrics (Sec. V-C)."""
+        from calib.metrics import absolute_errors, predicted_base
+
+        data = self.posterior.data
+        err = absolute_errors(data, predicted_base(self.posterior.chain, data, self.applied_offsets_rad))
+        return float(np.sqrt(np.mean(err**2) / 3.0))
 
     @property
     def pooled_sigma_mm(self) -> float:
@@ -143,12 +160,37 @@ def _scale(post: OffsetPosterior, lever_mm: float) -> np.ndarray:
     return np.array(out)
 
 
+def _link_prior(chain: Chain, options: FitOptions) -> dict[int, float]:
+    """Chain parameter index → prior sd (mm or rad) of the link parameters to marginalise."""
+    if options.link_tolerance is None:
+        return {}
+    length_mm, angle_deg = options.link_tolerance
+    if not (length_mm > 0 and angle_deg > 0):
+        raise ValueError(f"link_tolerance must be positive (mm, deg), given {options.link_tolerance}")
+    kinds = ["d", "a", "alpha"] + (["beta"] if chain.model.convention == "mdh" else [])
+    prior = {}
+    for kind in kinds:
+        sd = length_mm if kind in ("d", "a") else math.radians(angle_deg)
+        for i in chain.index(kind):
+            prior[int(i)] = sd
+    return prior
+
+
+def _flat_prior_analysis(post: OffsetPosterior, theta: np.ndarray, lever_mm: float) -> Identifiability:
+    """Identifiability of the parameters with flat priors (offsets, registration): the link
+    parameters' priors make their own directions proper, so they do not count here."""
+    link_pos, _ = post.link_free()
+    keep = np.setdiff1d(np.arange(post.dim), link_pos)
+    j = post.jacobian(theta)[:, keep]
+    return analyse(j, [post.free_names[k] for k in keep], _scale(post, lever_mm)[keep])
+
+
 def _resolve_null_space(post_factory, mask: ParamMask, lever_mm: float) -> tuple[ParamMask, Identifiability]:
     """Fix parameters until the Jacobian at the start has full rank; record why."""
     first = None
     for _ in range(64):
         post = post_factory(mask)
-        ident = analyse(post.jacobian(np.zeros(post.dim)), post.free_names, _scale(post, lever_mm))
+        ident = _flat_prior_analysis(post, np.zeros(post.dim), lever_mm)
         first = first or ident
         if not ident.deficient:
             return mask, first
@@ -175,14 +217,22 @@ def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.
     theta = np.zeros(post.dim)
     sigma = np.ones(post.S)
     weights = np.ones(post.n_rows)
-    for _ in range(12 if error == "student" else 3):
+    link_pos, link_sd = post.link_free()
+    prior_rows = np.zeros((link_pos.size, post.dim))
+    prior_rows[np.arange(link_pos.size), link_pos] = 1.0 / link_sd
+    # Alternate: θ by least squares at fixed σ (and Student weights), then σ at fixed θ, until σ
+    # settles — with link parameters free σ can fall by two orders of magnitude, which
+    # reweights data against the priors.
+    for _ in range(40):
+        previous = sigma.copy()
         w = np.sqrt(weights / sigma[s_idx] ** 2)[:, None]
 
         def fun(t, w=w):
-            return (post.residuals(t) * w).ravel()
+            return np.concatenate([(post.residuals(t) * w).ravel(), t[link_pos] / link_sd])
 
         def jac(t, w=w):
-            return -(post.jacobian(t).reshape(post.n_rows, 3, -1) * w[:, :, None]).reshape(post.n_rows * 3, -1)
+            j = -(post.jacobian(t).reshape(post.n_rows, 3, -1) * w[:, :, None]).reshape(post.n_rows * 3, -1)
+            return np.concatenate([j, prior_rows])
 
         sol = least_squares(fun, theta, jac=jac, method="lm", xtol=1e-12, ftol=1e-12)
         theta = sol.x
@@ -193,6 +243,8 @@ def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.
         else:
             weights = (nu + 3) / (nu + r2 / sigma[s_idx] ** 2)
             sigma = np.sqrt(np.bincount(s_idx, weights * r2, minlength=post.S) / (3 * n_s + 1))
+        if np.all(np.abs(np.log(sigma / previous)) < 1e-6):
+            break
     return theta, np.log(sigma)
 
 
@@ -200,12 +252,51 @@ def _laplace_covariance(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.
     """Gauss–Newton covariance of (θ, log σ) at the mode."""
     j = post.jacobian(theta).reshape(post.n_rows, 3, -1)
     w = np.exp(-2 * log_sigma)[post.sensor_index]
-    h = np.einsum("kip,k,kiq->pq", j, w, j)
+    h = np.einsum("kip,k,kiq->pq", j, w, j) + _prior_precision(post)
     cov_t = np.linalg.pinv(h)
     cov = np.zeros((post.dim + post.S,) * 2)
     cov[: post.dim, : post.dim] = 0.5 * (cov_t + cov_t.T)
     cov[post.dim :, post.dim :] = np.diag(1.0 / (2.0 * (3 * post.rows_per_sensor + 1)))
     return cov
+
+
+def _sample_sigma_marginalised(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray, options: FitOptions) -> Chains:
+    """Exact draws of (θ, log σ) for Gaussian errors with σ integrated out.
+
+    With p(θ, σ) ∝ Π_s σ_s^(−3n_s−2) exp(−E_s(θ)/2σ_s²) · prior(θ), the marginal is
+    p(θ) ∝ Π_s E_s(θ)^(−(3n_s+1)/2) · prior(θ), and σ_s | θ has 1/σ_s² ~ Gamma((3n_s+1)/2,
+    rate E_s/2). θ is drawn by the independence sampler from the marginal — no funnel between θ
+    and σ for the proposal to miss — and each draw's σ exactly from its conditional, using the
+    sums of squares already computed for the proposals.
+    """
+    half_dof = 0.5 * (3 * post.rows_per_sensor + 1)  # (S,)
+    link_pos, link_sd = post.link_free()
+    sse_of_proposals: list[np.ndarray] = []
+
+    def log_marginal(t: np.ndarray) -> np.ndarray:
+        e = post.sse(t)  # (b, S)
+        sse_of_proposals.append(e)
+        out = -(half_dof * np.log(e)).sum(axis=-1)
+        if link_pos.size:
+            out = out - 0.5 * np.sum((t[..., link_pos] / link_sd) ** 2, axis=-1)
+        return out
+
+    cov = _laplace_covariance(post, theta, log_sigma)[: post.dim, : post.dim]
+    draws = independence_mh(log_marginal, theta, cov, n_chains=options.n_chains, n_draws=options.n_draws, seed=options.seed)
+    e = np.concatenate(sse_of_proposals)[draws.proposal_index]  # (c, n, S)
+    rng = np.random.default_rng(options.seed + 7919)
+    u = rng.gamma(half_dof, 2.0 / e)  # 1/σ² draws
+    log_s = -0.5 * np.log(u)
+    samples = np.concatenate([draws.samples, log_s], axis=-1)
+    return Chains(samples, draws.acceptance, draws.seconds, "independence-mh (σ marginalised)", draws.proposal_index)
+
+
+def _prior_precision(post: OffsetPosterior) -> np.ndarray:
+    """(dim, dim) precision of the Gaussian link priors (zero elsewhere)."""
+    pos, sd = post.link_free()
+    p = np.zeros((post.dim, post.dim))
+    p[pos, pos] = 1.0 / sd**2
+    return p
 
 
 def sandwich_std(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray) -> np.ndarray:
@@ -221,7 +312,7 @@ def sandwich_std(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray
     j = post.jacobian(theta).reshape(post.n_rows, 3, -1)
     r = post.residuals(theta)
     w = np.exp(-2 * np.asarray(log_sigma))[post.sensor_index]
-    h_inv = np.linalg.pinv(np.einsum("kip,k,kiq->pq", j, w, j))
+    h_inv = np.linalg.pinv(np.einsum("kip,k,kiq->pq", j, w, j) + _prior_precision(post))
     score = np.einsum("kip,k,ki->kp", j, w, r)  # (k, dim)
     _, group = np.unique(np.round(post.data.q_rad, 9), axis=0, return_inverse=True)
     pooled = np.zeros((int(group.max()) + 1, score.shape[1]))
@@ -264,10 +355,11 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         for s in sensors:
             for r in REG_NAMES:
                 reasons[f"{s}.{r}"] = "registration fixed by the options"
-    mask = ParamMask(fit_joint, reg_mask, reasons)
+    link_prior = _link_prior(chain, options) if options.method == "fast" else {}
+    mask = ParamMask(fit_joint, reg_mask, reasons, np.ones(len(link_prior), bool))
 
-    # Too few measurements for the free parameters?
-    n_free = int(mask.full.sum()) + len(sensors)
+    # Too few measurements for the free parameters? (Link parameters carry priors.)
+    n_free = int(mask.full.sum()) - len(link_prior) + len(sensors)
     if 3 * len(data) < 2 * n_free:
         raise DatasetError(
             f"{len(data)} measurements give {3 * len(data)} coordinates for {n_free} free parameters; "
@@ -275,7 +367,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         )
 
     def factory(m: ParamMask) -> OffsetPosterior:
-        return OffsetPosterior(chain, data, b2s0, m, error=options.error, nu=options.nu)
+        return OffsetPosterior(chain, data, b2s0, m, error=options.error, nu=options.nu, link_prior=link_prior)
 
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
@@ -288,7 +380,9 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
     def log_density(x: np.ndarray) -> np.ndarray:
         return post.log_posterior(x[..., : post.dim], x[..., post.dim :])
 
-    if options.method == "fast":
+    if options.method == "fast" and options.error == "gaussian":
+        chains = _sample_sigma_marginalised(post, theta, log_sigma, options)
+    elif options.method == "fast":
         cov = _laplace_covariance(post, theta, log_sigma)
         chains = independence_mh(
             log_density, mode, cov, n_chains=options.n_chains, n_draws=options.n_draws, seed=options.seed
@@ -338,7 +432,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
     b2s = {s: _compose(rot[k], trans[k], post.b2s0[k]) for k, s in enumerate(post.sensors)}
     sig = np.exp(chains.flat[:, post.dim :])
     sigma = {s: (float(sig[:, k].mean()), float(sig[:, k].std(ddof=1))) for k, s in enumerate(post.sensors)}
-    ident = analyse(post.jacobian(theta), post.free_names, _scale(post, lever))
+    ident = _flat_prior_analysis(post, theta, lever)
     robust = sandwich_std(post, theta, log_sigma)
     model_std = np.sqrt(np.diag(_laplace_covariance(post, theta, log_sigma))[: post.dim])
     diag = {
@@ -356,6 +450,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         # Per free θ: sandwich std ÷ the model's (Laplace) std; ≫ 1 means intervals too narrow.
         "sandwich_std_ratio": [float(v) for v in robust / np.where(model_std > 0, model_std, np.nan)],
         "error_budget": error_budget(data, sigma),
+        "link_prior": _link_summary(post, chains, options),
     }
     if chains.samples.shape[1] >= 4:
         # Split-R-hat also works on one chain (its two halves): it flags a drifting chain.
@@ -377,6 +472,21 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         identifiability=ident,
         diagnostics=diag,
     )
+
+
+def _link_summary(post: OffsetPosterior, chains: Chains, options: FitOptions) -> dict | None:
+    """The marginalised link parameters: prior and posterior deviation from nominal (mm / deg)."""
+    if not post.L:
+        return None
+    pos, _ = post.link_free()
+    draws = chains.flat[:, pos]
+    out = {}
+    for k, p in enumerate(pos):
+        name = post.free_names[p]
+        scale = 1.0 if name.rsplit(".", 1)[1] in ("d", "a") else 180.0 / math.pi
+        out[name] = {"mean": float(draws[:, k].mean() * scale), "std": float(draws[:, k].std(ddof=1) * scale)}
+    length_mm, angle_deg = options.link_tolerance
+    return {"length_mm": length_mm, "angle_deg": angle_deg, "parameters": out}
 
 
 def error_budget(data: Dataset, sigma: dict[str, tuple[float, float]]) -> dict[str, dict]:

@@ -12,8 +12,16 @@ Priors: flat on δ and the corrections, Jeffreys 1/σ on each σ (eq. 14) — so
 Gaussian errors the posterior is eq. 15: p ∝ σ^(−3n−2) exp(−E / 2σ²).
 
 The **free vector** θ holds only what is being fitted, in SI-like units: offsets (rad),
-then per sensor (x, y, z mm, α, β, γ rad). σ is carried separately as log σ (mm).
+then per sensor (x, y, z mm, α, β, γ rad), then optional link parameters (deviations of d, a mm
+and α, β rad from nominal). σ is carried separately as log σ (mm).
 ``ParamMask`` says which entries are free; everything fixed sits at zero (nominal).
+
+**Link parameters as nuisance.** Real arms have link errors of tenths of a millimetre; a
+zero-offset-only model absorbs them into biased offsets and reports an uncertainty that covers
+only the noise. With ``link_prior`` the link parameters enter with a Gaussian prior of the
+manufacturing tolerance and are marginalised: the offsets' posterior then includes the
+uncertainty of what the data cannot tell apart from a link error. This is our extension; the
+paper's model (``link_prior=None``) has no such term.
 """
 
 from __future__ import annotations
@@ -37,24 +45,27 @@ class ParamMask:
     offsets: np.ndarray
     registration: np.ndarray
     reasons: dict[str, str] = field(default_factory=dict)
+    link: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     @property
     def full(self) -> np.ndarray:
-        return np.concatenate([self.offsets, self.registration.ravel()])
+        return np.concatenate([self.offsets, self.registration.ravel(), self.link])
 
     def fix(self, full_index: int, reason: str, names: list[str]) -> "ParamMask":
         full = self.full.copy()
         full[full_index] = False
-        n = self.offsets.size
+        n, r = self.offsets.size, self.registration.size
         reasons = dict(self.reasons)
         reasons[names[full_index]] = reason
-        return ParamMask(full[:n], full[n:].reshape(self.registration.shape), reasons)
+        return ParamMask(full[:n], full[n : n + r].reshape(self.registration.shape), reasons, full[n + r :])
 
 
 class OffsetPosterior:
     """Log posterior of zero-offsets, registration corrections and σ for one dataset.
 
     ``base2sensor0``: dict sensor name → (4, 4) initial registration.
+    ``link_prior``: chain parameter index → prior standard deviation (mm or rad) of the link
+    parameters to marginalise; their free flags are ``mask.link`` in the same order.
     """
 
     def __init__(
@@ -66,6 +77,7 @@ class OffsetPosterior:
         *,
         error: str = "gaussian",
         nu: float = 4.0,
+        link_prior: dict[int, float] | None = None,
     ) -> None:
         if error not in ("gaussian", "student"):
             raise ValueError(f"error model {error!r} not known; use 'gaussian' or 'student'")
@@ -83,10 +95,20 @@ class OffsetPosterior:
         self.n_rows = len(data)
         self.n = chain.n
         self.S = len(self.sensors)
+        link_prior = link_prior or {}
+        self.link_idx = np.array(list(link_prior), dtype=int)
+        self.link_sd = np.array([link_prior[i] for i in self.link_idx], dtype=float)
+        self.L = self.link_idx.size
+        if mask.link.size != self.L:
+            raise ValueError(f"the mask has {mask.link.size} link flags for {self.L} link parameters")
+        if np.any(self.link_sd <= 0):
+            raise ValueError("link prior standard deviations must be positive")
         self.free = np.flatnonzero(mask.full)
-        self.names = [f"{ax}.offset" for ax in chain.model.axis_names] + [
-            f"{s}.{r}" for s in self.sensors for r in REG_NAMES
-        ]
+        self.names = (
+            [f"{ax}.offset" for ax in chain.model.axis_names]
+            + [f"{s}.{r}" for s in self.sensors for r in REG_NAMES]
+            + [chain.param_names[i] for i in self.link_idx]
+        )
         self.free_names = [self.names[i] for i in self.free]
         self.rows_per_sensor = np.bincount(self.sensor_index, minlength=self.S)
         self._rows_of_sensor = [np.flatnonzero(self.sensor_index == k_s) for k_s in range(self.S)]
@@ -99,23 +121,44 @@ class OffsetPosterior:
     def dim(self) -> int:
         return int(self.free.size)
 
+    @property
+    def n_full(self) -> int:
+        return self.n + 6 * self.S + self.L
+
     def full_vector(self, theta: np.ndarray) -> np.ndarray:
-        """Free vector(s) (..., dim) → full vector(s) (..., n + 6·S) with fixed entries at 0."""
+        """Free vector(s) (..., dim) → full vector(s) (..., n + 6·S + L) with fixed entries at 0."""
         theta = np.asarray(theta, dtype=float)
-        full = np.zeros(theta.shape[:-1] + (self.n + 6 * self.S,))
+        full = np.zeros(theta.shape[:-1] + (self.n_full,))
         full[..., self.free] = theta
         return full
 
+    def link_free(self) -> np.ndarray:
+        """Positions in the free vector of the free link parameters, and their prior sds."""
+        start = self.n + 6 * self.S
+        pos = [k for k, i in enumerate(self.free) if i >= start]
+        return np.array(pos, dtype=int), self.link_sd[self.free[pos] - start] if pos else np.zeros(0)
+
+    def chain_params(self, full: np.ndarray) -> np.ndarray:
+        """Chain parameter vector(s) (..., P) for full vector(s): offsets and link deviations applied."""
+        params = self.chain.with_offsets(full[..., : self.n])
+        if self.L:
+            params[..., self.link_idx] += full[..., self.n + 6 * self.S :]
+        return params
+
     def corrections(self, full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """T*_s rotation (..., S, 3, 3) and translation (..., S, 3) from full vector(s)."""
-        reg = full[..., self.n :].reshape(full.shape[:-1] + (self.S, 6))
+        reg = full[..., self.n : self.n + 6 * self.S].reshape(full.shape[:-1] + (self.S, 6))
         return euler_zyx_to_matrix(reg[..., 3], reg[..., 4], reg[..., 5]), reg[..., :3]
 
     # --- prediction and residuals ----------------------------------------------------
     def predict(self, theta: np.ndarray) -> np.ndarray:
         """Predicted marker positions in each row's sensor frame: (..., k, 3) mm."""
         full = self.full_vector(theta)
-        p_base = self._offset_fk.positions(full[..., : self.n])  # (..., k, 3)
+        if self.L:
+            pos = self.chain.marker_positions(self.data.q_rad, self.chain_params(full))  # (..., k, m, 3)
+            p_base = pos[..., np.arange(self.n_rows), self.marker_index, :]
+        else:
+            p_base = self._offset_fk.positions(full[..., : self.n])  # (..., k, 3)
         rot, trans = self.corrections(full)  # (..., S, 3, 3), (..., S, 3)
         # Compose T*_s · base2sensor0_s once per draw and sensor, then apply it to that sensor's rows.
         r_total = rot @ self.b2s0[:, :3, :3]  # (..., S, 3, 3)
@@ -134,20 +177,23 @@ class OffsetPosterior:
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
         """∂ predicted / ∂ θ_free for one θ: (k·3, dim)."""
         full = self.full_vector(theta)
-        params = self.chain.with_offsets(full[: self.n])
+        params = self.chain_params(full)
         pos, jac = self.chain.marker_jacobian(self.data.q_rad, params)  # (k, m, 3), (k, m, 3, P)
         rows = np.arange(self.n_rows)
         p_base = pos[rows, self.marker_index]
-        j_off = jac[rows, self.marker_index][..., : self.n]  # (k, 3, n)
+        j_rows = jac[rows, self.marker_index]  # (k, 3, P)
+        j_off = j_rows[..., : self.n]  # (k, 3, n)
         b2s0 = self.b2s0[self.sensor_index]
         rot, trans = self.corrections(full)  # (S,3,3), (S,3)
         r_rows = rot[self.sensor_index]
         total = r_rows @ b2s0[:, :3, :3]  # (k, 3, 3)
-        j = np.zeros((self.n_rows, 3, self.n + 6 * self.S))
+        j = np.zeros((self.n_rows, 3, self.n_full))
         j[..., : self.n] = total @ j_off
+        if self.L:
+            j[..., self.n + 6 * self.S :] = total @ j_rows[..., self.link_idx]
         p_s0 = apply(b2s0, p_base)
         rp = np.einsum("kij,kj->ki", r_rows, p_s0)  # R* p_s0
-        reg = full[self.n :].reshape(self.S, 6)
+        reg = full[self.n : self.n + 6 * self.S].reshape(self.S, 6)
         ca, sa = np.cos(reg[:, 3]), np.sin(reg[:, 3])
         cb, sb = np.cos(reg[:, 4]), np.sin(reg[:, 4])
         ez = np.array([0.0, 0.0, 1.0])
@@ -183,7 +229,11 @@ class OffsetPosterior:
             # Multivariate t in 3-D with scale σ: density ∝ σ^-3 (1 + r²/(ν σ²))^(-(ν+3)/2).
             ll = -0.5 * (nu + 3) * np.log1p(r2 / (nu * sig2)) - 3.0 * log_sigma[..., self.sensor_index]
             ll = ll + gammaln((nu + 3) / 2) - gammaln(nu / 2)
-        return ll.sum(axis=-1) - log_sigma.sum(axis=-1)
+        out = ll.sum(axis=-1) - log_sigma.sum(axis=-1)
+        if self.L:
+            pos, sd = self.link_free()
+            out = out - 0.5 * np.sum((np.asarray(theta)[..., pos] / sd) ** 2, axis=-1)
+        return out
 
     def sse(self, theta: np.ndarray) -> np.ndarray:
         """E of eq. 7 per sensor: (..., S) mm²."""

@@ -34,6 +34,7 @@ class Chains:
     acceptance: np.ndarray
     seconds: float
     method: str
+    proposal_index: np.ndarray | None = None  # (n_chains, n_draws): which proposal each draw holds (independence MH)
 
     @property
     def flat(self) -> np.ndarray:
@@ -124,6 +125,7 @@ def independence_mh(
     props = proposals.reshape(n_chains, total, d)
     log_u = np.log(rng.random((n_chains, total)))
     out = np.empty((n_chains, n_draws, d))
+    held = np.empty((n_chains, n_draws), dtype=np.intp)
     acc = np.zeros(n_chains)
     for c in range(n_chains):
         cur = 0
@@ -135,7 +137,8 @@ def independence_mh(
                     acc[c] += 1
             if i > burn_in:
                 out[c, i - burn_in - 1] = props[c, cur]
-    return Chains(out, acc / n_draws, time.perf_counter() - t0, "independence-mh")
+                held[c, i - burn_in - 1] = c * total + cur
+    return Chains(out, acc / n_draws, time.perf_counter() - t0, "independence-mh", held)
 
 
 # --- diagnostics ---------------------------------------------------------------------------

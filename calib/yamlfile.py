@@ -22,24 +22,21 @@ class ConfigError(ValueError):
     """A configuration file that cannot be used; the message says where and why."""
 
 
-def _construct(node: yaml.Node, path: tuple, marks: Marks) -> Any:
+def _construct(node: yaml.Node, path: tuple, marks: Marks, loader: "yaml.SafeLoader") -> Any:
     marks[path] = (node.start_mark.line + 1, node.start_mark.column + 1)
     if isinstance(node, yaml.MappingNode):
         out: dict = {}
         for key_node, value_node in node.value:
-            key = yaml.SafeLoader.construct_object(_LOADER, key_node)
-            out[key] = _construct(value_node, path + (key,), marks)
+            key = yaml.SafeLoader.construct_object(loader, key_node)
+            out[key] = _construct(value_node, path + (key,), marks, loader)
         return out
     if isinstance(node, yaml.SequenceNode):
-        return [_construct(v, path + (i,), marks) for i, v in enumerate(node.value)]
-    return _LOADER.construct_object(node, deep=True)
+        return [_construct(v, path + (i,), marks, loader) for i, v in enumerate(node.value)]
+    return loader.construct_object(node, deep=True)
 
 
 class _Loader(yaml.SafeLoader):
     pass
-
-
-_LOADER = _Loader("")
 
 
 def load_yaml_with_marks(path: str | Path) -> tuple[Any, Marks]:
@@ -58,7 +55,9 @@ def load_yaml_with_marks(path: str | Path) -> tuple[Any, Marks]:
     if node is None:
         raise ConfigError(f"{path}: the file is empty")
     marks: Marks = {}
-    return _construct(node, (), marks), marks
+    # A loader per file: a loader keeps every object it constructed (a shared one grew without
+    # bound in a long-running daemon) and is not thread-safe.
+    return _construct(node, (), marks, _Loader("")), marks
 
 
 def _locate(loc: tuple, marks: Marks) -> tuple[int, int] | None:

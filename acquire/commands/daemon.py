@@ -22,7 +22,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import sys
 from pathlib import Path
 from typing import Optional
 
@@ -230,7 +229,3 @@ def register(app: typer.Typer) -> None:
     app.command("daemon")(daemon)
     for fn in (status, start, pause, resume, abort, runs):
         app.command(fn.__name__)(fn)
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit("use: acquire daemon --config FILE")

@@ -65,6 +65,9 @@ class SimLaunch:
     mocap_rate_hz: NatNet frame rate (120–360). natnet_version: the fake Motive's version.
     max_runtime_s: wall seconds after which the fake controllers stop sending by themselves.
     controller: False starts no controller (sensors only).
+    fri_send_period_ms: the fake Sunrise's send period (simulated ms, FRI allows 1–100); None
+    keeps the fake's default. A faster-than-real-time cell wants a longer simulated period so one
+    cycle still lasts a few wall milliseconds.
     """
 
     def __init__(
@@ -77,6 +80,7 @@ class SimLaunch:
         natnet_version: tuple[int, int] = (3, 0),
         max_runtime_s: float = 3600.0,
         controller: bool = True,
+        fri_send_period_ms: int | None = None,
     ) -> None:
         for name, port in (("fri_port", fri_port), ("rsi_port", rsi_port)):
             if not (isinstance(port, int) and 1 <= port <= 65535):
@@ -90,6 +94,9 @@ class SimLaunch:
         self.natnet_version = natnet_version
         self.max_runtime_s = float(max_runtime_s)
         self.want_controller = controller
+        if fri_send_period_ms is not None and not (isinstance(fri_send_period_ms, int) and 1 <= fri_send_period_ms <= 100):
+            raise ValueError(f"fri_send_period_ms must be 1..100 ms (FRI's range), got {fri_send_period_ms!r}")
+        self.fri_send_period_ms = fri_send_period_ms
         self.addresses: dict[str, DeviceAddress] = {}
         self.motives: dict[str, object] = {}
         self.trackers: dict[str, tuple[object, object]] = {}  # name → (FakeTracker, TcpTrackerServer)
@@ -169,16 +176,18 @@ class SimLaunch:
             from drivers.kuka_fri.fake import FakeSunrise
             from drivers.protocols import JointLimits
 
+            period = {} if self.fri_send_period_ms is None else {"send_period_ms": self.fri_send_period_ms}
             fake = FakeSunrise(
                 ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.cell,
-                clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
+                clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s, **period,
             )
             fake.start()
             self._closers.append(("controller", fake.stop))
             host, port = fake.address
             self.addresses["controller"] = DeviceAddress(
                 "controller", "fri", host, port, f"udp://{host}:{port}",
-                f"fake Sunrise (FRI) sending to the FRI client on 127.0.0.1:{self.fri_port}",
+                f"fake Sunrise (FRI, {fake.send_period_ms} ms send period) sending to the FRI client on "
+                f"127.0.0.1:{self.fri_port}",
             )
         elif kind == "kss":
             fake = self._new_krc4()

@@ -8,6 +8,7 @@ check the log, the run's MCAP file and the notifications.
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import socket
 import threading
@@ -17,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from acquire.commands.daemon import JournalFormatter
-from acquire.control import Conflict, BadRequest
+from acquire.control import BadRequest, Conflict
 from acquire.daemon import Daemon
 from acquire.daemon_config import ConfigError, DaemonConfig, endpoint_is_loopback, load_daemon_config
 from acquire.sdnotify import SdNotifier, socket_address, watchdog_interval_s
@@ -84,6 +85,41 @@ def test_config_needs_devices_or_fake(tmp_path):
     path.write_text("cell: lab1\ncommander: {name: robot, driver: rsi, url: 'rsi://0.0.0.0:49152'}\n")
     with pytest.raises(ConfigError, match="needs 'robot'"):
         load_daemon_config(path)
+
+
+def test_shipped_example_configuration_is_valid_and_loopback_only():
+    cfg = load_daemon_config(Path(__file__).parents[2] / "systemd" / "daemon.yaml.example")
+    assert cfg.zenoh.mode == "router" and cfg.zenoh.remote_endpoints == []
+    assert cfg.auth.anonymous == ["observe"] and cfg.fake_cell is None and cfg.commander.driver == "fri"
+
+
+def test_cli_daemon_bad_config_exits_2_naming_the_line(tmp_path):
+    import subprocess
+    import sys
+
+    bad = tmp_path / "d.yaml"
+    bad.write_text("cell: Lab 1\nfake: true\n")
+    out = subprocess.run([sys.executable, "-m", "acquire", "daemon", "--config", str(bad)],
+                         capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert out.returncode == 2
+    assert f"{bad}:1:7: cell: String should match pattern" in out.stderr and "given: 'Lab 1'" in out.stderr
+    # Under systemd (JOURNAL_STREAM set) every line carries its syslog priority for journald.
+    env = dict(os.environ, JOURNAL_STREAM="8:12345")
+    out = subprocess.run([sys.executable, "-m", "acquire", "daemon", "--config", str(bad)], env=env,
+                         capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    lines = out.stderr.splitlines()
+    assert lines[0].startswith("<3>ERROR acquire.commands.daemon: configuration not valid:")
+    assert all(line.startswith("<3>") for line in lines), lines
+
+
+def test_cli_client_without_daemon_reports_no_reply(tmp_path):
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-m", "acquire", "status", "--cell", CELL, "--connect",
+                          f"tcp/127.0.0.1:{free_port()}", "--timeout", "1"],
+                         capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+    assert out.returncode == 1 and "cannot open the Zenoh session" in out.stderr
 
 
 @pytest.mark.parametrize("endpoint, loopback", [
@@ -173,6 +209,102 @@ def test_watchdog_pings_stop_when_the_controller_stops_sending(tmp_path):
         notify.close()
     assert not t.is_alive()
     assert notify.all_fields()[-2].get("STOPPING") == "1"
+
+
+def test_device_host_brings_up_configured_real_drivers_against_the_fakes(tmp_path):
+    """The non-fake path: the configured FRI commander and NatNet sensor, connected over
+    loopback to the simulated cell's fake Sunrise and fake Motive, as to real devices."""
+    from acquire.daemon import DeviceHost
+    from drivers.sim.cell import SimCell
+    from drivers.sim.clock import SimClock
+    from drivers.sim.config import DEFAULT_CONFIG_PATH
+    from drivers.sim.launch import SimLaunch
+
+    fri_port = free_port()
+    cell = SimCell.from_yaml(DEFAULT_CONFIG_PATH, seed=0, clock=SimClock(1.0))
+    repo = Path(__file__).parents[2]
+    with SimLaunch(cell, fri_port=fri_port, max_runtime_s=60) as launch:
+        cfg = DaemonConfig(
+            cell=CELL, state_dir=tmp_path, robot=repo / "fixtures/robots/kuka_iiwa14_r820.yaml",
+            commander={"name": "robot", "driver": "fri", "url": f"fri://127.0.0.1:{fri_port}?rt_priority=0"},
+            sensors=[{"name": "bar", "driver": "natnet", "url": launch.addresses["mocap"].url,
+                      "markers": {"sir": "ms:tool:sir"}}],
+        )
+        host = DeviceHost(cfg)
+        try:
+            assert host.open() == ["robot", "bar"]
+            assert host.expect_stream is False  # a real controller streams only while its program runs
+            state = wait_until(lambda: _fresh_state(host.commander), 10, "FRI monitoring state")
+            assert state.position_rad.shape == (7,)
+            assert [s.name for s in host.sensors] == ["bar"]
+        finally:
+            host.close()
+        assert host.commander is None and host.sensors == []
+        # the port is free again for a run to bind
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", fri_port))
+
+
+def _fresh_state(cmd):
+    from drivers.errors import DeviceTimeoutError
+
+    try:
+        return cmd.joint_state()
+    except DeviceTimeoutError:
+        return None
+
+
+def test_health_monitor_flags_new_late_real_time_answers_and_a_silent_recorder(tmp_path):
+    """A real RSI commander answering a fake KR C4 on loopback: healthy while it answers in
+    time; unhealthy in the check after it answered late; healthy again once it keeps up."""
+    from acquire.daemon import HealthMonitor
+    from acquire.daemon_config import HealthSection
+    from calib.model import load_robot_model
+    from drivers.kuka_rsi.commander import RsiCommander
+    from drivers.kuka_rsi.fake import FakeKrc4
+    from drivers.protocols import JointLimits
+
+    model = load_robot_model(Path(__file__).parents[2] / "fixtures/robots/kuka_kr6_r900_2.yaml")
+    cmd = RsiCommander(JointLimits.from_model(model), host="127.0.0.1", port=0, rt_priority=0, connect_timeout=3.0)
+    fake = FakeKrc4(cmd.bind(), initial_deg=[0, -90, 90, 0, 45, 0], late_limit=100000, max_runtime_s=30)
+    mon = HealthMonitor(HealthSection(max_late_answers_per_check=0, max_state_age_s=0.5))
+    try:
+        fake.start()
+        cmd.connect()
+        wait_until(lambda: _fresh_state(cmd), 5, "RSI state")
+        assert mon.check(cmd, expect_stream=True, run_status=None).ok  # baseline
+        inner = cmd._formatter
+
+        class Slow:  # the exchange thread answers later than the 4 ms cycle
+            def format(self, *args):
+                time.sleep(0.006)
+                return inner.format(*args)
+
+        cmd._formatter = Slow()
+        wait_until(lambda: cmd.link_stats().late_answers >= 3, 5, "late answers")
+        cmd._formatter = inner
+        bad = mon.check(cmd, expect_stream=True, run_status=None)
+        assert not bad.ok and "late real-time answers since the last check" in bad.reason
+        # healthy again at the first check with no new late answer since the one before
+        wait_until(lambda: mon.check(cmd, expect_stream=True, run_status=None).ok, 5, "healthy again", poll=0.1)
+    finally:
+        cmd.close()
+        fake.close()
+    # Without a stream, a commander whose controller is silent is stale.
+    stale = mon.check(cmd, expect_stream=True, run_status=None)
+    assert not stale.ok and "rsi" in stale.reason
+
+    log_file = tmp_path / "run.mcap"
+    log_file.write_bytes(b"\x89MCAP0\r\n")
+    running = {"state": "running", "log": str(log_file)}
+    assert mon.check(None, expect_stream=False, run_status=running).ok
+    old = time.time() - 600
+    os.utime(log_file, (old, old))
+    silent = mon.check(None, expect_stream=False, run_status=running)
+    assert not silent.ok and "not written for 6" in silent.reason
+    assert mon.check(None, expect_stream=False, run_status=dict(running, state="paused")).ok  # paused: no writes due
+    log_file.unlink()
+    assert "No such file" in mon.check(None, expect_stream=False, run_status=running).reason
 
 
 def test_start_refuses_plans_outside_plan_dirs_and_second_runs(tmp_path):

@@ -18,11 +18,11 @@ from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under 
 )
 
 CYCLES = 12
-WARM_UP = 2
+WARM_UP = 4
 #: Allowed growth between the warmed-up baseline and the end.
 MAX_THREAD_GROWTH = 2
 MAX_FD_GROWTH = 4
-MAX_RSS_GROWTH_KB = 16 * 1024
+MAX_RSS_GROWTH_KB = 3 * 1024  # was +4.2 MiB over these 7 cycles before calib.yamlfile stopped keeping every object
 
 
 def _sockets(pid: int) -> int:

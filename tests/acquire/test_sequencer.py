@@ -133,6 +133,7 @@ class DecayingSensor:
         return np.array([500.0, 0.0, 0.0]) + swing * np.array([1.0, 1.0, 0.0])
 
     def read(self, timeout: float) -> list[MarkerSample]:
+        time.sleep(0.0005)  # yield, as a real read does, so the robot side sees the clock move
         self.clock.sleep(self.dt)
         t = self.clock.now()
         if self.lost_at is not None and t >= self.lost_at:
@@ -164,10 +165,13 @@ class StillCommander:
         if window_s >= timeout:
             raise ValueError("window longer than timeout")
         target = self.clock.now() + self.settle_s + window_s
-        for _ in range(200_000):
-            if self.clock.now() >= target:
-                break
+        last, idle = self.clock.now(), 0
+        while self.clock.now() < target:
             time.sleep(0.0001)
+            idle = idle + 1 if self.clock.now() == last else 0
+            last = self.clock.now()
+            if idle > 100:  # nobody reads any more (the sensor side ended): move time on ourselves
+                self.clock.sleep(0.01)
         return self.joint_state()
 
     def move_to(self, target, speed, timeout) -> None:

@@ -37,6 +37,7 @@ from mcap.writer import Writer
 
 # Everything is imported before the real-time exchange starts (as a daemon would): importing a C
 # extension holds the interpreter lock for milliseconds.
+from drivers.errors import DriverError
 from drivers.kuka_rsi.commander import RsiCommander
 from drivers.natnet.client import NatNetSensor
 from drivers.protocols import JointLimits
@@ -178,9 +179,14 @@ def run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> d
         t_end = time.monotonic() + seconds
         moves = 0
         targets = [np.radians(AWAY_DEG), np.radians(HOME_DEG)]
+        fault = None
         while time.monotonic() < t_end:
-            c.move_to(targets[moves % 2], speed=0.5, timeout=30.0)
-            c.wait_settled(np.radians(0.05), 0.05, 5.0)
+            try:
+                c.move_to(targets[moves % 2], speed=0.5, timeout=30.0)
+                c.wait_settled(np.radians(0.05), 0.05, 5.0)
+            except DriverError as exc:  # reported, not hidden: the phase ends here
+                fault = f"{type(exc).__name__}: {exc}"
+                break
             moves += 1
         st = c.link_stats()
         n = st.packets - n0
@@ -211,6 +217,7 @@ def run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> d
         "realtime": st.realtime,
         "late_events": fake_stats["events"],
         "slowest": slowest,
+        "fault": fault,
     }
 
 
@@ -236,6 +243,8 @@ def main() -> None:
         f"p99 {loaded['p99_us'] / base['p99_us']:.2f}x, max {loaded['max_us'] / base['max_us']:.2f}x"
     )
     for name, r in (("baseline", base), ("loaded", loaded)):
+        if r["fault"]:
+            print(f"  {name}: phase ended early by a fault: {r['fault']}")
         print(f"  {name}: {r['late_warmup']} late answer(s) during the {WARMUP_S:g} s warm-up (not counted above)")
         for e in r["late_events"][:10]:
             print(f"  {name} late event: {e}")
