@@ -444,7 +444,8 @@ class Bus:
         k = check_key_expr(key_expr)
         try:
             replies = self._session.liveliness().get(k, timeout=timeout)
-            return sorted(str(r.ok.key_expr) for r in replies if r.ok is not None)
+            # A token can answer over more than one route; a key is alive once.
+            return sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
         except zenoh.ZError as exc:
             raise BusError(f"liveliness query {k!r} failed: {exc}") from exc
 

@@ -40,6 +40,7 @@ from typing import Any, Callable
 
 from acquire.control import Authorizer, BadRequest, Conflict, ControlServer, Identity
 from acquire.daemon_config import DaemonConfig
+from acquire.recorder import base_path
 from acquire.sdnotify import SdNotifier
 from drivers.errors import DeviceTimeoutError, DriverError
 
@@ -509,11 +510,15 @@ class Daemon:
             current = self.controller.run_id if self.controller is not None else None
         out = []
         for p in sorted(self.runs_dir.glob("*/*.mcap")):
+            if base_path(p) != p:
+                continue  # a resume segment (RUN.resume1.mcap) belongs to the run of RUN.mcap
+            segments = [p, *sorted(p.parent.glob(p.stem + ".resume*.mcap"))]
             st = p.stat()
             out.append({
                 "run_id": p.parent.name,
                 "file": p.name,
-                "bytes": st.st_size,
+                "segments": len(segments),
+                "bytes": sum(s.stat().st_size for s in segments),
                 "modified": datetime.fromtimestamp(st.st_mtime, timezone.utc).isoformat(timespec="seconds"),
                 "current": p.parent.name == current,
                 "result": (p.parent / "result.json").exists() or any(p.parent.glob("*result.json")),

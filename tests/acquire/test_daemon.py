@@ -436,3 +436,18 @@ def test_sigterm_during_a_run_finishes_the_configuration_and_closes_the_log(daem
     # every configuration that was moved to was also measured: nothing left half-done
     moved = {e["config_id"] for e in contents.events if e.get("kind") == "moved"}
     assert moved and moved == {s["config_id"] for s in contents.samples}
+
+
+def test_runs_lists_a_resumed_run_once_with_all_its_segments(tmp_path):
+    cfg = DaemonConfig(cell=CELL, fake=True, state_dir=tmp_path / "state", plan_dirs=[tmp_path / "plans"])
+    d = Daemon(cfg, notifier=SdNotifier(env={}))
+    run = d.runs_dir / "example-1"
+    run.mkdir(parents=True)
+    for name, size in (("example-1.mcap", 100), ("example-1.resume1.mcap", 40), ("example-1.resume2.mcap", 10)):
+        (run / name).write_bytes(b"x" * size)
+    (d.runs_dir / "example-2").mkdir()
+    (d.runs_dir / "example-2" / "example-2.mcap").write_bytes(b"y" * 7)
+    runs = {r["run_id"]: r for r in d.runs()["runs"]}
+    assert set(runs) == {"example-1", "example-2"}
+    assert (runs["example-1"]["segments"], runs["example-1"]["bytes"]) == (3, 150)
+    assert (runs["example-2"]["segments"], runs["example-2"]["bytes"]) == (1, 7)
