@@ -92,6 +92,7 @@ class RunSummary:
     report_path: Optional[Path] = None
     fit: Optional[dict] = None
     truth_offsets_deg: Optional[list] = None
+    truth_mean_sag_deg: Optional[list] = None
     skipped_reasons: dict = field(default_factory=dict)
 
     @property
@@ -612,6 +613,7 @@ class RunController:
 
         lp, s = self.lp, self.settings
         configs = resolve_configurations(lp)
+        self._planned_q = np.stack([c.q_rad for c in configs]) if configs else None
         todo, already = self._todo(configs)
         with self._lock:
             self._total = len(configs)
@@ -818,14 +820,19 @@ class RunController:
             self._event_safe("aborted", reason=self._reason)
         else:
             self._event_safe("run_finished", measured=self._measured, skipped=self._skipped, failed=self._failed)
-        truth = None
+        truth = sag = None
         if self._fake_cell is not None:
             truth = self._fake_cell.cell.truth.offsets_deg.tolist()
+            if getattr(self, "_planned_q", None) is not None:
+                # The cell's gravity sag per joint, averaged over the plan: a zero-offset fit
+                # cannot tell its mean from an offset, so the summary shows it beside the truth.
+                sag = np.degrees(self._fake_cell.cell.deflection(self._planned_q).mean(axis=0)).tolist()
         self._teardown()
         state = "aborted" if aborted else "finished"
         summary = self._make_summary()
         summary.cell_seconds = cell_seconds
         summary.truth_offsets_deg = truth
+        summary.truth_mean_sag_deg = sag
         if not aborted and self.fit_enabled and self.log_path is not None and self._measured >= 3:
             try:
                 summary.fit, summary.result_path, summary.report_path = fit_run_log(self.log_path, self.lp)

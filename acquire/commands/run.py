@@ -108,9 +108,12 @@ def format_run_summary(summary, lp) -> str:
     if summary.fit is not None:
         names = lp.model.axis_names
         truth = summary.truth_offsets_deg
+        sag = summary.truth_mean_sag_deg
         head = f"{'joint':<6} {'fitted (deg)':>13} {'± std':>8}"
         if truth is not None:
             head += f" {'truth (deg)':>12} {'error':>8}"
+        if sag is not None:
+            head += f" {'mean sag':>9}"
         lines += ["", head]
         for i, j in enumerate(summary.fit["joint_offsets"]):
             v, sd = j.get("value_deg"), j.get("std_deg")
@@ -118,9 +121,14 @@ def format_run_summary(summary, lp) -> str:
                 f"{sd:8.4f}" if sd is not None else f"{'—':>8}")
             if truth is not None:
                 row += f" {truth[i]:+12.4f}" + (f" {v - truth[i]:+8.4f}" if v is not None else f" {'—':>8}")
+            if sag is not None:
+                row += f" {sag[i]:+9.4f}"
             if not j.get("identifiable", True):
                 row += f"  {j.get('status', '')}"
             lines.append(row)
+        if sag is not None:
+            lines.append("mean sag: the simulated cell's gravity deflection of each joint, averaged over the plan —")
+            lines.append("a zero-offset fit cannot tell it from an offset, so expect 'error' to carry part of it")
         lines.append("")
         lines.append(f"result: {summary.result_path}")
         if summary.report_path is not None:
