@@ -110,12 +110,11 @@ from pydantic import (
     ValidationError,
     ValidationInfo,
     field_validator,
-    model_validator,
 )
 from pydantic.fields import FieldInfo
 
 from calib.model import RobotModel, load_robot_model
-from calib.yamlfile import ConfigError, Marks, load_yaml_with_marks
+from calib.yamlfile import ConfigError, CrossFieldChecked, Marks, load_yaml_with_marks
 
 log = logging.getLogger(__name__)
 
@@ -286,7 +285,7 @@ class FakeSpec(_Strict):
     time_scale: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall second.")
 
 
-class Plan(_Strict):
+class Plan(_Strict, CrossFieldChecked):
     """The ``plan.yaml`` schema; see the module docstring."""
 
     cell: str = Field(pattern=r"^[a-z0-9_-]+$", max_length=64, description="Cell id, the Zenoh key prefix.")
@@ -346,14 +345,6 @@ class Plan(_Strict):
                                                          "allowed: each axis once)"))
         return errors
 
-    @model_validator(mode="after")
-    def _cross_field_checks(self, info: ValidationInfo) -> "Plan":
-        if info.context and info.context.get("defer_cross_field_checks"):
-            return self
-        errors = self.deferred_errors()
-        if errors:
-            raise ValueError("; ".join(f"{'.'.join(map(str, loc))}: {msg}" for loc, msg in errors))
-        return self
 
 
 # --- loaded and resolved plans ---------------------------------------------------------------

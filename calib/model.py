@@ -24,10 +24,10 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from calib.transforms import pose_to_matrix
-from calib.yamlfile import load_validated
+from calib.yamlfile import CrossFieldChecked, load_validated
 
 Convention = Literal["dh", "mdh"]
 
@@ -94,7 +94,7 @@ class Tool(_Strict):
         return v
 
 
-class RobotModel(_Strict):
+class RobotModel(_Strict, CrossFieldChecked):
     """A validated robot model. Load with ``load_robot_model(path)``."""
 
     name: str
@@ -123,14 +123,6 @@ class RobotModel(_Strict):
                 errors.append((("joints", i, "axis"), f"axis names must be unique; {ax!r} repeats"))
         return errors
 
-    @model_validator(mode="after")
-    def _cross_field_checks(self, info: ValidationInfo) -> "RobotModel":
-        if info.context and info.context.get("defer_cross_field_checks"):
-            return self
-        errors = self.deferred_errors()
-        if errors:
-            raise ValueError("; ".join(f"{'.'.join(map(str, loc))}: {msg}" for loc, msg in errors))
-        return self
 
     # --- numbers for kinematics (mm, rad, controller convention) -------------------------
     @property

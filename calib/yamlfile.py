@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ValidationError, ValidationInfo, model_validator
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -20,6 +20,27 @@ Marks = dict[tuple, tuple[int, int]]
 
 class ConfigError(ValueError):
     """A configuration file that cannot be used; the message says where and why."""
+
+
+class CrossFieldChecked(BaseModel):
+    """A model with checks across fields that point at the offending field.
+
+    Subclasses return ``(field path, message)`` pairs from ``deferred_errors()``. Validated in
+    memory they raise at once; loaded through ``load_validated`` they are reported with the
+    line and column of that field.
+    """
+
+    def deferred_errors(self) -> list[tuple[tuple, str]]:
+        return []
+
+    @model_validator(mode="after")
+    def _cross_field_checks(self, info: ValidationInfo):
+        if info.context and info.context.get("defer_cross_field_checks"):
+            return self
+        errors = self.deferred_errors()
+        if errors:
+            raise ValueError("; ".join(f"{'.'.join(map(str, loc))}: {msg}" for loc, msg in errors))
+        return self
 
 
 def _construct(node: yaml.Node, path: tuple, marks: Marks, loader: "yaml.SafeLoader") -> Any:
