@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+import jsonschema
 import numpy as np
 import pytest
 from mcap.reader import NonSeekingReader, make_reader
@@ -86,7 +87,6 @@ def test_every_record_type_round_trips(tmp_path):
 
 
 def test_mcap_own_readers_read_the_log_and_messages_match_their_schemas(tmp_path):
-    jsonschema = pytest.importorskip("jsonschema")
     rng = np.random.default_rng(2)
     path = tmp_path / "run.mcap"
     with new_log(path) as lg:
