@@ -401,6 +401,17 @@ class Bus:
                 zpub.undeclare()
         pub.put(payload)
 
+    def release(self, prefix: str) -> int:
+        """Undeclare the cached ``publish`` publishers on ``prefix`` and below (e.g. a finished
+        run's keys); returns how many. Publishing there again declares afresh."""
+        p = prefix.rstrip("/")
+        with self._lock:
+            keys = [k for k in self._publishers if k == p or k.startswith(p + "/")]
+            pubs = [self._publishers.pop(k) for k in keys]
+        for pub in pubs:
+            pub.close()
+        return len(pubs)
+
     def subscribe(self, key_expr: str, callback: Callback) -> Subscription:
         """Call ``callback(key, payload_bytes)`` for every sample matching ``key_expr`` (wildcards ok).
 

@@ -841,6 +841,11 @@ class RunController:
                 summary.reason = f"fit failed: {exc}"
         self._set_state(state, self._reason if aborted else "")
         summary.state = state
+        if self.bus is not None:
+            from acquire.bus import key
+
+            # The run's own keys end with it; a long-lived daemon bus must not keep their publishers.
+            self.bus.release(key(self.cell_id, "run", self.run_id))
         return summary
 
 

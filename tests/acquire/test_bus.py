@@ -285,3 +285,15 @@ def test_watch_rejects_bad_input_before_connecting():
 def test_watch_formats_json_and_binary_payloads():
     assert format_line("remaster/c/x", b'{"a": [1, 2]}') == 'remaster/c/x {"a":[1,2]}'
     assert format_line("remaster/c/x", b"\x00\xff") == "remaster/c/x 2 bytes: 00ff"
+
+
+def test_release_drops_the_cached_publishers_of_a_prefix(pair):
+    server, _ = pair
+    for run in ("r1", "r2"):
+        server.publish(key("cell1", "run", run, "event"), {"kind": "started"})
+    assert server.release(key("cell1", "run", "r1")) == 1
+    assert server.release(key("cell1", "run", "r1")) == 0
+    assert set(server._publishers) == {key("cell1", "run", "r2", "event")}
+    # Publishing on a released key declares afresh.
+    server.publish(key("cell1", "run", "r1", "event"), {"kind": "again"})
+    assert key("cell1", "run", "r1", "event") in server._publishers
