@@ -112,8 +112,20 @@ class _Solver:
     shift_labels: list[str]
 
 
-_CACHE: dict[tuple[int, bytes | None], tuple[RobotModel, _Solver]] = {}
-_CACHE_SIZE = 32
+#: Solvers kept per model: one per parameter vector, oldest dropped first.
+_SOLVERS_PER_MODEL = 32
+
+
+def _solvers_of(model: RobotModel) -> dict[bytes | None, _Solver]:
+    """The solvers built for ``model`` (keyed by parameter-vector bytes, None = nominal), kept on
+    the model itself so they live and die with it: a daemon that loads a fresh model for every
+    run holds none of the old ones. A copy of a model (``model_copy``, ``copy``) starts with the
+    original's ``__dict__``, so the entry names its owner and a copy builds its own."""
+    owner, solvers = model.__dict__.get("_ik_solvers", (None, None))
+    if owner != id(model):
+        solvers = {}
+        model.__dict__["_ik_solvers"] = (id(model), solvers)
+    return solvers
 
 
 def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
@@ -171,16 +183,16 @@ def _solver(model: RobotModel, params: np.ndarray | None) -> _Solver:
             raise ValueError(f"params must be one Chain parameter vector of shape ({n_params},), got {p.shape}")
         if not np.all(np.isfinite(p)):
             raise ValueError("params contains NaN or infinite entries")
-    key = (id(model), None if p is None else p.tobytes())
-    hit = _CACHE.get(key)
-    if hit is not None and hit[0] is model:
-        return hit[1]
-    nominal = _CACHE.get((id(model), None))
-    chain = nominal[1].chain if nominal is not None and nominal[0] is model else Chain(model)
-    solver = _build(model, chain, p)
-    if len(_CACHE) >= _CACHE_SIZE:
-        _CACHE.pop(next(iter(_CACHE)))
-    _CACHE[key] = (model, solver)
+    solvers = _solvers_of(model)
+    key = None if p is None else p.tobytes()
+    hit = solvers.get(key)
+    if hit is not None:
+        return hit
+    nominal = solvers.get(None)
+    solver = _build(model, nominal.chain if nominal is not None else Chain(model), p)
+    if len(solvers) >= _SOLVERS_PER_MODEL:
+        solvers.pop(next(k for k in solvers if k is not None))  # the nominal solver stays
+    solvers[key] = solver
     return solver
 
 

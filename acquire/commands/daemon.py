@@ -146,6 +146,9 @@ def _print_reply(op: str, reply: dict) -> None:
         typer.echo(f"cell {reply['cell']}: daemon {reply['daemon']}, "
                    f"{'healthy' if reply['healthy'] else 'UNHEALTHY: ' + reply['health']}, "
                    f"devices {', '.join(reply['devices']) or 'none'}{' (fake)' if reply.get('fake') else ''}")
+        rss = (reply.get("memory") or {}).get("rss_kb")
+        if rss is not None:
+            typer.echo(f"up {reply['uptime_s']:.0f} s, resident memory {rss / 1024:.0f} MiB")
         run = reply.get("run")
         if run:
             eta = run.get("eta_s")

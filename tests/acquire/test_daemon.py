@@ -11,6 +11,8 @@ import logging
 import os
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -94,9 +96,6 @@ def test_shipped_example_configuration_is_valid_and_loopback_only():
 
 
 def test_cli_daemon_bad_config_exits_2_naming_the_line(tmp_path):
-    import subprocess
-    import sys
-
     bad = tmp_path / "d.yaml"
     bad.write_text("cell: Lab 1\nfake: true\n")
     out = subprocess.run([sys.executable, "-m", "acquire", "daemon", "--config", str(bad)],
@@ -113,9 +112,6 @@ def test_cli_daemon_bad_config_exits_2_naming_the_line(tmp_path):
 
 
 def test_cli_client_without_daemon_reports_no_reply(tmp_path):
-    import subprocess
-    import sys
-
     out = subprocess.run([sys.executable, "-m", "acquire", "status", "--cell", CELL, "--connect",
                           f"tcp/127.0.0.1:{free_port()}", "--timeout", "1"],
                          capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
@@ -357,6 +353,15 @@ def test_daemon_runs_pauses_resumes_aborts_a_fake_plan_and_stops_on_sigterm(daem
         op = control(bus, "operator", OPERATOR_TOKEN)
         st = op.call("status")
         assert st["daemon"] == "ready" and st["healthy"] and st["run"] is None
+        assert st["memory"]["rss_kb"] > 10_000 and st["memory"]["python_heap_kb"] is None  # no tracemalloc
+        cli = subprocess.run([sys.executable, "-m", "acquire", "status", "--cell", CELL, "--connect",
+                              f"tcp/127.0.0.1:{port}", "--client", "operator"],
+                             capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
+                             env=dict(os.environ, REMASTER_TOKEN=OPERATOR_TOKEN))
+        assert cli.returncode == 0, cli.stderr
+        lines = cli.stdout.splitlines()
+        assert lines[0] == f"cell {CELL}: daemon ready, healthy, devices controller, mocap, tracker (fake)", lines
+        assert lines[1].startswith("up ") and "resident memory" in lines[1] and lines[2] == "no run", lines
         wait_until(lambda: notify.count("WATCHDOG", "1") >= 2, 5, "watchdog pings after READY")
         assert all(m.t >= ready.t for m in notify.messages if m.fields.get("WATCHDOG"))
 

@@ -503,3 +503,27 @@ def test_bad_input_raises_value_error_saying_what_is_allowed():
         ik.solve_many(m7, np.stack([np.eye(4)] * 2), arm_angle=np.zeros(3))
     with pytest.raises(TypeError, match="RobotModel"):
         ik.solve_all({"joints": []}, np.eye(4))
+
+
+def test_solvers_live_and_die_with_their_model():
+    """The solver cache holds no model alive (a daemon loads a model per run), and a copy of a
+    model with other geometry gets its own solver, not the original's."""
+    import gc
+    import weakref
+
+    model = load_robot_model(ROBOTS / "kuka_kr6_r900_2.yaml")
+    q = np.radians([10.0, -80.0, 80.0, 5.0, 60.0, -20.0])
+    pose = Chain(model).fk(q)
+    assert any(np.allclose(s, q, atol=1e-9) for s in ik.solve_all(model, pose).q)
+    ref = weakref.ref(model)
+    del model
+    gc.collect()
+    assert ref() is None, "a solved model must not outlive its last user"
+
+    model = load_robot_model(ROBOTS / "kuka_kr6_r900_2.yaml")
+    ik.solve_all(model, pose)
+    joints = [j.model_copy(update={"d": j.d + 5.0}) if i == 0 else j for i, j in enumerate(model.joints)]
+    longer = model.model_copy(update={"joints": joints})
+    pose_longer = Chain(longer).fk(q)
+    assert any(np.allclose(s, q, atol=1e-9) for s in ik.solve_all(longer, pose_longer).q)
+    assert not any(np.allclose(s, q, atol=1e-6) for s in ik.solve_all(model, pose_longer).q)
