@@ -670,9 +670,9 @@ def run_daemon(cfg: DaemonConfig) -> int:
 
 
 def _collect_garbage() -> None:
-    """A full garbage collection between runs, while no device is open, so a run's cyclic
-    garbage is returned before the next run starts — and the collector's own pause never lands
-    in the middle of the robot's cyclic exchange."""
+    """A full garbage collection between runs, so a run's cyclic garbage is returned before the
+    next run starts. It runs while no device is open: its pause (tens of ms) cannot make the
+    robot's cyclic exchange late, as it would from a status query during a run."""
     t0 = time.perf_counter()
     found = gc.collect()
     log.debug("garbage collection between runs: %d objects in %.0f ms", found, (time.perf_counter() - t0) * 1e3)

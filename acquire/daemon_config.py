@@ -35,9 +35,9 @@ import ipaddress
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from calib.yamlfile import ConfigError, load_validated
+from calib.yamlfile import ConfigError, CrossFieldChecked, load_validated
 
 __all__ = [
     "PERMISSIONS",
@@ -237,7 +237,7 @@ class ShutdownSection(_Strict):
     timeout_s: float = Field(60.0, gt=0, description="after this the run is aborted anyway")
 
 
-class DaemonConfig(_Strict):
+class DaemonConfig(_Strict, CrossFieldChecked):
     """The whole daemon configuration (see the module docstring)."""
 
     cell: str = Field(pattern=_ID)
@@ -253,15 +253,6 @@ class DaemonConfig(_Strict):
     health: HealthSection = HealthSection()
     shutdown: ShutdownSection = ShutdownSection()
     status_interval_s: float = Field(1.0, gt=0, le=60, description="health check / STATUS period without a watchdog")
-
-    @model_validator(mode="after")
-    def _cross_checks(self, info: ValidationInfo) -> "DaemonConfig":
-        if info.context and info.context.get("defer_cross_field_checks"):
-            return self
-        problems = self.deferred_errors()
-        if problems:
-            raise ValueError("; ".join(f"{'.'.join(map(str, loc)) or '(top level)'}: {msg}" for loc, msg in problems))
-        return self
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         """Checks between fields, reported at the right line by ``load_validated``."""

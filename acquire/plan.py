@@ -114,7 +114,7 @@ from pydantic import (
 from pydantic.fields import FieldInfo
 
 from calib.model import RobotModel, load_robot_model
-from calib.yamlfile import ConfigError, CrossFieldChecked, Marks, load_yaml_with_marks
+from calib.yamlfile import ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate
 
 log = logging.getLogger(__name__)
 
@@ -381,7 +381,7 @@ class LoadedPlan:
 
     def error(self, loc: tuple, message: str) -> ConfigError:
         """A ConfigError ``file:line:col: field: message`` for a problem found after loading."""
-        return ConfigError(_line(self.path, self.marks, loc, message))
+        return ConfigError(error_line(self.path, self.marks, loc, message))
 
 
 @dataclass(frozen=True, eq=False)
@@ -428,18 +428,6 @@ class ResolvedPlan:
 
 
 # --- errors ------------------------------------------------------------------------------------
-def _locate(loc: tuple, marks: Marks) -> tuple[int, int] | None:
-    for n in range(len(loc), -1, -1):
-        if loc[:n] in marks:
-            return marks[loc[:n]]
-    return None
-
-
-def _line(path: Path | str, marks: Marks, loc: tuple, message: str) -> str:
-    where = _locate(tuple(loc), marks)
-    prefix = f"{path}:{where[0]}:{where[1]}" if where else str(path)
-    field_name = ".".join(str(p) for p in loc) or "(top level)"
-    return f"{prefix}: {field_name}: {message}"
 
 
 def _short(value: Any, limit: int = 60) -> str:
@@ -603,7 +591,7 @@ def format_plan_errors(path: Path | str, exc: ValidationError, marks: Marks) -> 
                    "msg": f"Expected {len(typing.get_args(ann)) or 'more'} values"}
             raw = raw[:-1]
         loc = tuple(p for p in raw if not (isinstance(p, str) and (p in _TAGS or "[" in p or "function-" in p)))
-        where = _locate(loc, marks) or (0, 0)
+        where = locate(loc, marks) or (0, 0)
         msg = err["msg"]
         allowed = _allowed(err)
         if err["type"] == "missing":
@@ -612,7 +600,7 @@ def format_plan_errors(path: Path | str, exc: ValidationError, marks: Marks) -> 
             detail = f"(given {loc[-1]!r}; allowed {allowed})"
         else:
             detail = f"(given {_short(err.get('input'))}; allowed {allowed})"
-        out.append((where, _line(path, marks, loc, f"{msg} {detail}")))
+        out.append((where, error_line(path, marks, loc, f"{msg} {detail}")))
     return out
 
 
@@ -829,7 +817,7 @@ def load_plan(path: str | Path) -> LoadedPlan:
     if model is not None:
         errors += model_errors(plan, model, folder)
     if errors:
-        located = sorted(((_locate(tuple(loc), marks) or (0, 0)), _line(path, marks, loc, msg)) for loc, msg in errors)
+        located = sorted(((locate(tuple(loc), marks) or (0, 0)), error_line(path, marks, loc, msg)) for loc, msg in errors)
         raise ConfigError("\n".join(msg for _, msg in located))
     assert model is not None
     lp = LoadedPlan(plan=plan, path=path, text=text, model=model, model_path=model_path,

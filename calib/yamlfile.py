@@ -39,7 +39,7 @@ class CrossFieldChecked(BaseModel):
             return self
         errors = self.deferred_errors()
         if errors:
-            raise ValueError("; ".join(f"{'.'.join(map(str, loc))}: {msg}" for loc, msg in errors))
+            raise ValueError("; ".join(f"{'.'.join(map(str, loc)) or '(top level)'}: {msg}" for loc, msg in errors))
         return self
 
 
@@ -81,11 +81,19 @@ def load_yaml_with_marks(path: str | Path) -> tuple[Any, Marks]:
     return _construct(node, (), marks, _Loader("")), marks
 
 
-def _locate(loc: tuple, marks: Marks) -> tuple[int, int] | None:
+def locate(loc: tuple, marks: Marks) -> tuple[int, int] | None:
+    """(line, column) of field path ``loc`` in the file, or of its nearest parent that has one."""
     for n in range(len(loc), -1, -1):
         if loc[:n] in marks:
             return marks[loc[:n]]
     return None
+
+
+def error_line(path: str | Path, marks: Marks, loc: tuple, message: str) -> str:
+    """One problem as ``path:line:col: field: message`` (the line of ``loc`` or its parent)."""
+    where = locate(tuple(loc), marks)
+    prefix = f"{path}:{where[0]}:{where[1]}" if where else str(path)
+    return f"{prefix}: {'.'.join(str(p) for p in loc) or '(top level)'}: {message}"
 
 
 def format_validation_error(path: str | Path, exc: ValidationError, marks: Marks, data: Any) -> str:
@@ -95,12 +103,9 @@ def format_validation_error(path: str | Path, exc: ValidationError, marks: Marks
         loc = tuple(err["loc"])
         # Drop pydantic's discriminator/function tags that are not keys in the file.
         file_loc = tuple(p for p in loc if not (isinstance(p, str) and ("[" in p or "function-" in p)))
-        where = _locate(file_loc, marks)
-        field = ".".join(str(p) for p in file_loc) or "(top level)"
-        prefix = f"{path}:{where[0]}:{where[1]}" if where else str(path)
         given = err.get("input")
         given_txt = "" if isinstance(given, (dict, list)) else f" (given: {given!r})"
-        lines.append(f"{prefix}: {field}: {err['msg']}{given_txt}")
+        lines.append(error_line(path, marks, file_loc, f"{err['msg']}{given_txt}"))
     return "\n".join(lines)
 
 
@@ -119,10 +124,5 @@ def load_validated(path: str | Path, model: type[M]) -> M:
     deferred = getattr(obj, "deferred_errors", None)
     problems = deferred() if deferred else []
     if problems:
-        lines = []
-        for loc, msg in problems:
-            where = _locate(tuple(loc), marks)
-            prefix = f"{path}:{where[0]}:{where[1]}" if where else str(path)
-            lines.append(f"{prefix}: {'.'.join(map(str, loc))}: {msg}")
-        raise ConfigError("\n".join(lines))
+        raise ConfigError("\n".join(error_line(path, marks, loc, msg) for loc, msg in problems))
     return obj
