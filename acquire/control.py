@@ -20,16 +20,20 @@ resume     motion      continue a paused run
 Two lines of defence. First, Zenoh itself: loopback-only listeners by default; remote
 listeners need mTLS or an access-control block (see ``daemon_config``), so the router drops a
 query from a subject the ACL does not allow before it reaches us. Second, this module checks
-every query in its handler: the query's attachment carries ``{"client": NAME, "token": TOKEN}``
-and is compared (constant time) with the SHA-256 the configuration holds for ``NAME``; a
-client configured with ``cert_common_names`` must moreover come over a TLS link whose
-certificate common name is one of them (the link of the query's source Zenoh id, as the session
-sees it). Without a valid token the query holds only ``auth.anonymous`` (default: observe).
-Every refusal is logged as a warning naming the operation, the claimed client and the reason.
+every query in its handler: the query's attachment carries a proof that the sender knows the
+token of the client it names (``acquire.control_auth``: the token itself never travels, so a
+rogue queryable that also matches the key learns nothing usable), a fresh nonce and a time
+stamp (a captured request cannot be replayed). The daemon checks it against the SHA-256 the
+configuration holds for that client; a client configured with ``cert_common_names`` must
+moreover come over a TLS link whose certificate common name is one of them (the link of the
+query's source Zenoh id, as the session sees it). Without a valid proof the query holds only
+``auth.anonymous`` (default: observe). Every refusal is logged as a warning naming the
+operation, the claimed client and the reason.
 
 Replies are JSON objects. A success is ``{"ok": true, …}``; a failure is an error reply
 ``{"ok": false, "error": KIND, "message": …}`` with KIND one of ``refused``, ``bad-request``,
-``conflict``, ``failed``.
+``conflict``, ``failed``. A reply to an authenticated request carries ``mac``, an HMAC bound to
+that request, and the client believes no reply without a valid one (``Unverified``).
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable, Protocol
 
+from acquire import control_auth
 from acquire.bus import control_key
 from acquire.daemon_config import AuthSection
 
@@ -95,6 +100,14 @@ class NoReply(ControlError, TimeoutError):
     kind = "no-reply"
 
 
+class Unverified(ControlError, PermissionError):
+    """No reply could be attributed to the daemon: unsigned or wrongly signed replies only (a
+    wrong token, or another process answering on the control keys), or, without credentials,
+    different replies from more than one responder."""
+
+    kind = "unverified"
+
+
 _KINDS = {cls.kind: cls for cls in (ControlError, Refused, BadRequest, Conflict, NoReply)}
 
 
@@ -128,31 +141,38 @@ class Authorizer:
         self._link_subject = link_subject or (lambda zid: None)
         self.refusals = 0
         self._lock = threading.Lock()
+        self._replays = control_auth.ReplayGuard()
 
-    def identify(self, attachment: bytes | None, source_zid: str | None) -> tuple[Identity, str | None]:
-        """The sender's identity and, if its credentials were rejected, why."""
+    def identify(self, attachment: bytes | None, source_zid: str | None, *, cell: str = "", op: str = "",
+                 payload: bytes | None = None) -> tuple[Identity, str | None, tuple[bytes, bytes] | None]:
+        """The sender's identity; if its credentials were rejected, why; and, when they were
+        accepted, the (key, auth message) its reply must be signed with."""
         cert_cn = self._link_subject(source_zid) if source_zid else None
         anonymous = frozenset(self.auth.anonymous)
         if not attachment:
-            return Identity(None, None, cert_cn, anonymous), None
+            return Identity(None, None, cert_cn, anonymous), None, None
         try:
-            cred = json.loads(bytes(attachment).decode())
-            name, token = cred["client"], cred["token"]
-            if not (isinstance(name, str) and isinstance(token, str)):
-                raise TypeError("client and token must be strings")
-        except (UnicodeDecodeError, ValueError, KeyError, TypeError) as exc:
-            return Identity(None, None, cert_cn, anonymous), f"attachment is not {{client, token}} JSON ({exc})"
+            req = control_auth.parse_attachment(attachment)
+        except control_auth.ProofError as exc:
+            return Identity(None, None, cert_cn, anonymous), str(exc), None
+        name = req.client
         client = next((c for c in self.auth.clients if c.name == name), None)
-        # Compare against a dummy digest for unknown names too: the answer takes the same time.
-        want = client.token_sha256 if client else "0" * 64
-        if not hmac.compare_digest(hash_token(token), want) or client is None:
-            return Identity(None, name, cert_cn, anonymous), f"wrong token for client {name!r}"
+        # Check against a dummy key for unknown names too: the answer takes the same time.
+        stored = bytes.fromhex(client.token_sha256) if client else b"\0" * 32
+        message = control_auth.auth_message(cell, op, name, req.nonce, req.ts, payload)
+        if not control_auth.verify_proof(req, stored, message) or client is None:
+            return Identity(None, name, cert_cn, anonymous), f"wrong token for client {name!r}", None
+        try:
+            self._replays.check(req)
+        except control_auth.ProofError as exc:
+            return Identity(None, name, cert_cn, anonymous), f"client {name!r}: {exc}", None
         if client.cert_common_names and cert_cn not in client.cert_common_names:
+            # The proof holds (the reply is signed), but the token came over the wrong link.
             return Identity(None, name, cert_cn, anonymous), (
                 f"client {name!r} must connect over TLS with a certificate CN in "
                 f"{client.cert_common_names}; the link's CN is {cert_cn!r}"
-            )
-        return Identity(name, name, cert_cn, frozenset(client.allow) | anonymous), None
+            ), (stored, message)
+        return Identity(name, name, cert_cn, frozenset(client.allow) | anonymous), None, (stored, message)
 
     def check(self, operation: str, identity: Identity, credential_problem: str | None) -> None:
         """Raise Refused (and log it) unless ``identity`` may perform ``operation``."""
@@ -227,27 +247,39 @@ class ControlServer:
         return handler
 
     def _handle(self, op: str, query) -> None:
-        """Answer one query; never raises into Zenoh's thread."""
+        """Answer one query, signed when its sender was authenticated; never raises into Zenoh's thread."""
         self.handled += 1
+        key = None
         try:
-            reply = self.dispatch(op, _payload_bytes(query.payload), _payload_bytes(query.attachment),
-                                  _zid_hex(query.source_info))
-            query.reply(query.key_expr, json.dumps({"ok": True, **reply}, default=str))
+            payload = _payload_bytes(query.payload)
+            reply, key = self.dispatch(op, payload, _payload_bytes(query.attachment), _zid_hex(query.source_info))
+            query.reply(query.key_expr, _signed({"ok": True, **reply}, key))
         except ControlError as exc:
-            query.reply_err(json.dumps({"ok": False, "error": exc.kind, "message": str(exc)}))
+            key = getattr(exc, "reply_key", None)
+            query.reply_err(_signed({"ok": False, "error": exc.kind, "message": str(exc)}, key))
         except Exception as exc:  # noqa: BLE001 - a bug must become an error reply, never a hang
             log.exception("control/%s failed", op)
-            query.reply_err(json.dumps({"ok": False, "error": "failed", "message": f"{type(exc).__name__}: {exc}"}))
+            query.reply_err(_signed({"ok": False, "error": "failed", "message": f"{type(exc).__name__}: {exc}"}, key))
 
-    def dispatch(self, op: str, payload: bytes | None, attachment: bytes | None, source_zid: str | None) -> dict:
-        """Authorise and perform ``op``; returns the reply body or raises ControlError."""
+    def dispatch(self, op: str, payload: bytes | None, attachment: bytes | None,
+                 source_zid: str | None) -> tuple[dict, tuple[bytes, bytes] | None]:
+        """Authorise and perform ``op``; returns the reply body and the key to sign it with (None
+        for an unauthenticated sender), or raises ControlError (``exc.reply_key`` set likewise)."""
         if op not in OPERATIONS:
             raise BadRequest(f"unknown operation {op!r}; allowed: {', '.join(OPERATIONS)}")
         for what, data in (("payload", payload), ("attachment", attachment)):
             if data is not None and len(data) > MAX_REQUEST_BYTES:
                 log.warning("refused control/%s: %s of %d bytes (limit %d)", op, what, len(data), MAX_REQUEST_BYTES)
                 raise BadRequest(f"{what} of {len(data)} bytes is too large (limit {MAX_REQUEST_BYTES})")
-        identity, problem = self.authorizer.identify(attachment, source_zid)
+        identity, problem, key = self.authorizer.identify(attachment, source_zid, cell=self.cell, op=op,
+                                                          payload=payload)
+        try:
+            return self._perform(op, identity, problem, payload), key
+        except ControlError as exc:
+            exc.reply_key = key
+            raise
+
+    def _perform(self, op: str, identity: Identity, problem: str | None, payload: bytes | None) -> dict:
         self.authorizer.check(op, identity, problem)
         request = _request(payload)
         log.log(logging.DEBUG if op in ("status", "runs") else logging.INFO, "control/%s from %s", op,
@@ -266,6 +298,13 @@ class ControlServer:
         if op == "resume":
             return b.resume()
         return b.abort(_opt_str(request, "reason") or f"aborted by {identity.describe()}")
+
+
+def _signed(body: dict, key: tuple[bytes, bytes] | None) -> str:
+    """``body`` as JSON, with its MAC when the request was authenticated."""
+    if key is not None:
+        body = {**body, "mac": control_auth.reply_mac(key[0], key[1], body)}
+    return json.dumps(body, default=str)
 
 
 def _payload_bytes(z) -> bytes | None:
@@ -297,7 +336,10 @@ def _opt_str(req: dict, name: str) -> str | None:
 class ControlClient:
     """A thin client of the control queries over an open Zenoh session.
 
-    client / token: credentials sent in the attachment (None: anonymous).
+    client / token: the credentials to prove (None: anonymous). The token never leaves this
+    object: each request carries a one-time proof of it (``acquire.control_auth``), and only a
+    reply signed for that request is believed. An anonymous client cannot authenticate replies;
+    ``last_reply_verified`` says whether the last reply was.
     """
 
     def __init__(self, session, cell: str, *, client: str | None = None, token: str | None = None) -> None:
@@ -305,34 +347,86 @@ class ControlClient:
             raise ValueError("give both client and token, or neither")
         self.session = session
         self.cell = cell
-        self._attachment = json.dumps({"client": client, "token": token}).encode() if client else None
+        self._client = client
+        self._token = token
+        self.last_reply_verified = False
+        #: Replies refused so far because they could not be attributed to the daemon.
+        self.rejected_replies = 0
 
     def call(self, op: str, request: dict[str, Any] | None = None, *, timeout: float = 10.0) -> dict:
-        """Send ``op`` and return the reply body; raise the matching ControlError on an error
-        reply and NoReply when nothing answers within ``timeout`` seconds."""
+        """Send ``op`` and return the daemon's reply body; raise the matching ControlError on an
+        error reply, Unverified when no reply can be attributed to the daemon, and NoReply when
+        nothing answers within ``timeout`` seconds."""
         import zenoh  # a thin client needs nothing else of the daemon
 
         if op not in OPERATIONS:
             raise ValueError(f"unknown operation {op!r}; allowed: {', '.join(OPERATIONS)}")
+        payload = json.dumps(request).encode() if request else None
         kwargs: dict[str, Any] = {}
-        if request:
-            kwargs["payload"] = json.dumps(request)
-        if self._attachment:
-            kwargs["attachment"] = self._attachment
-        # A querier has an entity id; sending it as source info lets the daemon find our link
-        # (and its TLS subject). The daemon never trusts it alone: the token decides.
-        querier = self.session.declare_querier(control_key(self.cell, op), timeout=timeout)
+        if payload:
+            kwargs["payload"] = payload
+        key = None
+        if self._token is not None:
+            creds, message = control_auth.make_request(self._token, self._client, self.cell, op, payload)
+            kwargs["attachment"] = creds.attachment()
+            key = (control_auth.stored_key(self._token), message)
+        self.last_reply_verified = False
+        # Every responder's reply, unconsolidated: a rogue answering first must not hide the daemon's.
+        querier = self.session.declare_querier(control_key(self.cell, op), target=zenoh.QueryTarget.ALL,
+                                               consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
+        unverified: list[dict] = []
         try:
+            # A querier has an entity id; sending it as source info lets the daemon find our link
+            # (and its TLS subject). The daemon never trusts it alone: the proof decides.
             kwargs["source_info"] = zenoh.SourceInfo(querier.id, 0)
             for reply in querier.get(**kwargs):
-                if reply.ok is not None:
-                    return json.loads(reply.ok.payload.to_bytes())
-                body = json.loads(reply.err.payload.to_bytes())
-                cls = _KINDS.get(body.get("error"), ControlError)
-                raise cls(body.get("message", "control query failed"))
+                sample = reply.ok if reply.ok is not None else reply.err
+                body = _reply_body(sample.payload.to_bytes())
+                if key is not None and body is not None and _mac_ok(body, key):
+                    self.last_reply_verified = True
+                    return _outcome(body)
+                unverified.append(body if body is not None else {"ok": False, "error": "failed",
+                                                                 "message": "reply is not a JSON object"})
         finally:
             querier.undeclare()
+        if key is None and unverified:
+            distinct = {control_auth.canonical(b) for b in unverified}
+            if len(distinct) == 1:
+                return _outcome(unverified[0])
+            self.rejected_replies += len(unverified)
+            raise Unverified(f"{len(unverified)} different replies to control/{op} from more than one responder on "
+                             f"cell {self.cell!r}; without credentials none can be attributed to the daemon — give "
+                             "--client and a token")
+        if unverified:
+            self.rejected_replies += len(unverified)
+            first = unverified[0]
+            raise Unverified(
+                f"no reply to control/{op} could be attributed to the daemon of cell {self.cell!r} "
+                f"({len(unverified)} unsigned or wrongly signed; is the token right? is another process answering "
+                f"on remaster/{self.cell}/control/**?); the first said: {first.get('message', first)}")
         raise NoReply(
             f"no reply to control/{op} for cell {self.cell!r} within {timeout:g} s "
             f"(is the daemon running, and are you allowed by its access control?)"
         )
+
+
+def _reply_body(data: bytes) -> dict | None:
+    try:
+        body = json.loads(data)
+    except (UnicodeDecodeError, ValueError):
+        return None
+    return body if isinstance(body, dict) else None
+
+
+def _mac_ok(body: dict, key: tuple[bytes, bytes]) -> bool:
+    mac = body.get("mac")
+    return isinstance(mac, str) and hmac.compare_digest(mac, control_auth.reply_mac(key[0], key[1], body))
+
+
+def _outcome(body: dict) -> dict:
+    """The reply body of a success (without its MAC); raise the matching ControlError otherwise."""
+    body = {k: v for k, v in body.items() if k != "mac"}
+    if body.get("ok"):
+        return body
+    cls = _KINDS.get(body.get("error"), ControlError)
+    raise cls(body.get("message", "control query failed"))

@@ -97,7 +97,7 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], c
           token_file: Optional[Path], tls_ca: Optional[Path], tls_cert: Optional[Path], tls_key: Optional[Path],
           timeout: float, as_json: bool) -> dict:
     from acquire.bus import Bus, BusError, is_loopback_endpoint
-    from acquire.control import BadRequest, Conflict, ControlClient, ControlError, NoReply, Refused
+    from acquire.control import BadRequest, Conflict, ControlClient, ControlError, NoReply, Refused, Unverified
 
     cell = cell or os.environ.get("REMASTER_CELL")
     if not cell:
@@ -125,7 +125,10 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], c
     config = {"mode": "client", "connect": [connect], "zenoh": {"transport/link/tls": tls} if tls else {}}
     try:
         with Bus(cell, config=config, listen_loopback_only=is_loopback_endpoint(connect)) as bus:
-            reply = ControlClient(bus.session, cell, client=client, token=token).call(op, request, timeout=timeout)
+            cc = ControlClient(bus.session, cell, client=client, token=token)
+            reply = cc.call(op, request, timeout=timeout)
+    except Unverified as exc:
+        _fail(str(exc), 3)
     except Refused as exc:
         _fail(str(exc), 3)
     except NoReply as exc:
@@ -134,6 +137,9 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], c
         _fail(str(exc), 2)
     except (ControlError, BusError) as exc:
         _fail(str(exc), 1)
+    if not cc.last_reply_verified:
+        typer.echo("note: reply not authenticated (no credentials given): it may not come from the daemon",
+                   err=True)
     if as_json:
         typer.echo(json.dumps(reply, indent=2, sort_keys=True))
     else:

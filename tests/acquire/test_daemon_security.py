@@ -13,7 +13,7 @@ import shutil
 import pytest
 
 from acquire.bus import BusError
-from acquire.control import BadRequest, Conflict, NoReply, Refused
+from acquire.control import BadRequest, Conflict, NoReply, Refused, Unverified
 
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
@@ -57,9 +57,12 @@ def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tm
                 (viewer, "resume", None),
             ]
             for who, op, req in attempts:
-                with pytest.raises(Refused, match=f"{op} refused: needs permission 'motion'"):
+                # The thief's proof fails, so the daemon's refusal is unsigned: the thief's client
+                # cannot attribute it to the daemon and says so.
+                with pytest.raises(Unverified if who is thief else Refused,
+                                   match=f"{op} refused: needs permission 'motion'"):
                     who.call(op, req)
-            with pytest.raises(Refused, match="wrong token for client 'operator'"):
+            with pytest.raises(Unverified, match="wrong token for client 'operator'"):
                 thief.call("start", {"plan": "example.yaml"})
             assert anon.call("status")["run"] is None  # nothing started
             assert not (tmp_path / "state" / "plans").exists()  # the inline plan was never written
@@ -71,7 +74,8 @@ def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tm
             assert run["run_id"] == run_id and "plan" not in run
             assert op.call("status")["run"]["plan"] == str(tmp_path / "plans" / "example.yaml")
             for who in (anon, thief, viewer):
-                with pytest.raises(Refused, match="plan refused: needs permission 'read'"):
+                with pytest.raises(Unverified if who is thief else Refused,
+                                   match="plan refused: needs permission 'read'"):
                     who.call("plan", {"run_id": run_id})
             assert op.call("plan")["plan_text"] == inline
             # The viewer holds 'control': it may stop motion, never cause it.

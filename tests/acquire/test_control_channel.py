@@ -1,0 +1,214 @@
+"""The control channel leaks nothing: a rogue queryable on ``remaster/<cell>/control/**`` learns
+no usable credential, cannot replay what it captured, and a client never believes its reply.
+
+Real Zenoh sessions on loopback: the daemon's ``ControlServer`` on one, a rogue process's
+queryable on another, the client on a third.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+
+import pytest
+
+from acquire import control_auth as auth
+from acquire.bus import Bus
+from acquire.control import Authorizer, ControlClient, ControlServer, Refused, Unverified
+from acquire.daemon_config import AuthSection
+
+CELL = "lab1"
+TOKEN = "s3cret-operator-token-4f1b"
+
+
+class Backend:
+    """The daemon's side of the queries, reduced to what the channel needs."""
+
+    def __init__(self) -> None:
+        self.paused = 0
+
+    def status(self, *, include_plan: bool) -> dict:
+        return {"cell": CELL, "daemon": "ready", "run": None, "who": "daemon"}
+
+    def runs(self) -> dict:
+        return {"runs": []}
+
+    def plan(self, run_id):
+        return {"plan_text": "…"}
+
+    def start(self, request, identity):
+        return {"run_id": "r1"}
+
+    def pause(self) -> dict:
+        self.paused += 1
+        return {"state": "paused"}
+
+    def resume(self) -> dict:
+        return {"state": "running"}
+
+    def abort(self, reason: str) -> dict:
+        return {"state": "aborting"}
+
+
+class Rogue:
+    """A process that declared the control keys: records what it gets and answers first."""
+
+    def __init__(self, bus: Bus, reply: dict) -> None:
+        self.seen: list[tuple[str, bytes | None, bytes | None]] = []
+        self._lock = threading.Lock()
+        self._reply = reply
+
+        def handler(query) -> None:
+            with self._lock:
+                self.seen.append((str(query.key_expr), _bytes(query.payload), _bytes(query.attachment)))
+            query.reply(query.key_expr, json.dumps(self._reply))
+
+        self._q = bus.session.declare_queryable(f"remaster/{CELL}/control/**", handler)
+
+    def close(self) -> None:
+        self._q.undeclare()
+
+
+def _bytes(z) -> bytes | None:
+    return None if z is None else z.to_bytes()
+
+
+@pytest.fixture()
+def cell():
+    """Three sessions on loopback: daemon, rogue (a peer of the daemon) and a client connected to both."""
+    daemon = Bus(CELL, config={"listen": ["tcp/127.0.0.1:0"]})
+    rogue = Bus(CELL, config={"listen": ["tcp/127.0.0.1:0"], "connect": daemon.locators})
+    client = Bus(CELL, config={"listen": [], "connect": daemon.locators + rogue.locators})
+    yield daemon, rogue, client
+    for b in (client, rogue, daemon):
+        b.close()
+
+
+def _server(bus: Bus, backend: Backend) -> ControlServer:
+    section = AuthSection.model_validate({
+        "anonymous": ["observe"],
+        "clients": [{"name": "operator", "token_sha256": hashlib.sha256(TOKEN.encode()).hexdigest(),
+                     "allow": ["observe", "read", "control", "motion"]}],
+    })
+    return ControlServer(bus.session, CELL, backend, Authorizer(section))
+
+
+def _wait_routes(client: Bus, n_responders: int) -> None:
+    """Until ``n_responders`` queryables answer an anonymous status (the routes are up)."""
+    import time
+
+    import zenoh
+
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline:
+        q = client.session.declare_querier(f"remaster/{CELL}/control/status", target=zenoh.QueryTarget.ALL,
+                                           consolidation=zenoh.ConsolidationMode.NONE, timeout=2.0)
+        try:
+            if len(list(q.get())) >= n_responders:
+                return
+        finally:
+            q.undeclare()
+        time.sleep(0.05)
+    raise AssertionError(f"{n_responders} control responders not reachable")
+
+
+def test_rogue_queryable_learns_nothing_usable_and_its_reply_is_refused(cell):
+    daemon_bus, rogue_bus, client_bus = cell
+    backend = Backend()
+    server = _server(daemon_bus, backend)
+    rogue = Rogue(rogue_bus, {"ok": True, "cell": CELL, "daemon": "ready", "run": {"run_id": "FAKE"}, "who": "rogue"})
+    try:
+        _wait_routes(client_bus, 2)
+        op = ControlClient(client_bus.session, CELL, client="operator", token=TOKEN)
+        for _ in range(4):
+            reply = op.call("status")
+            assert reply["who"] == "daemon" and reply["run"] is None and op.last_reply_verified
+        assert op.call("pause") == {"ok": True, "state": "paused"}
+        assert backend.paused == 1
+
+        # What the rogue captured: no token, no hash of it, in any form.
+        captured = [(k, p, a) for k, p, a in rogue.seen if a is not None]
+        assert len(captured) >= 5
+        secret_forms = [TOKEN.encode(), TOKEN.encode().hex().encode(), hashlib.sha256(TOKEN.encode()).hexdigest().encode(),
+                        hashlib.sha256(TOKEN.encode()).digest()]
+        for _, _, attachment in captured:
+            assert not any(form in attachment for form in secret_forms)
+            assert "token" not in json.loads(attachment)
+
+        # Replaying a captured request to the daemon: refused (the nonce was used), nothing moves.
+        key, payload, attachment = next(c for c in captured if c[0].endswith("/pause"))
+        replay = server.authorizer.identify(attachment, None, cell=CELL, op="pause", payload=payload)
+        assert replay[0].client is None and "replayed" in replay[1]
+        with pytest.raises(Refused, match="replayed"):
+            server.dispatch("pause", payload, attachment, None)
+        # The same proof for another operation (or another cell) proves nothing.
+        for other_op, other_cell in (("start", CELL), ("pause", "other-cell")):
+            ident, problem, _ = server.authorizer.identify(attachment, None, cell=other_cell, op=other_op,
+                                                           payload=payload)
+            assert ident.client is None and "wrong token" in problem
+        assert backend.paused == 1
+        assert server.authorizer.refusals >= 1
+    finally:
+        rogue.close()
+        server.close()
+
+
+def test_client_refuses_replies_it_cannot_attribute_to_the_daemon(cell):
+    _, rogue_bus, client_bus = cell
+    rogue = Rogue(rogue_bus, {"ok": True, "cell": CELL, "daemon": "ready", "run": {"run_id": "FAKE"}})
+    try:
+        _wait_routes(client_bus, 1)
+        op = ControlClient(client_bus.session, CELL, client="operator", token=TOKEN)
+        with pytest.raises(Unverified, match="no reply to control/status could be attributed to the daemon"):
+            op.call("status", timeout=3)
+        assert op.rejected_replies == 1 and not op.last_reply_verified
+        # A forged MAC does not help either.
+        rogue._reply = {**rogue._reply, "mac": "0" * 64}
+        with pytest.raises(Unverified):
+            op.call("pause", timeout=3)
+        # Without credentials nothing can be verified: the reply comes back marked as such.
+        anon = ControlClient(client_bus.session, CELL)
+        assert anon.call("status", timeout=3)["run"] == {"run_id": "FAKE"}
+        assert not anon.last_reply_verified
+    finally:
+        rogue.close()
+
+
+def test_anonymous_client_refuses_conflicting_responders(cell):
+    daemon_bus, rogue_bus, client_bus = cell
+    server = _server(daemon_bus, Backend())
+    rogue = Rogue(rogue_bus, {"ok": True, "cell": CELL, "daemon": "ready", "run": {"run_id": "FAKE"}})
+    try:
+        _wait_routes(client_bus, 2)
+        anon = ControlClient(client_bus.session, CELL)
+        with pytest.raises(Unverified, match="2 different replies .* from more than one responder"):
+            anon.call("status", timeout=5)
+    finally:
+        rogue.close()
+        server.close()
+
+
+def test_proofs_bind_the_request_and_old_clients_are_refused():
+    req, message = auth.make_request(TOKEN, "operator", CELL, "pause", b'{"x":1}')
+    stored = auth.stored_key(TOKEN)
+    assert auth.verify_proof(req, stored, message)
+    assert not auth.verify_proof(req, auth.stored_key("another"), message)
+    assert not auth.verify_proof(req, stored, auth.auth_message(CELL, "pause", "operator", req.nonce, req.ts, b'{"x":2}'))
+    tampered = auth.Request(req.client, req.nonce, req.ts, ("00" if req.proof[:2] != "00" else "11") + req.proof[2:])
+    assert not auth.verify_proof(tampered, stored, message)
+    guard = auth.ReplayGuard(clock=lambda: float(req.ts))
+    guard.check(req)
+    with pytest.raises(auth.ProofError, match="replayed"):
+        guard.check(req)
+    late = auth.ReplayGuard(clock=lambda: float(req.ts) + 120)
+    with pytest.raises(auth.ProofError, match="synchronise the clocks"):
+        late.check(req)
+    with pytest.raises(auth.ProofError, match="sent its token in clear"):
+        auth.parse_attachment(json.dumps({"client": "operator", "token": TOKEN}).encode())
+    with pytest.raises(auth.ProofError, match="v1"):
+        auth.parse_attachment(json.dumps({"v": 1, "client": "operator"}).encode())
+    body = {"ok": True, "n": 3, "nested": {"b": 1, "a": [1.5, "x"]}}
+    mac = auth.reply_mac(stored, message, body)
+    assert auth.reply_mac(stored, message, json.loads(json.dumps({**body, "mac": mac}))) == mac
+    assert auth.reply_mac(stored, message, {**body, "n": 4}) != mac
