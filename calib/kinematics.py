@@ -17,6 +17,7 @@ configurations or parameter sets; the only loop is over the n joints.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +66,11 @@ class Chain:
                 nominal_markers.ravel(),
             ]
         )
+        # Plain-float copies for the one-configuration path (``_walk_one``).
+        self._theta0_f = self.theta0.tolist()
+        self._sign_f = self.sign.tolist()
+        self._base_f = self.base[:3, :].T.tolist()  # columns x, y, z, origin
+        self._flange_f = self.flange[:3, :].tolist()
         axes = model.axis_names
         self.param_names = [f"{ax}.{kind}" for kind in KINDS for ax in axes] + [
             f"{mk}.{c}" for mk in self.marker_names for c in "xyz"
@@ -150,13 +156,62 @@ class Chain:
         cx, cy, cz = (fr[0, k] * cx + fr[1, k] * cy + fr[2, k] * cz for k in range(3))
         return (cx, cy, cz), pos, rec
 
+    def _walk_one(self, q: np.ndarray, p: np.ndarray) -> tuple[list, list, list, list]:
+        """``_walk`` for one configuration (n,) and one parameter vector (P,) in plain floats:
+        a single call costs microseconds, not the overhead of dozens of tiny numpy operations.
+        Returns the flange's x, y, z columns and origin, each a list of 3 floats."""
+        n = self.n
+        qf, pf = q.tolist(), p.tolist()
+        (xx, xy, xz), (yx, yy, yz), (zx, zy, zz), (ox, oy, oz) = self._base_f
+        cos, sin = math.cos, math.sin
+        for i in range(n):
+            th = self._theta0_f[i] + self._sign_f[i] * (qf[i] + pf[i])
+            ct, st = cos(th), sin(th)
+            d, a, al, be = pf[n + i], pf[2 * n + i], pf[3 * n + i], pf[4 * n + i]
+            x1x, x1y, x1z = ct * xx + st * yx, ct * xy + st * yy, ct * xz + st * yz
+            y1x, y1y, y1z = ct * yx - st * xx, ct * yy - st * xy, ct * yz - st * xz
+            ox, oy, oz = ox + a * x1x + d * zx, oy + a * x1y + d * zy, oz + a * x1z + d * zz
+            ca, sa = cos(al), sin(al)
+            yx, yy, yz = ca * y1x + sa * zx, ca * y1y + sa * zy, ca * y1z + sa * zz
+            z2x, z2y, z2z = ca * zx - sa * y1x, ca * zy - sa * y1y, ca * zz - sa * y1z
+            if be:
+                cb, sb = cos(be), sin(be)
+                xx, xy, xz = cb * x1x - sb * z2x, cb * x1y - sb * z2y, cb * x1z - sb * z2z
+                zx, zy, zz = sb * x1x + cb * z2x, sb * x1y + cb * z2y, sb * x1z + cb * z2z
+            else:
+                xx, xy, xz, zx, zy, zz = x1x, x1y, x1z, z2x, z2y, z2z
+        f = self._flange_f
+        pos = [ox + f[0][3] * xx + f[1][3] * yx + f[2][3] * zx,
+               oy + f[0][3] * xy + f[1][3] * yy + f[2][3] * zy,
+               oz + f[0][3] * xz + f[1][3] * yz + f[2][3] * zz]
+        cols = [[f[0][k] * xx + f[1][k] * yx + f[2][k] * zx,
+                 f[0][k] * xy + f[1][k] * yy + f[2][k] * zy,
+                 f[0][k] * xz + f[1][k] * yz + f[2][k] * zz] for k in range(3)]
+        return cols[0], cols[1], cols[2], pos
+
+    def _single(self, q: np.ndarray, params: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(q, p) when the call is one configuration with one parameter vector, else None."""
+        q = np.asarray(q, dtype=float)
+        if q.ndim != 1 or (params is not None and np.ndim(params) != 1):
+            return None
+        return self._q(q), self._params(params)
+
     def flange_pose(self, q: np.ndarray, params: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Flange rotation (..., 3, 3) and position (..., 3) mm in the robot base frame."""
+        one = self._single(q, params)
+        if one is not None:
+            cx, cy, cz, pos = self._walk_one(*one)
+            return np.array([cx, cy, cz]).T, np.array(pos)
         cols, pos, _ = self._walk(self._q(q), self._params(params), record=False)
         return np.stack(cols, -1), pos
 
     def fk(self, q: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
         """Flange frames (..., 4, 4) in the robot base frame."""
+        one = self._single(q, params)
+        if one is not None:
+            cx, cy, cz, pos = self._walk_one(*one)
+            return np.array([[cx[0], cy[0], cz[0], pos[0]], [cx[1], cy[1], cz[1], pos[1]],
+                             [cx[2], cy[2], cz[2], pos[2]], [0.0, 0.0, 0.0, 1.0]])
         rot, pos = self.flange_pose(q, params)
         t = np.zeros(pos.shape[:-1] + (4, 4))
         t[..., :3, :3] = rot
@@ -171,6 +226,12 @@ class Chain:
 
     def marker_positions(self, q: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
         """Every marker's position (..., m, 3) mm in the robot base frame."""
+        one = self._single(q, params)
+        if one is not None:
+            cx, cy, cz, pos = self._walk_one(*one)
+            mk = one[1][self.marker_slice()].tolist()
+            return np.array([[pos[k] + mk[3 * j] * cx[k] + mk[3 * j + 1] * cy[k] + mk[3 * j + 2] * cz[k]
+                              for k in range(3)] for j in range(self.m)]).reshape(self.m, 3)
         p = self._params(params)
         (cx, cy, cz), pos, _ = self._walk(self._q(q), p, record=False)
         mk = self._markers_param(p, pos.ndim - 1)

@@ -1,73 +1,58 @@
-"""Forward-kinematics and Jacobian throughput of ``calib.kinematics.Chain`` against a naive loop.
+"""Forward kinematics of ``calib.kinematics.Chain`` against pybotics, the published peer.
 
 Run: ``python tests/bench/bench_fk.py [--robot fixtures/robots/kuka_iiwa14_r820.yaml]``
+(needs the bench extra: ``pip install -e ".[bench]"``; pybotics 3.1.2 pins numpy<2 but runs on
+numpy 2 — install it with ``pip install --no-deps pybotics==3.1.2``).
 
-Workload: the paper's 173 joint configurations (seeded, inside the limits) × {1, 100, 2000}
-parameter vectors (nominal plus seeded perturbations), i.e. what a sampler or a fitter asks for.
-Throughput is (configurations × parameter sets) per second, best of a few repeats.
+Peer: pybotics 3.1.2 (``Robot.fk``), built from the same model: our standard-DH links rewritten
+as pybotics' modified-DH links (link i takes α, a of link i−1; the last link's a, α and our
+flange go into pybotics' tool; our base is its world frame; q_pybotics = sign·q). Both sides are
+checked to agree to 1e-9 mm before anything is timed. Models with a Hayati β (M-DH TX60) cannot
+be expressed in pybotics and are refused.
 
-Baseline, measured in the same run: the straightforward implementation — for every parameter
-set and every configuration, a Python loop over the joints building 4×4 matrices
-``Rz(θ) Tz(d) Tx(a) Rx(α) Ry(β)`` with numpy and multiplying them; for the Jacobian, forward
-differences of that loop over every parameter. The baseline runs on a subset (it is slow); its
-rate is per evaluation, so the ratio is like for like. Both must agree numerically (checked).
+Figures, each best of a few repeats:
+- one configuration, one call (what an IK polish, a jog or a GUI asks for): µs per call;
+- 173 configurations (the paper's plan) × {1, 100} parameter sets: evaluations per second, ours
+  batched vs pybotics in a loop (it has no batched FK);
+- the parameter Jacobian of the marker positions: ours analytic and batched vs forward
+  differences through pybotics' FK, which is how pybotics' own calibration example gets its
+  Jacobian (``scipy.optimize.least_squares`` with a 2-point Jacobian over the chain vector).
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from calib.kinematics import Chain  # noqa: E402
+from calib.model import load_robot_model  # noqa: E402
 
 
-def naive_link(theta: float, d: float, a: float, alpha: float, beta: float) -> np.ndarray:
-    ct, st, ca, sa, cb, sb = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha), math.cos(beta), math.sin(beta)
-    rz = np.array([[ct, -st, 0, 0], [st, ct, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-    tz = np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, d], [0, 0, 0, 1.0]])
-    tx = np.array([[1, 0, 0, a], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-    rx = np.array([[1, 0, 0, 0], [0, ca, -sa, 0], [0, sa, ca, 0], [0, 0, 0, 1.0]])
-    ry = np.array([[cb, 0, sb, 0], [0, 1, 0, 0], [-sb, 0, cb, 0], [0, 0, 0, 1.0]])
-    return rz @ tz @ tx @ rx @ ry
+def pybotics_robot(chain: Chain, params: np.ndarray):
+    """A pybotics ``Robot`` with the kinematics of ``chain`` at parameter vector ``params``."""
+    from pybotics.kinematic_chain import MDHKinematicChain
+    from pybotics.link import RevoluteMDHLink
+    from pybotics.robot import Robot
+    from pybotics.tool import Tool
 
-
-def naive_fk(chain: Chain, q: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """One configuration, one parameter vector: (4, 4) flange frame the textbook way."""
     n = chain.n
-    t = chain.base.copy()
-    for i in range(n):
-        theta = chain.theta0[i] + chain.sign[i] * (q[i] + p[i])
-        t = t @ naive_link(theta, p[n + i], p[2 * n + i], p[3 * n + i], p[4 * n + i])
-    return t @ chain.flange
-
-
-def naive_fk_all(chain: Chain, q: np.ndarray, params: np.ndarray) -> np.ndarray:
-    return np.array([[naive_fk(chain, x, p) for x in q] for p in params])
-
-
-def naive_marker_jacobian(chain: Chain, q: np.ndarray, p: np.ndarray, h: float = 1e-7) -> np.ndarray:
-    """Forward differences of the naive loop: (n_q, m, 3, P)."""
-    mk = p[chain.marker_slice()].reshape(chain.m, 3)
-
-    def markers(x, pp):
-        t = naive_fk(chain, x, pp)
-        return (t[:3, :3] @ pp[chain.marker_slice()].reshape(chain.m, 3).T).T + t[:3, 3]
-
-    out = np.zeros((len(q), chain.m, 3, chain.n_params))
-    for j, x in enumerate(q):
-        base = (naive_fk(chain, x, p)[:3, :3] @ mk.T).T + naive_fk(chain, x, p)[:3, 3]
-        for k in range(chain.n_params):
-            pp = p.copy()
-            pp[k] += h
-            out[j, :, :, k] = (markers(x, pp) - base) / h
-    return out
+    if chain.model.convention != "dh" or np.any(params[4 * n:5 * n] != 0):
+        raise ValueError(f"{chain.model.name}: only standard-DH models without a Hayati β map onto pybotics' links")
+    d, a, alpha = params[n:2 * n], params[2 * n:3 * n], params[3 * n:4 * n]
+    theta = chain.theta0 + chain.sign * params[:n]
+    links = [RevoluteMDHLink(alpha=0.0 if i == 0 else alpha[i - 1], a=0.0 if i == 0 else a[i - 1],
+                             theta=theta[i], d=d[i]) for i in range(n)]
+    ca, sa = math.cos(alpha[-1]), math.sin(alpha[-1])
+    last = np.array([[1, 0, 0, a[-1]], [0, ca, -sa, 0], [0, sa, ca, 0], [0, 0, 0, 1.0]])
+    return Robot(MDHKinematicChain(links), tool=Tool(matrix=last @ chain.flange), world_frame=chain.base.copy())
 
 
 def best_time(fn, repeats: int = 3) -> float:
@@ -84,48 +69,75 @@ def main() -> None:
     ap.add_argument("--robot", default=str(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"))
     ap.add_argument("--configs", type=int, default=173)
     args = ap.parse_args()
+    try:
+        import pybotics  # noqa: F401
+    except ImportError:
+        sys.exit("bench_fk needs pybotics: pip install --no-deps pybotics==3.1.2 (the bench extra)")
 
     model = load_robot_model(args.robot)
     chain = Chain(model)
     rng = np.random.default_rng(0)
     q = rng.uniform(model.lower_limits_rad, model.upper_limits_rad, (args.configs, model.n_joints))
-    scale = np.concatenate([np.full(chain.n, 1e-3), np.full(2 * chain.n, 0.1), np.full(2 * chain.n, 1e-3), np.full(3 * chain.m, 0.1)])
-    all_params = chain.nominal + rng.normal(size=(2000, chain.n_params)) * scale
+    scale = np.concatenate([np.full(chain.n, 1e-3), np.full(2 * chain.n, 0.1), np.full(chain.n, 1e-3),
+                            np.zeros(chain.n), np.full(3 * chain.m, 0.1)])
+    all_params = chain.nominal + rng.normal(size=(100, chain.n_params)) * scale
     all_params[0] = chain.nominal
+    robots = [pybotics_robot(chain, p) for p in all_params]
+    sq = q * chain.sign
+
+    # Agreement first: a bench of two different computations is meaningless.
+    for k in (0, 7):
+        ours = chain.fk(q[:20], all_params[k])
+        theirs = np.array([robots[k].fk(x) for x in sq[:20]])
+        err = np.abs(ours - theirs).max()
+        if err > 1e-9 * 1e3:
+            sys.exit(f"pybotics and Chain disagree by {err:.3g} mm; fix the mapping before timing")
 
     print(f"robot: {model.name} ({chain.n} joints, {chain.n_params} parameters), {len(q)} configurations")
-    print(f"{'what':<34} {'param sets':>10} {'ours evals/s':>14} {'naive evals/s':>14} {'ratio':>8}")
+    print(f"{'what':<44} {'ours':>14} {'pybotics':>14} {'ratio':>8}")
 
-    # Naive baseline rate, measured once on a subset (same for every batch size: it is a loop).
-    sub_q, sub_p = q[:40], all_params[:3]
-    naive_t = best_time(lambda: naive_fk_all(chain, sub_q, sub_p), repeats=2)
-    naive_rate = len(sub_q) * len(sub_p) / naive_t
-    np.testing.assert_allclose(naive_fk_all(chain, sub_q, sub_p), chain.fk(sub_q, sub_p), atol=1e-9)
+    n_calls = 2000
+    x, r0 = q[0], robots[0]
+    ours_t = best_time(lambda: [chain.fk(x) for _ in range(n_calls)]) / n_calls
+    theirs_t = best_time(lambda: [r0.fk(sq[0]) for _ in range(n_calls)]) / n_calls
+    print(f"{'FK, one configuration (µs per call)':<44} {ours_t * 1e6:>14.1f} {theirs_t * 1e6:>14.1f} "
+          f"{theirs_t / ours_t:>7.1f}x")
+    ours_t = best_time(lambda: [chain.marker_positions(x) for _ in range(n_calls)]) / n_calls
+    print(f"{'marker positions, one configuration (µs)':<44} {ours_t * 1e6:>14.1f} {'—':>14} {'':>8}")
 
-    for k in (1, 100, 2000):
-        params = all_params[:k]
-        t = best_time(lambda: chain.fk(q, params))
-        rate = len(q) * k / t
-        print(f"{'flange FK (4x4)':<34} {k:>10} {rate:>14.3e} {naive_rate:>14.3e} {rate / naive_rate:>8.1f}x")
-    for k in (1, 100, 2000):
-        params = all_params[:k]
-        t = best_time(lambda: chain.marker_positions(q, params))
-        rate = len(q) * k / t
-        print(f"{'marker positions':<34} {k:>10} {rate:>14.3e} {naive_rate:>14.3e} {rate / naive_rate:>8.1f}x")
-
-    # Jacobian: analytic, batched vs forward differences of the naive loop.
-    sub_j = q[:10]
-    naive_jt = best_time(lambda: naive_marker_jacobian(chain, sub_j, chain.nominal), repeats=1)
-    naive_jrate = len(sub_j) / naive_jt
-    ours_j = chain.marker_jacobian(sub_j, chain.nominal)[1]
-    np.testing.assert_allclose(ours_j, naive_marker_jacobian(chain, sub_j, chain.nominal), atol=1e-3)
     for k in (1, 100):
         params = all_params[:k]
-        t = best_time(lambda: chain.marker_jacobian(q, params))
-        rate = len(q) * k / t
-        print(f"{'marker Jacobian (all params)':<34} {k:>10} {rate:>14.3e} {naive_jrate:>14.3e} {rate / naive_jrate:>8.1f}x")
-    print(f"(naive FK measured on {len(sub_q)}x{len(sub_p)} evaluations in {naive_t:.3f} s; "
-          f"naive Jacobian on {len(sub_j)} configurations in {naive_jt:.3f} s)")
+        t = best_time(lambda: chain.fk(q, params))
+        sub = robots[:k] if k == 1 else robots[:5]
+        tp = best_time(lambda: [r.fk(v) for r in sub for v in sq], repeats=2)
+        ours_rate, peer_rate = len(q) * k / t, len(q) * len(sub) / tp
+        print(f"{f'FK batched, {k} parameter set(s) (evals/s)':<44} {ours_rate:>14.3e} {peer_rate:>14.3e} "
+              f"{ours_rate / peer_rate:>7.1f}x")
+
+    # Parameter Jacobian of one marker: analytic vs 2-point differences through pybotics' FK.
+    sub_j = q[:10]
+    mk = chain.nominal[chain.marker_slice()].reshape(chain.m, 3)[0]
+    h = 1e-7
+
+    def peer_jacobian() -> np.ndarray:
+        out = np.zeros((len(sub_j), 3, 4 * chain.n))
+        for j, v in enumerate(sub_j * chain.sign):
+            base = robots[0].fk(v)
+            p0 = base[:3, :3] @ mk + base[:3, 3]
+            for kk in range(4 * chain.n):  # offset, d, a, α of every joint
+                pp = chain.nominal.copy()
+                pp[kk] += h
+                t = pybotics_robot(chain, pp).fk(v)
+                out[j, :, kk] = (t[:3, :3] @ mk + t[:3, 3] - p0) / h
+        return out
+
+    tpj = best_time(peer_jacobian, repeats=1)
+    ours_j = chain.marker_jacobian(sub_j, chain.nominal)[1][:, 0, :, :4 * chain.n]
+    np.testing.assert_allclose(ours_j, peer_jacobian(), atol=1e-3)
+    tj = best_time(lambda: chain.marker_jacobian(q, chain.nominal))
+    ours_rate, peer_rate = len(q) / tj, len(sub_j) / tpj
+    print(f"{'marker Jacobian (configs/s)':<44} {ours_rate:>14.3e} {peer_rate:>14.3e} {ours_rate / peer_rate:>7.1f}x")
+    print("(ratio = pybotics time / our time; > 1 means we are faster)")
 
 
 if __name__ == "__main__":

@@ -306,7 +306,13 @@ def test_batched_shapes_and_values_agree_with_single_calls():
     batch = chain.fk(q, params)
     for a in range(4):
         for b in range(5):
+            # One configuration with one parameter vector takes the plain-float path.
             np.testing.assert_allclose(batch[a, b], chain.fk(q[b], params[a]), atol=1e-12)
+            rot, pos1 = chain.flange_pose(q[b], params[a])
+            np.testing.assert_allclose(rot, batch[a, b, :3, :3], atol=1e-12)
+            np.testing.assert_allclose(pos1, batch[a, b, :3, 3], atol=1e-12)
+            np.testing.assert_allclose(chain.marker_positions(q[b], params[a]),
+                                       chain.marker_positions(q[b:b + 1], params[a:a + 1])[0, 0], atol=1e-12)
             np.testing.assert_allclose(jac[a, b], chain.marker_jacobian(q[b], params[a])[1], atol=1e-9)
 
 
