@@ -42,10 +42,12 @@ from calib.model import RobotModel
 
 #: Relative residual below which a Jacobian column counts as a combination of the kept ones.
 RANK_TOL = 1e-6
+#: Without a prior, columns reproduced to this relative residual are left out as weakly determined.
+WEAK_TOL = 3e-3
 #: Condition number (columns scaled to mm of ball motion) above which a fit is called weak.
 COND_WEAK = 1e4
-#: Default prior on the link parameters: mm for d and a, degrees for α and β.
-DEFAULT_TOLERANCE = (0.5, 0.1)
+#: Default prior on the link parameters: mm for d and a, degrees for α and β (as the fast fit's).
+DEFAULT_TOLERANCE = (0.2, 0.02)
 
 
 class SocketDataError(ValueError):
@@ -249,9 +251,10 @@ def _pivot_start(chain: Chain, ds: SocketDataset, params: np.ndarray) -> tuple[n
     return sol[:3], sol[3:].reshape(g, 3)
 
 
-def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: int) -> tuple[list[int], dict[int, str]]:
+def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: int,
+            rank_tol: float = RANK_TOL) -> tuple[list[int], dict[int, str]]:
     """Greedy column selection in ``order``: a column the kept ones reproduce (relative
-    residual < RANK_TOL) is dropped, with the kept columns it duplicates named. The first
+    residual < ``rank_tol``) is dropped, with the kept columns it duplicates named. The first
     ``n_fixed_first`` entries of ``order`` are always kept (the group points)."""
     kept: list[int] = []
     dropped: dict[int, str] = {}
@@ -267,10 +270,11 @@ def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: 
             rel = np.linalg.norm(col - basis @ coef) / norm
         else:
             coef, rel = np.zeros(0), 1.0
-        if rel < RANK_TOL and pos >= n_fixed_first:
+        if rel < rank_tol and pos >= n_fixed_first:
             big = np.argsort(-np.abs(coef))[:3]
             partners = [names[kept[i]] for i in big if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
-            dropped[c] = f"indistinguishable from {', '.join(partners)} in this data"
+            how = "indistinguishable from" if rel < RANK_TOL else f"nearly a combination (residual {rel:.1e}) of"
+            dropped[c] = f"{how} {', '.join(partners)} in this data"
             continue
         kept.append(c)
         basis = np.column_stack([basis, col])
@@ -279,12 +283,14 @@ def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: 
 
 def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, float] | None = DEFAULT_TOLERANCE,
                kinds: tuple[str, ...] = ("offset", "d", "a", "alpha", "beta"), sigma_point_mm: float = 0.1,
-               sigma_distance_mm: float = 0.1, max_nfev: int = 200) -> SocketFit:
+               sigma_distance_mm: float = 0.1, max_nfev: int = 200, weak_tol: float | None = None) -> SocketFit:
     """Fit the identifiable kinematic parameters, the ball and the socket points.
 
     tolerance: (mm, deg) prior sd of d, a and α, β around the data sheet; None for no prior
     (then only what the data determine sharply should be asked for, e.g. ``kinds=("offset",)``).
     kinds: which parameter kinds may be fitted (``offset`` only: zero-offsets and the ball).
+    weak_tol: also leave out columns the kept ones reproduce to this relative residual (weakly
+    determined); default: ``WEAK_TOL`` without a prior (nothing else bounds them), none with one.
     """
     chain = Chain(model)
     n, k = chain.n, len(ds.q_rad)
@@ -326,7 +332,9 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     scatter = (pos - pts0[ds.group])[:, :, None]
     consistent = jcols.copy()
     consistent[: 3 * k, 3 * len(ds.groups):] -= (np.cross(jw, scatter, axis=1) * scale).reshape(3 * k, nc)
-    kept, more = _select(consistent, all_names, kept, 3 * len(ds.groups))
+    if weak_tol is None:
+        weak_tol = WEAK_TOL if tolerance is None else RANK_TOL
+    kept, more = _select(consistent, all_names, kept, 3 * len(ds.groups), max(weak_tol, RANK_TOL))
     dropped.update(more)
     free = np.array([cand[i - 3 * len(ds.groups)] for i in kept if i >= 3 * len(ds.groups)], dtype=int)
     excluded = {all_names[i]: why for i, why in dropped.items()}

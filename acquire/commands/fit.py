@@ -184,6 +184,11 @@ def fit(
     model_out: Optional[Path] = typer.Option(
         None, "--model-out", help="full: write the identified robot model YAML here (default: beside -o as <name>.model.yaml)."
     ),
+    socket_distance: Optional[float] = typer.Option(
+        None, "--socket-distance",
+        help="Socket data: distance between the sockets of each placement, mm (default: the file's "
+        "'# socket_distance_mm:' line; without either the scale is undetermined).",
+    ),
 ) -> None:
     """Fit the joint zero-offsets (and the sensor registration and σ) to measured marker positions."""
     if method not in ("fast", "paper", "full"):
@@ -197,6 +202,22 @@ def fit(
         model = load_robot_model(robot)
     except ConfigError as exc:
         raise typer.BadParameter(str(exc), param_hint="--robot") from exc
+    from acquire.commands.socket_fit import fit_socket_file, is_socket_csv
+
+    if is_socket_csv(data):
+        sensor_only = {"--validate": validate is not None, "--joints": joints is not None, "--fix-registration": fix_registration,
+                       "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper"}
+        refused = [k for k, v in sensor_only.items() if v]
+        if refused:
+            raise typer.BadParameter(f"{', '.join(refused)} do not apply to socket data (no sensor, no registration; "
+                                     "held-out placements are scored automatically)", param_hint="DATA")
+        fit_socket_file(data, model, method=method, distance_mm=socket_distance,
+                        link_tolerance=_link_tolerance(link_tolerance),
+                        output=output, model_out=model_out)
+        return
+    if socket_distance is not None:
+        raise typer.BadParameter("--socket-distance applies to socket data (a CSV ending in placement,socket)",
+                                 param_hint="--socket-distance")
     try:
         ds = load_dataset(data, model)
     except DatasetError as exc:

@@ -1,0 +1,190 @@
+"""``acquire fit`` on socket data: the sensorless calibration (``calib.socket``).
+
+Chosen by the file: a CSV whose header ends in ``placement,socket`` (``calib.socket`` format).
+Writes result.json (offsets, ball, socket points, identifiability, held-out scores) and, with
+``--model-out`` (or beside ``-o``), the corrected robot model whose tool is the fitted ball.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from calib.kinematics import Chain
+from calib.model import RobotModel
+from calib.socket import (
+    SocketDataError,
+    SocketDataset,
+    SocketFit,
+    fit_socket,
+    leave_one_placement_out,
+    read_socket_csv,
+    socket_scores,
+)
+
+#: A fitted play above this (mm) means the data, not the robot, is wrong: do not enter.
+MAX_PLAUSIBLE_PLAY_MM = 1.0
+#: An offset whose 95 % interval is wider than ± this (degrees) is too weakly determined to
+#: enter: the correction could be worse than leaving the axis as it is.
+MAX_ENTER_CI95_DEG = 0.1
+
+
+def is_socket_csv(path: Path) -> bool:
+    """True for a CSV whose header (first non-comment line) ends in ``placement,socket``."""
+    if path.suffix.lower() != ".csv":
+        return False
+    try:
+        with path.open(encoding="utf-8") as fh:
+            for line in fh:
+                if line.strip() and not line.lstrip().startswith("#"):
+                    return [c.strip() for c in line.split(",")][-2:] == ["placement", "socket"]
+    except (OSError, UnicodeDecodeError):
+        return False
+    return False
+
+
+def _deg(kind: str) -> bool:
+    return kind in ("offset", "alpha", "beta")
+
+
+def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, folds, method: str) -> dict:
+    """result.json for a socket fit (mm, degrees)."""
+    chain = Chain(model)
+    names = chain.param_names
+    trusted, why = trust(fit)
+    offsets = []
+    for i, ax in enumerate(model.axis_names):
+        name = f"{ax}.offset"
+        ok = name in fit.free_names
+        half = 1.96 * math.degrees(fit.std[i]) if ok else math.nan
+        if not ok:
+            status, reason = "undetermined", fit.excluded.get(name, "")
+        elif not trusted:
+            status, reason = "do not enter", why
+        elif half > MAX_ENTER_CI95_DEG:
+            status, reason = "do not enter", (f"weakly determined: 95 % interval ±{half:.3f}° (> ±{MAX_ENTER_CI95_DEG}°); "
+                                              "add configurations that turn this axis with the ball off its axis")
+        else:
+            status, reason = "fitted", ""
+        offsets.append({
+            "joint": ax, "index": i + 1, "identifiable": status == "fitted",
+            "value_deg": math.degrees(fit.params[i]) if ok else None,
+            "std_deg": math.degrees(fit.std[i]) if ok else None,
+            "ci95_deg": [math.degrees(fit.params[i]) - half, math.degrees(fit.params[i]) + half] if ok else None,
+            "status": status, "reason": reason,
+        })
+    params = []
+    for name in fit.free_names:
+        i = names.index(name)
+        kind = name.rsplit(".", 1)[1]
+        f = math.degrees if _deg(kind) else float
+        params.append({"name": name, "nominal": f(chain.nominal[i]) if i < chain.marker_slice().start else None,
+                       "value": f(fit.params[i]), "std": f(fit.std[i]), "unit": "deg" if _deg(kind) else "mm"})
+    ball, ball_sd = fit.ball(chain)
+    return {
+        "kind": "socket",
+        "method": method,
+        "robot": {"name": model.name},
+        "data": {"source": ds.source, "n_configurations": int(len(ds.q_rad)),
+                 "groups": [{"placement": p, "socket": s, "n": int(np.sum(ds.group == g))} for g, (p, s) in enumerate(ds.groups)],
+                 "distances_mm": [{"a": "/".join(ds.groups[a]), "b": "/".join(ds.groups[b]), "mm": d} for a, b, d in ds.distances]},
+        "joint_offsets": offsets,
+        "parameters": params,
+        "ball_mm": {"value": ball.tolist(), "std": ball_sd.tolist(), "frame": "flange"},
+        "socket_points_mm": [{"placement": p, "socket": s, "value": fit.points[g].tolist(), "std": fit.points_std[g].tolist(),
+                              "frame": "robot base"} for g, (p, s) in enumerate(ds.groups)],
+        "sigma_point_mm": fit.sigma_point_mm,
+        "rms_mm": fit.rms_mm,
+        "identifiability": {"excluded": fit.excluded, "weak": fit.weak, "condition_number": fit.condition_number},
+        "scores": {
+            "calibration": [s.__dict__ for s in socket_scores(chain, fit.params, ds)],
+            "held_out": [{"placement": b.placement, "before": b.__dict__, "after": a.__dict__} for b, a in folds],
+            "notes": ["spread: RMS distance of the predicted ball centre from its socket's mean; distance error: "
+                      "| |m_a − m_b| − distance |", "held_out: fitted on the other placements, scored on this one (no re-fit)",
+                      "before: the data-sheet model with the ball from the same training data"],
+        },
+        "trusted": trusted,
+        "do_not_enter_reason": "" if trusted else why,
+        "warnings": fit.warnings + fit.weak,
+    }
+
+
+def trust(fit: SocketFit) -> tuple[bool, str]:
+    """Whether the offsets may be entered, and if not, why."""
+    if fit.sigma_point_mm > MAX_PLAUSIBLE_PLAY_MM:
+        return False, (f"the ball scatters by {fit.sigma_point_mm:.2f} mm within a socket (> {MAX_PLAUSIBLE_PLAY_MM} mm): "
+                       "the data are inconsistent (mislabelled placement/socket, loose ball)")
+    if any("did not converge" in w for w in fit.warnings):
+        return False, "the solver did not converge"
+    return True, ""
+
+
+def format_socket_summary(doc: dict) -> str:
+    lines = [f"robot: {doc['robot']['name']}", f"socket data: {doc['data']['source']} "
+             f"({doc['data']['n_configurations']} configurations, {len(doc['data']['groups'])} placement/socket groups)", ""]
+    lines.append(f"{'joint':<6} {'offset (deg)':>12} {'± std':>8}  status")
+    for j in doc["joint_offsets"]:
+        if j["value_deg"] is not None:
+            lines.append(f"{j['joint']:<6} {j['value_deg']:+12.4f} {j['std_deg']:8.4f}  {j['status']} {j['reason']}".rstrip())
+        else:
+            lines.append(f"{j['joint']:<6} {'—':>12} {'—':>8}  {j['status']}: {j['reason']}")
+    b = doc["ball_mm"]
+    lines.append("")
+    lines.append("ball in the flange frame: " + ", ".join(f"{v:.3f} ± {s:.3f}" for v, s in zip(b["value"], b["std"])) + " mm")
+    lines.append(f"ball's play in the sockets: σ = {doc['sigma_point_mm']:.3f} mm; {len(doc['parameters'])} parameters fitted")
+    ex = doc["identifiability"]["excluded"]
+    if ex:
+        lines.append("not determined by socket data (kept nominal):")
+        lines += [f"  {k}: {v}" for k, v in ex.items()]
+    held = doc["scores"]["held_out"]
+    if held:
+        lines.append("held-out placements (fit on the others, score this one):")
+        for h in held:
+            lines.append(f"  {h['placement']}: spread {h['before']['spread_mm']:.3f} → {h['after']['spread_mm']:.3f} mm, "
+                         f"distance error {h['before']['distance_error_mm']:.3f} → {h['after']['distance_error_mm']:.3f} mm")
+    lines += [f"warning: {w}" for w in doc["warnings"]]
+    if not doc["trusted"]:
+        lines.append(f"DO NOT ENTER these offsets: {doc['do_not_enter_reason']}")
+    else:
+        lines.append("the offsets were fitted together with the link parameters: entering only the offsets on the "
+                     "controller corrects the axis zeros; the corrected model file carries the rest.")
+    return "\n".join(lines)
+
+
+def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: float | None,
+                    link_tolerance: tuple[float, float] | None, output: Path | None, model_out: Path | None) -> dict:
+    """Fit a socket CSV; print the summary; write the result and the corrected model. Exits 1
+    when the values must not be entered."""
+    from calib.identification import corrected_model, write_model_yaml
+    from calib.result import write_result
+
+    try:
+        ds = read_socket_csv(path, model.n_joints, distance_mm=distance_mm)
+        # fast: the link prior of the fast fit (--link-tolerance); full: identification without it.
+        tolerance = None if method == "full" else link_tolerance
+        fit = fit_socket(model, ds, tolerance=tolerance)
+        folds = leave_one_placement_out(model, ds, tolerance=tolerance) if len(ds.placements) >= 3 else []
+    except SocketDataError as exc:
+        raise typer.BadParameter(str(exc), param_hint="DATA") from exc
+    doc = socket_result_dict(model, ds, fit, folds, method)
+    typer.echo(format_socket_summary(doc))
+    if model_out is None and output is not None:
+        model_out = output.with_name(output.stem + ".model.yaml")
+    if model_out is not None:
+        chain = Chain(model)
+        ms = chain.marker_slice()
+        tool_model = model.model_copy(update={"tool": model.tool.model_copy(update={
+            "markers": [model.tool.markers[0].model_copy(update={"name": "ball", "xyz": (0.0, 0.0, 0.0)})]})})
+        params = np.concatenate([fit.params[: ms.start], fit.params[ms.start:ms.start + 3]])
+        write_model_yaml(corrected_model(tool_model, params), model_out)
+        doc["model_file"] = str(model_out)
+        typer.echo(f"wrote {model_out}")
+    if output is not None:
+        write_result(output, doc)
+        typer.echo(f"wrote {output}")
+    if not doc["trusted"]:
+        raise typer.Exit(1)
+    return doc
