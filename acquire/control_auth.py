@@ -141,16 +141,21 @@ class ReplayGuard:
         self._seen: dict[str, float] = {}
         self._lock = threading.Lock()
 
-    def check(self, req: Request) -> None:
-        """Raise ProofError for a stale time stamp or a nonce seen before; else remember it."""
+    def check_time(self, req: Request) -> float:
+        """Raise ProofError for a time stamp outside the skew window; returns the clock's now."""
         now = self._clock()
         try:
             ts = float(req.ts)
         except ValueError as exc:
             raise ProofError(f"time stamp {req.ts!r} is not a number") from exc
-        if abs(now - ts) > self.max_skew_s:
+        if not abs(now - ts) <= self.max_skew_s:
             raise ProofError(f"time stamp is {now - ts:+.0f} s from the daemon's clock (allowed ±{self.max_skew_s:g} s; "
                              "synchronise the clocks)")
+        return now
+
+    def check(self, req: Request) -> None:
+        """Raise ProofError for a stale time stamp or a nonce seen before; else remember it."""
+        now = self.check_time(req)
         with self._lock:
             for nonce, t in list(self._seen.items()):
                 if now - t > 2 * self.max_skew_s:
