@@ -1,7 +1,7 @@
 """RSI answer latency under load: does the commander answer every 4 ms packet in time while the
 same process decodes a 240 Hz NatNet stream and writes an MCAP log?
 
-Run: ``python tests/bench/bench_rsi.py [--seconds 60] [--cycle-ms 4] [--mcap /tmp/bench_rsi.mcap]``
+Run: ``python tests/bench/bench_rsi.py [--seconds 60] [--cycle-ms 4] [--mcap /tmp/bench_rsi.mcap] [--load]``
 
 Set-up: a fake KR C4 (``drivers.kuka_rsi.fake.FakeKrc4``, SCHED_FIFO when permitted) and, in the
 loaded phase, a fake Motive (``drivers.natnet.fake.FakeMotive``, 240 Hz, unicast NatNet 3.0) run
@@ -13,6 +13,10 @@ Phases, each ``--seconds`` long, in the same run:
   baseline  the commander alone;
   loaded    plus a ``NatNetSensor`` decoding every frame in a thread and an MCAP writer logging
             every NatNet sample and every joint state (100 Hz) to a file.
+
+``--load`` adds a third phase, the busy shared cell PC of ``tests/bench/loadgen.py``: everything
+of ``loaded`` plus four CPU-bound hog processes and a zero-offset fit running over and over in
+this process.
 
 Each phase starts measuring after a 1 s warm-up (connect, first plan, NatNet handshake); late
 answers during the warm-up are printed separately. Printed per phase: cycles answered; answer latency (kernel arrival stamp → answer sent) p50,
@@ -156,7 +160,20 @@ class Load:
         return self.fh.name and Path(self.fh.name).stat().st_size
 
 
-def run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> dict:
+def run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path, busy: bool = False) -> dict:
+    """One phase; ``busy`` adds the hogs and the fit loop (``loadgen``)."""
+    if not busy:
+        return _run_phase(seconds, cycle_ms, loaded, mcap_path)
+    from loadgen import FitLoop, Hogs, wait_for_load
+
+    with Hogs(4), FitLoop() as fits:
+        wait_for_load()
+        r = _run_phase(seconds, cycle_ms, loaded, mcap_path)
+        r["fits"] = fits.fits
+        return r
+
+
+def _run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> dict:
     limits = kr6_limits()
     c = RsiCommander(limits, host="127.0.0.1", port=0, cycle_ms=cycle_ms, connect_timeout=5.0)
     parent, child = mp.Pipe()
@@ -226,14 +243,22 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0, help="length of each phase (s)")
     ap.add_argument("--cycle-ms", type=int, default=4, choices=(4, 12))
     ap.add_argument("--mcap", type=Path, default=Path("/tmp/bench_rsi.mcap"))
+    ap.add_argument("--load", action="store_true", help="add the busy-PC phase: 4 CPU hogs and a fit loop in this process")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     print(f"RSI answer latency, {args.cycle_ms} ms cycles, {args.seconds:g} s per phase, pid {os.getpid()}, {os.cpu_count()} CPUs")
     base = run_phase(args.seconds, args.cycle_ms, False, args.mcap)
     loaded = run_phase(args.seconds, args.cycle_ms, True, args.mcap)
+    phases = [("baseline", base), ("loaded", loaded)]
+    if args.load:
+        from loadgen import load_average
+
+        busy = run_phase(args.seconds, args.cycle_ms, True, args.mcap, busy=True)
+        phases.append(("busy", busy))
+        print(f"busy phase: 4 CPU hogs + {busy['fits']} zero-offset fits in this process; load average {load_average()}")
     hdr = f"{'phase':<9} {'cycles':>7} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'late(ctrl)':>10} {'late(ours)':>10} {'moves':>6} {'NatNet frames':>13} {'MCAP bytes':>11}"
     print(hdr)
-    for name, r in (("baseline", base), ("loaded", loaded)):
+    for name, r in phases:
         print(
             f"{name:<9} {r['cycles']:>7} {r['p50_us']:>8.0f} {r['p99_us']:>8.0f} {r['max_us']:>8.0f} "
             f"{r['late_fake']:>10} {r['late_commander']:>10} {r['moves']:>6} {r['frames']:>13} {r['mcap_bytes']:>11}"
@@ -242,7 +267,10 @@ def main() -> None:
         f"ratio loaded/baseline: p50 {loaded['p50_us'] / base['p50_us']:.2f}x, "
         f"p99 {loaded['p99_us'] / base['p99_us']:.2f}x, max {loaded['max_us'] / base['max_us']:.2f}x"
     )
-    for name, r in (("baseline", base), ("loaded", loaded)):
+    if args.load:
+        print(f"ratio busy/baseline: p50 {busy['p50_us'] / base['p50_us']:.2f}x, p99 {busy['p99_us'] / base['p99_us']:.2f}x, "
+              f"max {busy['max_us'] / base['max_us']:.2f}x")
+    for name, r in phases:
         if r["fault"]:
             print(f"  {name}: phase ended early by a fault: {r['fault']}")
         print(f"  {name}: {r['late_warmup']} late answer(s) during the {WARMUP_S:g} s warm-up (not counted above)")
@@ -251,7 +279,7 @@ def main() -> None:
     print(f"  slowest single load operation: {loaded['slowest'][0] * 1e3:.2f} ms ({loaded['slowest'][1]})")
     rate = loaded["frames"] / args.seconds
     print(f"NatNet decode rate in the loaded phase: {rate:.0f} frames/s (stream 240 Hz)")
-    ok = loaded["p99_us"] < 1000 and loaded["late_fake"] == 0 and base["late_fake"] == 0
+    ok = all(r["p99_us"] < 1000 and r["late_fake"] == 0 for _, r in phases)
     print(f"real-time priority: {'yes' if loaded['realtime'] else 'no'}; target p99 < 1 ms and no late answer: {'MET' if ok else 'NOT MET'}")
 
 
