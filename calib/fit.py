@@ -451,6 +451,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         "sandwich_std_ratio": [float(v) for v in robust / np.where(model_std > 0, model_std, np.nan)],
         "error_budget": error_budget(data, sigma),
         "link_prior": _link_summary(post, chains, options),
+        "gravity_sag": _sag_summary(post, theta, sigma),
     }
     if chains.samples.shape[1] >= 4:
         # Split-R-hat also works on one chain (its two halves): it flags a drifting chain.
@@ -472,6 +473,17 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         identifiability=ident,
         diagnostics=diag,
     )
+
+
+def _sag_summary(post: OffsetPosterior, theta: np.ndarray, sigma: dict[str, tuple[float, float]]) -> dict | None:
+    """Do the residuals lean the way gravity sag would push the markers? (``calib.gravity``)"""
+    from calib.gravity import sag_check
+
+    score = sag_check(post, theta, {s: v[0] for s, v in sigma.items()})
+    if score is None:
+        return None
+    return {"statistic": score.statistic, "dof": score.dof, "p_value": score.p_value,
+            "significant": score.significant, "joints": score.joints}
 
 
 def _link_summary(post: OffsetPosterior, chains: Chains, options: FitOptions) -> dict | None:

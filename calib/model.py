@@ -60,6 +60,9 @@ class Joint(_Strict):
     limits: tuple[float, float] = Field(description="[lower, upper] in controller degrees.")
     max_speed: float = Field(gt=0, description="deg/s at 100 % override.")
     max_accel: float = Field(gt=0, description="deg/s² used for planning.")
+    mass_kg: float | None = Field(None, ge=0, le=1000, description="Mass of the link this joint moves, kg (gravity model).")
+    com_mm: tuple[float, float, float] | None = Field(
+        None, description="That link's centre of mass in this joint's DH frame (after its link transform), mm.")
 
     @field_validator("limits")
     @classmethod
@@ -83,6 +86,8 @@ class Marker(_Strict):
 class Tool(_Strict):
     name: str = "tool"
     markers: list[Marker] = Field(min_length=1)
+    mass_kg: float = Field(0.0, ge=0, le=100, description="Tool mass, kg (gravity model).")
+    com_mm: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="Tool centre of mass, flange frame, mm.")
 
     @field_validator("markers")
     @classmethod
@@ -105,6 +110,7 @@ class RobotModel(_Strict, CrossFieldChecked):
     flange: Frame = Frame()
     joints: list[Joint] = Field(min_length=1, max_length=12)
     tool: Tool
+    gravity_m_s2: tuple[float, float, float] = Field((0.0, 0.0, -9.81), description="Gravity in the base frame, m/s².")
     source: str = Field("", description="Where the nominal numbers come from.")
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:
@@ -117,6 +123,16 @@ class RobotModel(_Strict, CrossFieldChecked):
                     errors.append(
                         (("joints", i, "beta"), f"beta is only allowed with convention 'mdh' (axis {j.axis}, given {j.beta})")
                     )
+        with_mass = [j.mass_kg is not None for j in self.joints]
+        if any(with_mass) and not all(with_mass):
+            i = with_mass.index(False)
+            errors.append((("joints", i, "mass_kg"), "give mass_kg (and com_mm) for every joint or for none"))
+        for i, j in enumerate(self.joints):
+            if (j.mass_kg is None) != (j.com_mm is None):
+                errors.append((("joints", i, "com_mm" if j.com_mm is None else "mass_kg"),
+                               f"mass_kg and com_mm go together (axis {j.axis})"))
+            elif j.com_mm is not None and max(abs(c) for c in j.com_mm) > 3000:
+                errors.append((("joints", i, "com_mm"), f"com_mm is in mm and must lie within ±3000 (axis {j.axis}, given {j.com_mm})"))
         axes = [j.axis for j in self.joints]
         for i, ax in enumerate(axes):
             if axes.index(ax) != i:
@@ -157,6 +173,11 @@ class RobotModel(_Strict, CrossFieldChecked):
         """Boolean mask over leading dims: every axis of ``q_rad`` (..., n) inside limits − margin."""
         q = np.asarray(q_rad)
         return np.all((q >= self.lower_limits_rad + margin_rad) & (q <= self.upper_limits_rad - margin_rad), axis=-1)
+
+    @property
+    def has_dynamics(self) -> bool:
+        """True when every joint carries a mass and a centre of mass (the gravity model)."""
+        return all(j.mass_kg is not None for j in self.joints)
 
     def marker_index(self, name: str) -> int:
         try:

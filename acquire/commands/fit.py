@@ -140,6 +140,15 @@ def format_summary(doc: dict, controller_text: str) -> str:
             f"WARNING: the errors are not independent and isotropic as the model assumes: a model-robust "
             f"(sandwich) std of {worst} is {ratios[worst]:.2f}× the posterior's — its interval is too narrow"
         )
+    sag = d.get("gravity_sag")
+    if sag and sag["significant"]:
+        worst = sorted(sag["joints"], key=sag["joints"].get, reverse=True)[:2]
+        lines.append(
+            f"WARNING: the residuals follow the joints' gravity torques (score test χ² = {sag['statistic']:.1f} on "
+            f"{sag['dof']} dof, p = {sag['p_value']:.1g}; mostly {', '.join(worst)}): the arm sags under its weight, "
+            "which this fit does not model, so the offsets absorb part of it beyond their intervals — a joint-compliance "
+            "model is needed before these values can be trusted to that precision"
+        )
     if ess is not None and ess < 100:
         lines.append(f"WARNING: ESS {ess:.0f} < 100 — too few effective draws for reliable means and standard deviations")
     metrics = doc.get("metrics", {})
