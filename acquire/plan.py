@@ -275,6 +275,7 @@ class FitSpec(_Strict):
         0.2, gt=0, le=5, description="Prior std of link lengths/offsets d, a (mm) marginalised by the fast fit; null: the paper's model."
     )
     link_tolerance_deg: float | None = Field(0.02, gt=0, le=1, description="Prior std of link twists α (and β), degrees.")
+    compliance: bool = Field(False, description="Also fit one joint compliance per axis (gravity sag; the robot model needs link masses).")
 
 
 class FakeSpec(_Strict):

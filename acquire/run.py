@@ -944,6 +944,7 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
         fix_registration=bool(getattr(fit, "fix_registration", False)),
         error=getattr(fit, "error", "gaussian") or "gaussian",
         link_tolerance=_link_tolerance(fit),
+        compliance=bool(getattr(fit, "compliance", False)),
     )
     result = fit_offsets(model, cal, options)
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,

@@ -47,6 +47,8 @@ class FitOptions:
     (β in mdh models) that the fast method marginalises, so the offsets' intervals include what
     link errors of that size could bias (see ``calib.posterior``); None gives the paper's model.
     The paper's method always uses the paper's model.
+    compliance: also fit one joint compliance per axis (rad/(N·m), gravity sag; the robot model
+    must give link masses): ``calib.posterior``. Fast method only.
     """
 
     method: str = "fast"
@@ -64,6 +66,7 @@ class FitOptions:
     max_std_deg: float = 1.0
     paper_start: str = "zero"
     link_tolerance: tuple[float, float] | None = (0.2, 0.02)
+    compliance: bool = False
 
 
 @dataclass
@@ -152,11 +155,16 @@ def initial_registrations(chain: Chain, data: Dataset, method: str, seed: int) -
 
 
 def _scale(post: OffsetPosterior, lever_mm: float) -> np.ndarray:
-    """Per free parameter: mm per unit (lever arm for angles, 1 for translations)."""
+    """Per free parameter: mm per unit (lever arm for angles, 1 for translations, lever arm ×
+    rms torque for compliances in µrad/(N·m))."""
     out = []
-    for name in post.free_names:
+    for k, name in zip(post.free, post.free_names):
         kind = name.rsplit(".", 1)[1]
-        out.append(1.0 if kind in ("x", "y", "z") else lever_mm)
+        if kind == "compliance":
+            i = k - (post.n_full - post.C)
+            out.append(lever_mm * 1e-6 * float(np.sqrt(np.mean(post.torques[:, i] ** 2))) or 1.0)
+        else:
+            out.append(1.0 if kind in ("x", "y", "z") else lever_mm)
     return np.array(out)
 
 
@@ -332,6 +340,11 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         raise DatasetError("the dataset contains NaN or infinite values")
     if options.method not in ("fast", "paper"):
         raise ValueError(f"method {options.method!r} unknown; use 'fast' or 'paper'")
+    if options.compliance and options.method != "fast":
+        raise ValueError("the compliance model is fitted by the fast method only (the paper's model has none)")
+    if options.compliance and not model.has_dynamics:
+        raise ValueError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model "
+                         "(joints[].mass_kg, com_mm)")
     chain = Chain(model)
     b2s0 = initial_registrations(chain, data, options.initial_registration, options.seed)
     if options.registration:
@@ -356,7 +369,20 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
             for r in REG_NAMES:
                 reasons[f"{s}.{r}"] = "registration fixed by the options"
     link_prior = _link_prior(chain, options) if options.method == "fast" else {}
-    mask = ParamMask(fit_joint, reg_mask, reasons, np.ones(len(link_prior), bool))
+    fit_compliance = np.ones(n if options.compliance else 0, bool)
+    if options.compliance:
+        from calib.gravity import gravity_torques
+
+        rms = np.sqrt(np.mean(gravity_torques(chain, data.q_rad) ** 2, axis=0))
+        # An axis that carries a few % of the largest torque sags by microradians: invisible.
+        for i in np.flatnonzero(rms < 0.05 * rms.max()):
+            fit_compliance[i] = False
+            reasons[f"{model.axis_names[i]}.compliance"] = (
+                f"gravity turns this axis by only {rms[i]:.1g} N·m (rms) in these configurations: its sag cannot be seen")
+        for i in np.flatnonzero(~fit_joint):
+            fit_compliance[i] = False
+            reasons[f"{model.axis_names[i]}.compliance"] = "not fitted (its axis is excluded by the options)"
+    mask = ParamMask(fit_joint, reg_mask, reasons, np.ones(len(link_prior), bool), fit_compliance)
 
     # Too few measurements for the free parameters? (Link parameters carry priors.)
     n_free = int(mask.full.sum()) - len(link_prior) + len(sensors)
@@ -367,7 +393,8 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         )
 
     def factory(m: ParamMask) -> OffsetPosterior:
-        return OffsetPosterior(chain, data, b2s0, m, error=options.error, nu=options.nu, link_prior=link_prior)
+        return OffsetPosterior(chain, data, b2s0, m, error=options.error, nu=options.nu, link_prior=link_prior,
+                               compliance=options.compliance)
 
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
@@ -451,7 +478,8 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         "sandwich_std_ratio": [float(v) for v in robust / np.where(model_std > 0, model_std, np.nan)],
         "error_budget": error_budget(data, sigma),
         "link_prior": _link_summary(post, chains, options),
-        "gravity_sag": _sag_summary(post, theta, sigma),
+        "gravity_sag": None if options.compliance else _sag_summary(post, theta, sigma),
+        "compliance": _compliance_summary(post, full, mask) if options.compliance else None,
     }
     if chains.samples.shape[1] >= 4:
         # Split-R-hat also works on one chain (its two halves): it flags a drifting chain.
@@ -473,6 +501,32 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         identifiability=ident,
         diagnostics=diag,
     )
+
+
+#: A compliance known no better than this (rad/(N·m), 1σ) is reported as undetermined: joints of
+#: arms this size are 1e-6–3e-5 rad/(N·m) stiff.
+MAX_COMPLIANCE_STD = 1e-5
+
+
+def _compliance_summary(post: OffsetPosterior, full: np.ndarray, mask: ParamMask) -> list[dict]:
+    """Per axis: fitted compliance (rad/(N·m)) with std and 95 % interval, or why it is not fitted."""
+    out = []
+    start = post.n_full - post.C
+    for i, ax in enumerate(post.chain.model.axis_names):
+        name = f"{ax}.compliance"
+        col = full[:, start + i] * 1e-6
+        entry = {"joint": ax, "unit": "rad/(N·m)"}
+        if name in mask.reasons:
+            entry.update(status="undetermined", reason=mask.reasons[name], value=None, std=None, ci95=None)
+        elif col.std(ddof=1) > MAX_COMPLIANCE_STD:
+            entry.update(status="undetermined", value=None, std=None, ci95=None,
+                         reason=f"the data determine it only to ±{col.std(ddof=1):.1g} rad/(N·m) "
+                                f"(limit {MAX_COMPLIANCE_STD:g}): add configurations that load this axis")
+        else:
+            entry.update(status="fitted", reason="", value=float(col.mean()), std=float(col.std(ddof=1)),
+                         ci95=[float(v) for v in np.percentile(col, [2.5, 97.5])])
+        out.append(entry)
+    return out
 
 
 def _sag_summary(post: OffsetPosterior, theta: np.ndarray, sigma: dict[str, tuple[float, float]]) -> dict | None:

@@ -13,7 +13,8 @@ Gaussian errors the posterior is eq. 15: p ∝ σ^(−3n−2) exp(−E / 2σ²).
 
 The **free vector** θ holds only what is being fitted, in SI-like units: offsets (rad),
 then per sensor (x, y, z mm, α, β, γ rad), then optional link parameters (deviations of d, a mm
-and α, β rad from nominal). σ is carried separately as log σ (mm).
+and α, β rad from nominal), then optional joint compliances (µrad/(N·m), see below). σ is carried
+separately as log σ (mm).
 ``ParamMask`` says which entries are free; everything fixed sits at zero (nominal).
 
 **Link parameters as nuisance.** Real arms have link errors of tenths of a millimetre; a
@@ -22,6 +23,13 @@ only the noise. With ``link_prior`` the link parameters enter with a Gaussian pr
 manufacturing tolerance and are marginalised: the offsets' posterior then includes the
 uncertainty of what the data cannot tell apart from a link error. This is our extension; the
 paper's model (``link_prior=None``) has no such term.
+
+**Joint compliance** (``compliance=True``, models with link masses): joint i yields under the
+gravity torque τ_i(q) it carries by Δθ_i = k_i τ_i (``calib.gravity``), i.e. its angle is off by
+sign_i k_i τ_i in the controller's convention — like an offset that changes with the
+configuration. Deflections are ~1e-4 rad, so the effect enters to first order, through the
+offsets' Jacobian at the nominal arm: p += Σ_i ∂p/∂δ_i · sign_i τ_i(q) k_i (the neglected terms
+are ~1e-4 of the sag itself). Flat prior on each k_i.
 """
 
 from __future__ import annotations
@@ -46,18 +54,20 @@ class ParamMask:
     registration: np.ndarray
     reasons: dict[str, str] = field(default_factory=dict)
     link: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    compliance: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     @property
     def full(self) -> np.ndarray:
-        return np.concatenate([self.offsets, self.registration.ravel(), self.link])
+        return np.concatenate([self.offsets, self.registration.ravel(), self.link, self.compliance])
 
     def fix(self, full_index: int, reason: str, names: list[str]) -> "ParamMask":
         full = self.full.copy()
         full[full_index] = False
-        n, r = self.offsets.size, self.registration.size
+        n, r, ln = self.offsets.size, self.registration.size, self.link.size
         reasons = dict(self.reasons)
         reasons[names[full_index]] = reason
-        return ParamMask(full[:n], full[n : n + r].reshape(self.registration.shape), reasons, full[n + r :])
+        return ParamMask(full[:n], full[n : n + r].reshape(self.registration.shape), reasons, full[n + r : n + r + ln],
+                         full[n + r + ln :])
 
 
 class OffsetPosterior:
@@ -78,6 +88,7 @@ class OffsetPosterior:
         error: str = "gaussian",
         nu: float = 4.0,
         link_prior: dict[int, float] | None = None,
+        compliance: bool = False,
     ) -> None:
         if error not in ("gaussian", "student"):
             raise ValueError(f"error model {error!r} not known; use 'gaussian' or 'student'")
@@ -103,11 +114,15 @@ class OffsetPosterior:
             raise ValueError(f"the mask has {mask.link.size} link flags for {self.L} link parameters")
         if np.any(self.link_sd <= 0):
             raise ValueError("link prior standard deviations must be positive")
+        self.C = chain.n if compliance else 0
+        if mask.compliance.size != self.C:
+            raise ValueError(f"the mask has {mask.compliance.size} compliance flags for {self.C} compliances")
         self.free = np.flatnonzero(mask.full)
         self.names = (
             [f"{ax}.offset" for ax in chain.model.axis_names]
             + [f"{s}.{r}" for s in self.sensors for r in REG_NAMES]
             + [chain.param_names[i] for i in self.link_idx]
+            + [f"{ax}.compliance" for ax in chain.model.axis_names[: self.C]]
         )
         self.free_names = [self.names[i] for i in self.free]
         self.rows_per_sensor = np.bincount(self.sensor_index, minlength=self.S)
@@ -115,6 +130,14 @@ class OffsetPosterior:
         # Only the offsets move inside the fit: fold the rest of the kinematics once.
         markers_flange = np.array([mk.xyz for mk in chain.model.tool.markers], dtype=float)
         self._offset_fk = offset_kinematics(chain, data.q_rad, markers_flange[self.marker_index])
+        if self.C:
+            from calib.gravity import gravity_torques
+
+            self.torques = gravity_torques(chain, data.q_rad)  # (k, n) N·m at the nominal arm
+            _, jac = chain.marker_jacobian(data.q_rad, chain.nominal)
+            j_off = jac[np.arange(self.n_rows), self.marker_index][..., : self.n]  # (k, 3, n)
+            #: ∂ p_base / ∂ k (k, 3, n), mm per µrad/(N·m).
+            self._sag = j_off * (chain.sign * self.torques * 1e-6)[:, None, :]
 
     # --- parameter packing -----------------------------------------------------------
     @property
@@ -123,7 +146,7 @@ class OffsetPosterior:
 
     @property
     def n_full(self) -> int:
-        return self.n + 6 * self.S + self.L
+        return self.n + 6 * self.S + self.L + self.C
 
     def full_vector(self, theta: np.ndarray) -> np.ndarray:
         """Free vector(s) (..., dim) → full vector(s) (..., n + 6·S + L) with fixed entries at 0."""
@@ -135,14 +158,14 @@ class OffsetPosterior:
     def link_free(self) -> np.ndarray:
         """Positions in the free vector of the free link parameters, and their prior sds."""
         start = self.n + 6 * self.S
-        pos = [k for k, i in enumerate(self.free) if i >= start]
+        pos = [k for k, i in enumerate(self.free) if start <= i < start + self.L]
         return np.array(pos, dtype=int), self.link_sd[self.free[pos] - start] if pos else np.zeros(0)
 
     def chain_params(self, full: np.ndarray) -> np.ndarray:
         """Chain parameter vector(s) (..., P) for full vector(s): offsets and link deviations applied."""
         params = self.chain.with_offsets(full[..., : self.n])
         if self.L:
-            params[..., self.link_idx] += full[..., self.n + 6 * self.S :]
+            params[..., self.link_idx] += full[..., self.n + 6 * self.S : self.n + 6 * self.S + self.L]
         return params
 
     def corrections(self, full: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -159,6 +182,8 @@ class OffsetPosterior:
             p_base = pos[..., np.arange(self.n_rows), self.marker_index, :]
         else:
             p_base = self._offset_fk.positions(full[..., : self.n])  # (..., k, 3)
+        if self.C:
+            p_base = p_base + np.einsum("kjc,...c->...kj", self._sag, full[..., self.n_full - self.C :])
         rot, trans = self.corrections(full)  # (..., S, 3, 3), (..., S, 3)
         # Compose T*_s · base2sensor0_s once per draw and sensor, then apply it to that sensor's rows.
         r_total = rot @ self.b2s0[:, :3, :3]  # (..., S, 3, 3)
@@ -190,7 +215,10 @@ class OffsetPosterior:
         j = np.zeros((self.n_rows, 3, self.n_full))
         j[..., : self.n] = total @ j_off
         if self.L:
-            j[..., self.n + 6 * self.S :] = total @ j_rows[..., self.link_idx]
+            j[..., self.n + 6 * self.S : self.n + 6 * self.S + self.L] = total @ j_rows[..., self.link_idx]
+        if self.C:
+            j[..., self.n_full - self.C :] = total @ self._sag
+            p_base = p_base + np.einsum("kjc,c->kj", self._sag, full[self.n_full - self.C :])
         p_s0 = apply(b2s0, p_base)
         rp = np.einsum("kij,kj->ki", r_rows, p_s0)  # R* p_s0
         reg = full[self.n : self.n + 6 * self.S].reshape(self.S, 6)

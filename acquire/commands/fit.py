@@ -140,14 +140,20 @@ def format_summary(doc: dict, controller_text: str) -> str:
             f"WARNING: the errors are not independent and isotropic as the model assumes: a model-robust "
             f"(sandwich) std of {worst} is {ratios[worst]:.2f}× the posterior's — its interval is too narrow"
         )
+    for c in d.get("compliance") or []:
+        if c["status"] == "fitted":
+            lines.append(f"compliance {c['joint']}: {c['value'] * 1e6:.2f} ± {c['std'] * 1e6:.2f} µrad/(N·m), "
+                         f"95 % [{c['ci95'][0] * 1e6:.2f}, {c['ci95'][1] * 1e6:.2f}]")
+        else:
+            lines.append(f"compliance {c['joint']}: undetermined — {c['reason']}")
     sag = d.get("gravity_sag")
     if sag and sag["significant"]:
         worst = sorted(sag["joints"], key=sag["joints"].get, reverse=True)[:2]
         lines.append(
             f"WARNING: the residuals follow the joints' gravity torques (score test χ² = {sag['statistic']:.1f} on "
             f"{sag['dof']} dof, p = {sag['p_value']:.1g}; mostly {', '.join(worst)}): the arm sags under its weight, "
-            "which this fit does not model, so the offsets absorb part of it beyond their intervals — a joint-compliance "
-            "model is needed before these values can be trusted to that precision"
+            "which this fit does not model, so the offsets absorb part of it beyond their intervals — fit the joint "
+            "compliances too: --compliance (a plan: fit.compliance: true)"
         )
     if ess is not None and ess < 100:
         lines.append(f"WARNING: ESS {ess:.0f} < 100 — too few effective draws for reliable means and standard deviations")
@@ -192,6 +198,10 @@ def fit(
     report: Optional[Path] = typer.Option(None, "--report", help="Write a self-contained report.html here."),
     model_out: Optional[Path] = typer.Option(
         None, "--model-out", help="full: write the identified robot model YAML here (default: beside -o as <name>.model.yaml)."
+    ),
+    compliance: bool = typer.Option(
+        False, "--compliance",
+        help="fast: also fit one joint compliance per axis (gravity sag; the robot model needs link masses).",
     ),
     socket_distance: Optional[float] = typer.Option(
         None, "--socket-distance",
@@ -240,6 +250,8 @@ def fit(
     elif np.any(ds.split == "val"):
         val = ds.validation()
     cal = ds.calibration()
+    if compliance and method != "fast":
+        raise typer.BadParameter(f"the compliance model is fitted by --method fast only, not {method}", param_hint="--compliance")
     if method == "full":
         _fit_full(model, cal, val, output, model_out)
         return
@@ -253,6 +265,7 @@ def fit(
         n_draws=draws,
         paper_samples=paper_samples,
         paper_burn_in=paper_samples - max(paper_samples // 8, 40),
+        compliance=compliance,
     )
     try:
         result = fit_offsets(model, cal, options)

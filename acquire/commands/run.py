@@ -126,9 +126,23 @@ def format_run_summary(summary, lp) -> str:
             if not j.get("identifiable", True):
                 row += f"  {j.get('status', '')}"
             lines.append(row)
+        diag = summary.fit.get("diagnostics", {})
+        fitted_compliance = diag.get("compliance") or []
+        for c in fitted_compliance:
+            if c["status"] == "fitted":
+                lines.append(f"compliance {c['joint']}: {c['value'] * 1e6:.2f} ± {c['std'] * 1e6:.2f} µrad/(N·m)")
+            else:
+                lines.append(f"compliance {c['joint']}: undetermined — {c['reason']}")
         if sag is not None:
             lines.append("mean sag: the simulated cell's gravity deflection of each joint, averaged over the plan —")
-            lines.append("a zero-offset fit cannot tell it from an offset, so expect 'error' to carry part of it")
+            if fitted_compliance:
+                lines.append("the fit models it (joint compliances), so 'error' should stay within about 2 std")
+            else:
+                lines.append("a zero-offset fit cannot tell it from an offset, so expect 'error' to carry part of it")
+        gsag = diag.get("gravity_sag")
+        if gsag and gsag.get("significant"):
+            lines.append(f"warning: the residuals follow the joints' gravity torques (p = {gsag['p_value']:.1g}): "
+                         "the arm sags and the fit does not model it — set fit.compliance: true in the plan")
         lines.append("")
         lines.append(f"result: {summary.result_path}")
         if summary.report_path is not None:

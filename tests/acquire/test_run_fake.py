@@ -155,3 +155,24 @@ def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
         assert e["config_id"] in ids
     ended = {e["config_id"] for e in events if e["kind"] in ("skipped", "failed")}
     assert set(ids) | ended == {c.config_id for c in configs}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(400)
+def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compliance_model(tmp_path):
+    """The README's main job: the simulated cell sags under gravity; with fit.compliance the
+    fitted offsets land within 3σ of the cell's hidden truth and the loaded axes' compliances
+    are fitted."""
+    lp = load_plan(Path(__file__).resolve().parents[2] / "fixtures" / "plans" / "example.yaml")
+    assert lp.plan.fit.compliance
+    rc = RunController(lp, fake=True, out_dir=tmp_path)
+    rc.start()
+    summary = rc.wait(380)
+    assert summary.state == "finished", summary.reason
+    fitted = [j for j in summary.fit["joint_offsets"] if j["identifiable"]]
+    assert len(fitted) == 6
+    for j in fitted:
+        err = j["value_deg"] - summary.truth_offsets_deg[j["index"] - 1]
+        assert abs(err) <= 3 * j["std_deg"], (j["joint"], err, j["std_deg"])
+    comp = {c["joint"]: c for c in summary.fit["diagnostics"]["compliance"]}
+    assert comp["A2"]["status"] == "fitted" and comp["A1"]["status"] == "undetermined"

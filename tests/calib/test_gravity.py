@@ -127,3 +127,33 @@ def test_fit_warns_when_residuals_follow_gravity_and_stays_quiet_without_sag():
     quiet = [fit_offsets(model, _dataset(model, q, np.zeros(7), seed=s), options).diagnostics["gravity_sag"]
              for s in range(2, 6)]
     assert not any(x["significant"] for x in quiet), quiet
+
+
+def test_compliances_are_fitted_with_the_offsets_and_their_intervals_cover_the_truth():
+    """40 simulated arms that sag (6e-6 rad/(N·m) on A1–A4, 1.2e-5 on A5–A7): the fit with the
+    compliance model recovers offsets and the loaded axes' compliances inside their intervals;
+    the unloaded axes' compliances are reported as undetermined, not given a number."""
+    model = load_robot_model(ROBOTS / "kuka_iiwa14_r820.yaml")
+    k_true = np.array([6e-6] * 4 + [1.2e-5] * 3)
+    hits_o, hits_k = [], []
+    for seed in range(40):
+        rng = np.random.default_rng(100 + seed)
+        q = rng.uniform(model.lower_limits_rad * 0.8, model.upper_limits_rad * 0.8, (40, 7))
+        result = fit_offsets(model, _dataset(model, q, k_true, seed=seed),
+                             FitOptions(n_draws=500, compliance=True, link_tolerance=None))
+        truth = np.radians(np.random.default_rng(seed).normal(0, 0.05, 7))
+        hits_o += [lo <= t <= hi for (lo, hi), t in zip(result.offsets_ci95_rad[1:], truth[1:])]
+        comp = result.diagnostics["compliance"]
+        assert [c["status"] for c in comp] == ["undetermined", "fitted", "fitted", "fitted",
+                                               "undetermined", "undetermined", "undetermined"]
+        assert "only" in comp[0]["reason"] and comp[6]["value"] is None
+        hits_k += [c["ci95"][0] <= k <= c["ci95"][1] for c, k in zip(comp, k_true) if c["status"] == "fitted"]
+        assert result.diagnostics["gravity_sag"] is None  # modelled: nothing to warn about
+    # Measured: 92–93 % for both, as the same fitter reaches without sag on this data (92 %).
+    assert 0.88 <= np.mean(hits_o) <= 0.98, np.mean(hits_o)
+    assert 0.88 <= np.mean(hits_k) <= 0.98, np.mean(hits_k)
+    massless = model.model_dump()
+    for j in massless["joints"]:
+        j["mass_kg"] = j["com_mm"] = None
+    with pytest.raises(ValueError, match="needs link masses"):
+        fit_offsets(robot_model_from_dict(massless), _dataset(model, q, k_true, 0), FitOptions(compliance=True))
