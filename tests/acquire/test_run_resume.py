@@ -10,7 +10,7 @@ from collections import Counter
 import pytest
 
 from acquire.plan import load_plan, resolve_configurations
-from acquire.recorder import read_run
+from acquire.recorder import RunLogError, read_run
 from acquire.run import RunController
 
 from run_helpers import popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
@@ -35,6 +35,20 @@ def wait_for_samples(folder, n: int, timeout: float):
     return None
 
 
+def wait_for_starts(log, n: int, timeout: float) -> bool:
+    """Until the log holds ``n`` run_started events (a resumed process has opened its devices
+    and its segment): a kill is then a kill of a running run, however slow the machine."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            if sum(1 for e in read_run(log).events if e["kind"] == "run_started") >= n:
+                return True
+        except RunLogError:  # the new segment is being created
+            pass
+        time.sleep(0.1)
+    return False
+
+
 @pytest.mark.parametrize("seed", [7])
 def test_sigkill_at_random_moments_then_resume_measures_every_configuration_once(tmp_path, seed):
     rng = random.Random(seed)
@@ -53,9 +67,10 @@ def test_sigkill_at_random_moments_then_resume_measures_every_configuration_once
     killed_after = len(first.samples)
     assert killed_after >= 1
 
-    # 2nd kill: a resumed run killed again at a random moment
+    # 2nd kill: a resumed run killed again at a random moment after it started running
     proc = popen(*args, "--resume", str(log))
-    time.sleep(rng.uniform(3.0, 5.0))
+    assert wait_for_starts(log, 2, 90), proc.stderr.read() if proc.poll() is not None else "resume did not start in 90 s"
+    time.sleep(rng.uniform(0.5, 2.5))
     proc.send_signal(signal.SIGKILL)
     proc.communicate(timeout=30)
 
