@@ -186,22 +186,36 @@ class SocketFit:
     iterations: int
     groups: list[tuple[str, str]]
     warnings: list[str] = field(default_factory=list)
+    compliance: np.ndarray | None = None  # (n,) rad/(N·m) with the compliance model; 0 where not fitted
+    compliance_std: np.ndarray | None = None  # (n,) NaN where not fitted
 
     def ball(self, chain: Chain) -> tuple[np.ndarray, np.ndarray]:
         s = chain.marker_slice()
         return self.params[s][:3], self.std[s][:3]
 
 
+def _sag_gain(chain: Chain, q: np.ndarray) -> np.ndarray:
+    """sign_i τ_i(q) · 1e-6, (k, n): joint-angle change per µrad/(N·m) of compliance."""
+    from calib.gravity import gravity_torques
+
+    return chain.sign * gravity_torques(chain, q) * 1e-6
+
+
 class _SocketProblem:
-    """Whitened residuals r(x) and Jacobian for x = [free chain params | group points]."""
+    """Whitened residuals r(x) and Jacobian for x = [free extended params | group points].
+
+    The extended vector is the chain's (P,) followed, with compliance, by one compliance per
+    joint in µrad/(N·m) (first-order sag through the offsets' Jacobian, as in ``calib.posterior``).
+    """
 
     def __init__(self, chain: Chain, ds: SocketDataset, free: np.ndarray, nominal: np.ndarray,
                  prior_sd: np.ndarray, sigma_point: float, sigma_distance: float) -> None:
         self.chain, self.ds, self.free = chain, ds, free
-        self.nominal = nominal
+        self.nominal = nominal  # (P,) or (P + n,) with compliance
         self.prior_sd = prior_sd  # (len(free),) inf where no prior
         self.sp, self.sd = sigma_point, sigma_distance
         self.g = len(ds.groups)
+        self.gain = _sag_gain(chain, ds.q_rad) if nominal.size > chain.n_params else None
 
     def full(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = self.nominal.copy()
@@ -209,10 +223,15 @@ class _SocketProblem:
         return p, x[len(self.free):].reshape(self.g, 3)
 
     def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        p, pts = self.full(x)
+        ext, pts = self.full(x)
         nf, k = len(self.free), len(self.ds.q_rad)
-        pos, jac = self.chain.marker_jacobian(self.ds.q_rad, p)
-        pos, jac = pos[:, 0], jac[:, 0][..., self.free]  # (k,3), (k,3,nf)
+        pos, jac = self.chain.marker_jacobian(self.ds.q_rad, ext[: self.chain.n_params])
+        pos, jac = pos[:, 0], jac[:, 0]
+        if self.gain is not None:
+            sag = jac[..., : self.chain.n] * self.gain[:, None, :]  # (k, 3, n) per µrad/(N·m)
+            pos = pos + np.einsum("kjn,n->kj", sag, ext[self.chain.n_params:])
+            jac = np.concatenate([jac, sag], axis=-1)
+        jac = jac[..., self.free]  # (k,3,nf)
         r_pt = (pos - pts[self.ds.group]) / self.sp
         j_pt = np.zeros((k, 3, nf + 3 * self.g))
         j_pt[..., :nf] = jac / self.sp
@@ -283,7 +302,8 @@ def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: 
 
 def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, float] | None = DEFAULT_TOLERANCE,
                kinds: tuple[str, ...] = ("offset", "d", "a", "alpha", "beta"), sigma_point_mm: float = 0.1,
-               sigma_distance_mm: float = 0.1, max_nfev: int = 200, weak_tol: float | None = None) -> SocketFit:
+               sigma_distance_mm: float = 0.1, max_nfev: int = 200, weak_tol: float | None = None,
+               compliance: bool = False) -> SocketFit:
     """Fit the identifiable kinematic parameters, the ball and the socket points.
 
     tolerance: (mm, deg) prior sd of d, a and α, β around the data sheet; None for no prior
@@ -291,6 +311,8 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     kinds: which parameter kinds may be fitted (``offset`` only: zero-offsets and the ball).
     weak_tol: also leave out columns the kept ones reproduce to this relative residual (weakly
     determined); default: ``WEAK_TOL`` without a prior (nothing else bounds them), none with one.
+    compliance: also fit one joint compliance per axis (gravity sag; the model needs link
+    masses); axes that carry a few % of the largest gravity torque are left out.
     """
     chain = Chain(model)
     n, k = chain.n, len(ds.q_rad)
@@ -306,17 +328,32 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     ball0, pts0 = _pivot_start(chain, ds, nominal)
     ms = chain.marker_slice()
     nominal[ms.start:ms.start + 3] = ball0
-    names = chain.param_names
+    names = list(chain.param_names)
     ball_idx = list(range(ms.start, ms.start + 3))
     cand = list(ball_idx)
     for kind in ("offset", "a", "d", "alpha", "beta"):
         if kind not in kinds or (kind == "beta" and model.convention == "dh"):
             continue
         cand += list(chain.index(kind))
+    lever = float(np.median(np.linalg.norm(chain.flange_pose(ds.q_rad, nominal)[1], axis=1))) or 1000.0
+    scale_of = {c: lever if names[c].rsplit(".", 1)[1] in ("offset", "alpha", "beta") else 1.0 for c in cand}
+    excluded_first: dict[str, str] = {}
+    if compliance:
+        if not model.has_dynamics:
+            raise SocketDataError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model")
+        rms = np.sqrt(np.mean((_sag_gain(chain, ds.q_rad) * 1e6) ** 2, axis=0))
+        names += [f"{ax}.compliance" for ax in model.axis_names]
+        nominal = np.concatenate([nominal, np.zeros(n)])
+        for i in range(n):
+            if rms[i] < 0.05 * rms.max():
+                excluded_first[names[chain.n_params + i]] = (
+                    f"gravity turns this axis by only {rms[i]:.1g} N·m (rms) in this data: its sag cannot be seen")
+            else:
+                cand.append(chain.n_params + i)
+                scale_of[chain.n_params + i] = lever * 1e-6 * rms[i]
 
     # Identifiability from the Jacobian at the start, columns scaled to mm of ball motion.
-    lever = float(np.median(np.linalg.norm(chain.flange_pose(ds.q_rad, nominal)[1], axis=1))) or 1000.0
-    scale = np.array([lever if names[c].rsplit(".", 1)[1] in ("offset", "alpha", "beta") else 1.0 for c in cand])
+    scale = np.array([scale_of[c] for c in cand])
     probe = _SocketProblem(chain, ds, np.array(cand), nominal, np.full(len(cand), np.inf), 1.0, sigma_distance_mm)
     _, j0 = probe(np.concatenate([nominal[cand], pts0.ravel()]))
     nc = len(cand)
@@ -327,8 +364,11 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     # Judge again on consistent data: every ball position of a group at the group's point.
     # Measured scatter would otherwise lend a null direction that holds only there (A1's
     # rotation, which the free points absorb exactly) a sliver of fake information.
-    pos = chain.marker_positions(ds.q_rad, nominal)[:, 0]
-    jw = chain.flange_jacobian(ds.q_rad, nominal).jw[..., cand]  # (k, 3, nc)
+    pos = chain.marker_positions(ds.q_rad, nominal[: chain.n_params])[:, 0]
+    jw = chain.flange_jacobian(ds.q_rad, nominal[: chain.n_params]).jw
+    if compliance:
+        jw = np.concatenate([jw, jw[..., :n] * _sag_gain(chain, ds.q_rad)[:, None, :]], axis=-1)
+    jw = jw[..., cand]  # (k, 3, nc)
     scatter = (pos - pts0[ds.group])[:, :, None]
     consistent = jcols.copy()
     consistent[: 3 * k, 3 * len(ds.groups):] -= (np.cross(jw, scatter, axis=1) * scale).reshape(3 * k, nc)
@@ -337,7 +377,7 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     kept, more = _select(consistent, all_names, kept, 3 * len(ds.groups), max(weak_tol, RANK_TOL))
     dropped.update(more)
     free = np.array([cand[i - 3 * len(ds.groups)] for i in kept if i >= 3 * len(ds.groups)], dtype=int)
-    excluded = {all_names[i]: why for i, why in dropped.items()}
+    excluded = {**excluded_first, **{all_names[i]: why for i, why in dropped.items()}}
     if not ds.distances:
         excluded["scale"] = "no distance between sockets is known: the data fix the arm only up to a scale"
     sv = np.linalg.svd(jcols[:, kept], compute_uv=False)
@@ -359,8 +399,8 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
         res = least_squares(lambda v: prob(v)[0], x, jac=lambda v: prob(v)[1], method="lm", max_nfev=max_nfev * len(x))
         x, nfev = res.x, nfev + res.nfev
         p, pts = prob.full(x)
-        pos = chain.marker_positions(ds.q_rad, p)[:, 0]
-        dev = pos - pts[ds.group]
+        dev = ball_positions(chain, ds.q_rad, p[: chain.n_params], p[chain.n_params:] * 1e-6 if compliance else None) \
+            - pts[ds.group]
         dof = max(3 * k - 3 * len(ds.groups) - np.sum(~np.isfinite(prior)) - 3, 1)
         sigma = float(math.sqrt(np.sum(dev ** 2) / dof))
     prob = _SocketProblem(chain, ds, free, nominal, prior, sigma, sigma_distance_mm)
@@ -371,9 +411,13 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     except np.linalg.LinAlgError:
         cov = np.linalg.pinv(info)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-    std = np.full(chain.n_params, np.nan)
+    std = np.full(nominal.size, np.nan)
     std[free] = sd[: len(free)]
     p, pts = prob.full(x)
+    comp = comp_std = None
+    if compliance:  # back to rad/(N·m); NaN std where not fitted
+        comp, comp_std = p[chain.n_params:] * 1e-6, std[chain.n_params:] * 1e-6
+        p, std = p[: chain.n_params], std[: chain.n_params]
     weak = []
     if cond > COND_WEAK:
         weak.append(f"scaled condition number {cond:.3g} (> {COND_WEAK:g}): some combinations are weakly determined")
@@ -386,7 +430,7 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     return SocketFit(params=p, std=std, points=pts, points_std=sd[len(free):].reshape(-1, 3), free_names=[names[c] for c in free],
                      excluded=excluded, weak=weak, sigma_point_mm=sigma, condition_number=cond,
                      rms_mm=float(np.sqrt(np.mean(np.sum(dev ** 2, axis=1)))), iterations=int(nfev),
-                     groups=list(ds.groups), warnings=warnings)
+                     groups=list(ds.groups), warnings=warnings, compliance=comp, compliance_std=comp_std)
 
 
 # -------------------------------------------------------------------------------- metrics
@@ -400,9 +444,22 @@ class PlacementScore:
     distance_error_mm: float
 
 
-def socket_scores(chain: Chain, params: np.ndarray, ds: SocketDataset) -> list[PlacementScore]:
-    """Scores of ``params`` (ball in marker slot 0) on every placement of ``ds``; nothing is fitted."""
-    pos = chain.marker_positions(ds.q_rad, params)[:, 0]
+def ball_positions(chain: Chain, q: np.ndarray, params: np.ndarray, compliance: np.ndarray | None = None) -> np.ndarray:
+    """Ball centre (k, 3) mm in the base frame for q (k, n): marker slot 0 of ``params``, with
+    the first-order gravity sag of ``compliance`` (n,) rad/(N·m) when given."""
+    pos, jac = chain.marker_jacobian(q, params)
+    pos = pos[:, 0]
+    if compliance is not None:
+        gain = _sag_gain(chain, q) * 1e6 * compliance  # rad per joint
+        pos = pos + np.einsum("kjn,kn->kj", jac[:, 0, :, : chain.n], gain)
+    return pos
+
+
+def socket_scores(chain: Chain, params: np.ndarray, ds: SocketDataset,
+                  compliance: np.ndarray | None = None) -> list[PlacementScore]:
+    """Scores of ``params`` (ball in marker slot 0; with ``compliance`` its sag) on every
+    placement of ``ds``; nothing is fitted."""
+    pos = ball_positions(chain, ds.q_rad, params, compliance)
     means = np.array([pos[ds.group == g].mean(axis=0) for g in range(len(ds.groups))])
     out = []
     for placement in ds.placements:
@@ -425,5 +482,5 @@ def leave_one_placement_out(model: RobotModel, ds: SocketDataset, **fit_options)
         before = chain.nominal.copy()
         ms = chain.marker_slice()
         before[ms.start:ms.start + 3] = _pivot_start(chain, train, chain.nominal)[0]
-        out.append((socket_scores(chain, before, test)[0], socket_scores(chain, fit.params, test)[0]))
+        out.append((socket_scores(chain, before, test)[0], socket_scores(chain, fit.params, test, fit.compliance)[0]))
     return out

@@ -232,7 +232,7 @@ def fit(
                                      "held-out placements are scored automatically)", param_hint="DATA")
         fit_socket_file(data, model, method=method, distance_mm=socket_distance,
                         link_tolerance=_link_tolerance(link_tolerance),
-                        output=output, model_out=model_out)
+                        output=output, model_out=model_out, compliance=compliance)
         return
     if socket_distance is not None:
         raise typer.BadParameter("--socket-distance applies to socket data (a CSV ending in placement,socket)",

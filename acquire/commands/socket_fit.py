@@ -78,6 +78,8 @@ def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, fol
         })
     params = []
     for name in fit.free_names:
+        if name.endswith(".compliance"):
+            continue  # reported under "compliance"
         i = names.index(name)
         kind = name.rsplit(".", 1)[1]
         f = math.degrees if _deg(kind) else float
@@ -96,11 +98,16 @@ def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, fol
         "ball_mm": {"value": ball.tolist(), "std": ball_sd.tolist(), "frame": "flange"},
         "socket_points_mm": [{"placement": p, "socket": s, "value": fit.points[g].tolist(), "std": fit.points_std[g].tolist(),
                               "frame": "robot base"} for g, (p, s) in enumerate(ds.groups)],
+        "compliance": None if fit.compliance is None else [
+            {"joint": ax, "unit": "rad/(N·m)", "status": "fitted" if np.isfinite(sd) else "undetermined",
+             "value": float(v) if np.isfinite(sd) else None, "std": float(sd) if np.isfinite(sd) else None,
+             "reason": "" if np.isfinite(sd) else fit.excluded.get(f"{ax}.compliance", "")}
+            for ax, v, sd in zip(model.axis_names, fit.compliance, fit.compliance_std)],
         "sigma_point_mm": fit.sigma_point_mm,
         "rms_mm": fit.rms_mm,
         "identifiability": {"excluded": fit.excluded, "weak": fit.weak, "condition_number": fit.condition_number},
         "scores": {
-            "calibration": [s.__dict__ for s in socket_scores(chain, fit.params, ds)],
+            "calibration": [s.__dict__ for s in socket_scores(chain, fit.params, ds, fit.compliance)],
             "held_out": [{"placement": b.placement, "before": b.__dict__, "after": a.__dict__} for b, a in folds],
             "notes": ["spread: RMS distance of the predicted ball centre from its socket's mean; distance error: "
                       "| |m_a − m_b| − distance |", "held_out: fitted on the other placements, scored on this one (no re-fit)",
@@ -135,6 +142,9 @@ def format_socket_summary(doc: dict) -> str:
     lines.append("")
     lines.append("ball in the flange frame: " + ", ".join(f"{v:.3f} ± {s:.3f}" for v, s in zip(b["value"], b["std"])) + " mm")
     lines.append(f"ball's play in the sockets: σ = {doc['sigma_point_mm']:.3f} mm; {len(doc['parameters'])} parameters fitted")
+    for c in doc.get("compliance") or []:
+        if c["status"] == "fitted":
+            lines.append(f"compliance {c['joint']}: {c['value'] * 1e6:.1f} ± {c['std'] * 1e6:.1f} µrad/(N·m)")
     ex = doc["identifiability"]["excluded"]
     if ex:
         lines.append("not determined by socket data (kept nominal):")
@@ -155,7 +165,8 @@ def format_socket_summary(doc: dict) -> str:
 
 
 def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: float | None,
-                    link_tolerance: tuple[float, float] | None, output: Path | None, model_out: Path | None) -> dict:
+                    link_tolerance: tuple[float, float] | None, output: Path | None, model_out: Path | None,
+                    compliance: bool = False) -> dict:
     """Fit a socket CSV; print the summary; write the result and the corrected model. Exits 1
     when the values must not be entered."""
     from calib.identification import corrected_model, write_model_yaml
@@ -165,8 +176,8 @@ def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: 
         ds = read_socket_csv(path, model.n_joints, distance_mm=distance_mm)
         # fast: the link prior of the fast fit (--link-tolerance); full: identification without it.
         tolerance = None if method == "full" else link_tolerance
-        fit = fit_socket(model, ds, tolerance=tolerance)
-        folds = leave_one_placement_out(model, ds, tolerance=tolerance) if len(ds.placements) >= 3 else []
+        fit = fit_socket(model, ds, tolerance=tolerance, compliance=compliance)
+        folds = leave_one_placement_out(model, ds, tolerance=tolerance, compliance=compliance) if len(ds.placements) >= 3 else []
     except SocketDataError as exc:
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
     doc = socket_result_dict(model, ds, fit, folds, method)
