@@ -37,3 +37,19 @@ def test_link_prior_is_reported_with_posterior_deviations():
     assert all(v["std"] > 0 for v in lp["parameters"].values())
     paper = fit_offsets(IIWA, ds, FitOptions(method="paper", registration={"sensor": wrong}, paper_samples=2000, paper_burn_in=1000))
     assert paper.diagnostics["link_prior"] is None  # the paper's model has no link parameters
+
+
+def test_linearised_link_terms_give_the_exact_default_posterior():
+    """The default sampler predicts the link parameters' effect to first order about the mode;
+    against the exact chain walk its offsets' means agree within Monte-Carlo error and their
+    standard deviations within 5 %."""
+    ds, _, wrong = simulate(IIWA, seed=91, k=80, link_mm=0.2)
+    common = dict(registration={"sensor": wrong}, n_draws=4000)
+    lin = fit_offsets(IIWA, ds, FitOptions(**common, seed=1))
+    exact = fit_offsets(IIWA, ds, FitOptions(**common, seed=2, linearise_links=False))
+    ok = lin.identifiable()
+    ess = np.array(lin.diagnostics["ess"])[: int(ok.sum())]
+    mc = np.hypot(lin.offsets_std_rad[ok], exact.offsets_std_rad[ok]) / np.sqrt(np.maximum(ess, 1))
+    assert np.all(np.abs(lin.offsets_rad[ok] - exact.offsets_rad[ok]) < 4 * mc)
+    ratio = lin.offsets_std_rad[ok] / exact.offsets_std_rad[ok]
+    assert np.all((0.95 <= ratio) & (ratio <= 1.05)), ratio
