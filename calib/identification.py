@@ -48,6 +48,7 @@ class IdentOptions:
     rank_tol: float = 1e-6
     exclude: tuple[str, ...] = ()
     fit_markers: bool = True
+    compliance: bool = False
     max_nfev: int = 200
     cond_warn: float = 1e4
     initial_registration: str = "least-squares"
@@ -65,6 +66,9 @@ class IdentResult:
     condition_number: float
     iterations: int
     warnings: list[str] = field(default_factory=list)
+    #: With ``IdentOptions.compliance``: per joint rad/(N·m) (0 where not identified) and std (NaN there).
+    compliance: np.ndarray | None = None
+    compliance_std: np.ndarray | None = None
 
     @property
     def chain_names(self) -> list[str]:
@@ -83,7 +87,8 @@ def _lookup(values: np.ndarray, names: list[str]) -> np.ndarray:
 class _Problem:
     """Residuals and Jacobian of the identification for a fixed set of free columns."""
 
-    def __init__(self, chain: Chain, data: Dataset, b2s0: dict[str, np.ndarray], rotation: np.ndarray | None, weight: float):
+    def __init__(self, chain: Chain, data: Dataset, b2s0: dict[str, np.ndarray], rotation: np.ndarray | None, weight: float,
+                 compliance: bool = False):
         self.chain, self.data = chain, data
         self.sensors = sorted(b2s0)
         self.b2s0 = np.stack([b2s0[s] for s in self.sensors])
@@ -96,9 +101,19 @@ class _Problem:
         self.sqrt_w = math.sqrt(weight)
         self.P = chain.n_params
         self.names = list(chain.param_names) + [f"{s}.{r}" for s in self.sensors for r in REG]
+        #: Joint-angle change per µrad/(N·m) of compliance per distinct configuration (u, n), or None.
+        self.gain = None
+        if compliance:
+            if rotation is not None:
+                raise ValueError("the compliance model is not available with measured orientations")
+            from calib.gravity import gravity_torques
+
+            self.gain = chain.sign * gravity_torques(chain, self.uq) * 1e-6
+            self.names += [f"{ax}.compliance" for ax in chain.model.axis_names]
+        self.n_reg = 6 * len(self.sensors)
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return x[: self.P], x[self.P :].reshape(len(self.sensors), 6)
+        return x[: self.P], x[self.P : self.P + 6 * len(self.sensors)].reshape(len(self.sensors), 6)
 
     def residuals_and_jacobian(self, x: np.ndarray, want_jac: bool = True):
         """Residuals (measured − predicted; positions then weighted rotations) and, if asked,
@@ -110,7 +125,7 @@ class _Problem:
         params, reg = self.split(x)
         k = len(self.data)
         rot = euler_zyx_to_matrix(reg[:, 3], reg[:, 4], reg[:, 5])  # (S,3,3) T* rotations
-        need_kin_jac = want_jac or self.rotation is not None
+        need_kin_jac = want_jac or self.rotation is not None or self.gain is not None
         if need_kin_jac:
             fj = self.chain.flange_jacobian(self.uq, params)
             f_rot, f_pos = fj.rotation, fj.position  # (u,3,3), (u,3)
@@ -119,6 +134,13 @@ class _Problem:
         mk = params[self.chain.marker_slice()].reshape(-1, 3)  # (m,3)
         arm = np.einsum("uij,mj->umi", f_rot, mk)  # (u,m,3)
         p_base = f_pos[self.inv] + arm[self.inv, self.midx]  # (k,3)
+        if self.gain is not None:
+            # First-order gravity sag: each joint turns by sign·k·τ (calib.gravity), seen through
+            # the marker's offset derivative ∂p/∂δ = sign·z × (p − o) = jp + jw × arm.
+            n = self.chain.n
+            d_off = fj.jp[..., :n][:, None] + np.cross(fj.jw[..., :n][:, None], arm[..., None], axis=2)  # (u,m,3,n)
+            sag_cols = d_off[self.inv, self.midx] * self.gain[self.inv][:, None, :]  # (k,3,n) per µrad/(N·m)
+            p_base = p_base + np.einsum("kjn,n->kj", sag_cols, x[self.P + self.n_reg:])
         pred = np.empty((k, 3))
         sensor_r = rot @ self.b2s0[:, :3, :3]  # (S,3,3): sensor-from-base rotation, total
         for s, rows in enumerate(self.rows_of):
@@ -132,7 +154,7 @@ class _Problem:
         if not want_jac:
             return r, None
         n_reg = 6 * len(self.sensors)
-        n_cols = self.P + n_reg
+        n_cols = len(self.names)
         # d(p_base)/d(chain params) per distinct configuration and marker: (u,m,3,P).
         jw = fj.jw[:, None]  # (u,1,3,P)
         a = arm[..., None]  # (u,m,3,1)
@@ -151,6 +173,8 @@ class _Problem:
         for s, rows in enumerate(self.rows_of):
             jrows = jk[self.inv[rows], self.midx[rows]]  # (ks,3,P)
             jp[rows, :, : self.P] = np.einsum("ij,kjp->kip", sensor_r[s], jrows)
+            if self.gain is not None:
+                jp[rows, :, self.P + n_reg:] = np.einsum("ij,kjn->kin", sensor_r[s], sag_cols[rows])
             c = self.P + 6 * s
             jp[rows, :, c : c + 3] = np.eye(3)
             rp = pred[rows] - reg[s, :3]
@@ -187,6 +211,8 @@ class _Problem:
         for name in self.names:
             kind = name.rsplit(".", 1)[1]
             out.append(1.0 if kind in ("d", "a", "x", "y", "z") else lever)
+        if self.gain is not None:  # compliances: mm of marker motion per µrad/(N·m)
+            out[-self.chain.n:] = list(lever * np.maximum(np.sqrt(np.mean(self.gain ** 2, axis=0)), 1e-12))
         return np.array(out)
 
 
@@ -204,10 +230,11 @@ def _excluded_by_choice(model: RobotModel, chain: Chain, names: list[str], optio
 
 def _preference(problem: _Problem, chain: Chain) -> list[int]:
     """Column order in which parameters are kept."""
-    order = list(range(problem.P, len(problem.names)))  # registration first
+    order = list(range(problem.P, problem.P + 6 * len(problem.sensors)))  # registration first
     for kind in KINDS:
         order += list(chain.index(kind))
     order += list(range(chain.marker_slice().start, chain.marker_slice().stop))
+    order += list(range(problem.P + 6 * len(problem.sensors), len(problem.names)))  # compliances last
     return order
 
 
@@ -256,9 +283,17 @@ def identify(
         raise DatasetError(f"the dataset has {data.n_joints} joints, the model '{model.name}' has {model.n_joints}")
     chain = Chain(model)
     b2s0 = registration or initial_registrations(chain, data, options.initial_registration, 0)
-    problem = _Problem(chain, data, b2s0, rotation, options.orientation_weight)
-    x0 = np.concatenate([chain.nominal, np.zeros(6 * len(problem.sensors))])
+    if options.compliance and not model.has_dynamics:
+        raise ValueError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model")
+    problem = _Problem(chain, data, b2s0, rotation, options.orientation_weight, compliance=options.compliance)
+    x0 = np.zeros(len(problem.names))
+    x0[: problem.P] = chain.nominal
     excluded = _excluded_by_choice(model, chain, problem.names, options)
+    if options.compliance:  # as the fast fit: an axis gravity hardly loads cannot show its sag
+        rms = np.sqrt(np.mean(problem.gain ** 2, axis=0)) * 1e6
+        for i in np.flatnonzero(rms < 0.05 * rms.max()):
+            excluded[f"{model.axis_names[i]}.compliance"] = (
+                f"gravity turns this axis by only {rms[i]:.1g} N·m (rms) in these configurations: its sag cannot be seen")
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
     _, j0 = problem.residuals_and_jacobian(x0)
@@ -302,6 +337,9 @@ def identify(
         )
         log.warning(warnings[-1])
     params, reg = problem.split(x)
+    comp = comp_std = None
+    if options.compliance:
+        comp, comp_std = x[-chain.n:] * 1e-6, std[-chain.n:] * 1e-6
     rot = euler_zyx_to_matrix(reg[:, 3], reg[:, 4], reg[:, 5])
     b2s = {}
     for k, s in enumerate(problem.sensors):
@@ -320,6 +358,8 @@ def identify(
         condition_number=cond,
         iterations=int(sol.nfev),
         warnings=warnings,
+        compliance=comp,
+        compliance_std=comp_std,
     )
 
 
@@ -468,7 +508,15 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
         "evaluations": result.iterations,
         "warnings": result.warnings,
         "metrics": metrics,
+        "compliance": None if result.compliance is None else [
+            {"joint": ax, "unit": "rad/(N·m)", "status": "fitted" if math.isfinite(sd) else "undetermined",
+             "value": float(v) if math.isfinite(sd) else None, "std": float(sd) if math.isfinite(sd) else None,
+             "reason": "" if math.isfinite(sd) else result.excluded.get(f"{ax}.compliance", "")}
+            for ax, v, sd in zip(result.model.axis_names, result.compliance, result.compliance_std)],
     }
+    if result.compliance is not None:
+        metrics["notes"] = ["after: the identified kinematics without the fitted sag (a corrected model file carries "
+                            "kinematics only); the sag the compliances explain is left in these errors"]
 
 
 def _marker_rows(chain: Chain, data: Dataset, params: np.ndarray) -> np.ndarray:

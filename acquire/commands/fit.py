@@ -250,10 +250,10 @@ def fit(
     elif np.any(ds.split == "val"):
         val = ds.validation()
     cal = ds.calibration()
-    if compliance and method != "fast":
-        raise typer.BadParameter(f"the compliance model is fitted by --method fast only, not {method}", param_hint="--compliance")
+    if compliance and method == "paper":
+        raise typer.BadParameter("the paper's model has no compliance: use --method fast or full", param_hint="--compliance")
     if method == "full":
-        _fit_full(model, cal, val, output, model_out)
+        _fit_full(model, cal, val, output, model_out, compliance=compliance)
         return
     options = FitOptions(
         link_tolerance=_link_tolerance(link_tolerance),
@@ -292,10 +292,13 @@ def fit(
         raise typer.Exit(1)
 
 
-def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None) -> None:
+def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None,
+              *, compliance: bool = False) -> None:
     """``--method full``: Levenberg–Marquardt identification, corrected model YAML, EACPE/EMCPE."""
+    from calib.identification import IdentOptions
+
     try:
-        result = identify(model, cal)
+        result = identify(model, cal, IdentOptions(compliance=compliance))
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
     doc = ident_result_dict(result, cal, val)
@@ -306,6 +309,9 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
     for p in doc["parameters"]:
         if p["identified"] and abs(p["change"]) > 0:
             lines.append(f"{p['name']:<14}{p['nominal']:>12.4f}{p['value']:>14.4f}{p['std']:>10.4f} {p['unit']}")
+    for c in doc.get("compliance") or []:
+        if c["status"] == "fitted":
+            lines.append(f"compliance {c['joint']}: {c['value'] * 1e6:.2f} ± {c['std'] * 1e6:.2f} µrad/(N·m)")
     lines.append(f"kept nominal ({len(result.excluded)}):")
     lines += [f"  {k}: {v}" for k, v in result.excluded.items()]
     for part, m in doc["metrics"].items():
