@@ -23,41 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from calib.kinematics import Chain
-
-
-def joint_frames(chain: Chain, q: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
-    """Every DH frame, base first: (..., n+1, 4, 4) mm for q (..., n) rad and params (P,).
-
-    Frame i follows link i's ``Rz(θ) Tz(d) Tx(a) Rx(α) Ry(β)``, θ = theta_i + sign_i (q_i + δ_i),
-    as in ``Chain`` (frame n composed with the model's flange is ``Chain.fk``).
-    """
-    q = np.asarray(q, dtype=float)
-    p = chain.nominal if params is None else np.asarray(params, dtype=float)
-    n = chain.n
-    theta = chain.theta0 + chain.sign * (q + p[:n])
-    d, a, al, be = p[n:2 * n], p[2 * n:3 * n], p[3 * n:4 * n], p[4 * n:5 * n]
-    ct, st = np.cos(theta), np.sin(theta)
-    ca, sa, cb, sb = np.cos(al), np.sin(al), np.cos(be), np.sin(be)
-    link = np.zeros(theta.shape + (4, 4))
-    link[..., 0, 0] = ct * cb - st * sa * sb
-    link[..., 0, 1] = -st * ca
-    link[..., 0, 2] = ct * sb + st * sa * cb
-    link[..., 0, 3] = a * ct
-    link[..., 1, 0] = st * cb + ct * sa * sb
-    link[..., 1, 1] = ct * ca
-    link[..., 1, 2] = st * sb - ct * sa * cb
-    link[..., 1, 3] = a * st
-    link[..., 2, 0] = -ca * sb
-    link[..., 2, 1] = sa
-    link[..., 2, 2] = ca * cb
-    link[..., 2, 3] = d
-    link[..., 3, 3] = 1.0
-    frames = np.empty(theta.shape[:-1] + (n + 1, 4, 4))
-    frames[..., 0, :, :] = chain.base
-    for i in range(n):
-        frames[..., i + 1, :, :] = frames[..., i, :, :] @ link[..., i, :, :]
-    return frames
+from calib.kinematics import Chain, joint_frames
 
 
 def _masses(chain: Chain) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.kinematics import Chain
+from calib.kinematics import Chain, joint_frames
 from calib.model import RobotModel, load_robot_model
 from calib.transforms import apply, invert
 from calib.yamlfile import ConfigError
@@ -49,42 +49,6 @@ from drivers.sim.config import SensorConfig, SimConfig, load_sim_config
 from drivers.sim.scene import MarkerObservation
 
 log = logging.getLogger(__name__)
-
-def joint_frames(chain: Chain, q: np.ndarray, params: np.ndarray) -> np.ndarray:
-    """Every DH frame of the chain, base first: (..., n+1, 4, 4) for q (..., n) rad, params (P,).
-
-    Frame 0 is the model's base transform; frame i follows link i's
-    ``Rz(θ) Tz(d) Tx(a) Rx(α) Ry(β)`` with ``θ = theta_i + sign_i (q_i + offset_i)`` — the
-    same link convention as ``Chain`` (frame n composed with the model's flange transform is
-    ``Chain.fk``). Flange not included.
-    """
-    q = np.asarray(q, dtype=float)
-    p = np.asarray(params, dtype=float)
-    n = chain.n
-    theta = chain.theta0 + chain.sign * (q + p[:n])  # (..., n)
-    d, a, al, be = p[n : 2 * n], p[2 * n : 3 * n], p[3 * n : 4 * n], p[4 * n : 5 * n]
-    ct, st = np.cos(theta), np.sin(theta)
-    ca, sa, cb, sb = np.cos(al), np.sin(al), np.cos(be), np.sin(be)
-    link = np.zeros(theta.shape + (4, 4))  # (..., n, 4, 4): Rz(θ) Tz(d) Tx(a) Rx(α) Ry(β)
-    link[..., 0, 0] = ct * cb - st * sa * sb
-    link[..., 0, 1] = -st * ca
-    link[..., 0, 2] = ct * sb + st * sa * cb
-    link[..., 0, 3] = a * ct
-    link[..., 1, 0] = st * cb + ct * sa * sb
-    link[..., 1, 1] = ct * ca
-    link[..., 1, 2] = st * sb - ct * sa * cb
-    link[..., 1, 3] = a * st
-    link[..., 2, 0] = -ca * sb
-    link[..., 2, 1] = sa
-    link[..., 2, 2] = ca * cb
-    link[..., 2, 3] = d
-    link[..., 3, 3] = 1.0
-    frames = np.empty(q.shape[:-1] + (n + 1, 4, 4))
-    frames[..., 0, :, :] = chain.base
-    for i in range(n):
-        frames[..., i + 1, :, :] = frames[..., i, :, :] @ link[..., i, :, :]
-    return frames
-
 
 @dataclass(frozen=True)
 class SimTruth:
