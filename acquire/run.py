@@ -917,7 +917,7 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     the method, joints, error model, registration handling and validation fraction.
     """
     from acquire.recorder import dataset_from_run
-    from calib.controller import controller_values
+    from calib.controller import apply_guards, controller_values
     from calib.fit import FitOptions, fit_offsets
     from calib.kinematics import Chain
     from calib.metrics import accuracy_metrics
@@ -950,6 +950,7 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
                                result.applied_sigma_mm, validation=val, n_random=n_random, seed=0)
     doc = result_dict(result, cal, metrics=metrics)
+    apply_guards(doc)
     values = controller_values(model, doc["joint_offsets"])
     doc["controller"] = values.to_dict()
     base = Path(log_path)

@@ -86,6 +86,54 @@ class ControllerValues:
         return "\n".join(out)
 
 
+#: Guards of ``do_not_enter_reasons``: sampler convergence, model-robust spread, σ against noise.
+MAX_RHAT = 1.05
+MAX_SANDWICH_RATIO = 2.0
+MAX_SIGMA_OVER_NOISE = 10.0
+#: ... and above this σ (mm) in any case: a calibrated arm's unmodelled error is tenths of a mm.
+MIN_SIGMA_GUARD_MM = 1.0
+
+
+def do_not_enter_reasons(doc: dict) -> list[str]:
+    """Why the offsets of a fit result (``result.json``) must not be entered; [] when none.
+
+    R-hat above ``MAX_RHAT`` (the chains disagree), a sandwich/posterior std ratio above
+    ``MAX_SANDWICH_RATIO`` (the intervals are far too narrow for the errors seen), or a fitted σ
+    above ``MIN_SIGMA_GUARD_MM`` and more than ``MAX_SIGMA_OVER_NOISE`` × the sensor noise measured
+    in the samples' spread (the model does not describe the data: wrong marker or tool position,
+    wrong robot model, units).
+    """
+    reasons = []
+    d = doc.get("diagnostics", {})
+    rhat = d.get("rhat_max")
+    if rhat is not None and rhat > MAX_RHAT:
+        reasons.append(f"the sampler has not converged (R-hat {rhat:.2f} > {MAX_RHAT})")
+    ratios = [j["sandwich_std_ratio"] for j in doc.get("joint_offsets", []) if j.get("sandwich_std_ratio")]
+    if ratios and max(ratios) > MAX_SANDWICH_RATIO:
+        reasons.append(f"a model-robust (sandwich) std is {max(ratios):.1f}× the posterior's (> {MAX_SANDWICH_RATIO}): "
+                       "the errors are not what the model assumes and the intervals are too narrow")
+    for sensor, b in d.get("error_budget", {}).items():
+        noise, sigma = b.get("noise_mm") or 0.0, b.get("sigma_mm")
+        if sigma is not None and sigma > max(MAX_SIGMA_OVER_NOISE * noise, MIN_SIGMA_GUARD_MM):
+            seen = f", {sigma / noise:.0f}× the sensor noise ({noise:.3g} mm)" if noise else ""
+            reasons.append(f"sensor {sensor}: the fit leaves σ = {sigma:.3g} mm{seen}: the model does not describe the "
+                           "data (tool/marker position, robot model, units?)")
+    return reasons
+
+
+def apply_guards(doc: dict) -> list[str]:
+    """Mark every offset of ``doc`` "do not enter" (with the reason) when a guard fires; returns the reasons."""
+    reasons = do_not_enter_reasons(doc)
+    if reasons:
+        for j in doc.get("joint_offsets", []):
+            if j.get("identifiable"):
+                j["identifiable"] = False
+                j["status"] = "do not enter"
+                j["reason"] = "; ".join(reasons)
+        doc["do_not_enter"] = reasons
+    return reasons
+
+
 def controller_values(model: RobotModel, joint_offsets: list[dict]) -> ControllerValues:
     """Values to enter from ``joint_offsets`` (the ``result.json`` entries, degrees)."""
     if len(joint_offsets) != model.n_joints:

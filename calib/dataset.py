@@ -267,6 +267,11 @@ def check_units(ds: Dataset, model: RobotModel) -> None:
         return
     ratio = float(np.median(d_meas[ok] / d_pred[ok]))
     where = ds.source or "dataset"
+    if not ratio > 1e-6:
+        raise DatasetError(
+            f"{where}: the measured points do not move while the robot moved them by up to {d_pred.max():.0f} mm "
+            "(the same position repeated?): check the sensor stream (frozen, or the wrong marker) before fitting"
+        )
     if ratio < 0.05:
         raise DatasetError(
             f"{where}: measured points are {1 / ratio:.0f}× closer together than the robot moved them; "

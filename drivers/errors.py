@@ -38,8 +38,3 @@ class TargetLostError(DriverError, RuntimeError):
 class LimitError(DriverError, ValueError):
     """A command was refused before anything moved: outside limits, too fast, bad state."""
 
-
-class RecoverableFaultError(DeviceFaultError):
-    """A device fault that may clear by itself (an FRI session that fell back to MONITORING_WAIT,
-    an RSI context the controller program restarts): the run suspends, waits for the device to be
-    ready again and retries the configuration, instead of marking it failed."""

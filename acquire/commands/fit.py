@@ -22,7 +22,7 @@ import numpy as np
 import typer
 
 from acquire.recorder import dataset_from_run
-from calib.controller import controller_values
+from calib.controller import apply_guards, controller_values
 from calib.dataset import Dataset, DatasetError, read_csv
 from calib.fit import FitOptions, FitResult, fit_offsets
 from calib.identification import ident_result_dict, identify, write_model_yaml
@@ -278,6 +278,7 @@ def fit(
     )
     metrics["notes"] = metric_notes(result)
     doc = result_dict(result, cal, metrics=metrics)
+    refused = apply_guards(doc)
     values = controller_values(model, doc["joint_offsets"])
     doc["controller"] = values.to_dict()
     text = values.format()
@@ -288,7 +289,9 @@ def fit(
     if report is not None:
         write_report(report, result, cal, doc, text)
         typer.echo(f"wrote {report}")
-    if not math.isfinite(result.pooled_sigma_mm):
+    if refused:
+        typer.echo("DO NOT ENTER these offsets: " + "; ".join(refused), err=True)
+    if refused or not math.isfinite(result.pooled_sigma_mm):
         raise typer.Exit(1)
 
 

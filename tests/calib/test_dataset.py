@@ -109,6 +109,13 @@ def test_positions_in_metres_are_refused(tmp_path):
         read_csv(path, IIWA)
 
 
+def test_positions_that_never_move_are_refused_not_a_traceback(tmp_path):
+    path = tmp_path / "frozen.csv"
+    write_csv(simulated(k=30, scale=0.0), path)
+    with pytest.raises(DatasetError, match=r"frozen\.csv: the measured points do not move .*sensor stream"):
+        read_csv(path, IIWA)
+
+
 def test_joint_angles_beyond_two_turns_are_refused(tmp_path):
     lines = csv_lines(tmp_path)
     fields = lines[3].split(",")

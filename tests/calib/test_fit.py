@@ -259,3 +259,24 @@ def test_offsets_only_kinematics_equals_the_full_chain(name):
     expected = chain.marker_positions(q, batch)[:, np.arange(40), rows]
     np.testing.assert_allclose(fk.positions(offsets), expected, atol=1e-9)
     np.testing.assert_allclose(fk.positions(offsets[0]), expected[0], atol=1e-9)
+
+
+def test_a_marker_far_from_where_the_model_puts_it_says_do_not_enter():
+    """The issue's case: the tool marker 30 mm away from the model's: σ explodes and every
+    offset says "do not enter" with the reason, instead of "fitted / enter"."""
+    from calib.controller import apply_guards, controller_values
+    from calib.result import result_dict
+
+    ds, _, wrong = simulate(IIWA, seed=5, k=40)
+    data = IIWA.model_dump()
+    data["tool"]["markers"][0]["xyz"] = tuple(np.add(data["tool"]["markers"][0]["xyz"], (30.0, 0.0, 0.0)))
+    shifted = robot_model_from_dict(data)
+    res = fit_offsets(shifted, ds, FitOptions(registration={"sensor": wrong}, seed=1, n_draws=300))
+    doc = result_dict(res, ds)
+    reasons = apply_guards(doc)
+    assert reasons and "the model does not describe the data" in reasons[0]
+    values = controller_values(shifted, doc["joint_offsets"])
+    assert all(a.action == "leave unchanged" for a in values.axes)
+    # The right model passes the same guards.
+    good = result_dict(fit_offsets(IIWA, ds, FitOptions(registration={"sensor": wrong}, seed=1, n_draws=300)), ds)
+    assert apply_guards(good) == []
