@@ -189,6 +189,7 @@ class OffsetPosterior:
         full[self.n + 6 * self.S: self.n + 6 * self.S + self.L] = 0.0
         _, jac = self.chain.marker_jacobian(self.data.q_rad, self.chain_params(full))
         self._link_jac = np.ascontiguousarray(jac[np.arange(self.n_rows), self.marker_index][..., self.link_idx])
+        self._link_jac_t = np.ascontiguousarray(self._link_jac.reshape(-1, self.L).T)  # (L, 3k)
 
     # --- prediction and residuals ----------------------------------------------------
     def predict(self, theta: np.ndarray) -> np.ndarray:
@@ -196,7 +197,8 @@ class OffsetPosterior:
         full = self.full_vector(theta)
         if self.L and self._link_jac is not None:
             links = full[..., self.n + 6 * self.S: self.n + 6 * self.S + self.L]
-            p_base = self._offset_fk.positions(full[..., : self.n]) + np.einsum("kjl,...l->...kj", self._link_jac, links)
+            p_base = self._offset_fk.positions(full[..., : self.n])
+            p_base = p_base + (links @ self._link_jac_t).reshape(p_base.shape)  # one BLAS product
         elif self.L:
             pos = self.chain.marker_positions(self.data.q_rad, self.chain_params(full))  # (..., k, m, 3)
             p_base = pos[..., np.arange(self.n_rows), self.marker_index, :]

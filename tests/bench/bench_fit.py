@@ -147,7 +147,7 @@ def main() -> None:
     print(f"\ndefault fit against the exact default model, 4 chains x 20000 draws ({t_exact:.1f} s):")
     print(f"{'parameter':<13} | {'default':>9} {'std':>7} | {'exact':>9} {'std':>7} | {'dmean/MCerr':>11} {'std ratio':>9}")
     for i, n in enumerate(names_d):
-        if n.rsplit(".", 1)[-1] in ("d", "a", "alpha", "beta"):
+        if n.split(".")[0] in MODEL.axis_names and n.rsplit(".", 1)[-1] in ("d", "a", "alpha", "beta"):
             continue
         print(f"{n:<13} | {m_d[i]:9.4f} {s_d[i]:7.4f} | {m_x[i]:9.4f} {s_x[i]:7.4f} | {(m_d[i] - m_x[i]) / se_d[i]:11.2f} "
               f"{s_d[i] / s_x[i]:9.3f}")
