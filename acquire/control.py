@@ -38,7 +38,6 @@ that request, and the client believes no reply without a valid one (``Unverified
 
 from __future__ import annotations
 
-import hashlib
 import hmac
 import json
 import logging
@@ -109,11 +108,6 @@ class Unverified(ControlError, PermissionError):
 
 
 _KINDS = {cls.kind: cls for cls in (ControlError, Refused, BadRequest, Conflict, NoReply)}
-
-
-def hash_token(token: str) -> str:
-    """The SHA-256 hex digest the configuration stores for ``token``."""
-    return hashlib.sha256(token.encode()).hexdigest()
 
 
 @dataclass(frozen=True)
