@@ -346,9 +346,20 @@ class OffsetKinematics:
     def n_rows(self) -> int:
         return int(self.tip.shape[1])
 
+    #: Elements (offset vectors × rows) per block: a block's temporaries stay in the cache.
+    BLOCK_ELEMENTS = 50_000
+
     def positions(self, offsets_rad: np.ndarray) -> np.ndarray:
         """Points in the base frame (..., k, 3) mm for offsets (..., n) rad."""
         off = np.asarray(offsets_rad, dtype=float)
+        block = max(1, self.BLOCK_ELEMENTS // max(self.n_rows, 1))
+        if off.ndim > 1 and off[..., 0].size > block:
+            flat = off.reshape(-1, off.shape[-1])
+            out = np.concatenate([self._positions(flat[i:i + block]) for i in range(0, flat.shape[0], block)])
+            return out.reshape(off.shape[:-1] + out.shape[-2:])
+        return self._positions(off)
+
+    def _positions(self, off: np.ndarray) -> np.ndarray:
         ang = off * self.sign
         c = np.cos(ang)[..., None]  # (..., n, 1)
         s = np.sin(ang)[..., None]

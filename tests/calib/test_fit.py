@@ -259,6 +259,11 @@ def test_offsets_only_kinematics_equals_the_full_chain(name):
     expected = chain.marker_positions(q, batch)[:, np.arange(40), rows]
     np.testing.assert_allclose(fk.positions(offsets), expected, atol=1e-9)
     np.testing.assert_allclose(fk.positions(offsets[0]), expected[0], atol=1e-9)
+    # Large batches run in cache-sized blocks: the same numbers, in the same shape.
+    many = rng.normal(0.0, 0.02, (3, 700, chain.n))
+    blocked = fk.positions(many)
+    assert blocked.shape == (3, 700, 40, 3) and 700 * 40 > fk.BLOCK_ELEMENTS
+    np.testing.assert_array_equal(blocked[2, 699], fk.positions(many[2, 699]))
 
 
 def test_a_marker_far_from_where_the_model_puts_it_says_do_not_enter():
