@@ -262,7 +262,7 @@ def test_offsets_only_kinematics_equals_the_full_chain(name):
     # Large batches run in cache-sized blocks: the same numbers, in the same shape.
     many = rng.normal(0.0, 0.02, (3, 700, chain.n))
     blocked = fk.positions(many)
-    assert blocked.shape == (3, 700, 40, 3) and 700 * 40 > fk.BLOCK_ELEMENTS
+    assert blocked.shape == (3, 700, 40, 3) and 3 * 700 * 40 > fk.BLOCK_ELEMENTS
     np.testing.assert_array_equal(blocked[2, 699], fk.positions(many[2, 699]))
 
 
