@@ -488,7 +488,7 @@ def _intervals_many(s: _Solver, poses: np.ndarray) -> list[dict[str, list[tuple[
     """Per pose (k, 4, 4): feasible arm-angle intervals per configuration label."""
     k = poses.shape[0]
     cuts_all = s.geometry.limit_crossings(poses, s.model.lower_limits_rad, s.model.upper_limits_rad)
-    reach = ~np.array([bool(u) for u in s.geometry.solve(poses, np.zeros(k)).unreachable], dtype=bool)
+    reach = s.geometry.reachable(poses)
     cuts_per, mids, owner = [], [], []
     for i in range(k):
         cuts = np.unique(cuts_all[i][np.isfinite(cuts_all[i])]) if reach[i] else np.zeros(0)

@@ -159,6 +159,12 @@ class SrsGeometry:
         r_ref = rotation(w1, best_a) @ rotation(w2, best_b) @ rotation(w[2], np.asarray(self.q3_ref))
         return r_ref, np.linalg.norm(perp(w1, v), axis=-1)
 
+    def reachable(self, poses: np.ndarray, reach_slack: float = REACH_SLACK) -> np.ndarray:
+        """(k,) bool: the wrist point of each flange pose (k, 4, 4) is within the elbow's reach —
+        ``solve``'s reach test alone (it does not depend on the arm angle)."""
+        _, _, el = self._elbow(poses)
+        return np.abs(el.ratio) <= 1.0 + reach_slack
+
     def solve(self, poses: np.ndarray, psi: np.ndarray, reach_slack: float = REACH_SLACK) -> RawSolutions:
         """All 8 global configurations for flange poses (k, 4, 4) mm at arm angles ψ (k,) rad.
 
