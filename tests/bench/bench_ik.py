@@ -91,6 +91,10 @@ def main() -> None:
             m7 = min(len(poses), 200)
             t, res = best_of(lambda: ik.solve_many(model, poses[:m7]), 1)
             rows.append(("solve_many, ψ picked (intervals)", m7 / t, sum(map(len, res)) / t, res))
+            t, res = best_of(lambda: [ik.solve_all(model, poses[i]) for i in range(m7)], 1)
+            rows.append(("solve_all loop, ψ picked", m7 / t, sum(map(len, res)) / t, res))
+            given_rate = rows[1][1]
+            print(f"{model.name}: one pose, ψ picked costs {given_rate / (m7 / t):.2f}x a solve at a given ψ (target ≤ 3x)")
             t, _ = best_of(lambda: ik.arm_angle_intervals_many(model, poses[:m7]), 1)
             rows.append(("arm_angle_intervals_many alone", m7 / t, float("nan"), None))
             t, _ = best_of(lambda: [ik.arm_angle_intervals(model, poses[i]) for i in range(m7)], 1)
