@@ -190,6 +190,7 @@ class FakeSunrise:
         self._client_seq = 0  # last counter the client sent
         self._cycles_in_state = 0
         self._window_first_seq = 0
+        self._idle_first_seq = 0  # first counter sent since the session went IDLE
         self._window_count = 0
         self._window_answered = False
         self._windows: deque[bool] = deque(maxlen=quality_window)
@@ -354,6 +355,7 @@ class FakeSunrise:
                 self._windows_since_applied = 1
             if new == SessionState.IDLE:
                 self._setpoint = self._q.copy()
+                self._idle_first_seq = self._seq
             self._state_changed.notify_all()
 
     def _drop_session(self, why: str) -> None:
@@ -395,11 +397,14 @@ class FakeSunrise:
             log.warning("fake Sunrise: malformed answer (%d bytes): %s", len(data), exc)
             return
         self.stats.answers += 1
-        if self._state == SessionState.IDLE:
-            self.stats.answers_in_idle += 1
-            self.stats.violations.append("client answered while the session is IDLE")
-            return
         r = msg.header.reflected_sequence_counter
+        if self._state == SessionState.IDLE:
+            if self._idle_first_seq <= r < self._seq:
+                self.stats.answers_in_idle += 1
+                self.stats.violations.append("client answered while the session is IDLE")
+            else:  # in flight when the session went IDLE (or the controller restarted)
+                self.stats.late_answers += 1
+            return
         last_sent = self._seq - 1
         if r > last_sent:
             self.stats.bad_reflections += 1

@@ -145,6 +145,24 @@ def test_bad_counters_and_malformed_answers_are_counted_not_applied(client):
         assert fake.stats.malformed_answers == 2
 
 
+def test_answers_in_idle_are_violations_but_answers_in_flight_at_a_restart_are_late(client):
+    with make_fake(client, idle_cycles=50) as fake:
+        client.echo_until(fake, SessionState.MONITORING_READY)
+        before = client.receive()
+        fake.restart()
+        # an answer to a message sent before the restart: in flight, not an IDLE violation
+        client.answer(before.header.sequence_counter, Q0)
+        m = client.receive()
+        while m.connection_info.session_state != SessionState.IDLE:
+            m = client.receive()
+        client.answer(m.header.sequence_counter, Q0)  # KUKA's SDK sends nothing in IDLE
+        client.receive()
+        client.receive()
+        assert fake.stats.answers_in_idle == 1
+        assert fake.stats.violations == ["client answered while the session is IDLE"]
+        assert fake.stats.late_answers >= 1
+
+
 def test_commanding_needs_the_ipo_echo_then_takes_commands_through_the_servo(client):
     with make_fake(client, limits=None, commanding_wait_cycles=5) as fake:
         client.echo_until(fake, SessionState.MONITORING_READY)
