@@ -224,11 +224,6 @@ class DeviceHost:
         self.expect_stream = True
         self.names = ["controller"] + [a for a in self.launch.addresses if a != "controller"]
 
-    def maintain(self) -> None:
-        """Periodic upkeep: bring a fake KR C4 back after its RSI session ended."""
-        if self.launch is not None and self.launch.restart_stopped_rsi():
-            log.warning("the fake KR C4 had stopped its RSI session; restarted")
-
     def close(self) -> None:
         """Stop and close every device (idempotent)."""
         cmd, self.commander = self.commander, None
@@ -358,8 +353,6 @@ class Daemon:
 
     def _tick(self) -> None:
         self._after_run()
-        if self.controller is None:
-            self.devices.maintain()
         health = self._check_health()
         if health.ok != self._healthy.ok:
             if health.ok:

@@ -49,7 +49,7 @@ from acquire.sequencer import (
     order_configurations,
 )
 from acquire.suspenders import LostTargetSuspender, ReflectorPredictor
-from drivers.errors import DeviceTimeoutError, DriverError, LimitError, TargetLostError
+from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError, LimitError, TargetLostError
 from drivers.protocols import JointLimits
 from drivers.registry import load_driver
 
@@ -235,27 +235,6 @@ class FakeCell:
         raise RunError(f"sensor {spec.name!r} ({spec.driver}): the simulated cell has no such device; "
                        f"it has {sorted(addrs)}")
 
-    def recover_controller(self, commander) -> bool:
-        """Like an operator restarting the robot application: if the fake Sunrise's session fell
-        out of COMMANDING_ACTIVE (a missed-answer burst on a loaded machine), start its FRI
-        motion again and wait for the commander to see it. True if it did."""
-        ctl = None if self.launch is None else self.launch.controller
-        if ctl is None or self.cell.model.controller != "sunrise":
-            return bool(self.launch is not None and self.launch.restart_stopped_rsi())
-        from drivers.kuka_fri.messages import SessionState
-
-        if ctl.session_state == SessionState.COMMANDING_ACTIVE:
-            return False
-        try:
-            ctl.wait_state(SessionState.MONITORING_READY, 10.0)
-            ctl.start_commanding()
-            commander.wait_session(SessionState.COMMANDING_ACTIVE, 10.0 * self.time_scale)
-        except (TimeoutError, RuntimeError) as exc:
-            log.warning("fake controller not recovered: %s", exc)
-            return False
-        log.warning("fake Sunrise: FRI session restarted (the simulated operator restarted the application)")
-        return True
-
     def close(self) -> None:
         if self.launch is not None:
             self.launch.close()
@@ -277,8 +256,10 @@ class RunController:
         on_progress: Optional[Callable[[dict], None]] = None,
         ask: Optional[Callable[[str], str]] = None,
         fit: bool = True,
+        skip_failed: bool = False,
     ) -> None:
         self.lp = lp
+        self.skip_failed = skip_failed
         self.plan = lp.plan
         self.fake = fake
         self.resume_path = Path(resume) if resume is not None else None
@@ -539,22 +520,18 @@ class RunController:
             self._time_scale = fc.time_scale
             extra = {"clock": clock, "sleep": sleep}
             driver = plan.commander.driver
-            url = {"fri": "fri://127.0.0.1:0?rt_priority=0", "rsi": "rsi://127.0.0.1:0?rt_priority=0"}.get(driver)
+            # The cell runs time_scale × faster than real time; the commanders' silence and
+            # staleness limits (simulated time) get the same wall-time slack a real cell has.
+            ms = 100.0 * fc.time_scale
+            url = {"fri": f"fri://127.0.0.1:0?rt_priority=0&timeout_ms={ms:g}&max_state_age_ms={ms:g}",
+                   "rsi": f"rsi://127.0.0.1:0?rt_priority=0&max_state_age_s={ms / 1000:g}"}.get(driver)
             if url is None:
                 raise RunError(f"--fake has no fake controller for commander driver {driver!r} (fri, rsi)")
             cmd = open_commander(plan.commander, limits, url=url, **extra)
             port = cmd.bind()[1] if callable(getattr(cmd, "bind", None)) else (cmd.connect() or cmd.address[1])
             self.commander = cmd
             launch = fc.start(port)
-            if driver == "fri":
-                from drivers.kuka_fri.messages import SessionState
-
-                cmd.connect()
-                launch.controller.wait_state(SessionState.MONITORING_READY, 10.0)
-                launch.controller.start_commanding()  # the robot application starts its FRI overlay
-                cmd.wait_session(SessionState.COMMANDING_ACTIVE, 10.0 * fc.time_scale)
-            else:
-                cmd.connect()
+            cmd.connect()
             sensors = [
                 SensorSpec(open_sensor(s, url=fc.sensor_url(s), clock=clock), list(s.markers), float(s.noise_mm))
                 for s in plan.sensors
@@ -586,7 +563,9 @@ class RunController:
         return out
 
     def _todo(self, configs):
-        """Drop configurations the resumed log already has an outcome for."""
+        """Drop configurations the resumed log already measured, and those it skipped (the
+        operator's or the plan's decision). Failed ones (a refused or faulted move, timeouts)
+        are measured again unless ``skip_failed``."""
         if self._resumed is None:
             return configs, set()
         rc = self._resumed
@@ -596,7 +575,10 @@ class RunController:
         done = {s["config_id"] for s in rc.samples}
         skipped = {e.get("config_id") for e in rc.events if e.get("kind") == "skipped"} - done
         failed = {e.get("config_id") for e in rc.events if e.get("kind") == "failed"} - done - skipped
-        ended = skipped | failed
+        ended = skipped | failed if self.skip_failed else skipped
+        if failed and not self.skip_failed:
+            log.info("resume: measuring %d failed configuration(s) again: %s", len(failed), sorted(failed)[:10])
+            failed = set()
         known = {c.config_id for c in configs}
         stray = done - known
         if stray:
@@ -678,9 +660,6 @@ class RunController:
             with self._lock:
                 self._current = cfg.config_id
             self._progress()
-            if self._fake_cell is not None and self._fake_cell.recover_controller(cmd):
-                self._event_safe("controller_restarted", config_id=cfg.config_id,
-                                 reason="fake controller session restarted (simulated operator)")
             outcome = self._one(cfg, proc, suspender, predictor)
             if outcome == "abort":  # the interrupted configuration is not done: a resume measures it
                 self._abort.set()
@@ -728,7 +707,14 @@ class RunController:
                 if attempt == s.retries:
                     return self._skip(cfg, f"move failed {attempt + 1} times: {exc}", kind="failed")
                 self._event_safe("retry", config_id=cfg.config_id, step="move", reason=str(exc))
-                self._wait_ready()
+                if isinstance(exc, DeviceFaultError):  # e.g. the FRI session dropped: wait it out
+                    self._set_state("suspended", f"{cfg.config_id}: {exc}")
+                    self._wait_ready()
+                    if self._abort.is_set():
+                        return "abort"
+                    self._set_state("running")
+                else:
+                    self._wait_ready()
         attempts = 0
         timeouts = 0
         suspensions = 0

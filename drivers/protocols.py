@@ -89,6 +89,48 @@ class JointLimits:
         )
 
 
+@dataclass(frozen=True, slots=True)
+class LinkStats:
+    """Timing of a commander's cyclic exchange, over the last ``window`` cycles.
+
+    period_*: time between controller packets (s). latency_*: packet arrival → answer sent (s).
+    late_answers: answers we sent later than one cycle after the packet arrived.
+    gaps: cycles missing from the controller's counter sequence. restarts: the controller's
+    counter went back. guard_clamps: commands the step guard shortened. delay: the RSI
+    controller's last ``Delay`` value (None elsewhere). notes: protocol-specific lines for a
+    person (session state, FRI version, ...).
+    """
+
+    packets: int
+    window: int
+    period_mean_s: float
+    period_std_s: float
+    period_max_s: float
+    latency_p50_s: float
+    latency_p99_s: float
+    latency_max_s: float
+    late_answers: int
+    gaps: int
+    malformed: int
+    restarts: int
+    guard_clamps: int
+    delay: int | None
+    realtime: bool
+    notes: tuple[str, ...] = ()
+
+    def report(self) -> list[str]:
+        """The figures as lines for a person."""
+        lines = [
+            f"link: {self.packets} packets, cycle {self.period_mean_s * 1e3:.3f} ms "
+            f"(jitter σ {self.period_std_s * 1e3:.3f} ms, max {self.period_max_s * 1e3:.3f} ms)",
+            f"answers: latency p50 {self.latency_p50_s * 1e6:.0f} µs, p99 {self.latency_p99_s * 1e6:.0f} µs, "
+            f"max {self.latency_max_s * 1e6:.0f} µs; late {self.late_answers}, missing cycles {self.gaps}, "
+            f"malformed {self.malformed}, controller restarts {self.restarts}",
+            f"real-time priority: {'yes' if self.realtime else 'no (see log)'}",
+        ]
+        return lines + list(self.notes)
+
+
 @runtime_checkable
 class PositionSensor(Protocol):
     """Streams marker positions (mm, sensor frame)."""

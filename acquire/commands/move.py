@@ -50,17 +50,9 @@ def _fmt(values_rad, names) -> str:
 
 
 def _link_report(cmd, names) -> str:
-    st = cmd.link_stats()
-    state = cmd.joint_state()
-    lines = [
-        f"link: {st.packets} packets, cycle {st.period_mean_s * 1e3:.3f} ms "
-        f"(jitter σ {st.period_std_s * 1e3:.3f} ms, max {st.period_max_s * 1e3:.3f} ms)",
-        f"answers: latency p50 {st.latency_p50_s * 1e6:.0f} µs, p99 {st.latency_p99_s * 1e6:.0f} µs, "
-        f"max {st.latency_max_s * 1e6:.0f} µs; late {st.late_answers}, missing cycles {st.gaps}, "
-        f"malformed {st.malformed}, controller Delay {st.delay}",
-        f"real-time priority: {'yes' if st.realtime else 'no (see log)'}",
-        f"measured (deg): {_fmt(state.position_rad, names)}",
-    ]
+    """The commander's link figures (``LinkStats.report``) and the measured position."""
+    lines = cmd.link_stats().report()
+    lines.append(f"measured (deg): {_fmt(cmd.joint_state().position_rad, names)}")
     return "\n".join(lines)
 
 
@@ -76,7 +68,8 @@ def move(
     window: float = typer.Option(0.2, "--window", help="… for this many seconds."),
     timeout: float = typer.Option(120.0, "--timeout", help="Give up on the move (and on settling) after this many seconds."),
     end_session: bool = typer.Option(
-        True, "--end-session/--keep-session", help="Send the RSI Stop flag at the end so the controller's program continues."
+        True, "--end-session/--keep-session",
+        help="End the commander's session at the end (RSI: the Stop flag, so the controller's program continues).",
     ),
 ) -> None:
     """Move the robot to one joint target, safely, and print where it settled."""
@@ -118,7 +111,8 @@ def move(
         typer.echo(f"settled  (deg): {_fmt(final.position_rad, names)}")
         typer.echo(f"error    (deg): {_fmt(final.position_rad - checked, names)}")
         st = cmd.link_stats()
-        typer.echo(f"link after the move: late answers {st.late_answers}, missing cycles {st.gaps}, Delay {st.delay}")
+        typer.echo(f"link after the move: late answers {st.late_answers}, missing cycles {st.gaps}"
+                   + ("" if st.delay is None else f", Delay {st.delay}"))
         if end_session:
             cmd.stop()
     except DriverError as exc:

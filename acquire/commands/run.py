@@ -155,6 +155,9 @@ def run(
     fake: bool = typer.Option(False, "--fake", help="Run against the simulated cell's fakes on loopback."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Print configurations, order and cell time; connect to nothing."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Continue the run recorded in this MCAP log."),
+    skip_failed: bool = typer.Option(
+        False, "--skip-failed", help="With --resume: do not measure the configurations that failed again."
+    ),
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for the run (default: the plan's output.folder)."),
     no_fit: bool = typer.Option(False, "--no-fit", help="Do not fit at the end (use `acquire fit RUN.mcap` later)."),
     no_bus: bool = typer.Option(False, "--no-bus", help="Do not open the Zenoh bus (nothing published)."),
@@ -181,7 +184,7 @@ def run(
             bus = None
     progress = Progress()
     controller = RunController(lp, fake=fake, resume=resume, bus=bus, out_dir=out, on_progress=progress.update,
-                               fit=not no_fit)
+                               fit=not no_fit, skip_failed=skip_failed)
     interrupted = threading.Event()
 
     def on_signal(signum, frame):  # noqa: ARG001

@@ -64,8 +64,7 @@ def sim(
         typer.echo(f"running for up to {duration:g} s; Ctrl-C to stop")
         deadline = time.monotonic() + duration
         try:
-            while time.monotonic() < deadline:
-                launch.restart_stopped_rsi()
+            while time.monotonic() < deadline:  # the cell's operator restarts a stopped RSI program
                 time.sleep(min(POLL_S, max(0.0, deadline - time.monotonic())))
         except KeyboardInterrupt:
             typer.echo("stopping")

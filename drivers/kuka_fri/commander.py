@@ -18,6 +18,12 @@ URL: ``fri://HOST:PORT?option=value&...`` where HOST:PORT is the local address t
 - ``start_tolerance_deg=F``: allowed gap between measured and held position when a move
   starts (default 2).
 - ``max_state_age_ms=N``: a measured state older than this is stale (default 100).
+- ``fri_version=V``: the controller's FRI version (``1.11``…``1.16``, ``2.5``, ``2.7``, or
+  ``auto``, the default): moves are refused when the controller's messages are of the other
+  major version. The layout is always read off the messages (``layout_of``).
+- ``session_wait_s=F``: how long a move waits for a session that left COMMANDING_ACTIVE (a
+  drop under load, the robot application restarting its overlay) to come back before it
+  fails with a ``DeviceFaultError`` the run can wait out (default 10).
 - ``name=S``: device name for logs (default ``fri``).
 """
 
@@ -44,13 +50,32 @@ from drivers.kuka_fri.session import (
     SessionSnapshot,
     joint_state_of,
 )
-from drivers.protocols import JointLimits, JointState
+from drivers.protocols import JointLimits, JointState, LinkStats
 
 __all__ = ["FriCommander", "MotionStoppedError"]
 
 DEFAULT_PORT = 30200
 _URL_OPTIONS = ("controller", "rt_priority", "timeout_ms", "max_speed", "start_tolerance_deg",
-                "max_state_age_ms", "name")
+                "max_state_age_ms", "fri_version", "session_wait_s", "name")
+#: FRI versions whose message tables the session knows (1.11–1.16 share 1.x's layout).
+KNOWN_VERSIONS = ("1.11", "1.12", "1.13", "1.14", "1.15", "1.16", "2.5", "2.6", "2.7")
+
+
+def _quality_name(value: int) -> str:
+    from drivers.kuka_fri.messages import ConnectionQuality
+
+    try:
+        return ConnectionQuality(value).name
+    except ValueError:
+        return str(value)
+
+
+def _fri_major(value: str) -> Optional[int]:
+    if value == "auto":
+        return None
+    if value not in KNOWN_VERSIONS:
+        raise ValueError(f"known versions: auto, {', '.join(KNOWN_VERSIONS)}")
+    return int(value.split(".")[0])
 
 
 class FriCommander(CommanderBase):
@@ -77,6 +102,8 @@ class FriCommander(CommanderBase):
         max_speed: float = 1.0,
         max_state_age_s: float = 0.1,
         limit_margin_rad: float = math.radians(0.5),
+        fri_version: str = "auto",
+        session_wait_s: float = 10.0,
         switch_interval_s: Optional[float] = 0.0005,
         clock: Clock = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
@@ -100,7 +127,24 @@ class FriCommander(CommanderBase):
             raise ValueError(f"switch_interval_s must be positive or None, got {switch_interval_s}")
         self.switch_interval_s = switch_interval_s
         self._saved_switch_interval: Optional[float] = None
-        self.session = FriClientSession(limits, start_tolerance_rad=start_tolerance_rad, logger=self.log)
+        try:
+            major = _fri_major(str(fri_version))
+        except ValueError as exc:
+            raise ValueError(f"fri_version {fri_version!r} is not known; {exc}") from None
+        if not session_wait_s >= 0:
+            raise ValueError(f"session_wait_s must be >= 0, got {session_wait_s}")
+        self.fri_version = str(fri_version)
+        self.session_wait_s = float(session_wait_s)
+        self.session = FriClientSession(limits, start_tolerance_rad=start_tolerance_rad, expect_major=major,
+                                        logger=self.log)
+        # link statistics, written by the exchange thread only (a ring of the last _W cycles)
+        self._W = 2000
+        self._rx = np.zeros(self._W)
+        self._lat = np.zeros(self._W)
+        self._count = 0
+        self._late = 0
+        self._gaps = 0
+        self._seen_seq: Optional[int] = None
         self.rt_scheduling: str = "not started"
         self.malformed_messages = 0
         self.foreign_datagrams = 0
@@ -133,6 +177,8 @@ class FriCommander(CommanderBase):
             "max_speed": ("max_speed", float),
             "start_tolerance_deg": ("start_tolerance_rad", lambda v: math.radians(float(v))),
             "max_state_age_ms": ("max_state_age_s", lambda v: float(v) / 1000.0),
+            "fri_version": ("fri_version", str),
+            "session_wait_s": ("session_wait_s", float),
             "name": ("name", str),
         }
         args = {}
@@ -256,6 +302,7 @@ class FriCommander(CommanderBase):
                 self._warn(f"malformed monitoring message ({len(data)} bytes) from {addr[0]}:{addr[1]}: {exc}")
                 session.check_silence(now, self.receive_timeout_s)
                 continue
+            self._count_cycle(msg.header.sequence_counter, now)
             try:
                 reply = session.on_monitoring(msg, now)
             except Exception as exc:  # noqa: BLE001 - the exchange thread must survive a bug
@@ -267,6 +314,25 @@ class FriCommander(CommanderBase):
                     sock.sendto(encode_command(reply), addr)
                 except OSError as exc:
                     self._warn(f"send to {addr[0]}:{addr[1]} failed: {exc}")
+                self._count_answer(now)
+
+    def _count_cycle(self, seq: int, now: float) -> None:
+        """Exchange thread: one monitoring message arrived at ``now``."""
+        prev, self._seen_seq = self._seen_seq, seq
+        if prev is not None and seq > prev + 1 and seq - prev < (1 << 31):
+            self._gaps += seq - prev - 1
+        i = self._count % self._W
+        self._rx[i] = now
+        self._lat[i] = 0.0
+        self._count += 1
+
+    def _count_answer(self, received: float) -> None:
+        """Exchange thread: the answer to the message received at ``received`` is sent."""
+        latency = self.clock() - received
+        self._lat[(self._count - 1) % self._W] = latency
+        snap = self.session.snapshot()
+        if snap is not None and snap.receive_period_s and latency > snap.receive_period_s:
+            self._late += 1
 
     def _warn(self, text: str) -> None:
         """Rate-limited warning: at most one per second from the exchange thread."""
@@ -274,6 +340,34 @@ class FriCommander(CommanderBase):
         if t - self._last_warning >= 1.0:
             self._last_warning = t
             self.log.warning("%s", text)
+
+    def _ordered(self, ring: np.ndarray) -> np.ndarray:
+        count = self._count
+        if count <= self._W:
+            return ring[:count].copy()
+        i = count % self._W
+        return np.concatenate([ring[i:], ring[:i]])
+
+    def link_stats(self) -> LinkStats:
+        """Timing of the last cycles (see ``LinkStats``). Costs O(window); not for the RT path."""
+        rx, lat = self._ordered(self._rx), self._ordered(self._lat)
+        n = lat.shape[0]
+        per = np.diff(rx) if n > 1 else np.zeros(1)
+        q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
+        snap = self.session.snapshot()
+        notes = ["session: no monitoring message yet"] if snap is None else [
+            f"session: {snap.session_state.name}, quality {_quality_name(snap.quality)}, "
+            f"{snap.layout}, receive period {(snap.receive_period_s or 0) * 1e3:.0f} ms",
+        ]
+        notes.append(f"exchange thread: {self.rt_scheduling}; foreign datagrams {self.foreign_datagrams}")
+        return LinkStats(
+            packets=self._count, window=n, period_mean_s=float(per.mean()), period_std_s=float(per.std()),
+            period_max_s=float(per.max()), latency_p50_s=float(q[0]), latency_p99_s=float(q[1]),
+            latency_max_s=float(lat.max()) if n else 0.0, late_answers=self._late, gaps=self._gaps,
+            malformed=self.malformed_messages, restarts=self.session.counters.restarts,
+            guard_clamps=self.session.counters.step_clamps, delay=None,
+            realtime=self.rt_scheduling.startswith("SCHED_FIFO"), notes=tuple(notes),
+        )
 
     # ------------------------------------------------------------------ JointCommander
 
@@ -308,7 +402,26 @@ class FriCommander(CommanderBase):
             raise DeviceTimeoutError(f"{self.name}: controller sends no measured joint position")
         return joint_state_of(snap)
 
+    def _wait_commanding(self) -> None:
+        """A session that left COMMANDING_ACTIVE (a drop under load, a controller restart) comes
+        back when the robot application starts its overlay again: wait up to ``session_wait_s``
+        for it. DeviceFaultError (the run waits it out and retries) when it does not."""
+        state = self.session.session_state
+        if state == SessionState.COMMANDING_ACTIVE or state is None:
+            return
+        self.log.warning("%s: session is %s; waiting up to %.0f s for COMMANDING_ACTIVE",
+                         self.name, state.name, self.session_wait_s)
+        try:
+            self.wait_session(SessionState.COMMANDING_ACTIVE, self.session_wait_s)
+        except DeviceTimeoutError as exc:
+            raise DeviceFaultError(
+                f"{exc}; start the FRI joint-position overlay in the robot application "
+                "(drivers/kuka_fri/controller/) and resume"
+            ) from exc
+        self._sleep(2 * (self.session.snapshot().receive_period_s or 0.01))  # one held command first
+
     def _move_internal(self, start: JointState, target_rad: np.ndarray, speed: float, timeout: float) -> None:
+        self._wait_commanding()
         motion = self.session.begin_move(target_rad, speed, self.name)
         self.log.info(
             "move to %s deg at speed %.3g: %.3f s", np.round(np.degrees(target_rad), 3).tolist(),

@@ -6,12 +6,29 @@ the ``FRICommandMessage`` answers that arrive before the next one. It walks the 
 machine, runs the commanded positions through a second-order servo, checks the client's
 counters, timing, echo and step sizes, and exposes fault hooks for the failure paths.
 
+Message layouts (``fri_version``), from the generated tables of KUKA's FRI client SDK:
+``"1.15"`` (Sunrise.OS 1.x: monitor data carries ``commandedJointPosition``, field 3),
+``"2.5"`` (no field 3; measured and ipo Cartesian pose in mm and quaternion, E1 redundancy)
+and ``"2.7"`` (as 2.5 without ``endOfMessageData``). The Cartesian pose is the flange of the
+nominal LBR iiwa 14 R820 kinematics, as the controller's own model would compute it.
+
+``ipoData.jointPosition`` is the interpolator's position, as the SDK documents it: the robot
+application's motion (a position hold) under the FRI joint overlay, fixed when the overlay
+motion starts. A client's command is the absolute joint set-point (ipo position + overlay);
+FRI 1.x reports the last one applied as ``commandedJointPosition``.
+
+``application=True`` runs the robot application the controller-side program we ship does
+(``drivers/kuka_fri/controller/``): it opens the session, and whenever the session has been
+MONITORING_READY for ``application_start_cycles`` messages it starts the overlay motion, again
+after a drop. Any FRI client (ours, KUKA's SDK examples) can then be tried without code.
+
 Session state machine (see ``PROTOCOL.md``)::
 
     IDLE --(open_session / auto after idle_cycles)--> MONITORING_WAIT
     MONITORING_WAIT --(ready_after consecutive answered windows, quality >= GOOD)--> MONITORING_READY
     MONITORING_READY --(start_commanding(): the robot application's FRI overlay motion)--> COMMANDING_WAIT
     COMMANDING_WAIT --(commanding_wait_cycles answers echoing the ipo position)--> COMMANDING_ACTIVE
+    MONITORING_READY --(application mode: after application_start_cycles)--> COMMANDING_WAIT
     COMMANDING_* --(stop_commanding / violation / fault)--> MONITORING_READY
     any non-IDLE --(max_missed consecutive unanswered windows)--> MONITORING_WAIT
     any --(close_session / restart)--> IDLE
@@ -43,6 +60,10 @@ from drivers.kuka_fri.messages import (
     COMMAND_MESSAGE_ID,
     MONITORING_MESSAGE_ID,
     ClientCommandMode,
+    EndOfMessage,
+    QuaternionTransformation,
+    RedundancyInformation,
+    RedundancyStrategy,
     ConnectionInfo,
     ConnectionQuality,
     ControlMode,
@@ -65,6 +86,27 @@ log = logging.getLogger("remaster.fake.sunrise")
 
 N_JOINTS = 7
 _LOOPBACK = {"127.0.0.1", "localhost", "::1"}
+FRI_VERSIONS = ("1.15", "2.5", "2.7")
+
+#: Nominal LBR iiwa 14 R820, standard DH (d mm, alpha rad; a = 0): the controller's own model.
+_IIWA14_D = np.array([360.0, 0.0, 420.0, 0.0, 400.0, 0.0, 126.0])
+_IIWA14_ALPHA = np.radians([-90.0, 90.0, 90.0, -90.0, -90.0, 90.0, 0.0])
+
+
+def nominal_flange_pose(q_rad: np.ndarray) -> tuple[float, ...]:
+    """Flange pose of the nominal iiwa 14 at joints ``q_rad`` (7,): ``(t_x, t_y, t_z, q_w,
+    q_x, q_y, q_z)``, translation in mm, unit quaternion (FRI 2.x ``QuaternionTransformation``)."""
+    T = np.eye(4)
+    for th, d, al in zip(q_rad, _IIWA14_D, _IIWA14_ALPHA):
+        ct, st, ca, sa = math.cos(th), math.sin(th), math.cos(al), math.sin(al)
+        T = T @ np.array([[ct, -st * ca, st * sa, 0.0], [st, ct * ca, -ct * sa, 0.0],
+                          [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]])
+    R = T[:3, :3]
+    w = math.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2.0
+    x = math.copysign(math.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2.0, R[2, 1] - R[1, 2])
+    y = math.copysign(math.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2.0, R[0, 2] - R[2, 0])
+    z = math.copysign(math.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2.0, R[1, 0] - R[0, 1])
+    return (*T[:3, 3].tolist(), w, x, y, z)
 
 
 @dataclass
@@ -100,6 +142,9 @@ class FakeSunrise:
     loss_out / loss_in: probability that a monitoring message / an answer is lost.
     max_runtime_s: wall seconds after which the sending thread stops by itself.
     rt_priority: SCHED_FIFO priority of the sending thread when permitted (0: normal).
+    fri_version: message layout, one of ``FRI_VERSIONS`` (see the module docstring).
+    application: run the shipped robot application's behaviour (start the overlay motion by
+        itself ``application_start_cycles`` messages after MONITORING_READY, again after drops).
     """
 
     def __init__(
@@ -131,8 +176,13 @@ class FakeSunrise:
         loss_in: float = 0.0,
         max_runtime_s: float = 300.0,
         rt_priority: int = 0,
+        fri_version: str = "1.15",
+        application: bool = False,
+        application_start_cycles: int = 20,
     ) -> None:
         host, port = client_address
+        if fri_version not in FRI_VERSIONS:
+            raise ValueError(f"fri_version must be one of {', '.join(FRI_VERSIONS)}, got {fri_version!r}")
         if host not in _LOOPBACK:
             raise ValueError(f"the fake Sunrise only talks to loopback, got client host {host!r}")
         if not (isinstance(send_period_ms, int) and 1 <= send_period_ms <= 100):
@@ -165,6 +215,9 @@ class FakeSunrise:
         self.loss_in = float(loss_in)
         self.max_runtime_s = float(max_runtime_s)
         self.rt_priority = int(rt_priority)
+        self.fri_version = fri_version
+        self.application = bool(application)
+        self.application_start_cycles = int(application_start_cycles)
         self.overruns = 0
         self._rng = np.random.default_rng(seed)
         self._omega = 2 * math.pi * servo_frequency_hz
@@ -179,7 +232,8 @@ class FakeSunrise:
             raise ValueError(f"initial_position_rad must have shape ({N_JOINTS},), got {q0.shape}")
         self._q = q0  # actual position, rad
         self._qd = np.zeros(N_JOINTS)  # actual velocity, rad/s
-        self._setpoint = q0.copy()  # commanded (ipo) position, rad
+        self._setpoint = q0.copy()  # commanded position (ipo + the client's overlay), rad
+        self._ipo = q0.copy()  # the interpolator's position: the application's motion, rad
         self._windows_since_applied = 1
 
         self.stats = FakeSunriseStats()
@@ -350,6 +404,8 @@ class FakeSunrise:
             self._state = new
             self._cycles_in_state = 0
             self._consecutive_good = 0
+            if new == SessionState.COMMANDING_WAIT:
+                self._ipo = self._setpoint.copy()  # the overlay motion holds where the robot is
             if new == SessionState.COMMANDING_ACTIVE:
                 self._first_active_command = True
                 self._windows_since_applied = 1
@@ -422,7 +478,7 @@ class FakeSunrise:
             if jp is None or len(jp) != N_JOINTS:
                 self.stats.violations.append("COMMANDING_WAIT answer without 7 joint positions")
                 self._consecutive_good = -1
-            elif np.max(np.abs(np.asarray(jp) - self._setpoint)) > self.echo_tolerance_rad:
+            elif np.max(np.abs(np.asarray(jp) - self._ipo)) > self.echo_tolerance_rad:
                 self.stats.violations.append("COMMANDING_WAIT answer does not echo the ipo position")
                 self._consecutive_good = -1
         elif self._state == SessionState.COMMANDING_ACTIVE:
@@ -513,11 +569,20 @@ class FakeSunrise:
         ):
             self._set_state(SessionState.COMMANDING_ACTIVE, "client echoes the ipo position")
 
-    def _build(self) -> FRIMonitoringMessage:
+    def _build(self) -> bytes:
         q = self._q + (self._rng.normal(0.0, self.noise_rad, N_JOINTS) if self.noise_rad else 0.0)
         commanding = self._state in (SessionState.COMMANDING_WAIT, SessionState.COMMANDING_ACTIVE)
         t = self.clock.now() if self.clock is not None else time.time()
-        return FRIMonitoringMessage(
+        v1 = self.fri_version.startswith("1.")
+        stamp = TimeStamp.from_seconds(t)
+        pose = red = ipo_pose = ipo_red = None
+        if not v1:
+            pose = QuaternionTransformation("flange", nominal_flange_pose(q), stamp)
+            red = RedundancyInformation(RedundancyStrategy.E1, float(q[2]))
+            if commanding:
+                ipo_pose = QuaternionTransformation("flange", nominal_flange_pose(self._ipo), stamp)
+                ipo_red = RedundancyInformation(RedundancyStrategy.E1, float(self._ipo[2]))
+        msg = FRIMonitoringMessage(
             header=MessageHeader(MONITORING_MESSAGE_ID, self._seq, self._client_seq),
             robot_info=RobotInfo(
                 number_of_joints=N_JOINTS,
@@ -529,17 +594,30 @@ class FakeSunrise:
             monitor_data=MonitorData(
                 measured_joint_position=tuple(q.tolist()),
                 measured_torque=(0.0,) * N_JOINTS,
-                commanded_joint_position=tuple(self._setpoint.tolist()),
-                timestamp=TimeStamp.from_seconds(t),
+                commanded_joint_position=tuple(self._setpoint.tolist()) if v1 else None,
+                timestamp=stamp,
+                measured_cartesian_pose=pose,
+                measured_redundancy=red,
             ),
             connection_info=ConnectionInfo(
                 self._state, self._quality(), self.send_period_ms, self.receive_multiplier
             ),
             ipo_data=IpoData(
-                joint_position=tuple(self._setpoint.tolist()) if commanding else None,
+                joint_position=tuple(self._ipo.tolist()) if commanding else None,
                 client_command_mode=ClientCommandMode.POSITION if commanding else ClientCommandMode.NO_COMMAND_MODE,
                 overlay_type=OverlayType.JOINT if commanding else OverlayType.NO_OVERLAY,
+                cartesian_pose=ipo_pose,
+                redundancy=ipo_red,
             ),
+        )
+        body = msg.encode()
+        if self.fri_version == "2.7":
+            return body
+        # 1.x and 2.5 close with endOfMessageData; the SDK's decoder does not read it. We state
+        # the length of what precedes it (unverified against a real controller).
+        return FRIMonitoringMessage.encode(
+            FRIMonitoringMessage(msg.header, msg.robot_info, msg.monitor_data, msg.connection_info,
+                                 msg.ipo_data, EndOfMessage(message_length=len(body)))
         )
 
     def _malformed_bytes(self, kind: str, good: bytes) -> bytes:
@@ -566,9 +644,13 @@ class FakeSunrise:
         self._cycles_in_state += 1
         if self._state == SessionState.IDLE and self.auto_open and self._cycles_in_state > self.idle_cycles:
             self._set_state(SessionState.MONITORING_WAIT, "session opened")
+        if (self.application and self._state == SessionState.MONITORING_READY
+                and self._cycles_in_state > self.application_start_cycles
+                and self._drives == DriveState.ACTIVE and self._safety == SafetyState.NORMAL_OPERATION):
+            self._set_state(SessionState.COMMANDING_WAIT, "robot application started its FRI overlay motion")
         if not self._sending:
             return None
-        data = self._build().encode()
+        data = self._build()
         if self._malformed_next:
             data = self._malformed_bytes(self._malformed_next.pop(0), data)
         self._seq = (self._seq + 1) & 0xFFFF_FFFF

@@ -1,7 +1,12 @@
 """FRI messages as dataclasses, with their proto2 encoding and decoding.
 
 The field numbers and wire types are ours to state (``drivers/kuka_fri/PROTOCOL.md``), taken
-from the public facts in ``PROTOCOLS.md``. Joint values are tuples of floats (radians for
+from the public facts in ``PROTOCOLS.md`` and the generated tables (``FRIMessages.pb.h/.c``)
+of KUKA's FRI client SDK, versions 1.x and 2.x. One set of dataclasses covers both: FRI 1.x
+(Sunrise.OS 1.11–1.16) sends ``commandedJointPosition`` (monitor data field 3); FRI 2.x drops it
+and adds the measured/ipo Cartesian pose and redundancy information (monitor data 9 and 10,
+ipo data 2 and 3, command data 6 and 7) and the client command mode 4 (Cartesian pose); FRI 2.7
+sends no ``endOfMessageData``. ``layout_of`` tells which one a controller speaks. Joint values are tuples of floats (radians for
 positions, N·m for torques); ``None`` means the field was absent, ``()`` that it was present
 but empty. Enumerations decode to their ``IntEnum`` when the value is known; an unknown value
 of a state the client acts on (session state, quality) is a ``ProtocolError``, an unknown value
@@ -75,6 +80,14 @@ class ClientCommandMode(IntEnum):
     POSITION = 1
     WRENCH = 2
     TORQUE = 3
+    CARTESIAN_POSE = 4  # FRI 2.x
+
+
+class RedundancyStrategy(IntEnum):
+    """FRI 2.x: E1 means the redundancy value is the A3 joint position (rad)."""
+
+    E1 = 0
+    NONE = 4
 
 
 class OverlayType(IntEnum):
@@ -113,6 +126,27 @@ class TimeStamp:
 
 
 @dataclass(frozen=True, slots=True)
+class QuaternionTransformation:
+    """FRI 2.x Cartesian pose of the TCP in the robot base frame.
+
+    element: shape (7,) ``[t_x, t_y, t_z, q_w, q_x, q_y, q_z]``: translation in mm, unit
+    quaternion. name (required on the wire): the frame's name.
+    """
+
+    name: str
+    element: tuple[float, ...]
+    timestamp: Optional[TimeStamp] = None
+
+
+@dataclass(frozen=True, slots=True)
+class RedundancyInformation:
+    """FRI 2.x redundancy: ``strategy`` (``RedundancyStrategy``) and its ``value`` (E1: rad)."""
+
+    strategy: int
+    value: float
+
+
+@dataclass(frozen=True, slots=True)
 class ConnectionInfo:
     """Session state and quality are required; send period in ms."""
 
@@ -141,6 +175,8 @@ class MonitorData:
     commanded_torque: Optional[JointValues] = None
     external_torque: Optional[JointValues] = None
     timestamp: Optional[TimeStamp] = None
+    measured_cartesian_pose: Optional[QuaternionTransformation] = None  # FRI 2.x
+    measured_redundancy: Optional[RedundancyInformation] = None  # FRI 2.x
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,6 +187,8 @@ class IpoData:
     client_command_mode: Optional[int] = None
     overlay_type: Optional[int] = None
     tracking_performance: Optional[float] = None
+    cartesian_pose: Optional[QuaternionTransformation] = None  # FRI 2.x
+    redundancy: Optional[RedundancyInformation] = None  # FRI 2.x
 
 
 @dataclass(frozen=True, slots=True)
@@ -182,6 +220,8 @@ class CommandData:
 
     joint_position: Optional[JointValues] = None
     joint_torque: Optional[JointValues] = None
+    cartesian_pose: Optional[QuaternionTransformation] = None  # FRI 2.x
+    redundancy: Optional[RedundancyInformation] = None  # FRI 2.x
 
 
 @dataclass(frozen=True, slots=True)
@@ -196,6 +236,30 @@ class FRICommandMessage:
     @staticmethod
     def decode(data: bytes) -> "FRICommandMessage":
         return decode_command(data)
+
+
+@dataclass(frozen=True, slots=True)
+class FriLayout:
+    """Which FRI message layout a controller speaks, as far as its monitoring messages tell.
+
+    major: 1 (Sunrise.OS 1.11–1.16: ``commandedJointPosition`` present) or 2 (Sunrise.OS 2.x:
+    absent). end_of_message: whether ``endOfMessageData`` is sent (FRI 2.7 dropped it).
+    """
+
+    major: int
+    end_of_message: bool
+
+    def __str__(self) -> str:
+        if self.major == 1:
+            return "FRI 1.x"
+        return "FRI 2.x" + ("" if self.end_of_message else " (2.7, no end-of-message)")
+
+
+def layout_of(msg: "FRIMonitoringMessage") -> FriLayout:
+    """The layout of one monitoring message (see ``FriLayout``)."""
+    md = msg.monitor_data
+    major = 1 if md is not None and md.commanded_joint_position is not None else 2
+    return FriLayout(major, msg.end_of_message is not None)
 
 
 # ============================================================================ encoding
@@ -246,6 +310,21 @@ def _enc_robot_info(r: RobotInfo) -> bytes:
     return out + _enc_enum(6, r.operation_mode) + _enc_enum(7, r.control_mode)
 
 
+def _enc_pose(field_number: int, p: Optional[QuaternionTransformation]) -> bytes:
+    if p is None:
+        return b""
+    out = wire.encode_bytes(1, p.name.encode("utf-8")) + wire.encode_repeated_double(2, p.element)
+    if p.timestamp is not None:
+        out += wire.encode_bytes(3, _enc_timestamp(p.timestamp))
+    return wire.encode_bytes(field_number, out)
+
+
+def _enc_redundancy(field_number: int, r: Optional[RedundancyInformation]) -> bytes:
+    if r is None:
+        return b""
+    return wire.encode_bytes(field_number, wire.encode_int32(1, int(r.strategy)) + wire.encode_double(2, r.value))
+
+
 def _enc_monitor_data(m: MonitorData) -> bytes:
     return (
         _enc_joint_values(1, m.measured_joint_position)
@@ -253,12 +332,15 @@ def _enc_monitor_data(m: MonitorData) -> bytes:
         + _enc_joint_values(3, m.commanded_joint_position)
         + _enc_joint_values(4, m.commanded_torque)
         + _enc_joint_values(5, m.external_torque)
+        + _enc_pose(9, m.measured_cartesian_pose)
+        + _enc_redundancy(10, m.measured_redundancy)
         + (b"" if m.timestamp is None else wire.encode_bytes(15, _enc_timestamp(m.timestamp)))
     )
 
 
 def _enc_ipo_data(p: IpoData) -> bytes:
-    out = _enc_joint_values(1, p.joint_position)
+    out = _enc_joint_values(1, p.joint_position) + _enc_pose(2, p.cartesian_pose)
+    out += _enc_redundancy(3, p.redundancy)
     out += _enc_enum(10, p.client_command_mode) + _enc_enum(11, p.overlay_type)
     if p.tracking_performance is not None:
         out += wire.encode_double(12, p.tracking_performance)
@@ -295,7 +377,12 @@ def encode_command(msg: FRICommandMessage) -> bytes:
     cd = msg.command_data
     payload = None
     if cd is not None:
-        payload = _enc_joint_values(1, cd.joint_position) + _enc_joint_values(3, cd.joint_torque)
+        payload = (
+            _enc_joint_values(1, cd.joint_position)
+            + _enc_joint_values(3, cd.joint_torque)
+            + _enc_pose(6, cd.cartesian_pose)
+            + _enc_redundancy(7, cd.redundancy)
+        )
     return (
         wire.encode_bytes(1, encode_header(msg.header))
         + _enc_message(2, payload)
@@ -461,13 +548,67 @@ def _collect(payload, wanted: set[int], what: str) -> dict[int, list]:
     return parts
 
 
+def _dec_pose(payload, what: str) -> QuaternionTransformation:
+    """A ``QuaternionTransformation``: 1 name (required string), 2 element (repeated double),
+    3 timestamp."""
+    name = None
+    elements: list[float] = []
+    ts_parts: list = []
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn == 1:
+            _expect(wt, LEN, f"{what}.name")
+            try:
+                name = bytes(val).decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise ProtocolError(f"{what}.name is not UTF-8: {exc}") from None
+        elif fn == 2:
+            if wt == I64:
+                elements.append(wire.decode_double(val))
+            elif wt == LEN:
+                elements.extend(wire.decode_packed_doubles(val, f"{what}.element"))
+            else:
+                _expect(wt, I64, f"{what}.element")
+        elif fn == 3:
+            _expect(wt, LEN, f"{what}.timestamp")
+            ts_parts.append(val)
+    if name is None:
+        raise ProtocolError(f"{what}: required field name (1) is missing")
+    if len(elements) > 7:
+        raise ProtocolError(f"{what}: {len(elements)} elements, at most 7 (t_x, t_y, t_z, q_w, q_x, q_y, q_z)")
+    raw = _merged(ts_parts)
+    return QuaternionTransformation(name, tuple(elements), None if raw is None else _dec_timestamp(raw))
+
+
+def _dec_redundancy(payload, what: str) -> RedundancyInformation:
+    """A ``RedundancyInformation``: 1 strategy (required enum), 2 value (required double)."""
+    strategy = value = None
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn == 1:
+            _expect(wt, VARINT, f"{what}.strategy")
+            strategy = _lenient_enum(RedundancyStrategy, val, f"{what}.strategy")
+        elif fn == 2:
+            _expect(wt, I64, f"{what}.value")
+            value = wire.decode_double(val)
+    if strategy is None:
+        raise ProtocolError(f"{what}: required field strategy (1) is missing")
+    if value is None:
+        raise ProtocolError(f"{what}: required field value (2) is missing")
+    return RedundancyInformation(strategy, value)
+
+
 def _dec_monitor_data(payload) -> MonitorData:
-    parts = _collect(payload, {1, 2, 3, 4, 5, 15}, "MessageMonitorData")
+    parts = _collect(payload, {1, 2, 3, 4, 5, 9, 10, 15}, "MessageMonitorData")
     kwargs = {}
     for fn, name in _MONITOR_JOINT_FIELDS.items():
         raw = _merged(parts.get(fn, []))
         if raw is not None:
             kwargs[name] = decode_joint_values(raw, f"MessageMonitorData.{name}")
+    raw = _merged(parts.get(9, []))
+    if raw is not None:
+        kwargs["measured_cartesian_pose"] = _dec_pose(raw, "MessageMonitorData.measuredCartesianPose")
+    raw = _merged(parts.get(10, []))
+    if raw is not None:
+        kwargs["measured_redundancy"] = _dec_redundancy(raw, "MessageMonitorData.measuredRedundancyInformation")
     raw = _merged(parts.get(15, []))
     if raw is not None:
         kwargs["timestamp"] = _dec_timestamp(raw)
@@ -476,11 +617,19 @@ def _dec_monitor_data(payload) -> MonitorData:
 
 def _dec_ipo_data(payload) -> IpoData:
     jp_parts: list = []
+    pose_parts: list = []
+    red_parts: list = []
     mode = overlay = perf = None
     for fn, wt, val in wire.iter_fields(payload):
         if fn == 1:
             _expect(wt, LEN, "MessageIpoData.jointPosition")
             jp_parts.append(val)
+        elif fn == 2:
+            _expect(wt, LEN, "MessageIpoData.cartesianPose")
+            pose_parts.append(val)
+        elif fn == 3:
+            _expect(wt, LEN, "MessageIpoData.redundancyInformation")
+            red_parts.append(val)
         elif fn == 10:
             _expect(wt, VARINT, "MessageIpoData.clientCommandMode")
             mode = _lenient_enum(ClientCommandMode, val, "MessageIpoData.clientCommandMode")
@@ -492,7 +641,11 @@ def _dec_ipo_data(payload) -> IpoData:
             perf = wire.decode_double(val)
     raw = _merged(jp_parts)
     jp = None if raw is None else decode_joint_values(raw, "MessageIpoData.jointPosition")
-    return IpoData(jp, mode, overlay, perf)
+    raw = _merged(pose_parts)
+    pose = None if raw is None else _dec_pose(raw, "MessageIpoData.cartesianPose")
+    raw = _merged(red_parts)
+    red = None if raw is None else _dec_redundancy(raw, "MessageIpoData.redundancyInformation")
+    return IpoData(jp, mode, overlay, perf, pose, red)
 
 
 def _dec_end_of_message(payload) -> EndOfMessage:
@@ -559,12 +712,16 @@ def decode_command(data: bytes) -> FRICommandMessage:
     command_data = None
     raw = _merged(parts.get(2, []))
     if raw is not None:
-        cparts = _collect(raw, {1, 3}, "MessageCommandData")
+        cparts = _collect(raw, {1, 3, 6, 7}, "MessageCommandData")
         jp = _merged(cparts.get(1, []))
         jt = _merged(cparts.get(3, []))
+        cp = _merged(cparts.get(6, []))
+        rd = _merged(cparts.get(7, []))
         command_data = CommandData(
             joint_position=None if jp is None else decode_joint_values(jp, "MessageCommandData.jointPosition"),
             joint_torque=None if jt is None else decode_joint_values(jt, "MessageCommandData.jointTorque"),
+            cartesian_pose=None if cp is None else _dec_pose(cp, "MessageCommandData.cartesianPose"),
+            redundancy=None if rd is None else _dec_redundancy(rd, "MessageCommandData.redundancyInformation"),
         )
     raw = _merged(parts.get(15, []))
     return FRICommandMessage(

@@ -10,7 +10,7 @@ What the client answers, per session state (the vendor SDK's ``ClientApplication
 
 - IDLE: nothing.
 - MONITORING_WAIT / MONITORING_READY: a command echoing the controller's *commanded* joint
-  position (the measured one when the controller does not send it). Sunrise derives the
+  position (FRI 1.x), else the measured one (FRI 2.x sends no commanded position). Sunrise derives the
   connection quality from these answers, so they are needed to reach MONITORING_READY; the
   echo moves nothing.
 - COMMANDING_WAIT: a command echoing the controller's interpolated (ipo) joint position.
@@ -20,6 +20,10 @@ What the client answers, per session state (the vendor SDK's ``ClientApplication
 
 Answers go to every ``receiveMultiplier``-th message received, with our own counter and the
 controller's counter reflected.
+
+FRI versions: the layout is read off every message (``layout_of``: 1.x when the commanded
+position is there, 2.x when not; 2.7 sends no end-of-message). ``expect_major`` (1 or 2, from
+the commander's URL) makes a controller of the other major version refuse moves with a reason.
 """
 
 from __future__ import annotations
@@ -39,9 +43,11 @@ from drivers.kuka_fri.messages import (
     DriveState,
     FRICommandMessage,
     FRIMonitoringMessage,
+    FriLayout,
     MessageHeader,
     SafetyState,
     SessionState,
+    layout_of,
 )
 from drivers.protocols import JointLimits, JointState
 from drivers.trajectory import JointTrajectory, scaled_limits
@@ -73,6 +79,7 @@ class SessionSnapshot:
     host_time: float
     receive_period_s: Optional[float]
     sequence_counter: int
+    layout: Optional[FriLayout] = None
 
 
 @dataclass
@@ -109,9 +116,12 @@ class FriClientSession:
     """
 
     def __init__(self, limits: JointLimits, *, start_tolerance_rad: float = math.radians(2.0),
-                 logger: Optional[logging.Logger] = None) -> None:
+                 expect_major: Optional[int] = None, logger: Optional[logging.Logger] = None) -> None:
         if limits.n_axes != N_JOINTS:
             raise ValueError(f"an LBR iiwa has {N_JOINTS} joints; the limits have {limits.n_axes}")
+        if expect_major not in (None, 1, 2):
+            raise ValueError(f"expect_major must be 1, 2 or None, got {expect_major!r}")
+        self.expect_major = expect_major
         self.limits = limits
         self.start_tolerance_rad = float(start_tolerance_rad)
         self.log = logger or logging.getLogger("remaster.device.fri")
@@ -190,9 +200,17 @@ class FriClientSession:
             )
         if snap.number_of_joints is not None and snap.number_of_joints != N_JOINTS:
             raise LimitError(f"{name}: controller reports {snap.number_of_joints} joints, expected {N_JOINTS}")
+        if self.expect_major is not None and snap.layout is not None and snap.layout.major != self.expect_major:
+            raise LimitError(
+                f"{name}: the controller sends {snap.layout} messages but fri_version in the URL says "
+                f"{self.expect_major}.x; fix the URL (or leave fri_version out to follow the controller)"
+            )
+        if snap.measured_rad is None:
+            raise LimitError(f"{name}: controller sends no measured joint position")
+        # FRI 2.x sends no commanded position: the held command is our own, so nothing is lost.
         for what, arr in (("measured", snap.measured_rad), ("commanded", snap.commanded_rad)):
             if arr is None:
-                raise LimitError(f"{name}: controller sends no {what} joint position")
+                continue
             if arr.shape != (self.limits.n_axes,):
                 raise LimitError(
                     f"{name}: controller reports {arr.shape[0]} {what} joint values, "
@@ -272,6 +290,8 @@ class FriClientSession:
         old = self._snapshot
         self._snapshot = snap
         state = snap.session_state
+        if old is None or old.layout != snap.layout:
+            self.log.info("FRI: controller speaks %s", snap.layout)
         if old is None or old.session_state != state:
             self.log.info(
                 "FRI session %s -> %s (quality %s)",
@@ -417,6 +437,7 @@ def _snapshot_of(msg: FRIMonitoringMessage, now: float) -> SessionSnapshot:
         host_time=now,
         receive_period_s=period,
         sequence_counter=msg.header.sequence_counter,
+        layout=layout_of(msg),
     )
 
 

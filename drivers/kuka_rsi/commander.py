@@ -48,7 +48,7 @@ from drivers.errors import (
 )
 from drivers.kuka_rsi.codec import SenFormatter, parse_rob
 from drivers.kuka_rsi.udp import enable_rx_timestamps, recv_stamped
-from drivers.protocols import JointLimits, JointState
+from drivers.protocols import JointLimits, JointState, LinkStats
 from drivers.trajectory import JointTrajectory, default_jerk, scaled_limits
 
 __all__ = ["RsiCommander", "LinkStats"]
@@ -57,32 +57,6 @@ DEFAULT_PORT = 49152
 #: Relative slack of the per-cycle guard: a row may exceed a limit by this fraction only
 #: (covers the rounding of the 7-decimal wire format, never a real excess).
 GUARD_SLACK = 1e-6
-
-
-@dataclass(frozen=True, slots=True)
-class LinkStats:
-    """Timing of the exchange, over the last ``window`` cycles.
-
-    period_*: time between controller packets (s). latency_*: packet arrival (kernel stamp) → answer sent (s).
-    late_answers: answers we sent later than one cycle after the packet arrived.
-    gaps: cycles missing from the IPOC sequence. delay: the controller's last ``Delay`` value.
-    """
-
-    packets: int
-    window: int
-    period_mean_s: float
-    period_std_s: float
-    period_max_s: float
-    latency_p50_s: float
-    latency_p99_s: float
-    latency_max_s: float
-    late_answers: int
-    gaps: int
-    malformed: int
-    restarts: int
-    guard_clamps: int
-    delay: int | None
-    realtime: bool
 
 
 class _Motion:
@@ -391,6 +365,7 @@ class RsiCommander(CommanderBase):
             guard_clamps=self._clamps,
             delay=self._last_delay,
             realtime=self._rt_ok,
+            notes=(f"controller Delay {self._last_delay}",),
         )
 
     def _ordered(self, ring: np.ndarray) -> np.ndarray:

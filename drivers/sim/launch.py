@@ -12,13 +12,19 @@
 Every fake reads from or writes to the same cell, so a commander that moves the fake
 controller moves the markers the fake sensors see. ``addresses`` says where each one is;
 ``close()`` (or leaving the ``with`` block) stops them all. Controllers stop by themselves
-after ``max_runtime_s``; a fake KR C4 ends its RSI session after too many late answers, as the
-real one does (``restart_stopped_rsi`` brings it back, like an operator restarting the program).
+after ``max_runtime_s``.
+
+The cell has the people and programs a real cell has: the fake Sunrise runs the robot
+application we ship (``drivers/kuka_fri/controller/``: it starts its FRI overlay motion when
+the client answers in time, again after a drop), and a simulated operator restarts the KR C4's
+RSI program when the controller ended it (too many late answers, as the real one does). Nothing
+outside the simulated cell does either.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +37,8 @@ log = logging.getLogger(__name__)
 #: The commanders' listening ports by default (drivers.kuka_fri / drivers.kuka_rsi).
 FRI_CLIENT_PORT = 30200
 RSI_CLIENT_PORT = 49152
+#: How often the simulated operator looks at the KR C4 (wall s).
+OPERATOR_POLL_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,7 @@ class SimLaunch:
     mocap_rate_hz: NatNet frame rate (120–360). natnet_version: the fake Motive's version.
     max_runtime_s: wall seconds after which the fake controllers stop sending by themselves.
     controller: False starts no controller (sensors only).
+    operator: run the simulated operator who restarts a KR C4 RSI program that stopped.
     fri_send_period_ms: the fake Sunrise's send period (simulated ms, FRI allows 1–100); None
     keeps the fake's default. A faster-than-real-time cell wants a longer simulated period so one
     cycle still lasts a few wall milliseconds.
@@ -81,6 +90,7 @@ class SimLaunch:
         max_runtime_s: float = 3600.0,
         controller: bool = True,
         fri_send_period_ms: int | None = None,
+        operator: bool = True,
     ) -> None:
         for name, port in (("fri_port", fri_port), ("rsi_port", rsi_port)):
             if not (isinstance(port, int) and 1 <= port <= 65535):
@@ -97,6 +107,8 @@ class SimLaunch:
         if fri_send_period_ms is not None and not (isinstance(fri_send_period_ms, int) and 1 <= fri_send_period_ms <= 100):
             raise ValueError(f"fri_send_period_ms must be 1..100 ms (FRI's range), got {fri_send_period_ms!r}")
         self.fri_send_period_ms = fri_send_period_ms
+        self.want_operator = operator
+        self.operator_restarts = 0
         self.addresses: dict[str, DeviceAddress] = {}
         self.motives: dict[str, object] = {}
         self.trackers: dict[str, tuple[object, object]] = {}  # name → (FakeTracker, TcpTrackerServer)
@@ -116,6 +128,8 @@ class SimLaunch:
                     self._start_tracker(sensor.name)
             if self.want_controller:
                 self._start_controller()
+                if self.want_operator:
+                    self._start_operator()
         except BaseException:
             self.close()
             raise
@@ -179,15 +193,15 @@ class SimLaunch:
             period = {} if self.fri_send_period_ms is None else {"send_period_ms": self.fri_send_period_ms}
             fake = FakeSunrise(
                 ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.cell,
-                clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s, **period,
+                clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
+                application=True, **period,
             )
             fake.start()
-            self._closers.append(("controller", fake.stop))
             host, port = fake.address
             self.addresses["controller"] = DeviceAddress(
                 "controller", "fri", host, port, f"udp://{host}:{port}",
-                f"fake Sunrise (FRI, {fake.send_period_ms} ms send period) sending to the FRI client on "
-                f"127.0.0.1:{self.fri_port}",
+                f"fake Sunrise (FRI {fake.fri_version}, {fake.send_period_ms} ms send period, robot application "
+                f"starts its joint overlay when the client answers) sending to the FRI client on 127.0.0.1:{self.fri_port}",
             )
         elif kind == "kss":
             fake = self._new_krc4()
@@ -199,6 +213,13 @@ class SimLaunch:
             log.warning("no fake controller for a %r controller; the robot stays where the cell put it", kind)
             return
         self.controller = fake
+        self._closers.append(("controller", self._close_controller))
+
+    def _close_controller(self) -> None:
+        """Stop whichever fake controller runs now (the operator may have replaced it)."""
+        fake = self.controller
+        if fake is not None:
+            (fake.stop if hasattr(fake, "stop") else fake.close)()
 
     def _new_krc4(self):
         from drivers.kuka_rsi.fake import FakeKrc4
@@ -208,8 +229,28 @@ class SimLaunch:
             seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
         )
         fake.start()
-        self._closers.append(("controller", fake.close))
         return fake
+
+    def _start_operator(self) -> None:
+        """The simulated operator: acknowledges and restarts a KR C4 RSI program that stopped."""
+        stop = threading.Event()
+
+        def watch() -> None:
+            while not stop.wait(OPERATOR_POLL_S):
+                try:
+                    if self.restart_stopped_rsi():
+                        self.operator_restarts += 1
+                except Exception:  # noqa: BLE001 - the operator must not die with a fake
+                    log.exception("simulated operator: restarting the KR C4 failed")
+
+        thread = threading.Thread(target=watch, name="sim-operator", daemon=True)
+        thread.start()
+
+        def close() -> None:
+            stop.set()
+            thread.join(timeout=2.0)
+
+        self._closers.append(("operator", close))
 
     def restart_stopped_rsi(self) -> bool:
         """Start a new fake KR C4 (same ports, from the cell's current pose) if the RSI session
@@ -218,7 +259,6 @@ class SimLaunch:
         if fake is None or self.cell.model.controller != "kss" or not fake.wait_stopped(0):
             return False
         reason = fake.stats().stopped_reason
-        self._closers = [(n, c) for n, c in self._closers if c != fake.close]
         fake.close()
         self.controller = self._new_krc4()
         log.info("fake KR C4 restarted after: %s (now from %s)", reason, self.controller.address)

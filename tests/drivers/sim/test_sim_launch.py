@@ -96,12 +96,14 @@ def kr6_cell(time_scale: float) -> SimCell:
 def test_a_kss_robot_gets_an_rsi_controller_that_is_restarted_after_a_timeout():
     cell = kr6_cell(time_scale=20)  # 100 late cycles take 20 ms
     with udp_listener() as silent_commander:  # receives <Rob> packets, never answers
-        with SimLaunch(cell, rsi_port=silent_commander.getsockname()[1], max_runtime_s=30) as launch:
+        with SimLaunch(cell, rsi_port=silent_commander.getsockname()[1], max_runtime_s=30,
+                       operator=False) as launch:
             assert launch.addresses["controller"].kind == "rsi"
             assert b"<Rob" in silent_commander.recv(65536)
             first = launch.controller
             assert first.wait_stopped(WAIT_S)  # 100 late answers: RSI timeout
             assert "RSI timeout" in first.stats().stopped_reason
+            assert launch.controller is first  # nobody restarts it without the operator
             assert launch.restart_stopped_rsi()
             second = launch.controller
             assert second is not first
@@ -109,6 +111,18 @@ def test_a_kss_robot_gets_an_rsi_controller_that_is_restarted_after_a_timeout():
             while second.stats().sent == 0 and time.monotonic() < deadline:
                 time.sleep(0.01)
             assert second.stats().sent > 0  # the new session streams to the same commander port
+
+
+def test_the_simulated_operator_restarts_a_stopped_rsi_program_by_itself():
+    cell = kr6_cell(time_scale=20)
+    with udp_listener() as silent_commander:
+        with SimLaunch(cell, rsi_port=silent_commander.getsockname()[1], max_runtime_s=30) as launch:
+            first = launch.controller
+            assert first.wait_stopped(WAIT_S)
+            deadline = time.monotonic() + WAIT_S
+            while launch.controller is first and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert launch.controller is not first and launch.operator_restarts >= 1
 
 
 def test_an_rsi_commander_moves_the_robot_the_sensors_see():
