@@ -135,6 +135,10 @@ class _Tree:
             todo.extend(j.child for j in self.children[name])
         return out
 
+    def _is_marker(self, link: str) -> bool:
+        j = self.parent_joint.get(link)
+        return j is not None and j.type == "fixed" and link.startswith(MARKER_PREFIX)
+
     def default_base(self) -> str:
         if len(self.roots) > 1:
             raise UrdfError(f"{self.where}: {len(self.roots)} links have no parent ({', '.join(self.roots)}): "
@@ -146,7 +150,9 @@ class _Tree:
         count as ends. Several such ends → ``UrdfError`` asking for ``--tip``."""
         leaves = []
         for name in self.subtree(base):
-            ends = [j for j in self.children[name] if not (j.type == "fixed" and j.child.startswith(MARKER_PREFIX))]
+            if self._is_marker(name):
+                continue
+            ends = [j for j in self.children[name] if not self._is_marker(j.child)]
             if not ends:
                 leaves.append(name)
         count = {leaf: sum(j.type in MOVABLE for j in self.path(base, leaf)) for leaf in leaves}
@@ -331,9 +337,9 @@ def import_urdf(path: str | Path, *, tip: str | None = None, base: str | None = 
 
 
 def _clean(o):
-    """Round away float noise (1e-12 mm, 1e-12°) so files read 90 rather than 89.99999999999999."""
+    """Round away float noise (below 1e-12 mm or degrees) so files read 90 rather than 89.99999999999999."""
     if isinstance(o, float):
-        r = round(o, 10)
+        r = round(o, 12)
         return 0.0 if r == 0 else r
     if isinstance(o, (list, tuple)):
         return [_clean(v) for v in o]
@@ -376,7 +382,7 @@ def random_configurations(model: RobotModel, n: int, seed: int = 0) -> np.ndarra
 # --- export ---------------------------------------------------------------------------------
 def _origin_m(t: np.ndarray) -> np.ndarray:
     out = np.array(t, dtype=float)
-    out[:3, 3] /= 1000.0
+    out[:3, 3] = np.round(out[:3, 3] / 1000.0, 12) + 0.0  # metres; float noise below 1 nm dropped
     return out
 
 
