@@ -68,8 +68,10 @@ def _yourdfpy():
     return yourdfpy
 
 
-def load_urdf(path: str | Path):
-    """A ``yourdfpy.URDF`` with its scene graph (for FK) but no meshes; ``UrdfError`` if unreadable."""
+def load_urdf(path: str | Path, fk: bool = True):
+    """A ``yourdfpy.URDF`` without meshes, with its scene graph when ``fk`` (needed by
+    ``urdf_fk``; it evaluates every joint, so leave it off for a file not yet checked);
+    ``UrdfError`` if unreadable."""
     path = Path(path)
     if not path.is_file():
         raise UrdfError(f"{path}: no such URDF file")
@@ -77,7 +79,7 @@ def load_urdf(path: str | Path):
     from lxml import etree  # noqa: PLC0415  (yourdfpy's XML library)
 
     try:
-        urdf = ydf.URDF.load(str(path), build_scene_graph=True, load_meshes=False,
+        urdf = ydf.URDF.load(str(path), build_scene_graph=fk, load_meshes=False,
                              build_collision_scene_graph=False, load_collision_meshes=False)
     except (etree.XMLSyntaxError, KeyError, AttributeError, ValueError, TypeError, IndexError) as exc:
         raise UrdfError(f"{path}: not a readable URDF ({type(exc).__name__}: {exc}); "
@@ -127,6 +129,13 @@ class _Tree:
             link = j.parent
         return out[::-1]
 
+    def at_zero(self, base: str, link: str) -> np.ndarray:
+        """(4, 4) pose of ``link`` in ``base`` at the zero configuration, metres."""
+        t = np.eye(4)
+        for j in self.path(base, link):
+            t = t @ (np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=float))
+        return t
+
     def subtree(self, link: str) -> list[str]:
         out, todo = [], [link]
         while todo:
@@ -160,7 +169,7 @@ class _Tree:
         best = [leaf for leaf in leaves if count[leaf] == most]
         if len(best) > 1:
             raise UrdfError(f"{self.where}: {len(best)} end links are reached through {most} movable joints "
-                            f"({', '.join(best)}): choose the flange with --tip")
+                            f"({', '.join(sorted(best))}): choose the flange with --tip")
         return best[0]
 
 
@@ -213,13 +222,7 @@ def _origin(j) -> np.ndarray:
     return t
 
 
-def _rotation(axis: np.ndarray, q: float) -> np.ndarray:
-    from calib.transforms import exp_so3  # noqa: PLC0415
-
-    return homogeneous(exp_so3(axis * q), np.zeros(3))
-
-
-def _bodies(tree: _Tree, urdf, base: str, chain: list, tip: str) -> tuple[list[float], list[np.ndarray]] | None:
+def _bodies(tree: _Tree, urdf, base: str, chain: list) -> tuple[list[float], list[np.ndarray]] | None:
     """Mass (kg) and centre of mass (base frame at zero, mm) of what each revolute joint moves,
     or None when some body has no mass (then the model gets no gravity data)."""
     revolute = [j for j in chain if j.type == "revolute"]
@@ -234,9 +237,9 @@ def _bodies(tree: _Tree, urdf, base: str, chain: list, tip: str) -> tuple[list[f
             if inertial is None or not inertial.mass:
                 continue
             origin = np.eye(4) if inertial.origin is None else np.asarray(inertial.origin, dtype=float)
-            at = urdf.get_transform(name, base) @ origin
+            at = tree.at_zero(base, name) @ origin[:, 3]
             m += float(inertial.mass)
-            first += float(inertial.mass) * at[:3, 3] * 1000.0
+            first += float(inertial.mass) * at[:3] * 1000.0
         if m <= 0:
             return None
         masses.append(m)
@@ -244,7 +247,8 @@ def _bodies(tree: _Tree, urdf, base: str, chain: list, tip: str) -> tuple[list[f
     return masses, coms
 
 
-def _markers_below(tree: _Tree, tip: str, tip_frame: np.ndarray) -> list[dict]:
+def _markers_below(tree: _Tree, tip: str) -> list[dict]:
+    """Markers from fixed ``marker_<name>`` children of the tip (flange frame, mm)."""
     out = []
     for j in tree.children[tip]:
         if j.type == "fixed" and j.child.startswith(MARKER_PREFIX) and j.child != MARKER_PREFIX:
@@ -262,7 +266,7 @@ def import_urdf(path: str | Path, *, tip: str | None = None, base: str | None = 
     the markers found in the file.
     """
     where = str(path)
-    urdf = load_urdf(path)
+    urdf = load_urdf(path, fk=False)
     tree = _Tree(urdf, where)
     base = base or tree.default_base()
     tip = tip or tree.default_tip(base)
@@ -303,7 +307,7 @@ def import_urdf(path: str | Path, *, tip: str | None = None, base: str | None = 
     if any(s < 0 for s in signs):
         notes.append("sign -1 (flipped URDF axis) on " + ", ".join(n for n, s in zip(names, signs) if s < 0))
     notes.append(f"max_accel = {ACCEL_PER_SPEED:g} × max_speed per second (a planning value; URDF has no acceleration limit)")
-    bodies = _bodies(tree, urdf, base, chain, tip)
+    bodies = _bodies(tree, urdf, base, chain)
     if bodies is None:
         notes.append("no gravity data: not every moving link has an <inertial> mass")
     else:
@@ -312,7 +316,7 @@ def import_urdf(path: str | Path, *, tip: str | None = None, base: str | None = 
             joints[k]["mass_kg"] = m
             joints[k]["com_mm"] = [float(v) for v in local[:3]]
     if tool is None:
-        markers = _markers_below(tree, tip, t)
+        markers = _markers_below(tree, tip)
         if markers:
             tool = {"name": "tool", "markers": markers}
             notes.append(f"tool markers from {MARKER_PREFIX}* links: {', '.join(m['name'] for m in markers)}")
