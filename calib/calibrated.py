@@ -109,10 +109,6 @@ def apply_result(model: RobotModel, doc: dict, where: str = "result") -> Calibra
             if name not in names:
                 raise ResultError(f"{where}: parameter {name!r} is not one of this model's ({model.name})")
             kind = name.rsplit(".", 1)[1]
-            if not socket and not entry.get("identified"):
-                continue
-            if kind == "offset" and offsets_ok is not None and name not in offsets_ok:
-                continue
             i = names.index(name)
             nominal = entry.get("nominal")
             if nominal is not None and i < chain.marker_slice().start:
@@ -120,6 +116,10 @@ def apply_result(model: RobotModel, doc: dict, where: str = "result") -> Calibra
                     raise ResultError(f"{where}: {name} was {nominal} {entry.get('unit', '')} in the model the fit used, "
                                       f"this model has {math.degrees(chain.nominal[i]) if kind in _ANGLE_KINDS else chain.nominal[i]:.6g}: "
                                       "give the nominal model the fit used")
+            if not socket and not entry.get("identified"):
+                continue
+            if kind == "offset" and offsets_ok is not None and name not in offsets_ok:
+                continue
             if socket and i >= chain.marker_slice().start:
                 continue
             params[i] = _to_internal(kind, entry["value"])
