@@ -182,10 +182,11 @@ def _sign_of(axis: np.ndarray) -> int:
 def _check_joint(j, where: str) -> None:
     what = f"{where}: joint {j.name!r}"
     if j.type == "prismatic":
-        raise UrdfError(f"{what} is prismatic: remaster models revolute arms only (a linear track is not supported; "
-                        "choose --base after it)")
+        raise UrdfError(f"{what} is prismatic: remaster models revolute arms only (a linear track before the arm: "
+                        "choose --base after it; a gripper after the flange: choose the flange with --tip)")
     if j.type in ("floating", "planar"):
-        raise UrdfError(f"{what} is {j.type}: only revolute and fixed joints may lie on the chain (choose --base after it)")
+        raise UrdfError(f"{what} is {j.type}: only revolute and fixed joints may lie on the chain "
+                        "(choose --base after it, or --tip before it)")
     if j.type == "continuous":
         raise UrdfError(f"{what} is continuous (no position limits): a robot model needs limits; make it "
                         "type=\"revolute\" with <limit lower=... upper=... velocity=...> in radians")
@@ -298,8 +299,10 @@ def import_urdf(path: str | Path, *, tip: str | None = None, base: str | None = 
         joints.append({
             "axis": names[k], "theta": math.degrees(link.theta), "d": link.d, "a": link.a,
             "alpha": math.degrees(link.alpha), "beta": math.degrees(link.beta), "sign": s,
-            "limits": [math.degrees(j.limit.lower), math.degrees(j.limit.upper)],
-            "max_speed": math.degrees(j.limit.velocity), "max_accel": ACCEL_PER_SPEED * math.degrees(j.limit.velocity),
+            # Rounded to 1e-9°: URDFs write 6.28318530718 for 2π, which is not a limit of 360.000000000024°.
+            "limits": [round(math.degrees(j.limit.lower), 9), round(math.degrees(j.limit.upper), 9)],
+            "max_speed": round(math.degrees(j.limit.velocity), 9),
+            "max_accel": round(ACCEL_PER_SPEED * math.degrees(j.limit.velocity), 9),
         })
     notes = list(table.notes)
     notes.append(f"chain {base} → {tip}: {len(revolute)} revolute joints ({', '.join(j.name for j in revolute)}), "

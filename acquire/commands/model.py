@@ -36,9 +36,10 @@ def _fail(message: str, code: int = 2) -> None:
 
 
 def _table(model) -> str:
-    lines = [f"{'axis':<14}{'theta':>9}{'d':>10}{'a':>10}{'alpha':>9}{'beta':>9}{'sign':>5}  limits (deg)   speed (deg/s)"]
+    w = max(6, *(len(j.axis) + 2 for j in model.joints))
+    lines = [f"{'axis':<{w}}{'theta':>9}{'d':>10}{'a':>10}{'alpha':>9}{'beta':>9}{'sign':>5}  limits (deg)   speed (deg/s)"]
     for j in model.joints:
-        lines.append(f"{j.axis:<14}{j.theta:9.3f}{j.d:10.3f}{j.a:10.3f}{j.alpha:9.3f}{j.beta:9.4f}{j.sign:5d}  "
+        lines.append(f"{j.axis:<{w}}{j.theta:9.3f}{j.d:10.3f}{j.a:10.3f}{j.alpha:9.3f}{j.beta:9.4f}{j.sign:5d}  "
                      f"[{j.limits[0]:g}, {j.limits[1]:g}]  {j.max_speed:g}")
     return "\n".join(lines)
 

@@ -22,6 +22,7 @@ HERE = Path(__file__).resolve().parent
 URDFS = HERE / "urdf"
 KR6_URDF = URDFS / "kuka_kr6r900_2.urdf"
 IIWA_URDF = URDFS / "kuka_iiwa14.urdf"
+UR5E_URDF = URDFS / "ur5e.urdf"
 ROBOTS = HERE.parents[1] / "fixtures" / "robots"
 SHIPPED = sorted(p.name for p in ROBOTS.glob("*.yaml"))
 
@@ -35,6 +36,7 @@ def _against_urdf(path: Path, imp, n: int = 60, seed: int = 1) -> tuple[float, f
 @pytest.mark.parametrize("path, tip, convention", [
     (KR6_URDF, None, "auto"), (KR6_URDF, None, "dh"), (KR6_URDF, None, "mdh"),
     (IIWA_URDF, "iiwa_link_ee_kuka", "auto"), (IIWA_URDF, "iiwa_link_ee", "auto"), (IIWA_URDF, "iiwa_link_5", "mdh"),
+    (UR5E_URDF, "tool0", "auto"), (UR5E_URDF, "ee_link", "dh"),
 ])
 def test_imported_model_has_the_urdfs_forward_kinematics(path, tip, convention):
     imp = import_urdf(path, tip=tip, convention=convention)
@@ -66,6 +68,9 @@ def test_auto_convention_takes_hayati_for_the_parallel_shoulder_and_elbow():
     assert imp.model.convention == "mdh"
     assert any("axes 2 and 3 are parallel" in n for n in imp.notes)
     assert import_urdf(IIWA_URDF, tip="iiwa_link_ee_kuka").model.convention == "dh"
+    ur = import_urdf(UR5E_URDF, tip="tool0")  # shoulder, elbow and wrist 1 parallel (to 1e-12 rad)
+    assert ur.model.convention == "mdh" and "axes 2 and 3 are parallel; axes 3 and 4 are parallel" in ur.notes[0]
+    assert ur.base == "world" and [j.limits for j in ur.model.joints][2] == (-180.0, 180.0)
 
 
 def test_iiwa_import_equals_the_shipped_model_with_its_masses_and_centres_of_mass():
