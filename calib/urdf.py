@@ -16,9 +16,10 @@ when every moving body has a mass. Tool markers come from fixed child links of t
 ``marker_<name>`` (as ``export_urdf`` writes them) or, failing that, one marker ``flange`` at the
 flange origin, to be replaced by the real tool.
 
-**Export** (``export_urdf``): base_link → A1 … An → flange (fixed) → marker_<name> (fixed), each
-revolute joint about its z with ``axis 0 0 sign``, so that the URDF's joint values are the
-controller's angles.
+**Export** (``export_urdf``): links base_link, link_1 … link_n, flange, marker_<name>; joints named
+by the model's axes, then ``link_n-flange`` and ``flange-marker_<name>`` (fixed). Each revolute joint
+turns about its z with ``axis 0 0 sign``, so that the URDF's joint values are the controller's
+angles; link_i's frame is DH frame i − 1 turned by θ_i.
 
 ``urdf_fk`` evaluates a URDF's own kinematics (yourdfpy) for the FK equality checks.
 """
@@ -420,11 +421,11 @@ def model_to_urdf(model: RobotModel):
         ))
         before = rest
     links.append(ydf.Link(name="flange"))
-    joints.append(ydf.Joint(name="flange", type="fixed", parent=f"link_{n}", child="flange",
+    joints.append(ydf.Joint(name=f"link_{n}-flange", type="fixed", parent=f"link_{n}", child="flange",
                             origin=_origin_m(before @ model.flange.matrix())))
     for mk in model.tool.markers:
         links.append(ydf.Link(name=MARKER_PREFIX + mk.name))
-        joints.append(ydf.Joint(name=MARKER_PREFIX + mk.name, type="fixed", parent="flange", child=MARKER_PREFIX + mk.name,
+        joints.append(ydf.Joint(name=f"flange-{MARKER_PREFIX}{mk.name}", type="fixed", parent="flange", child=MARKER_PREFIX + mk.name,
                                 origin=_origin_m(homogeneous(np.eye(3), np.asarray(mk.xyz, dtype=float)))))
     robot = ydf.Robot(name=model.name, links=links, joints=joints)
     return ydf.URDF(robot=robot, build_scene_graph=True, load_meshes=False)
