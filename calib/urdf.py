@@ -327,10 +327,9 @@ def import_urdf(path: str | Path, *, tip: str | None = None, base: str | None = 
         else:
             tool = {"name": "flange", "markers": [{"name": "flange", "xyz": [0.0, 0.0, 0.0]}]}
             notes.append("tool: one marker 'flange' at the flange origin — replace it with your tool's markers")
-    convention_used = table.convention
     data = {
         "name": urdf.robot.name or Path(path).stem,
-        "convention": convention_used,
+        "convention": table.convention,
         "source": f"imported from URDF {Path(path).name} ({base} → {tip}) by remaster",
         "base": frame_to_yaml(table.base2frame0),
         "flange": frame_to_yaml(table.lastframe2flange),

@@ -42,6 +42,16 @@ def test_import_writes_a_model_that_loads_and_prints_its_fk_check(tmp_path):
     assert fk_difference(Chain(model).fk(q), ref)[0] < 1e-9
 
 
+def test_import_takes_the_tool_from_a_model_file_and_the_command_is_listed(tmp_path):
+    out = tmp_path / "kr6.yaml"
+    kr6 = ROOT / "fixtures" / "robots" / "kuka_kr6_r900_2.yaml"
+    res = run("model", "import", URDFS / "kuka_kr6r900_2.urdf", "-o", out, "--tool", kr6, "--check", "10")
+    assert res.exit_code == 0, res.output
+    assert load_robot_model(out).tool == load_robot_model(kr6).tool
+    listing = run("--help").output
+    assert "model" in listing and "URDF" in listing
+
+
 def test_import_asks_for_the_tip_when_the_urdf_has_two_flanges(tmp_path):
     out = tmp_path / "iiwa.yaml"
     res = run("model", "import", URDFS / "kuka_iiwa14.urdf", "-o", out)

@@ -226,3 +226,51 @@ def test_bad_link_choices_and_files_are_refused(tmp_path):
         import_urdf(broken)
     with pytest.raises(ValueError, match="convention must be dh, mdh or auto"):
         import_urdf(path, convention="poe")
+
+
+# --- arbitrary geometry ------------------------------------------------------------------------------
+def _random_chain_urdf(path: Path, seed: int) -> Path:
+    """A 7-joint chain with random origins and axes, and on purpose: an exactly parallel pair, an
+    anti-parallel pair, a near-parallel pair (0.06°), intersecting axes and a tilted, offset base."""
+    rng = np.random.default_rng(seed)
+    links = "".join(f'<link name="l{i}"/>' for i in range(9))
+    joints = ['<joint name="mount" type="fixed"><parent link="l0"/><child link="l1"/>'
+              f'<origin xyz="{rng.uniform(-1, 1):.6f} {rng.uniform(-1, 1):.6f} 0.5" rpy="0.3 -0.2 1.1"/></joint>']
+    for i in range(1, 8):
+        rpy = rng.uniform(-math.pi, math.pi, 3)
+        xyz = rng.uniform(-0.3, 0.3, 3)
+        axis = _unit(rng.normal(size=3))
+        if i == 3:  # parallel to joint 2: no rotation between them, same axis
+            rpy, axis = np.zeros(3), prev_axis
+        elif i == 4:  # anti-parallel to joint 3
+            rpy, axis = np.zeros(3), -prev_axis
+        elif i == 5:  # near-parallel to joint 4
+            rpy, axis = np.array([1e-3, 0.0, 0.0]), prev_axis
+        elif i == 6:  # intersects joint 5's axis at the joint origin
+            xyz = np.zeros(3)
+        prev_axis = axis
+        joints.append(f'<joint name="j{i}" type="revolute"><parent link="l{i}"/><child link="l{i + 1}"/>'
+                      f'<origin xyz="{" ".join(repr(float(v)) for v in xyz)}" rpy="{" ".join(repr(float(v)) for v in rpy)}"/>'
+                      f'<axis xyz="{" ".join(repr(float(v)) for v in axis)}"/><limit lower="-3" upper="3" velocity="1" effort="0"/></joint>')
+    joints.append('<joint name="tool" type="fixed"><parent link="l8"/><child link="tcp"/>'
+                  '<origin xyz="0.01 -0.02 0.15" rpy="0.4 0.5 -0.6"/></joint><link name="tcp"/>')
+    path.write_text(f'<robot name="random">{links}{"".join(joints)}</robot>', encoding="utf-8")
+    return path
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("convention", ["auto", "dh", "mdh"])
+def test_any_serial_geometry_converts_exactly(tmp_path, seed, convention):
+    path = _random_chain_urdf(tmp_path / "random.urdf", seed)
+    imp = import_urdf(path, convention=convention)
+    assert imp.tip == "tcp" and len(imp.joints) == 7
+    assert imp.model.convention == ("mdh" if convention == "auto" else convention)
+    tol = 1e-6 if convention == "dh" else 1e-9  # a dh table puts a frame far out along the near-parallel pair
+    pos, rot = _against_urdf(path, imp, n=25, seed=seed)
+    assert pos < tol and rot < 1e-9, (pos, rot)
+    if convention != "dh":
+        assert abs(imp.model.joints[3].beta) > 0.01 and all(abs(j.d) < 1e4 for j in imp.model.joints)
