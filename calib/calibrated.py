@@ -94,8 +94,8 @@ def apply_result(model: RobotModel, doc: dict, where: str = "result") -> Calibra
             if status == "fitted" and entry.get("value_deg") is not None:
                 offsets_ok.add(f"{axis}.offset")
             else:
-                why = entry.get("reason") or status or "not fitted"
-                notes.append(f"{axis}.offset kept nominal ({status}: {why})" if status else f"{axis}.offset kept nominal ({why})")
+                why = "; ".join(x for x in (status or "not fitted", entry.get("reason") or "") if x)
+                notes.append(f"{axis}.offset kept nominal ({why.replace('; ', ': ', 1)})")
     if doc.get("format") == "remaster.fit/1":
         for entry in doc["joint_offsets"]:
             name = f"{entry['joint']}.offset"

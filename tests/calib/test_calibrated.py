@@ -97,3 +97,20 @@ def test_read_result_names_the_file(tmp_path):
     bad.write_text("{not json")
     with pytest.raises(ResultError, match=f"{bad}: not a JSON result file"):
         read_result(bad)
+
+
+def test_a_socket_result_applies_its_kinematic_parameters_but_not_the_ball():
+    doc = _fit_doc(statuses=["fitted", "fitted", "fitted", "do not enter", "fitted", "undetermined"])
+    doc.update(kind="socket", method="fast", robot={"name": KR6.name})
+    del doc["format"]
+    doc["parameters"] = [
+        {"name": "A2.offset", "nominal": 0.0, "value": 0.31, "unit": "deg"},
+        {"name": "A4.offset", "nominal": 0.0, "value": 0.15, "unit": "deg"},  # "do not enter"
+        {"name": "A3.a", "nominal": -25.0, "value": -24.6, "unit": "mm"},
+        {"name": "smr.x", "nominal": None, "value": 3.0, "unit": "mm"},  # the ball, not a marker
+    ]
+    cal = apply_result(KR6, doc)
+    assert cal.applied == ["A2.offset", "A3.a"]
+    assert "A4.offset kept nominal (do not enter)" in cal.notes and "A6.offset kept nominal (undetermined: not determined by this data)" in cal.notes
+    assert cal.model.tool == KR6.tool and cal.model.joints[2].a == pytest.approx(-24.6)
+    assert cal.model.joints[1].theta == pytest.approx(KR6.joints[1].theta + 0.31)
