@@ -52,7 +52,7 @@ def _check(label: str, worst: tuple[float, float], n: int) -> bool:
 
 
 def import_model(
-    urdf: Path = typer.Argument(..., help="URDF file (plain URDF; run xacro first for .xacro)."),
+    urdf: Path = typer.Argument(..., metavar="URDF", help="URDF file (plain URDF; run xacro first for .xacro)."),
     output: Path = typer.Option(..., "-o", "--output", help="Write the robot model YAML here."),
     tip: Optional[str] = typer.Option(None, "--tip", help="Flange link (default: the end link reached through the most joints)."),
     base: Optional[str] = typer.Option(None, "--base", help="Base link (default: the URDF's root link)."),
