@@ -202,3 +202,50 @@ def robot_model_from_dict(data: dict) -> RobotModel:
 def wrap_to_pi(a: np.ndarray) -> np.ndarray:
     """Angles wrapped to (−π, π]."""
     return np.pi - np.mod(np.pi - np.asarray(a), 2 * math.pi)
+
+
+def model_yaml(model: RobotModel, comment: str = "") -> str:
+    """The model as YAML text in the layout of ``fixtures/robots`` (one flow-style line per joint
+    and marker), ``comment`` as leading ``#`` lines; ``load_robot_model`` reads it back."""
+    import yaml  # noqa: PLC0415
+
+    def num(v) -> str:
+        if isinstance(v, float):
+            r = round(v, 12) + 0.0
+            if r == int(r) and abs(r) < 1e15:
+                return str(int(r))
+            text = repr(r)
+            mantissa, e, exp = text.partition("e")
+            if e and "." not in mantissa:  # PyYAML reads 1e-05 as a string, 1.0e-05 as a number
+                text = f"{mantissa}.0e{exp}"
+            return text
+        return str(v)
+
+    def flow(d: dict) -> str:
+        parts = []
+        for k, v in d.items():
+            if isinstance(v, (list, tuple)):
+                v = "[" + ", ".join(str(num(x)) for x in v) + "]"
+            elif isinstance(v, str):
+                v = yaml.safe_dump(v, default_style=None).strip().removesuffix("...").strip()
+            else:
+                v = num(v)
+            parts.append(f"{k}: {v}")
+        return "{" + ", ".join(parts) + "}"
+
+    d = model.model_dump(mode="json", exclude_none=True)
+    lines = [f"# {line}".rstrip() for line in comment.strip().splitlines()] if comment.strip() else []
+    for key in ("name", "manufacturer", "controller", "convention", "source"):
+        if d.get(key) != "" or key == "name":
+            lines.append(yaml.safe_dump({key: d[key]}, allow_unicode=True, width=1000).strip())
+    for key in ("base", "flange"):
+        lines.append(f"{key}: {flow(d[key])}")
+    lines.append("joints:")
+    lines += [f"  - {flow(j)}" for j in d["joints"]]
+    tool = {k: v for k, v in d["tool"].items() if k != "markers"}
+    lines.append("tool:")
+    lines += [f"  {k}: {flow({k: v})[1:-1].split(': ', 1)[1]}" for k, v in tool.items()]
+    lines.append("  markers:")
+    lines += [f"    - {flow(m)}" for m in d["tool"]["markers"]]
+    lines.append(f"gravity_m_s2: {flow({'g': d['gravity_m_s2']})[1:-1].split(': ', 1)[1]}")
+    return "\n".join(lines) + "\n"
