@@ -125,7 +125,12 @@ def rich_modeldef(version) -> codec.ModelDef:
         codec.CameraDescription("cam 1", (1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0)),
     ]
     if version[:2] >= (4, 1):
-        datasets.append(codec.UnknownDescription(6, b"asset bytes we do not parse"))
+        datasets.append(codec.AssetDescription(
+            "arm", 1, 9, (codec.RigidBodyDescription("link1", 1, -1, (0.0, 0.0, 0.25), rb.markers[:1]),),
+            (codec.AssetMarkerDescription("arm_m1", (9 << 16) | 1, (0.125, 0.5, -0.25), 0.015625, 3),
+             codec.AssetMarkerDescription("arm_m2", 2, (0.0, 0.0, 0.0), 0.0, 0)),
+        ))
+        datasets.append(codec.UnknownDescription(7, b"a dataset type newer than 4.1"))
     return codec.ModelDef(tuple(datasets))
 
 

@@ -108,6 +108,15 @@ def test_natnetsdk_unpacks_our_model_definitions(version):
     assert [tuple(np.float32(m.pos)) for m in theirs] == [tuple(np.float32(m.offset)) for m in md.rigid_bodies[0].markers]
     if version[0] >= 4:
         assert [m.marker_name for m in theirs] == [m.name for m in md.rigid_bodies[0].markers]
+    # trained-markerset assets (4.1): natnetsdk reads the same name, type, id, bones, markers
+    assert [(a.name.decode(), a.assetType, a.assetID) for a in descs.asset_list] == [
+        (a.name, a.asset_type, a.id) for a in md.assets]
+    for a, o in zip(descs.asset_list, md.assets):
+        assert [b.sz_name.decode() for b in a.rigidbodyArray] == [b.name for b in o.rigid_bodies]
+        assert [(m.name.decode(), m.marker_id, tuple(np.float32(m.position)), np.float32(m.marker_size),
+                 m.marker_params) for m in a.markerArray] == [
+            (m.name, m.id, tuple(np.float32(m.position)), np.float32(m.size), m.params) for m in o.markers]
+    assert len(md.assets) == (1 if version[:2] >= (4, 1) else 0)
 
 
 @pytest.mark.parametrize("multicast", [False, True], ids=["unicast", "multicast"])
