@@ -239,3 +239,31 @@ def wait_until(predicate, timeout: float = 3.0, step: float = 0.005) -> bool:
             return True
         time.sleep(step)
     return bool(predicate())
+
+
+_MULTICAST_OK: list[str | None] = []
+
+
+def need_loopback_multicast(group: str = "239.255.42.99") -> None:
+    """Skip (with the reason) unless this kernel delivers multicast on loopback: join ``group``
+    on 127.0.0.1, send one datagram to it with TTL 0 and receive it back."""
+    if not _MULTICAST_OK:
+        reason = None
+        try:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx, \
+                    socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+                rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                rx.bind((group, 0))
+                rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                              socket.inet_aton(group) + socket.inet_aton("127.0.0.1"))
+                rx.settimeout(2.0)
+                tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+                tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+                tx.sendto(b"probe", (group, rx.getsockname()[1]))
+                if rx.recv(16) != b"probe":
+                    reason = "a foreign datagram arrived instead of the probe"
+        except OSError as exc:
+            reason = str(exc)
+        _MULTICAST_OK.append(reason)
+    if _MULTICAST_OK[0] is not None:
+        pytest.skip(f"this kernel does not deliver multicast on loopback ({_MULTICAST_OK[0]})")

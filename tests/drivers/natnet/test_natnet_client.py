@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from natnet_helpers import PLATE_MM, PLATE_ORIGIN_MM, PlateScene, wait_until
+from natnet_helpers import PLATE_MM, PLATE_ORIGIN_MM, PlateScene, need_loopback_multicast, wait_until
 
 from drivers.errors import DeviceTimeoutError, ProtocolError, TargetLostError
 from drivers.natnet import codec
@@ -26,6 +26,7 @@ TRUE_MM = PLATE_MM + PLATE_ORIGIN_MM
 def sensor_for(fake: FakeMotive, markers=MARKERS, **kwargs) -> NatNetSensor:
     url = f"natnet://127.0.0.1:{fake.command_port}?local=127.0.0.1"
     if fake.multicast:
+        need_loopback_multicast(fake.multicast_group)
         url += f"&multicast={fake.multicast_group}&data_port={fake.data_port}"
     return NatNetSensor.from_url(url, markers=markers, **kwargs)
 
