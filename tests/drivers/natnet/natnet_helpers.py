@@ -219,8 +219,10 @@ def natnetsdk_client(fake, multicast: bool):
 
 
 def stop_natnetsdk(c, fake) -> None:
-    """Stop its threads: they block in recvfrom with no timeout, so set the stop flag and
-    wake each socket with an empty datagram before its own ``shutdown()`` joins them."""
+    """Stop its threads: they block in recvfrom with no timeout, so set the stop flag, wake
+    each socket with an empty datagram and let both threads end before its own ``shutdown()``
+    closes the sockets (its unicast thread sends a keep-alive after each datagram: closing
+    under it raises EBADF in that thread)."""
     c.stop_threads = True
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as w:
         w.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
@@ -228,6 +230,8 @@ def stop_natnetsdk(c, fake) -> None:
         for sk in (c.command_socket, c.data_socket):
             host, port = sk.getsockname()
             w.sendto(b"", (host, port))
+    for t in (c.command_thread, c.data_thread):
+        t.join(timeout=5.0)
     c.shutdown()
 
 

@@ -151,3 +151,45 @@ def test_natnetsdk_client_receives_fake_motive_frames(still_scene, version, mult
             np.testing.assert_allclose(np.asarray(lms[(1 << 16) | (i + 1)]) * 1000.0, true_mm, atol=1e-3)
     numbers = [m.prefix_data.frame_number for _, _, m, _ in decoded]
     assert numbers == sorted(numbers)
+
+
+@pytest.mark.parametrize("asset, version", [("skeleton", (3, 0)), ("skeleton", (4, 1)), ("trained_markerset", (4, 1))],
+                         ids=["skeleton-3.0", "skeleton-4.1", "trained-markerset-4.1"])
+def test_natnetsdk_reads_the_fakes_skeleton_and_trained_markerset(still_scene, asset, version):
+    """The bytes FakeMotive sends for a skeleton / trained markerset decode in natnetsdk to the
+    same bone pose and markers, and its model definitions to the same names and ids."""
+    from drivers.natnet.fake import BONE_ID, BONE_NAME
+
+    fake = FakeMotive(still_scene, asset=asset, natnet_version=version)
+    fake.stall()
+    fake.start()
+    try:
+        frame, md = fake.make_frame(), fake.model_def()
+    finally:
+        fake.close()
+    v = codec.version_tuple(version)
+    payload, md_payload = codec.encode_frame(frame, v), codec.encode_modeldef(md, v)
+    client = natnetsdk.NatNetClient()
+    with contextlib.redirect_stdout(io.StringIO()):
+        offset, mocap = client._NatNetClient__unpack_mocap_data(payload, len(payload), *version)
+        md_offset, descs = client._NatNetClient__unpack_data_descriptions(md_payload, len(md_payload), *version)
+    assert offset == len(payload) - END_OF_DATA and md_offset == len(md_payload)
+    assert_same_frame(frame, mocap)
+    if asset == "skeleton":
+        (sk,) = mocap.skeleton_data.skeleton_list
+        bone = sk.rigid_body_list[0]
+        (desc,) = descs.skeleton_list
+        assert (desc.name.decode(), desc.id_num) == ("tool", 1)
+        assert [(b.sz_name.decode(), b.id_num) for b in desc.rigid_body_description_list] == [(BONE_NAME, BONE_ID)]
+        lms = {lm.id_num: lm.pos for lm in mocap.labeled_marker_data.labeled_marker_list}
+    else:
+        (a,) = mocap.asset_data.asset_list
+        bone = a.rigid_body_list[0]
+        (desc,) = descs.asset_list
+        assert (desc.name.decode(), desc.assetID) == ("tool", 1)
+        assert [m.name.decode() for m in desc.markerArray] == ["m0", "m1", "m2", "m3"]
+        lms = {m.marker_id: m.pos for m in a.marker_list}
+    assert bone.id_num == (1 << 16) | BONE_ID
+    np.testing.assert_allclose(np.asarray(bone.pos) * 1000.0, (PLATE_MM + PLATE_ORIGIN_MM).mean(axis=0), atol=1e-3)
+    for i, true_mm in enumerate(PLATE_MM + PLATE_ORIGIN_MM):
+        np.testing.assert_allclose(np.asarray(lms[(1 << 16) | (i + 1)]) * 1000.0, true_mm, atol=1e-3)
