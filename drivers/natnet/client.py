@@ -341,6 +341,8 @@ class NatNetSensor(SensorBase):
         self._rejoined = False
         self._last_rx = 0.0  # host time of the last frame datagram (any)
         self._failure: BaseException | None = None
+        self._stream_problem: str | None = None  # why frames are dropped, for the silence error
+        self._pending_bitstream = False  # a re-announced 4.x server was asked to switch back
         self._resolved: dict[str, tuple[str, int]] = {}
 
     # ------------------------------------------------------------------ construction
@@ -438,7 +440,8 @@ class NatNetSensor(SensorBase):
                 if silent >= self.silence_timeout_s:
                     raise DeviceTimeoutError(
                         f"{self.name}: no NatNet frame for {silent:.3f} s (silence limit "
-                        f"{self.silence_timeout_s} s); {self._where_frames_come()}"
+                        f"{self.silence_timeout_s} s); "
+                        + (self._stream_problem or self._where_frames_come())
                     )
                 if now >= deadline:
                     raise DeviceTimeoutError(f"{self.name}: no new NatNet frame within {timeout:.3g} s")
@@ -797,6 +800,18 @@ class NatNetSensor(SensorBase):
         if isinstance(msg, codec.MessageString):
             self.log.info("Motive says: %s", msg.text)
             return
+        if self._pending_bitstream and isinstance(msg, (codec.Response, codec.UnrecognizedRequest)):
+            with self._cond:
+                self._pending_bitstream = False
+                if isinstance(msg, codec.Response) and msg.code == 0:
+                    self.stream_version = self.bitstream
+                    self.log.info("server switched the stream back to NatNet %d.%d", *self.bitstream[:2])
+                else:
+                    self._stream_problem = (
+                        f"Motive restarted and refused to stream NatNet {self.bitstream[0]}."
+                        f"{self.bitstream[1]} again ({msg}); connect the sensor again")
+                    self.log.error("%s", self._stream_problem)
+            return
         with self._cond:
             self._responses.append(msg)
             del self._responses[:-16]
@@ -835,18 +850,39 @@ class NatNetSensor(SensorBase):
 
     def _on_server_info(self, info: codec.ServerInfo) -> None:
         """A SERVERINFO after the handshake: the server (re)announced itself, e.g. answering
-        our CONNECT after a silence. Take its version, restart ordering at its next frame."""
-        try:
-            version = codec.check_supported(info.natnet_version)
-        except ValueError:
-            self.log.error("server now speaks unsupported NatNet %s", info.natnet_version)
+        our CONNECT after a silence. Take its version, restart ordering at its next frame.
+        A changed transport (e.g. Motive switched to multicast) is logged with what to do: the
+        sockets are chosen at connect(), so the sensor must be connected again."""
+        version = codec.version_tuple(info.natnet_version)
+        if version[:2] < codec.MIN_VERSION[:2] or (
+                version[:2] > codec.MAX_VERSION[:2] and (self.bitstream is None or version[0] < 4)):
+            problem = (f"Motive now announces NatNet {version[0]}.{version[1]}, which this driver "
+                       f"cannot read, so its frames are dropped; set bitstream={codec.MAX_VERSION[0]}."
+                       f"{codec.MAX_VERSION[1]} in the sensor URL and connect again")
+            if problem != self._stream_problem:
+                self.log.error("%s", problem)
+            with self._cond:
+                self.server_info = info
+                self.stream_version = None  # never read a newer layout as an older one
+                self._stream_problem = problem
             return
+        if info.multicast is not None:
+            now = (info.multicast_address, info.data_port) if info.multicast else (None, None)
+            if now != (self.stream_group, self.stream_port):
+                self.log.error(
+                    "Motive now streams %s but this sensor listens to %s; connect the sensor again "
+                    "to follow it", f"multicast {now[0]}:{now[1]}" if now[0] else "unicast",
+                    f"multicast {self.stream_group}:{self.stream_port}" if self.stream_group else "unicast",
+                )
         self.log.info("server re-announced itself (NatNet %d.%d)", *version[:2])
         with self._cond:
             self.server_info = info
-            if self.bitstream is None or version[0] < 4:
-                self.stream_version = version
+            switch = self.bitstream is not None and version[0] >= 4 and self.bitstream[:2] != version[:2]
+            # until the server confirms the switch, frames are dropped rather than misread
+            self.stream_version = None if switch else (self.bitstream if self.bitstream and version[0] >= 4 else version)
+            self._pending_bitstream = switch
+            self._stream_problem = None
             self._rejoined = True
-        if self.bitstream is not None and version[0] >= 4 and self.bitstream[:2] != version[:2]:
+        if switch:
             self._send(codec.Request(f"Bitstream,{self.bitstream[0]}.{self.bitstream[1]}"))
         self._send(codec.RequestModelDef())

@@ -198,7 +198,7 @@ def test_unicast_client_rejoins_a_restarted_server_that_forgot_it(still_scene):
             assert wait_until(lambda: by_name(sensor.read(1.0))["far"].device_time > 0.2)
             fake.restart(forget_clients=True)
             # the client notices the silence, sends CONNECT again, gets SERVERINFO and frames
-            assert wait_until(lambda: _reads(sensor) and sensor.restarts == 1)
+            assert wait_until(lambda: _reads(sensor) and sensor.restarts == 1, timeout=10.0)
             assert len(fake.clients) == 1
 
 

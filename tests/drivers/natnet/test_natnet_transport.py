@@ -292,3 +292,40 @@ def test_a_server_without_frame_rate_still_connects(still_scene):
     with MuteOnFrameRate(still_scene, rate_hz=240) as fake, plain_sensor(fake) as sensor:
         assert sensor.frame_rate_hz is None and sensor.read(1.0)
         assert fake.requests.count("FrameRate") == 1  # the refusal was taken as the answer
+
+
+def _silence_error(sensor) -> str:
+    for _ in range(500):
+        try:
+            sensor.read(0.5)
+        except DeviceTimeoutError as exc:
+            return str(exc)
+    raise AssertionError("frames kept coming")
+
+
+def test_a_server_restarting_above_41_has_its_frames_dropped_not_misread(still_scene):
+    with NewerMotive(still_scene, (4, 1, 0, 0), rate_hz=240) as fake:
+        with plain_sensor(fake, silence_timeout_s=0.1) as sensor:
+            assert sensor.read(1.0)
+            fake.announce = (4, 2, 0, 0)  # an upgraded Motive comes back
+            fake.restart(forget_clients=True)
+            msg = _silence_error(sensor)
+            # it re-sent CONNECT, read the new announcement and stopped decoding
+            assert wait_until(lambda: sensor.server_info.natnet_version == (4, 2, 0, 0), timeout=10.0)
+            accepted = sensor.frames_accepted
+            msg = _silence_error(sensor)
+            assert "Motive now announces NatNet 4.2" in msg and "set bitstream=4.1" in msg, msg
+            assert sensor.frames_accepted == accepted and sensor.stream_version is None
+
+
+def test_a_restarted_42_server_is_asked_for_41_again_before_frames_are_read(still_scene):
+    with NewerMotive(still_scene, (4, 2, 0, 0), rate_hz=240) as fake:
+        with plain_sensor(fake, bitstream="4.1", silence_timeout_s=0.1) as sensor:
+            assert fake.requests.count("Bitstream,4.1") == 1
+            # read until the frame counter is well past where the restarted server starts again
+            assert wait_until(lambda: by_name(sensor.read(1.0))["far"].device_time > 0.2)
+            fake.switched = False
+            fake.restart(forget_clients=True)
+            assert wait_until(lambda: fake.requests.count("Bitstream,4.1") == 2, timeout=10.0)
+            assert wait_until(lambda: sensor.restarts == 1 and sensor.stream_version == (4, 1, 0, 0), timeout=10.0)
+            np.testing.assert_allclose(by_name(sensor.read(1.0))["far"].position_mm, TRUE_MM[3], atol=1e-3)
