@@ -343,6 +343,7 @@ class NatNetSensor(SensorBase):
         self._failure: BaseException | None = None
         self._stream_problem: str | None = None  # why frames are dropped, for the silence error
         self._pending_bitstream = False  # a re-announced 4.x server was asked to switch back
+        self._handshake_done = False  # SERVERINFO after this is a re-announcement
         self._resolved: dict[str, tuple[str, int]] = {}
 
     # ------------------------------------------------------------------ construction
@@ -398,6 +399,9 @@ class NatNetSensor(SensorBase):
             ) from exc
         cmd.setblocking(False)
         self._cmd = cmd
+        with self._cond:  # nothing learnt from an earlier connection carries over
+            self.stream_version = self.stream_group = self.stream_port = None
+            self._stream_problem, self._pending_bitstream, self._handshake_done = None, False, False
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"{self.name}-natnet", daemon=True)
         self._thread.start()
@@ -615,6 +619,7 @@ class NatNetSensor(SensorBase):
             self.model_def = md
             self._resolved = resolved
             self._last_rx = self.clock()
+            self._handshake_done = True
 
     def _transport(self, info: codec.ServerInfo) -> tuple[str | None, int | None]:
         """(multicast group or None for unicast, data port) from the server's announcement,
@@ -785,7 +790,7 @@ class NatNetSensor(SensorBase):
                     "undecodable NatNet packet #%d (%d bytes): %s", self.bad_packets, len(data), exc
                 )
             return
-        if isinstance(msg, codec.ServerInfo) and self._connected:
+        if isinstance(msg, codec.ServerInfo) and self._handshake_done:
             self._on_server_info(msg)
             return
         if isinstance(msg, codec.ModelDef) and self._connected and self.model_def is not None:
@@ -879,7 +884,10 @@ class NatNetSensor(SensorBase):
             self.server_info = info
             switch = self.bitstream is not None and version[0] >= 4 and self.bitstream[:2] != version[:2]
             # until the server confirms the switch, frames are dropped rather than misread
-            self.stream_version = None if switch else (self.bitstream if self.bitstream and version[0] >= 4 else version)
+            if switch:
+                self.stream_version = None
+            else:
+                self.stream_version = self.bitstream if self.bitstream and version[0] >= 4 else version
             self._pending_bitstream = switch
             self._stream_problem = None
             self._rejoined = True

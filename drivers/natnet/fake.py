@@ -291,7 +291,8 @@ class FakeMotive:
             return codec.ModelDef((body, marker_set))
         bone = codec.RigidBodyDescription(BONE_NAME, BONE_ID, -1, (0.0, 0.0, 0.0), markers)
         if self.asset == "skeleton":
-            return codec.ModelDef((marker_set, codec.SkeletonDescription(self.rigid_body_name, self.rigid_body_id, (bone,))))
+            skeleton = codec.SkeletonDescription(self.rigid_body_name, self.rigid_body_id, (bone,))
+            return codec.ModelDef((marker_set, skeleton))
         asset_markers = tuple(
             codec.AssetMarkerDescription(name, (self.rigid_body_id << 16) | (i + 1),
                                          tuple(float(v) for v in p), 0.014, 0)
