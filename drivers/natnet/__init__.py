@@ -1,6 +1,10 @@
 """OptiTrack NatNet (Motive): wire codec, the ``NatNetSensor`` client and the ``FakeMotive`` twin.
 
-``codec`` decodes/encodes every NatNet message (NatNet 3.0 – 4.1 layouts); ``client`` is the
-``PositionSensor`` (registered as driver ``"natnet"``); ``fake`` is a Motive server on
-loopback that streams frames from a ``drivers.sim.scene.MarkerScene``.
+``codec`` decodes/encodes every NatNet message (NatNet 3.0 – 4.1 layouts; newer versions are
+refused, never read with an older layout); ``client`` is the ``PositionSensor`` (registered as
+driver ``"natnet"``): it follows how Motive announces it streams (multicast group and port, or
+unicast) and selects rigid bodies, labeled markers, assets' markers by name and skeleton bones;
+``fake`` is a Motive server on loopback (unicast or multicast, as Motive by default) that
+streams frames from a ``drivers.sim.scene.MarkerScene`` as a rigid body, skeleton or trained
+markerset.
 """

@@ -1,4 +1,4 @@
-"""NatNet wire codec: decode and encode every NatNet message, NatNet 3.0 – 4.1 layouts.
+"""NatNet wire codec: decode and encode every NatNet message, NatNet 3.0 – 4.1 layouts (newer refused).
 
 A packet is ``uint16 message_id, uint16 payload_bytes`` then the payload, little-endian.
 ``decode_packet(data, version)`` turns one UDP datagram into a message dataclass and
@@ -79,11 +79,13 @@ _VEC3 = struct.Struct("<fff")
 _VEC3_QUAT = struct.Struct("<fffffff")
 _VERSION = struct.Struct("<BBBB")
 _SERVERINFO_TAIL = struct.Struct("<QHB4s")
+_F32 = struct.Struct("<f")
 _F32x2 = struct.Struct("<ff")
 _FP_FLOATS = struct.Struct("<144f12f")  # force-plate calibration matrix and corners
 _SUFFIX3 = struct.Struct("<IIdQQQh")  # timecode, subframe, timestamp, 3 ticks, params
 _SUFFIX4 = struct.Struct("<IIdQQQIIh")  # ... plus precision seconds / fraction
 _END = struct.Struct("<i")
+_ASSET_MARKER = struct.Struct("<iffffh")  # id, initial position, size, params
 
 #: One labeled marker on the wire (NatNet >= 3.0): 26 bytes, packed.
 LABELED_MARKER_DTYPE = np.dtype(
@@ -113,21 +115,63 @@ def version_tuple(version) -> Version:
         except ValueError as exc:
             raise ValueError(f"NatNet version must look like '4.1', got {version!r}") from exc
     else:
-        nums = [int(p) for p in version]
+        try:
+            nums = [int(p) for p in version]
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"NatNet version must be 1-4 numbers 0..255, got {version!r}") from exc
     if not 1 <= len(nums) <= 4 or any(not 0 <= n <= 255 for n in nums):
         raise ValueError(f"NatNet version must be 1-4 numbers 0..255, got {version!r}")
     return tuple(nums + [0] * (4 - len(nums)))  # type: ignore[return-value]
 
 
 def check_supported(version) -> Version:
-    """Return ``version`` as a 4-tuple or raise ValueError if its frame layout is unknown."""
+    """Return ``version`` as a 4-tuple or raise ValueError if its frame layout is unknown.
+
+    Known layouts: NatNet 3.0 up to ``MAX_VERSION`` (4.1, Motive 3.1). A newer version is
+    refused rather than read with an older layout (NatNet 4.1 already added byte counts and
+    assets to 4.0; a later one may change a frame again)."""
     v = version_tuple(version)
-    if not MIN_VERSION[:2] <= v[:2]:
+    if v[:2] < MIN_VERSION[:2]:
         raise ValueError(
-            f"NatNet {v[0]}.{v[1]} is not supported; this codec reads NatNet 3.0 to 4.1 "
-            "(Motive 2.0 and later)"
+            f"NatNet {v[0]}.{v[1]} is not supported; this codec reads NatNet "
+            f"{MIN_VERSION[0]}.{MIN_VERSION[1]} to {MAX_VERSION[0]}.{MAX_VERSION[1]} (Motive 2.0 and later)"
+        )
+    if v[:2] > MAX_VERSION[:2]:
+        raise ValueError(
+            f"NatNet {v[0]}.{v[1]} is newer than the newest layout this codec implements "
+            f"({MAX_VERSION[0]}.{MAX_VERSION[1]}); supported: NatNet {MIN_VERSION[0]}.{MIN_VERSION[1]} "
+            f"to {MAX_VERSION[0]}.{MAX_VERSION[1]}"
         )
     return v
+
+
+_LAYOUTS: dict = {}  # version argument as given (hashable) -> checked 4-tuple
+
+
+def layout_version(version) -> Version:
+    """``version`` checked as the layout argument of the decode/encode functions: a NatNet
+    version between ``MIN_VERSION`` and ``MAX_VERSION`` (4-tuple, 2-tuple or ``"4.1"``).
+    Raises ValueError (a wrong argument, not bad wire data) naming what is allowed."""
+    try:
+        return _LAYOUTS[version]
+    except KeyError:
+        pass
+    except TypeError:  # unhashable (a list): check every time
+        return _check_layout(version)
+    v = _check_layout(version)
+    if len(_LAYOUTS) < 256:
+        _LAYOUTS[version] = v
+    return v
+
+
+def _check_layout(version) -> Version:
+    try:
+        return check_supported(version)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"NatNet layout version {version!r} is not usable: {exc}. Pass the stream version "
+            "as a tuple such as (4, 1, 0, 0) or a string such as '4.1'"
+        ) from exc
 
 
 def _has_byte_counts(version: Version) -> bool:
@@ -214,9 +258,14 @@ class Request:
 
 @dataclass(frozen=True, slots=True)
 class Response:
-    """NAT_RESPONSE: either a 4-byte result ``code`` (0 = success) or a ``text`` reply.
+    """NAT_RESPONSE: either a 4-byte value ``code`` or a ``text`` reply.
 
-    On the wire a 4-byte payload is a code (as OptiTrack's clients read it)."""
+    A 4-byte payload is what the request makes it (NatNet SDK ``NatNetRequests.h``): an
+    ``int32`` result (0 = success, e.g. ``Bitstream,4.1``, ``AnalogSamplesPerMocapFrame``) or
+    a ``float32`` (``FrameRate`` in frames per second, ``UnitsToMillimeters``). The wire does
+    not say which, so it decodes as ``code`` (the int32 reading of the bytes) and
+    ``float32`` reads the same four bytes as a float; ``Response.of_float32(x)`` builds one.
+    """
 
     MESSAGE_ID: ClassVar[int] = NAT_RESPONSE
     code: int | None = None
@@ -225,6 +274,18 @@ class Response:
     def __post_init__(self) -> None:
         if (self.code is None) == (self.text is None):
             raise ValueError("Response needs exactly one of code or text")
+
+    @classmethod
+    def of_float32(cls, value: float) -> "Response":
+        """A 4-byte reply holding ``value`` as a little-endian float32 (e.g. FrameRate)."""
+        return cls(code=_I32.unpack(_F32.pack(value))[0])
+
+    @property
+    def float32(self) -> float:
+        """The 4-byte reply read as a float32; ValueError for a text reply."""
+        if self.code is None:
+            raise ValueError(f"a text reply {self.text!r} has no float32 value")
+        return _F32.unpack(_I32.pack(self.code))[0]
 
 
 @dataclass(frozen=True, slots=True)
@@ -353,8 +414,36 @@ class CameraDescription:
 
 
 @dataclass(frozen=True, slots=True)
+class AssetMarkerDescription:
+    """A marker of a trained-markerset asset: ``id`` as the asset's frame data labels it,
+    ``position`` (x, y, z) its initial position and ``size`` its diameter (wire unit),
+    ``params`` its flags."""
+
+    name: str
+    id: int
+    position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    size: float = 0.0
+    params: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class AssetDescription:
+    """A trained-markerset asset (NatNet >= 4.1, dataset type 6): name, ``asset_type``,
+    ``id``, its bones (rigid-body descriptions) and markers. Layout as OptiTrack's NatNet 4.1
+    Python client (natnetsdk 4.1.1) reads it: name, int32 type, int32 id, int32 bone count,
+    bones, int32 marker count, markers (name, int32 id, vec3, float size, int16 params)."""
+
+    TYPE_ID: ClassVar[int] = 6
+    name: str
+    asset_type: int
+    id: int
+    rigid_bodies: tuple[RigidBodyDescription, ...] = ()
+    markers: tuple[AssetMarkerDescription, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
 class UnknownDescription:
-    """A dataset this codec does not parse (asset, or a type newer than 4.1), kept as raw bytes.
+    """A dataset this codec does not parse (a type newer than 4.1), kept as raw bytes.
     Only NatNet >= 4.1 lets a reader skip it; earlier layouts raise ProtocolError instead."""
 
     type_id: int
@@ -363,7 +452,7 @@ class UnknownDescription:
 
 Description = Union[
     MarkerSetDescription, RigidBodyDescription, SkeletonDescription, ForcePlateDescription,
-    DeviceDescription, CameraDescription, UnknownDescription,
+    DeviceDescription, CameraDescription, AssetDescription, UnknownDescription,
 ]
 
 
@@ -381,6 +470,14 @@ class ModelDef:
     @property
     def marker_sets(self) -> list[MarkerSetDescription]:
         return [d for d in self.datasets if isinstance(d, MarkerSetDescription)]
+
+    @property
+    def skeletons(self) -> list[SkeletonDescription]:
+        return [d for d in self.datasets if isinstance(d, SkeletonDescription)]
+
+    @property
+    def assets(self) -> list[AssetDescription]:
+        return [d for d in self.datasets if isinstance(d, AssetDescription)]
 
 
 # ---- frame of data
@@ -603,7 +700,10 @@ def _records(buf: bytes, off: int, n: int, dtype: np.dtype, empty: np.ndarray):
 
 
 def decode_frame(payload: bytes, version: Version = MIN_VERSION) -> FrameOfData:
-    """Decode a FRAMEOFDATA payload (without the 4-byte header) in the ``version`` layout."""
+    """Decode a FRAMEOFDATA payload (without the 4-byte header) in the ``version`` layout.
+
+    ``version``: the stream's NatNet version, 3.0 to ``MAX_VERSION`` (ValueError otherwise)."""
+    version = layout_version(version)
     buf = payload if type(payload) is bytes else bytes(payload)
     end = len(buf)
     v4 = version[0] >= 4
@@ -743,6 +843,7 @@ def _put_section(out: list, count: int, body: bytes, v41: bool) -> None:
 
 def encode_frame(frame: FrameOfData, version: Version = MIN_VERSION) -> bytes:
     """The FRAMEOFDATA payload of ``frame`` in the ``version`` layout (no header)."""
+    version = layout_version(version)
     v4 = version[0] >= 4
     v41 = version[:2] >= (4, 1)
     out: list[bytes] = [_i32(frame.frame_number)]
@@ -879,10 +980,28 @@ def _decode_dataset(type_id: int, buf: bytes, off: int, end: int, version: Versi
         _need(buf, off, 28, end, f"camera {name!r}")
         v = _VEC3_QUAT.unpack_from(buf, off)
         return CameraDescription(name, v[:3], v[3:]), off + 28
+    if type_id == 6 and _has_byte_counts(version):
+        name, off = _cstring(buf, off, end, "asset description name")
+        _need(buf, off, 8, end, f"asset {name!r} type and id")
+        a_type, a_id = _I32x2.unpack_from(buf, off)
+        n, off = _count(buf, off + 8, end, 25, f"asset {name!r} bones")
+        bones = []
+        for _ in range(n):
+            bone, off = _decode_rigid_body_desc(buf, off, end, version)
+            bones.append(bone)
+        n, off = _count(buf, off, end, 1 + _ASSET_MARKER.size, f"asset {name!r} markers")
+        markers = []
+        for _ in range(n):
+            m_name, off = _cstring(buf, off, end, f"asset {name!r} marker name")
+            _need(buf, off, _ASSET_MARKER.size, end, f"asset {name!r} marker {m_name!r}")
+            m_id, x, y, z, size, params = _ASSET_MARKER.unpack_from(buf, off)
+            off += _ASSET_MARKER.size
+            markers.append(AssetMarkerDescription(m_name, m_id, (x, y, z), size, params))
+        return AssetDescription(name, a_type, a_id, tuple(bones), tuple(markers)), off
     raise ProtocolError(
         f"NatNet model definition: dataset type {type_id} cannot be read in NatNet "
         f"{version[0]}.{version[1]} (known: 0 marker set, 1 rigid body, 2 skeleton, "
-        "3 force plate, 4 device, 5 camera; "
+        "3 force plate, 4 device, 5 camera, 6 asset (4.1); "
         "other types are skipped only with 4.1 byte counts)"
     )
 
@@ -928,6 +1047,16 @@ def _encode_dataset(d: Description, version: Version) -> bytes:
         )
     if isinstance(d, CameraDescription):
         return _cstr(d.name) + _VEC3_QUAT.pack(*d.position, *d.orientation)
+    if isinstance(d, AssetDescription):
+        if not _has_byte_counts(version):
+            raise ValueError(f"asset descriptions exist only from NatNet 4.1; cannot encode them as {version[:2]}")
+        return (
+            _cstr(d.name) + _I32x2.pack(d.asset_type, d.id) + _i32(len(d.rigid_bodies))
+            + b"".join(_encode_rigid_body_desc(b, version) for b in d.rigid_bodies)
+            + _i32(len(d.markers))
+            + b"".join(_cstr(m.name) + _ASSET_MARKER.pack(m.id, *m.position, m.size, m.params)
+                       for m in d.markers)
+        )
     if isinstance(d, UnknownDescription):
         if not _has_byte_counts(version):
             raise ValueError("an UnknownDescription can be encoded only with NatNet 4.1 byte counts")
@@ -936,7 +1065,8 @@ def _encode_dataset(d: Description, version: Version) -> bytes:
 
 
 def decode_modeldef(payload: bytes, version: Version = MIN_VERSION) -> ModelDef:
-    """Decode a MODELDEF payload in the ``version`` layout."""
+    """Decode a MODELDEF payload in the ``version`` layout (3.0 to ``MAX_VERSION``)."""
+    version = layout_version(version)
     buf = payload if type(payload) is bytes else bytes(payload)
     end = len(buf)
     v41 = _has_byte_counts(version)
@@ -953,7 +1083,7 @@ def decode_modeldef(payload: bytes, version: Version = MIN_VERSION) -> ModelDef:
                     f"{end - off} bytes left"
                 )
             sec = off + nbytes
-            if type_id in (0, 1, 2, 3, 4, 5):
+            if type_id in (0, 1, 2, 3, 4, 5, 6):
                 d, used = _decode_dataset(type_id, buf, off, sec, version)
             else:
                 d, used = UnknownDescription(type_id, buf[off:sec]), sec
@@ -968,6 +1098,7 @@ def decode_modeldef(payload: bytes, version: Version = MIN_VERSION) -> ModelDef:
 
 
 def encode_modeldef(md: ModelDef, version: Version = MIN_VERSION) -> bytes:
+    version = layout_version(version)
     v41 = _has_byte_counts(version)
     parts = [_i32(len(md.datasets))]
     for d in md.datasets:
@@ -1056,8 +1187,10 @@ def decode_packet(data: bytes, version: Version = MIN_VERSION) -> Message:
     """Decode one datagram. ``version``: the stream's NatNet version (4-tuple).
 
     Bytes after the declared payload are ignored (some clients append a NUL). Raises
-    ProtocolError for anything that does not follow the protocol.
+    ProtocolError for anything that does not follow the protocol, and ValueError when
+    ``version`` is not a layout this codec implements (3.0 to ``MAX_VERSION``).
     """
+    version = layout_version(version)
     buf = data if type(data) is bytes else bytes(data)
     if len(buf) < 4:
         raise ProtocolError(f"NatNet packet of {len(buf)} bytes is shorter than its 4-byte header")
@@ -1111,7 +1244,8 @@ def decode_packet(data: bytes, version: Version = MIN_VERSION) -> Message:
 
 
 def encode_payload(msg: Message, version: Version = MIN_VERSION) -> bytes:
-    """The payload bytes of ``msg`` (no header)."""
+    """The payload bytes of ``msg`` (no header); ValueError for a version outside 3.0 – 4.1."""
+    version = layout_version(version)
     if isinstance(msg, FrameOfData):
         return encode_frame(msg, version)
     if isinstance(msg, ModelDef):

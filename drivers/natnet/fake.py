@@ -1,11 +1,14 @@
 """``FakeMotive``: a Motive server on loopback that speaks NatNet over real UDP sockets.
 
-It answers CONNECT with SERVERINFO, REQUEST_MODELDEF with MODELDEF, ECHOREQUEST,
-KEEPALIVE, REQUEST (``Bitstream``, ``Bitstream,X.Y``, timeline commands) and streams
-FRAMEOFDATA at a fixed rate, unicast (from the command socket to every client that sent
-CONNECT, as Motive does) or multicast (from the data socket to ``group:data_port`` with
-``IP_MULTICAST_IF`` = 127.0.0.1, ``IP_MULTICAST_LOOP`` on and TTL 0, so nothing leaves the
-host).
+It answers CONNECT with SERVERINFO (NatNet ≥ 3.0 form: clock frequency, data port, multicast
+flag and group, so a client learns how frames will arrive), REQUEST_MODELDEF with MODELDEF,
+ECHOREQUEST, KEEPALIVE, REQUEST (``Bitstream``, ``Bitstream,X.Y``, ``FrameRate`` → float32
+frames per second, ``AnalogSamplesPerMocapFrame`` → int32, ``UnitsToMillimeters`` → float32,
+timeline commands; request names and reply types as in the NatNet SDK's
+``NatNetRequests.h``) and streams FRAMEOFDATA at a fixed rate, unicast (from the command socket
+to every client that sent CONNECT) or multicast as Motive does by default (from the data
+socket to ``group:data_port``, default group 239.255.42.99, with ``IP_MULTICAST_IF`` =
+127.0.0.1, ``IP_MULTICAST_LOOP`` on and TTL 0, so nothing leaves the host).
 
 Frame content comes from a ``drivers.sim.scene.MarkerScene``: every marker the scene reports
 for ``sensor`` belongs to one rigid body (the tool plate). The body's pose is fitted (Kabsch)
@@ -38,6 +41,11 @@ log = logging.getLogger("remaster.fake.natnet")
 
 #: Stream versions a fake 4.x server may switch to with ``Bitstream,X.Y``.
 BITSTREAM_VERSIONS = {(3, 0), (3, 1), (4, 0), (4, 1)}
+#: What the scene's markers are in Motive: a rigid body (default), a one-bone skeleton, or a
+#: NatNet 4.1 trained markerset with one bone. All share ``rigid_body_id`` / ``rigid_body_name``.
+ASSET_KINDS = ("rigid_body", "skeleton", "trained_markerset")
+#: The fake skeleton's / trained markerset's single bone: id and name.
+BONE_ID, BONE_NAME = 1, "plate"
 _TIMELINE_COMMANDS = ("TimelinePlay", "TimelineStop", "SetPlaybackCurrentFrame")
 
 
@@ -77,9 +85,15 @@ class FakeMotive:
     scene: gives the markers (``observe(sensor)``, positions in mm, sensor frame).
     rate_hz: frame rate, 120–360 Hz like a real system (other values are refused).
     natnet_version: the server's NatNet version, (3, 0), (3, 1), (4, 0) or (4, 1).
-    multicast: stream to ``multicast_group:data_port`` instead of to unicast clients.
+    multicast: stream to ``multicast_group:data_port`` instead of to unicast clients (Motive's
+    default Transmission Type); SERVERINFO announces either.
     command_port, data_port: 0 picks a free port; the chosen ones are ``command_port`` /
     ``data_port`` after ``start()``.
+    asset: what the scene's markers are (``ASSET_KINDS``): a rigid body ``rigid_body_id`` /
+    ``rigid_body_name``; a skeleton of that id and name with one bone (``BONE_ID``,
+    ``BONE_NAME``) whose labeled markers are (skeleton id, index + 1); or (NatNet 4.1 only) a
+    trained markerset asset with that bone whose markers travel in the frame's asset section.
+    analog_samples_per_frame: the int32 answer to ``AnalogSamplesPerMocapFrame``.
     """
 
     def __init__(
@@ -99,6 +113,8 @@ class FakeMotive:
         app_version=(3, 1, 0, 0),
         clock_frequency: int = 10_000_000,
         client_timeout_s: float = 10.0,
+        analog_samples_per_frame: int = 0,
+        asset: str = "rigid_body",
         seed: int = 0,
     ) -> None:
         if not 120.0 <= rate_hz <= 360.0:
@@ -110,6 +126,12 @@ class FakeMotive:
             )
         if not 1 <= rigid_body_id <= 0xFFFF:
             raise ValueError(f"rigid_body_id must be 1..65535, got {rigid_body_id}")
+        if asset not in ASSET_KINDS:
+            raise ValueError(f"asset must be one of {', '.join(ASSET_KINDS)}, got {asset!r}")
+        if asset == "trained_markerset" and version[:2] < (4, 1):
+            raise ValueError(f"a trained_markerset asset needs NatNet 4.1, got natnet_version {version[:2]}")
+        if not (isinstance(analog_samples_per_frame, int) and analog_samples_per_frame >= 0):
+            raise ValueError(f"analog_samples_per_frame must be an int ≥ 0, got {analog_samples_per_frame!r}")
         self.scene = scene
         self.sensor = sensor
         self.rate_hz = float(rate_hz)
@@ -123,6 +145,8 @@ class FakeMotive:
         self.app_version = codec.version_tuple(app_version)
         self.clock_frequency = int(clock_frequency)
         self.client_timeout_s = client_timeout_s
+        self.analog_samples_per_frame = analog_samples_per_frame
+        self.asset = asset
         self._want_ports = (command_port, data_port)
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
@@ -261,12 +285,21 @@ class FakeMotive:
             codec.RigidBodyMarkerDescription(tuple(float(v) for v in p), 0, name)
             for p, name in zip(self._layout_m, self._marker_names)
         )
-        return codec.ModelDef((
-            codec.RigidBodyDescription(
-                self.rigid_body_name, self.rigid_body_id, -1, (0.0, 0.0, 0.0), markers
-            ),
-            codec.MarkerSetDescription(self.rigid_body_name, tuple(self._marker_names)),
-        ))
+        marker_set = codec.MarkerSetDescription(self.rigid_body_name, tuple(self._marker_names))
+        if self.asset == "rigid_body":
+            body = codec.RigidBodyDescription(self.rigid_body_name, self.rigid_body_id, -1, (0.0, 0.0, 0.0), markers)
+            return codec.ModelDef((body, marker_set))
+        bone = codec.RigidBodyDescription(BONE_NAME, BONE_ID, -1, (0.0, 0.0, 0.0), markers)
+        if self.asset == "skeleton":
+            skeleton = codec.SkeletonDescription(self.rigid_body_name, self.rigid_body_id, (bone,))
+            return codec.ModelDef((marker_set, skeleton))
+        asset_markers = tuple(
+            codec.AssetMarkerDescription(name, (self.rigid_body_id << 16) | (i + 1),
+                                         tuple(float(v) for v in p), 0.014, 0)
+            for i, (p, name) in enumerate(zip(self._layout_m, self._marker_names))
+        )
+        return codec.ModelDef((marker_set, codec.AssetDescription(
+            self.rigid_body_name, 0, self.rigid_body_id, (bone,), asset_markers)))
 
     def _ticks(self) -> int:
         return int(time.monotonic_ns() * self.clock_frequency // 1_000_000_000)
@@ -315,11 +348,22 @@ class FakeMotive:
         with self._lock:
             frame_no = self._frame_no
             self._frame_no += 1
+        skeletons, assets = (), ()
+        if self.asset != "rigid_body":  # the plate is the asset's one bone
+            rb["id"] = (self.rigid_body_id << 16) | BONE_ID
+            if self.asset == "skeleton":
+                skeletons = (codec.SkeletonData(self.rigid_body_id, rb),)
+            else:  # trained markerset: its markers go with the asset, not the labeled list
+                assets = (codec.AssetData(self.rigid_body_id, rb, labeled),)
+                labeled = labeled[:0]
+            rb = rb[:0]
         frame = codec.FrameOfData(
             frame_number=frame_no,
             marker_sets=(codec.MarkerSetData(self.rigid_body_name, set_pos.astype("<f4")),),
             unlabeled=seen[vis].astype("<f4").reshape(-1, 3),
             rigid_bodies=rb,
+            skeletons=skeletons,
+            assets=assets,
             labeled_markers=labeled,
             timestamp=frame_no / self.rate_hz,
             stamp_camera_mid_exposure=now - self.clock_frequency // 200,
@@ -403,12 +447,18 @@ class FakeMotive:
                 want = codec.version_tuple(parts[1])
             except ValueError:
                 return codec.Response(code=1)
-            if want[:2] not in BITSTREAM_VERSIONS:
+            if want[:2] not in BITSTREAM_VERSIONS or (self.asset == "trained_markerset" and want[:2] < (4, 1)):
                 return codec.Response(code=1)
             with self._lock:
                 self.stream_version = want
             log.info("fake Motive: bitstream now NatNet %d.%d", *want[:2])
             return codec.Response(code=0)
+        if parts[0] == "FrameRate":
+            return codec.Response.of_float32(self.rate_hz)
+        if parts[0] == "AnalogSamplesPerMocapFrame":
+            return codec.Response(code=self.analog_samples_per_frame)
+        if parts[0] == "UnitsToMillimeters":
+            return codec.Response.of_float32(1000.0)  # streams metres
         if parts[0] in _TIMELINE_COMMANDS:
             return codec.Response(code=0)
         return codec.UnrecognizedRequest()

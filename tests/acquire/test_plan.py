@@ -447,3 +447,20 @@ def test_the_format_documented_in_the_module_docstring_is_a_valid_plan(tmp_path)
     lp = load_plan(write(tmp_path, data))
     resolved = resolve_plan(lp)
     assert len(resolved.configs) == data["selection"]["m"] and resolved.before_selection > data["selection"]["m"]
+
+
+@pytest.mark.parametrize("selector", ["sk:robot:link6", "sk:3:7", "ms:robot:sir", "rb:tool", "lm:2:1"])
+def test_natnet_selectors_for_bones_and_asset_markers_are_accepted(tmp_path, selector):
+    sensors = [{"name": "mocap", "driver": "natnet", "url": "natnet://127.0.0.1:1510",
+                "markers": {"sir": selector}, "noise_mm": 0.03}]
+    lp = load_plan(write(tmp_path, minimal(sensors=sensors)))
+    assert lp.plan.sensors[0].markers == {"sir": selector}
+
+
+@pytest.mark.parametrize("selector", ["sk:robot", "sk::link6", "sk:70000:1", "sk:robot:", "bone:robot:link6"])
+def test_bad_natnet_bone_selectors_name_the_marker_given_and_allowed(tmp_path, selector):
+    sensors = [{"name": "mocap", "driver": "natnet", "url": "natnet://127.0.0.1:1510",
+                "markers": {"sir": selector}, "noise_mm": 0.03}]
+    msg = error_of(write(tmp_path, minimal(sensors=sensors)))
+    assert "sensors.0.markers.sir" in msg and f"given {selector!r}" in msg, msg
+    assert "'sk:<skeleton id or name>:<bone id or name>'" in msg and "'ms:<asset name>:<marker name>'" in msg, msg

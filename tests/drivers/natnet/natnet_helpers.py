@@ -125,7 +125,12 @@ def rich_modeldef(version) -> codec.ModelDef:
         codec.CameraDescription("cam 1", (1.0, 2.0, 3.0), (0.0, 0.0, 0.0, 1.0)),
     ]
     if version[:2] >= (4, 1):
-        datasets.append(codec.UnknownDescription(6, b"asset bytes we do not parse"))
+        datasets.append(codec.AssetDescription(
+            "arm", 1, 9, (codec.RigidBodyDescription("link1", 1, -1, (0.0, 0.0, 0.25), rb.markers[:1]),),
+            (codec.AssetMarkerDescription("arm_m1", (9 << 16) | 1, (0.125, 0.5, -0.25), 0.015625, 3),
+             codec.AssetMarkerDescription("arm_m2", 2, (0.0, 0.0, 0.0), 0.0, 0)),
+        ))
+        datasets.append(codec.UnknownDescription(7, b"a dataset type newer than 4.1"))
     return codec.ModelDef(tuple(datasets))
 
 
@@ -214,8 +219,10 @@ def natnetsdk_client(fake, multicast: bool):
 
 
 def stop_natnetsdk(c, fake) -> None:
-    """Stop its threads: they block in recvfrom with no timeout, so set the stop flag and
-    wake each socket with an empty datagram before its own ``shutdown()`` joins them."""
+    """Stop its threads: they block in recvfrom with no timeout, so set the stop flag, wake
+    each socket with an empty datagram and let both threads end before its own ``shutdown()``
+    closes the sockets (its unicast thread sends a keep-alive after each datagram: closing
+    under it raises EBADF in that thread)."""
     c.stop_threads = True
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as w:
         w.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
@@ -223,6 +230,8 @@ def stop_natnetsdk(c, fake) -> None:
         for sk in (c.command_socket, c.data_socket):
             host, port = sk.getsockname()
             w.sendto(b"", (host, port))
+    for t in (c.command_thread, c.data_thread):
+        t.join(timeout=5.0)
     c.shutdown()
 
 
@@ -234,3 +243,31 @@ def wait_until(predicate, timeout: float = 3.0, step: float = 0.005) -> bool:
             return True
         time.sleep(step)
     return bool(predicate())
+
+
+_MULTICAST_OK: list[str | None] = []
+
+
+def need_loopback_multicast(group: str = "239.255.42.99") -> None:
+    """Skip (with the reason) unless this kernel delivers multicast on loopback: join ``group``
+    on 127.0.0.1, send one datagram to it with TTL 0 and receive it back."""
+    if not _MULTICAST_OK:
+        reason = None
+        try:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx, \
+                    socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+                rx.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                rx.bind((group, 0))
+                rx.setsockopt(socket.IPPROTO_IP, socket.IP_ADD_MEMBERSHIP,
+                              socket.inet_aton(group) + socket.inet_aton("127.0.0.1"))
+                rx.settimeout(2.0)
+                tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_IF, socket.inet_aton("127.0.0.1"))
+                tx.setsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 0)
+                tx.sendto(b"probe", (group, rx.getsockname()[1]))
+                if rx.recv(16) != b"probe":
+                    reason = "a foreign datagram arrived instead of the probe"
+        except OSError as exc:
+            reason = str(exc)
+        _MULTICAST_OK.append(reason)
+    if _MULTICAST_OK[0] is not None:
+        pytest.skip(f"this kernel does not deliver multicast on loopback ({_MULTICAST_OK[0]})")

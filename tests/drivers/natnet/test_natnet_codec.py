@@ -242,3 +242,61 @@ def test_version_parsing(given, expected):
 def test_unsupported_or_malformed_versions_are_refused(bad):
     with pytest.raises(ValueError, match="NatNet"):
         codec.check_supported(bad)
+
+
+# ----------------------------------------------------------------------------- versions beyond 4.1
+
+
+@pytest.mark.parametrize("newer", [(4, 2), (4, 3, 0, 0), "5.0", (5, 0, 0, 0)])
+def test_versions_above_the_newest_layout_are_refused(newer):
+    assert codec.MAX_VERSION[:2] == (4, 1)
+    with pytest.raises(ValueError, match=r"newer than the newest layout this codec implements \(4\.1\)"):
+        codec.check_supported(newer)
+
+
+@pytest.mark.parametrize("bad", [(4, 2, 0, 0), (5, 0, 0, 0), (2, 10, 0, 0), "x.y", (4,) * 5, None])
+def test_decoders_and_encoders_validate_the_version_they_are_given(bad):
+    """A 4.2 or 5.0 stream must not be read (or written) silently with the 4.1 layout."""
+    frame = codec.FrameOfData(3)
+    payload = codec.encode_frame(frame, V41)
+    packet = codec.encode_packet(frame, V41)
+    md = codec.encode_modeldef(codec.ModelDef(), V41)
+    for call in (
+        lambda: codec.decode_frame(payload, bad),
+        lambda: codec.decode_packet(packet, bad),
+        lambda: codec.decode_modeldef(md, bad),
+        lambda: codec.encode_frame(frame, bad),
+        lambda: codec.encode_packet(frame, bad),
+        lambda: codec.decode_packet(codec.encode_packet(codec.KeepAlive()), bad),
+    ):
+        with pytest.raises(ValueError, match="NatNet layout version .* is not usable"):
+            call()
+
+
+def test_real_capture_decodes_with_every_spelling_of_its_version():
+    data = capture("mocapframe_packet_v3.bin")
+    frames = [codec.decode_packet(data, v) for v in ((3, 0, 0, 0), (3, 0), "3.0", [3, 0, 0, 0])]
+    assert all(f == frames[0] for f in frames) and frames[0].frame_number == 162734
+
+
+# ----------------------------------------------------------------------------- request replies
+
+
+def test_frame_rate_reply_is_a_float32_not_a_code():
+    """NatNetRequests.h: "FrameRate" returns a float32 (frames per second); the same four
+    bytes read as an int32 code would be 1123024896 for 120 Hz."""
+    packet = codec.encode_packet(codec.Response.of_float32(120.0))
+    assert packet == struct.pack("<HHf", codec.NAT_RESPONSE, 4, 120.0)
+    reply = codec.decode_packet(packet)
+    assert reply.float32 == 120.0 and reply.code == 1123024896
+    assert codec.decode_packet(struct.pack("<HHf", codec.NAT_RESPONSE, 4, 239.999)).float32 == pytest.approx(239.999, rel=1e-7)
+    assert codec.decode_packet(struct.pack("<HHi", codec.NAT_RESPONSE, 4, 10)).code == 10  # int32 replies
+    with pytest.raises(ValueError, match="text reply"):
+        codec.Response(text="Bitstream,4.1").float32
+
+
+def test_asset_descriptions_exist_only_from_41():
+    md = codec.ModelDef((codec.AssetDescription("arm", 1, 9),))
+    assert codec.decode_modeldef(codec.encode_modeldef(md, V41), V41) == md
+    with pytest.raises(ValueError, match="only from NatNet 4.1"):
+        codec.encode_modeldef(md, V40)

@@ -108,6 +108,15 @@ def test_natnetsdk_unpacks_our_model_definitions(version):
     assert [tuple(np.float32(m.pos)) for m in theirs] == [tuple(np.float32(m.offset)) for m in md.rigid_bodies[0].markers]
     if version[0] >= 4:
         assert [m.marker_name for m in theirs] == [m.name for m in md.rigid_bodies[0].markers]
+    # trained-markerset assets (4.1): natnetsdk reads the same name, type, id, bones, markers
+    assert [(a.name.decode(), a.assetType, a.assetID) for a in descs.asset_list] == [
+        (a.name, a.asset_type, a.id) for a in md.assets]
+    for a, o in zip(descs.asset_list, md.assets):
+        assert [b.sz_name.decode() for b in a.rigidbodyArray] == [b.name for b in o.rigid_bodies]
+        assert [(m.name.decode(), m.marker_id, tuple(np.float32(m.position)), np.float32(m.marker_size),
+                 m.marker_params) for m in a.markerArray] == [
+            (m.name, m.id, tuple(np.float32(m.position)), np.float32(m.size), m.params) for m in o.markers]
+    assert len(md.assets) == (1 if version[:2] >= (4, 1) else 0)
 
 
 @pytest.mark.parametrize("multicast", [False, True], ids=["unicast", "multicast"])
@@ -142,3 +151,45 @@ def test_natnetsdk_client_receives_fake_motive_frames(still_scene, version, mult
             np.testing.assert_allclose(np.asarray(lms[(1 << 16) | (i + 1)]) * 1000.0, true_mm, atol=1e-3)
     numbers = [m.prefix_data.frame_number for _, _, m, _ in decoded]
     assert numbers == sorted(numbers)
+
+
+@pytest.mark.parametrize("asset, version", [("skeleton", (3, 0)), ("skeleton", (4, 1)), ("trained_markerset", (4, 1))],
+                         ids=["skeleton-3.0", "skeleton-4.1", "trained-markerset-4.1"])
+def test_natnetsdk_reads_the_fakes_skeleton_and_trained_markerset(still_scene, asset, version):
+    """The bytes FakeMotive sends for a skeleton / trained markerset decode in natnetsdk to the
+    same bone pose and markers, and its model definitions to the same names and ids."""
+    from drivers.natnet.fake import BONE_ID, BONE_NAME
+
+    fake = FakeMotive(still_scene, asset=asset, natnet_version=version)
+    fake.stall()
+    fake.start()
+    try:
+        frame, md = fake.make_frame(), fake.model_def()
+    finally:
+        fake.close()
+    v = codec.version_tuple(version)
+    payload, md_payload = codec.encode_frame(frame, v), codec.encode_modeldef(md, v)
+    client = natnetsdk.NatNetClient()
+    with contextlib.redirect_stdout(io.StringIO()):
+        offset, mocap = client._NatNetClient__unpack_mocap_data(payload, len(payload), *version)
+        md_offset, descs = client._NatNetClient__unpack_data_descriptions(md_payload, len(md_payload), *version)
+    assert offset == len(payload) - END_OF_DATA and md_offset == len(md_payload)
+    assert_same_frame(frame, mocap)
+    if asset == "skeleton":
+        (sk,) = mocap.skeleton_data.skeleton_list
+        bone = sk.rigid_body_list[0]
+        (desc,) = descs.skeleton_list
+        assert (desc.name.decode(), desc.id_num) == ("tool", 1)
+        assert [(b.sz_name.decode(), b.id_num) for b in desc.rigid_body_description_list] == [(BONE_NAME, BONE_ID)]
+        lms = {lm.id_num: lm.pos for lm in mocap.labeled_marker_data.labeled_marker_list}
+    else:
+        (a,) = mocap.asset_data.asset_list
+        bone = a.rigid_body_list[0]
+        (desc,) = descs.asset_list
+        assert (desc.name.decode(), desc.assetID) == ("tool", 1)
+        assert [m.name.decode() for m in desc.markerArray] == ["m0", "m1", "m2", "m3"]
+        lms = {m.marker_id: m.pos for m in a.marker_list}
+    assert bone.id_num == (1 << 16) | BONE_ID
+    np.testing.assert_allclose(np.asarray(bone.pos) * 1000.0, (PLATE_MM + PLATE_ORIGIN_MM).mean(axis=0), atol=1e-3)
+    for i, true_mm in enumerate(PLATE_MM + PLATE_ORIGIN_MM):
+        np.testing.assert_allclose(np.asarray(lms[(1 << 16) | (i + 1)]) * 1000.0, true_mm, atol=1e-3)
