@@ -3,7 +3,11 @@
 Example::
 
     acquire sim --seed 3 --time-scale 1
-    acquire sim --config fixtures/sim/default.yaml --fri-port 30200 --duration 600
+    acquire sim --config fixtures/sim/default.yaml --fri-port 30200 --duration 600 --fri-version 2.7
+
+A Sunrise cell's fake controller runs the robot application we ship: it opens the FRI session
+and starts its joint-position overlay once the client answers in time, so any FRI client
+(ours, KUKA's SDK examples) can be tried against it without code.
 
 Prints where each fake listens (NatNet command port, tracker ``socket://`` URL) or sends (the
 robot controller, to the commander's port), then runs until Ctrl-C or ``--duration`` wall
@@ -38,6 +42,9 @@ def sim(
     rate: float = typer.Option(120.0, "--mocap-rate", help="NatNet frame rate, 120–360 Hz."),
     duration: float = typer.Option(3600.0, "--duration", help="Stop by itself after this many wall seconds."),
     show_truth: bool = typer.Option(False, "--show-truth", help="Also print the hidden zero-offsets."),
+    fri_version: str = typer.Option(
+        "1.15", "--fri-version", help="FRI message layout of the fake Sunrise: 1.15, 2.5 or 2.7."
+    ),
 ) -> None:
     """Run the fake devices of a simulated cell on 127.0.0.1 until Ctrl-C."""
     if not time_scale > 0:
@@ -50,7 +57,8 @@ def sim(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     try:
-        launch = SimLaunch(cell, fri_port=fri_port, rsi_port=rsi_port, mocap_rate_hz=rate, max_runtime_s=duration)
+        launch = SimLaunch(cell, fri_port=fri_port, rsi_port=rsi_port, mocap_rate_hz=rate, max_runtime_s=duration,
+                           fri_version=fri_version)
         launch.start()
     except (ValueError, OSError) as exc:
         typer.echo(f"error: cannot start the simulated cell: {exc}", err=True)

@@ -74,6 +74,7 @@ class SimLaunch:
     max_runtime_s: wall seconds after which the fake controllers stop sending by themselves.
     controller: False starts no controller (sensors only).
     operator: run the simulated operator who restarts a KR C4 RSI program that stopped.
+    fri_version: the fake Sunrise's FRI message layout (``drivers.kuka_fri.fake.FRI_VERSIONS``).
     fri_send_period_ms: the fake Sunrise's send period (simulated ms, FRI allows 1–100); None
     keeps the fake's default. A faster-than-real-time cell wants a longer simulated period so one
     cycle still lasts a few wall milliseconds.
@@ -91,6 +92,7 @@ class SimLaunch:
         controller: bool = True,
         fri_send_period_ms: int | None = None,
         operator: bool = True,
+        fri_version: str = "1.15",
     ) -> None:
         for name, port in (("fri_port", fri_port), ("rsi_port", rsi_port)):
             if not (isinstance(port, int) and 1 <= port <= 65535):
@@ -108,6 +110,7 @@ class SimLaunch:
             raise ValueError(f"fri_send_period_ms must be 1..100 ms (FRI's range), got {fri_send_period_ms!r}")
         self.fri_send_period_ms = fri_send_period_ms
         self.want_operator = operator
+        self.fri_version = fri_version
         self.operator_restarts = 0
         self.addresses: dict[str, DeviceAddress] = {}
         self.motives: dict[str, object] = {}
@@ -194,7 +197,7 @@ class SimLaunch:
             fake = FakeSunrise(
                 ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.cell,
                 clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
-                application=True, **period,
+                application=True, fri_version=self.fri_version, **period,
             )
             fake.start()
             host, port = fake.address
