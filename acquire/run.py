@@ -29,6 +29,7 @@ from __future__ import annotations
 import inspect
 import logging
 import math
+import os
 import sys
 import threading
 import time
@@ -291,7 +292,7 @@ class RunController:
         folder = out_dir if out_dir is not None else Path(self.plan.output.folder)
         if not Path(folder).is_absolute() and out_dir is None:
             folder = Path(lp.path).parent / folder
-        self.out_dir = Path(folder)
+        self.out_dir = Path(os.path.abspath(folder))  # no "plans/../../runs" in what is printed or logged
         self._lock = threading.RLock()
         self._state = "idle"
         self._reason = ""
@@ -400,11 +401,19 @@ class RunController:
         self._progress()
 
     def _progress(self) -> None:
+        st = self.status()
         if self.on_progress is not None:
             try:
-                self.on_progress(self.status())
+                self.on_progress(st)
             except (OSError, ValueError) as exc:  # a closed terminal must not stop the run
                 log.debug("progress display: %s", exc)
+        if self.bus is not None and self.run_id:
+            try:  # what `acquire watch` shows: the same dict, on remaster/<cell>/run/<run-id>/status
+                from acquire.bus import key
+
+                self.bus.publish(key(self.cell_id, "run", self.run_id, "status"), st)
+            except Exception as exc:  # noqa: BLE001 - the bus must never stop a run
+                log.debug("bus publish failed: %s", exc)
 
     def _eta(self) -> float | None:
         """Wall seconds left: the remaining estimated cell time, scaled by how the configurations
