@@ -190,6 +190,9 @@ def run(
                                 help="Console shows INFO (-v) or DEBUG (-vv) logs too; the run's .log file has them anyway."),
 ) -> None:
     """Run the measurement plan: move, settle, measure every configuration; log; fit."""
+    from acquire.console import configure_console
+
+    console = configure_console(verbose)
     lp, configs = _load(plan)
     if dry_run:
         typer.echo(dry_run_text(lp, configs))
@@ -197,11 +200,10 @@ def run(
     if resume is not None and not resume.is_file():
         typer.echo(f"error: --resume {resume}: no such file", err=True)
         raise typer.Exit(2)
-    from acquire.console import RunLogFile, configure_console
+    from acquire.console import RunLogFile
     from acquire.progress import make_progress
     from acquire.run import RunController
 
-    console = configure_console(verbose)
     logfile = RunLogFile(logging.DEBUG if verbose >= 2 else logging.INFO)
     bus = None
     if not no_bus:
