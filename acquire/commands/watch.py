@@ -96,8 +96,9 @@ def watch(
         raise typer.Exit(1) from exc
     with bus:
         bus.subscribe(expr, lambda k, p: inbox.put(("msg", k, p)))
-        bus.watch_liveliness(f"{ROOT}/{cell or '*'}/daemon", lambda k, a: inbox.put(("alive", k, a)))
-        bus.watch_liveliness(f"{ROOT}/{cell or '*'}/device/*", lambda k, a: inbox.put(("alive", k, a)))
+        if not key_expr:  # the view's daemon and devices; a raw key expression gets only its own stream
+            bus.watch_liveliness(f"{ROOT}/{cell or '*'}/daemon", lambda k, a: inbox.put(("alive", k, a)))
+            bus.watch_liveliness(f"{ROOT}/{cell or '*'}/device/*", lambda k, a: inbox.put(("alive", k, a)))
         typer.echo(f"watching {expr} via {', '.join(connect)}", err=True)
         session = _Session(bus, cell, raw=raw, until_done=until_done, count=count, duration=duration,
                            connect=connect, explicit_expr=bool(key_expr))
@@ -131,11 +132,11 @@ class _Session:
         self.live = None
 
     # -------------------------------------------------------------------- discovery
-    def _choose(self, cell: str, how: str) -> None:
+    def _choose(self, cell: str) -> None:
         from acquire.livestatus import CellView
 
         self.view = CellView(cell)
-        typer.echo(f"found cell {cell} ({how}) via {', '.join(self.connect)}", err=True)
+        typer.echo(f"found cell {cell} via {', '.join(self.connect)}", err=True)
         if not self.raw and sys.stdout.isatty():
             from rich.console import Console
             from rich.live import Live
@@ -167,7 +168,7 @@ class _Session:
                     continue
                 if kind == "alive" and not value:
                     continue
-                self._choose(c, "daemon" if kind == "alive" and k.endswith("/daemon") else "publishing")
+                self._choose(c)
             if kind == "alive":
                 lines = self.view.alive(k, bool(value)) if self.view is not None else []
                 if not self.raw:
