@@ -59,13 +59,19 @@ def configure_logging(verbose: bool = False) -> None:
 
 def plain_switches(command: Any, ctx: Any) -> None:
     """Show on/off switches as ``--fake``, not ``--fake <bool>``: a flag takes no value, so its
-    help row gets no type column (the help option's included)."""
+    help row gets no type column (the help option's included); a counter (``-v``, ``-vv``) neither
+    a type nor its default 0."""
     params = list(getattr(command, "params", []))
     help_option = command.get_help_option(ctx) if hasattr(command, "get_help_option") else None
     if help_option is not None:
         params.append(help_option)
     for param in params:
-        if isinstance(param, TyperOption) and getattr(param, "is_flag", False) and not getattr(param, "count", False):
+        if not isinstance(param, TyperOption):
+            continue
+        if getattr(param, "count", False):  # -v, -vv: repeated, no value, no default worth showing
+            param.metavar = ""
+            param.show_default = False
+        elif getattr(param, "is_flag", False):
             param.metavar = ""
 
 
