@@ -24,7 +24,7 @@ import pytest
 
 from acquire.livestatus import CellView, cell_of, sample_text, warning_text
 
-from daemon_harness import CELL, DaemonProcess, NotifySocket, free_port, write_config  # noqa: E402
+from daemon_harness import CELL, OPERATOR_TOKEN, DaemonProcess, NotifySocket, free_port, write_config  # noqa: E402
 from run_helpers import ROOT, acquire_cmd, small_plan  # noqa: E402
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
@@ -211,34 +211,48 @@ def test_run_with_v_shows_device_logs_on_the_terminal(tmp_path):
     assert "INFO remaster.device.fri" in console and "finished" in console
 
 
-@pytest.mark.timeout(200)
-def test_watch_against_the_daemon_finds_its_cell_and_never_claims_to_be_disconnected(tmp_path):
+@pytest.mark.timeout(300)
+def test_watch_against_the_daemon_finds_its_cell_follows_its_run_and_never_claims_to_be_disconnected(tmp_path):
     notify = NotifySocket()
     port = free_port()
     daemon = DaemonProcess(write_config(tmp_path, port), notify, watchdog_usec=1_000_000)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
     try:
         daemon.wait_ready(90)
         endpoint = f"tcp/127.0.0.1:{port}"
-        watcher = _watch("--connect", endpoint, cwd=tmp_path)
+        watcher = _watch("--connect", endpoint, "--until-done", "--duration", "240", cwd=tmp_path)
         try:
             seen = _wait_for_line(watcher.stdout, f"daemon of cell {CELL}: alive", 60)
             # a key nothing publishes on: silence for longer than the "not connected" delay
             quiet = subprocess.run(acquire_cmd("watch", "--raw", f"remaster/{CELL}/nothing/here", "--connect",
                                                endpoint, "--duration", "4"),
-                                   cwd=tmp_path, env=dict(os.environ, PYTHONPATH=str(ROOT)), capture_output=True,
-                                   text=True, timeout=60, stdin=subprocess.DEVNULL)
+                                   cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60,
+                                   stdin=subprocess.DEVNULL)
+            token = tmp_path / "token"
+            token.write_text(OPERATOR_TOKEN)
+            plan = small_plan(tmp_path, n=4, name="small.yaml")
+            started = subprocess.run(acquire_cmd("start", "--inline", str(plan), "--cell", CELL, "--connect", endpoint,
+                                                 "--client", "operator", "--token-file", str(token)),
+                                     cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60,
+                                     stdin=subprocess.DEVNULL)
+            assert started.returncode == 0, started.stderr
+            out, err = watcher.communicate(timeout=200)  # --until-done: exits when the daemon's run ends
         finally:
-            watcher.send_signal(signal.SIGINT)
-            try:
-                _, err = watcher.communicate(timeout=30)
-            except subprocess.TimeoutExpired:
+            if watcher.poll() is None:
                 watcher.kill()
-                _, err = watcher.communicate()
     finally:
         daemon.kill()
         notify.close()
     assert seen[-1].strip() == f"daemon of cell {CELL}: alive"
+    assert watcher.returncode == 0, err
     assert f"found cell {CELL} via {endpoint}" in err
     assert "not connected" not in err
+    run_id = re.search(r"run_id (\S+)", started.stdout).group(1)
+    lines = out.splitlines()
+    assert f"run {run_id} of cell {CELL}" in lines
+    last = [ln for ln in lines if ln.startswith(f"run {run_id}: ")][-1]
+    done, total = re.search(r": (\d+)/(\d+)", last).groups()
+    assert last.endswith("finished") and done == total
+    assert any(ln.startswith("sample ") for ln in lines)
     assert quiet.returncode == 0, quiet.stderr
     assert quiet.stdout == "" and "not connected" not in quiet.stderr, quiet.stderr
