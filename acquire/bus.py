@@ -5,6 +5,7 @@ Key expressions (DESIGN.md)::
     remaster/<cell>/<device>/<stream>          driver data: joint_state, markers, tracker/point, …
     remaster/<cell>/run/<run-id>/event         sequencer events (moved, settled, suspended, …)
     remaster/<cell>/run/<run-id>/sample        one record per measured configuration
+    remaster/<cell>/run/<run-id>/status        the run's progress (RunController.status()) on every change
     remaster/<cell>/control/<verb>             the daemon's queryables (status, start, pause, …)
 
 Build them with :func:`key`, which validates every chunk.

@@ -43,11 +43,13 @@ import json
 import logging
 import threading
 from dataclasses import dataclass, field
-from typing import Any, Callable, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 from acquire import control_auth
 from acquire.bus import control_key
-from acquire.daemon_config import AuthSection
+
+if TYPE_CHECKING:  # pydantic and YAML stay out of the thin clients' start-up (acquire status)
+    from acquire.daemon_config import AuthSection
 
 log = logging.getLogger(__name__)
 

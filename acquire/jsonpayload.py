@@ -12,18 +12,22 @@ import json
 import math
 from typing import Any
 
-import numpy as np
+# numpy is recognised by its ``tolist`` method, not imported: the thin clients (``acquire status``)
+# start without it.
 
 
 class PayloadError(ValueError):
     """A payload that is not a JSON object we can encode or decode."""
 
 
+def _is_numpy(obj: Any) -> bool:
+    """A numpy array or scalar (``ndarray`` / ``generic``), without importing numpy."""
+    return type(obj).__module__.partition(".")[0] == "numpy" and hasattr(obj, "tolist")
+
+
 def _numpy_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
+    if _is_numpy(obj):
+        return obj.tolist()  # an array → nested lists; a scalar → the Python number
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
@@ -35,10 +39,8 @@ def _finite(obj: Any) -> Any:
         return {k: _finite(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [_finite(v) for v in obj]
-    if isinstance(obj, np.ndarray):
+    if _is_numpy(obj):
         return _finite(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
     return obj
 
 

@@ -1,16 +1,23 @@
-"""A progress display for a run: a redrawn bar on a terminal, plain lines otherwise.
+"""A progress display for a run: a live rich bar on a terminal, plain lines otherwise.
 
-``Progress(stream).update(status)`` takes ``RunController.status()`` dicts. On a TTY it redraws
-one line (``\\r``): bar, done/total, measured, skipped, failed, ETA, current configuration, state.
-Not on a TTY (journald, CI, pipes) it writes one plain line per completed configuration or state
-change and never a control character.
+Both take ``RunController.status()`` dicts through ``update(status)``:
+
+- :class:`RichProgress` (a terminal): a bar with done/total, measured / skipped / failed, the
+  run's own ETA (its cell-time estimate scaled by how the run has gone so far), elapsed time, the
+  state, and a second line with the configuration being measured (``describe`` turns its id into
+  pose, branch and joint targets). Log lines print above it.
+- :class:`Progress`: one plain line per completed configuration or state change, never a control
+  character (journald, CI, pipes); with ``tty=True`` a single redrawn line (no rich).
+
+:func:`make_progress` picks one for the stream.
 """
 
 from __future__ import annotations
 
 import math
 import sys
-from typing import TextIO
+import time
+from typing import Any, Callable, TextIO
 
 
 def format_eta(seconds: float | None) -> str:
@@ -81,3 +88,73 @@ class Progress:
             self.stream.write("\n")
             self.stream.flush()
             self._drawn = False
+
+
+class RichProgress:
+    """A live bar on a terminal (rich). ``describe(config_id) -> str`` adds detail to the current
+    configuration's line; ``console`` is a ``rich.console.Console`` (default: stderr)."""
+
+    def __init__(self, *, describe: Callable[[str], str] | None = None, console: Any = None,
+                 refresh_per_second: float = 4.0) -> None:
+        from rich.console import Console
+        from rich.live import Live
+
+        self.console = console if console is not None else Console(stderr=True)
+        self.describe = describe
+        self._st: dict = {}
+        self._t0 = time.monotonic()
+        self._live = Live(self, console=self.console, refresh_per_second=refresh_per_second, transient=False,
+                          redirect_stdout=False, redirect_stderr=True)
+        self._live.start()
+
+    def update(self, st: dict) -> None:
+        self._st = dict(st)
+        self._live.refresh()
+
+    def __rich__(self) -> Any:
+        return self.renderable()
+
+    def renderable(self) -> Any:
+        """The two lines for the last status (a rich renderable)."""
+        from rich.console import Group
+        from rich.progress_bar import ProgressBar
+        from rich.table import Table
+        from rich.text import Text
+
+        st = self._st
+        done, total = int(st.get("done", 0) or 0), int(st.get("total", 0) or 0)
+        head = Table.grid(padding=(0, 1))
+        head.add_column(no_wrap=True)
+        head.add_column(width=32)
+        head.add_column(no_wrap=True)
+        state = st.get("state") or "starting"
+        counts = Text.assemble(
+            (f"{done}/{total}", "bold"), "  measured ", (str(st.get("measured", 0)), "green"),
+            "  skipped ", (str(st.get("skipped", 0)), "yellow" if st.get("skipped") else ""),
+            "  failed ", (str(st.get("failed", 0)), "red" if st.get("failed") else ""),
+            "  ETA ", (format_eta(st.get("eta_s")), "cyan"),
+            f"  elapsed {format_eta(time.monotonic() - self._t0)}",
+        )
+        head.add_row(Text(state, style="bold" if state == "running" else "yellow"),
+                     ProgressBar(total=max(total, 1), completed=done if total else 0, width=32), counts)
+        current = st.get("current")
+        if current:
+            detail = self.describe(current) if self.describe is not None else ""
+            line = Text.assemble("at ", (str(current), "bold"), f"  {detail}" if detail else "")
+        elif st.get("reason"):
+            line = Text(f"{st['reason']}", style="yellow")
+        else:
+            line = Text("")
+        return Group(head, line)
+
+    def close(self) -> None:
+        """Draw the last state and leave it on the screen; later output starts below."""
+        self._live.stop()
+
+
+def make_progress(stream: TextIO | None = None, *, describe: Callable[[str], str] | None = None):
+    """:class:`RichProgress` when ``stream`` (default stderr) is a terminal, else :class:`Progress`."""
+    stream = stream if stream is not None else sys.stderr
+    if stream.isatty():
+        return RichProgress(describe=describe)
+    return Progress(stream, tty=False)

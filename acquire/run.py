@@ -29,6 +29,7 @@ from __future__ import annotations
 import inspect
 import logging
 import math
+import os
 import sys
 import threading
 import time
@@ -272,7 +273,7 @@ class RunController:
         folder = out_dir if out_dir is not None else Path(self.plan.output.folder)
         if not Path(folder).is_absolute() and out_dir is None:
             folder = Path(lp.path).parent / folder
-        self.out_dir = Path(folder)
+        self.out_dir = Path(os.path.abspath(folder))  # no "plans/../../runs" in what is printed or logged
         self._lock = threading.RLock()
         self._state = "idle"
         self._reason = ""
@@ -381,11 +382,19 @@ class RunController:
         self._progress()
 
     def _progress(self) -> None:
+        st = self.status()
         if self.on_progress is not None:
             try:
-                self.on_progress(self.status())
+                self.on_progress(st)
             except (OSError, ValueError) as exc:  # a closed terminal must not stop the run
                 log.debug("progress display: %s", exc)
+        if self.bus is not None and self.run_id and not self._bus_released:
+            try:  # what `acquire watch` shows: the same dict, on remaster/<cell>/run/<run-id>/status
+                from acquire.bus import key
+
+                self.bus.publish(key(self.cell_id, "run", self.run_id, "status"), st)
+            except Exception as exc:  # noqa: BLE001 - the bus must never stop a run
+                log.debug("bus publish failed: %s", exc)
 
     def _eta(self) -> float | None:
         """Wall seconds left: the remaining estimated cell time, scaled by how the configurations
@@ -456,11 +465,26 @@ class RunController:
             self._set_state("failed", self._reason)
         finally:
             self._teardown()
+            self._release_bus()
             if summary is None:
                 summary = self._make_summary()
             self._summary = summary
-            self._done_evt.set()
-            self._progress()
+            try:  # the last progress before wait() returns: the caller may close the bus right after
+                self._progress()
+            finally:
+                self._done_evt.set()
+
+    def _release_bus(self) -> None:
+        """Undeclare the run's own publishers (once): a long-lived daemon bus must not keep them."""
+        if self.bus is None or not self.run_id or self._bus_released:
+            return
+        self._bus_released = True
+        from acquire.bus import key
+
+        try:
+            self.bus.release(key(self.cell_id, "run", self.run_id))
+        except Exception as exc:  # noqa: BLE001 - the bus must never stop a run
+            log.debug("releasing the run's publishers: %s", exc)
 
     def _make_summary(self) -> RunSummary:
         with self._lock:
@@ -502,6 +526,7 @@ class RunController:
             self._fake_cell = None
 
     _tap = None
+    _bus_released = False
     _sensors: list = []
     _est_done = 0.0
     _loop_wall0: Optional[float] = None
@@ -827,11 +852,7 @@ class RunController:
                 summary.reason = f"fit failed: {exc}"
         self._set_state(state, self._reason if aborted else "")
         summary.state = state
-        if self.bus is not None:
-            from acquire.bus import key
-
-            # The run's own keys end with it; a long-lived daemon bus must not keep their publishers.
-            self.bus.release(key(self.cell_id, "run", self.run_id))
+        self._release_bus()  # after the final state went out on the bus
         return summary
 
 

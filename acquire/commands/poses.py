@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 import typer
 
-from calib.model import load_robot_model
-from calib.poses import PosePlan, PoseRanges, plan_poses, write_configurations
 from calib.yamlfile import ConfigError
+
+if TYPE_CHECKING:
+    from calib.poses import PosePlan
 
 
 def _numbers(text: str, count: int, option: str, what: str) -> list[float]:
@@ -99,6 +100,9 @@ def poses(
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="Write the configurations file (CSV) here."),
 ) -> None:
     """Plan the paper's poses: Latin hypercube aimed at the sensor, every IK solution of each."""
+    from calib.model import load_robot_model  # scipy.stats (the Latin hypercube) loads only when planning
+    from calib.poses import PoseRanges, plan_poses, write_configurations
+
     try:
         model = load_robot_model(robot)
     except ConfigError as exc:

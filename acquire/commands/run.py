@@ -5,6 +5,13 @@ Examples::
     acquire run fixtures/plans/example.yaml --fake          # against the simulated cell
     acquire run plan.yaml --dry-run                         # what would happen; connects to nothing
     acquire run plan.yaml --resume runs/<id>/<id>.mcap      # continue a killed or aborted run
+    acquire run plan.yaml --fake -v                         # device INFO logs on the console too
+
+On a terminal the run shows a live bar (done/total, measured/skipped/failed, ETA, the
+configuration being measured) and only warnings; ``-v`` adds INFO, ``-vv`` DEBUG. Every record
+of INFO and up goes to ``<run-id>.log`` beside the run's MCAP log, and off a terminal (journald,
+CI) INFO goes to stderr as one plain line each. The run publishes on the Zenoh bus (``--listen``,
+default tcp/127.0.0.1:7447): ``acquire watch`` in another terminal finds it by itself.
 
 A bad plan exits 2 before anything connects or moves. Ctrl-C (SIGINT) or SIGTERM stops the
 robot safely (the commander decelerates), closes a complete, resumable log and exits 130;
@@ -24,7 +31,26 @@ from typing import Optional
 import numpy as np
 import typer
 
+from acquire.console import display_path
+
 log = logging.getLogger(__name__)
+
+#: Default bus endpoint of a run (acquire.bus.DEFAULT_ENDPOINT; not imported: zenoh loads on use).
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+
+
+def _describer(configs):
+    """``config_id -> "pose p03  branch …  q [..]°"`` for the progress display's current line."""
+    by_id = {c.config_id: c for c in configs}
+
+    def describe(config_id: str) -> str:
+        c = by_id.get(config_id)
+        if c is None:
+            return ""
+        q = " ".join(f"{v:.1f}" for v in np.degrees(c.q_rad))
+        return f"pose {c.pose}  branch {c.branch}  target [{q}]°"
+
+    return describe
 
 
 def _load(plan: Path):
@@ -101,7 +127,7 @@ def format_run_summary(summary, lp) -> str:
         f"run {summary.run_id}: {summary.state}" + (f" ({summary.reason})" if summary.reason else ""),
         f"configurations: {summary.total} total, {summary.measured} measured, {summary.skipped} skipped, "
         f"{summary.failed} failed; {summary.wall_seconds:.1f} s wall, {summary.cell_seconds:.1f} s cell time",
-        f"log: {summary.log_path}",
+        f"log: {display_path(summary.log_path)}",
     ]
     for cid, reason in list(summary.skipped_reasons.items())[:20]:
         lines.append(f"  not measured {cid}: {reason}")
@@ -144,9 +170,9 @@ def format_run_summary(summary, lp) -> str:
             lines.append(f"warning: the residuals follow the joints' gravity torques (p = {gsag['p_value']:.1g}): "
                          "the arm sags and the fit does not model it — set fit.compliance: true in the plan")
         lines.append("")
-        lines.append(f"result: {summary.result_path}")
+        lines.append(f"result: {display_path(summary.result_path)}")
         if summary.report_path is not None:
-            lines.append(f"report: {summary.report_path}")
+            lines.append(f"report: {display_path(summary.report_path)}")
     return "\n".join(lines)
 
 
@@ -161,8 +187,15 @@ def run(
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for the run (default: the plan's output.folder)."),
     no_fit: bool = typer.Option(False, "--no-fit", help="Do not fit at the end (use `acquire fit RUN.mcap` later)."),
     no_bus: bool = typer.Option(False, "--no-bus", help="Do not open the Zenoh bus (nothing published)."),
+    listen: str = typer.Option(DEFAULT_LISTEN, "--listen",
+                               help="Zenoh endpoint the run publishes on (loopback); `acquire watch --connect` it."),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True,
+                                help="Console shows INFO (-v) or DEBUG (-vv) logs too; the run's .log file has them anyway."),
 ) -> None:
     """Run the measurement plan: move, settle, measure every configuration; log; fit."""
+    from acquire.console import configure_console
+
+    console = configure_console(verbose)
     lp, configs = _load(plan)
     if dry_run:
         typer.echo(dry_run_text(lp, configs))
@@ -170,20 +203,40 @@ def run(
     if resume is not None and not resume.is_file():
         typer.echo(f"error: --resume {resume}: no such file", err=True)
         raise typer.Exit(2)
-    from acquire.progress import Progress
+    from acquire.console import RunLogFile
+    from acquire.progress import make_progress
     from acquire.run import RunController
 
+    logfile = RunLogFile(logging.DEBUG if verbose >= 2 else logging.INFO)
     bus = None
     if not no_bus:
-        try:
-            from acquire.bus import Bus
+        from acquire.bus import Bus, BusConfigError
 
-            bus = Bus(lp.plan.cell)
+        try:
+            if listen == DEFAULT_LISTEN:
+                bus = Bus(lp.plan.cell)  # falls back to a free port (and says so) when 7447 is taken
+            else:
+                bus = Bus(lp.plan.cell, config={"listen": [listen]})
+        except BusConfigError as exc:
+            typer.echo(f"error: --listen {listen}: {exc}", err=True)
+            raise typer.Exit(2) from exc
         except Exception as exc:  # noqa: BLE001 - a run without a bus still measures
             log.warning("no Zenoh bus (%s); the run is not published", exc)
             bus = None
-    progress = Progress()
-    controller = RunController(lp, fake=fake, resume=resume, bus=bus, out_dir=out, on_progress=progress.update,
+    if bus is not None:
+        log.info("publishing on %s as cell %s (acquire watch --connect %s)", ", ".join(bus.locators),
+                 lp.plan.cell, bus.locators[0] if bus.locators else listen)
+    progress = make_progress(describe=_describer(configs))
+
+    def on_progress(st: dict) -> None:
+        if st.get("log") and logfile.path is None:
+            try:
+                logfile.open(st["log"])
+            except OSError as exc:
+                log.warning("no text log beside %s: %s", st["log"], exc)
+        progress.update(st)
+
+    controller = RunController(lp, fake=fake, resume=resume, bus=bus, out_dir=out, on_progress=on_progress,
                                fit=not no_fit, skip_failed=skip_failed)
     interrupted = threading.Event()
 
@@ -211,10 +264,14 @@ def run(
         progress.close()
         if bus is not None:
             bus.close()
+        logfile.close(console.level)
     typer.echo(format_run_summary(summary, lp))
+    if logfile.path is not None:
+        typer.echo(f"text log: {display_path(logfile.path)}")
     if summary.state != "finished":
         if summary.log_path is not None:
-            typer.echo(f"resume with: acquire run {plan} --resume {summary.log_path}" + (" --fake" if fake else ""))
+            typer.echo(f"resume with: acquire run {display_path(plan)} --resume {display_path(summary.log_path)}"
+                       + (" --fake" if fake else ""))
         raise typer.Exit(summary.exit_code)
     if summary.fit is None and not no_fit and summary.measured >= 3:
         raise typer.Exit(1)

@@ -248,7 +248,8 @@ def test_another_process_watches_a_run_live():
     with Bus("cell1", config=EPHEMERAL) as server:
         endpoint = server.locators[0]
         proc = subprocess.Popen(
-            [sys.executable, "-c", WATCH, "--cell", "cell1", "--connect", endpoint, "--count", "3", "--duration", "30"],
+            [sys.executable, "-c", WATCH, "--raw", "--cell", "cell1", "--connect", endpoint, "--count", "3",
+             "--duration", "30"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
         )
         try:

@@ -1,0 +1,65 @@
+"""What a run shows on the console and keeps in its text log (acquire/console.py)."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from acquire.console import RunLogFile, console_level, display_path
+
+
+def test_display_path_is_normalised_and_relative_inside_the_working_folder(tmp_path):
+    inside = tmp_path / "fixtures" / "plans" / ".." / ".." / "runs" / "r1" / "r1.mcap"
+    assert display_path(inside, cwd=tmp_path) == "runs/r1/r1.mcap"
+    outside = tmp_path / "a" / ".." / "b.mcap"
+    assert display_path(outside, cwd=tmp_path / "elsewhere") == str(tmp_path / "b.mcap")
+    assert display_path(None) == "-"
+
+
+@pytest.mark.parametrize("verbose, tty, level", [
+    (0, True, logging.WARNING), (1, True, logging.INFO), (2, True, logging.DEBUG),
+    (0, False, logging.INFO), (2, False, logging.DEBUG),
+])
+def test_console_shows_warnings_on_a_terminal_info_with_v_and_off_a_terminal(verbose, tty, level):
+    assert console_level(verbose, tty) == level
+
+
+@pytest.fixture
+def quiet_root():
+    root = logging.getLogger()
+    saved = (root.level, list(root.handlers))
+    root.setLevel(logging.DEBUG)
+    yield root
+    root.setLevel(saved[0])
+    root.handlers[:] = saved[1]
+
+
+def test_run_log_file_writes_what_came_before_it_existed_then_everything(tmp_path, quiet_root):
+    dev = logging.getLogger("remaster.device.test")
+    logfile = RunLogFile(logging.INFO)
+    dev.info("connecting to 127.0.0.1:30200")
+    dev.debug("not kept at INFO")
+    mcap = tmp_path / "r1" / "r1.mcap"
+    mcap.parent.mkdir()
+    assert logfile.open(mcap) == tmp_path / "r1" / "r1.log"
+    dev.warning("late answer")
+    logfile.close()
+    dev.info("after the run: not in its log")
+    lines = (tmp_path / "r1" / "r1.log").read_text().splitlines()
+    assert [ln.split(" ", 2)[2] for ln in lines] == [
+        "INFO remaster.device.test: connecting to 127.0.0.1:30200",
+        "WARNING remaster.device.test: late answer",
+    ]
+
+
+def test_run_without_a_folder_prints_what_the_console_did_not_show(tmp_path, quiet_root, capsys):
+    dev = logging.getLogger("remaster.device.test")
+    logfile = RunLogFile(logging.INFO)
+    dev.info("session IDLE -> MONITORING_WAIT")
+    dev.error("connection refused")  # the console showed this one already
+    logfile.close(shown_level=logging.WARNING)
+    err = capsys.readouterr().err
+    assert "the run made no log folder" in err
+    assert "session IDLE -> MONITORING_WAIT" in err and "connection refused" not in err
+    assert not list(tmp_path.iterdir())
