@@ -92,8 +92,8 @@ def test_a_sub_command_help_loads_only_its_own_module_and_nothing_heavy(tmp_path
 
 
 def _registered(module: str) -> set[str]:
-    """Command names ``module.register`` adds, read from the source (``app.command("x")`` and
-    the ``for fn in (a, b): app.command(fn.__name__)`` idiom)."""
+    """Command names ``module.register`` adds, read from the source (``app.command("x")``, the
+    ``for fn in (a, b): app.command(fn.__name__)`` idiom and ``app.add_typer(..., name="x")``)."""
     tree = ast.parse((ROOT / (module.replace(".", "/") + ".py")).read_text())
     reg = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "register")
     names: set[str] = set()
@@ -102,6 +102,9 @@ def _registered(module: str) -> set[str]:
             arg = node.args[0]
             if isinstance(arg, ast.Constant):
                 names.add(arg.value)
+        if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_typer":
+            names |= {k.value.value for k in node.keywords
+                      if k.arg == "name" and isinstance(k.value, ast.Constant)}  # a command group
         if isinstance(node, ast.For) and isinstance(node.iter, ast.Tuple):
             names |= {e.id for e in node.iter.elts if isinstance(e, ast.Name)}
     return names
