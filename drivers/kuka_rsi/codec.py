@@ -242,9 +242,15 @@ class RobFormatter:
 
     ``format(actual_deg, setpoint_deg, cart_actual, cart_setpoint, delay, ipoc)`` with
     actual/setpoint of length ``n_axes + n_external`` (A1..An then E1..Em), degrees.
+    elements: the ``<Rob>`` elements in the order the controller's RSI Ethernet configuration
+    sends them (``SEND``: RIst, RSol, AIPos, ASPos, EIPos, ESPos, MACur, MECur, Delay); motor
+    currents are sent as zeros. ``IPOC`` always ends the packet.
     """
 
-    def __init__(self, n_axes: int, n_external: int = 0, rob_type: str = "KUKA") -> None:
+    DEFAULT_ELEMENTS = ("RIst", "RSol", "AIPos", "ASPos", "EIPos", "ESPos", "Delay")
+
+    def __init__(self, n_axes: int, n_external: int = 0, rob_type: str = "KUKA",
+                 elements: tuple[str, ...] = DEFAULT_ELEMENTS) -> None:
         if not 1 <= n_axes <= MAX_AXES or not 0 <= n_external <= MAX_EXTERNAL_AXES:
             raise ValueError(
                 f"RSI carries 1..{MAX_AXES} robot axes and 0..{MAX_EXTERNAL_AXES} external axes, "
@@ -254,23 +260,35 @@ class RobFormatter:
         cart = " ".join(f'{k}="{f}"' for k in "XYZABC")
         a = " ".join(f'A{i}="{f}"' for i in range(1, n_axes + 1))
         e = " ".join(f'E{i}="{f}"' for i in range(1, n_external + 1))
-        ext = f"<EIPos {e}/><ESPos {e}/>" if n_external else ""
+        zeros_a = " ".join(f'A{i}="0.0"' for i in range(1, n_axes + 1))
+        zeros_e = " ".join(f'E{i}="0.0"' for i in range(1, n_external + 1))
+        parts = {"RIst": (f"<RIst {cart}/>", "cart_actual"), "RSol": (f"<RSol {cart}/>", "cart_setpoint"),
+                 "AIPos": (f"<AIPos {a}/>", "actual"), "ASPos": (f"<ASPos {a}/>", "setpoint"),
+                 "EIPos": (f"<EIPos {e}/>", "ext_actual"), "ESPos": (f"<ESPos {e}/>", "ext_setpoint"),
+                 "MACur": (f"<MACur {zeros_a}/>", None), "MECur": (f"<MECur {zeros_e}/>", None),
+                 "Delay": ('<Delay D="%d"/>', "delay")}
+        unknown = [x for x in elements if x not in parts]
+        if unknown:
+            raise ValueError(f"unknown <Rob> element(s) {unknown}; known: {', '.join(parts)}")
+        if "AIPos" not in elements:
+            raise ValueError("a <Rob> packet without AIPos carries no axis positions")
+        body, self._slots = "", []
+        for name in elements:
+            if name in ("EIPos", "ESPos", "MECur") and not n_external:
+                continue
+            text, slot = parts[name]
+            body += text
+            if slot is not None:
+                self._slots.append(slot)
         self.n_axes, self.n_external = n_axes, n_external
-        self._template = (
-            f'<Rob Type="{_check_type(rob_type)}"><RIst {cart}/><RSol {cart}/>'
-            f"<AIPos {a}/><ASPos {a}/>{ext}<Delay D=\"%d\"/><IPOC>%d</IPOC></Rob>"
-        )
+        self.elements = tuple(elements)
+        self._template = f'<Rob Type="{_check_type(rob_type)}">{body}<IPOC>%d</IPOC></Rob>'
 
     def format(self, actual_deg, setpoint_deg, cart_actual, cart_setpoint, delay: int, ipoc: int) -> bytes:
         n = self.n_axes
-        values = (
-            *cart_actual,
-            *cart_setpoint,
-            *actual_deg[:n],
-            *setpoint_deg[:n],
-            *actual_deg[n:],
-            *setpoint_deg[n:],
-            delay,
-            ipoc,
-        )
-        return (self._template % values).encode("ascii")
+        fields = {"cart_actual": tuple(cart_actual), "cart_setpoint": tuple(cart_setpoint),
+                  "actual": tuple(actual_deg[:n]), "setpoint": tuple(setpoint_deg[:n]),
+                  "ext_actual": tuple(actual_deg[n:]), "ext_setpoint": tuple(setpoint_deg[n:]),
+                  "delay": (delay,)}
+        values = [v for slot in self._slots for v in fields[slot]]
+        return (self._template % (*values, ipoc)).encode("ascii")

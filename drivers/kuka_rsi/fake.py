@@ -9,6 +9,11 @@ IPOC count as late; when the count reaches ``late_limit`` (consecutive or in tot
 because the real rule is unverified) the robot stops with an "RSI timeout" and the fake stops
 sending, like the real controller leaving its RSI program.
 
+What it sends and reads follows an RSI Ethernet configuration file (``ethernet_config``; by
+default, for a 6-axis robot, the one we ship in ``drivers/kuka_rsi/controller/``): the ``SEND``
+elements in their order, the answer's ``Sen Type`` checked against ``SENTYPE`` (RSI ignores
+other packets), ``<Stop>`` honoured only when the configuration maps it to a channel.
+
 Fault hooks: ``drop_outgoing`` / ``drop_answers`` (packet loss either way), ``send_malformed``,
 ``restart`` (new RSI session: new start position and IPOC sequence), ``stop_sending`` /
 ``resume_sending``, ``jitter_s`` (random send delay).
@@ -25,13 +30,14 @@ import socket
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.linalg import expm
 
 from drivers.errors import ProtocolError
 from drivers.kuka_rsi.codec import RobFormatter, parse_sen
+from drivers.kuka_rsi.ethernet_config import RsiEthernetConfig
 from drivers.kuka_rsi.udp import enable_rx_timestamps, recv_stamped
 from drivers.sim.clock import SimClock
 from drivers.sim.scene import RobotScene
@@ -108,6 +114,7 @@ class FakeKrc4:
         max_runtime_s: float = 600.0,
         rob_type: str = "KUKA",
         rt_priority: int = 0,
+        ethernet_config: RsiEthernetConfig | None = None,
     ) -> None:
         if cycle_ms not in (4, 12):
             raise ValueError(f"cycle_ms must be 4 (#IPO_FAST) or 12 (#IPO), got {cycle_ms}")
@@ -130,7 +137,14 @@ class FakeKrc4:
         self.max_runtime_s = max_runtime_s
         self.rt_priority = int(rt_priority)
         self._rng = np.random.default_rng(seed)
-        self._fmt = RobFormatter(n_axes, n_external, rob_type)
+        if ethernet_config is None and (n_axes, n_external) == (6, 0):
+            ethernet_config = RsiEthernetConfig.load()
+        if ethernet_config is not None and ethernet_config.axes_read() != n_axes:
+            raise ValueError(f"{ethernet_config.path} reads {ethernet_config.axes_read()} AK corrections; "
+                             f"the robot has {n_axes} axes")
+        self.config = ethernet_config
+        elements = ethernet_config.send if ethernet_config is not None else RobFormatter.DEFAULT_ELEMENTS
+        self._fmt = RobFormatter(n_axes, n_external, rob_type, elements=elements)
         if initial_deg is None:
             initial_deg = np.zeros(n)
             if scene is not None:
@@ -383,6 +397,15 @@ class FakeKrc4:
                     if len(self._stats.errors) < 100:
                         self._stats.errors.append(str(exc))
                 continue
+            if self.config is not None and cmd.type != self.config.sen_type:
+                with self._lock:  # RSI discards a packet of another sensor type
+                    self._stats.malformed_answers += 1
+                    if len(self._stats.errors) < 100:
+                        self._stats.errors.append(f"Sen Type {cmd.type!r} is not the configured SENTYPE "
+                                                  f"{self.config.sen_type!r}: ignored")
+                continue
+            if self.config is not None and not self.config.reads_stop:
+                cmd = replace(cmd, stop=False)  # no channel carries <Stop> to the STOP object
             on_time = cmd.ipoc == ipoc and arrived <= deadline_wall
             values = cmd.axis_correction_deg + cmd.external_correction_deg
             with self._lock:
