@@ -33,9 +33,11 @@ from drivers.errors import (
     ConnectionLostError,
     DeviceFaultError,
     DeviceTimeoutError,
+    DistanceLostError,
     LimitError,
     ProtocolError,
     TargetLostError,
+    TrackerWarmingUpError,
 )
 from drivers.protocols import MarkerMeasurement, MarkerSample
 from drivers.tracker.codec import (
@@ -62,14 +64,6 @@ from drivers.tracker.codec import (
     StatusReply,
     TrackerCodec,
 )
-
-
-class DistanceLostError(TargetLostError):
-    """The beam is locked but the interferometer lost its distance; call ``home()``."""
-
-
-class TrackerWarmingUpError(DeviceFaultError):
-    """The tracker refuses to measure until it has warmed up."""
 
 
 #: Exception class for each device error code; other codes raise DeviceFaultError.
