@@ -64,3 +64,48 @@ REFLECTORS: tuple[Reflector, ...] = (
     Reflector("TBR05", 9, 6.35),    # tooling ball reflector 0.5 in
     Reflector("CATSEYE", 2, 0.0),
 )
+
+
+STATION = "station"
+
+
+def parse_environment(value) -> "Air | str | None":
+    """The air a tracker driver is given: None (leave the tracker's setting), ``"station"``
+    (use the tracker's weather station), an ``Air``, or a mapping as a plan writes it:
+    ``{temperature_c, pressure_hpa, humidity_pct}`` or ``{source: station}``."""
+    if value is None or isinstance(value, Air):
+        return value
+    if isinstance(value, str):
+        if value.lower() == STATION:
+            return STATION
+        raise ValueError(f"environment must be 'station' or temperature_c/pressure_hpa/humidity_pct, got {value!r}")
+    if isinstance(value, dict):
+        v = dict(value)
+        source = v.pop("source", None)
+        if source is not None and str(source).lower() == STATION and not v:
+            return STATION
+        if source not in (None, "host", "HOST"):
+            raise ValueError(f"environment source must be 'station' or 'host', got {source!r}")
+        keys = {"temperature_c", "pressure_hpa", "humidity_pct"}
+        if set(v) != keys:
+            raise ValueError(f"environment needs exactly {sorted(keys)} (°C, hPa, %), got {sorted(v)}")
+        return Air(**v)
+    raise ValueError(f"environment must be an Air, 'station' or a mapping, got {value!r}")
+
+
+def parse_reflector(value) -> "tuple[str, float | None] | None":
+    """The reflector a tracker driver is given: None, a type name (``"RRR15"``), or a mapping
+    ``{type, offset_mm}`` (offset optional, mm) → ``(type, offset_mm or None)``."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        value = {"type": value}
+    if not isinstance(value, dict) or "type" not in value or not set(value) <= {"type", "offset_mm"}:
+        raise ValueError(f"reflector must be a type name or {{type, offset_mm}}, got {value!r}")
+    name, offset = value["type"], value.get("offset_mm")
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"reflector type must be a non-empty name such as RRR15, got {name!r}")
+    if offset is not None and (isinstance(offset, bool) or not isinstance(offset, (int, float))
+                               or not (math.isfinite(offset) and 0 <= offset <= 1000)):
+        raise ValueError(f"reflector offset_mm must be a number in [0, 1000] mm, got {offset!r}")
+    return name, None if offset is None else float(offset)

@@ -165,6 +165,8 @@ class FakeTracker:
         self.codec = codec or LineCodec()
         self._rng = np.random.default_rng(seed)
         self._lock = threading.RLock()
+        #: held around every command; another front end (the emScon fake) takes it too
+        self.lock = self._lock
         self._listeners: list = []
         self._hooks: list = []
         self.air = air
