@@ -90,7 +90,7 @@ def parse_url(url: str) -> tuple[str, int]:
     try:
         port = parts.port or es.DEFAULT_PORT
     except ValueError:
-        raise ValueError(f"bad port in {url!r}; allowed 1..65535") from None
+        raise ValueError(f"bad port in {url!r}: emscon://host[:port] with a port 1..65535") from None
     return parts.hostname, port
 
 

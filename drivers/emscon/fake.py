@@ -413,6 +413,7 @@ class FakeEmscon:
     def _stationary(self) -> es.DataResult:
         t = self.tracker
         n = max(1, min(MAX_AVERAGE, round(self.meas_time_ms * t.average_rate_hz / 1000.0)))
+        t.tick()  # a break before the command is NotReady, one during it NoStationaryResult
         was_locked = t.locked
         try:
             avg = self._run(MeasureAverage(n))
