@@ -202,7 +202,8 @@ def test_the_fake_answers_every_garbled_request_with_readable_packets(server):
 
     pool = _valid_requests()
     dev = server.device
-    for k in range(2_000):
+    answered = 0
+    for k in range(10_000):
         data = _mutate(rng, pool[k % len(pool)])
         if len(data) >= 8 and not es.MIN_PACKET <= int.from_bytes(data[:4], "little", signed=True) <= es.MAX_PACKET:
             continue  # framing refuses it before the device sees it
@@ -210,7 +211,9 @@ def test_the_fake_answers_every_garbled_request_with_readable_packets(server):
         frames = es.split_frames(out)
         assert frames and not out
         for f in frames:
-            es.decode(f)
+            assert isinstance(es.decode(f), (es.Answer, es.ErrorAnswer, es.DataResult, es.StatusChange))
+        answered += 1
+    assert answered > 5_000
 
 
 def test_bad_urls_and_refused_connections():
