@@ -220,6 +220,9 @@ class EmsconSensor(SensorBase):
 
     def _configure(self) -> None:
         st = self.status()
+        self.log.info("emScon server %d.%d.%d, tracker serial %d, %s, %s", *st.server_version, st.serial_number,
+                      "initialised" if st.initialized else "not initialised",
+                      "warm" if st.warmed_up else "warming up")
         if self.initialize == "always" or (self.initialize == "auto" and not st.initialized):
             self.log.info("initialising the tracker (may take up to %.0f s)", self.initialize_timeout)
             self.request(es.Request(Cmd.Initialize), timeout=self.initialize_timeout)
