@@ -3,6 +3,7 @@ beam breaks and re-acquisition, air and reflector, refusals and transport faults
 
 from __future__ import annotations
 
+import os
 import socket
 
 import numpy as np
@@ -234,3 +235,16 @@ def test_fake_server_refuses_what_it_does_not_emulate(sensor):
         sensor.request(es.Request(es.Cmd.SetCoordinateSystemType, {"coordSysType": int(es.CoordinateSystem.SCW)}))
     with pytest.raises(errors.LimitError, match="Parameter1OutOfRangeNOK"):
         sensor.request(es.Request(es.Cmd.SetStationaryModeParams, {"lMeasTime": 0, "bUseADM": 1}))
+
+
+@pytest.mark.hil
+@pytest.mark.skipif(os.environ.get("REMASTER_HIL") != "1" or not os.environ.get("REMASTER_EMSCON_URL"),
+                    reason="needs REMASTER_HIL=1 and REMASTER_EMSCON_URL (emscon://host:700) of a real emScon server")
+def test_real_emscon_server_reports_status_and_measures():
+    with EmsconSensor(os.environ["REMASTER_EMSCON_URL"], initialize_timeout=180.0) as s:
+        st = s.status()
+        assert st.initialized and st.server_version[0] >= 3
+        assert s.reflectors()  # the server's reflector database is readable
+        if st.ready:
+            m = s.measure("smr", 1000, timeout=30.0)
+            assert np.all(np.isfinite(m.mean_mm)) and np.all(m.std_mm < 1.0)
