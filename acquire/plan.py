@@ -25,6 +25,9 @@ commented example)::
         markers: {sir: "ms:tool:sir"}   # tool marker (robot model) → driver selector
         noise_mm: 0.03               # expected noise, 1σ per axis, mm
         options: {}                  # [{}]
+        # laser trackers (drivers tracker, emscon) only:
+        # environment: {temperature_c: 20.5, pressure_hpa: 1008, humidity_pct: 45}  # or {source: station}
+        # reflector: {type: RRR15, offset_mm: 19.05}   # offset optional, checked where the tracker knows it
     poses:                           # exactly ONE of generated / cartesian / joints
       generated:                     # the remastering paper's plan (calib.poses.plan_poses)
         n: 60                        # Latin-hypercube candidate poses
@@ -124,7 +127,9 @@ Range = tuple[float, float]
 #: Commander drivers that speak to one kind of controller (RobotModel.controller).
 CONTROLLER_OF_DRIVER = {"fri": "sunrise", "rsi": "kss"}
 #: URL schemes of the built-in drivers (the tracker takes any pyserial URL).
-URL_SCHEMES = {"fri": ("fri",), "rsi": ("rsi",), "natnet": ("natnet",)}
+URL_SCHEMES = {"fri": ("fri",), "rsi": ("rsi",), "natnet": ("natnet",), "emscon": ("emscon",)}
+#: Sensor drivers that are laser trackers: one reflector, air for refraction, reflector choice.
+TRACKER_DRIVERS = ("tracker", "emscon")
 
 OnLostTarget = Literal["wait", "reacquire", "ask", "skip"]
 #: What the run may do when a sensor loses its target (``sequencing.on_lost_target``).
@@ -154,6 +159,40 @@ class CommanderSpec(_Strict):
     options: dict[str, Any] = Field(default_factory=dict, description="Extra keyword arguments for the driver.")
 
 
+class EnvironmentSpec(_Strict):
+    """Air for a laser tracker's refraction correction: the three values (from a thermometer,
+    barometer and hygrometer next to the beam), or ``source: station`` for the tracker's own
+    weather station."""
+
+    source: Literal["host", "station"] = Field("host", description="host: the values below; station: the tracker's weather station.")
+    temperature_c: float | None = Field(None, ge=-40, le=60, description="Air temperature, °C.")
+    pressure_hpa: float | None = Field(None, ge=500, le=1200, description="Air pressure, hPa.")
+    humidity_pct: float | None = Field(None, ge=0, le=100, description="Relative humidity, %.")
+
+    def driver_value(self) -> dict:
+        """What a tracker driver's ``environment=`` takes."""
+        values = {"temperature_c": self.temperature_c, "pressure_hpa": self.pressure_hpa,
+                  "humidity_pct": self.humidity_pct}
+        if self.source == "station":
+            if any(v is not None for v in values.values()):
+                raise ValueError("environment: source station takes no temperature_c/pressure_hpa/humidity_pct "
+                                 "(the station measures them); give one or the other")
+            return {"source": "station"}
+        missing = [k for k, v in values.items() if v is None]
+        if missing:
+            raise ValueError(f"environment: {', '.join(missing)} missing; give all three (°C, hPa, %) "
+                             "or source: station")
+        return values
+
+
+class ReflectorSpec(_Strict):
+    """The reflector a laser tracker follows: its type name as the tracker knows it (e.g.
+    RRR15 for a 1.5 in red-ring SMR) and, optionally, its surface offset to check against."""
+
+    type: str = Field(min_length=1, max_length=32, pattern=r"^[A-Za-z0-9._:+ -]+$", description="Reflector type name.")
+    offset_mm: float | None = Field(None, ge=0, le=1000, description="Surface offset (centre to contact surface), mm.")
+
+
 class SensorSpec(_Strict):
     """One reference PositionSensor and the tool markers it measures."""
 
@@ -165,6 +204,9 @@ class SensorSpec(_Strict):
     )
     noise_mm: float = Field(gt=0, le=100, description="Expected measurement noise, 1σ per axis, mm.")
     options: dict[str, Any] = Field(default_factory=dict, description="Extra keyword arguments for the driver.")
+    environment: EnvironmentSpec | None = Field(
+        None, description="Laser trackers: air for the refraction correction (values or source: station).")
+    reflector: ReflectorSpec | None = Field(None, description="Laser trackers: reflector type and surface offset.")
 
 
 class GeneratedPoses(_Strict):
@@ -682,7 +724,16 @@ def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
                 except (TypeError, ValueError):
                     errors.append((loc, f"not a NatNet marker selector (given {selector!r}; "
                                         f"allowed {MarkerSelector.SYNTAX})"))
-        if s.driver == "tracker" and len(s.markers) != 1:
+        if s.environment is not None:
+            try:
+                s.environment.driver_value()
+            except ValueError as exc:
+                errors.append((("sensors", i, "environment"), str(exc)))
+        if (s.environment is not None or s.reflector is not None) and s.driver not in TRACKER_DRIVERS:
+            key = "environment" if s.environment is not None else "reflector"
+            errors.append((("sensors", i, key), f"{key} applies to laser trackers "
+                                                f"(given driver {s.driver!r}; allowed drivers {', '.join(TRACKER_DRIVERS)})"))
+        if s.driver in TRACKER_DRIVERS and len(s.markers) != 1:
             errors.append((("sensors", i, "markers"), f"a laser tracker follows one reflector "
                                                       f"(given {len(s.markers)}: {', '.join(s.markers)}; allowed 1)"))
 

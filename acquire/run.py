@@ -66,7 +66,7 @@ MIN_WALL_PERIOD_S = 0.002
 #: Configurations failing in a row after which the run stops as failed (the cell is not usable).
 MAX_CONSECUTIVE_FAILURES = 3
 #: Expected sample rate (Hz) per sensor driver, for the cell-time estimate only.
-SENSOR_RATE_HZ = {"natnet": 120.0, "tracker": 1000.0}
+SENSOR_RATE_HZ = {"natnet": 120.0, "tracker": 1000.0, "emscon": 1000.0}
 
 
 class RunError(RuntimeError):
@@ -147,6 +147,13 @@ def open_sensor(spec, *, url: str | None = None, **extra):
         if _accepts(cls.__init__, k):
             kwargs[k] = v
     markers = dict(spec.markers)
+    for key in ("environment", "reflector"):  # laser trackers: the same plan values reach every tracker driver
+        value = getattr(spec, key, None)
+        if value is None:
+            continue
+        if not _accepts(cls.__init__, key):
+            raise ValueError(f"sensor {spec.name!r}: driver {spec.driver!r} takes no {key}")
+        kwargs[key] = value.driver_value() if key == "environment" else value.model_dump()
     if _accepts(cls.from_url, "markers") and "markers" in inspect.signature(cls.from_url).parameters:
         sensor = cls.from_url(url or spec.url, markers=markers, **kwargs)
     elif "marker" in inspect.signature(cls.from_url).parameters:
@@ -211,14 +218,30 @@ class FakeCell:
         the controller reports, so the motion and every per-cycle limit check stay exact."""
         return int(min(100, max(5, math.ceil(MIN_WALL_PERIOD_S * 1000.0 * self.time_scale))))
 
-    def start(self, controller_port: int | None):
+    def tracker_protocols(self, sensors) -> dict[str, tuple[str, ...]]:
+        """Which protocols each tracker of the cell must speak for the plan's ``sensors``: the
+        line protocol for ``tracker`` drivers, emScon for ``emscon`` drivers (a plan sensor
+        uses the cell's tracker of its name, else the cell's first tracker)."""
+        trackers = [s.name for s in self.cell.config.sensors if s.kind == "tracker"]
+        out: dict[str, list[str]] = {}
+        for spec in sensors:
+            proto = {"tracker": "line", "emscon": "emscon"}.get(spec.driver)
+            if proto is None or not trackers:
+                continue
+            target = spec.name if spec.name in trackers else trackers[0]
+            if proto not in out.setdefault(target, []):
+                out[target].append(proto)
+        return {k: tuple(v) for k, v in out.items()}
+
+    def start(self, controller_port: int | None, sensors=()):
         from drivers.sim.launch import SimLaunch
 
         kw = {}
         if controller_port is not None:
             kw = {"fri_port": controller_port, "rsi_port": controller_port}
         self.launch = SimLaunch(
-            self.cell, controller=controller_port is not None, fri_send_period_ms=self.fri_send_period_ms(), **kw
+            self.cell, controller=controller_port is not None, fri_send_period_ms=self.fri_send_period_ms(),
+            tracker_protocols=self.tracker_protocols(sensors), **kw
         ).start()
         for line in self.launch.describe():
             log.info("fake: %s", line)
@@ -227,9 +250,12 @@ class FakeCell:
     def sensor_url(self, spec) -> str:
         """The fake device address for a plan sensor: by name, else the cell's sensor of its kind."""
         addrs = self.launch.addresses
-        if spec.name in addrs:
+        kind = {"natnet": "natnet", "tracker": "tracker", "emscon": "emscon"}.get(spec.driver)
+        if kind is None and spec.name in addrs:
             return addrs[spec.name].url
-        kind = {"natnet": "natnet", "tracker": "tracker"}.get(spec.driver)
+        for key in (spec.name, f"{spec.name}-emscon"):
+            if key in addrs and addrs[key].kind == kind:
+                return addrs[key].url
         for a in addrs.values():
             if a.kind == kind:
                 return a.url
@@ -555,7 +581,7 @@ class RunController:
             cmd = open_commander(plan.commander, limits, url=url, **extra)
             port = cmd.bind()[1] if callable(getattr(cmd, "bind", None)) else (cmd.connect() or cmd.address[1])
             self.commander = cmd
-            launch = fc.start(port)
+            launch = fc.start(port, plan.sensors)
             cmd.connect()
             sensors = [
                 SensorSpec(open_sensor(s, url=fc.sensor_url(s), clock=clock), list(s.markers), float(s.noise_mm))
@@ -580,7 +606,7 @@ class RunController:
             if s.name in truth.base2sensor:
                 out[s.name] = truth.base2sensor[s.name]
             else:
-                kind = {"natnet": "mocap", "tracker": "tracker"}.get(s.driver)
+                kind = {"natnet": "mocap", "tracker": "tracker", "emscon": "tracker"}.get(s.driver)
                 for sc in self._fake_cell.cell.config.sensors:
                     if sc.kind == kind:
                         out[s.name] = truth.base2sensor[sc.name]

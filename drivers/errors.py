@@ -38,3 +38,12 @@ class TargetLostError(DriverError, RuntimeError):
 class LimitError(DriverError, ValueError):
     """A command was refused before anything moved: outside limits, too fast, bad state."""
 
+
+
+class DistanceLostError(TargetLostError):
+    """A laser tracker's beam is locked but its distance is not valid (interferometer distance
+    lost after a beam break, or no ADM distance set): re-establish it (``home()``) or re-aim."""
+
+
+class TrackerWarmingUpError(DeviceFaultError):
+    """A laser tracker refuses to measure until it has warmed up (or its temperature is stable)."""

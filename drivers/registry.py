@@ -12,6 +12,7 @@ from drivers.errors import DriverUnavailableError
 BUILTIN: dict[str, str] = {
     "natnet": "drivers.natnet.client:NatNetSensor",
     "tracker": "drivers.tracker.client:TrackerSensor",
+    "emscon": "drivers.emscon.client:EmsconSensor",
     "rsi": "drivers.kuka_rsi.commander:RsiCommander",
     "fri": "drivers.kuka_fri.commander:FriCommander",
 }

@@ -3,8 +3,10 @@
 ``SimLaunch(cell).start()`` brings up, on 127.0.0.1 only:
 
 - a fake Motive (NatNet over UDP) for every ``mocap`` sensor of the cell;
-- a fake laser tracker (the project's line protocol over TCP, a ``socket://`` URL) for every
-  ``tracker`` sensor; the cell already adds the sensor's noise, so the fake adds none;
+- a fake laser tracker for every ``tracker`` sensor, speaking the project's line protocol over
+  TCP (a ``socket://`` URL), Leica's emScon TPI (an ``emscon://`` URL), or both
+  (``tracker_protocols``; both front ends then drive the same simulated tracker); the cell
+  already adds the sensor's noise, so the fake adds none;
 - the robot controller named by the robot model: a fake Sunrise (FRI) for ``sunrise``, a fake
   KR C4 (RSI) for ``kss``. Both are UDP *senders*, as the real controllers are: they send to
   the commander's port on 127.0.0.1 (``fri_port`` / ``rsi_port``), and the commander answers.
@@ -47,7 +49,7 @@ class DeviceAddress:
     ``socket://host:port``, ``udp://host:port``); ``note`` says the rest in words."""
 
     name: str
-    kind: str  # "natnet" | "tracker" | "fri" | "rsi"
+    kind: str  # "natnet" | "tracker" | "emscon" | "fri" | "rsi"
     host: str
     port: int
     url: str
@@ -78,6 +80,9 @@ class SimLaunch:
     fri_send_period_ms: the fake Sunrise's send period (simulated ms, FRI allows 1–100); None
     keeps the fake's default. A faster-than-real-time cell wants a longer simulated period so one
     cycle still lasts a few wall milliseconds.
+    tracker_protocols: per tracker sensor name, the protocols its fake speaks: any of ``"line"``
+    and ``"emscon"`` (default ``("line",)``). A sensor served by both has its emScon address
+    under ``"<name>-emscon"``.
     """
 
     def __init__(
@@ -93,6 +98,7 @@ class SimLaunch:
         fri_send_period_ms: int | None = None,
         operator: bool = True,
         fri_version: str = "1.15",
+        tracker_protocols: dict[str, tuple[str, ...]] | None = None,
     ) -> None:
         for name, port in (("fri_port", fri_port), ("rsi_port", rsi_port)):
             if not (isinstance(port, int) and 1 <= port <= 65535):
@@ -112,9 +118,15 @@ class SimLaunch:
         self.want_operator = operator
         self.fri_version = fri_version
         self.operator_restarts = 0
+        self.tracker_protocols = {k: tuple(v) for k, v in (tracker_protocols or {}).items()}
+        for name, protos in self.tracker_protocols.items():
+            bad = [p for p in protos if p not in ("line", "emscon")] or ([] if protos else ["(none)"])
+            if bad:
+                raise ValueError(f"tracker_protocols[{name!r}]: {bad} not allowed; allowed: line, emscon")
         self.addresses: dict[str, DeviceAddress] = {}
         self.motives: dict[str, object] = {}
-        self.trackers: dict[str, tuple[object, object]] = {}  # name → (FakeTracker, TcpTrackerServer)
+        self.trackers: dict[str, tuple[object, object]] = {}  # name → (FakeTracker, its first server)
+        self.emscon: dict[str, tuple[object, object]] = {}  # name → (FakeEmscon, EmsconServer)
         self.controller: object | None = None
         self._closers: list = []
 
@@ -179,13 +191,28 @@ class SimLaunch:
             _SensorView(self.cell, sensor), clock=self.cell.clock, reflector=self.cell.sensor_markers(sensor)[0],
             noise_um=0.0, noise_um_per_m=0.0, seed=self.cell.config.seed,
         )
-        server = TcpTrackerServer(device, seed=self.cell.config.seed)
-        self._closers.append((sensor, server.close))
-        self.trackers[sensor] = (device, server)
-        self.addresses[sensor] = DeviceAddress(
-            sensor, "tracker", server.host, server.port, server.url,
-            f"fake laser tracker, line protocol over TCP, reflector {device.reflector!r}",
-        )
+        protocols = self.tracker_protocols.get(sensor, ("line",))
+        if "line" in protocols:
+            server = TcpTrackerServer(device, seed=self.cell.config.seed)
+            self._closers.append((sensor, server.close))
+            self.trackers[sensor] = (device, server)
+            self.addresses[sensor] = DeviceAddress(
+                sensor, "tracker", server.host, server.port, server.url,
+                f"fake laser tracker, line protocol over TCP, reflector {device.reflector!r}",
+            )
+        if "emscon" in protocols:
+            from drivers.emscon.fake import EmsconServer, FakeEmscon
+
+            emscon = FakeEmscon(device)
+            eserver = EmsconServer(emscon, seed=self.cell.config.seed)
+            self._closers.append((sensor, eserver.close))
+            self.trackers.setdefault(sensor, (device, eserver))
+            self.emscon[sensor] = (emscon, eserver)
+            key = f"{sensor}-emscon" if "line" in protocols else sensor
+            self.addresses[key] = DeviceAddress(
+                key, "emscon", eserver.host, eserver.port, eserver.url,
+                f"fake Leica emScon server (TPI {'.'.join(map(str, (3, 6)))}) over TCP, reflector {device.reflector!r}",
+            )
 
     def _start_controller(self) -> None:
         kind = self.cell.model.controller

@@ -33,17 +33,22 @@ from drivers.errors import (
     ConnectionLostError,
     DeviceFaultError,
     DeviceTimeoutError,
+    DistanceLostError,
     LimitError,
     ProtocolError,
     TargetLostError,
+    TrackerWarmingUpError,
 )
 from drivers.protocols import MarkerMeasurement, MarkerSample
+from drivers.tracker.air import STATION, Air, parse_environment, parse_reflector
 from drivers.tracker.codec import (
     MAX_AVERAGE,
     MAX_RID,
     REPLY_FOR,
     Aim,
     AimReply,
+    Environment,
+    EnvironmentReply,
     ErrorCode,
     ErrorReply,
     Event,
@@ -56,20 +61,14 @@ from drivers.tracker.codec import (
     MeasurePoint,
     Mode,
     ModeReply,
+    ReflectorReply,
     Search,
     SearchReply,
+    SelectReflector,
     SetMode,
     StatusReply,
     TrackerCodec,
 )
-
-
-class DistanceLostError(TargetLostError):
-    """The beam is locked but the interferometer lost its distance; call ``home()``."""
-
-
-class TrackerWarmingUpError(DeviceFaultError):
-    """The tracker refuses to measure until it has warmed up."""
 
 
 #: Exception class for each device error code; other codes raise DeviceFaultError.
@@ -80,10 +79,11 @@ ERROR_CLASSES: dict[int, type[Exception]] = {
     ErrorCode.BEAM_LOST: TargetLostError,
     ErrorCode.DISTANCE_INVALID: DistanceLostError,
     ErrorCode.WARMING_UP: TrackerWarmingUpError,
+    ErrorCode.NO_WEATHER_STATION: DeviceFaultError,
 }
 
 #: Commands safe to send again after a reconnect (a search restarts from where the beam is).
-_IDEMPOTENT = (Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim, Home)
+_IDEMPOTENT = (Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim, Home, Environment, SelectReflector)
 
 
 class LinePort:
@@ -155,6 +155,11 @@ class TrackerSensor(SensorBase):
     url: any pyserial URL. reply_timeout: seconds allowed for an ordinary reply (commands that
     take device time get that time on top). ``serial_options`` go to ``serial_for_url``
     (``baudrate`` ...). The connection opens in ``connect()`` (or ``with``).
+
+    environment: the air for the refraction correction, sent on connect (``ENV``): an ``Air``,
+    ``"station"`` (the tracker's weather station) or the plan's mapping; None leaves the
+    tracker's setting. reflector: the reflector type (``"RRR15"``) or ``{type, offset_mm}``,
+    selected on connect (``REFL``); None leaves it.
     """
 
     def __init__(
@@ -167,6 +172,8 @@ class TrackerSensor(SensorBase):
         auto_reconnect: bool = True,
         codec: TrackerCodec | None = None,
         clock: Clock = time.monotonic,
+        environment: Air | str | dict | None = None,
+        reflector: str | dict | None = None,
         **serial_options: Any,
     ) -> None:
         super().__init__(name, clock=clock)
@@ -180,6 +187,11 @@ class TrackerSensor(SensorBase):
         self.auto_reconnect = auto_reconnect
         self.codec = codec or LineCodec(require_checksum=True)
         self.serial_options = serial_options
+        self.environment = parse_environment(environment)
+        self.reflector = parse_reflector(reflector)
+        #: what the tracker reported on the last ENV / REFL exchange
+        self.air_in_use: EnvironmentReply | None = None
+        self.reflector_in_use: ReflectorReply | None = None
         self.events: collections.deque[tuple[Event, float]] = collections.deque(maxlen=256)
         self._port: LinePort | None = None
         self._lock = threading.RLock()
@@ -208,6 +220,18 @@ class TrackerSensor(SensorBase):
                 raise ConnectionLostError(f"{self.name}: cannot open {self.url!r}: {exc}") from exc
             self._port = LinePort(port, self.codec.split_frames)
             self.log.info("connected to %s", self.url)
+            try:
+                self._configure()
+            except BaseException:
+                self.close()
+                raise
+
+    def _configure(self) -> None:
+        """Send the air and reflector this sensor was built with."""
+        if self.environment is not None:
+            self.set_environment(self.environment)
+        if self.reflector is not None:
+            self.select_reflector(*self.reflector)
 
     def close(self) -> None:
         with self._lock:
@@ -321,6 +345,29 @@ class TrackerSensor(SensorBase):
         if text not in Mode.__members__:
             raise ValueError(f"mode must be one of {', '.join(Mode.__members__)}, got {mode!r}")
         return self.request(SetMode(Mode(text)))
+
+    def set_environment(self, air: Air | str | dict) -> EnvironmentReply:
+        """Air for the refraction correction: an ``Air`` (°C, hPa, %), or ``"station"`` for
+        the tracker's weather station (refused with DeviceFaultError if it has none). Returns
+        the air the tracker now uses."""
+        air = parse_environment(air)
+        if air is None:
+            raise ValueError("set_environment needs an Air or 'station'")
+        cmd = Environment("STATION") if air == STATION else \
+            Environment("HOST", air.temperature_c, air.pressure_hpa, air.humidity_pct)
+        self.air_in_use = self.request(cmd)
+        a = self.air_in_use
+        self.log.info("air for refraction (%s): %.2f °C, %.2f hPa, %.1f %%", a.source, a.temperature_c,
+                      a.pressure_hpa, a.humidity_pct)
+        return a
+
+    def select_reflector(self, reflector_type: str, offset_mm: float | None = None) -> ReflectorReply:
+        """Select the reflector by type name (e.g. ``RRR15``), with its surface offset in mm
+        (None: the tracker's own value for that type). Unknown types raise LimitError."""
+        self.reflector_in_use = self.request(SelectReflector(reflector_type, offset_mm))
+        self.log.info("reflector %s, offset %.4f mm", self.reflector_in_use.reflector_type,
+                      self.reflector_in_use.offset_mm)
+        return self.reflector_in_use
 
     def home(self, timeout: float = 10.0) -> None:
         """Re-establish the interferometer distance (needs a locked beam)."""

@@ -48,6 +48,7 @@ class ErrorCode(int, Enum):
     BEAM_LOST = 10
     DISTANCE_INVALID = 11
     WARMING_UP = 20
+    NO_WEATHER_STATION = 30
     INTERNAL = 50
 
 
@@ -133,6 +134,7 @@ _KINDS: dict[str, tuple[Any, Any]] = {
     "mm": (_fmt_fixed(4), _parse_float),  # 0.1 µm resolution
     "s": (_fmt_fixed(6), _parse_float),  # 1 µs resolution
     "ms3": (_fmt_fixed(3), _parse_float),  # three decimals (timeouts, warm-up left, turns)
+    "env": (_fmt_fixed(3), _parse_float),  # three decimals (°C, hPa, %)
     "int": (_fmt_int, _parse_int),
     "bool": (lambda v: "1" if v else "0", _parse_bool),
     "mode": (lambda v: Mode(v).value, _parse_mode),
@@ -243,8 +245,68 @@ class Home:
     verb: ClassVar[str] = "HOME"
 
 
-Command = Union[Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim, Search, Home]
-COMMANDS: dict[str, type] = {c.verb: c for c in (Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim, Search, Home)}
+#: Allowed air for the refraction correction: °C, hPa, % relative humidity.
+TEMPERATURE_RANGE_C = (-40.0, 60.0)
+PRESSURE_RANGE_HPA = (500.0, 1200.0)
+HUMIDITY_RANGE_PCT = (0.0, 100.0)
+ENV_SOURCES = ("HOST", "STATION")
+
+
+@dataclass(frozen=True)
+class Environment:
+    """``ENV``: the air the tracker corrects its distances for (refraction), or a query.
+
+    ``source="HOST"`` with ``temperature_c`` (°C), ``pressure_hpa`` (hPa) and ``humidity_pct``
+    (% RH): use these values. ``source="STATION"`` (no values): use the tracker's own weather
+    station. ``source=None`` (no values): only ask which air is in use.
+    """
+
+    verb: ClassVar[str] = "ENV"
+    source: str | None = _f("source", "token", default=None)
+    temperature_c: float | None = _f("temp", "env", default=None)
+    pressure_hpa: float | None = _f("press", "env", default=None)
+    humidity_pct: float | None = _f("hum", "env", default=None)
+
+    def __post_init__(self) -> None:
+        values = (self.temperature_c, self.pressure_hpa, self.humidity_pct)
+        if self.source is None or self.source == "STATION":
+            if any(v is not None for v in values):
+                raise ValueError(f"ENV source={self.source or '(query)'} takes no temp/press/hum; "
+                                 "give source=HOST with all three to set the air by hand")
+            return
+        if self.source != "HOST":
+            raise ValueError(f"ENV source must be one of {', '.join(ENV_SOURCES)}, got {self.source!r}")
+        for name, v, (lo, hi) in (("temp", self.temperature_c, TEMPERATURE_RANGE_C),
+                                  ("press", self.pressure_hpa, PRESSURE_RANGE_HPA),
+                                  ("hum", self.humidity_pct, HUMIDITY_RANGE_PCT)):
+            if v is None:
+                raise ValueError(f"ENV source=HOST needs temp=, press= and hum=; {name}= is missing")
+            _finite(name, v, lo, hi)
+
+
+@dataclass(frozen=True)
+class SelectReflector:
+    """``REFL``: select the reflector by type name, optionally with its surface offset (mm);
+    without ``reflector_type`` only ask which one is selected."""
+
+    verb: ClassVar[str] = "REFL"
+    reflector_type: str | None = _f("type", "token", default=None)
+    offset_mm: float | None = _f("offset", "mm", default=None)
+
+    def __post_init__(self) -> None:
+        if self.reflector_type is None:
+            if self.offset_mm is not None:
+                raise ValueError("REFL offset= needs type=")
+            return
+        _parse_token(str(self.reflector_type))
+        if self.offset_mm is not None:
+            _finite("offset", self.offset_mm, 0.0, 1000.0)
+
+
+Command = Union[Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim, Search, Home, Environment,
+                SelectReflector]
+COMMANDS: dict[str, type] = {c.verb: c for c in (Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim,
+                                                 Search, Home, Environment, SelectReflector)}
 
 # --------------------------------------------------------------------------- replies
 
@@ -349,6 +411,28 @@ class HomeReply:
 
 
 @dataclass(frozen=True)
+class EnvironmentReply:
+    """The air in use for the refraction correction and where it comes from (HOST / STATION)."""
+
+    verb: ClassVar[str] = "ENV"
+    source: str = _f("source", "token")
+    temperature_c: float = _f("temp", "env")
+    pressure_hpa: float = _f("press", "env")
+    humidity_pct: float = _f("hum", "env")
+    device_time: float = _f("t", "s")
+
+
+@dataclass(frozen=True)
+class ReflectorReply:
+    """The selected reflector: its type name and surface offset (mm)."""
+
+    verb: ClassVar[str] = "REFL"
+    reflector_type: str = _f("type", "token")
+    offset_mm: float = _f("offset", "mm")
+    device_time: float = _f("t", "s")
+
+
+@dataclass(frozen=True)
 class ErrorReply:
     """``ERR``: the device refused a request. ``text`` is printable ASCII without ``*``."""
 
@@ -374,10 +458,12 @@ class Event:
 
 EVENT_NAMES = ("BEAM_LOST", "BEAM_LOCKED")
 
-Reply = Union[IdentifyReply, StatusReply, ModeReply, PointReply, AverageReply, AimReply, SearchReply, HomeReply]
+Reply = Union[IdentifyReply, StatusReply, ModeReply, PointReply, AverageReply, AimReply, SearchReply, HomeReply,
+              EnvironmentReply, ReflectorReply]
 REPLIES: dict[str, type] = {
     r.verb: r
-    for r in (IdentifyReply, StatusReply, ModeReply, PointReply, AverageReply, AimReply, SearchReply, HomeReply)
+    for r in (IdentifyReply, StatusReply, ModeReply, PointReply, AverageReply, AimReply, SearchReply, HomeReply,
+              EnvironmentReply, ReflectorReply)
 }
 #: The reply type each command expects.
 REPLY_FOR: dict[type, type] = {COMMANDS[v]: REPLIES[v] for v in COMMANDS}
@@ -397,8 +483,8 @@ def checksum(body: bytes) -> str:
 def _encode_fields(obj: Any) -> list[str]:
     out = []
     for f in fields(obj):
-        if "key" not in f.metadata:
-            continue
+        if "key" not in f.metadata or (getattr(obj, f.name) is None and f.default is None):
+            continue  # an optional field left out
         fmt, _ = _KINDS[f.metadata["kind"]]
         out.append(f"{f.metadata['key']}={fmt(getattr(obj, f.name))}")
     return out

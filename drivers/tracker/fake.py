@@ -18,6 +18,10 @@ Behaviour (all configurable in the constructor):
 - Noise: per-axis σ = ``noise_um`` + ``noise_um_per_m`` × distance (µm), seeded RNG. Set both
   to 0 when the scene already applies sensor noise.
 - Warm-up: MEAS, AVG and HOME are refused (WARMING_UP) for ``warmup_s`` device seconds.
+- Air: distances are scaled by n(true air)/n(air in use) (``drivers.tracker.air``), so a tracker
+  told the wrong temperature measures a few ppm long or short, as a real one does. ``ENV`` sets
+  the air in use by hand or switches to the simulated weather station (which reads ``air``).
+- Reflectors: ``REFL`` selects one of ``reflectors`` by type name (the host may give its offset).
 - Spiral search: an Archimedean spiral of pitch ``search_pitch_mm`` (default: the capture
   radius) around the current beam direction, at ``search_speed_mm_s`` in the plane of the current
   aim point; it takes simulated time π·ρ²/(pitch·speed) to reach radius ρ.
@@ -40,11 +44,14 @@ import numpy as np
 from drivers.errors import ProtocolError
 from drivers.sim.clock import SimClock
 from drivers.sim.scene import MarkerScene
+from drivers.tracker.air import REFLECTORS, Air, Reflector, range_scale
 from drivers.tracker.codec import (
     PROTOCOL_VERSION,
     Aim,
     AimReply,
     AverageReply,
+    Environment,
+    EnvironmentReply,
     ErrorCode,
     ErrorReply,
     Event,
@@ -59,9 +66,11 @@ from drivers.tracker.codec import (
     Mode,
     ModeReply,
     PointReply,
+    ReflectorReply,
     RequestError,
     Search,
     SearchReply,
+    SelectReflector,
     SetMode,
     StatusReply,
     TrackerCodec,
@@ -72,12 +81,16 @@ log = logging.getLogger("remaster.fake.tracker")
 _LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 
-class _DeviceFault(Exception):
-    """Internal: a command refused with an error code."""
+class DeviceRefusal(Exception):
+    """A command the simulated tracker refuses, with the line protocol's error code (another
+    front end, such as the emScon fake, translates the code into its own)."""
 
     def __init__(self, code: ErrorCode, text: str) -> None:
         super().__init__(text)
         self.code = code
+
+
+_DeviceFault = DeviceRefusal
 
 
 @dataclass(frozen=True)
@@ -120,6 +133,10 @@ class FakeTracker:
         supports_average: bool = True,
         identity: TrackerIdentity = TrackerIdentity(),
         codec: TrackerCodec | None = None,
+        air: Air = Air(),
+        weather_station: bool = True,
+        reflectors: tuple[Reflector, ...] = REFLECTORS,
+        reflector_type: str = "RRR15",
     ) -> None:
         for name, value in (("capture_radius_mm", capture_radius_mm), ("average_rate_hz", average_rate_hz),
                             ("aim_slew_rad_s", aim_slew_rad_s), ("search_speed_mm_s", search_speed_mm_s)):
@@ -148,7 +165,19 @@ class FakeTracker:
         self.codec = codec or LineCodec()
         self._rng = np.random.default_rng(seed)
         self._lock = threading.RLock()
+        #: held around every command; another front end (the emScon fake) takes it too
+        self.lock = self._lock
         self._listeners: list = []
+        self._hooks: list = []
+        self.air = air
+        self.weather_station = bool(weather_station)
+        self.assumed_air = Air()  # standard air until the host says otherwise
+        self.env_source = "HOST"
+        self.reflectors = {r.name: r for r in reflectors}
+        if reflector_type not in self.reflectors:
+            raise ValueError(f"reflector_type {reflector_type!r} is not among the reflectors {sorted(self.reflectors)}")
+        self.reflector_kind = self.reflectors[reflector_type]
+        self.reflector_offset_mm = self.reflector_kind.surface_offset_mm
         self._t0 = self.clock.now()
         self.mode = Mode(mode)
         self.locked = False
@@ -165,16 +194,51 @@ class FakeTracker:
         with self._lock:
             self._listeners.append(send)
 
+    def add_event_hook(self, hook) -> None:
+        """``hook(name: str, device_time: float)`` is called for every event (any front end)."""
+        with self._lock:
+            self._hooks.append(hook)
+
+    def remove_event_hook(self, hook) -> None:
+        with self._lock:
+            if hook in self._hooks:
+                self._hooks.remove(hook)
+
     def remove_listener(self, send) -> None:
         with self._lock:
             if send in self._listeners:
                 self._listeners.remove(send)
 
     def _emit(self, name: str) -> None:
-        line = self.codec.encode_reply(0, Event(name, self.clock.now()))
+        t = self.clock.now()
+        line = self.codec.encode_reply(0, Event(name, t))
         log.info("event %s", name)
         for send in list(self._listeners):
             send(line)
+        for hook in list(self._hooks):
+            hook(name, t)
+
+    def execute(self, command):
+        """Run one command (a ``drivers.tracker.codec`` command object) and return its reply
+        object; raises DeviceRefusal with the error code when the device refuses it."""
+        with self._lock:
+            try:
+                return self._dispatch(command)
+            except DeviceRefusal:
+                raise
+            except (ValueError, ArithmeticError, LookupError) as exc:  # a scene or geometry problem
+                log.exception("internal error on %r", command)
+                raise DeviceRefusal(ErrorCode.INTERNAL, f"internal: {exc}") from exc
+
+    def range_scale(self) -> float:
+        """Factor every measured position is scaled by: n(true air) / n(air in use)."""
+        used = self.station_air() if self.env_source == "STATION" else self.assumed_air
+        return range_scale(self.air, used)
+
+    def station_air(self) -> Air:
+        """What the simulated weather station reads (the true air at its resolution: 0.01)."""
+        a = self.air
+        return Air(round(a.temperature_c, 2), round(a.pressure_hpa, 2), round(a.humidity_pct, 2))
 
     def handle(self, line: bytes) -> bytes:
         """Answer one request line with one reply line (events go to the listeners first)."""
@@ -273,7 +337,7 @@ class FakeTracker:
             pos = self._ready_to_measure()
             self._spend(self.measure_time_s)
             sigma = self.sigma_mm(float(np.linalg.norm(pos)))
-            p = pos + self._rng.normal(0.0, sigma, 3)
+            p = pos * self.range_scale() + self._rng.normal(0.0, sigma, 3)
             return PointReply(p[0], p[1], p[2], sigma, self.clock.now())
         if isinstance(cmd, MeasureAverage):
             if not self.supports_average:
@@ -294,7 +358,34 @@ class FakeTracker:
                 self._spend(self.home_s)
                 self.distance_valid = True
             return HomeReply(True, self.clock.now())
+        if isinstance(cmd, Environment):
+            return self._environment(cmd)
+        if isinstance(cmd, SelectReflector):
+            if cmd.reflector_type is not None:
+                refl = self.reflectors.get(cmd.reflector_type)
+                if refl is None:
+                    raise DeviceRefusal(ErrorCode.BAD_ARGUMENT, f"unknown reflector type {cmd.reflector_type!r}; "
+                                                                f"known: {' '.join(self.reflectors)}")
+                self.reflector_kind = refl
+                self.reflector_offset_mm = refl.surface_offset_mm if cmd.offset_mm is None else float(cmd.offset_mm)
+                log.info("reflector %s, offset %.4f mm", refl.name, self.reflector_offset_mm)
+            return ReflectorReply(self.reflector_kind.name, self.reflector_offset_mm, self.clock.now())
         raise _DeviceFault(ErrorCode.UNKNOWN_COMMAND, f"unsupported command {cmd!r}")
+
+    def _environment(self, cmd: Environment) -> EnvironmentReply:
+        if cmd.source == "STATION":
+            if not self.weather_station:
+                raise DeviceRefusal(ErrorCode.NO_WEATHER_STATION,
+                                    "no weather station connected; send ENV source=HOST temp= press= hum=")
+            self.env_source = "STATION"
+        elif cmd.source == "HOST":
+            self.env_source = "HOST"
+            self.assumed_air = Air(cmd.temperature_c, cmd.pressure_hpa, cmd.humidity_pct)
+        used = self.station_air() if self.env_source == "STATION" else self.assumed_air
+        if cmd.source is not None:
+            log.info("air for refraction: %s (%s), range scale %.9f", used, self.env_source, self.range_scale())
+        return EnvironmentReply(self.env_source, used.temperature_c, used.pressure_hpa, used.humidity_pct,
+                                self.clock.now())
 
     def _average(self, n: int) -> AverageReply:
         start = self._ready_to_measure()
@@ -304,7 +395,7 @@ class FakeTracker:
             raise _DeviceFault(ErrorCode.BEAM_LOST, f"beam lost during the {n}-point average")
         sigma = self.sigma_mm(float(np.linalg.norm(start)))
         frac = np.linspace(0.0, 1.0, n)[:, None]
-        pts = start + frac * (end - start) + self._rng.normal(0.0, sigma, (n, 3))
+        pts = (start + frac * (end - start)) * self.range_scale() + self._rng.normal(0.0, sigma, (n, 3))
         mean = pts.mean(axis=0)
         std = pts.std(axis=0, ddof=1) if n > 1 else np.zeros(3)
         return AverageReply(mean[0], mean[1], mean[2], std[0], std[1], std[2], n, self.clock.now())

@@ -63,7 +63,8 @@ def error_of(path: Path) -> str:
 # --- the bundled plans -------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "name, n_configs, n_poses, driver",
-    [("example", 40, 12, "natnet"), ("paper", 165, 34, "natnet"), ("tracker", 165, 34, "tracker")],
+    [("example", 40, 12, "natnet"), ("paper", 165, 34, "natnet"), ("tracker", 165, 34, "tracker"),
+     ("example-emscon", 165, 34, "emscon")],
 )
 def test_bundled_plans_load_and_resolve_to_the_documented_counts(name, n_configs, n_poses, driver):
     path = PLANS / f"{name}.yaml"
@@ -464,3 +465,41 @@ def test_bad_natnet_bone_selectors_name_the_marker_given_and_allowed(tmp_path, s
     msg = error_of(write(tmp_path, minimal(sensors=sensors)))
     assert "sensors.0.markers.sir" in msg and f"given {selector!r}" in msg, msg
     assert "'sk:<skeleton id or name>:<bone id or name>'" in msg and "'ms:<asset name>:<marker name>'" in msg, msg
+
+
+# --- laser trackers: air and reflector ------------------------------------------------------------
+def _tracker_sensor(driver: str = "emscon", **extra) -> dict:
+    url = {"emscon": "emscon://127.0.0.1:700", "tracker": "socket://127.0.0.1:7000"}.get(driver, "natnet://127.0.0.1:1510")
+    return {"name": "tracker", "driver": driver, "url": url, "markers": {"smr": "smr"}, "noise_mm": 0.02, **extra}
+
+
+@pytest.mark.parametrize("driver", ["emscon", "tracker"])
+def test_tracker_air_and_reflector_reach_the_driver_the_same_way(tmp_path, driver):
+    env = {"temperature_c": 21.5, "pressure_hpa": 1002.0, "humidity_pct": 40}
+    lp = load_plan(write(tmp_path, minimal(sensors=[_tracker_sensor(
+        driver, environment=env, reflector={"type": "RRR15", "offset_mm": 19.05})])))
+    s = lp.plan.sensors[0]
+    assert s.environment.driver_value() == env
+    assert s.reflector.model_dump() == {"type": "RRR15", "offset_mm": 19.05}
+    station = load_plan(write(tmp_path, minimal(sensors=[_tracker_sensor(driver, environment={"source": "station"})]),
+                              "station.yaml"))
+    assert station.plan.sensors[0].environment.driver_value() == {"source": "station"}
+
+
+@pytest.mark.parametrize(
+    "sensor, fragments",
+    [
+        (_tracker_sensor(environment={"temperature_c": 21.5}), ["sensors.0.environment", "pressure_hpa, humidity_pct missing"]),
+        (_tracker_sensor(environment={"source": "station", "temperature_c": 20}), ["source station takes no"]),
+        (_tracker_sensor(environment={"temperature_c": 95, "pressure_hpa": 1000, "humidity_pct": 5}),
+         ["environment.temperature_c", "given 95"]),
+        (_tracker_sensor("natnet", reflector={"type": "RRR15"}) | {"markers": {"sir": "ms:tool:sir"}},
+         ["sensors.0.reflector", "applies to laser trackers", "allowed drivers tracker, emscon"]),
+        (_tracker_sensor(url="socket://127.0.0.1:700"), ["sensors.0.url", "emscon://"]),
+        (_tracker_sensor(markers={"smr": "smr", "sir": "sir"}), ["sensors.0.markers", "one reflector"]),
+    ],
+)
+def test_bad_tracker_settings_name_the_field(tmp_path, sensor, fragments):
+    text = error_of(write(tmp_path, minimal(sensors=[sensor])))
+    for fragment in fragments:
+        assert fragment in text, (fragment, text)

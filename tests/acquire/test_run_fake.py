@@ -176,3 +176,55 @@ def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compli
         assert abs(err) <= 3 * j["std_deg"], (j["joint"], err, j["std_deg"])
     comp = {c["joint"]: c for c in summary.fit["diagnostics"]["compliance"]}
     assert comp["A2"]["status"] == "fitted" and comp["A1"]["status"] == "undetermined"
+
+
+@pytest.mark.timeout(300)
+def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
+    from drivers.emscon import codec as es
+
+    plan = small_plan(tmp_path, "example-emscon.yaml", n=6,
+                      sequencing={"samples": 10, "settle_window_s": 0.2}, fake={"time_scale": 3.0})
+    lp = load_plan(plan)
+    configs = resolve_configurations(lp)
+    broken = []
+    seen = {}
+
+    def break_beam(status):
+        if rc._fake_cell is not None and "launch" not in seen:
+            seen["launch"] = rc._fake_cell.launch
+        # Someone walks through the beam after the 2nd and 5th configurations: a GoPosition
+        # packet sent straight to the fake emScon server turns the beam away from the reflector.
+        if status["done"] in (2, 5) and status["done"] not in broken and rc._fake_cell is not None:
+            broken.append(status["done"])
+            server = rc._fake_cell.launch.emscon["tracker"][0]
+            away = es.Request(es.Cmd.GoPosition, {"dVal1": 0.0, "dVal2": 3000.0, "dVal3": 0.0, "bUseADM": 1})
+            assert es.decode(server.handle(es.encode(away))[:16]).status == es.Status.AllOK
+
+    rc = RunController(lp, fake=True, on_progress=break_beam, fit=False)
+    rc.start()
+    summary = rc.wait(280)  # time_scale 3: slower than the line-protocol test, kinder to a loaded machine
+    assert summary.state == "finished", summary.reason
+    # the plan's air and reflector reached the simulated tracker through emScon packets
+    tracker, server = seen["launch"].trackers["tracker"]
+    air = tracker.assumed_air
+    assert (air.temperature_c, air.pressure_hpa, air.humidity_pct) == (20.5, 1009.0, 45.0)
+    assert tracker.reflector_kind.name == "RRR15"
+    assert server.url.startswith("emscon://127.0.0.1:")
+    contents = read_run(summary.log_path)
+    events = contents.events
+    suspended = [e for e in events if e["kind"] == "suspended"]
+    resumed = [e for e in events if e["kind"] == "resumed"]
+    assert broken == [2, 5]
+    assert len(suspended) >= 2 and len(resumed) >= 2
+    assert all(e["reason"] and e["sensor"] == "tracker" for e in suspended)
+    aims = [e for e in events if e["kind"] == "aimed"]
+    assert aims and any("registration" in e["source"] for e in aims)
+    ids = [s["config_id"] for s in contents.samples]
+    assert len(ids) == len(set(ids))
+    for e in resumed:
+        assert e["config_id"] in ids
+    ended = {e["config_id"] for e in events if e["kind"] in ("skipped", "failed")}
+    assert set(ids) | ended == {c.config_id for c in configs}
+    for rec in contents.samples:
+        (marker,) = rec["markers"]
+        assert marker["sensor"] == "tracker" and marker["count"] == 10

@@ -180,3 +180,26 @@ def test_acquire_sim_reports_a_bad_config(tmp_path):
     result = CliRunner().invoke(app, ["sim", "--config", str(bad), "--duration", "0.1"])
     assert result.exit_code == 2
     assert "sensors" in result.output
+
+
+def test_a_tracker_can_answer_emscon_and_the_line_protocol_at_once():
+    from drivers.emscon.client import EmsconSensor
+    from drivers.tracker.client import TrackerSensor
+
+    cell = SimCell.from_yaml(DEFAULT_CONFIG_PATH, seed=4, clock=SimClock(50.0))
+    with SimLaunch(cell, controller=False, tracker_protocols={"tracker": ("line", "emscon")}) as launch:
+        line_addr, em_addr = launch.addresses["tracker"], launch.addresses["tracker-emscon"]
+        assert (line_addr.kind, em_addr.kind) == ("tracker", "emscon")
+        assert em_addr.url.startswith("emscon://127.0.0.1:")
+        truth = cell.true_marker_positions(cell.joint_positions(), frame="tracker")
+        with EmsconSensor(em_addr.url) as em, TrackerSensor.from_url(line_addr.url) as line:
+            a = em.measure("smr", 200, 10.0).mean_mm
+            b = line.measure("smr", 200, 10.0).mean_mm
+        assert launch.emscon["tracker"][0].tracker is launch.trackers["tracker"][0]  # one simulated tracker
+    i = cell.marker_names.index(cell.sensor_markers("tracker")[0])
+    # the cell adds its noise (σ ≈ 0.02 mm per axis here) to each observation and an average
+    # interpolates two observations, so each mean is within a few hundredths of the truth
+    assert np.allclose(a, truth[i], atol=0.1) and np.allclose(b, truth[i], atol=0.1)
+    assert not np.allclose(a, b, atol=1e-6)  # two measurements, not one copied
+    with pytest.raises(ValueError, match="allowed: line, emscon"):
+        SimLaunch(cell, controller=False, tracker_protocols={"tracker": ("leica",)})

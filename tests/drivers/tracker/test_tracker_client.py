@@ -14,14 +14,16 @@ import pytest
 
 from drivers.errors import (
     ConnectionLostError,
+    DeviceFaultError,
     DeviceTimeoutError,
+    LimitError,
     ProtocolError,
     TargetLostError,
 )
 from drivers.protocols import MarkerMeasurement, PositionSensor
 from drivers.registry import load_driver
 from drivers.tracker.client import DistanceLostError, TrackerSensor, TrackerWarmingUpError
-from drivers.tracker.codec import GetStatus, LineCodec, Mode
+from drivers.tracker.codec import Environment, GetStatus, LineCodec, Mode
 from drivers.tracker.fake import FakeTracker, PtyTrackerServer, TcpTrackerServer
 
 TRUE_MM = np.array([2000.0, 300.0, -100.0])
@@ -397,3 +399,41 @@ def test_a_beam_break_during_an_average_raises_target_lost(tracker, device, scen
     with pytest.raises(TargetLostError, match="beam lost during the 500-point average"):
         tracker.measure("smr", 500, timeout=2.0)
     assert tracker.status().locked is False
+
+
+def test_env_from_the_host_scales_distances_by_the_refraction_ratio(make_device, scene):
+    from drivers.tracker.air import Air, range_scale
+
+    device = make_device(noise_um=0.0, noise_um_per_m=0.0)
+    with TcpTrackerServer(device, seed=3) as srv:
+        air = {"temperature_c": 28.0, "pressure_hpa": 985.5, "humidity_pct": 30.0}
+        with TrackerSensor.from_url(srv.url, environment=air) as t:
+            assert (t.air_in_use.source, t.air_in_use.temperature_c, t.air_in_use.pressure_hpa) == ("HOST", 28.0, 985.5)
+            got = t.measure("smr", 10, 5.0).mean_mm
+    assert device.assumed_air == Air(**air)
+    assert np.allclose(got, np.asarray(scene.position_mm) * range_scale(Air(), Air(**air)), atol=2e-4)
+
+
+def test_env_from_the_station_and_a_tracker_without_one(make_device):
+    from drivers.tracker.air import Air
+
+    with TcpTrackerServer(make_device(air=Air(23.4, 1002.0, 40.0)), seed=3) as srv:
+        with TrackerSensor.from_url(srv.url, environment={"source": "station"}) as t:
+            a = t.air_in_use
+            assert (a.source, a.temperature_c, a.pressure_hpa, a.humidity_pct) == ("STATION", 23.4, 1002.0, 40.0)
+            assert t.set_environment(Air(20.0, 1013.25, 50.0)).source == "HOST"
+    with TcpTrackerServer(make_device(weather_station=False), seed=3) as srv:
+        with pytest.raises(DeviceFaultError, match="no weather station"):
+            TrackerSensor.from_url(srv.url, environment="station")
+
+
+def test_reflector_type_and_offset_are_selected(tracker, server):
+    reply = tracker.select_reflector("TBR05")
+    assert (reply.reflector_type, reply.offset_mm) == ("TBR05", 6.35)
+    reply = tracker.select_reflector("RRR15", 19.0)
+    assert (reply.reflector_type, reply.offset_mm) == ("RRR15", 19.0)
+    assert server.device.reflector_kind.name == "RRR15" and server.device.reflector_offset_mm == 19.0
+    with pytest.raises(LimitError, match="unknown reflector type 'SMR78'; known: RRR15"):
+        tracker.select_reflector("SMR78")
+    with pytest.raises(ValueError, match="temp"):
+        tracker.request(Environment("HOST", 99.0, 1000.0, 50.0))
