@@ -108,3 +108,39 @@ def test_unknown_commander_scheme_lists_the_known_drivers(app):
     result = CliRunner().invoke(app, ["move", "--robot", str(KR6), "--commander", "xyz://h:1", "--to", "0,0,0,0,0,0"])
     assert result.exit_code == 2
     assert "unknown driver 'xyz'" in result.output and "rsi" in result.output
+
+
+IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
+IIWA_HOME = [0.0, 20.0, 0.0, -60.0, 0.0, 30.0, 0.0]
+
+
+@pytest.mark.parametrize("version", ["1.15", "2.7"])
+def test_move_over_fri_reports_the_link_and_ends_on_target(app, version):
+    """An LBR iiwa whose (fake) Sunrise runs the shipped robot application: the move waits for
+    the joint overlay, reports the FRI link and ends on target."""
+    from calib.model import load_robot_model
+    from drivers.kuka_fri.fake import FakeSunrise
+    from drivers.protocols import JointLimits
+
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    limits = JointLimits.from_model(load_robot_model(IIWA))
+    target = [10.0, 25.0, -5.0, -55.0, 8.0, 35.0, -10.0]
+    with FakeSunrise(("127.0.0.1", port), limits=limits, initial_position_rad=np.radians(IIWA_HOME),
+                     application=True, fri_version=version) as fake:
+        result = CliRunner().invoke(app, [
+            "move", "--robot", str(IIWA), "--commander", f"fri://127.0.0.1:{port}?rt_priority=0",
+            "--to", ",".join(map(str, target)), "--speed", "0.5", "--yes", "--tolerance", "0.001"])
+        actual = np.degrees(fake.actual_position())
+        violations = list(fake.stats.violations)
+    assert result.exit_code == 0, result.output
+    out = result.output
+    cycle_ms = float(re.search(r"cycle ([\d.]+) ms", out).group(1))
+    assert cycle_ms == pytest.approx(5.0, rel=0.2) and "latency p50" in out and "session: " in out
+    assert ("FRI 1.x" if version == "1.15" else "FRI 2.x (2.7, no end-of-message)") in out
+    settled = [line for line in out.splitlines() if line.startswith("settled")][0]
+    np.testing.assert_allclose([float(v) for v in re.findall(r"A\d=\s*(-?[\d.]+)", settled)], target, atol=2e-3)
+    np.testing.assert_allclose(actual, target, atol=2e-3)
+    assert violations == []
