@@ -185,10 +185,11 @@ class FriClientSession:
         with self._lock:
             if self._motion is not None:
                 raise LimitError(f"{name}: a move is already in progress; stop() it first")
+            # both transient (nothing moved): device faults the run waits out and retries
             if self._snapshot is None or self._snapshot.session_state != SessionState.COMMANDING_ACTIVE:
-                raise LimitError(f"{name}: the session left COMMANDING_ACTIVE while planning")
+                raise DeviceFaultError(f"{name}: the session left COMMANDING_ACTIVE while planning")
             if self._hold is None or not np.array_equal(self._hold, hold):
-                raise LimitError(f"{name}: the held position changed while planning; retry")
+                raise DeviceFaultError(f"{name}: the held position changed while planning; retry")
             self._motion = motion
         return motion
 

@@ -122,3 +122,50 @@ def test_resume_after_an_abort_continues_and_refuses_another_plan(tmp_path):
     started = [e for e in contents.events if e["kind"] == "run_started"]
     assert started[-1]["resumed"] is True
     assert not set(started[-1]["order"]) & done_before  # nothing recorded was measured again
+
+
+def test_an_fri_drop_is_waited_out_and_failed_configurations_are_measured_again_on_resume(tmp_path):
+    """The kill/fault study of issue 11: the FRI session drops mid-run (the robot application
+    restarts its overlay) → the run suspends, retries and measures that configuration; the
+    drives go off → moves are refused before moving, three in a row end the run; the drives come
+    back → ``--resume`` measures the failed configurations again, each exactly once."""
+    plan = small_plan(tmp_path, n=8, sequencing={"samples": 5, "settle_window_s": 0.2}, fake={"time_scale": 4.0})
+    lp = load_plan(plan)
+    configs = {c.config_id for c in resolve_configurations(lp)}
+    injected = []
+
+    def faults(status):
+        cell = rc._fake_cell
+        if cell is None or cell.launch is None:
+            return  # before the devices are up, or after they closed
+        ctl = cell.launch.controller
+        if status["measured"] >= 2 and "drop" not in injected:
+            injected.append("drop")
+            ctl.inject_fault("session_drop")
+        elif status["measured"] >= 4 and "drives" not in injected:
+            injected.append("drives")
+            ctl.inject_fault("drives_off")
+
+    rc = RunController(lp, fake=True, on_progress=faults, fit=False)
+    rc.start()
+    first = rc.wait(150)
+    assert first.state == "failed" and "fix it and resume the run" in first.reason, first.reason
+    contents = read_run(first.log_path)
+    kinds = [e["kind"] for e in contents.events]
+    failed = {e["config_id"] for e in contents.events if e["kind"] == "failed"}
+    assert len(failed) == 3 and all("drives not ACTIVE" in e["reason"] for e in contents.events
+                                    if e["kind"] == "failed")
+    measured_first = {s["config_id"] for s in contents.samples}
+    assert len(measured_first) >= 4  # the configuration hit by the drop was measured after all
+    assert "retry" in kinds  # the device fault mid-move was retried after a suspension
+    assert any(e["kind"] == "state" and e.get("state") == "suspended" for e in contents.events) or \
+        "suspended" in str(contents.events)
+
+    rc2 = RunController(lp, fake=True, resume=first.log_path, fit=False)
+    rc2.start()
+    second = rc2.wait(150)
+    assert second.state == "finished", second.reason
+    contents = read_run(first.log_path)
+    counts, _ = outcomes(contents)
+    assert set(counts) == configs and max(counts.values()) == 1
+    assert failed <= set(counts)  # measured again on resume
