@@ -80,8 +80,8 @@ class Combination:
         if self.exact:
             return "an exact null direction (singular value at rounding level: no data of this kind can separate it)"
         cond = 1.0 / self.relative if self.relative > 0 else math.inf
-        return (f"not determined at condition number {cond:.2g} (not an exact null direction: configurations "
-                "that move these parameters differently would separate them)")
+        return (f"not determined at condition number {cond:.2g} (a weak direction above rounding level: "
+                "configurations that move these parameters differently would separate them)")
 
 
 @dataclass(frozen=True)
