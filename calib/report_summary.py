@@ -79,8 +79,11 @@ def offsets_table(doc: dict) -> Html:
     rows, notes = [], []
     for a in _axes(doc):
         if a.get("delta_deg") is None:
-            rows.append([a["axis"], "—", "—", "—", Html(f"<span class=warn>{esc(a['action'])}</span>")])
-            notes.append(a.get("reason") or None)
+            reason = a.get("reason") or ""
+            short = len(reason) <= 16
+            action = "do not enter" if reason == "do not enter" else a["action"] + (f" ({reason})" if short and reason else "")
+            rows.append([a["axis"], "—", "—", "—", Html(f"<span class=warn>{esc(action)}</span>")])
+            notes.append(None if short else reason)
         else:
             rows.append([a["axis"], Html(fixed(a["delta_deg"], 4, sign=True)), Html(fixed(a["std_deg"], 4)),
                          Html(fixed(a["correction_deg"], 4, sign=True)), a["action"]])
