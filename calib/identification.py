@@ -29,6 +29,7 @@ from scipy.optimize import least_squares
 
 from calib.dataset import Dataset, DatasetError
 from calib.fit import initial_registrations
+from calib.identifiability import exact_tolerance
 from calib.kinematics import KINDS, Chain
 from calib.model import RobotModel
 from calib.transforms import euler_zyx_to_matrix
@@ -258,11 +259,17 @@ def select_identifiable(jac: np.ndarray, names: list[str], scale: np.ndarray, or
             continue
         for b in basis:
             v -= (b @ v) * b
-        if np.linalg.norm(v) / norm < rank_tol:
+        residual = np.linalg.norm(v) / norm
+        if residual < rank_tol:
             coef, *_ = np.linalg.lstsq(j[:, kept], j[:, c], rcond=None)
             top = np.argsort(-np.abs(coef))[:3]
             combo = " ".join(f"{coef[t]:+.3g}·{names[kept[t]]}" for t in top if abs(coef[t]) > 1e-9)
-            excluded[names[c]] = f"not identifiable: moves the markers exactly like {combo} (kept nominal)"
+            # "exactly" only at rounding level (calib.identifiability.exact_tolerance), else say how close.
+            if residual <= exact_tolerance(1.0, jac.shape):
+                excluded[names[c]] = f"not identifiable: moves the markers exactly like {combo} (kept nominal)"
+            else:
+                excluded[names[c]] = (f"not identifiable from these configurations: moves the markers like {combo} "
+                                      f"to within {residual:.1g} of its effect (a near-degeneracy above rounding level; kept nominal)")
             continue
         basis.append(v / np.linalg.norm(v))
         kept.append(c)
