@@ -89,15 +89,15 @@ def _metrics_section(doc: dict) -> list[str]:
     metrics = doc.get("metrics") or {}
     if not metrics:
         return []
-    rows = []
+    rows, groups = [], []
     for key, title in METRIC_TITLES.items():
         if isinstance(metrics.get(key), dict) and "before" in metrics[key]:
             for when in ("before", "after"):
                 m = metrics[key][when]
-                rows.append([title if when == "before" else "", when,
-                             *(Html(num(m[f])) for f in ("mean", "p2_5", "p97_5", "max")), m["count"]])
+                rows.append([when, *(Html(num(m[f])) for f in ("mean", "p2_5", "p97_5", "max")), m["count"]])
+                groups.append(title if when == "before" else None)
     out = ["<h2 id=accuracy>Accuracy before and after (mm)</h2>",
-           table(["metric", "", "mean", "2.5 %", "97.5 %", "max", "n"], rows, left=2)]
+           table(["", "mean", "2.5 %", "97.5 %", "max", "n"], rows, groups=groups)]
     share = metrics.get("offsets_share")
     if share:
         out.append(f"<p>Share of the workspace error explained by the offsets alone (Table VII ÷ Table VI): "
@@ -120,9 +120,9 @@ def _direction_rows(idt: dict, only_weak: bool) -> tuple[list[list], int]:
         rows.append([
             Html(f"<span class={VERDICT_CLASS.get(verdict, '')}>{esc(verdict)}</span>"),
             c["combination"],
-            Html(num(c["singular_value_mm"], 3)),
+            Html("∞" if c.get("exact") else num(c.get("std_mm"), 3)),
             Html(num(c.get("condition"), 3)),
-            Html(num(c.get("std_mm"), 3)),
+            Html(num(c["singular_value_mm"], 3)),
         ])
     return rows, hidden
 
@@ -170,7 +170,7 @@ def _identifiability_section(doc: dict) -> list[str]:
                              [[c["combination"], Html(num(c["singular_value_mm"], 3))] for c in idt["undetermined_combinations"]]))
             continue
         if rows:
-            out.append(table(["verdict", "combination (weights)", "s", "s_max/s", "std (mm)"], rows, left=2))
+            out.append(table(["verdict", "combination (weights)", "std (mm)", "s_max/s", "s"], rows, left=2))
         if hidden:
             out.append(f"<p class=small>{hidden} {'other ' if rows else ''}direction{'s' if hidden != 1 else ''}: determined.</p>")
     if ident.get("fixed_parameters"):

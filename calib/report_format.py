@@ -44,7 +44,7 @@ def num(v, sig: int = 4, *, sign: bool = False) -> str:
     elif a >= 10 ** sig:
         text = f"{v:.0f}"
     else:
-        text = f"{v:.{sig}g}"
+        text = f"{v:#.{sig}g}".rstrip(".")  # '#': keep trailing zeros, so a column reads evenly
         if "e" in text:  # e.g. 0.0001234 with sig 4 → keep it positional
             text = f"{v:.{sig - 1 - math.floor(math.log10(a))}f}"
     if sign and v > 0:
@@ -71,18 +71,23 @@ def cell(v) -> str:
     if isinstance(v, bool) or v is None:
         return "—" if v is None else esc(v)
     if isinstance(v, int):
-        return f"{v:,}".replace(",", "\u2009")  # counts: all digits, thin-space thousands
+        return f"{v:,}".replace(",", "\u202f")  # counts: all digits, narrow no-break space thousands
     if isinstance(v, float):
         return num(v)
     return esc(v)
 
 
-def table(header: list[str], rows: list[list], *, left: int = 1, cls: str = "", notes: list[str | None] | None = None) -> Html:
+def table(header: list[str], rows: list[list], *, left: int = 1, cls: str = "", notes: list[str | None] | None = None,
+          groups: list[str | None] | None = None) -> Html:
     """A table in a horizontally scrolling box. ``left``: how many leading columns are text
-    (left-aligned). ``notes``: per row, a text shown as a full-width line under the row."""
+    (left-aligned). ``notes``: per row, a text shown as a full-width line under the row;
+    ``groups``: per row, a full-width heading line above it (None: none)."""
     th = "".join(f'<th{" class=l" if i < left else ""}>{esc(h)}</th>' for i, h in enumerate(header))
     body = []
     for k, r in enumerate(rows):
+        group = groups[k] if groups else None
+        if group:
+            body.append(f'<tr class=group><td class=l colspan="{len(header)}"><div>{cell(group)}</div></td></tr>')
         tds = "".join(f'<td{" class=l" if i < left else ""}>{cell(c)}</td>' for i, c in enumerate(r))
         body.append(f"<tr>{tds}</tr>")
         note = notes[k] if notes else None
@@ -99,7 +104,8 @@ h1{font-size:1.6em;margin:0.3em 0}h2{margin-top:1.6em;border-bottom:1px solid #d
 .scroll{overflow-x:auto;max-width:100%;margin:0.5em 0 1.2em}
 table{border-collapse:collapse}th,td{border:1px solid #bbb;padding:3px 8px;text-align:right;vertical-align:top}
 th{background:#eee}td.l,th.l{text-align:left}tr.note td{font-size:0.85em;color:#555;border-top:none;background:#fafafa}
-tr.note div{position:sticky;left:0.5em;max-width:calc(100vw - 3em)}
+tr.note div,tr.group div{position:sticky;left:0.5em;max-width:calc(100vw - 3em)}
+tr.group td{background:#f3f3f3;font-weight:600}
 .warn{color:#a40}.bad{color:#b00}.good{color:#060}.small{font-size:0.85em;color:#555}
 img{max-width:100%;height:auto;border:1px solid #ddd;margin:0.5em 0}
 pre{background:#f6f6f6;padding:0.6em;overflow-x:auto}
