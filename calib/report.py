@@ -44,8 +44,6 @@ def _controller_section(doc: dict, controller_text: str) -> list[str]:
         return out
     out.append(f"<p>controller: <b>{esc(ctrl['controller'])}</b>. {esc(ctrl['convention'])}</p>")
     out.append(f"<p class=warn>{esc(ctrl['sign_convention'])}</p>")
-    if ctrl.get("lines"):
-        out.append("<pre class=wrap>" + "\n".join(esc(line) for line in ctrl["lines"]) + "</pre>")
     out.append("<p class=small>The values per axis are in the <a href='#summary'>summary</a> above.</p>")
     return out
 
@@ -226,7 +224,7 @@ def render_report(result: FitResult, data: Dataset, doc: dict, controller_text: 
         "<meta name=viewport content='width=device-width, initial-scale=1'>",
         f"<title>remaster fit — {name}</title><style>{CSS}</style></head><body>",
         f"<h1>Remastering fit: {name}</h1>",
-        f"<p class=small>data: <code class=wrap>{esc(doc['data']['source'])}</code> — {doc['data']['n_measurements']} "
+        f"<p class=small>data: <code class=wrap>{esc(doc['data']['source'] or '(in memory)')}</code> — {doc['data']['n_measurements']} "
         f"measurements, {doc['data']['n_configurations']} configurations, sensors {esc(', '.join(doc['data']['sensors']))}; "
         f"method {esc(doc['diagnostics'].get('method'))}</p>",
         summary_html(doc),

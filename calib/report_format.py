@@ -113,7 +113,8 @@ pre.wrap,code.wrap{white-space:pre-wrap;overflow-wrap:anywhere}
 .summary{border:2px solid #888;border-radius:6px;padding:0.6em 1em;margin:1em 0;background:#fcfcfc}
 .summary.ok{border-color:#4a4}.summary.stop{border-color:#c33;background:#fff6f6}
 .summary h2{margin-top:0.2em;border:none}.banner{font-size:1.15em;font-weight:600;margin:0.2em 0 0.5em}
-.cols{display:flex;flex-wrap:wrap;gap:0 2em}.cols>div{flex:1 1 320px;min-width:0}
+.cols{display:flex;flex-wrap:wrap;gap:0 2em}.cols>div{flex:1 1 320px;min-width:0}.cols>div:first-child{flex:1.5 1 380px}
+.nw{white-space:nowrap}
 ul{padding-left:1.3em}li{margin:0.2em 0}
 figure{margin:0.5em 0}figcaption{font-size:0.85em;color:#555}
 @media (max-width:600px){body{padding:0.5em 0.7em}h1{font-size:1.3em}th,td{padding:2px 4px}table{font-size:0.9em}

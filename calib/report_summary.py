@@ -80,15 +80,14 @@ def offsets_table(doc: dict) -> Html:
     for a in _axes(doc):
         if a.get("delta_deg") is None:
             reason = a.get("reason") or ""
-            short = len(reason) <= 16
-            action = "do not enter" if reason == "do not enter" else a["action"] + (f" ({reason})" if short and reason else "")
-            rows.append([a["axis"], "—", "—", "—", Html(f"<span class=warn>{esc(action)}</span>")])
-            notes.append(None if short else reason)
+            refused = reason == "do not enter"
+            rows.append([a["axis"], "—", "—", Html(f"<span class=warn>{esc('do not enter' if refused else a['action'])}</span>")])
+            notes.append(None if refused or not reason else f"{a['axis']}: {reason}")
         else:
-            rows.append([a["axis"], Html(fixed(a["delta_deg"], 4, sign=True)), Html(fixed(a["std_deg"], 4)),
+            rows.append([a["axis"], Html(f"{fixed(a['delta_deg'], 4, sign=True)} <span class='small nw'>± {fixed(a['std_deg'], 4)}</span>"),
                          Html(fixed(a["correction_deg"], 4, sign=True)), a["action"]])
             notes.append(None)
-    return table(["axis", "δ", "± std", "correction", "action"], rows, notes=notes)
+    return table(["axis", "δ ± std", "correction", "action"], rows, notes=notes)
 
 
 def accuracy_table(doc: dict) -> Html | None:
@@ -123,6 +122,9 @@ def summary_html(doc: dict) -> str:
     parts.append(f"<p class=small>values for the {esc(ctrl.get('controller', doc['robot'].get('controller', '?')))} "
                  f"controller, degrees; δ: true axis angle = reported angle + δ; correction = −δ.</p>")
     parts.append(offsets_table(doc))
+    if ctrl.get("lines") and not refused:
+        parts.append("<p class=small>to type on the controller (sign UNVERIFIED — see the convention below):</p>")
+        parts.append("<pre class=wrap>" + "\n".join(esc(line) for line in ctrl["lines"]) + "</pre>")
     parts.append("</div><div>")
     acc = accuracy_table(doc)
     if acc:
