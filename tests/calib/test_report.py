@@ -118,6 +118,9 @@ def test_identifiability_names_the_combination_each_direction_mixes(fitted):
     est = result.identifiability
     rows = re.findall(r"<span class=(good|warn|bad)>(determined|weakly determined|not determined)</span>", section)
     assert len(rows) == 1 + len(est.names)
+    combos = re.findall(r"</span></td><td class=l>([^<]+)</td>", section)
+    assert len(combos) == len(rows)
+    assert all(re.fullmatch(r"[+-]\d\.\d\d·[\w.]+( [+-]\d\.\d\d·[\w.]+)*( \(\+\d+ smaller\))?", c) for c in combos), combos
     post = result.posterior
     jac = post.jacobian(result.mode[: post.dim])
     link_pos, _ = post.link_free()
