@@ -158,8 +158,7 @@ def _identifiability_section(doc: dict) -> list[str]:
         if not idt:
             continue
         n = len(idt["parameters"])
-        only_weak = label == "start"
-        rows, hidden = _direction_rows(idt, only_weak)
+        rows, hidden = _direction_rows(idt, only_weak=True)
         cond_text = _condition_text(idt)
         where = "at the start (nominal model, before anything is fixed)" if label == "start" else "at the estimate (what was sampled)"
         out.append(f"<h3>{where}</h3><p>{n} parameters, numerical rank {idt['rank']}; condition number {cond_text}.</p>")
@@ -167,10 +166,14 @@ def _identifiability_section(doc: dict) -> list[str]:
             out.append(table(["undetermined combination", "singular value"],
                              [[c["combination"], Html(num(c["singular_value_mm"], 3))] for c in idt["undetermined_combinations"]]))
             continue
+        header = ["verdict", "combination (weights)", "std (mm)", "s_max/s", "s"]
         if rows:
-            out.append(table(["verdict", "combination (weights)", "std (mm)", "s_max/s", "s"], rows, left=2))
+            out.append(table(header, rows, left=2))
         if hidden:
-            out.append(f"<p class=small>{hidden} {'other ' if rows else ''}direction{'s' if hidden != 1 else ''}: determined.</p>")
+            out.append(f"<p>{hidden} {'other ' if rows else ''}direction{'s' if hidden != 1 else ''}: determined.</p>")
+        every, _ = _direction_rows(idt, only_weak=False)
+        out.append(f"<details class={label}><summary>all {len(every)} directions {where.split(' (')[0]}, weakest first</summary>"
+                   f"{table(header, every, left=2)}</details>")
     if ident.get("fixed_parameters"):
         out.append("<h3>fixed before sampling</h3>")
         out.append(table(["parameter", "reason"], [[f["parameter"], f["reason"]] for f in ident["fixed_parameters"]], left=2))

@@ -116,10 +116,12 @@ def test_identifiability_names_the_combination_each_direction_mixes(fitted):
     # Every direction at the estimate is listed, each with its verdict, and the table's condition
     # number is the inverse of the observability index O2 of the same scaled Jacobian.
     est = result.identifiability
-    rows = re.findall(r"<span class=(good|warn|bad)>(determined|weakly determined|not determined)</span>", section)
-    assert len(rows) == 1 + len(est.names)
+    every = section[section.index("<details class=estimate>"):]
+    every = every[: every.index("</details>")]
+    rows = re.findall(r"<span class=(good|warn|bad)>(determined|weakly determined|not determined)</span>", every)
+    assert len(rows) == len(est.names) and f"{len(est.names)} directions: determined" in section
     combos = re.findall(r"</span></td><td class=l>([^<]+)</td>", section)
-    assert len(combos) == len(rows)
+    assert len(combos) == 1 + len(start.names) + len(est.names)  # start: the weak one, then all; estimate: all
     assert all(re.fullmatch(r"[+-]\d\.\d\d·[\w.]+( [+-]\d\.\d\d·[\w.]+)*( \(\+\d+ smaller\))?", c) for c in combos), combos
     post = result.posterior
     jac = post.jacobian(result.mode[: post.dim])
