@@ -383,7 +383,8 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         for i in np.flatnonzero(rms < 0.05 * rms.max()):
             fit_compliance[i] = False
             reasons[f"{model.axis_names[i]}.compliance"] = (
-                f"gravity turns this axis by only {rms[i]:.1g} N·m (rms) in these configurations: its sag cannot be seen")
+                f"gravity turns this axis by only {rms[i] if rms[i] > 1e-9 * rms.max() else 0.0:.1g} N·m (rms) in these "
+                "configurations: its sag cannot be seen")
         for i in np.flatnonzero(~fit_joint):
             fit_compliance[i] = False
             reasons[f"{model.axis_names[i]}.compliance"] = "not fitted (its axis is excluded by the options)"

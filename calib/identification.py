@@ -300,7 +300,8 @@ def identify(
         rms = np.sqrt(np.mean(problem.gain ** 2, axis=0)) * 1e6
         for i in np.flatnonzero(rms < 0.05 * rms.max()):
             excluded[f"{model.axis_names[i]}.compliance"] = (
-                f"gravity turns this axis by only {rms[i]:.1g} N·m (rms) in these configurations: its sag cannot be seen")
+                f"gravity turns this axis by only {rms[i] if rms[i] > 1e-9 * rms.max() else 0.0:.1g} N·m (rms) in these "
+                "configurations: its sag cannot be seen")
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
     _, j0 = problem.residuals_and_jacobian(x0)
