@@ -211,9 +211,10 @@ def _resolve_null_space(post_factory, mask: ParamMask, lever_mm: float) -> tuple
         pick_from = offsets or combo.loadings
         name = max(pick_from, key=lambda k: abs(pick_from[k]))
         others = [k for k in combo.loadings if k != name]
+        how = "exactly" if combo.exact else "almost exactly"
         reason = (
-            f"not determined by this data: it moves the markers exactly like "
-            f"{', '.join(others) if others else 'nothing'} (combination {combo.describe()}); "
+            f"not determined by this data: it moves the markers {how} like "
+            f"{', '.join(others) if others else 'nothing'} (combination {combo.describe()}: {combo.explain()}); "
             f"kept at its nominal value"
         )
         if name == f"{post.chain.model.axis_names[0]}.offset" and mask.registration.any():
@@ -382,7 +383,8 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         for i in np.flatnonzero(rms < 0.05 * rms.max()):
             fit_compliance[i] = False
             reasons[f"{model.axis_names[i]}.compliance"] = (
-                f"gravity turns this axis by only {rms[i]:.1g} N·m (rms) in these configurations: its sag cannot be seen")
+                f"gravity turns this axis by only {rms[i] if rms[i] > 1e-9 * rms.max() else 0.0:.1g} N·m (rms) in these "
+                "configurations: its sag cannot be seen")
         for i in np.flatnonzero(~fit_joint):
             fit_compliance[i] = False
             reasons[f"{model.axis_names[i]}.compliance"] = "not fitted (its axis is excluded by the options)"
@@ -481,6 +483,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         "seconds_total": time.perf_counter() - t_start,
         "n_measurements": len(data),
         "lever_arm_mm": lever,
+        "max_std_deg": options.max_std_deg,
         # Per free θ: sandwich std ÷ the model's (Laplace) std; ≫ 1 means intervals too narrow.
         "sandwich_std_ratio": [float(v) for v in robust / np.where(model_std > 0, model_std, np.nan)],
         "error_budget": error_budget(data, sigma),

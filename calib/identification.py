@@ -29,6 +29,7 @@ from scipy.optimize import least_squares
 
 from calib.dataset import Dataset, DatasetError
 from calib.fit import initial_registrations
+from calib.identifiability import exact_tolerance
 from calib.kinematics import KINDS, Chain
 from calib.model import RobotModel
 from calib.transforms import euler_zyx_to_matrix
@@ -258,11 +259,17 @@ def select_identifiable(jac: np.ndarray, names: list[str], scale: np.ndarray, or
             continue
         for b in basis:
             v -= (b @ v) * b
-        if np.linalg.norm(v) / norm < rank_tol:
+        residual = np.linalg.norm(v) / norm
+        if residual < rank_tol:
             coef, *_ = np.linalg.lstsq(j[:, kept], j[:, c], rcond=None)
             top = np.argsort(-np.abs(coef))[:3]
             combo = " ".join(f"{coef[t]:+.3g}·{names[kept[t]]}" for t in top if abs(coef[t]) > 1e-9)
-            excluded[names[c]] = f"not identifiable: moves the markers exactly like {combo} (kept nominal)"
+            # "exactly" only at rounding level (calib.identifiability.exact_tolerance), else say how close.
+            if residual <= exact_tolerance(1.0, jac.shape):
+                excluded[names[c]] = f"not identifiable: moves the markers exactly like {combo} (kept nominal)"
+            else:
+                excluded[names[c]] = (f"not identifiable from these configurations: moves the markers like {combo} "
+                                      f"to within {residual:.1g} of its effect (a near-degeneracy above rounding level; kept nominal)")
             continue
         basis.append(v / np.linalg.norm(v))
         kept.append(c)
@@ -293,7 +300,8 @@ def identify(
         rms = np.sqrt(np.mean(problem.gain ** 2, axis=0)) * 1e6
         for i in np.flatnonzero(rms < 0.05 * rms.max()):
             excluded[f"{model.axis_names[i]}.compliance"] = (
-                f"gravity turns this axis by only {rms[i]:.1g} N·m (rms) in these configurations: its sag cannot be seen")
+                f"gravity turns this axis by only {rms[i] if rms[i] > 1e-9 * rms.max() else 0.0:.1g} N·m (rms) in these "
+                "configurations: its sag cannot be seen")
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
     _, j0 = problem.residuals_and_jacobian(x0)

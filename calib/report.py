@@ -1,30 +1,25 @@
-"""A self-contained ``report.html`` of a fit: tables and PNG plots embedded as base64.
+"""A self-contained ``report.html`` of a fit: one file, PNG plots embedded as base64.
 
-Sections: values to enter, zero-offsets, registration and σ, accuracy metrics before/after
-(Tables III–VIII of the paper), identifiability, sampler diagnostics, and plots — trace plots
-and posterior histograms of the offsets, the post-registration error (eq. 18) per
-configuration before/after, and that error against the distance from the sensor. Plots use
-matplotlib's Agg backend (no display needed).
+Sections: a one-screen summary (``calib.report_summary``: enter / do not enter, the values,
+accuracy before/after, warnings); the values to enter with the controller's sign convention;
+zero-offsets; registration and σ; accuracy metrics before/after (Tables III–VIII of the paper);
+identifiability (every direction the data leave weak or undetermined, named as the combination
+of parameters it mixes — ``calib.identifiability``); sampler diagnostics; and figures
+(``calib.report_figures``): the paper's TCP cloud (Fig. 5), trace plots and posterior
+histograms, and the post-registration error per configuration. The HTML reflows down to a
+phone's width; matplotlib is imported only while drawing.
 """
 
 from __future__ import annotations
 
-import base64
-import html
-import io
 import math
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from calib.dataset import Dataset  # noqa: E402
-from calib.fit import FitResult  # noqa: E402
-from calib.kinematics import Chain  # noqa: E402
-from calib.metrics import absolute_errors, predicted_base  # noqa: E402
+from calib.dataset import Dataset
+from calib.fit import FitResult
+from calib.identifiability import WEAK_NOISE_FACTOR
+from calib.report_format import CSS, Html, esc, fixed, num, table
+from calib.report_summary import summary_html
 
 METRIC_TITLES = {
     "relative": "Relative (eq. 17, Table III)",
@@ -37,166 +32,213 @@ METRIC_TITLES = {
     "validation_absolute": "Validation set, post-registration absolute (Table VIII)",
 }
 
-CSS = """
-body{font-family:system-ui,sans-serif;margin:2em;max-width:1100px;color:#222}
-table{border-collapse:collapse;margin:0.5em 0 1.5em}th,td{border:1px solid #bbb;padding:3px 8px;text-align:right}
-th{background:#eee}td.l,th.l{text-align:left}.warn{color:#a40}.small{font-size:0.85em;color:#555}
-img{max-width:100%;border:1px solid #ddd;margin:0.5em 0}pre{background:#f6f6f6;padding:0.6em;overflow-x:auto}
-"""
+VERDICT_CLASS = {"determined": "good", "weakly determined": "warn", "not determined": "bad"}
 
 
-def _png(fig) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return f'<img alt="plot" src="data:image/png;base64,{base64.b64encode(buf.getvalue()).decode("ascii")}">'
+def _controller_section(doc: dict, controller_text: str) -> list[str]:
+    ctrl = doc.get("controller")
+    out = ["<h2 id=controller>Values to enter</h2>"]
+    if not ctrl:
+        if controller_text:
+            out.append(f"<pre class=wrap>{esc(controller_text)}</pre>")
+        return out
+    out.append(f"<p>controller: <b>{esc(ctrl['controller'])}</b>. {esc(ctrl['convention'])}</p>")
+    out.append(f"<p class=warn>{esc(ctrl['sign_convention'])}</p>")
+    out.append("<p class=small>The values per axis are in the <a href='#summary'>summary</a> above.</p>")
+    return out
 
 
-def _fmt(v, digits: int = 4) -> str:
-    if v is None:
-        return "—"
-    if isinstance(v, float):
-        return "—" if not math.isfinite(v) else f"{v:.{digits}f}"
-    return html.escape(str(v))
+def _offsets_section(doc: dict) -> list[str]:
+    rows, notes = [], []
+    for j in doc["joint_offsets"]:
+        ci = j["ci95_deg"]
+        status = j["status"]
+        rows.append([
+            j["joint"],
+            Html(fixed(j["value_deg"], 4, sign=True)) if j["value_deg"] is not None else None,
+            Html(fixed(j["std_deg"], 4)) if j["std_deg"] is not None else None,
+            Html(f"[{fixed(ci[0], 4, sign=True)}, {fixed(ci[1], 4, sign=True)}]") if ci else None,
+            Html(num(j.get("sandwich_std_ratio"), 3)),
+            Html(f"<span class={'good' if status == 'fitted' else 'warn'}>{esc(status)}</span>"),
+        ])
+        notes.append(j.get("reason") or None)
+    return [
+        "<h2>Zero-offsets</h2>",
+        table(["joint", "value (°)", "std (°)", "95 % interval (°)", "sandwich ÷ std", "status"], rows, notes=notes),
+        "<p class=small>sandwich ÷ std: a model-robust standard deviation (configurations independent, errors of "
+        "any shape) over the posterior's; well above 1 means the errors are not isotropic and the interval is too "
+        "narrow. Systematic errors shared by all configurations (link lengths) show in neither.</p>",
+    ]
 
 
-def _table(header: list[str], rows: list[list], left: int = 1) -> str:
-    th = "".join(f'<th class="{"l" if i < left else ""}">{html.escape(h)}</th>' for i, h in enumerate(header))
-    body = "".join(
-        "<tr>" + "".join(f'<td class="{"l" if i < left else ""}">{_fmt(c)}</td>' for i, c in enumerate(r)) + "</tr>" for r in rows
-    )
-    return f"<table><tr>{th}</tr>{body}</table>"
+def _registration_section(doc: dict) -> list[str]:
+    out = ["<h2>Registration corrections and σ</h2>"]
+    for s, reg in doc["registration"].items():
+        rows = [[k, Html(num(v["value"])), Html(num(v["std"], 2)), "free" if v["free"] else "fixed"] for k, v in reg["corrections"].items()]
+        sig = doc["sigma_mm"][s]
+        rows.append(["σ (mm)", Html(num(sig["value"])), Html(num(sig["std"], 2)), "free"])
+        out += [f"<h3>{esc(s)}</h3>", table(["parameter", "value", "std", ""], rows)]
+        out.append("<p class=small>base2sensor (p_sensor = M · p_base; mm):</p><pre>" + "\n".join(
+            " ".join(f"{v:12.6f}" if abs(v) < 1e6 else f"{v:12.4e}" for v in row) for row in reg["base2sensor"]) + "</pre>")
+    return out
 
 
-def _plots(result: FitResult, data: Dataset) -> list[str]:
-    out = []
-    post = result.posterior
-    fitted = [i for i, s in enumerate(result.offset_status) if s == "fitted"]
-    axes = result.model.axis_names
-    samples = result.chains.samples  # (c, d, dim + S)
-    full = post.full_vector(samples[..., : post.dim])  # (c, d, n + 6S)
-    if fitted:
-        fig, ax = plt.subplots(len(fitted), 2, figsize=(10, 1.8 * len(fitted)), squeeze=False)
-        for row, i in enumerate(fitted):
-            for c in range(full.shape[0]):
-                ax[row, 0].plot(np.degrees(full[c, :, i]), lw=0.5)
-            ax[row, 0].set_ylabel(f"δ{axes[i]} (°)")
-            ax[row, 1].hist(np.degrees(full[..., i].ravel()), bins=40, color="tab:blue", alpha=0.8)
-            ax[row, 1].axvline(math.degrees(result.offsets_rad[i]), color="k", lw=1)
-        ax[0, 0].set_title("trace plots (one colour per chain)")
-        ax[0, 1].set_title("posterior histograms (line: mean)")
-        ax[-1, 0].set_xlabel("draw")
-        ax[-1, 1].set_xlabel("degrees")
-        fig.tight_layout()
-        out.append(_png(fig))
-    chain = Chain(result.model)
-    before = absolute_errors(data, predicted_base(chain, data, np.zeros(chain.n)))
-    after = absolute_errors(data, predicted_base(chain, data, result.applied_offsets_rad))
-    fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
-    idx = np.arange(len(data))
-    ax[0].plot(idx, before, ".", color="tab:red", label="before (nominal offsets)")
-    ax[0].plot(idx, after, ".", color="tab:green", label="after (fitted offsets)")
-    ax[0].set_xlabel("measurement (row)")
-    ax[0].set_ylabel("error after registration, eq. 18 (mm)")
-    ax[0].legend(fontsize=8)
-    dist = np.linalg.norm(data.xyz_mm, axis=1) / 1000.0
-    ax[1].plot(dist, before, ".", color="tab:red", label="before")
-    ax[1].plot(dist, after, ".", color="tab:green", label="after")
-    ax[1].set_xlabel("distance from the sensor (m)")
-    ax[1].set_ylabel("error (mm)")
-    ax[1].legend(fontsize=8)
-    fig.tight_layout()
-    out.append(_png(fig))
+def _metrics_section(doc: dict) -> list[str]:
+    metrics = doc.get("metrics") or {}
+    if not metrics:
+        return []
+    rows, groups = [], []
+    for key, title in METRIC_TITLES.items():
+        if isinstance(metrics.get(key), dict) and "before" in metrics[key]:
+            for when in ("before", "after"):
+                m = metrics[key][when]
+                rows.append([when, *(Html(num(m[f])) for f in ("mean", "p2_5", "p97_5", "max")), m["count"]])
+                groups.append(title if when == "before" else None)
+    out = ["<h2 id=accuracy>Accuracy before and after (mm)</h2>",
+           table(["", "mean", "2.5 %", "97.5 %", "max", "n"], rows, groups=groups)]
+    share = metrics.get("offsets_share")
+    if share:
+        out.append(f"<p>Share of the workspace error explained by the offsets alone (Table VII ÷ Table VI): "
+                   f"before {num(share['before'], 3)}, after {num(share['after'], 3)}.</p>")
+    if metrics.get("notes"):
+        out.append("<ul class=small>" + "".join(f"<li>{esc(n)}</li>" for n in metrics["notes"]) + "</ul>")
+    return out
+
+
+def _direction_rows(idt: dict, only_weak: bool) -> tuple[list[list], int]:
+    """Rows (weakest first) of the directions of one analysis; and how many were left out."""
+    dirs = idt.get("directions") or []
+    rows, hidden = [], 0
+    for k in reversed(range(len(dirs))):
+        c = dirs[k]
+        verdict = c.get("verdict", "exact null" if c.get("exact") else "")
+        if only_weak and verdict == "determined":
+            hidden += 1
+            continue
+        rows.append([
+            Html(f"<span class={VERDICT_CLASS.get(verdict, '')}>{esc(verdict)}</span>"),
+            c["combination"],
+            Html("∞" if c.get("exact") else num(c.get("std_mm"), 3)),
+            Html(num(c.get("condition"), 3)),
+            Html(num(c["singular_value_mm"], 3)),
+        ])
+    return rows, hidden
+
+
+def _condition_text(idt: dict) -> str:
+    """"∞ (… exact null directions); …" or the condition number, in words that match the verdicts."""
+    dirs = idt.get("directions") or []
+    exact = [c for c in dirs if c.get("exact")]
+    cond = idt.get("condition_number")
+    if not exact:
+        return "∞" if cond is None or not math.isfinite(cond) else num(cond, 3)
+    rest = [c["singular_value_mm"] for c in dirs if not c.get("exact")]
+    text = f"∞ ({len(exact)} exact null direction{'s' if len(exact) > 1 else ''})"
+    if len(rest) > 1:
+        text += f"; {num(rest[0] / rest[-1], 3)} without {'them' if len(exact) > 1 else 'it'}"
+    return text
+
+
+def _identifiability_section(doc: dict) -> list[str]:
+    ident = doc["identifiability"]
+    out = ["<h2 id=identifiability>Identifiability</h2>"]
+    est = ident.get("estimate", {})
+    sigma, limit = est.get("sigma_mm"), est.get("undetermined_limit_mm")
+    lever = doc.get("diagnostics", {}).get("lever_arm_mm")
+    out.append(
+        "<p class=small>Each row is a <i>direction</i> in parameter space: the combination of parameters the data "
+        "see together (largest weights of the right singular vector; angles scaled by the lever arm "
+        f"L = {num(lever)} mm so every weight is in mm of marker motion). s: its singular value; "
+        "s<sub>max</sub>/s: its condition number; std = σ/s: how well the data determine it, in mm "
+        f"(σ = {num(sigma, 3)} mm). <b>not determined</b>: an exact null direction (s at rounding level, "
+        f"s ≤ s<sub>max</sub>·max(rows, columns)·ε·10) or std above {num(limit, 3)} mm (the fit's "
+        f"limit for an offset, times L); <b>weakly determined</b>: std above {WEAK_NOISE_FACTOR:g}·σ.</p>")
+    for label in ("start", "estimate"):
+        idt = ident.get(label)
+        if not idt:
+            continue
+        n = len(idt["parameters"])
+        rows, hidden = _direction_rows(idt, only_weak=True)
+        cond_text = _condition_text(idt)
+        where = "at the start (nominal model, before anything is fixed)" if label == "start" else "at the estimate (what was sampled)"
+        out.append(f"<h3>{where}</h3><p>{n} parameters, numerical rank {idt['rank']}; condition number {cond_text}.</p>")
+        if not idt.get("directions"):  # a result.json from before directions were written
+            out.append(table(["undetermined combination", "singular value"],
+                             [[c["combination"], Html(num(c["singular_value_mm"], 3))] for c in idt["undetermined_combinations"]]))
+            continue
+        header = ["verdict", "combination (weights)", "std (mm)", "s_max/s", "s"]
+        if rows:
+            out.append(table(header, rows, left=2))
+        if hidden:
+            out.append(f"<p>{hidden} {'other ' if rows else ''}direction{'s' if hidden != 1 else ''}: determined.</p>")
+        every, _ = _direction_rows(idt, only_weak=False)
+        out.append(f"<details class={label}><summary>all {len(every)} directions {where.split(' (')[0]}, weakest first</summary>"
+                   f"{table(header, every, left=2)}</details>")
+    if ident.get("fixed_parameters"):
+        out.append("<h3>fixed before sampling</h3>")
+        out.append(table(["parameter", "reason"], [[f["parameter"], f["reason"]] for f in ident["fixed_parameters"]], left=2))
+    return out
+
+
+def _diagnostics_section(doc: dict) -> list[str]:
+    d = doc["diagnostics"]
+    out = ["<h2>Sampler diagnostics</h2>", (
+        f"<p>sampler {esc(d.get('sampler'))}, {d.get('n_chains')} chain(s) × {d.get('n_draws')} draws, "
+        f"acceptance {', '.join(num(a, 2) for a in d.get('acceptance', []))}, "
+        f"R-hat max {num(d.get('rhat_max'), 4)}, ESS min {num(d.get('ess_min'), 3)}, "
+        f"time {num(d.get('seconds_total'), 3)} s</p>")]
+    if "rhat" in d or "ess" in d:
+        names = list((d.get("rhat") or d.get("ess")).keys())
+        out.append(f"<details><summary>R-hat and ESS of each of the {len(names)} sampled parameters</summary>")
+        out.append(table(["parameter", "R-hat", "ESS"],
+                         [[n, Html(num((d.get("rhat") or {}).get(n), 4)), Html(num((d.get("ess") or {}).get(n), 3))] for n in names]))
+        out.append("</details>")
+    return out
+
+
+def _figures_section(result: FitResult, data: Dataset) -> list[str]:
+    from calib.report_figures import error_figure, offset_trace_figure, tcp_cloud_figure, tcp_clouds
+
+    clouds = tcp_clouds(result, data)
+    out = [
+        "<h2 id=tcp>TCP cloud (the paper's Fig. 5)</h2><figure>", tcp_cloud_figure(clouds),
+        f"<figcaption>TCP (flange origin, robot base x–y, relative to the TCP after) at {len(clouds.rows)} measured "
+        f"configurations — the smallest, middle and largest before→after move: with the nominal offsets (red, "
+        f"before), the applied offsets (green, after), {clouds.draws.shape[1]} posterior draws of the offsets "
+        f"(yellow) and those draws plus the isotropic error σ = {num(clouds.sigma_mm, 3)} mm of the corrected robot "
+        "(blue; the σ of the theoretical metrics). Top: at the scale of the move; bottom: the offset draws alone, "
+        "zoomed. A yellow cloud much smaller than the blue one means the offsets are no longer the main error."
+        "</figcaption></figure>",
+        "<h2>Plots</h2>",
+    ]
+    trace = offset_trace_figure(result)
+    if trace:
+        out.append(trace)
+    out.append(error_figure(result, data))
     return out
 
 
 def render_report(result: FitResult, data: Dataset, doc: dict, controller_text: str = "") -> str:
-    """The report as one HTML string. ``doc`` is the ``result.json`` document."""
+    """The report as one HTML string. ``doc`` is the ``result.json`` document (``calib.result``);
+    ``controller_text`` is shown only when ``doc`` has no ``controller`` entry."""
+    name = esc(doc["robot"]["name"])
     parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
-        f"<title>remaster fit — {html.escape(doc['robot']['name'])}</title><style>{CSS}</style></head><body>",
-        f"<h1>Remastering fit: {html.escape(doc['robot']['name'])}</h1>",
-        f"<p class='small'>data: {html.escape(str(doc['data']['source']))} — {doc['data']['n_measurements']} measurements, "
-        f"{doc['data']['n_configurations']} configurations, sensors {html.escape(', '.join(doc['data']['sensors']))}; "
-        f"method {html.escape(str(doc['diagnostics'].get('method')))}</p>",
+        "<!DOCTYPE html><html lang=en><head><meta charset='utf-8'>",
+        "<meta name=viewport content='width=device-width, initial-scale=1'>",
+        f"<title>remaster fit — {name}</title><style>{CSS}</style></head><body>",
+        f"<h1>Remastering fit: {name}</h1>",
+        f"<p class=small>data: <code class=wrap>{esc(doc['data']['source'] or '(in memory)')}</code> — {doc['data']['n_measurements']} "
+        f"measurements, {doc['data']['n_configurations']} configurations, sensors {esc(', '.join(doc['data']['sensors']))}; "
+        f"method {esc(doc['diagnostics'].get('method'))}</p>",
+        summary_html(doc),
     ]
-    if controller_text:
-        parts += ["<h2>Values to enter</h2>", f"<pre>{html.escape(controller_text)}</pre>"]
-    parts.append("<h2>Zero-offsets</h2>")
-    parts.append(
-        _table(
-            ["joint", "value (°)", "std (°)", "95 % interval (°)", "sandwich ÷ std", "status", "reason"],
-            [
-                [
-                    j["joint"],
-                    j["value_deg"],
-                    j["std_deg"],
-                    "—" if j["ci95_deg"] is None else f"[{j['ci95_deg'][0]:.4f}, {j['ci95_deg'][1]:.4f}]",
-                    j.get("sandwich_std_ratio"),
-                    j["status"],
-                    j["reason"],
-                ]
-                for j in doc["joint_offsets"]
-            ],
-        ).replace("<td class=\"\">undetermined", "<td class=\"warn\">undetermined")
-    )
-    parts.append(
-        "<p class='small'>sandwich ÷ std: a model-robust standard deviation (configurations independent, errors of "
-        "any shape) over the posterior's; well above 1 means the errors are not isotropic and the interval is too "
-        "narrow. Systematic errors shared by all configurations (link lengths) show in neither.</p>"
-    )
-    parts.append("<h2>Registration corrections and σ</h2>")
-    for s, reg in doc["registration"].items():
-        rows = [[k, v["value"], v["std"], "free" if v["free"] else "fixed"] for k, v in reg["corrections"].items()]
-        sig = doc["sigma_mm"][s]
-        rows.append(["σ (mm)", sig["value"], sig["std"], "free"])
-        parts += [f"<h3>{html.escape(s)}</h3>", _table(["parameter", "value", "std", ""], rows)]
-        parts.append("<p class='small'>base2sensor (mm):</p><pre>" + "\n".join(
-            " ".join(f"{v:12.6f}" for v in row) for row in reg["base2sensor"]) + "</pre>")
-    metrics = doc.get("metrics", {})
-    if metrics:
-        parts.append("<h2>Accuracy before and after (mm)</h2>")
-        rows = []
-        for key, title in METRIC_TITLES.items():
-            if key in metrics:
-                for when in ("before", "after"):
-                    m = metrics[key][when]
-                    rows.append([title if when == "before" else "", when, m["mean"], m["p2_5"], m["p97_5"], m["max"], m["count"]])
-        parts.append(_table(["metric", "", "mean", "2.5 %", "97.5 %", "max", "n"], rows, left=2))
-        share = metrics.get("offsets_share")
-        if share:
-            parts.append(
-                f"<p>Share of the workspace error explained by the offsets alone (Table VII ÷ Table VI): "
-                f"before {_fmt(share['before'], 3)}, after {_fmt(share['after'], 3)}.</p>"
-            )
-        if metrics.get("notes"):
-            parts.append("<ul class='small'>" + "".join(f"<li>{html.escape(n)}</li>" for n in metrics["notes"]) + "</ul>")
-    ident = doc["identifiability"]
-    parts.append("<h2>Identifiability</h2>")
-    for label in ("start", "estimate"):
-        idt = ident[label]
-        parts.append(
-            f"<h3>at the {label}</h3><p>rank {idt['rank']} of {len(idt['parameters'])}, "
-            f"condition number {_fmt(idt['condition_number'], 1)}</p>"
-        )
-        parts.append(_table(["parameter", "singular value (mm)"], list(zip(idt["parameters"], idt["singular_values_mm"]))))
-        for c in idt["undetermined_combinations"]:
-            parts.append(f"<p class='warn'>undetermined combination: {html.escape(c['combination'])}</p>")
-    if ident["fixed_parameters"]:
-        parts.append(_table(["fixed parameter", "reason"], [[f["parameter"], f["reason"]] for f in ident["fixed_parameters"]], left=2))
-    d = doc["diagnostics"]
-    parts.append("<h2>Sampler diagnostics</h2>")
-    parts.append(
-        f"<p>sampler {html.escape(str(d.get('sampler')))}, {d.get('n_chains')} chain(s) × {d.get('n_draws')} draws, "
-        f"acceptance {', '.join(f'{a:.2f}' for a in d.get('acceptance', []))}, "
-        f"R-hat max {_fmt(d.get('rhat_max'), 3)}, ESS min {_fmt(d.get('ess_min'), 0)}, "
-        f"time {_fmt(d.get('seconds_total'), 2)} s</p>"
-    )
-    if "rhat" in d or "ess" in d:
-        names = list((d.get("rhat") or d.get("ess")).keys())
-        parts.append(_table(["parameter", "R-hat", "ESS"], [[n, (d.get("rhat") or {}).get(n), (d.get("ess") or {}).get(n)] for n in names]))
-    parts.append("<h2>Plots</h2>")
-    parts += _plots(result, data)
+    parts += _controller_section(doc, controller_text)
+    parts += _offsets_section(doc)
+    parts += _registration_section(doc)
+    parts += _metrics_section(doc)
+    parts += _identifiability_section(doc)
+    parts += _diagnostics_section(doc)
+    parts += _figures_section(result, data)
     parts.append("</body></html>")
     return "\n".join(parts)
 

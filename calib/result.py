@@ -15,7 +15,8 @@ Layout (``format: "remaster.fit/1"``; angles in degrees, lengths in mm)::
     diagnostics      method, sampler, chains, draws, acceptance, rhat/ess per parameter,
                      rhat_max, ess_min, timings (s)
     identifiability  start / estimate: singular values (mm per scaled unit), condition number,
-                     rank, undetermined combinations; fixed_parameters [{parameter, reason}]
+                     rank, undetermined combinations, directions [{combination, loadings,
+                     singular_value_mm, exact, verdict, why, std_mm, condition}]; fixed_parameters [{parameter, reason}]
                      (fixed before sampling); undetermined_at_estimate [{parameter, reason}]
                      (sampled, but the posterior is too wide to enter a value)
     metrics          see ``calib.metrics.accuracy_metrics`` (each metric: before / after with
@@ -38,6 +39,7 @@ import numpy as np
 
 from calib.dataset import Dataset
 from calib.fit import FitResult
+from calib.identifiability import Identifiability, verdicts
 from calib.posterior import REG_NAMES
 
 FORMAT = "remaster.fit/1"
@@ -136,6 +138,19 @@ def diagnostics(result: FitResult) -> dict:
     return d
 
 
+def graded(ident: Identifiability, result: FitResult) -> dict:
+    """``ident.to_dict()`` with each direction graded against the fit's σ (``calib.identifiability.verdicts``):
+    verdict, why, std_mm (scaled mm: angles × the lever arm), condition (s_max / s)."""
+    out = ident.to_dict()
+    lever = float(result.diagnostics.get("lever_arm_mm") or 1000.0)
+    limit = lever * math.radians(float(result.diagnostics.get("max_std_deg") or 1.0))
+    out["sigma_mm"] = result.pooled_sigma_mm
+    out["undetermined_limit_mm"] = limit
+    for d, v in zip(out["directions"], verdicts(ident.singular_values, ident.shape, result.pooled_sigma_mm, limit)):
+        d.update(verdict=v.verdict, why=v.why, std_mm=v.std_mm, condition=v.condition)
+    return out
+
+
 def identifiability(result: FitResult) -> dict:
     fixed = [
         {"parameter": name, "reason": reason}
@@ -148,8 +163,8 @@ def identifiability(result: FitResult) -> dict:
         if status.startswith("undetermined") and f"{axis}.offset" not in reasons
     ]
     return {
-        "start": result.identifiability_start.to_dict(),
-        "estimate": result.identifiability.to_dict(),
+        "start": graded(result.identifiability_start, result),
+        "estimate": graded(result.identifiability, result),
         "fixed_parameters": fixed,
         "undetermined_at_estimate": too_wide,
     }

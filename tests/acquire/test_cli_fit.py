@@ -78,7 +78,8 @@ def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
     assert [a["action"] for a in doc["controller"]["axes"]] == ["leave unchanged"] + ["enter"] * 6
     # report.html: self-contained (embedded PNGs, nothing fetched).
     html = rep.read_text()
-    assert html.count('src="data:image/png;base64,') == 2
+    assert html.count('src="data:image/png;base64,') == 3  # TCP cloud (Fig. 5), traces, errors
+    assert '<img alt="TCP cloud' in html and "id=summary" in html
     assert not re.search(r'(src|href)="(http|//)', html)
     for heading in ("Values to enter", "Zero-offsets", "Accuracy before and after", "Identifiability", "Sampler diagnostics"):
         assert heading in html
