@@ -29,7 +29,9 @@ from __future__ import annotations
 import inspect
 import logging
 import math
+import os
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -318,11 +320,36 @@ class RunController:
         self._runlog = None
 
     # ------------------------------------------------------------------ public API
+    def check_output(self) -> None:
+        """Refuse, before any device is opened, a run whose log and results cannot be written:
+        the output folder (created if missing) must take a new file, and a resumed log must be
+        writable. Raises RunError saying which folder or file and what to do."""
+        hint = "choose a writable folder with --out or the plan's output.folder"
+        if self.resume_path is not None:
+            target, hint = self.resume_path.parent, "copy the log to a writable folder and resume from there"
+            if not os.access(self.resume_path, os.W_OK):
+                raise RunError(f"--resume {self.resume_path}: the log is not writable; {hint}")
+        else:
+            target = self.out_dir
+            try:
+                target.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise RunError(f"output folder {target}: cannot create it ({exc.strerror or exc}); {hint}") from exc
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".remaster-write-test-", dir=target)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            raise RunError(f"output folder {target}: cannot write in it ({exc.strerror or exc}); {hint}") from exc
+
     def start(self) -> str:
-        """Start the run in a background thread; returns its run id."""
+        """Check the output folder (``check_output``), then start the run in a background
+        thread; returns its run id. Raises RunError before anything connects when the run's
+        log cannot be written."""
         with self._lock:
             if self._state != "idle":
                 raise RuntimeError(f"run already {self._state}")
+            self.check_output()
             self._state = "starting"
             if self.resume_path is not None:
                 from acquire.recorder import read_run
@@ -833,14 +860,26 @@ class RunController:
         summary.cell_seconds = cell_seconds
         summary.truth_offsets_deg = truth
         summary.truth_mean_sag_deg = sag
-        if not aborted and self.fit_enabled and self.log_path is not None and self._measured >= 3:
-            try:
-                summary.fit, summary.result_path, summary.report_path = fit_run_log(self.log_path, self.lp)
-            except (ValueError, RuntimeError, ArithmeticError) as exc:
-                log.error("fit of %s failed: %s", self.log_path, exc)
-                summary.reason = f"fit failed: {exc}"
-        self._set_state(state, self._reason if aborted else "")
+        reason = self._reason if aborted else ""
+        if not aborted and self.fit_enabled and self.log_path is not None:
+            # A run that was asked for a result and has none has failed (exit 1), even when every
+            # configuration was visited: the operator must not read "finished" as "calibrated".
+            if self._measured == 0:
+                reason = (f"no result: none of the {self._total} configurations was measured "
+                          f"({self._skipped} skipped, {self._failed} failed)")
+            else:
+                try:
+                    summary.fit, summary.result_path, summary.report_path = fit_run_log(self.log_path, self.lp)
+                except (ValueError, RuntimeError, ArithmeticError) as exc:
+                    reason = f"no result: the fit of {self._measured} measured configuration(s) failed: {exc}"
+            if summary.fit is None:
+                log.error("run %s: %s", self.run_id, reason)
+                state = "failed"
+        with self._lock:
+            self._reason = reason if state == "failed" else self._reason
+        self._set_state(state, reason)
         summary.state = state
+        summary.reason = reason
         if self.bus is not None:
             from acquire.bus import key
 

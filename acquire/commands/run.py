@@ -6,10 +6,12 @@ Examples::
     acquire run plan.yaml --dry-run                         # what would happen; connects to nothing
     acquire run plan.yaml --resume runs/<id>/<id>.mcap      # continue a killed or aborted run
 
-A bad plan exits 2 before anything connects or moves. Ctrl-C (SIGINT) or SIGTERM stops the
-robot safely (the commander decelerates), closes a complete, resumable log and exits 130;
-a failed run exits 1. Under ``--fake`` the summary puts the fitted offsets next to the
-simulated cell's true ones.
+Exit codes: 0 a result was written (or ``--no-fit`` and the run finished); 2 a bad plan or
+an output folder that cannot be written, before anything connects or moves; 130 Ctrl-C
+(SIGINT) or SIGTERM: the robot stops safely (the commander decelerates) and the log is closed
+complete and resumable; 1 a failed run — including one that visited every configuration but
+produced no result (too few measured for the fit, or the fit failed). Under ``--fake`` the
+summary puts the fitted offsets next to the simulated cell's true ones.
 """
 
 from __future__ import annotations
@@ -168,8 +170,14 @@ def run(
         typer.echo(f"error: --resume {resume}: no such file", err=True)
         raise typer.Exit(2)
     from acquire.progress import Progress
-    from acquire.run import RunController
+    from acquire.run import RunController, RunError
 
+    controller = RunController(lp, fake=fake, resume=resume, bus=None, out_dir=out, fit=not no_fit)
+    try:
+        controller.check_output()  # first: before the bus, the fakes or any device
+    except RunError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
     bus = None
     if not no_bus:
         try:
@@ -180,8 +188,8 @@ def run(
             log.warning("no Zenoh bus (%s); the run is not published", exc)
             bus = None
     progress = Progress()
-    controller = RunController(lp, fake=fake, resume=resume, bus=bus, out_dir=out, on_progress=progress.update,
-                               fit=not no_fit)
+    controller.bus = bus
+    controller.on_progress = progress.update
     interrupted = threading.Event()
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -210,11 +218,12 @@ def run(
             bus.close()
     typer.echo(format_run_summary(summary, lp))
     if summary.state != "finished":
-        if summary.log_path is not None:
+        if summary.log_path is not None and summary.done < summary.total:
             typer.echo(f"resume with: acquire run {plan} --resume {summary.log_path}" + (" --fake" if fake else ""))
+        elif summary.log_path is not None and summary.measured:
+            typer.echo(f"every configuration was visited; measure more (a larger plan) or fit the log yourself: "
+                       f"acquire fit {summary.log_path} --robot {lp.model_path}")
         raise typer.Exit(summary.exit_code)
-    if summary.fit is None and not no_fit and summary.measured >= 3:
-        raise typer.Exit(1)
 
 
 def register(app: typer.Typer) -> None:
