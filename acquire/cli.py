@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "acquire.commands.move",
     "acquire.commands.daemon",
     "acquire.commands.watch",
+    "acquire.commands.examples",
 ]
 
 

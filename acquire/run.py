@@ -187,7 +187,9 @@ class FakeCell:
         fake = getattr(lp.plan, "fake", None)
         sim_config = getattr(fake, "sim_config", None) if fake is not None else None
         if sim_config is None:
-            sim_config = Path(__file__).resolve().parent.parent / "fixtures" / "sim" / "default.yaml"
+            from drivers.sim.config import DEFAULT_CONFIG_PATH
+
+            sim_config = DEFAULT_CONFIG_PATH
         sim_config = Path(sim_config)
         if not sim_config.is_absolute():
             sim_config = (Path(lp.path).parent / sim_config).resolve()

@@ -2,7 +2,8 @@
 
 Examples::
 
-    acquire run fixtures/plans/example.yaml --fake          # against the simulated cell
+    acquire run fixtures/plans/example.yaml --fake          # against the simulated cell (a checkout)
+    acquire run example --fake                              # the packaged example, results in ./runs
     acquire run plan.yaml --dry-run                         # what would happen; connects to nothing
     acquire run plan.yaml --resume runs/<id>/<id>.mcap      # continue a killed or aborted run
 
@@ -27,6 +28,27 @@ import numpy as np
 import typer
 
 log = logging.getLogger(__name__)
+
+
+def plan_argument(plan: Path) -> tuple[Path, bool]:
+    """The plan file ``acquire run PLAN`` means, and whether it is a packaged example.
+
+    A path to a file is taken as it is; otherwise a bare name (``example``, ``paper.yaml``) is
+    looked up among the plans shipped in the package (``acquire examples``). A packaged plan's
+    results go to ``./runs`` (the current folder), never into the installed package. Exits 2
+    naming the packaged examples when neither exists.
+    """
+    from calib.resources import find, is_packaged, packaged
+
+    if plan.is_file():
+        return plan, is_packaged(plan)
+    found = find("plans", str(plan)) if not plan.exists() else None
+    if found is not None:
+        return found, True
+    names = ", ".join(p.stem for p in packaged("plans"))
+    typer.echo(f"error: {plan}: no such plan file (given {str(plan)!r}; allowed: a plan YAML file, or the name of a "
+               f"packaged example: {names} — see `acquire examples`)", err=True)
+    raise typer.Exit(2)
 
 
 def _load(plan: Path):
@@ -153,7 +175,7 @@ def format_run_summary(summary, lp) -> str:
 
 
 def run(
-    plan: Path = typer.Argument(..., help="The plan YAML file."),
+    plan: Path = typer.Argument(..., help="The plan YAML file, or a packaged example's name (acquire examples)."),
     fake: bool = typer.Option(False, "--fake", help="Run against the simulated cell's fakes on loopback."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Print configurations, order and cell time; connect to nothing."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Continue the run recorded in this MCAP log."),
@@ -161,7 +183,15 @@ def run(
     no_fit: bool = typer.Option(False, "--no-fit", help="Do not fit at the end (use `acquire fit RUN.mcap` later)."),
     no_bus: bool = typer.Option(False, "--no-bus", help="Do not open the Zenoh bus (nothing published)."),
 ) -> None:
-    """Run the measurement plan: move, settle, measure every configuration; log; fit."""
+    """Run the measurement plan: move, settle, measure every configuration; log; fit.
+
+    PLAN is a plan file or the name of a packaged example (`acquire examples`); a packaged
+    example writes its run to ./runs unless --out says otherwise.
+    """
+    given = plan
+    plan, is_example = plan_argument(plan)
+    if out is None and is_example:
+        out = Path.cwd() / "runs"
     lp, configs = _load(plan)
     if dry_run:
         typer.echo(dry_run_text(lp, configs))
@@ -219,7 +249,7 @@ def run(
     typer.echo(format_run_summary(summary, lp))
     if summary.state != "finished":
         if summary.log_path is not None and summary.done < summary.total:
-            typer.echo(f"resume with: acquire run {plan} --resume {summary.log_path}" + (" --fake" if fake else ""))
+            typer.echo(f"resume with: acquire run {given} --resume {summary.log_path}" + (" --fake" if fake else ""))
         elif summary.log_path is not None and summary.measured:
             typer.echo(f"every configuration was visited; measure more (a larger plan) or fit the log yourself: "
                        f"acquire fit {summary.log_path} --robot {lp.model_path}")
