@@ -36,7 +36,8 @@ commented example)::
         roll_deg: [0, 360]           # extra tool roll about the aimed z-axis [0, 360]
         arm_angles_deg: [180]        # 7-axis arms: also solve at these arm angles [none]
         min_solutions: 2             # drop poses with fewer feasible IK solutions [2]
-        limit_margin_deg: 0          # keep configurations this far inside the limits [0]
+        limit_margin_deg: 0          # keep configurations this far inside the limits, and at
+                                     # least the commander's margin (0.5° for fri, rsi) [0]
       # cartesian:                   # explicit flange poses, every IK solution within limits
       #   - {xyz_mm: [500, 0, 600], zyx_deg: [0, 90, 0], group: front, arm_angle_deg: 30}
       # joints: [[0, 30, 0, -60, 0, 45, 0], ...]     # explicit configurations, degrees
@@ -77,6 +78,13 @@ allowed (0, 1])``. Relations are checked too: driver names (the known ones are l
 sensor marker the tool does not carry, joint lists of the wrong length or outside the model's
 limits (the joint and its limit are named), a robot or configurations file that does not exist
 (pointing at its line), a selection larger than the configurations it selects from.
+
+Inputs that would move the robot wrongly are refused too (``acquire.plan_guards``): explicit
+joint targets within the commander's margin of a limit (the driver class says how much,
+``limit_margin_for``; the commander would refuse them mid-run), and values that look like
+metres or radians (``sensor_origin_mm`` in metres, joint targets in radians, the robot model's
+tool markers in metres — pointing at the model file's line). Generated and Cartesian poses
+keep at least the commander's margin inside the limits.
 
 Configuration ids (``PlannedConfig.config_id``; a resumed run matches on them):
 
@@ -190,7 +198,8 @@ class GeneratedPoses(_Strict):
         None, description="7-axis arms: further arm angles (degrees) at which to solve every pose."
     )
     min_solutions: int = Field(2, ge=1, le=64, description="Poses with fewer feasible IK solutions are dropped.")
-    limit_margin_deg: float = Field(0.0, ge=0, le=45, description="Keep configurations this far inside the limits, degrees.")
+    limit_margin_deg: float = Field(0.0, ge=0, le=45, description="Keep configurations this far inside the limits, degrees "
+                                                                  "(at least the commander's margin).")
 
 
 class CartesianPose(_Strict):
