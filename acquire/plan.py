@@ -917,6 +917,7 @@ def _cartesian(lp: LoadedPlan) -> ResolvedPlan:
     poses = lp.plan.poses.cartesian or []
     configs: list[PlannedConfig] = []
     groups: list[str] = []
+    margin = lp.commander_margin_rad
     for i, cp in enumerate(poses):
         group = cp.group or f"c{i:02d}"
         pose = pose_to_matrix(np.array(cp.xyz_mm), np.radians(cp.zyx_deg))
@@ -933,11 +934,11 @@ def _cartesian(lp: LoadedPlan) -> ResolvedPlan:
         if sol.status == "singular":
             log.warning("cartesian pose %s is singular: %s", group, sol.message)
         # Solutions inside the commander's limit margin would be refused mid-run: not planned.
-        keep = lp.model.within_limits(np.asarray(sol.q), lp.commander_margin_rad)
+        keep = lp.model.within_limits(np.asarray(sol.q), margin)
         if not np.any(keep):
             raise lp.error(("poses", "cartesian", i),
                            f"every IK solution of {lp.model.name} for this pose lies within the commander's "
-                           f"{math.degrees(lp.commander_margin_rad):g}° margin of a joint limit (given xyz_mm "
+                           f"{math.degrees(margin):g}° margin of a joint limit (given xyz_mm "
                            f"{list(cp.xyz_mm)}, zyx_deg {list(cp.zyx_deg)}; allowed: a pose it reaches at least that "
                            "far inside its limits)")
         if not np.all(keep):
