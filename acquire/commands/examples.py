@@ -22,7 +22,7 @@ def listing() -> str:
     """Every packaged file by kind: name, path, and its first comment line."""
     from calib.resources import KINDS, packaged, summary
 
-    how = {"plans": "acquire run NAME --fake", "robots": "--robot PATH", "sim": "acquire sim --config NAME"}
+    how = {"plans": "acquire run NAME --fake", "robots": "--robot NAME", "sim": "acquire sim --config NAME"}
     lines = []
     for kind, title in KINDS.items():
         files = packaged(kind)

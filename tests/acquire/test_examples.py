@@ -68,3 +68,19 @@ def test_a_copied_example_loads_from_another_folder_and_writes_beside_itself(tmp
         copy_plan("example", tmp_path)
     with pytest.raises(ValueError, match="allowed: example, paper, tracker"):
         copy_plan("nosuch", tmp_path)
+
+
+def test_robot_models_load_by_packaged_name_when_no_such_file_exists(tmp_path, monkeypatch):
+    from calib.model import load_robot_model
+    from calib.yamlfile import ConfigError
+
+    monkeypatch.chdir(tmp_path)
+    assert load_robot_model("kuka_iiwa14_r820").name == "KUKA LBR iiwa 14 R820"
+    assert load_robot_model("kuka_kr6_r900_2.yaml").n_joints == 6
+    with pytest.raises(ConfigError, match="no such robot model file .*packaged model: kuka_iiwa14_r820"):
+        load_robot_model("kuka_iiwa99")
+    with pytest.raises(ConfigError, match="no such robot model file"):
+        load_robot_model(tmp_path / "models" / "kuka_iiwa14_r820.yaml")  # a path is never swapped for a name
+    local = tmp_path / "kuka_iiwa14_r820.yaml"  # a file of that name in the current folder wins
+    local.write_text((ROOT / "fixtures" / "robots" / "kuka_iiwa7_r800.yaml").read_text())
+    assert load_robot_model("kuka_iiwa14_r820.yaml").name == "KUKA LBR iiwa 7 R800"
