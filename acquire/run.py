@@ -20,6 +20,11 @@ The job:
    configuration is measured again after a recovery; every step is an event in the log and on
    the bus, every measured configuration one sample record;
 5. close the log; when finished, fit it and write ``result.json`` and ``report.html`` beside it.
+   A run asked for a result that has none (nothing measured, too few configurations for the
+   fit, the fit failed) ends ``failed`` with the reason, not ``finished``.
+
+Before any of this, ``start()`` checks that the output folder takes a new file
+(``check_output``): an unwritable folder is refused before a device is opened.
 
 States: idle → starting → running ⇄ paused / suspended → stopping → finished | aborted | failed.
 """
