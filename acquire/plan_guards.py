@@ -172,7 +172,7 @@ def plan_units_errors(plan, model: RobotModel) -> list[Problem]:
         for key in ("radius_mm", "height_mm"):
             rng = getattr(g, key)
             if _metres(rng, RANGE_METRES_MM):
-                errors.append((loc + (key,), f"a {RANGE_METRES_MM:g} mm wide workspace looks like metres "
+                errors.append((loc + (key,), f"a workspace within ±{RANGE_METRES_MM:g} mm of the base looks like metres "
                                              f"(given {_fmt(rng)}; allowed mm, e.g. {_fmt(np.asarray(rng) * 1000.0)})"))
         for key in ("angle_deg", "roll_deg"):
             rng = getattr(g, key)
