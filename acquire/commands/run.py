@@ -66,6 +66,23 @@ def _load(plan: Path):
     return lp, configs
 
 
+def too_few_for_the_fit(lp, configs) -> str | None:
+    """Why the plan's configurations cannot give a fitted result even if every one is measured
+    (``calib.fit.min_configurations``), as a ``file:line:col: field: …`` line; None if they can."""
+    from calib.fit import min_configurations
+
+    fit = lp.plan.fit
+    n_fit = len(fit.joints) if fit.joints else lp.model.n_joints
+    need = min_configurations(n_fit, [len(s.markers) for s in lp.plan.sensors], fix_registration=fit.fix_registration)
+    if len(configs) >= need:
+        return None
+    loc = ("selection", "m") if lp.plan.selection is not None else ("poses",)
+    return str(lp.error(loc, f"{len(configs)} configuration(s) cannot give a result: the fit of {n_fit} offset(s) "
+                             f"with {len(lp.plan.sensors)} sensor registration(s) needs at least {need} (given "
+                             f"{len(configs)}; allowed ≥ {need}: more poses or a larger selection, or --no-fit to "
+                             "only measure)"))
+
+
 def dry_run_text(lp, configs) -> str:
     """What ``--dry-run`` prints: configurations in order and the estimated cell time."""
     from acquire.run import SENSOR_RATE_HZ, plan_settings
@@ -193,9 +210,15 @@ def run(
     if out is None and is_example:
         out = Path.cwd() / "runs"
     lp, configs = _load(plan)
+    too_few = None if no_fit else too_few_for_the_fit(lp, configs)
     if dry_run:
         typer.echo(dry_run_text(lp, configs))
+        if too_few:
+            typer.echo(f"warning: {too_few}")
         return
+    if too_few:  # the robot would move for nothing: refuse before anything connects
+        typer.echo(f"error: {too_few}", err=True)
+        raise typer.Exit(2)
     if resume is not None and not resume.is_file():
         typer.echo(f"error: --resume {resume}: no such file", err=True)
         raise typer.Exit(2)

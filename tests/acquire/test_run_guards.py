@@ -33,7 +33,7 @@ def no_devices(monkeypatch):
 def test_an_output_folder_that_cannot_be_created_exits_2_before_any_device(tmp_path, no_devices):
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("a file where the runs folder's parent should be")
-    plan = small_plan(tmp_path, n=4, output={"folder": str(blocker / "runs")})
+    plan = small_plan(tmp_path, n=8, output={"folder": str(blocker / "runs")})
     result = CliRunner().invoke(app, ["run", str(plan), "--fake"])
     assert result.exit_code == 2, result.output
     assert f"output folder {blocker / 'runs'}: cannot create it" in result.output
@@ -41,7 +41,7 @@ def test_an_output_folder_that_cannot_be_created_exits_2_before_any_device(tmp_p
 
 
 def test_an_out_option_naming_a_file_exits_2_before_any_device(tmp_path, no_devices):
-    plan = small_plan(tmp_path, n=4)
+    plan = small_plan(tmp_path, n=8)
     target = tmp_path / "a-file"
     target.write_text("")
     result = CliRunner().invoke(app, ["run", str(plan), "--fake", "--no-bus", "--out", str(target)])
@@ -55,7 +55,7 @@ def test_a_read_only_output_folder_exits_2_before_any_device(tmp_path, no_device
     runs.mkdir()
     runs.chmod(0o500)
     try:
-        plan = small_plan(tmp_path, n=4)
+        plan = small_plan(tmp_path, n=8)
         result = CliRunner().invoke(app, ["run", str(plan), "--fake"])
     finally:
         runs.chmod(0o700)
@@ -85,25 +85,52 @@ def two_configuration_plan(tmp_path: Path, **fit) -> Path:
     return path
 
 
-def test_a_run_too_small_for_the_fit_fails_with_exit_1_and_says_why(tmp_path):
+def test_a_plan_too_small_for_the_fit_exits_2_before_any_device(tmp_path, no_devices):
     plan = two_configuration_plan(tmp_path)
-    result = CliRunner().invoke(app, ["run", str(plan), "--fake", "--no-bus"])
-    assert result.exit_code == 1, result.output
-    assert "failed (no result:" in result.output, result.output
-    assert "measured" in result.output
-    logs = list((tmp_path / "runs").rglob("*.mcap"))
-    assert len(logs) == 1  # the log is kept, complete, for `acquire fit` or a larger plan
-    assert not list((tmp_path / "runs").rglob("result.json"))
+    result = CliRunner().invoke(app, ["run", str(plan), "--fake"])
+    assert result.exit_code == 2, result.output
+    first = result.output.strip().splitlines()[-1]
+    assert first.startswith(f"error: {plan}:") and ": poses: 2 configuration(s) cannot give a result" in first
+    assert "needs at least 10 (given 2; allowed ≥ 10" in first and "--no-fit" in first
+    assert not (tmp_path / "runs").exists()
+    # The need follows the plan's fit options: one axis with the registration fixed needs 3 (the
+    # registration's three points); --dry-run warns instead of refusing.
+    small = two_configuration_plan(tmp_path, joints=[2], fix_registration=True)
+    dry = CliRunner().invoke(app, ["run", str(small), "--dry-run"])
+    assert dry.exit_code == 0, dry.output
+    assert "warning: " in dry.output and "the fit of 1 offset(s) with 1 sensor registration(s) needs at least 3" in dry.output
 
 
-def test_the_same_run_with_no_fit_finishes_with_exit_0(tmp_path):
+def test_the_same_plan_with_no_fit_measures_and_finishes_with_exit_0(tmp_path):
     plan = two_configuration_plan(tmp_path)
     result = CliRunner().invoke(app, ["run", str(plan), "--fake", "--no-bus", "--no-fit"])
     assert result.exit_code == 0, result.output
     assert ": finished" in result.output
 
 
-def test_the_controller_reports_a_run_without_result_as_failed(tmp_path):
+def blocked_view_plan(tmp_path: Path) -> Path:
+    """A plan the fit could use, in a cell where a column stands between the motion-capture bar
+    and the robot: every marker is occluded, nothing can be measured."""
+    cell = yaml.safe_load((ROOT / "fixtures" / "sim" / "default.yaml").read_text())
+    cell["robot"] = str(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
+    cell["occlusion"]["obstacles"] = [{"a_mm": [1500, 0, -3000], "b_mm": [1500, 0, 5000], "radius_mm": 450}]
+    (tmp_path / "blocked.yaml").write_text(yaml.safe_dump(cell, sort_keys=False))
+    return small_plan(tmp_path, n=8, name="plan.yaml", fake={"sim_config": str(tmp_path / "blocked.yaml")},
+                      sequencing={"on_lost_target": "skip", "lost_target_wait_s": 0.2})
+
+
+def test_a_run_that_measures_nothing_exits_1_and_says_why(tmp_path):
+    plan = blocked_view_plan(tmp_path)
+    result = CliRunner().invoke(app, ["run", str(plan), "--fake", "--no-bus"])
+    assert result.exit_code == 1, result.output
+    assert "failed (no result: none of the 14 configurations was measured (14 skipped, 0 failed))" in result.output
+    assert not list((tmp_path / "runs").rglob("result.json"))
+    assert len(list((tmp_path / "runs").rglob("*.mcap"))) == 1  # the log is kept
+
+
+def test_the_controller_reports_a_run_too_small_for_the_fit_as_failed(tmp_path):
+    """RunController (the daemon's path) fits what it measured; two configurations cannot give a
+    result, so the run ends failed with the fit's reason."""
     lp = load_plan(two_configuration_plan(tmp_path))
     ctl = RunController(lp, fake=True)
     ctl.start()
