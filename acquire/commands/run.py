@@ -7,8 +7,9 @@ Examples::
     acquire run plan.yaml --dry-run                         # what would happen; connects to nothing
     acquire run plan.yaml --resume runs/<id>/<id>.mcap      # continue a killed or aborted run
 
-Exit codes: 0 a result was written (or ``--no-fit`` and the run finished); 2 a bad plan or
-an output folder that cannot be written, before anything connects or moves; 130 Ctrl-C
+Exit codes: 0 a result was written (or ``--no-fit`` and the run finished); 2 a bad plan, a
+plan with fewer configurations than the fit needs (``--dry-run`` warns) or an output folder
+that cannot be written, before anything connects or moves; 130 Ctrl-C
 (SIGINT) or SIGTERM: the robot stops safely (the commander decelerates) and the log is closed
 complete and resumable; 1 a failed run — including one that visited every configuration but
 produced no result (too few measured for the fit, or the fit failed). Under ``--fake`` the
