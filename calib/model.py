@@ -200,7 +200,7 @@ def load_robot_model(path: str | Path) -> RobotModel:
         found = find("robots", p.name) if p.parent == Path(".") else None
         if found is None:
             names = ", ".join(m.stem for m in packaged("robots"))
-            raise ConfigError(f"{path}: no such robot model file (allowed: a robot model YAML file, or the name of a "
+            raise ConfigError(f"{path}: cannot read: no such robot model file (allowed: a robot model YAML file, or the name of a "
                               f"packaged model: {names})")
         p = found
     return load_validated(p, RobotModel)
