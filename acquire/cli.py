@@ -42,6 +42,7 @@ COMMANDS: dict[str, CommandSpec] = {
     "abort": CommandSpec("acquire.commands.daemon", "Stop the run safely now; its log is closed."),
     "runs": CommandSpec("acquire.commands.daemon", "List the runs in the daemon's state folder."),
     "watch": CommandSpec("acquire.commands.watch", "Show a live run or daemon (found on the bus by itself): progress, last sample, warnings."),
+    "examples": CommandSpec("acquire.commands.examples", "List the packaged example plans, robot models and simulated cells (or copy a plan)."),
     "model": CommandSpec("acquire.commands.model", "Robot models in and out of URDF (import a vendor URDF, export a calibrated model)."),
 }
 

@@ -609,6 +609,10 @@ class Daemon:
             except (OSError, ValueError, RuntimeError, DriverError) as exc:
                 log.error("run did not start: %s", exc)
                 self._bring_up_devices()
+                from acquire.run import RunError
+
+                if isinstance(exc, RunError):  # e.g. the runs folder is not writable: say so, no traceback
+                    raise Conflict(f"run not started: {exc}") from exc
                 raise
             self.controller = ctl
         log.info("run %s started by %s from %s%s", run_id, identity.describe(), path,

@@ -84,7 +84,7 @@ class _Strict(BaseModel):
 class FakeCell(_Strict):
     """The simulated cell the daemon brings up instead of hardware."""
 
-    sim_config: Path | None = Field(None, description="drivers/sim YAML; None: fixtures/sim/default.yaml")
+    sim_config: Path | None = Field(None, description="drivers/sim YAML; None: the packaged default cell (calib.resources)")
     seed: int = Field(0, ge=0)
     time_scale: float = Field(1.0, gt=0, description="simulated seconds per wall second")
 

@@ -39,7 +39,8 @@ commented example)::
         roll_deg: [0, 360]           # extra tool roll about the aimed z-axis [0, 360]
         arm_angles_deg: [180]        # 7-axis arms: also solve at these arm angles [none]
         min_solutions: 2             # drop poses with fewer feasible IK solutions [2]
-        limit_margin_deg: 0          # keep configurations this far inside the limits [0]
+        limit_margin_deg: 0          # keep configurations this far inside the limits, and at
+                                     # least the commander's margin (0.5° for fri, rsi) [0]
       # cartesian:                   # explicit flange poses, every IK solution within limits
       #   - {xyz_mm: [500, 0, 600], zyx_deg: [0, 90, 0], group: front, arm_angle_deg: 30}
       # joints: [[0, 30, 0, -60, 0, 45, 0], ...]     # explicit configurations, degrees
@@ -81,6 +82,13 @@ sensor marker the tool does not carry, joint lists of the wrong length or outsid
 limits (the joint and its limit are named), a robot or configurations file that does not exist
 (pointing at its line), a selection larger than the configurations it selects from.
 
+Inputs that would move the robot wrongly are refused too (``acquire.plan_guards``): explicit
+joint targets within the commander's margin of a limit (the driver class says how much,
+``limit_margin_for``; the commander would refuse them mid-run), and values that look like
+metres or radians (``sensor_origin_mm`` in metres, joint targets in radians, the robot model's
+tool markers in metres — pointing at the model file's line). Generated and Cartesian poses
+keep at least the commander's margin inside the limits.
+
 Configuration ids (``PlannedConfig.config_id``; a resumed run matches on them):
 
 - generated: ``p07-b3`` — candidate pose 7 (index in the seeded candidate list, zero-padded to
@@ -118,6 +126,14 @@ from pydantic.fields import FieldInfo
 
 from calib.model import RobotModel, load_robot_model
 from calib.yamlfile import ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate
+from acquire.plan_guards import (
+    commander_margin_rad,
+    describe_config_rows,
+    joints_margin_errors,
+    model_units_errors,
+    plan_units_errors,
+    radians_problem,
+)
 
 log = logging.getLogger(__name__)
 
@@ -224,7 +240,8 @@ class GeneratedPoses(_Strict):
         None, description="7-axis arms: further arm angles (degrees) at which to solve every pose."
     )
     min_solutions: int = Field(2, ge=1, le=64, description="Poses with fewer feasible IK solutions are dropped.")
-    limit_margin_deg: float = Field(0.0, ge=0, le=45, description="Keep configurations this far inside the limits, degrees.")
+    limit_margin_deg: float = Field(0.0, ge=0, le=45, description="Keep configurations this far inside the limits, degrees "
+                                                                  "(at least the commander's margin).")
 
 
 class CartesianPose(_Strict):
@@ -421,6 +438,12 @@ class LoadedPlan:
         from drivers.sim.config import DEFAULT_CONFIG_PATH
 
         return DEFAULT_CONFIG_PATH
+
+    @property
+    def commander_margin_rad(self) -> float:
+        """What the plan's commander keeps clear of every joint limit, rad (asked of its driver
+        class, ``CommanderBase.limit_margin_for``): configurations stay at least this far inside."""
+        return commander_margin_rad(self.plan)[0]
 
     def error(self, loc: tuple, message: str) -> ConfigError:
         """A ConfigError ``file:line:col: field: message`` for a problem found after loading."""
@@ -748,10 +771,16 @@ def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
             errors.append((("poses", "cartesian", i, "arm_angle_deg"),
                            f"arm angles apply to 7-axis arms; {model.name} has {n} axes "
                            f"(given {cp.arm_angle_deg:g}; allowed: leave out)"))
+    try:
+        margin, driver = commander_margin_rad(plan)
+    except ValueError as exc:
+        errors.append((("commander", "options", "limit_margin_rad"), f"{exc} (allowed: an angle ≥ 0 in radians)"))
+        margin, driver = 0.0, c.driver
     if isinstance(p.joints, list):
-        errors += _joint_list_errors(p.joints, model)
+        errors += _joint_list_errors(p.joints, model, margin, driver)
     elif isinstance(p.joints, JointsFile):
-        errors += _joints_file_errors(p.joints, model, folder, plan.selection)
+        errors += _joints_file_errors(p.joints, model, folder, plan.selection, margin, driver)
+    errors += plan_units_errors(plan, model)
 
     if plan.fit.joints is not None:
         for i, j in enumerate(plan.fit.joints):
@@ -767,23 +796,20 @@ def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
     return errors
 
 
-def _joint_list_errors(rows: list[list[float]], model: RobotModel) -> list[tuple[tuple, str]]:
+def _joint_list_errors(rows: list[list[float]], model: RobotModel, margin_rad: float = 0.0,
+                       driver: str = "") -> list[tuple[tuple, str]]:
     errors: list[tuple[tuple, str]] = []
     n = model.n_joints
     for i, row in enumerate(rows):
         if len(row) != n:
             errors.append((("poses", "joints", i), f"wrong number of joint angles for {model.name} "
                                                    f"(given {len(row)}; allowed {n}: {', '.join(model.axis_names)})"))
-            continue
-        for j, (v, joint) in enumerate(zip(row, model.joints)):
-            lo, hi = joint.limits
-            if not lo <= v <= hi:
-                errors.append((("poses", "joints", i, j), f"{joint.axis} outside its limits "
-                                                          f"(given {v:g}°; allowed [{lo:g}, {hi:g}]°)"))
-    return errors
+    # Outside the limits, or inside the margin the commander keeps from them (it would refuse mid-run).
+    return errors + joints_margin_errors(rows, model, margin_rad, driver)
 
 
-def _joints_file_errors(spec: JointsFile, model: RobotModel, folder: Path, selection: SelectionSpec | None):
+def _joints_file_errors(spec: JointsFile, model: RobotModel, folder: Path, selection: SelectionSpec | None,
+                        margin_rad: float = 0.0, driver: str = ""):
     from calib.poses import read_configurations
 
     loc = ("poses", "joints", "file")
@@ -802,6 +828,13 @@ def _joints_file_errors(spec: JointsFile, model: RobotModel, folder: Path, selec
     dup = sorted({k for k in numbers if numbers.count(k) > 1})
     if dup:
         errors.append((loc, f"config numbers repeat in {path.name} (given {dup[:5]}; allowed: each number once)"))
+    rows = [(c.config, np.degrees(c.q)) for c in cf.configurations]
+    refused = describe_config_rows(rows, model, margin_rad, driver)
+    if refused:
+        errors.append((loc, f"{path.name}: the commander would refuse these targets mid-run: " + "; ".join(refused)))
+    why = radians_problem([q for _, q in rows], model) if rows else None
+    if why:
+        errors.append((loc, f"{path.name}: {why}"))
     if selection is not None and selection.m > len(numbers):
         errors.append((("selection", "m"), f"cannot select more configurations than {path.name} has "
                                            f"(given {selection.m}; allowed 1…{len(numbers)})"))
@@ -866,11 +899,16 @@ def load_plan(path: str | Path) -> LoadedPlan:
             model = load_robot_model(model_path)
         except ConfigError as exc:
             errors.append((("robot",), f"the robot model is not valid (given {plan.robot!r}):\n{exc}"))
+    model_lines: list[str] = []
     if model is not None:
         errors += model_errors(plan, model, folder)
+        model_lines = model_units_errors(model, model_path, load_yaml_with_marks(model_path)[1])
+        if model_lines:
+            errors.append((("robot",), f"the robot model's units are wrong (given {plan.robot!r}; allowed: a model "
+                                       "in mm and degrees; see below)"))
     if errors:
         located = sorted(((locate(tuple(loc), marks) or (0, 0)), error_line(path, marks, loc, msg)) for loc, msg in errors)
-        raise ConfigError("\n".join(msg for _, msg in located))
+        raise ConfigError("\n".join([msg for _, msg in located] + model_lines))
     assert model is not None
     lp = LoadedPlan(plan=plan, path=path, text=text, model=model, model_path=model_path,
                     model_text=model_path.read_text(encoding="utf-8"), marks=marks)
@@ -901,7 +939,9 @@ def _generated(lp: LoadedPlan) -> ResolvedPlan:
         pp = plan_poses(
             lp.model, g.sensor_origin_mm, n=g.n, seed=g.seed, ranges=ranges,
             extra_arm_angles_rad=[math.radians(a) for a in (g.arm_angles_deg or [])],
-            min_solutions=g.min_solutions, limit_margin_rad=math.radians(g.limit_margin_deg),
+            min_solutions=g.min_solutions,
+            # At least the commander's margin: a configuration it would refuse is not planned.
+            limit_margin_rad=max(math.radians(g.limit_margin_deg), lp.commander_margin_rad),
         )
     except ValueError as exc:  # a sample on the sensor origin, a model the IK cannot solve
         raise lp.error(("poses", "generated"), f"cannot plan these poses: {exc}") from exc
@@ -928,6 +968,7 @@ def _cartesian(lp: LoadedPlan) -> ResolvedPlan:
     poses = lp.plan.poses.cartesian or []
     configs: list[PlannedConfig] = []
     groups: list[str] = []
+    margin = lp.commander_margin_rad
     for i, cp in enumerate(poses):
         group = cp.group or f"c{i:02d}"
         pose = pose_to_matrix(np.array(cp.xyz_mm), np.radians(cp.zyx_deg))
@@ -943,8 +984,20 @@ def _cartesian(lp: LoadedPlan) -> ResolvedPlan:
                            f"within its limits) — {sol.status}: {sol.message}")
         if sol.status == "singular":
             log.warning("cartesian pose %s is singular: %s", group, sol.message)
+        # Solutions inside the commander's limit margin would be refused mid-run: not planned.
+        keep = lp.model.within_limits(np.asarray(sol.q), margin)
+        if not np.any(keep):
+            raise lp.error(("poses", "cartesian", i),
+                           f"every IK solution of {lp.model.name} for this pose lies within the commander's "
+                           f"{math.degrees(margin):g}° margin of a joint limit (given xyz_mm "
+                           f"{list(cp.xyz_mm)}, zyx_deg {list(cp.zyx_deg)}; allowed: a pose it reaches at least that "
+                           "far inside its limits)")
+        if not np.all(keep):
+            log.info("cartesian pose %s: %d of %d IK solutions lie within the commander's limit margin; not planned",
+                     group, int(np.sum(~keep)), len(keep))
         groups.append(group)
-        for b, (q, label) in enumerate(zip(sol.q, sol.branch)):
+        kept = [(q, label) for q, label, k in zip(sol.q, sol.branch, keep) if k]
+        for b, (q, label) in enumerate(kept):
             configs.append(PlannedConfig(f"{group}-b{b}", group, label, _frozen(q)))
     return ResolvedPlan(configs=configs, source="cartesian", candidates=len(poses), pose_groups=groups,
                         dropped=[], before_selection=len(configs))
@@ -1010,6 +1063,13 @@ def resolve_plan(lp: LoadedPlan) -> ResolvedPlan:
                                    f"(given {resolved.candidates} candidate(s); allowed: at least one configuration)")
     if lp.plan.selection is not None:
         resolved = _select(lp, resolved)
+    margin = lp.commander_margin_rad
+    refused = [c for c in resolved.configs if not lp.model.within_limits(c.q_rad, margin)]
+    if refused:  # a safety net: the checks above keep every kind of pose inside the margin
+        raise lp.error(("poses",), f"{len(refused)} configuration(s) lie within the commander's "
+                                   f"{math.degrees(margin):g}° margin of a joint limit (given {refused[0].config_id} "
+                                   f"at {np.round(np.degrees(refused[0].q_rad), 3).tolist()}°; allowed: inside the "
+                                   "limits less the margin)")
     ids = [c.config_id for c in resolved.configs]
     assert len(set(ids)) == len(ids), "configuration ids must be unique"
     return resolved

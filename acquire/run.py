@@ -20,6 +20,11 @@ The job:
    configuration is measured again after a recovery; every step is an event in the log and on
    the bus, every measured configuration one sample record;
 5. close the log; when finished, fit it and write ``result.json`` and ``report.html`` beside it.
+   A run asked for a result that has none (nothing measured, too few configurations for the
+   fit, the fit failed) ends ``failed`` with the reason, not ``finished``.
+
+Before any of this, ``start()`` checks that the output folder takes a new file
+(``check_output``): an unwritable folder is refused before a device is opened.
 
 States: idle → starting → running ⇄ paused / suspended → stopping → finished | aborted | failed.
 """
@@ -31,6 +36,7 @@ import logging
 import math
 import os
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -193,7 +199,9 @@ class FakeCell:
         fake = getattr(lp.plan, "fake", None)
         sim_config = getattr(fake, "sim_config", None) if fake is not None else None
         if sim_config is None:
-            sim_config = Path(__file__).resolve().parent.parent / "fixtures" / "sim" / "default.yaml"
+            from drivers.sim.config import DEFAULT_CONFIG_PATH
+
+            sim_config = DEFAULT_CONFIG_PATH
         sim_config = Path(sim_config)
         if not sim_config.is_absolute():
             sim_config = (Path(lp.path).parent / sim_config).resolve()
@@ -326,11 +334,36 @@ class RunController:
         self._runlog = None
 
     # ------------------------------------------------------------------ public API
+    def check_output(self) -> None:
+        """Refuse, before any device is opened, a run whose log and results cannot be written:
+        the output folder (created if missing) must take a new file, and a resumed log must be
+        writable. Raises RunError saying which folder or file and what to do."""
+        hint = "choose a writable folder with --out or the plan's output.folder"
+        if self.resume_path is not None:
+            target, hint = self.resume_path.parent, "copy the log to a writable folder and resume from there"
+            if not os.access(self.resume_path, os.W_OK):
+                raise RunError(f"--resume {self.resume_path}: the log is not writable; {hint}")
+        else:
+            target = self.out_dir
+            try:
+                target.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise RunError(f"output folder {target}: cannot create it ({exc.strerror or exc}); {hint}") from exc
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".remaster-write-test-", dir=target)
+            os.close(fd)
+            os.unlink(probe)
+        except OSError as exc:
+            raise RunError(f"output folder {target}: cannot write in it ({exc.strerror or exc}); {hint}") from exc
+
     def start(self) -> str:
-        """Start the run in a background thread; returns its run id."""
+        """Check the output folder (``check_output``), then start the run in a background
+        thread; returns its run id. Raises RunError before anything connects when the run's
+        log cannot be written."""
         with self._lock:
             if self._state != "idle":
                 raise RuntimeError(f"run already {self._state}")
+            self.check_output()
             self._state = "starting"
             if self.resume_path is not None:
                 from acquire.recorder import read_run
@@ -870,14 +903,26 @@ class RunController:
         summary.cell_seconds = cell_seconds
         summary.truth_offsets_deg = truth
         summary.truth_mean_sag_deg = sag
-        if not aborted and self.fit_enabled and self.log_path is not None and self._measured >= 3:
-            try:
-                summary.fit, summary.result_path, summary.report_path = fit_run_log(self.log_path, self.lp)
-            except (ValueError, RuntimeError, ArithmeticError) as exc:
-                log.error("fit of %s failed: %s", self.log_path, exc)
-                summary.reason = f"fit failed: {exc}"
-        self._set_state(state, self._reason if aborted else "")
+        reason = self._reason if aborted else ""
+        if not aborted and self.fit_enabled and self.log_path is not None:
+            # A run that was asked for a result and has none has failed (exit 1), even when every
+            # configuration was visited: the operator must not read "finished" as "calibrated".
+            if self._measured == 0:
+                reason = (f"no result: none of the {self._total} configurations was measured "
+                          f"({self._skipped} skipped, {self._failed} failed)")
+            else:
+                try:
+                    summary.fit, summary.result_path, summary.report_path = fit_run_log(self.log_path, self.lp)
+                except (ValueError, RuntimeError, ArithmeticError) as exc:
+                    reason = f"no result: the fit of {self._measured} measured configuration(s) failed: {exc}"
+            if summary.fit is None:
+                log.error("run %s: %s", self.run_id, reason)
+                state = "failed"
+        with self._lock:
+            self._reason = reason if state == "failed" else self._reason
+        self._set_state(state, reason)
         summary.state = state
+        summary.reason = reason
         self._release_bus()  # after the final state went out on the bus
         return summary
 

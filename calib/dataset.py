@@ -13,18 +13,23 @@ One row per measurement of one marker by one sensor in one robot configuration:
 ``split``    optional, ``cal`` or ``val`` (calibration or validation part)
 
 Lines starting with ``#`` are comments. Everything in memory is mm and radians.
+
+Spreadsheet exports are read as they are meant (``calib.csvdialect``): ``;`` or tab between
+fields, decimal commas (``12,5``), a UTF-8 byte-order mark. What cannot be read unambiguously
+(mixed separators or decimal marks, decimal commas in a comma-separated file without quotes,
+another encoding) is refused with a message that names it.
 """
 
 from __future__ import annotations
 
 import csv
-import io
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from calib import csvdialect
 from calib.model import RobotModel
 
 
@@ -130,28 +135,28 @@ def read_csv(path: str | Path, model: RobotModel) -> Dataset:
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        raw = path.read_bytes()
     except OSError as exc:
         raise DatasetError(f"{path}: cannot read: {exc.strerror or exc}") from exc
-    return parse_csv(text, model, source=str(path))
+    return parse_csv(csvdialect.decode(raw, str(path), DatasetError), model, source=str(path))
 
 
 def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset:
-    """Parse CSV text; see ``read_csv``."""
-    rows: list[tuple[int, list[str]]] = []
-    for lineno, line in enumerate(io.StringIO(text), start=1):
-        stripped = line.strip()
-        if not stripped or stripped.startswith("#"):
-            continue
-        rows.append((lineno, next(csv.reader([line]))))
-    if not rows:
+    """Parse CSV text; see ``read_csv`` (separator and decimal mark: ``calib.csvdialect``)."""
+    lines = csvdialect.content_lines(text)
+    if not lines:
         raise DatasetError(f"{source}: no header and no data")
-    header_line, header = rows[0]
-    header = [h.strip() for h in header]
+    header_line, header_text = lines[0]
+    sep = csvdialect.sniff_separator(header_text, source, header_line, DatasetError)
+    rows: list[tuple[int, list[str]]] = [(no, csvdialect.split(line, sep)) for no, line in lines]
+    header = rows[0][1]
     qcols = sorted((h for h in header if h[:1] == "q" and h[1:].isdigit()), key=lambda h: int(h[1:]))
     n = model.n_joints
     if [int(h[1:]) for h in qcols] != list(range(1, len(qcols) + 1)):
         raise DatasetError(f"{source}:{header_line}: joint columns must be q1…qN without gaps, got {qcols}")
+    if len(header) == 1:
+        raise DatasetError(f"{source}:{header_line}: the header is one column (given {header_text.strip()!r}); "
+                           f"allowed: config, q1…q{n}, x, y, z, … separated by commas, semicolons or tabs")
     if len(qcols) != n:
         raise DatasetError(
             f"{source}:{header_line}: {len(qcols)} joint columns (q1…q{len(qcols)}) but the robot model "
@@ -169,15 +174,18 @@ def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset
     data = rows[1:]
     if not data:
         raise DatasetError(f"{source}: header only, no measurements")
+    numeric = [idx[h] for h in [*qcols, "x", "y", "z", "std_mm", "n"] if h in idx]
+    dialect = csvdialect.Dialect(sep, csvdialect.sniff_decimal(data, numeric, source, DatasetError))
 
     def number(lineno: int, row: list[str], name: str, allow_empty: bool = False) -> float:
         raw = row[idx[name]].strip()
         if raw == "" and allow_empty:
             return math.nan
         try:
-            v = float(raw)
+            v = csvdialect.number(raw, dialect.decimal)
         except ValueError:
-            raise DatasetError(f"{source}:{lineno}: column '{name}': {raw!r} is not a number") from None
+            raise DatasetError(f"{source}:{lineno}: column '{name}': {raw!r} is not a number "
+                               f"(this file is {dialect.describe()})") from None
         if not math.isfinite(v):
             raise DatasetError(f"{source}:{lineno}: column '{name}': {raw!r} is not a finite number")
         return v
@@ -186,7 +194,7 @@ def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset
     default_marker = model.marker_names[0]
     for lineno, row in data:
         if len(row) != len(header):
-            raise DatasetError(f"{source}:{lineno}: {len(row)} columns, the header has {len(header)}")
+            raise DatasetError(csvdialect.width_error(source, lineno, row, len(header), dialect))
         cols["config"].append(row[idx["config"]].strip())
         cols["pose"].append(row[idx["pose"]].strip() if "pose" in idx else "")
         q = [number(lineno, row, h) for h in qcols]

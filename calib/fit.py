@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -130,6 +131,30 @@ class FitResult:
         return float(np.sqrt(np.sum(counts * sig**2) / np.sum(counts)))
 
 
+#: Fewest measurements a sensor's registration needs (three points that are not collinear).
+MIN_ROWS_PER_SENSOR = 3
+
+
+def min_measurements(n_free: int) -> int:
+    """Fewest measurements (rows, 3 coordinates each) ``fit_offsets`` accepts for ``n_free``
+    free parameters: two coordinates per parameter."""
+    return math.ceil(2 * n_free / 3)
+
+
+def min_configurations(n_fitted_joints: int, markers_per_sensor: Sequence[int], *,
+                       fix_registration: bool = False) -> int:
+    """Fewest configurations a measurement plan needs for ``fit_offsets`` to give a result, before
+    anything is measured: ``n_fitted_joints`` offsets plus, per sensor, its registration (6,
+    unless fixed) and its σ; each configuration gives one row per marker per sensor
+    (``markers_per_sensor``). A lower bound: compliances and lost targets need more."""
+    if not markers_per_sensor or min(markers_per_sensor) < 1:
+        raise ValueError(f"every sensor measures at least one marker, given {list(markers_per_sensor)}")
+    n_free = n_fitted_joints + len(markers_per_sensor) * ((0 if fix_registration else 6) + 1)
+    by_parameters = math.ceil(min_measurements(n_free) / sum(markers_per_sensor))
+    by_registration = max(math.ceil(MIN_ROWS_PER_SENSOR / m) for m in markers_per_sensor)
+    return max(by_parameters, by_registration)
+
+
 def initial_registrations(chain: Chain, data: Dataset, method: str, seed: int) -> dict[str, np.ndarray]:
     """base2sensor (4, 4) per sensor from the nominal model."""
     pred = chain.marker_positions(data.q_rad)
@@ -139,8 +164,9 @@ def initial_registrations(chain: Chain, data: Dataset, method: str, seed: int) -
     rng = np.random.default_rng(seed)
     for s in data.sensors:
         rows = np.flatnonzero(data.sensor == s)
-        if rows.size < 3:
-            raise DatasetError(f"sensor {s!r} has {rows.size} measurements; a registration needs at least 3")
+        if rows.size < MIN_ROWS_PER_SENSOR:
+            raise DatasetError(f"sensor {s!r} has {rows.size} measurements; a registration needs at least "
+                               f"{MIN_ROWS_PER_SENSOR}")
         if method == "least-squares":
             out[s] = register_least_squares(p_base[rows], data.xyz_mm[rows]).base2sensor
         elif method == "three-point":
@@ -392,10 +418,10 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
 
     # Too few measurements for the free parameters? (Link parameters carry priors.)
     n_free = int(mask.full.sum()) - len(link_prior) + len(sensors)
-    if 3 * len(data) < 2 * n_free:
+    if len(data) < min_measurements(n_free):
         raise DatasetError(
             f"{len(data)} measurements give {3 * len(data)} coordinates for {n_free} free parameters; "
-            f"measure at least {math.ceil(2 * n_free / 3)} configurations (more is much better)"
+            f"measure at least {min_measurements(n_free)} configurations (more is much better)"
         )
 
     def factory(m: ParamMask) -> OffsetPosterior:

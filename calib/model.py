@@ -187,11 +187,23 @@ class RobotModel(_Strict, CrossFieldChecked):
 
 
 def load_robot_model(path: str | Path) -> RobotModel:
-    """Read and validate a robot model YAML file (mm, degrees).
+    """Read and validate a robot model YAML file (mm, degrees), or a model shipped in the package
+    by name (``kuka_iiwa14_r820``; ``acquire examples`` lists them) when no such file exists.
 
     Raises ``calib.yamlfile.ConfigError`` naming file, line, column and field on any problem.
     """
-    return load_validated(path, RobotModel)
+    p = Path(path)
+    if not p.exists():
+        from calib.resources import find, packaged
+        from calib.yamlfile import ConfigError
+
+        found = find("robots", p.name) if p.parent == Path(".") else None
+        if found is None:
+            names = ", ".join(m.stem for m in packaged("robots"))
+            raise ConfigError(f"{path}: cannot read: no such robot model file (allowed: a robot model YAML file, or the name of a "
+                              f"packaged model: {names})")
+        p = found
+    return load_validated(p, RobotModel)
 
 
 def robot_model_from_dict(data: dict) -> RobotModel:

@@ -28,7 +28,6 @@ when no distance is known.
 
 from __future__ import annotations
 
-import csv
 import math
 import re
 from dataclasses import dataclass, field
@@ -37,6 +36,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import least_squares
 
+from calib import csvdialect
 from calib.kinematics import KINDS, Chain
 from calib.model import RobotModel
 
@@ -105,32 +105,42 @@ def read_socket_csv(path: str | Path, n_joints: int, *, distance_mm: float | Non
     ``distance_mm`` is given."""
     path = Path(path)
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        raw = path.read_bytes()
     except OSError as exc:
         raise SocketDataError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    lines = csvdialect.decode(raw, str(path), SocketDataError).splitlines()
     meta_distance = None
     body = []
     for lineno, line in enumerate(lines, 1):
-        m = re.match(r"\s*#\s*socket_distance_mm\s*[:=]\s*([-+0-9.eE]+)\s*$", line)
+        m = re.match(r"\s*#\s*socket_distance_mm\s*[:=]\s*([-+0-9.,eE]+)\s*$", line)
         if m:
-            meta_distance = float(m.group(1))
+            try:  # a spreadsheet in a decimal-comma locale writes 50,02
+                meta_distance = csvdialect.number(m.group(1), "," if "," in m.group(1) and "." not in m.group(1) else ".")
+            except ValueError:
+                raise SocketDataError(f"{path}:{lineno}: socket_distance_mm must be a number in mm "
+                                      f"(given {m.group(1)!r})") from None
         elif line.strip() and not line.lstrip().startswith("#"):
             body.append((lineno, line))
     if not body:
         raise SocketDataError(f"{path}: no header and no rows")
-    header = [h.strip() for h in next(csv.reader([body[0][1]]))]
+    sep = csvdialect.sniff_separator(body[0][1], str(path), body[0][0], SocketDataError)
+    header = csvdialect.split(body[0][1], sep)
     want = ["config"] + [f"q{i + 1}" for i in range(n_joints)] + ["placement", "socket"]
     if header != want:
-        raise SocketDataError(f"{path}:{body[0][0]}: header must be {','.join(want)}; given {','.join(header)}")
+        raise SocketDataError(f"{path}:{body[0][0]}: header must be {','.join(want)} (or with ';' or tabs); "
+                              f"given {sep.join(header)}")
+    rows = [(lineno, csvdialect.split(line, sep)) for lineno, line in body[1:]]
+    dialect = csvdialect.Dialect(sep, csvdialect.sniff_decimal(rows, range(1, 1 + n_joints), str(path),
+                                                               SocketDataError))
     q, keys, ids = [], [], []
-    for lineno, line in body[1:]:
-        cells = [c.strip() for c in next(csv.reader([line]))]
+    for lineno, cells in rows:
         if len(cells) != len(want):
-            raise SocketDataError(f"{path}:{lineno}: {len(cells)} columns, the header has {len(want)}")
+            raise SocketDataError(csvdialect.width_error(str(path), lineno, cells, len(want), dialect))
         try:
-            row = [float(c) for c in cells[1:1 + n_joints]]
+            row = [csvdialect.number(c, dialect.decimal) for c in cells[1:1 + n_joints]]
         except ValueError as exc:
-            raise SocketDataError(f"{path}:{lineno}: joint angles must be numbers in degrees ({exc})") from exc
+            raise SocketDataError(f"{path}:{lineno}: joint angles must be numbers in degrees (given {exc}; "
+                                  f"this file is {dialect.describe()})") from exc
         if not all(math.isfinite(v) for v in row):
             raise SocketDataError(f"{path}:{lineno}: joint angles must be finite")
         q.append(row)

@@ -6,10 +6,11 @@ A driver subclasses ``SensorBase`` or ``CommanderBase`` and fills in only the de
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import time
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
@@ -96,12 +97,40 @@ class SensorBase(DeviceBase):
         )
 
 
+#: What ``CommanderBase.check_target`` keeps clear of every joint limit unless told otherwise, rad.
+DEFAULT_LIMIT_MARGIN_RAD = math.radians(0.5)
+
+
+def target_window(limits: JointLimits, margin_rad: float) -> tuple[np.ndarray, np.ndarray]:
+    """The joint targets a commander accepts: ``(lower + margin, upper - margin)``, each shape
+    (n_axes,), radians. One formula for the commander's own check and for plan-time checks, so
+    a plan that passes is never refused by the commander for a rounding difference."""
+    return (np.asarray(limits.lower_rad, dtype=float) + margin_rad,
+            np.asarray(limits.upper_rad, dtype=float) - margin_rad)
+
+
 class CommanderBase(DeviceBase):
     """A ``JointCommander`` whose subclass implements ``_move_internal`` and ``joint_state``.
 
     ``max_speed`` is the highest speed fraction the plan allows (0–1]; ``limit_margin_rad`` is
     kept clear of every joint limit; a measured state older than ``max_state_age_s`` is stale.
+    ``limit_margin_for(options)`` tells a planner that margin before any commander exists.
     """
+
+    @classmethod
+    def limit_margin_for(cls, options: Mapping[str, Any] | None = None) -> float:
+        """The margin (rad) a commander of this class built with keyword ``options`` keeps clear
+        of every joint limit: ``options["limit_margin_rad"]`` when given, else the default of the
+        class's constructor. Lets a plan refuse a target the commander would refuse mid-run."""
+        opts = dict(options or {})
+        if "limit_margin_rad" in opts:
+            value = float(opts["limit_margin_rad"])
+        else:
+            param = inspect.signature(cls.__init__).parameters.get("limit_margin_rad")
+            value = DEFAULT_LIMIT_MARGIN_RAD if param is None or param.default is param.empty else float(param.default)
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{cls.__name__}: limit_margin_rad must be a finite angle ≥ 0 rad, got {value!r}")
+        return value
 
     def __init__(
         self,
@@ -109,7 +138,7 @@ class CommanderBase(DeviceBase):
         limits: JointLimits,
         *,
         max_speed: float = 1.0,
-        limit_margin_rad: float = math.radians(0.5),
+        limit_margin_rad: float = DEFAULT_LIMIT_MARGIN_RAD,
         max_state_age_s: float = 0.1,
         clock: Clock = time.monotonic,
     ) -> None:
@@ -154,8 +183,7 @@ class CommanderBase(DeviceBase):
             raise LimitError(
                 f"{self.name}: speed {speed!r} is not allowed; the plan allows (0, {self.max_speed}]"
             )
-        lo = lim.lower_rad + self.limit_margin_rad
-        hi = lim.upper_rad - self.limit_margin_rad
+        lo, hi = target_window(lim, self.limit_margin_rad)
         bad = np.flatnonzero((t < lo) | (t > hi))
         if bad.size:
             names = lim.names or tuple(f"J{i + 1}" for i in range(lim.n_axes))

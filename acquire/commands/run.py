@@ -2,7 +2,8 @@
 
 Examples::
 
-    acquire run fixtures/plans/example.yaml --fake          # against the simulated cell
+    acquire run fixtures/plans/example.yaml --fake          # against the simulated cell (a checkout)
+    acquire run example --fake                              # the packaged example, results in ./runs
     acquire run plan.yaml --dry-run                         # what would happen; connects to nothing
     acquire run plan.yaml --resume runs/<id>/<id>.mcap      # continue a killed or aborted run
     acquire run plan.yaml --fake -v                         # device INFO logs on the console too
@@ -13,10 +14,13 @@ of INFO and up goes to ``<run-id>.log`` beside the run's MCAP log, and off a ter
 CI) INFO goes to stderr as one plain line each. The run publishes on the Zenoh bus (``--listen``,
 default tcp/127.0.0.1:7447): ``acquire watch`` in another terminal finds it by itself.
 
-A bad plan exits 2 before anything connects or moves. Ctrl-C (SIGINT) or SIGTERM stops the
-robot safely (the commander decelerates), closes a complete, resumable log and exits 130;
-a failed run exits 1. Under ``--fake`` the summary puts the fitted offsets next to the
-simulated cell's true ones.
+Exit codes: 0 a result was written (or ``--no-fit`` and the run finished); 2 a bad plan, a
+plan with fewer configurations than the fit needs (``--dry-run`` warns) or an output folder
+that cannot be written, before anything connects or moves; 130 Ctrl-C
+(SIGINT) or SIGTERM: the robot stops safely (the commander decelerates) and the log is closed
+complete and resumable; 1 a failed run — including one that visited every configuration but
+produced no result (too few measured for the fit, or the fit failed). Under ``--fake`` the
+summary puts the fitted offsets next to the simulated cell's true ones.
 """
 
 from __future__ import annotations
@@ -53,6 +57,27 @@ def _describer(configs):
     return describe
 
 
+def plan_argument(plan: Path) -> tuple[Path, bool]:
+    """The plan file ``acquire run PLAN`` means, and whether it is a packaged example.
+
+    A path to a file is taken as it is; otherwise a bare name (``example``, ``paper.yaml``) is
+    looked up among the plans shipped in the package (``acquire examples``). A packaged plan's
+    results go to ``./runs`` (the current folder), never into the installed package. Exits 2
+    naming the packaged examples when neither exists.
+    """
+    from calib.resources import find, is_packaged, packaged
+
+    if plan.is_file():
+        return plan, is_packaged(plan)
+    found = find("plans", str(plan)) if not plan.exists() else None
+    if found is not None:
+        return found, True
+    names = ", ".join(p.stem for p in packaged("plans"))
+    typer.echo(f"error: {plan}: no such plan file (given {str(plan)!r}; allowed: a plan YAML file, or the name of a "
+               f"packaged example: {names} — see `acquire examples`)", err=True)
+    raise typer.Exit(2)
+
+
 def _load(plan: Path):
     from acquire.plan import load_plan, resolve_configurations
 
@@ -66,6 +91,23 @@ def _load(plan: Path):
         typer.echo(f"error: {plan}: the plan resolves to no configurations", err=True)
         raise typer.Exit(2)
     return lp, configs
+
+
+def too_few_for_the_fit(lp, configs) -> str | None:
+    """Why the plan's configurations cannot give a fitted result even if every one is measured
+    (``calib.fit.min_configurations``), as a ``file:line:col: field: …`` line; None if they can."""
+    from calib.fit import min_configurations
+
+    fit = lp.plan.fit
+    n_fit = len(fit.joints) if fit.joints else lp.model.n_joints
+    need = min_configurations(n_fit, [len(s.markers) for s in lp.plan.sensors], fix_registration=fit.fix_registration)
+    if len(configs) >= need:
+        return None
+    loc = ("selection", "m") if lp.plan.selection is not None else ("poses",)
+    return str(lp.error(loc, f"{len(configs)} configuration(s) cannot give a result: the fit of {n_fit} offset(s) "
+                             f"with {len(lp.plan.sensors)} sensor registration(s) needs at least {need} (given "
+                             f"{len(configs)}; allowed ≥ {need}: more poses or a larger selection, or --no-fit to "
+                             "only measure)"))
 
 
 def dry_run_text(lp, configs) -> str:
@@ -177,7 +219,7 @@ def format_run_summary(summary, lp) -> str:
 
 
 def run(
-    plan: Path = typer.Argument(..., help="The plan YAML file."),
+    plan: Path = typer.Argument(..., help="The plan YAML file, or a packaged example's name (acquire examples)."),
     fake: bool = typer.Option(False, "--fake", help="Run against the simulated cell's fakes on loopback."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Print configurations, order and cell time; connect to nothing."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Continue the run recorded in this MCAP log."),
@@ -192,21 +234,42 @@ def run(
     verbose: int = typer.Option(0, "--verbose", "-v", count=True,
                                 help="Console shows INFO (-v) or DEBUG (-vv) logs too; the run's .log file has them anyway."),
 ) -> None:
-    """Run the measurement plan: move, settle, measure every configuration; log; fit."""
+    """Run the measurement plan: move, settle, measure every configuration; log; fit.
+
+    PLAN is a plan file or the name of a packaged example (`acquire examples`); a packaged
+    example writes its run to ./runs unless --out says otherwise.
+    """
     from acquire.console import configure_console
 
     console = configure_console(verbose)
+    given = plan
+    plan, is_example = plan_argument(plan)
+    if out is None and is_example:
+        out = Path.cwd() / "runs"
     lp, configs = _load(plan)
+    too_few = None if no_fit else too_few_for_the_fit(lp, configs)
     if dry_run:
         typer.echo(dry_run_text(lp, configs))
+        if too_few:
+            typer.echo(f"warning: {too_few}")
         return
+    if too_few:  # the robot would move for nothing: refuse before anything connects
+        typer.echo(f"error: {too_few}", err=True)
+        raise typer.Exit(2)
     if resume is not None and not resume.is_file():
         typer.echo(f"error: --resume {resume}: no such file", err=True)
         raise typer.Exit(2)
     from acquire.console import RunLogFile
     from acquire.progress import make_progress
-    from acquire.run import RunController
+    from acquire.run import RunController, RunError
 
+    controller = RunController(lp, fake=fake, resume=resume, bus=None, out_dir=out, fit=not no_fit,
+                               skip_failed=skip_failed)
+    try:
+        controller.check_output()  # first: before the bus, the fakes or any device
+    except RunError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from exc
     logfile = RunLogFile(logging.DEBUG if verbose >= 2 else logging.INFO)
     bus = None
     if not no_bus:
@@ -236,8 +299,8 @@ def run(
                 log.warning("no text log beside %s: %s", st["log"], exc)
         progress.update(st)
 
-    controller = RunController(lp, fake=fake, resume=resume, bus=bus, out_dir=out, on_progress=on_progress,
-                               fit=not no_fit, skip_failed=skip_failed)
+    controller.bus = bus
+    controller.on_progress = on_progress
     interrupted = threading.Event()
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -269,12 +332,13 @@ def run(
     if logfile.path is not None:
         typer.echo(f"text log: {display_path(logfile.path)}")
     if summary.state != "finished":
-        if summary.log_path is not None:
-            typer.echo(f"resume with: acquire run {display_path(plan)} --resume {display_path(summary.log_path)}"
+        if summary.log_path is not None and (summary.done < summary.total or summary.failed):
+            typer.echo(f"resume with: acquire run {given} --resume {display_path(summary.log_path)}"
                        + (" --fake" if fake else ""))
+        elif summary.log_path is not None and summary.measured:
+            typer.echo(f"every configuration was visited; measure more (a larger plan) or fit the log yourself: "
+                       f"acquire fit {display_path(summary.log_path)} --robot {lp.model_path}")
         raise typer.Exit(summary.exit_code)
-    if summary.fit is None and not no_fit and summary.measured >= 3:
-        raise typer.Exit(1)
 
 
 def register(app: typer.Typer) -> None:

@@ -35,7 +35,8 @@ POLL_S = 0.2
 
 def sim(
     seed: Optional[int] = typer.Option(None, "--seed", min=0, help="Override the config's seed."),
-    config: Path = typer.Option(DEFAULT_CONFIG_PATH, "--config", help="Cell YAML (drivers/sim/config.py)."),
+    config: Path = typer.Option(DEFAULT_CONFIG_PATH, "--config",
+                                help="Cell YAML (drivers/sim/config.py), or the name of a packaged cell (acquire examples)."),
     time_scale: float = typer.Option(1.0, "--time-scale", help="Simulated seconds per wall second (> 0)."),
     fri_port: int = typer.Option(FRI_CLIENT_PORT, "--fri-port", help="UDP port of the FRI client to send to."),
     rsi_port: int = typer.Option(RSI_CLIENT_PORT, "--rsi-port", help="UDP port of the RSI commander to send to."),
@@ -52,6 +53,10 @@ def sim(
     if not duration > 0:
         raise typer.BadParameter(f"must be positive, given {duration}", param_hint="--duration")
     try:
+        if not config.exists():
+            from calib.resources import find
+
+            config = find("sim", str(config)) or config  # a packaged cell by name, e.g. "default"
         cell = SimCell.from_yaml(config, seed=seed, clock=SimClock(time_scale))
     except ConfigError as exc:
         typer.echo(f"error: {exc}", err=True)

@@ -36,11 +36,13 @@ def is_socket_csv(path: Path) -> bool:
     """True for a CSV whose header (first non-comment line) ends in ``placement,socket``."""
     if path.suffix.lower() != ".csv":
         return False
+    from calib.csvdialect import split_header
+
     try:
-        with path.open(encoding="utf-8") as fh:
+        with path.open(encoding="utf-8-sig") as fh:
             for line in fh:
                 if line.strip() and not line.lstrip().startswith("#"):
-                    return [c.strip() for c in line.split(",")][-2:] == ["placement", "socket"]
+                    return split_header(line)[-2:] == ["placement", "socket"]
     except (OSError, UnicodeDecodeError):
         return False
     return False

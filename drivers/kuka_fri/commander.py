@@ -40,7 +40,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 import numpy as np
 
-from drivers.base import Clock, CommanderBase
+from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, Clock, CommanderBase
 from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, ProtocolError
 from drivers.kuka_fri.messages import SessionState, decode_monitoring, encode_command
 from drivers.kuka_fri.session import (
@@ -101,7 +101,7 @@ class FriCommander(CommanderBase):
         start_tolerance_rad: float = math.radians(2.0),
         max_speed: float = 1.0,
         max_state_age_s: float = 0.1,
-        limit_margin_rad: float = math.radians(0.5),
+        limit_margin_rad: float = DEFAULT_LIMIT_MARGIN_RAD,
         fri_version: str = "auto",
         session_wait_s: float = 10.0,
         switch_interval_s: Optional[float] = 0.0005,

@@ -37,7 +37,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 import numpy as np
 
-from drivers.base import CommanderBase, check_timeout
+from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, CommanderBase, check_timeout
 from drivers.errors import (
     ConnectionLostError,
     DeviceFaultError,
@@ -109,7 +109,7 @@ class RsiCommander(CommanderBase):
         rt_priority: int = 50,
         max_deviation_rad: float = math.radians(2.0),
         max_jerk_rad_s3=None,
-        limit_margin_rad: float = math.radians(0.5),
+        limit_margin_rad: float = DEFAULT_LIMIT_MARGIN_RAD,
         max_state_age_s: float = 0.1,
         stats_window: int = 1 << 16,
         switch_interval_s: float | None = 2e-4,

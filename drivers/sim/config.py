@@ -30,6 +30,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from calib.model import Frame
+from calib.resources import default_sim_config
 from calib.yamlfile import load_validated
 
 Vec3 = tuple[float, float, float]
@@ -190,8 +191,9 @@ class SimConfig(_Strict):
         return [s.name for s in self.sensors]
 
 
-#: The documented default cell: an iiwa 14, a motion-capture bar and a tracker.
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "fixtures" / "sim" / "default.yaml"
+#: The documented default cell: an iiwa 14, a motion-capture bar and a tracker. Shipped in the
+#: package (``calib.resources``): it exists in an installed wheel as in a checkout.
+DEFAULT_CONFIG_PATH = default_sim_config()
 
 
 def load_sim_config(path: str | Path) -> SimConfig:
