@@ -70,8 +70,9 @@ class HealthMonitor:
     Real-time exchange (the commander that currently drives the robot, the daemon's or the
     run's): ``joint_state()`` must not raise and must be at most ``max_state_age_s`` old (in the
     commander's clock) whenever the exchange is expected to stream; when the driver reports
-    ``link_stats()`` (RSI), its ``late_answers`` may grow by at most ``max_late_answers_per_check``
-    between two checks. Recorder: the log of a running run must exist and have been written
+    ``link_stats()`` and its controller stops on late answers (RSI), its ``late_answers`` may grow
+    by at most ``max_late_answers_per_check`` between two checks. (An FRI controller grades the
+    connection itself and drops the session, which the run waits out.) Recorder: the log of a running run must exist and have been written
     within ``recorder_max_silence_s`` (file modification time, wall clock).
     """
 
@@ -98,7 +99,7 @@ class HealthMonitor:
         out = []
         name = getattr(cmd, "name", "commander")
         stats = getattr(cmd, "link_stats", None)
-        if callable(stats):
+        if callable(stats) and getattr(cmd, "controller_stops_on_late_answers", True):
             try:
                 late = int(stats().late_answers)
             except (AttributeError, ValueError, TypeError, DriverError) as exc:

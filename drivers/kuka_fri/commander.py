@@ -81,6 +81,10 @@ def _fri_major(value: str) -> Optional[int]:
 class FriCommander(CommanderBase):
     """Joint-position commander over FRI for a 7-axis LBR iiwa.
 
+    Sunrise grades the connection itself (quality from the answer windows, a session drop after
+    too many misses, which a run waits out): our own late-answer count is a figure for people
+    (``link_stats``), not a health verdict (``controller_stops_on_late_answers``).
+
     limits: the model's limits, shape (7,) arrays (radians, rad/s, rad/s²).
     bind: local (host, port) to receive monitoring messages on; port 0 picks a free one.
     controller_host: accept datagrams only from this IP (None: any sender).
@@ -88,6 +92,8 @@ class FriCommander(CommanderBase):
     switch_interval_s: interpreter thread switch interval while connected (None: leave it).
     clock / sleep: client time source and sleep (inject a ``SimClock``'s ``now``/``sleep``).
     """
+
+    controller_stops_on_late_answers = False
 
     def __init__(
         self,

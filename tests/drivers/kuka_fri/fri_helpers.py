@@ -94,6 +94,7 @@ def assert_timed_commands_within_limits(timed, limits: JointLimits, dt: float, s
     ``timed`` is a sequence of (controller time s, shape (7,) rad). Speeds are taken over the
     real time between set-points (a lost answer leaves a gap); accelerations over runs of
     set-points exactly ``dt`` apart."""
+    timed = list(timed)  # a running fake keeps appending
     t = np.array([x[0] for x in timed])
     q = np.array([x[1] for x in timed], dtype=float)
     assert np.all(q >= limits.lower_rad) and np.all(q <= limits.upper_rad)
