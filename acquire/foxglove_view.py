@@ -274,7 +274,7 @@ class RobotView:
 
     chain: ``calib.kinematics.Chain`` (nominal model). Registrations are (4, 4) ``base2sensor``
     matrices, mm (p_sensor = base2sensor · p_base), as the run estimates them; set them with
-    :meth:`set_registration`. Thread-safe for a single writer of registrations.
+    :meth:`set_registration`. Registrations may be set while another thread calls :meth:`transforms`.
     """
 
     def __init__(self, chain) -> None:
@@ -283,13 +283,16 @@ class RobotView:
         self._registration: dict[str, np.ndarray] = {}
 
     def set_registration(self, sensor: str, base2sensor_mm: np.ndarray | None) -> None:
+        """Set (or, with None, drop) the ``base → sensor`` transform of ``sensor``."""
+        reg = dict(self._registration)  # copy on write: ``transforms`` may run on another thread
         if base2sensor_mm is None:
-            self._registration.pop(sensor, None)
-            return
-        t = np.asarray(base2sensor_mm, dtype=float)
-        if t.shape != (4, 4) or not np.all(np.isfinite(t)):
-            raise ValueError(f"registration of {sensor} must be a finite (4, 4) matrix, given shape {t.shape}")
-        self._registration[sensor] = t.copy()
+            reg.pop(sensor, None)
+        else:
+            t = np.asarray(base2sensor_mm, dtype=float)
+            if t.shape != (4, 4) or not np.all(np.isfinite(t)):
+                raise ValueError(f"registration of {sensor} must be a finite (4, 4) matrix, given shape {t.shape}")
+            reg[sensor] = t.copy()
+        self._registration = reg
 
     def transforms(self, q_rad: np.ndarray, t_ns: int) -> dict:
         """``foxglove.FrameTransforms`` for joint angles q (n,) rad (controller convention)."""
@@ -309,6 +312,6 @@ class RobotView:
             out.append(frame_transform(names[i - 1], names[i], rel, t_ns))
             prev = frames[i]
         out.append(frame_transform(names[-1], FLANGE_FRAME, self.chain.flange, t_ns))
-        for sensor, b2s in sorted(self._registration.items()):
+        for sensor, b2s in sorted(self._registration.items()):  # a snapshot: set_registration replaces the dict
             out.append(frame_transform(BASE_FRAME, sensor, invert(b2s), t_ns))
         return {"transforms": out}

@@ -5,6 +5,7 @@ Examples::
     acquire run fixtures/plans/example.yaml --fake          # against the simulated cell
     acquire run plan.yaml --dry-run                         # what would happen; connects to nothing
     acquire run plan.yaml --resume runs/<id>/<id>.mcap      # continue a killed or aborted run
+    acquire run plan.yaml --live                            # watch it in Foxglove: ws://127.0.0.1:8765
 
 A bad plan exits 2 before anything connects or moves. Ctrl-C (SIGINT) or SIGTERM stops the
 robot safely (the commander decelerates), closes a complete, resumable log and exits 130;
@@ -158,6 +159,10 @@ def run(
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for the run (default: the plan's output.folder)."),
     no_fit: bool = typer.Option(False, "--no-fit", help="Do not fit at the end (use `acquire fit RUN.mcap` later)."),
     no_bus: bool = typer.Option(False, "--no-bus", help="Do not open the Zenoh bus (nothing published)."),
+    live: bool = typer.Option(False, "--live", help="Serve the run live to Foxglove (WebSocket; layout: "
+                              "fixtures/foxglove/remaster-layout.json)."),
+    live_host: str = typer.Option("127.0.0.1", "--live-host", help="Interface of the live view (0.0.0.0: every network)."),
+    live_port: int = typer.Option(8765, "--live-port", min=0, max=65535, help="TCP port of the live view."),
 ) -> None:
     """Run the measurement plan: move, settle, measure every configuration; log; fit."""
     lp, configs = _load(plan)
@@ -179,9 +184,21 @@ def run(
         except Exception as exc:  # noqa: BLE001 - a run without a bus still measures
             log.warning("no Zenoh bus (%s); the run is not published", exc)
             bus = None
+    server = None
+    if live:
+        from acquire.live import LiveServer, LiveServerError
+
+        try:
+            server = LiveServer(live_host, live_port, name=f"remaster {lp.plan.cell}")
+        except (LiveServerError, ValueError) as exc:
+            if bus is not None:
+                bus.close()
+            typer.echo(f"error: --live: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        typer.echo(f"live view: open {server.url} in Foxglove (Open connection → Foxglove WebSocket)", err=True)
     progress = Progress()
     controller = RunController(lp, fake=fake, resume=resume, bus=bus, out_dir=out, on_progress=progress.update,
-                               fit=not no_fit)
+                               fit=not no_fit, live=server)
     interrupted = threading.Event()
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -208,6 +225,8 @@ def run(
         progress.close()
         if bus is not None:
             bus.close()
+        if server is not None:
+            server.close()
     typer.echo(format_run_summary(summary, lp))
     if summary.state != "finished":
         if summary.log_path is not None:
