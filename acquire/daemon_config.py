@@ -28,7 +28,7 @@ Sections:
   or a wrong token holds only ``anonymous`` (default: observe).
 - ``health``: the watchdog's limits. ``shutdown``: what SIGTERM does to a running run.
 - ``live``: ``{enabled, host, port, allow_remote}`` — serve every run live to the Foxglove app
-  (``acquire.live.LiveServer``, WebSocket ``foxglove.websocket.v1``; off by default). The server
+  (``acquire.live.LiveServer``, Foxglove WebSocket protocol; off by default). The server
   binds to loopback unless ``allow_remote: true`` (it has no authentication: anyone who can
   connect watches the run).
 """

@@ -1,7 +1,9 @@
 """The live view: the run log's channels served to the Foxglove app over WebSocket.
 
-:class:`LiveServer` wraps the Foxglove SDK's WebSocket server (PyPI ``foxglove-sdk``; protocol
-``foxglove.websocket.v1``). A :class:`acquire.recorder.RunLog` given ``live=`` hands it every
+:class:`LiveServer` wraps the Foxglove SDK's WebSocket server (PyPI ``foxglove-sdk``; the Foxglove
+WebSocket protocol, subprotocol ``foxglove.sdk.v1`` — the successor of ``foxglove.websocket.v1``
+with the same messages, which the Foxglove app speaks; viewers that only know
+``foxglove.websocket.v1``, such as older Lichtblick releases, are refused by the SDK). A :class:`acquire.recorder.RunLog` given ``live=`` hands it every
 message it writes — the same topic, schema name, JSON schema and JSON bytes as in the MCAP file —
 so what Foxglove shows live is exactly what the log holds (``/tf``, ``/markers``,
 ``/joint_state``, ``/log``, ``/run/sample``, ``/run/event``, ``/<sensor>/markers``; see
@@ -63,25 +65,28 @@ class LiveServer:
     def url(self) -> str:
         return f"ws://{self.host}:{self.port}"
 
-    def publish(self, topic: str, schema_name: str, json_schema: bytes, data: bytes, log_time_ns: int) -> None:
-        """Send one JSON message (``data``, UTF-8 JSON bytes) on ``topic`` to subscribed clients.
-
-        The channel is advertised on first use with ``schema_name`` and ``json_schema``
-        (encoding ``jsonschema``, message encoding ``json``).
-        """
+    def advertise(self, topic: str, schema_name: str, json_schema: bytes):
+        """Make ``topic`` known to clients (schema encoding ``jsonschema``, message encoding
+        ``json``); returns the SDK channel, or None once closed. A changed schema re-advertises."""
         with self._lock:
             if self._closed:
-                return
+                return None
             known = self._channels.get(topic)
-            if known is None or known[1] != (schema_name, json_schema):
+            if known is None or known[1] != (schema_name, bytes(json_schema)):
                 if known is not None:
                     known[0].close()
                 schema = self._fg.Schema(name=schema_name, encoding="jsonschema", data=bytes(json_schema))
                 channel = self._fg.Channel(topic, schema=schema, message_encoding="json", context=self._ctx)
                 known = (channel, (schema_name, bytes(json_schema)))
                 self._channels[topic] = known
-            channel = known[0]
-        channel.log(bytes(data), log_time=int(log_time_ns))
+            return known[0]
+
+    def publish(self, topic: str, schema_name: str, json_schema: bytes, data: bytes, log_time_ns: int) -> None:
+        """Send one JSON message (``data``, UTF-8 JSON bytes) on ``topic`` to subscribed clients
+        (advertising the channel first if needed)."""
+        channel = self.advertise(topic, schema_name, json_schema)
+        if channel is not None:
+            channel.log(bytes(data), log_time=int(log_time_ns))
 
     def close(self) -> None:
         """Stop the server (clients are disconnected). Idempotent."""

@@ -423,6 +423,11 @@ class RunLog:
             channel_id = self._writer.add_channel(topic, "json", schema_id)
             self._channels[topic] = (channel_id, schema_name, data)
             self._sequence[channel_id] = 0
+            if self.live is not None:
+                try:
+                    self.live.advertise(topic, schema_name, data)
+                except Exception as exc:  # noqa: BLE001 - a viewer must never stop the recording
+                    log.debug("live advertise of %s failed: %s", topic, exc)
             return channel_id
 
     def write(self, topic: str, message: dict, *, log_time_ns: int | None = None) -> None:
