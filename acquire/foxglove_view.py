@@ -297,21 +297,29 @@ class RobotView:
     def transforms(self, q_rad: np.ndarray, t_ns: int) -> dict:
         """``foxglove.FrameTransforms`` for joint angles q (n,) rad (controller convention)."""
         from calib.kinematics import joint_frames
-        from calib.transforms import invert
 
         q = np.asarray(q_rad, dtype=float).reshape(-1)
         if q.size != self.chain.n:
             raise ValueError(f"{q.size} joint angles for a {self.chain.n}-axis model")
-        frames = joint_frames(self.chain, q)  # (n+1, 4, 4): base frame's placement, then each link
+        frames = joint_frames(self.chain, q)  # (n+1, 4, 4) in the base frame: DH frame 0 (the model's base), links 1..n
+        # Each link relative to its parent: link1 in base, link i in link i-1 (rigid inverse: Rᵀ, −Rᵀp).
+        parent = np.concatenate([np.eye(4)[None], frames[1:-1]])
+        rt = np.swapaxes(parent[:, :3, :3], -1, -2)
+        rel_r = rt @ frames[1:, :3, :3]
+        rel_p = np.einsum("nij,nj->ni", rt, frames[1:, :3, 3] - parent[:, :3, 3])
+        stamp_ = stamp(t_ns)
         names = [BASE_FRAME, *self.link_frames]
-        out = []
-        # frames[0] is the model's base placement; link1's pose relative to the base frame is frames[1].
-        prev = np.eye(4)
-        for i in range(1, self.chain.n + 1):
-            rel = invert(prev) @ frames[i] if i > 1 else frames[1]
-            out.append(frame_transform(names[i - 1], names[i], rel, t_ns))
-            prev = frames[i]
-        out.append(frame_transform(names[-1], FLANGE_FRAME, self.chain.flange, t_ns))
+        out = [_tf(stamp_, names[i], names[i + 1], rel_r[i], rel_p[i]) for i in range(self.chain.n)]
+        flange = self.chain.flange
+        out.append(_tf(stamp_, names[-1], FLANGE_FRAME, flange[:3, :3], flange[:3, 3]))
         for sensor, b2s in sorted(self._registration.items()):  # a snapshot: set_registration replaces the dict
-            out.append(frame_transform(BASE_FRAME, sensor, invert(b2s), t_ns))
+            r_t = b2s[:3, :3].T
+            out.append(_tf(stamp_, BASE_FRAME, sensor, r_t, -r_t @ b2s[:3, 3]))
         return {"transforms": out}
+
+
+def _tf(stamp_: dict, parent: str, child: str, r: np.ndarray, p_mm: np.ndarray) -> dict:
+    x, y, z, w = quaternion(r)
+    px, py, pz = (float(v) / 1000.0 for v in p_mm)
+    return {"timestamp": stamp_, "parent_frame_id": parent, "child_frame_id": child,
+            "translation": {"x": px, "y": py, "z": pz}, "rotation": {"x": x, "y": y, "z": z, "w": w}}
