@@ -200,3 +200,50 @@ def test_acquire_run_live_serves_the_robot_frames_and_the_joint_state(tmp_path):
     np.testing.assert_allclose(_compose(frames, "flange"), Chain(model).fk(q), atol=1e-3)  # the streamed frames are the robot's
     assert "mocap" in {f["child_frame_id"] for f in frames}  # base → sensor from the run's registration estimate
     assert any(e["frame_id"] in ("mocap", "flange") for s in scenes for e in s["entities"])
+
+
+# --------------------------------------------------------------------------------- the daemon
+def test_daemon_config_live_section_binds_loopback_unless_remote_is_allowed(tmp_path):
+    from acquire.daemon_config import DaemonConfig
+
+    cfg = DaemonConfig(cell="c1", fake=True, live={"enabled": True, "port": 9000})
+    assert (cfg.live.host, cfg.live.port) == ("127.0.0.1", 9000)
+    with pytest.raises(ValueError, match="not loopback.*allow_remote"):
+        DaemonConfig(cell="c1", fake=True, live={"enabled": True, "host": "0.0.0.0"})
+    assert DaemonConfig(cell="c1", fake=True, live={"enabled": True, "host": "0.0.0.0", "allow_remote": True}).live.allow_remote
+    with pytest.raises(ValueError, match="less than or equal to 65535"):
+        DaemonConfig(cell="c1", fake=True, live={"enabled": True, "port": 70000})
+
+
+@pytest.mark.timeout(170)
+def test_daemon_serves_its_runs_live_when_configured(tmp_path):
+    from daemon_harness import OPERATOR_TOKEN, DaemonProcess, NotifySocket, control, free_port, open_client, write_config
+
+    notify = NotifySocket()
+    port, live_port = free_port(), free_port()
+    proc = DaemonProcess(write_config(tmp_path, port, live={"enabled": True, "port": live_port}), notify)
+    client = None
+    try:
+        proc.wait_ready(timeout=90)
+        client = FoxgloveClient(f"ws://127.0.0.1:{live_port}")
+        deadline = time.monotonic() + 30
+        while client.server_info is None:
+            assert time.monotonic() < deadline, "no serverInfo from the daemon's live view"
+            client.recv(0.2)
+        assert client.server_info["name"].startswith("remaster ")
+        with open_client(port) as bus:
+            control(bus, "operator", OPERATOR_TOKEN).call("start", {"plan": "example.yaml"})
+            client.wait_channels({"/tf", "/joint_state", "/log"}, timeout_s=90)
+            client.subscribe("/log")
+            deadline = time.monotonic() + 120
+            lines: list[str] = []
+            while not any(x.startswith("measured ") for x in lines):
+                assert time.monotonic() < deadline, f"no measured configuration on /log; got {lines[-5:]}"
+                got = client.recv(0.5)
+                if got is not None:
+                    lines.append(json.loads(got[2])["message"])
+    finally:
+        if client is not None:
+            client.close()
+        proc.stop(signal.SIGTERM, timeout=60)
+        notify.close()
