@@ -59,10 +59,11 @@ def test_frame_transforms_compose_to_the_models_flange_and_markers(model_path):
         tfs = doc["transforms"]
         assert [t["child_frame_id"] for t in tfs] == [f"link{i + 1}" for i in range(model.n_joints)] + ["flange"]
         assert [t["parent_frame_id"] for t in tfs] == ["base"] + [f"link{i + 1}" for i in range(model.n_joints)]
-        flange = compose(tfs, "flange")
-        np.testing.assert_allclose(flange, chain.fk(q), atol=1e-9)
+        flange = compose(tfs, "flange")  # Foxglove's numbers are rounded to 0.1 µm and 1e-10
+        np.testing.assert_allclose(flange[:3, 3], chain.fk(q)[:3, 3], atol=1e-3)  # mm
+        np.testing.assert_allclose(flange[:3, :3], chain.fk(q)[:3, :3], atol=1e-8)
         markers = np.array([flange[:3, :3] @ np.array(m.xyz) + flange[:3, 3] for m in model.tool.markers])
-        np.testing.assert_allclose(markers, chain.marker_positions(q), atol=1e-9)
+        np.testing.assert_allclose(markers, chain.marker_positions(q), atol=1e-3)
         assert tfs[0]["timestamp"] == {"sec": 1_700_000_000, "nsec": 123_456_789}
 
 
@@ -77,7 +78,7 @@ def test_base_to_sensor_places_sensor_points_where_the_registration_says():
     p_base = np.array([1200.0, -300.0, 650.0])
     p_sensor = base2sensor[:3, :3] @ p_base + base2sensor[:3, 3]
     sensor_in_base = compose(tfs, "tracker")
-    np.testing.assert_allclose(sensor_in_base[:3, :3] @ p_sensor + sensor_in_base[:3, 3], p_base, atol=1e-9)
+    np.testing.assert_allclose(sensor_in_base[:3, :3] @ p_sensor + sensor_in_base[:3, 3], p_base, atol=1e-3)
     view.set_registration("tracker", None)
     assert "tracker" not in {t["child_frame_id"] for t in view.transforms(np.zeros(model.n_joints), 0)["transforms"]}
     with pytest.raises(ValueError, match="finite"):
