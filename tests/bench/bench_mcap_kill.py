@@ -14,6 +14,10 @@ Writers, same workload, same run:
   by size) — the peer every MCAP-producing Python tool uses.
 
 Prints the median and max loss (s) per writer, and the ratio peer / ours.
+
+``--runs N`` also kills N real ``acquire run fixtures/plans/example.yaml --fake`` processes 1–3 s
+after their first sample and reports the same loss for the whole application (joint states
+and frame transforms stream at 25 Hz).
 """
 
 from __future__ import annotations
@@ -93,10 +97,40 @@ def one_kill(kind: str, folder: Path, delay_s: float, n: int) -> tuple[float, in
     return loss, count
 
 
+def one_run_kill(folder: Path, delay_s: float, n: int) -> tuple[float, int]:
+    import os
+
+    from acquire.recorder import read_run
+
+    out = folder / f"runs-{n}"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-m", "acquire", "run", "fixtures/plans/example.yaml", "--fake", "--no-bus",
+                             "--no-fit", "--out", str(out)], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 180
+    log = None
+    while time.monotonic() < deadline and proc.poll() is None:
+        logs = sorted(out.rglob("*.mcap"))
+        if logs and read_run(logs[0]).samples:
+            log = logs[0]
+            break
+        time.sleep(0.2)
+    if log is None:
+        proc.kill()
+        raise RuntimeError("the run wrote no sample within 180 s")
+    time.sleep(delay_s)
+    t_kill = time.time_ns()
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    newest, count = newest_log_time(log)
+    return (t_kill - newest) / 1e9, count
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--kills", type=int, default=8)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--runs", type=int, default=0, help="also kill this many real `acquire run --fake` processes")
     args = ap.parse_args()
     rng = random.Random(args.seed)
     delays = [rng.uniform(2.0, 4.0) for _ in range(args.kills)]
@@ -113,6 +147,15 @@ def main() -> None:
     ours, peer = out["remaster"], out["mcap-writer"]
     print(f"ratio mcap-writer / remaster: median {statistics.median(peer) / max(statistics.median(ours), 1e-9):.1f}x, "
           f"max {max(peer) / max(max(ours), 1e-9):.1f}x")
+    if args.runs:
+        losses = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for n in range(args.runs):
+                d = rng.uniform(1.0, 3.0)
+                loss, count = one_run_kill(Path(tmp), d, n)
+                losses.append(loss)
+                print(f"acquire run --fake killed {d:.2f} s after its first sample: lost the last {loss:.3f} s ({count} messages kept)")
+        print(f"acquire run   loss after kill -9: median {statistics.median(losses):.3f} s, max {max(losses):.3f} s  (n={len(losses)})")
 
 
 if __name__ == "__main__":
