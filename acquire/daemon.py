@@ -4,6 +4,8 @@ Start-up (``Daemon.run``):
 
 1. open the Zenoh session (``acquire.bus.Bus``) — by default the cell's *router*, listening on
    loopback only; remote listeners need mTLS or access control (``acquire.daemon_config``);
+   with ``live.enabled``, start the Foxglove live view (``acquire.live.LiveServer``), which then
+   serves every run's log channels as they are written;
 2. bring up the cell's devices (``DeviceHost``): the configured commander and sensors, or with
    ``fake`` the simulated cell (``drivers.sim.launch.SimLaunch``) with a commander exchanging
    real-time packets with its fake controller; announce each with a liveliness token
