@@ -158,7 +158,8 @@ def _compose(transforms: list[dict], frame: str) -> np.ndarray:
 
 @pytest.mark.timeout(170)
 def test_acquire_run_live_serves_the_robot_frames_and_the_joint_state(tmp_path):
-    plan = small_plan(tmp_path, n=4, sequencing={"samples": 5, "settle_window_s": 0.2}, fake={"time_scale": 6.0})
+    # 8 candidate poses: enough configurations that the run is still going when the client has what it needs
+    plan = small_plan(tmp_path, n=8, sequencing={"samples": 5, "settle_window_s": 0.2}, fake={"time_scale": 6.0})
     proc = popen("run", str(plan), "--fake", "--no-bus", "--no-fit", "--live", "--live-port", "0")
     lines: queue.Queue[str] = queue.Queue()
     threading.Thread(target=lambda: [lines.put(x) for x in proc.stderr], daemon=True).start()
@@ -179,7 +180,10 @@ def test_acquire_run_live_serves_the_robot_frames_and_the_joint_state(tmp_path):
         tfs: dict[int, dict] = {}
         joints: dict[int, dict] = {}
         scenes: list[dict] = []
-        while not (set(tfs) & set(joints)) or not scenes:
+        def paired() -> list[int]:  # a joint state and its frames, once base → mocap (the registration) is known
+            return sorted(t for t in set(tfs) & set(joints) if "mocap" in {f["child_frame_id"] for f in tfs[t]["transforms"]})
+
+        while not paired() or not scenes:
             assert time.monotonic() < deadline + 60 and proc.poll() is None, "no /tf, /joint_state and /markers pair received"
             got = client.recv(0.5)
             if got is None:
@@ -194,11 +198,12 @@ def test_acquire_run_live_serves_the_robot_frames_and_the_joint_state(tmp_path):
         proc.send_signal(signal.SIGTERM)
         proc.communicate(timeout=60)
     model = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
-    t = sorted(set(tfs) & set(joints))[0]
+    t = paired()[0]
     q = np.array(joints[t]["position_rad"])
     frames = tfs[t]["transforms"]
     np.testing.assert_allclose(_compose(frames, "flange"), Chain(model).fk(q), atol=1e-3)  # the streamed frames are the robot's
-    assert "mocap" in {f["child_frame_id"] for f in frames}  # base → sensor from the run's registration estimate
+    mocap = next(f for f in frames if f["child_frame_id"] == "mocap")  # base → sensor: the run's registration estimate
+    assert mocap["parent_frame_id"] == "base"
     assert any(e["frame_id"] in ("mocap", "flange") for s in scenes for e in s["entities"])
 
 
