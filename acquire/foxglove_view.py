@@ -141,25 +141,34 @@ def stamp(t_ns: int) -> dict:
     return {"sec": int(t_ns // 1_000_000_000), "nsec": int(t_ns % 1_000_000_000)}
 
 
-def quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion (x, y, z, w), w ≥ 0, of a (3, 3) rotation matrix (Shepperd's method)."""
+def quaternions(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) as (x, y, z, w), w ≥ 0, of rotation matrices (..., 3, 3).
+
+    Shepperd's method: each matrix uses the best-conditioned of the four formulas (largest of
+    trace, r00, r11, r22), so rotations near 180° are as exact as small ones.
+    """
     r = np.asarray(r, dtype=float)
-    tr = r[0, 0] + r[1, 1] + r[2, 2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q = ((r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s)
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = (0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s)
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = ((r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s)
-    else:
-        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = ((r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s)
-    n = math.sqrt(sum(v * v for v in q))
-    sign = -1.0 if q[3] < 0 else 1.0
-    return tuple(sign * v / n for v in q)  # type: ignore[return-value]
+    r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+    tr = r00 + r11 + r22
+    d21, d02, d10 = r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]
+    s01, s02, s12 = r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1]
+    pick = np.argmax(np.stack([tr, r00, r11, r22], -1), -1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cand = np.stack([
+            np.stack([d21, d02, d10, 1 + tr], -1),
+            np.stack([1 + r00 - r11 - r22, s01, s02, d21], -1),
+            np.stack([s01, 1 - r00 + r11 - r22, s12, d02], -1),
+            np.stack([s02, s12, 1 - r00 - r11 + r22, d10], -1),
+        ], -2)  # (..., 4 formulas, 4): each proportional to the quaternion
+    q = np.take_along_axis(cand, pick[..., None, None], -2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:4] < 0, -q, q)
+
+
+def quaternion(r: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion (x, y, z, w), w ≥ 0, of one (3, 3) rotation matrix (see :func:`quaternions`)."""
+    x, y, z, w = quaternions(r).tolist()
+    return x, y, z, w
 
 
 def frame_transform(parent: str, child: str, parent2child_mm: np.ndarray, t_ns: int) -> dict:
@@ -295,33 +304,35 @@ class RobotView:
         self._registration = reg
 
     def transforms(self, q_rad: np.ndarray, t_ns: int) -> dict:
-        """``foxglove.FrameTransforms`` for joint angles q (n,) rad (controller convention)."""
+        """``foxglove.FrameTransforms`` for joint angles q (n,) rad (controller convention).
+
+        Numbers are rounded to 1e-7 m (0.1 µm) and 1e-10 per quaternion component (< 1e-6 mm
+        at 2 m): far below any sensor's resolution, and half the bytes of full float reprs.
+        """
         from calib.kinematics import joint_frames
 
         q = np.asarray(q_rad, dtype=float).reshape(-1)
-        if q.size != self.chain.n:
-            raise ValueError(f"{q.size} joint angles for a {self.chain.n}-axis model")
+        if q.size != self.chain.n or not np.all(np.isfinite(q)):
+            raise ValueError(f"need {self.chain.n} finite joint angles, given {q.size}: {q.tolist()}")
         frames = joint_frames(self.chain, q)  # (n+1, 4, 4) in the base frame: DH frame 0 (the model's base), links 1..n
-        # Each link relative to its parent: link1 in base, link i in link i-1 (rigid inverse: Rᵀ, −Rᵀp).
+        # Each link relative to its parent: link1 in base, link i in link i-1 (rigid inverse: Rᵀ, −Rᵀp);
+        # then the flange in link n, and each sensor in base (the inverse of base2sensor).
         parent = np.concatenate([np.eye(4)[None], frames[1:-1]])
         rt = np.swapaxes(parent[:, :3, :3], -1, -2)
-        rel_r = rt @ frames[1:, :3, :3]
-        rel_p = np.einsum("nij,nj->ni", rt, frames[1:, :3, 3] - parent[:, :3, 3])
-        stamp_ = stamp(t_ns)
+        rot = [rt @ frames[1:, :3, :3], self.chain.flange[None, :3, :3]]
+        pos = [np.einsum("nij,nj->ni", rt, frames[1:, :3, 3] - parent[:, :3, 3]), self.chain.flange[None, :3, 3]]
         names = [BASE_FRAME, *self.link_frames]
-        out = [_tf(stamp_, names[i], names[i + 1], rel_r[i], rel_p[i]) for i in range(self.chain.n)]
-        flange = self.chain.flange
-        out.append(_tf(stamp_, names[-1], FLANGE_FRAME, flange[:3, :3], flange[:3, 3]))
+        pairs = [(names[i], names[i + 1]) for i in range(self.chain.n)] + [(names[-1], FLANGE_FRAME)]
         for sensor, b2s in sorted(self._registration.items()):  # a snapshot: set_registration replaces the dict
             r_t = b2s[:3, :3].T
-            out.append(_tf(stamp_, BASE_FRAME, sensor, r_t, -r_t @ b2s[:3, 3]))
-        return {"transforms": out}
-
-
-def _tf(stamp_: dict, parent: str, child: str, r: np.ndarray, p_mm: np.ndarray) -> dict:
-    """Rounded to 1e-7 m (0.1 µm) and 1e-10 per quaternion component (< 1e-6 mm at 2 m): far
-    below any sensor's resolution, and half the bytes of full float reprs."""
-    x, y, z, w = (round(v, 10) for v in quaternion(r))
-    px, py, pz = (round(float(v) / 1000.0, 7) for v in p_mm)
-    return {"timestamp": stamp_, "parent_frame_id": parent, "child_frame_id": child,
-            "translation": {"x": px, "y": py, "z": pz}, "rotation": {"x": x, "y": y, "z": z, "w": w}}
+            rot.append(r_t[None])
+            pos.append((-r_t @ b2s[:3, 3])[None])
+            pairs.append((BASE_FRAME, sensor))
+        quats = np.round(quaternions(np.concatenate(rot)), 10).tolist()
+        trans = np.round(np.concatenate(pos) / 1000.0, 7).tolist()
+        st = stamp(t_ns)
+        return {"transforms": [
+            {"timestamp": st, "parent_frame_id": parent_id, "child_frame_id": child_id,
+             "translation": {"x": p[0], "y": p[1], "z": p[2]}, "rotation": {"x": qq[0], "y": qq[1], "z": qq[2], "w": qq[3]}}
+            for (parent_id, child_id), p, qq in zip(pairs, trans, quats)
+        ]}
