@@ -788,13 +788,13 @@ class RunController:
         viewer that connects mid-run sees them)."""
         from acquire.foxglove_view import nominal_markers_scene
 
-        for spec in self.plan.sensors:
-            self._view.set_registration(spec.name, predictor.base2sensor(spec.name)[0])
-        markers = {m.name: m.xyz for m in self.lp.model.tool.markers}
-        try:
+        try:  # the view must never stop a run
+            for spec in self.plan.sensors:
+                self._view.set_registration(spec.name, predictor.base2sensor(spec.name)[0])
+            markers = {m.name: m.xyz for m in self.lp.model.tool.markers}
             self._runlog.record_scene(nominal_markers_scene(markers, time.time_ns()))
         except (OSError, ValueError, RuntimeError) as exc:
-            log.debug("nominal markers not logged: %s", exc)
+            log.warning("Foxglove view not updated: %s", exc)
 
     def _wait_ready(self) -> None:
         """After a failed move: wait for the controller to stream again (a fresh joint state,
