@@ -912,10 +912,18 @@ class JointStateTap:
             try:
                 self.runlog.record_joint_state(self.device, st.position_rad, names=self.names,
                                                device_time=float(st.device_time), log_time_ns=t_ns)
-                if self.view is not None:
-                    self.runlog.record_transforms(self.view.transforms(st.position_rad, t_ns), log_time_ns=t_ns)
             except (OSError, ValueError, RuntimeError, AttributeError):
                 return  # the log is closing
+            if self.view is not None:
+                try:
+                    tf = self.view.transforms(st.position_rad, t_ns)
+                except ValueError as exc:  # e.g. a non-finite joint reading: no frames this tick
+                    log.debug("no frame transforms: %s", exc)
+                else:
+                    try:
+                        self.runlog.record_transforms(tf, log_time_ns=t_ns)
+                    except (OSError, ValueError, RuntimeError):
+                        return  # the log is closing
             if self._key is not None:
                 try:
                     self.bus.publish(self._key, {"name": self.names, "position_deg": np.degrees(st.position_rad).tolist(),
