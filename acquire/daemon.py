@@ -4,6 +4,8 @@ Start-up (``Daemon.run``):
 
 1. open the Zenoh session (``acquire.bus.Bus``) — by default the cell's *router*, listening on
    loopback only; remote listeners need mTLS or access control (``acquire.daemon_config``);
+   with ``live.enabled``, start the Foxglove live view (``acquire.live.LiveServer``), which then
+   serves every run's log channels as they are written;
 2. bring up the cell's devices (``DeviceHost``): the configured commander and sensors, or with
    ``fake`` the simulated cell (``drivers.sim.launch.SimLaunch``) with a commander exchanging
    real-time packets with its fake controller; announce each with a liveliness token
@@ -265,6 +267,7 @@ class Daemon:
         self.health = HealthMonitor(cfg.health)
         self.devices = DeviceHost(cfg)
         self.bus = None
+        self.live = None  # acquire.live.LiveServer when cfg.live.enabled
         self.control: ControlServer | None = None
         self.controller = None
         self._lock = threading.RLock()
@@ -331,6 +334,10 @@ class Daemon:
         )
         log.info("Zenoh %s for cell %s listening on %s%s", zc.mode, cfg.cell, ", ".join(zc.listen),
                  " (mTLS)" if zc.tls and zc.tls.enable_mtls else "")
+        if cfg.live.enabled:
+            from acquire.live import LiveServer
+
+            self.live = LiveServer(cfg.live.host, cfg.live.port, name=f"remaster {cfg.cell}")
         self._status("bringing up devices")
         self._bring_up_devices()
         self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))
@@ -440,6 +447,9 @@ class Daemon:
         for tok in self._tokens.values():
             tok.undeclare()
         self._tokens.clear()
+        if self.live is not None:
+            self.live.close()
+            self.live = None
         if self.bus is not None:
             self.bus.close()
             self.bus = None
@@ -604,8 +614,9 @@ class Daemon:
             self.health.forget(self.devices.commander)
             self.devices.close()
             try:
+                extra = {"live": self.live} if self.live is not None else {}
                 ctl = factory(lp, fake=self.cfg.fake_cell is not None, resume=resume_path, bus=self.bus,
-                              out_dir=self.runs_dir)
+                              out_dir=self.runs_dir, **extra)
                 run_id = ctl.start()
             except (OSError, ValueError, RuntimeError, DriverError) as exc:
                 log.error("run did not start: %s", exc)

@@ -27,6 +27,10 @@ Sections:
   ``read`` (plan texts), ``control`` (pause, abort), ``motion`` (start, resume). A query with no
   or a wrong token holds only ``anonymous`` (default: observe).
 - ``health``: the watchdog's limits. ``shutdown``: what SIGTERM does to a running run.
+- ``live``: ``{enabled, host, port, allow_remote}`` — serve every run live to the Foxglove app
+  (``acquire.live.LiveServer``, Foxglove WebSocket protocol; off by default). The server
+  binds to loopback unless ``allow_remote: true`` (it has no authentication: anyone who can
+  connect watches the run).
 """
 
 from __future__ import annotations
@@ -237,6 +241,31 @@ class ShutdownSection(_Strict):
     timeout_s: float = Field(60.0, gt=0, description="after this the run is aborted anyway")
 
 
+class LiveSection(_Strict):
+    """The live view for the Foxglove app (one server for all the daemon's runs)."""
+
+    enabled: bool = False
+    host: str = Field("127.0.0.1", min_length=1, description="interface to bind; loopback unless allow_remote")
+    port: int = Field(8765, ge=1, le=65535)
+    allow_remote: bool = Field(False, description="allow a non-loopback host (the live view has no authentication)")
+
+    @model_validator(mode="after")
+    def _loopback_unless_allowed(self) -> "LiveSection":
+        if self.enabled and not self.allow_remote and not _host_is_loopback(self.host):
+            raise ValueError(f"host {self.host!r} is not loopback: the live view has no authentication; "
+                             "set allow_remote: true to serve it to the network anyway")
+        return self
+
+
+def _host_is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 class DaemonConfig(_Strict, CrossFieldChecked):
     """The whole daemon configuration (see the module docstring)."""
 
@@ -252,6 +281,7 @@ class DaemonConfig(_Strict, CrossFieldChecked):
     auth: AuthSection = AuthSection()
     health: HealthSection = HealthSection()
     shutdown: ShutdownSection = ShutdownSection()
+    live: LiveSection = LiveSection()
     status_interval_s: float = Field(1.0, gt=0, le=60, description="health check / STATUS period without a watchdog")
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:

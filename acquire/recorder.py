@@ -1,35 +1,43 @@
-"""The run log: one MCAP file per run, crash-safe and resumable.
+"""The run log: one MCAP file per run, crash-safe, resumable, indexed for every reader.
 
-What is in the file (readable by ``mcap`` tooling and Foxglove):
+What is in the file (readable by ``mcap`` tooling, the TypeScript ``McapIndexedReader`` and Foxglove):
 
 - Every stream is a channel with message encoding ``json`` and a schema with encoding
-  ``jsonschema``. Standard channels: ``/run/sample`` (``remaster.Sample``, one record per measured
+  ``jsonschema``. Run channels: ``/run/sample`` (``remaster.Sample``, one record per measured
   configuration), ``/run/event`` (``remaster.RunEvent``: moved, settled, suspended, resumed,
-  skipped, …). Streams recorded with :meth:`RunLog.record_joint_state` go to
-  ``/<device>/joint_state`` (``remaster.JointState``, degrees); :meth:`RunLog.record_markers`
-  writes ``/<sensor>/markers`` (``remaster.MarkerFrame``, mm, sensor frame, every frame) and, for
-  Foxglove's 3D panel, ``/<sensor>/markers/scene`` (``foxglove.SceneUpdate``: one sphere entity per
-  marker, metres, frame id = the sensor name, at most ``scene_rate_hz``, default 30 Hz).
+  skipped, …). :meth:`RunLog.record_markers` writes ``/<sensor>/markers``
+  (``remaster.MarkerFrame``, mm, sensor frame, every frame).
+- The Foxglove channels of :mod:`acquire.foxglove_view` (fixed names, one layout for every cell):
+  ``/joint_state`` (:meth:`RunLog.record_joint_state`, degrees and radians), ``/tf``
+  (``foxglove.FrameTransforms``, :meth:`RunLog.record_transforms`), ``/markers``
+  (``foxglove.SceneUpdate``: every sensor's markers in its frame, at most ``scene_rate_hz`` per
+  sensor, default 30 Hz; the model's nominal markers on the flange) and ``/log``
+  (``foxglove.Log``: every event and sample as a line).
 - Metadata records ``remaster.run`` (format, run id, segment number, creation time),
   ``remaster.run.metadata`` (the caller's metadata, each value JSON-encoded), ``remaster.plan``
   and ``remaster.robot_model`` (the exact texts), and the same two texts as attachments
   ``plan.yaml`` and ``robot.yaml``.
 
-Crash safety: the file is written without chunks and without compression, record by record, so
-no record waits in memory for a chunk to fill. ``sample`` and ``event`` return only after
-``flush`` + ``os.fsync`` (with everything written before them); a stream write flushes to the OS
-when the last flush is older than ``flush_interval_s`` (a ``kill -9`` keeps what reached the OS;
-a power cut keeps what was fsync'd). :func:`read_run` reads records one by one and stops at the first one that is
-incomplete or unreadable, so a truncated file yields exactly the records that were completely
-written — never a partial one (``mcap``'s own readers would hand a cut record's bytes on, or
-raise). The price of no chunks is a larger, unindexed file: tools read it linearly (``mcap`` and
-Foxglove both do). JSON encoding: :mod:`acquire.jsonpayload` (NaN/inf → null).
+Layout and crash safety (:mod:`acquire.mcapfile`): messages collect in a small uncompressed chunk
+that is written, with its message indexes, when it is ``flush_interval_s`` old (default 0.25 s;
+a background thread closes it even when no further message arrives) or ``chunk_bytes`` big, and
+before every ``sample`` and ``event``, which return only after ``flush`` + ``os.fsync``. A
+``kill -9`` therefore loses at most the stream messages of the last ``flush_interval_s`` (plus
+scheduling delay; ``tests/bench/bench_mcap_kill.py`` measures it); a power cut keeps what was
+fsync'd. ``close`` writes the summary: schemas, channels, statistics, chunk / attachment /
+metadata indexes. :func:`read_run` reads unit by unit (a chunk counts with all its message
+indexes) and stops at the first incomplete one, so a truncated file yields exactly the complete
+records — never a partial one. JSON encoding: :mod:`acquire.jsonpayload` (NaN/inf → null).
 
-Resume: :meth:`RunLog.append_to` never rewrites recorded data. It closes the killed file (cuts
-the incomplete tail record, if any, and appends a DataEnd + Footer so the file is valid MCAP
-again), then continues in a new segment beside it: ``RUN.mcap`` → ``RUN.resume1.mcap`` →
-``RUN.resume2.mcap`` …; each segment is a complete MCAP file with the run's metadata and its
-segment number. :func:`read_run` given any segment reads them all in order and returns the union.
+Live view: a ``live`` publisher (:class:`acquire.live.LiveServer`) given to ``create`` /
+``append_to`` receives every message written, on the same topics with the same schemas.
+
+Resume: :meth:`RunLog.append_to` never rewrites recorded data. It finishes the killed file (cuts
+the incomplete tail unit, if any, and appends DataEnd + a rebuilt summary + Footer, so the file is
+indexed MCAP again), then continues in a new segment beside it: ``RUN.mcap`` →
+``RUN.resume1.mcap`` → ``RUN.resume2.mcap`` …; each segment is a complete MCAP file with the run's
+metadata and its segment number. :func:`read_run` given any segment reads them all in order and
+returns the union.
 """
 
 from __future__ import annotations
@@ -41,32 +49,17 @@ import logging
 import math
 import os
 import re
-import struct
 import threading
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
-from mcap.exceptions import McapError
-from mcap.opcode import Opcode
-from mcap.records import (
-    Attachment,
-    Channel,
-    Chunk,
-    DataEnd,
-    Footer,
-    Header,
-    Metadata,
-    Message,
-    Schema,
-)
-from mcap.stream_reader import MAGIC_SIZE, CRCValidationError, breakup_chunk
-from mcap.data_stream import ReadDataStream, RecordBuilder
-from mcap.well_known import MessageEncoding, SchemaEncoding
-from mcap.writer import CompressionType, Writer
 
+from acquire import foxglove_view as fv
+from acquire.foxglove_view import SCENE_UPDATE_SCHEMA, scene_update  # noqa: F401 - re-exported
+from acquire.mcapfile import ChunkedWriter, McapFileError, ScanResult, finish_truncated, scan
 from acquire.jsonpayload import PayloadError, decode_json, encode_json
 
 log = logging.getLogger(__name__)
@@ -74,7 +67,6 @@ log = logging.getLogger(__name__)
 FORMAT = "remaster-run/1"
 SAMPLE_TOPIC = "/run/sample"
 EVENT_TOPIC = "/run/event"
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SEGMENT_RE = re.compile(r"^(?P<stem>.+?)\.resume(?P<n>[1-9][0-9]*)\.mcap$")
 _EVENT_KIND_RE = re.compile(r"^[a-z][a-z0-9_\-]*$")
 _TOPIC_PART_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
@@ -143,19 +135,7 @@ EVENT_SCHEMA: dict = {
     "additionalProperties": True,
 }
 
-JOINT_STATE_SCHEMA: dict = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "remaster.JointState",
-    "description": "Measured joint positions of a commander, degrees (controller convention).",
-    "type": "object",
-    "properties": {
-        "timestamp": _TIME,
-        "name": {"type": "array", "items": {"type": "string"}},
-        "position_deg": {"type": "array", "items": _NUM_OR_NULL},
-        "device_time": _NUM_OR_NULL,
-    },
-    "required": ["timestamp", "name", "position_deg"],
-}
+JOINT_STATE_SCHEMA = fv.JOINT_STATE_SCHEMA
 
 MARKER_FRAME_SCHEMA: dict = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -183,79 +163,7 @@ MARKER_FRAME_SCHEMA: dict = {
 }
 
 
-def _obj(title: str, props: dict, required: list[str] | None = None) -> dict:
-    return {"title": title, "type": "object", "properties": props, "required": required if required is not None else list(props)}
-
-
-_VEC3 = _obj("foxglove.Vector3", {"x": _NUM, "y": _NUM, "z": _NUM})
-_QUAT = _obj("foxglove.Quaternion", {"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM})
-_COLOR = _obj("foxglove.Color", {"r": _NUM, "g": _NUM, "b": _NUM, "a": _NUM})
-_POSE = _obj("foxglove.Pose", {"position": _VEC3, "orientation": _QUAT})
-_DURATION = {"type": "object", "title": "duration", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}}
-
-#: The part of Foxglove's ``foxglove.SceneUpdate`` JSON schema that we emit (same field names and
-#: structure as foxglove/schemas ``SceneUpdate.json``; other primitive lists are always empty).
-SCENE_UPDATE_SCHEMA: dict = _obj(
-    "foxglove.SceneUpdate",
-    {
-        "deletions": {"type": "array", "items": _obj("foxglove.SceneEntityDeletion", {"timestamp": _TIME, "type": {"type": "integer"}, "id": {"type": "string"}})},
-        "entities": {
-            "type": "array",
-            "items": _obj(
-                "foxglove.SceneEntity",
-                {
-                    "timestamp": _TIME,
-                    "frame_id": {"type": "string"},
-                    "id": {"type": "string"},
-                    "lifetime": _DURATION,
-                    "frame_locked": {"type": "boolean"},
-                    "metadata": {"type": "array", "items": _obj("foxglove.KeyValuePair", {"key": {"type": "string"}, "value": {"type": "string"}})},
-                    "spheres": {"type": "array", "items": _obj("foxglove.SpherePrimitive", {"pose": _POSE, "size": _VEC3, "color": _COLOR})},
-                    **{name: {"type": "array"} for name in ("arrows", "cubes", "cylinders", "lines", "triangles", "texts", "models")},
-                },
-            ),
-        },
-    },
-)
-
-
-def _stamp(t_ns: int) -> dict:
-    return {"sec": int(t_ns // 1_000_000_000), "nsec": int(t_ns % 1_000_000_000)}
-
-
-def scene_update(sensor: str, positions_mm: dict[str, Any], t_ns: int, *, diameter_mm: float = 15.0, lifetime_s: float = 0.5) -> dict:
-    """A ``foxglove.SceneUpdate`` with one sphere entity per seen marker (metres, frame ``sensor``).
-
-    positions_mm: marker name → xyz (3,) mm in the sensor frame, or None when not seen (no entity;
-    its previous sphere expires after ``lifetime_s``).
-    """
-    d = diameter_mm / 1000.0
-    entities = []
-    for name, xyz in positions_mm.items():
-        if xyz is None:
-            continue
-        x, y, z = (float(v) / 1000.0 for v in np.asarray(xyz, dtype=float).reshape(3))
-        if not all(math.isfinite(v) for v in (x, y, z)):
-            continue
-        entities.append(
-            {
-                "timestamp": _stamp(t_ns),
-                "frame_id": sensor,
-                "id": f"{sensor}/{name}",
-                "lifetime": {"sec": int(lifetime_s), "nsec": int(round((lifetime_s % 1) * 1e9))},
-                "frame_locked": False,
-                "metadata": [{"key": "marker", "value": str(name)}],
-                "spheres": [
-                    {
-                        "pose": {"position": {"x": x, "y": y, "z": z}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
-                        "size": {"x": d, "y": d, "z": d},
-                        "color": {"r": 0.1, "g": 0.8, "b": 0.2, "a": 1.0},
-                    }
-                ],
-                **{k: [] for k in ("arrows", "cubes", "cylinders", "lines", "triangles", "texts", "models")},
-            }
-        )
-    return {"deletions": [], "entities": entities}
+_stamp = fv.stamp
 
 
 # --------------------------------------------------------------------------------------------
@@ -319,12 +227,12 @@ class RunLog:
     """
 
     def __init__(self, path: Path, fh: io.BufferedWriter, run_id: str, segment: int, *, flush_interval_s: float, fsync: bool,
-                 scene_rate_hz: float = 30.0):
+                 scene_rate_hz: float = 30.0, chunk_bytes: int = 256 * 1024, live: Any = None):
         self.path = path
         self.run_id = run_id
         self.segment = segment
         self._fh = fh
-        self._writer = Writer(fh, use_chunking=False, compression=CompressionType.NONE)
+        self._writer = ChunkedWriter(fh, chunk_bytes=chunk_bytes)
         self._lock = threading.RLock()
         self._channels: dict[str, tuple[int, str, bytes]] = {}
         self._schemas: dict[tuple[str, bytes], int] = {}
@@ -335,9 +243,32 @@ class RunLog:
         self._closed = False
         self._scene_rate_hz = float(scene_rate_hz)
         self._next_scene_ns: dict[str, float] = {}
+        self.live = live
         self.samples_written = 0
         self.events_written = 0
         self.recovered: RunContents | None = None
+        self._halt = threading.Event()
+        self._flusher: threading.Thread | None = None
+
+    def _start_flusher(self) -> None:
+        """Close the open chunk once it is ``flush_interval_s`` old even when no message follows."""
+        if self._flush_interval_s <= 0:
+            return  # every write closes its chunk
+        self._flusher = threading.Thread(target=self._flush_loop, name=f"runlog-flush-{self.run_id}", daemon=True)
+        self._flusher.start()
+
+    def _flush_loop(self) -> None:
+        period = max(self._flush_interval_s / 2.0, 0.005)
+        while not self._halt.wait(period):
+            with self._lock:
+                if self._closed:
+                    return
+                if self._writer.pending_messages and time.monotonic() - self._last_flush >= self._flush_interval_s:
+                    try:
+                        self._flush_chunk()
+                    except (OSError, ValueError) as exc:
+                        log.error("run %s: cannot write the log %s: %s", self.run_id, self.path, exc)
+                        return
 
     # -- opening ------------------------------------------------------------------------------
     @classmethod
@@ -349,24 +280,31 @@ class RunLog:
         plan_text: str,
         model_text: str,
         metadata: dict,
-        flush_interval_s: float = 0.05,
+        flush_interval_s: float = 0.25,
         fsync: bool = True,
         scene_rate_hz: float = 30.0,
+        chunk_bytes: int = 256 * 1024,
+        live: Any = None,
     ) -> "RunLog":
         """Start a new run log at ``path`` (must not exist; parent folders are created).
 
         metadata: JSON-able values (stored JSON-encoded in ``remaster.run.metadata``).
-        flush_interval_s: how long stream records may wait in the process before reaching the OS.
+        flush_interval_s: how long stream records may wait in the open chunk before it is
+        written (s; what a ``kill -9`` can lose); 0 writes a chunk per message.
         fsync: False only for benchmarks — samples and events are then flushed but not fsync'd.
         scene_rate_hz: at most this many Foxglove scene updates per second and sensor (0: none);
         the mm marker frames are always all recorded.
+        chunk_bytes: a chunk is written once it holds this many bytes, whatever its age.
+        live: a publisher (``acquire.live.LiveServer``) that receives every message as well.
         """
         return cls._open(Path(path), run_id=run_id, plan_text=plan_text, model_text=model_text, metadata=metadata,
-                         segment=0, extra={}, flush_interval_s=flush_interval_s, fsync=fsync, scene_rate_hz=scene_rate_hz)
+                         segment=0, extra={}, flush_interval_s=flush_interval_s, fsync=fsync, scene_rate_hz=scene_rate_hz,
+                         chunk_bytes=chunk_bytes, live=live)
 
     @classmethod
     def _open(cls, path: Path, *, run_id: str, plan_text: str, model_text: str, metadata: dict, segment: int,
-              extra: dict[str, str], flush_interval_s: float, fsync: bool, scene_rate_hz: float = 30.0) -> "RunLog":
+              extra: dict[str, str], flush_interval_s: float, fsync: bool, scene_rate_hz: float = 30.0,
+              chunk_bytes: int = 256 * 1024, live: Any = None) -> "RunLog":
         if not isinstance(run_id, str) or not run_id.strip():
             raise RunLogError(f"{path}: run_id must be a non-empty string, given {run_id!r}")
         if not isinstance(metadata, dict):
@@ -375,6 +313,8 @@ class RunLog:
             raise RunLogError(f"{path}: flush_interval_s must be >= 0, given {flush_interval_s}")
         if scene_rate_hz < 0:
             raise RunLogError(f"{path}: scene_rate_hz must be >= 0, given {scene_rate_hz}")
+        if not isinstance(chunk_bytes, int) or chunk_bytes < 1:
+            raise RunLogError(f"{path}: chunk_bytes must be a positive integer, given {chunk_bytes!r}")
         try:
             meta_json = {str(k): _json_text(v) for k, v in metadata.items()}
         except PayloadError as exc:
@@ -386,7 +326,8 @@ class RunLog:
             raise RunLogError(f"{path}: exists already; a run log is never overwritten (resume it with append_to)") from None
         except OSError as exc:
             raise RunLogError(f"{path}: cannot create the run log: {exc.strerror or exc}") from exc
-        self = cls(path, fh, run_id, segment, flush_interval_s=flush_interval_s, fsync=fsync, scene_rate_hz=scene_rate_hz)
+        self = cls(path, fh, run_id, segment, flush_interval_s=flush_interval_s, fsync=fsync, scene_rate_hz=scene_rate_hz,
+                   chunk_bytes=chunk_bytes, live=live)
         now_ns = time.time_ns()
         with self._lock:
             self._writer.start(profile="", library="remaster")
@@ -405,17 +346,21 @@ class RunLog:
             self._writer.add_attachment(now_ns, now_ns, "robot.yaml", "application/yaml", model_text.encode("utf-8"))
             self.channel(SAMPLE_TOPIC, "remaster.Sample", SAMPLE_SCHEMA)
             self.channel(EVENT_TOPIC, "remaster.RunEvent", EVENT_SCHEMA)
+            self.channel(fv.LOG_TOPIC, *fv.CHANNELS[fv.LOG_TOPIC])
             self._durable()
         _fsync_dir(path.parent)
+        self._start_flusher()
         log.info("run %s: logging to %s (segment %d)", run_id, path, segment)
         return self
 
     @classmethod
-    def append_to(cls, path: Path, *, flush_interval_s: float = 0.05, fsync: bool = True, scene_rate_hz: float = 30.0) -> "RunLog":
+    def append_to(cls, path: Path, *, flush_interval_s: float = 0.25, fsync: bool = True, scene_rate_hz: float = 30.0,
+                  chunk_bytes: int = 256 * 1024, live: Any = None) -> "RunLog":
         """Resume the run logged at ``path`` (any of its segments) in a new segment file.
 
         Recovers every complete record of the existing segments (``self.recovered``), makes each
-        killed segment valid MCAP again (cuts only its incomplete tail record), and opens
+        killed segment indexed MCAP again (cuts only its incomplete tail unit, rebuilds the
+        summary), and opens
         ``<stem>.resume<N>.mcap`` with the same run id, plan, model and metadata. Nothing recorded
         is rewritten or copied, so nothing is lost or duplicated; ``read_run`` returns the union.
         """
@@ -438,6 +383,8 @@ class RunLog:
             flush_interval_s=flush_interval_s,
             fsync=fsync,
             scene_rate_hz=scene_rate_hz,
+            chunk_bytes=chunk_bytes,
+            live=live,
         )
         self.recovered = contents
         self.event(
@@ -471,11 +418,16 @@ class RunLog:
                 return known[0]
             schema_id = self._schemas.get((schema_name, data))
             if schema_id is None:
-                schema_id = self._writer.register_schema(schema_name, SchemaEncoding.JSONSchema, data)
+                schema_id = self._writer.add_schema(schema_name, "jsonschema", data)
                 self._schemas[(schema_name, data)] = schema_id
-            channel_id = self._writer.register_channel(topic, MessageEncoding.JSON, schema_id)
+            channel_id = self._writer.add_channel(topic, "json", schema_id)
             self._channels[topic] = (channel_id, schema_name, data)
             self._sequence[channel_id] = 0
+            if self.live is not None:
+                try:
+                    self.live.advertise(topic, schema_name, data)
+                except Exception as exc:  # noqa: BLE001 - a viewer must never stop the recording
+                    log.debug("live advertise of %s failed: %s", topic, exc)
             return channel_id
 
     def write(self, topic: str, message: dict, *, log_time_ns: int | None = None) -> None:
@@ -485,8 +437,7 @@ class RunLog:
         with self._lock:
             self._append(topic, data, t)
             if time.monotonic() - self._last_flush >= self._flush_interval_s:
-                self._fh.flush()
-                self._last_flush = time.monotonic()
+                self._flush_chunk()
 
     def sample(self, record: dict) -> None:
         """Record one measured configuration (see SAMPLE_SCHEMA); returns once it is on disk."""
@@ -498,8 +449,10 @@ class RunLog:
         if not isinstance(record["config_id"], str) or not record["config_id"]:
             raise RunLogError(f"{self.path}: sample config_id must be a non-empty string, given {record['config_id']!r}")
         data = encode_json(record)
+        t_ns = time.time_ns()
         with self._lock:
-            self._append(SAMPLE_TOPIC, data, time.time_ns())
+            self._append(SAMPLE_TOPIC, data, t_ns)
+            self._append(fv.LOG_TOPIC, encode_json(fv.sample_log(record, t_ns)), t_ns)
             self._durable()
             self.samples_written += 1
 
@@ -510,28 +463,45 @@ class RunLog:
         if "kind" in fields or "t" in fields:
             raise RunLogError(f"{self.path}: event fields may not be named 'kind' or 't' (given {sorted(fields)})")
         t_ns = time.time_ns()
-        data = encode_json({"kind": kind, "t": t_ns / 1e9, **fields})
+        doc = {"kind": kind, "t": t_ns / 1e9, **fields}
+        data = encode_json(doc)
         with self._lock:
             self._append(EVENT_TOPIC, data, t_ns)
+            self._append(fv.LOG_TOPIC, encode_json(fv.event_log(doc, t_ns)), t_ns)
             self._durable()
             self.events_written += 1
 
     def record_joint_state(self, device: str, q_rad: Any, *, names: list[str] | None = None,
                            device_time: float | None = None, log_time_ns: int | None = None) -> None:
-        """Record measured joints on ``/<device>/joint_state``; q_rad (n,) radians, stored in degrees
-        rounded to 1e-6° (far below any encoder's resolution; keeps the log small)."""
+        """Record measured joints on ``/joint_state`` (``remaster.JointState``); q_rad (n,) radians,
+        stored in degrees rounded to 1e-6° and radians to 1e-8 (far below any encoder's resolution)."""
         q = np.asarray(q_rad, dtype=float).reshape(-1)
-        topic = f"/{device}/joint_state"
+        topic = fv.JOINT_STATE_TOPIC
         if topic not in self._channels:
-            self.channel(topic, "remaster.JointState", JOINT_STATE_SCHEMA)
+            self.channel(topic, *fv.CHANNELS[topic])
         t = time.time_ns() if log_time_ns is None else int(log_time_ns)
         names = names if names is not None else [f"A{i + 1}" for i in range(q.size)]
-        self.write(topic, {"timestamp": _stamp(t), "name": names, "position_deg": np.round(np.degrees(q), 6), "device_time": device_time},
-                   log_time_ns=t)
+        try:
+            doc = fv.joint_state(device, names, q, t, device_time)
+        except ValueError as exc:
+            raise RunLogError(f"{self.path}: {exc}") from None
+        self.write(topic, doc, log_time_ns=t)
+
+    def record_transforms(self, transforms: dict, *, log_time_ns: int | None = None) -> None:
+        """Record a ``foxglove.FrameTransforms`` (see ``acquire.foxglove_view.RobotView``) on ``/tf``."""
+        if fv.TF_TOPIC not in self._channels:
+            self.channel(fv.TF_TOPIC, *fv.CHANNELS[fv.TF_TOPIC])
+        self.write(fv.TF_TOPIC, transforms, log_time_ns=log_time_ns)
+
+    def record_scene(self, update: dict, *, log_time_ns: int | None = None) -> None:
+        """Record a ``foxglove.SceneUpdate`` on ``/markers`` (not rate-limited)."""
+        if fv.SCENE_TOPIC not in self._channels:
+            self.channel(fv.SCENE_TOPIC, *fv.CHANNELS[fv.SCENE_TOPIC])
+        self.write(fv.SCENE_TOPIC, update, log_time_ns=log_time_ns)
 
     def record_markers(self, sensor: str, positions_mm: dict[str, Any], *, quality: dict[str, float] | None = None,
                        device_time: float | None = None, log_time_ns: int | None = None) -> None:
-        """Record one sensor frame on ``/<sensor>/markers`` (mm) and ``/<sensor>/markers/scene`` (Foxglove).
+        """Record one sensor frame on ``/<sensor>/markers`` (mm) and, for Foxglove, on ``/markers``.
 
         positions_mm: marker name → xyz (3,) mm in the sensor frame, or None when not seen; stored
         rounded to 1e-4 mm. The scene channel is decimated to ``scene_rate_hz`` (log time).
@@ -539,7 +509,6 @@ class RunLog:
         topic = f"/{sensor}/markers"
         if topic not in self._channels:
             self.channel(topic, "remaster.MarkerFrame", MARKER_FRAME_SCHEMA)
-            self.channel(topic + "/scene", "foxglove.SceneUpdate", SCENE_UPDATE_SCHEMA)
         t = time.time_ns() if log_time_ns is None else int(log_time_ns)
         quality = quality or {}
         frame = {
@@ -553,7 +522,7 @@ class RunLog:
         }
         self.write(topic, frame, log_time_ns=t)
         if self._scene_due(sensor, t):
-            self.write(topic + "/scene", scene_update(sensor, positions_mm, t), log_time_ns=t)
+            self.record_scene(scene_update(sensor, positions_mm, t), log_time_ns=t)
 
     def _scene_due(self, sensor: str, t_ns: int) -> bool:
         """Whether the Foxglove scene of ``sensor`` is due at log time ``t_ns`` (rate limit)."""
@@ -578,10 +547,20 @@ class RunLog:
         cid = known[0]
         seq = self._sequence[cid] = self._sequence[cid] + 1
         self._writer.add_message(cid, t_ns, data, t_ns, sequence=seq)
+        if self.live is not None:
+            try:
+                self.live.publish(topic, known[1], known[2], data, t_ns)
+            except Exception as exc:  # noqa: BLE001 - a viewer must never stop the recording
+                log.debug("live publish of %s failed: %s", topic, exc)
 
-    def _durable(self) -> None:
+    def _flush_chunk(self) -> None:
+        """Write the open chunk and hand it to the OS (no fsync)."""
+        self._writer.close_chunk()
         self._fh.flush()
         self._last_flush = time.monotonic()
+
+    def _durable(self) -> None:
+        self._flush_chunk()
         if self._fsync:
             os.fsync(self._fh.fileno())
 
@@ -606,12 +585,15 @@ class RunLog:
             if self._closed:
                 return
             self._closed = True
+            self._halt.set()
             try:
                 self._writer.finish()
                 self._fh.flush()
                 os.fsync(self._fh.fileno())
             finally:
                 self._fh.close()
+        if self._flusher is not None and self._flusher is not threading.current_thread():
+            self._flusher.join(timeout=5.0)
         log.info("run %s: log %s closed (%d samples, %d events)", self.run_id, self.path, self.samples_written, self.events_written)
 
     def __enter__(self) -> "RunLog":
@@ -642,6 +624,7 @@ class SegmentContents:
     size: int = 0
     corrupt_messages: int = 0
     has_header: bool = False
+    scan: ScanResult | None = None
 
 
 @dataclass
@@ -670,52 +653,6 @@ class RunContents:
         return list(dict.fromkeys(s["config_id"] for s in self.samples))
 
 
-_RECORD_READERS = {
-    Opcode.HEADER: None,
-    Opcode.FOOTER: Footer.read,
-    Opcode.SCHEMA: Schema.read,
-    Opcode.CHANNEL: Channel.read,
-    Opcode.METADATA: Metadata.read,
-    Opcode.ATTACHMENT: Attachment.read,
-    Opcode.CHUNK: Chunk.read,
-    Opcode.DATA_END: DataEnd.read,
-}
-
-
-def _iter_complete_records(
-    fh: io.BufferedReader, size: int, start: int, wanted_channels: set[int]
-) -> Iterator[tuple[int, int, bytes | None, int]]:
-    """(opcode, end offset, body, channel id) of each complete record from ``start``.
-
-    Stops at the first record cut by the end of the file (or at zero fill). Message records of
-    channels not in ``wanted_channels`` are skipped by seeking (body None) — the run's streams
-    are counted, not decoded. channel id is -1 for other records.
-    """
-    offset = start
-    while True:
-        head = fh.read(9)
-        if len(head) < 9:
-            return
-        opcode, length = struct.unpack("<BQ", head)
-        if opcode == 0 or length > size - offset - 9:
-            return  # zero fill (power loss) or a record cut by the end of the file
-        offset += 9 + length
-        if opcode == Opcode.MESSAGE and length >= 2:
-            peek = fh.read(2)
-            (channel_id,) = struct.unpack("<H", peek)
-            if channel_id not in wanted_channels:
-                fh.seek(length - 2, io.SEEK_CUR)
-                yield opcode, offset, None, channel_id
-                continue
-            body = peek + fh.read(length - 2)
-        else:
-            channel_id = -1
-            body = fh.read(length)
-        if len(body) < length:
-            return
-        yield opcode, offset, body, channel_id
-
-
 def read_segment(path: Path) -> SegmentContents:
     """Read one segment; never raises for a truncated file (only for a non-MCAP or unreadable one)."""
     seg = SegmentContents(path=path)
@@ -724,77 +661,17 @@ def read_segment(path: Path) -> SegmentContents:
         fh = open(path, "rb")
     except OSError as exc:
         raise RunLogError(f"{path}: cannot read the run log: {exc.strerror or exc}") from exc
-    with fh:
-        magic = fh.read(MAGIC_SIZE)
-        if magic != MCAP_MAGIC[: len(magic)]:
-            raise RunLogError(f"{path}: not an MCAP file (starts with {magic!r}, expected {MCAP_MAGIC!r})")
-        if len(magic) < MAGIC_SIZE:
-            return seg
-        seg.good_end = MAGIC_SIZE
-        channels: dict[int, Channel] = {}
-        wanted: set[int] = set()
-        for opcode, end, body, channel_id in _iter_complete_records(fh, seg.size, MAGIC_SIZE, wanted):
-            if body is None:  # a stream message: count it
-                ch = channels.get(channel_id)
-                if ch is None:
-                    log.warning("%s: message of undeclared channel %d at byte %d; stopping there", path, channel_id, seg.good_end)
-                    break
-                seg.message_counts[ch.topic] = seg.message_counts.get(ch.topic, 0) + 1
-                seg.good_end = end
-                continue
-            try:
-                records = _parse_record(opcode, body)
-            except (McapError, CRCValidationError, struct.error, UnicodeDecodeError, ValueError) as exc:
-                log.warning("%s: unreadable record (opcode 0x%02x) at byte %d: %s; stopping there", path, opcode, seg.good_end, exc)
-                break
-            footer = False
-            seg.has_header = seg.has_header or opcode == Opcode.HEADER
-            for rec in records:
-                if isinstance(rec, Footer):
-                    footer = True
-                else:
-                    _take_record(seg, channels, rec)
-                    if isinstance(rec, Channel) and rec.topic in (SAMPLE_TOPIC, EVENT_TOPIC):
-                        wanted.add(rec.id)
-            seg.good_end = end
-            if records and isinstance(records[0], DataEnd) and seg.data_end is None:
-                seg.data_end = end
-            if footer:
-                seg.complete = fh.read(MAGIC_SIZE) == MCAP_MAGIC
-                break
-    return seg
 
-
-def _parse_record(opcode: int, body: bytes) -> list:
-    stream = ReadDataStream(io.BytesIO(body))
-    if opcode == Opcode.MESSAGE:
-        return [Message.read(stream, len(body))]
-    if opcode == Opcode.CHUNK:
-        return [r for r in breakup_chunk(Chunk.read(stream), validate_crc=True)]
-    reader = _RECORD_READERS.get(opcode, None)
-    if reader is None:
-        return []  # header, indexes, statistics, summary offsets, unknown records: nothing to take
-    return [reader(stream)]
-
-
-def _take_record(seg: SegmentContents, channels: dict[int, Channel], rec: Any) -> None:
-    if isinstance(rec, Channel):
-        channels[rec.id] = rec
-    elif isinstance(rec, Message):
-        ch = channels.get(rec.channel_id)
-        if ch is None:
+    def on_message(ch, log_time: int, seq: int, data: bytes) -> None:
+        try:
+            obj = decode_json(data)
+        except PayloadError as exc:
             seg.corrupt_messages += 1
+            log.warning("%s: undecodable %s message skipped: %s", path, ch.topic, exc)
             return
-        seg.message_counts[ch.topic] = seg.message_counts.get(ch.topic, 0) + 1
-        if ch.topic in (SAMPLE_TOPIC, EVENT_TOPIC):
-            try:
-                obj = decode_json(rec.data)
-            except PayloadError as exc:
-                seg.corrupt_messages += 1
-                log.warning("%s: undecodable %s message skipped: %s", seg.path, ch.topic, exc)
-                return
-            (seg.samples if ch.topic == SAMPLE_TOPIC else seg.events).append(obj)
-    elif isinstance(rec, Metadata):
+        (seg.samples if ch.topic == SAMPLE_TOPIC else seg.events).append(obj)
+
+    def on_metadata(rec) -> None:
         if rec.name == "remaster.run":
             seg.run = dict(rec.metadata)
         elif rec.name == "remaster.run.metadata":
@@ -807,6 +684,25 @@ def _take_record(seg: SegmentContents, channels: dict[int, Channel], rec: Any) -
             seg.plan_text = rec.metadata.get("text", "")
         elif rec.name == "remaster.robot_model":
             seg.model_text = rec.metadata.get("text", "")
+
+    with fh:
+        try:
+            res = scan(fh, seg.size, wanted=lambda ch: ch.topic in (SAMPLE_TOPIC, EVENT_TOPIC), on_message=on_message,
+                       on_metadata=on_metadata, where=str(path))
+        except McapFileError as exc:
+            raise RunLogError(str(exc)) from None
+    if not res.complete and res.stop_reason not in ("end of file", ""):
+        log.debug("%s: read up to byte %d (%s)", path, res.good_end, res.stop_reason)
+    seg.scan = res
+    seg.has_header = res.has_header
+    seg.good_end = res.good_end
+    seg.data_end = res.good_end if res.data_end_start is not None else None
+    seg.complete = res.complete
+    channels = res.index.channels
+    for cid, n in res.index.channel_message_counts.items():
+        topic = channels[cid].topic
+        seg.message_counts[topic] = seg.message_counts.get(topic, 0) + n
+    return seg
 
 
 def read_run(path: str | Path) -> RunContents:
@@ -853,28 +749,17 @@ def read_run(path: str | Path) -> RunContents:
 
 
 def _close_truncated(seg: SegmentContents) -> None:
-    """Make a killed segment valid MCAP: cut its incomplete tail record, append DataEnd + Footer.
+    """Make a killed segment indexed MCAP again: cut its incomplete tail unit, append DataEnd,
+    the summary rebuilt from its complete records, and the Footer.
 
-    Only bytes after the last complete record are removed; they never held a whole record.
+    Only bytes after the last complete unit are removed; they never held a whole record.
     """
-    builder = RecordBuilder()
-    if not seg.has_header:
-        # Killed before its header was complete: it holds nothing; make it an empty, valid MCAP.
-        cut = 0
-        Header(profile="", library="remaster").write(builder)
-    else:
-        cut = seg.data_end if seg.data_end is not None else seg.good_end
-    if seg.data_end is None:
-        DataEnd(data_section_crc=0).write(builder)
-    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(builder)
-    tail = (MCAP_MAGIC if cut == 0 else b"") + builder.end() + MCAP_MAGIC
+    res = seg.scan if seg.scan is not None else read_segment(seg.path).scan
     with open(seg.path, "r+b") as fh:
-        fh.truncate(cut)
-        fh.seek(cut)
-        fh.write(tail)
+        dropped = finish_truncated(fh, res)
         fh.flush()
         os.fsync(fh.fileno())
-    log.warning("%s: closed a truncated log (dropped %d incomplete bytes)", seg.path, seg.size - seg.good_end)
+    log.warning("%s: closed a truncated log (dropped %d incomplete bytes)", seg.path, dropped)
 
 
 # --------------------------------------------------------------------------------------------

@@ -292,9 +292,11 @@ class RunController:
         ask: Optional[Callable[[str], str]] = None,
         fit: bool = True,
         skip_failed: bool = False,
+        live=None,
     ) -> None:
         self.lp = lp
         self.skip_failed = skip_failed
+        self.live = live  # acquire.live.LiveServer: every logged message is also served to Foxglove
         self.plan = lp.plan
         self.fake = fake
         self.resume_path = Path(resume) if resume is not None else None
@@ -586,6 +588,7 @@ class RunController:
 
     _tap = None
     _bus_released = False
+    _view = None
     _sensors: list = []
     _est_done = 0.0
     _loop_wall0: Optional[float] = None
@@ -697,7 +700,7 @@ class RunController:
 
         self.out_dir.mkdir(parents=True, exist_ok=True)
         if self._resumed is not None:
-            self._runlog = RunLog.append_to(self.resume_path)
+            self._runlog = RunLog.append_to(self.resume_path, live=self.live)
             self.log_path = self.resume_path
         else:
             run_dir = self.out_dir / self.run_id
@@ -712,11 +715,9 @@ class RunController:
                 meta["sim_seed"] = str(self._fake_cell.cell.config.seed)
                 meta["time_scale"] = str(self._fake_cell.time_scale)
             self._runlog = RunLog.create(self.log_path, run_id=self.run_id, plan_text=lp.text,
-                                         model_text=lp.model_text, metadata=meta)
-        self._tap = JointStateTap(cmd, self._runlog, self.bus, self.cell_id, lp.model.axis_names, period_s=0.04).start()
-        self._event_safe("run_started", resumed=self._resumed is not None, todo=len(order), total=len(configs),
-                         order=[c.config_id for c in order])
+                                         model_text=lp.model_text, metadata=meta, live=self.live)
 
+        from acquire.foxglove_view import RobotView
         from calib.kinematics import Chain
 
         chain = Chain(lp.model)
@@ -727,6 +728,12 @@ class RunController:
             for rec in self._resumed.samples:
                 for mk in rec["markers"]:
                     predictor.add(mk["sensor"], mk["marker"], np.radians(rec["q_measured_deg"]), mk["mean_mm"])
+        self._view = RobotView(chain)
+        self._show_registration(predictor)
+        self._tap = JointStateTap(cmd, self._runlog, self.bus, self.cell_id, lp.model.axis_names, period_s=0.04,
+                                  view=self._view).start()
+        self._event_safe("run_started", resumed=self._resumed is not None, todo=len(order), total=len(configs),
+                         order=[c.config_id for c in order])
         seq = self.plan.sequencing
         suspender = LostTargetSuspender(
             seq.on_lost_target, wait_s=float(seq.lost_target_wait_s), predictor=predictor, clock=clock,
@@ -842,7 +849,22 @@ class RunController:
         self._publish_sample(record)
         for mk in record["markers"]:
             predictor.add(mk["sensor"], mk["marker"], np.radians(record["q_measured_deg"]), mk["mean_mm"])
+        self._show_registration(predictor)
         return "measured"
+
+    def _show_registration(self, predictor) -> None:
+        """Foxglove view: ``base → sensor`` from the current registration estimate of every
+        sensor, and the model's nominal markers on the flange (again after every sample, so a
+        viewer that connects mid-run sees them)."""
+        from acquire.foxglove_view import nominal_markers_scene
+
+        try:  # the view must never stop a run
+            for spec in self.plan.sensors:
+                self._view.set_registration(spec.name, predictor.base2sensor(spec.name)[0])
+            markers = {m.name: m.xyz for m in self.lp.model.tool.markers}
+            self._runlog.record_scene(nominal_markers_scene(markers, time.time_ns()))
+        except (OSError, ValueError, RuntimeError) as exc:
+            log.warning("Foxglove view not updated: %s", exc)
 
     def _wait_ready(self) -> None:
         """After a failed move: wait for the controller to stream again (a fresh joint state,
@@ -935,12 +957,13 @@ def _plan_markers(plan) -> list[str]:
 
 
 class JointStateTap:
-    """Streams the commander's measured joint state into the log (``/<commander>/joint_state``,
-    ``RunLog.record_joint_state``) and onto the bus (``remaster/<cell>/<commander>/joint_state``)
-    every ``period_s`` wall seconds, on its own thread."""
+    """Streams the commander's measured joint state into the log (``/joint_state``,
+    ``RunLog.record_joint_state``; with a ``view``, the robot's frames on ``/tf``) and onto the bus
+    (``remaster/<cell>/<commander>/joint_state``) every ``period_s`` wall seconds, on its own thread."""
 
-    def __init__(self, commander, runlog, bus, cell: str, names, period_s: float = 0.04) -> None:
+    def __init__(self, commander, runlog, bus, cell: str, names, period_s: float = 0.04, view=None) -> None:
         self.commander, self.runlog, self.bus, self.cell = commander, runlog, bus, cell
+        self.view = view  # acquire.foxglove_view.RobotView: /tf from each joint state
         self.names = list(names)
         self.period_s = period_s
         self.device = getattr(commander, "name", "robot")
@@ -963,11 +986,22 @@ class JointStateTap:
                 st = self.commander.joint_state()
             except (DriverError, AttributeError):
                 continue
+            t_ns = time.time_ns()
             try:
                 self.runlog.record_joint_state(self.device, st.position_rad, names=self.names,
-                                               device_time=float(st.device_time))
+                                               device_time=float(st.device_time), log_time_ns=t_ns)
             except (OSError, ValueError, RuntimeError, AttributeError):
                 return  # the log is closing
+            if self.view is not None:
+                try:
+                    tf = self.view.transforms(st.position_rad, t_ns)
+                except ValueError as exc:  # e.g. a non-finite joint reading: no frames this tick
+                    log.debug("no frame transforms: %s", exc)
+                else:
+                    try:
+                        self.runlog.record_transforms(tf, log_time_ns=t_ns)
+                    except (OSError, ValueError, RuntimeError):
+                        return  # the log is closing
             if self._key is not None:
                 try:
                     self.bus.publish(self._key, {"name": self.names, "position_deg": np.degrees(st.position_rad).tolist(),

@@ -7,6 +7,7 @@ Examples::
     acquire run plan.yaml --dry-run                         # what would happen; connects to nothing
     acquire run plan.yaml --resume runs/<id>/<id>.mcap      # continue a killed or aborted run
     acquire run plan.yaml --fake -v                         # device INFO logs on the console too
+    acquire run plan.yaml --live                            # watch it in Foxglove: ws://127.0.0.1:8765
 
 On a terminal the run shows a live bar (done/total, measured/skipped/failed, ETA, the
 configuration being measured) and only warnings; ``-v`` adds INFO, ``-vv`` DEBUG. Every record
@@ -233,6 +234,10 @@ def run(
                                help="Zenoh endpoint the run publishes on (loopback); `acquire watch --connect` it."),
     verbose: int = typer.Option(0, "--verbose", "-v", count=True,
                                 help="Console shows INFO (-v) or DEBUG (-vv) logs too; the run's .log file has them anyway."),
+    live: bool = typer.Option(False, "--live", help="Serve the run live to Foxglove (WebSocket; layout: "
+                              "fixtures/foxglove/remaster-layout.json)."),
+    live_host: str = typer.Option("127.0.0.1", "--live-host", help="Interface of the live view (0.0.0.0: every network)."),
+    live_port: int = typer.Option(8765, "--live-port", min=0, max=65535, help="TCP port of the live view."),
 ) -> None:
     """Run the measurement plan: move, settle, measure every configuration; log; fit.
 
@@ -286,6 +291,18 @@ def run(
         except Exception as exc:  # noqa: BLE001 - a run without a bus still measures
             log.warning("no Zenoh bus (%s); the run is not published", exc)
             bus = None
+    server = None
+    if live:
+        from acquire.live import LiveServer, LiveServerError
+
+        try:
+            server = LiveServer(live_host, live_port, name=f"remaster {lp.plan.cell}")
+        except (LiveServerError, ValueError) as exc:
+            if bus is not None:
+                bus.close()
+            typer.echo(f"error: --live: {exc}", err=True)
+            raise typer.Exit(2) from exc
+        typer.echo(f"live view: open {server.url} in Foxglove (Open connection → Foxglove WebSocket)", err=True)
     if bus is not None:
         log.info("publishing on %s as cell %s (acquire watch --connect %s)", ", ".join(bus.locators),
                  lp.plan.cell, bus.locators[0] if bus.locators else listen)
@@ -301,6 +318,7 @@ def run(
 
     controller.bus = bus
     controller.on_progress = on_progress
+    controller.live = server
     interrupted = threading.Event()
 
     def on_signal(signum, frame):  # noqa: ARG001
@@ -328,6 +346,8 @@ def run(
         if bus is not None:
             bus.close()
         logfile.close(console.level)
+        if server is not None:
+            server.close()
     typer.echo(format_run_summary(summary, lp))
     if logfile.path is not None:
         typer.echo(f"text log: {display_path(logfile.path)}")

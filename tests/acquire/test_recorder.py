@@ -81,7 +81,7 @@ def test_every_record_type_round_trips(tmp_path):
     assert run.events[0]["duration_s"] == 1.25 and run.events[1]["reason"] == "unreachable"
     assert run.complete and run.files == [path] and run.dropped_bytes == 0
     assert run.message_counts == {
-        "/robot/status": 1, "/robot/joint_state": 1, "/mocap/markers": 1, "/mocap/markers/scene": 1, SAMPLE_TOPIC: 3, EVENT_TOPIC: 2,
+        "/robot/status": 1, "/joint_state": 1, "/mocap/markers": 1, "/markers": 1, SAMPLE_TOPIC: 3, EVENT_TOPIC: 2, "/log": 5,
     }
     assert run.measured_config_ids == [s["config_id"] for s in samples]
 
@@ -97,7 +97,7 @@ def test_mcap_own_readers_read_the_log_and_messages_match_their_schemas(tmp_path
     with open(path, "rb") as fh:
         reader = make_reader(fh, validate_crcs=True)
         summary = reader.get_summary()
-        assert summary.statistics.message_count == 5
+        assert summary.statistics.message_count == 7  # + a foxglove.Log line per sample and event
         seen = {}
         for schema, channel, message in reader.iter_messages():
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
@@ -105,14 +105,15 @@ def test_mcap_own_readers_read_the_log_and_messages_match_their_schemas(tmp_path
             jsonschema.validate(doc, json.loads(schema.data))
             seen[channel.topic] = (schema.name, doc)
         assert {t: v[0] for t, v in seen.items()} == {
-            "/robot/joint_state": "remaster.JointState",
+            "/joint_state": "remaster.JointState",
             "/mocap/markers": "remaster.MarkerFrame",
-            "/mocap/markers/scene": "foxglove.SceneUpdate",
+            "/markers": "foxglove.SceneUpdate",
             SAMPLE_TOPIC: "remaster.Sample",
             EVENT_TOPIC: "remaster.RunEvent",
+            "/log": "foxglove.Log",
         }
-        assert seen["/robot/joint_state"][1]["position_deg"] == pytest.approx([1.0, 2.0])
-        scene = seen["/mocap/markers/scene"][1]
+        assert seen["/joint_state"][1]["position_deg"] == pytest.approx([1.0, 2.0])
+        scene = seen["/markers"][1]
         assert [e["id"] for e in scene["entities"]] == ["mocap/m1"]  # the unseen m2 has no sphere
         assert scene["entities"][0]["spheres"][0]["pose"]["position"] == pytest.approx({"x": 0.1, "y": -0.2, "z": 1.5})
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
@@ -172,7 +173,7 @@ def test_truncation_at_any_byte_recovers_exactly_the_complete_records(tmp_path):
         assert run.samples == samples[:n_s], f"cut at {cut}"
         assert run.events == events[:n_e], f"cut at {cut}"
         n_j = sum(1 for e in joint_ends if e <= cut)
-        assert run.message_counts.get("/robot/joint_state", 0) == n_j, f"cut at {cut}: a partial stream record was taken"
+        assert run.message_counts.get("/joint_state", 0) == n_j, f"cut at {cut}: a partial stream record was taken"
         assert run.complete == (cut == len(data))
         checked += 1
     assert checked > 500 and first_record_end > 0 and len(joint_ends) == 4
@@ -314,7 +315,7 @@ def test_concurrent_writers_lose_nothing(tmp_path):
         t.join()
     lg.close()
     run = read_run(path)
-    assert run.samples == samples and run.message_counts["/robot/joint_state"] == 600
+    assert run.samples == samples and run.message_counts["/joint_state"] == 600
 
 
 def test_bad_use_raises_clear_errors(tmp_path):
@@ -418,15 +419,15 @@ def test_marker_frames_are_all_kept_and_the_foxglove_scene_is_decimated(tmp_path
             lg.record_markers("mocap", {"m1": [i + 0.123456789, 0.0, 0.0]}, log_time_ns=t0 + int(i * 1e9 / 240))
             lg.record_joint_state("robot", [np.radians(10.123456789)], log_time_ns=t0 + int(i * 1e9 / 240))
     counts = read_run(path).message_counts
-    assert counts["/mocap/markers"] == 240 and counts["/robot/joint_state"] == 240
-    assert counts["/mocap/markers/scene"] == 30
+    assert counts["/mocap/markers"] == 240 and counts["/joint_state"] == 240
+    assert counts["/markers"] == 30
     with open(path, "rb") as fh:
-        first = {ch.topic: json.loads(m.data) for _, ch, m in make_reader(fh).iter_messages(topics=["/mocap/markers", "/robot/joint_state"])}
+        first = {ch.topic: json.loads(m.data) for _, ch, m in make_reader(fh).iter_messages(topics=["/mocap/markers", "/joint_state"])}
     assert first["/mocap/markers"]["markers"][0]["position_mm"][0] == pytest.approx(239.1235, abs=1e-9)  # 1e-4 mm
-    assert first["/robot/joint_state"]["position_deg"] == [10.123457]  # 1e-6 degree
+    assert first["/joint_state"]["position_deg"] == [10.123457]  # 1e-6 degree
     with new_log(tmp_path / "none.mcap", scene_rate_hz=0.0) as lg:
         lg.record_markers("mocap", {"m1": [1.0, 2.0, 3.0]})
-    assert "/mocap/markers/scene" not in read_run(tmp_path / "none.mcap").message_counts
+    assert "/markers" not in read_run(tmp_path / "none.mcap").message_counts
 
 
 def test_acquire_fit_reads_a_run_log_like_the_same_measurements_in_csv(tmp_path, monkeypatch):

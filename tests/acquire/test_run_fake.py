@@ -48,8 +48,12 @@ def test_complete_fake_run_logs_every_configuration_and_fits_near_the_truth(tmp_
     kinds = [e["kind"] for e in contents.events]
     for kind in ("run_started", "moved", "settled", "measured", "run_finished"):
         assert kind in kinds
-    assert contents.message_counts.get("/fri/joint_state", 0) > 10
+    assert contents.message_counts.get("/joint_state", 0) > 10
     assert contents.message_counts.get("/mocap/markers", 0) > 10
+    # the Foxglove view: the robot's frames with each joint state, markers in the scene, events as log lines
+    assert contents.message_counts.get("/tf", 0) == contents.message_counts["/joint_state"]
+    assert contents.message_counts.get("/markers", 0) > len(ids)
+    assert contents.message_counts.get("/log", 0) == len(contents.samples) + len(contents.events)
     # progress went up one configuration at a time, with an ETA
     dones = [s["done"] for s in statuses]
     assert dones == sorted(dones) and dones[-1] == len(configs)
