@@ -158,8 +158,8 @@ def _compose(transforms: list[dict], frame: str) -> np.ndarray:
 
 @pytest.mark.timeout(170)
 def test_acquire_run_live_serves_the_robot_frames_and_the_joint_state(tmp_path):
-    # 8 candidate poses: enough configurations that the run is still going when the client has what it needs
-    plan = small_plan(tmp_path, n=8, sequencing={"samples": 5, "settle_window_s": 0.2}, fake={"time_scale": 6.0})
+    # a long plan: still running when the client has what it needs (the test stops it with SIGTERM)
+    plan = small_plan(tmp_path, n=30, sequencing={"samples": 5, "settle_window_s": 0.2}, fake={"time_scale": 4.0})
     proc = popen("run", str(plan), "--fake", "--no-bus", "--no-fit", "--live", "--live-port", "0")
     lines: queue.Queue[str] = queue.Queue()
     threading.Thread(target=lambda: [lines.put(x) for x in proc.stderr], daemon=True).start()
