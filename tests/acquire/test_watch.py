@@ -252,7 +252,9 @@ def test_watch_against_the_daemon_finds_its_cell_follows_its_run_and_never_claim
     assert f"run {run_id} of cell {CELL}" in lines
     last = [ln for ln in lines if ln.startswith(f"run {run_id}: ")][-1]
     done, total = re.search(r": (\d+)/(\d+)", last).groups()
-    assert last.endswith("finished") and done == total
+    # four poses are too few for a fit, so the daemon's run ends "failed" (no result) after
+    # measuring everything; watch must follow it to its end either way
+    assert last.split()[-1] in ("finished", "failed") and done == total
     assert any(ln.startswith("sample ") for ln in lines)
     assert quiet.returncode == 0, quiet.stderr
     assert quiet.stdout == "" and "not connected" not in quiet.stderr, quiet.stderr
