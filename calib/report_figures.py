@@ -146,6 +146,7 @@ def tcp_cloud_figure(clouds: TcpClouds) -> str:
             axc.set_ylim(*yl)
             axc.set_aspect("equal", adjustable="box")
             axc.tick_params(labelsize=7)
+            axc.locator_params(nbins=5)
             axc.grid(True, lw=0.3)
             axc.set_xlabel("x − x_after (mm)", fontsize=7)
             axc.set_ylabel("y − y_after (mm)", fontsize=7)
@@ -177,6 +178,10 @@ def offset_trace_figure(result: FitResult) -> str | None:
         ax[row, 1].axvline(math.degrees(result.offsets_rad[i]), color="k", lw=1)
         for a in ax[row]:
             a.tick_params(labelsize=7)
+            a.locator_params(axis="y", nbins=4)  # fewer tick labels: text is most of a figure's cost
+        if row < len(fitted) - 1:  # the draw axis is common: label it once, at the bottom
+            ax[row, 0].sharex(ax[-1, 0])
+            ax[row, 0].tick_params(labelbottom=False)
     ax[0, 0].set_title("trace plots (one colour per chain)", fontsize=9)
     ax[0, 1].set_title("posterior histograms (line: mean)", fontsize=9)
     ax[-1, 0].set_xlabel(f"draw (every {step}th shown)" if step > 1 else "draw", fontsize=8)
