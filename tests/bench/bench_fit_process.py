@@ -1,6 +1,8 @@
 """``acquire fit … --report`` as a whole process against the fit itself, measured in the same run.
 
-    python tests/bench/bench_fit_process.py [--repeat 3]
+    python tests/bench/bench_fit_process.py [--repeat 3] [--repo PATH]
+
+``--repo`` measures another checkout (e.g. the main branch, for a before/after) with this script.
 
 Whole process: a fresh ``python -m acquire fit DATA --robot MODEL --validate VAL -o result.json
 --report report.html`` (interpreter start-up, imports, reading, fit, metrics, report with its
@@ -24,18 +26,18 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-
-DATA = ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv"
-VAL = ROOT / "fixtures" / "datasets" / "iiwa14_sim_val.csv"
-ROBOT = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--repo", type=Path, default=ROOT, help="checkout to measure (default: this one)")
     args = ap.parse_args()
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    root = args.repo.resolve()
+    sys.path.insert(0, str(root))
+    data, val_path = root / "fixtures" / "datasets" / "iiwa14_sim_cal.csv", root / "fixtures" / "datasets" / "iiwa14_sim_val.csv"
+    robot = root / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
+    env = dict(os.environ, PYTHONPATH=str(root))
 
     from acquire.commands.fit import _link_tolerance, load_dataset
     from calib.fit import FitOptions, fit_offsets
@@ -44,9 +46,9 @@ def main() -> None:
     from calib.model import load_robot_model
     from calib.result import result_dict
 
-    model = load_robot_model(ROBOT)
-    cal = load_dataset(DATA, model).calibration()
-    val = load_dataset(VAL, model)
+    model = load_robot_model(robot)
+    cal = load_dataset(data, model).calibration()
+    val = load_dataset(val_path, model)
     options = FitOptions(link_tolerance=_link_tolerance("0.2,0.02"), paper_burn_in=200_000 - 25_000)
 
     def fit_once() -> tuple[float, object]:
@@ -57,7 +59,7 @@ def main() -> None:
     fit_once()  # warm-up: first-call caches, page faults
     proc_t, fit_t = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        cmd = [sys.executable, "-m", "acquire", "fit", str(DATA), "--robot", str(ROBOT), "--validate", str(VAL),
+        cmd = [sys.executable, "-m", "acquire", "fit", str(data), "--robot", str(robot), "--validate", str(val_path),
                "-o", str(Path(tmp) / "r.json"), "--report", str(Path(tmp) / "r.html")]
         for _ in range(args.repeat):
             t0 = time.perf_counter()
@@ -87,7 +89,7 @@ def main() -> None:
         t_report_warm = time.perf_counter() - t0
 
     p, f = statistics.median(proc_t), statistics.median(fit_t)
-    print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; {len(cal)} measurements, {model.name}; "
+    print(f"checkout {root}; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; {len(cal)} measurements, {model.name}; "
           f"medians of {args.repeat}")
     print(f"  acquire fit … --report, whole process: {p:7.3f} s   (runs {', '.join(f'{t:.2f}' for t in proc_t)})")
     print(f"  fit_offsets in process (the fit):      {f:7.3f} s   (runs {', '.join(f'{t:.2f}' for t in fit_t)})")
