@@ -48,7 +48,8 @@ def _figure(width_in: float, height_in: float, *, left: float = 0.7, right: floa
 def png(fig, alt: str, dpi: int = 100) -> str:
     """``fig`` as an inline ``<img>`` (PNG, base64), drawn by the Agg canvas."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
+    # zlib level 1: a few per cent larger than the default 6 and about half its encoding time
+    fig.savefig(buf, format="png", dpi=dpi, pil_kwargs={"compress_level": 1})
     data = base64.b64encode(buf.getvalue()).decode("ascii")
     return f'<img alt="{alt}" src="data:image/png;base64,{data}">'
 
