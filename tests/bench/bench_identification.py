@@ -47,7 +47,8 @@ def craig_robot(chain: Chain, params: np.ndarray, world: np.ndarray, marker: int
 
     ``Rz(θ1)Tz(d1)·[Tx(a1)Rx(α1)Rz(θ2)Tz(d2)]·…·Tx(a6)Rx(α6)``: Craig link i carries (α_{i-1},
     a_{i-1}, θ_i, d_i); the last Tx(a_n)Rx(α_n), the flange and the marker go into the tool.
-    ``world`` (4, 4) is sensor←robot-base (our base transform included). mm and radians.
+    ``world`` (4, 4) is sensor←robot-base (our base transform included). mm and radians; the
+    robot's joint values are ours times ``chain.sign``.
     """
     from pybotics.kinematic_chain import MDHKinematicChain
     from pybotics.robot import Robot
@@ -57,9 +58,9 @@ def craig_robot(chain: Chain, params: np.ndarray, world: np.ndarray, marker: int
     if np.any(np.abs(params[chain.index("beta")]) > 0):
         raise ValueError("pybotics' modified DH has no β: use parameters with β = 0")
     off, d, a, al = (params[chain.index(k)] for k in ("offset", "d", "a", "alpha"))
-    if np.any(chain.sign != 1):
-        raise ValueError("this bench maps only axes with sign +1 (pybotics adds q to θ)")
-    rows = [[0.0 if i == 0 else al[i - 1], 0.0 if i == 0 else a[i - 1], chain.theta0[i] + off[i], d[i]] for i in range(n)]
+    # θ = theta + sign·(q + δ): pybotics adds its joint value to θ, so it is given sign·q.
+    rows = [[0.0 if i == 0 else al[i - 1], 0.0 if i == 0 else a[i - 1], chain.theta0[i] + chain.sign[i] * off[i], d[i]]
+            for i in range(n)]
     kc = MDHKinematicChain.from_parameters(np.array(rows))
     c, s = np.cos(al[-1]), np.sin(al[-1])
     last = np.array([[1, 0, 0, a[-1]], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]])
@@ -155,9 +156,10 @@ def main() -> None:
     b2s0 = initial_registrations(chain, data, "least-squares", 0)["sensor"]
     nominal_robot = craig_robot(chain, chain.nominal, b2s0, 0)
     ours_nominal = chain.marker_positions(data.q_rad[:50])[:, 0] @ b2s0[:3, :3].T + b2s0[:3, 3]
-    peer_nominal = np.array([nominal_robot.fk(qi)[:3, 3] for qi in data.q_rad[:50]])
+    q_peer, q_val_peer = data.q_rad * chain.sign, val.q_rad * chain.sign  # pybotics' joint values
+    peer_nominal = np.array([nominal_robot.fk(qi)[:3, 3] for qi in q_peer[:50]])
     assert np.abs(ours_nominal - peer_nominal).max() < 1e-6, "pybotics model is not our nominal"
-    mask = pybotics_mask(nominal_robot, data.q_rad, data.xyz_mm)
+    mask = pybotics_mask(nominal_robot, q_peer, data.xyz_mm)
 
     def best_of(f, n):
         best, out = np.inf, None
@@ -168,9 +170,9 @@ def main() -> None:
         return best, out
 
     t_ours, ours = best_of(lambda: identify(model, data), 3)
-    t_peer, (peer, nfev) = best_of(lambda: run_pybotics(nominal_robot, mask, data.q_rad, data.xyz_mm), 1)
+    t_peer, (peer, nfev) = best_of(lambda: run_pybotics(nominal_robot, mask, q_peer, data.xyz_mm), 1)
     e_ours = pose_errors(model, ours.params, val, ours.base2sensor).mean()
-    e_peer = np.linalg.norm(val.xyz_mm - np.array([peer.fk(qi)[:3, 3] for qi in val.q_rad]), axis=1).mean()
+    e_peer = np.linalg.norm(val.xyz_mm - np.array([peer.fk(qi)[:3, 3] for qi in q_val_peer]), axis=1).mean()
     print(f"load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     print(f"robot {model.name}, {args.configs} calibration / 500 held-out configurations, marker {marker}, noise 0.03 mm")
     print(f"  ours (analytic Jacobian, LM, vectorised): {t_ours:8.3f} s  {len(ours.free_names):2d} parameters  "
