@@ -21,21 +21,25 @@ from typing import Callable, Optional
 import numpy as np
 import typer
 
-from acquire.recorder import dataset_from_run
 from calib.controller import apply_guards, controller_values
 from calib.dataset import Dataset, DatasetError, read_csv
 from calib.fit import FitOptions, FitResult, fit_offsets
-from calib.identification import ident_result_dict, identify, write_model_yaml
 from calib.kinematics import Chain
 from calib.metrics import accuracy_metrics
 from calib.model import RobotModel, load_robot_model
-from calib.report import write_report
 from calib.result import result_dict, write_result
 from calib.yamlfile import ConfigError
 
 log = logging.getLogger(__name__)
 
 Loader = Callable[[Path, RobotModel], Dataset]
+
+def dataset_from_run(path: Path, model: RobotModel) -> Dataset:
+    """A run's MCAP log as a dataset (``acquire.recorder``, imported only for .mcap input)."""
+    from acquire.recorder import dataset_from_run as load
+
+    return load(path, model)
+
 
 #: Input loaders by lower-case file suffix.
 LOADERS: dict[str, Loader] = {".csv": read_csv, ".mcap": dataset_from_run}
@@ -287,6 +291,8 @@ def fit(
         write_result(output, doc)
         typer.echo(f"\nwrote {output}")
     if report is not None:
+        from calib.report import write_report  # the report's modules only when one is asked for
+
         write_report(report, result, cal, doc, text)
         typer.echo(f"wrote {report}")
     if refused:
@@ -298,7 +304,7 @@ def fit(
 def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None,
               *, compliance: bool = False) -> None:
     """``--method full``: Levenberg–Marquardt identification, corrected model YAML, EACPE/EMCPE."""
-    from calib.identification import IdentOptions
+    from calib.identification import IdentOptions, ident_result_dict, identify, write_model_yaml
 
     try:
         result = identify(model, cal, IdentOptions(compliance=compliance))
