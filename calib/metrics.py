@@ -45,9 +45,18 @@ def summarize(values: np.ndarray) -> Summary:
     return Summary(float(v.mean()), float(lo), float(hi), float(v.max()), int(v.size))
 
 
-def predicted_base(chain: Chain, data: Dataset, offsets_rad: np.ndarray) -> np.ndarray:
-    """The robot's idea of each row's marker in its base frame, (k, 3) mm."""
-    pos = chain.marker_positions(data.q_rad, chain.with_offsets(offsets_rad))
+def predicted_base(chain: Chain, data: Dataset, offsets_rad: np.ndarray, *,
+                   markers_mm: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """The robot's idea of each row's marker in its base frame, (k, 3) mm: the model with
+    ``offsets_rad`` (n,) and, for the markers named in ``markers_mm``, those flange-frame positions
+    (mm, e.g. a fit's) instead of the model's."""
+    params = chain.with_offsets(offsets_rad)
+    if markers_mm:
+        start = chain.marker_slice().start
+        for name, xyz in markers_mm.items():
+            m = chain.marker_names.index(name)
+            params[start + 3 * m: start + 3 * m + 3] = xyz
+    pos = chain.marker_positions(data.q_rad, params)
     idx = np.array([chain.marker_names.index(m) for m in data.marker])
     return pos[np.arange(len(data)), idx]
 
