@@ -1026,7 +1026,8 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     )
     result = fit_offsets(model, cal, options)
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
-                               result.applied_sigma_mm, validation=val, n_random=n_random, seed=0)
+                               result.applied_sigma_mm, validation=val, n_random=n_random, seed=0,
+                               markers_mm=result.fitted_markers_mm)
     doc = result_dict(result, cal, metrics=metrics)
     apply_guards(doc)
     values = controller_values(model, doc["joint_offsets"])
