@@ -110,6 +110,15 @@ def format_summary(doc: dict, controller_text: str) -> str:
             f"sensor {s}: σ = {sig['value']:.3f} ± {sig['std']:.3f} mm; registration correction "
             + ", ".join(f"{k} {v['value']:+.3f}" for k, v in corr.items())
         )
+    tool = doc.get("tool") or {}
+    for t in tool.get("markers") or []:
+        lines.append(
+            f"tool marker {t['marker']} (flange frame): "
+            + ", ".join(f"{c} {v:+.3f} ± {sd:.3f} mm (model {nom:+.1f})"
+                        for c, v, sd, nom in zip("xyz", t["value_mm"], t["std_mm"], t["nominal_mm"]))
+            + f"; prior ±{t['prior_mm']:g} mm")
+    if tool and not tool.get("markers"):
+        lines.append("tool markers: the model's positions taken as exact (--tool-prior-mm 0)")
     d = doc["diagnostics"]
     lp = d.get("link_prior")
     if lp:
