@@ -335,6 +335,8 @@ class FitSpec(_Strict):
     )
     link_tolerance_deg: float | None = Field(0.02, gt=0, le=1, description="Prior std of link twists α (and β), degrees.")
     compliance: bool = Field(False, description="Also fit one joint compliance per axis (gravity sag; the robot model needs link masses).")
+    tool_prior_mm: float = Field(10.0, ge=0, le=100, description="Prior std (mm per coordinate) of the measured markers' "
+                                 "positions on the flange about the robot model's; 0: the model's positions are exact.")
 
 
 class FakeSpec(_Strict):

@@ -1057,10 +1057,12 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
         error=getattr(fit, "error", "gaussian") or "gaussian",
         link_tolerance=_link_tolerance(fit),
         compliance=bool(getattr(fit, "compliance", False)),
+        tool_prior_mm=float(getattr(fit, "tool_prior_mm", 10.0)),
     )
     result = fit_offsets(model, cal, options)
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
-                               result.applied_sigma_mm, validation=val, n_random=n_random, seed=0)
+                               result.applied_sigma_mm, validation=val, n_random=n_random, seed=0,
+                               markers_mm=result.fitted_markers_mm)
     doc = result_dict(result, cal, metrics=metrics)
     apply_guards(doc)
     values = controller_values(model, doc["joint_offsets"])

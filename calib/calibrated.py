@@ -3,7 +3,7 @@
 Understood results (all written by ``acquire fit``):
 
 * ``format: remaster.fit/1`` (the zero-offset fit): ``joint_offsets[i].value_deg`` of every
-  offset whose status is ``fitted``;
+  offset whose status is ``fitted``, and the fitted marker positions of ``tool.markers``;
 * ``method: full`` (full identification): every ``parameters`` entry with ``identified: true``
   (offsets, d, a, α, β, marker positions), absolute values;
 * ``kind: socket``: its ``parameters`` (free kinematic parameters) — offsets only where
@@ -102,6 +102,16 @@ def apply_result(model: RobotModel, doc: dict, where: str = "result") -> Calibra
             if name in offsets_ok:
                 params[names.index(name)] = math.radians(float(entry["value_deg"]))
                 applied.append(name)
+        for entry in (doc.get("tool") or {}).get("markers") or []:
+            marker = entry.get("marker")
+            if marker not in chain.marker_names:
+                raise ResultError(f"{where}: tool marker {marker!r} is not on this model's tool {chain.marker_names}")
+            i = names.index(f"{marker}.x")
+            if np.max(np.abs(np.subtract(entry["nominal_mm"], chain.nominal[i:i + 3]))) > 1e-6:
+                raise ResultError(f"{where}: marker {marker} was at {entry['nominal_mm']} mm in the model the fit used, this "
+                                  f"model has {chain.nominal[i:i + 3].tolist()}: give the nominal model the fit used")
+            params[i:i + 3] = entry["value_mm"]
+            applied += [f"{marker}.{c}" for c in "xyz"]
     elif doc.get("method") == "full" or doc.get("kind") == "socket":
         socket = doc.get("kind") == "socket"
         for entry in doc.get("parameters", []):

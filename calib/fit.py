@@ -50,6 +50,9 @@ class FitOptions:
     The paper's method always uses the paper's model.
     compliance: also fit one joint compliance per axis (rad/(N·m), gravity sag; the robot model
     must give link masses): ``calib.posterior``. Fast method only.
+    tool_prior_mm: prior standard deviation (mm, per coordinate) of each measured marker's position
+    in the flange frame about the model's value: the markers are fitted by every method, with their
+    own posterior (``FitResult.tool``). 0 takes the model's positions as exact (the paper's model).
     linearise_links: the fast sampler predicts the link parameters' effect to first order about
     the mode (``OffsetPosterior.linearise_links``): the same posterior to ~1e-4 mm, several times
     cheaper. False walks the whole chain for every draw (the reference).
@@ -72,6 +75,7 @@ class FitOptions:
     link_tolerance: tuple[float, float] | None = (0.2, 0.02)
     compliance: bool = False
     linearise_links: bool = True
+    tool_prior_mm: float = 10.0
 
 
 @dataclass
@@ -92,6 +96,14 @@ class FitResult:
     identifiability_start: Identifiability
     identifiability: Identifiability
     diagnostics: dict = field(default_factory=dict)
+    #: Per fitted marker: {"marker", "nominal_mm", "value_mm", "std_mm", "ci95_mm", "prior_mm"} in the
+    #: flange frame (``tool_summary``); empty when the tool was taken as exact.
+    tool: list[dict] = field(default_factory=list)
+
+    @property
+    def fitted_markers_mm(self) -> dict[str, np.ndarray]:
+        """Marker name → (3,) fitted position in the flange frame, mm (only the fitted markers)."""
+        return {t["marker"]: np.array(t["value_mm"]) for t in self.tool}
 
     @property
     def full_samples(self) -> np.ndarray:
@@ -120,7 +132,8 @@ class FitResult:
         from calib.metrics import absolute_errors, predicted_base
 
         data = self.posterior.data
-        err = absolute_errors(data, predicted_base(self.posterior.chain, data, self.applied_offsets_rad))
+        err = absolute_errors(data, predicted_base(self.posterior.chain, data, self.applied_offsets_rad,
+                                                   markers_mm=self.fitted_markers_mm))
         return float(np.sqrt(np.mean(err**2) / 3.0))
 
     @property
@@ -194,8 +207,20 @@ def _scale(post: OffsetPosterior, lever_mm: float) -> np.ndarray:
             i = k - (post.n_full - post.C)
             out.append(lever_mm * 1e-6 * float(np.sqrt(np.mean(post.torques[:, i] ** 2))) or 1.0)
         else:
-            out.append(1.0 if kind in ("x", "y", "z") else lever_mm)
+            out.append(1.0 if kind in ("x", "y", "z", "d", "a") else lever_mm)
     return np.array(out)
+
+
+def _tool_prior(chain: Chain, data: Dataset, options: FitOptions) -> dict[int, float]:
+    """Chain parameter index → prior sd (mm) of the coordinates of every marker the data measure."""
+    sd = options.tool_prior_mm
+    if not (math.isfinite(sd) and 0 <= sd <= 100):
+        raise ValueError(f"tool_prior_mm must lie in 0…100 mm (0: the model's marker positions are exact), given {sd}")
+    if sd == 0:
+        return {}
+    start = chain.marker_slice().start
+    measured = set(data.marker.tolist())
+    return {start + 3 * m + c: float(sd) for m, name in enumerate(chain.marker_names) if name in measured for c in range(3)}
 
 
 def _link_prior(chain: Chain, options: FitOptions) -> dict[int, float]:
@@ -247,6 +272,37 @@ def _resolve_null_space(post_factory, mask: ParamMask, lever_mm: float) -> tuple
             reason += "; the first axis's offset needs a base-fixed reference (fix the registration) to be measured"
         mask = mask.fix(post.names.index(name), reason, post.names)
     raise RuntimeError("could not resolve the undetermined parameters")  # pragma: no cover
+
+
+def _resolve_tool(post_factory, mask: ParamMask, lever_mm: float, prior_mm: float) -> ParamMask:
+    """Fix the offsets that move the markers exactly like a move of the tool on the flange (the
+    last axis's offset against a turn of the tool about that axis): the fitted tool takes that
+    motion, so a corrected model stays right for another tool on the same flange. The tool's
+    coordinates are never fixed: their prior keeps them proper."""
+    for _ in range(16):
+        post = post_factory(mask)
+        if not post.is_tool.any():
+            return mask
+        start = post.n + 6 * post.S
+        link_pos, _ = post.link_free()
+        keep = [k for k in range(post.dim) if k not in set(link_pos.tolist()) or post.is_tool[post.free[k] - start]]
+        j = post.jacobian(np.zeros(post.dim))[:, keep]
+        ident = analyse(j, [post.free_names[k] for k in keep], _scale(post, lever_mm)[keep])
+        tool_names = {post.names[start + i] for i in np.flatnonzero(post.is_tool)}
+        for combo in ident.null_space:
+            offsets = {k: v for k, v in combo.loadings.items() if k.endswith(".offset") and abs(v) > 1e-3}
+            tools = [k for k, v in combo.loadings.items() if k in tool_names and abs(v) > 1e-3]
+            if offsets and tools:
+                name = max(offsets, key=lambda k: abs(offsets[k]))
+                reason = (f"not separable from the tool: it moves the markers {'exactly' if combo.exact else 'almost exactly'} "
+                          f"like a move of the tool on the flange ({', '.join(tools)}; combination {combo.describe()}); the tool's position is fitted "
+                          f"(prior ±{prior_mm:g} mm) and takes this motion, so the offset is kept at its nominal value — "
+                          "with the markers' positions known, give --tool-prior-mm 0 to fit it")
+                mask = mask.fix(post.names.index(name), reason, post.names)
+                break
+        else:
+            return mask
+    return mask
 
 
 def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.ndarray]:
@@ -400,6 +456,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
             for r in REG_NAMES:
                 reasons[f"{s}.{r}"] = "registration fixed by the options"
     link_prior = _link_prior(chain, options) if options.method == "fast" else {}
+    link_prior.update(_tool_prior(chain, data, options))
     fit_compliance = np.ones(n if options.compliance else 0, bool)
     if options.compliance:
         from calib.gravity import gravity_torques
@@ -416,7 +473,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
             reasons[f"{model.axis_names[i]}.compliance"] = "not fitted (its axis is excluded by the options)"
     mask = ParamMask(fit_joint, reg_mask, reasons, np.ones(len(link_prior), bool), fit_compliance)
 
-    # Too few measurements for the free parameters? (Link parameters carry priors.)
+    # Too few measurements for the free parameters? (Link parameters and the tool carry priors.)
     n_free = int(mask.full.sum()) - len(link_prior) + len(sensors)
     if len(data) < min_measurements(n_free):
         raise DatasetError(
@@ -431,6 +488,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
     mask, ident0 = _resolve_null_space(factory, mask, lever)
+    mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
     theta, log_sigma = _mode(post, options.error, options.nu)
     mode = np.concatenate([theta, log_sigma])
@@ -439,8 +497,8 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
     def log_density(x: np.ndarray) -> np.ndarray:
         return post.log_posterior(x[..., : post.dim], x[..., post.dim :])
 
-    if options.method == "fast" and options.linearise_links:
-        post.linearise_links(theta)
+    if (options.method == "fast" and options.linearise_links) or (options.method == "paper" and post.L):
+        post.linearise_links(theta)  # paper: only the tool is in it, which the linear form carries exactly
     if options.method == "fast" and options.error == "gaussian":
         chains = _sample_sigma_marginalised(post, theta, log_sigma, options)
     elif options.method == "fast":
@@ -474,6 +532,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
 
     full = post.full_vector(chains.flat[:, : post.dim])
     mean_full = full.mean(axis=0)
+    tool_known_std = _std_with_tool_known(post, theta, log_sigma)
     offsets = mean_full[:n]
     std = full[:, :n].std(axis=0, ddof=1)
     ci = np.percentile(full[:, :n], [2.5, 97.5], axis=0).T
@@ -487,7 +546,14 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
             std[i] = np.nan
             ci[i] = np.nan
         elif std[i] > max_std:
-            status.append(f"undetermined: the data determine it only to ±{math.degrees(std[i]):.2f}° (limit {options.max_std_deg}°)")
+            why = f"undetermined: the data determine it only to ±{math.degrees(std[i]):.2f}° (limit {options.max_std_deg}°)"
+            known = tool_known_std.get(i)
+            if known is not None and known <= max_std:
+                why += (f"; it moves the markers like a turn of the tool on the flange, which is known only to "
+                        f"±{options.tool_prior_mm:g} mm per coordinate (the tool prior): with the tool's position known it "
+                        f"would be ±{math.degrees(known):.3f}° — measure the markers on the flange and give "
+                        f"--tool-prior-mm (0: exact)")
+            status.append(why)
         else:
             status.append("fitted")
     rot, trans = post.corrections(mean_full)
@@ -514,6 +580,8 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         "sandwich_std_ratio": [float(v) for v in robust / np.where(model_std > 0, model_std, np.nan)],
         "error_budget": error_budget(data, sigma),
         "link_prior": _link_summary(post, chains, options),
+        "tool_prior_mm": float(options.tool_prior_mm),
+        "tool_degeneracies": _tool_degeneracies(post, theta, lever, options) if post.is_tool.any() else [],
         "gravity_sag": None if options.compliance else _sag_summary(post, theta, sigma),
         "compliance": _compliance_summary(post, full, mask) if options.compliance else None,
     }
@@ -536,6 +604,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         identifiability_start=ident0,
         identifiability=ident,
         diagnostics=diag,
+        tool=tool_summary(post, full, options.tool_prior_mm),
     )
 
 
@@ -576,11 +645,75 @@ def _sag_summary(post: OffsetPosterior, theta: np.ndarray, sigma: dict[str, tupl
             "significant": score.significant, "joints": score.joints}
 
 
+def tool_summary(post: OffsetPosterior, full: np.ndarray, prior_mm: float) -> list[dict]:
+    """Per fitted marker, its position in the flange frame (mm): nominal, posterior mean, std and
+    95 % interval per coordinate, and the prior sd. ``full``: (draws, n_full) posterior draws."""
+    start = post.n + 6 * post.S
+    chain = post.chain
+    out = []
+    ms = chain.marker_slice().start
+    for m, name in enumerate(chain.marker_names):
+        cols = [start + k for k, i in enumerate(post.link_idx) if post.is_tool[k] and (int(i) - ms) // 3 == m]
+        if len(cols) != 3:
+            continue
+        nominal = chain.nominal[ms + 3 * m: ms + 3 * m + 3]
+        draws = full[:, cols] + nominal
+        out.append({
+            "marker": name,
+            "nominal_mm": nominal.tolist(),
+            "value_mm": draws.mean(axis=0).tolist(),
+            "std_mm": draws.std(axis=0, ddof=1).tolist(),
+            "ci95_mm": np.percentile(draws, [2.5, 97.5], axis=0).T.tolist(),
+            "prior_mm": float(prior_mm),
+        })
+    return out
+
+
+def _std_with_tool_known(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray) -> dict[int, float]:
+    """Joint index → the offset's Laplace std (rad) were the tool's position known exactly: the
+    conditional covariance with the tool coordinates held (their rows and columns of the precision
+    dropped). Empty without a fitted tool."""
+    if not post.is_tool.any():
+        return {}
+    start = post.n + 6 * post.S
+    tool_full = set((start + np.flatnonzero(post.is_tool)).tolist())
+    keep = np.array([k for k, i in enumerate(post.free) if int(i) not in tool_full])
+    j = post.jacobian(theta).reshape(post.n_rows, 3, -1)[..., keep]
+    w = np.exp(-2 * log_sigma)[post.sensor_index]
+    h = np.einsum("kip,k,kiq->pq", j, w, j) + _prior_precision(post)[np.ix_(keep, keep)]
+    cov = np.linalg.pinv(h)
+    return {int(post.free[k]): float(np.sqrt(max(cov[a, a], 0.0))) for a, k in enumerate(keep) if post.free[k] < post.n}
+
+
+def _tool_degeneracies(post: OffsetPosterior, theta: np.ndarray, lever_mm: float, options: FitOptions) -> list[str]:
+    """Sentences naming what the data cannot tell apart from a move of the tool on the flange
+    (offsets, registration, link parameters against the marker coordinates, all with flat priors at
+    the mode): the tool prior decides these combinations; they are not given a spread of their own."""
+    from calib.identifiability import analyse
+
+    names = post.free_names
+    j = post.jacobian(theta)
+    ident = analyse(j, names, _scale(post, lever_mm))
+    out = []
+    for combo in ident.null_space:
+        tool_terms = [k for k in combo.loadings if post.names.index(k) >= post.n + 6 * post.S
+                      and post.is_tool[post.names.index(k) - post.n - 6 * post.S]]
+        if not tool_terms:
+            continue
+        how = "exactly" if combo.exact else "almost exactly"
+        out.append(f"{combo.describe()}: moves the markers {how} alike — decided by the priors (tool ±{options.tool_prior_mm:g} mm"
+                   + (f", links ±{options.link_tolerance[0]:g} mm / ±{options.link_tolerance[1]:g}°"
+                      if options.link_tolerance and options.method == "fast" else "") + ")")
+    return out
+
+
 def _link_summary(post: OffsetPosterior, chains: Chains, options: FitOptions) -> dict | None:
     """The marginalised link parameters: prior and posterior deviation from nominal (mm / deg)."""
-    if not post.L:
-        return None
     pos, _ = post.link_free()
+    start = post.n + 6 * post.S
+    pos = np.array([p for p in pos if not post.is_tool[post.free[p] - start]], dtype=int)
+    if not pos.size or options.link_tolerance is None:
+        return None
     draws = chains.flat[:, pos]
     out = {}
     for k, p in enumerate(pos):

@@ -5,11 +5,18 @@ pose-selection seed (Sec. 2 and 4) — but with the analytic Jacobian of ``calib
 instead of finite differences.
 
 Which parameters are identifiable is decided from the Jacobian, not assumed: columns (scaled to
-mm of marker motion, angles × lever arm) are taken in a preferred order — registration, joint
-offsets, link lengths a, offsets d, twists α, torsions β (``mdh`` models only), marker offsets —
+mm of marker motion, angles × lever arm) are taken in a preferred order — registration, marker
+positions on the flange, joint offsets, link offsets d, lengths a, twists α, torsions β (``mdh``
+models only) —
 and a column that the columns already kept reproduce (relative residual below ``rank_tol``) is
 excluded, with a reason naming the parameters it duplicates. Excluded parameters stay at their
-nominal values.
+nominal values. The tool comes before the joints: a last link's d, a, α, β and the last axis's
+offset that the marker positions explain are kept nominal and the markers take the motion, so the
+corrected model moves the tool, not the flange, and stays right for any other tool on it.
+
+**Tool prior.** Marker positions are unknowns under a Gaussian prior about the model's values
+(``IdentOptions.tool_prior_mm`` per coordinate; 0: exact, not fitted): prior rows
+σ/sd · (m − m_nominal) join the residuals, σ the rms of a first solve without them.
 
 Residuals: positions (mm). Where orientation is measured (``rotation`` given), the fused
 objective of the seed's eq. 19 is used: Σ L·(|Δn|² + |Δo|² + |Δa|²) + |Δp|² with L = 100 by
@@ -53,6 +60,7 @@ class IdentOptions:
     max_nfev: int = 200
     cond_warn: float = 1e4
     initial_registration: str = "least-squares"
+    tool_prior_mm: float = 10.0
 
 
 @dataclass
@@ -70,6 +78,8 @@ class IdentResult:
     #: With ``IdentOptions.compliance``: per joint rad/(N·m) (0 where not identified) and std (NaN there).
     compliance: np.ndarray | None = None
     compliance_std: np.ndarray | None = None
+    #: Prior std (mm per coordinate) of the marker positions; 0: taken as exact.
+    tool_prior_mm: float = 0.0
 
     @property
     def chain_names(self) -> list[str]:
@@ -226,15 +236,19 @@ def _excluded_by_choice(model: RobotModel, chain: Chain, names: list[str], optio
     if not options.fit_markers:
         for i in range(chain.marker_slice().start, chain.marker_slice().stop):
             excluded[names[i]] = "marker offsets fixed by the options"
+    elif options.tool_prior_mm == 0:
+        for i in range(chain.marker_slice().start, chain.marker_slice().stop):
+            excluded[names[i]] = "marker positions taken as exact (tool prior 0 mm)"
     return excluded
 
 
 def _preference(problem: _Problem, chain: Chain) -> list[int]:
-    """Column order in which parameters are kept."""
+    """Column order in which parameters are kept: registration, marker positions, offsets, then the
+    link parameters — so what the tool explains is taken by the tool, never by the last link."""
     order = list(range(problem.P, problem.P + 6 * len(problem.sensors)))  # registration first
+    order += list(range(chain.marker_slice().start, chain.marker_slice().stop))
     for kind in KINDS:
         order += list(chain.index(kind))
-    order += list(range(chain.marker_slice().start, chain.marker_slice().stop))
     order += list(range(problem.P + 6 * len(problem.sensors), len(problem.names)))  # compliances last
     return order
 
@@ -323,10 +337,30 @@ def identify(
         x[free] = x0[free] + z / scale[free]
         return problem.residuals_and_jacobian(x)[1][:, free] / scale[free]
 
-    sol = least_squares(fun, np.zeros(len(free)), jac=jac, method="lm", max_nfev=options.max_nfev, xtol=1e-12, ftol=1e-12)
+    if not (math.isfinite(options.tool_prior_mm) and 0 <= options.tool_prior_mm <= 100):
+        raise ValueError(f"tool_prior_mm must lie in 0…100 mm (0: exact markers), given {options.tool_prior_mm}")
+    ms = chain.marker_slice()
+    tool_pos = np.array([k for k, c in enumerate(free) if ms.start <= c < ms.stop], dtype=int)
+    prior_weight = [0.0]  # σ / sd, set after a first solve without the prior
+
+    def fun_p(z):
+        return np.concatenate([fun(z), prior_weight[0] * z[tool_pos]])
+
+    def jac_p(z):
+        prior = np.zeros((tool_pos.size, len(free)))
+        prior[np.arange(tool_pos.size), tool_pos] = prior_weight[0]
+        return np.concatenate([jac(z), prior])
+
+    sol = least_squares(fun_p, np.zeros(len(free)), jac=jac_p, method="lm", max_nfev=options.max_nfev, xtol=1e-12, ftol=1e-12)
+    nfev = int(sol.nfev)
+    if tool_pos.size:
+        sigma = float(np.sqrt(np.mean(sol.fun[: 3 * len(data)] ** 2)))
+        prior_weight[0] = max(sigma, 1e-9) / options.tool_prior_mm
+        sol = least_squares(fun_p, sol.x, jac=jac_p, method="lm", max_nfev=options.max_nfev, xtol=1e-12, ftol=1e-12)
+        nfev += int(sol.nfev)
     x = x0.copy()
     x[free] = x0[free] + sol.x / scale[free]
-    r = sol.fun
+    r = sol.fun[: sol.fun.size - tool_pos.size]
     n_pos = 3 * len(data)
     rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
     dof = max(r.size - len(free), 1)
@@ -364,10 +398,11 @@ def identify(
         base2sensor=b2s,
         rms_mm=rms,
         condition_number=cond,
-        iterations=int(sol.nfev),
+        iterations=nfev,
         warnings=warnings,
         compliance=comp,
         compliance_std=comp_std,
+        tool_prior_mm=float(options.tool_prior_mm) if options.fit_markers else 0.0,
     )
 
 
@@ -470,9 +505,12 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
 
     ``metrics``: the seed's EACPE/EMCPE (position; EACAE/EMCAE are null without orientation
     data) on the calibration set and, if given, the validation set — ``before`` with the nominal
-    model (registered by least squares), ``after`` with the identified model and registration.
+    model registered by least squares on the calibration data, ``after`` with the identified model
+    and its registration. Validation points are scored with those calibration registrations
+    (``calib.metrics.validation_scores``); ``validation.reregistered`` is the optimistic figure with
+    a registration fitted to the validation points, named as such. ``metric_notes``: how, and caveats.
     """
-    from calib.metrics import absolute_errors, predicted_base
+    from calib.metrics import absolute_errors, validation_scores
 
     chain = Chain(result.model)
     nominal = chain.nominal
@@ -494,37 +532,49 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
             entry["reason"] = result.excluded[name]
         params.append(entry)
 
-    def scored(data: Dataset) -> dict:
-        before = comprehensive_errors(absolute_errors(data, predicted_base(chain, data, np.zeros(chain.n))))
-        if set(data.sensors) <= set(result.base2sensor):
-            after_err = pose_errors(result.model, result.params, data, result.base2sensor)
-        else:  # another sensor: register the identified model to it by least squares
-            after_err = absolute_errors(data, _marker_rows(chain, data, result.params))
-        return {"before": before, "after": comprehensive_errors(after_err)}
+    cal_before = _marker_rows(chain, cal, nominal)
+    cal_after = _marker_rows(chain, cal, result.params)
+    notes = ["before: the nominal model, registered by least squares on the calibration data; after: the identified "
+             "model with the identified registration; validation points are scored with these calibration "
+             "registrations (never one fitted to the points being scored)"]
 
-    metrics = {"calibration": scored(cal)}
+    def scored(data: Dataset, is_cal: bool) -> dict:
+        if is_cal:
+            before = absolute_errors(data, cal_before)
+            after = pose_errors(result.model, result.params, data, result.base2sensor)
+            return {"before": comprehensive_errors(before), "after": comprehensive_errors(after)}
+        b, a, rb, ra, caveats = validation_scores(cal, data, (cal_before, _marker_rows(chain, data, nominal)),
+                                                  (cal_after, _marker_rows(chain, data, result.params)),
+                                                  registration_after=result.base2sensor)
+        notes.extend(caveats)
+        return {"before": comprehensive_errors(b), "after": comprehensive_errors(a),
+                "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)}}
+
+    metrics = {"calibration": scored(cal, True)}
     if val is not None and len(val):
-        metrics["validation"] = scored(val)
+        metrics["validation"] = scored(val, False)
+    if result.compliance is not None:
+        notes.append("after: the identified kinematics without the fitted sag (a corrected model file carries "
+                     "kinematics only); the sag the compliances explain is left in these errors")
     return {
         "method": "full",
         "robot": result.model.name,
         "parameters": params,
         "excluded": result.excluded,
         "registration": {s: np.asarray(t).round(9).tolist() for s, t in result.base2sensor.items()},
+        "tool_prior_mm": result.tool_prior_mm,
         "rms_mm": result.rms_mm,
         "condition_number": result.condition_number,
         "evaluations": result.iterations,
         "warnings": result.warnings,
         "metrics": metrics,
+        "metric_notes": notes,
         "compliance": None if result.compliance is None else [
             {"joint": ax, "unit": "rad/(N·m)", "status": "fitted" if math.isfinite(sd) else "undetermined",
              "value": float(v) if math.isfinite(sd) else None, "std": float(sd) if math.isfinite(sd) else None,
              "reason": "" if math.isfinite(sd) else result.excluded.get(f"{ax}.compliance", "")}
             for ax, v, sd in zip(result.model.axis_names, result.compliance, result.compliance_std)],
     }
-    if result.compliance is not None:
-        metrics["notes"] = ["after: the identified kinematics without the fitted sag (a corrected model file carries "
-                            "kinematics only); the sag the compliances explain is left in these errors"]
 
 
 def _marker_rows(chain: Chain, data: Dataset, params: np.ndarray) -> np.ndarray:

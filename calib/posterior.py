@@ -24,6 +24,16 @@ manufacturing tolerance and are marginalised: the offsets' posterior then includ
 uncertainty of what the data cannot tell apart from a link error. This is our extension; the
 paper's model (``link_prior=None``) has no such term.
 
+**Tool markers as unknowns.** Nobody knows a reflector's position on the flange to 0.1 mm. With
+marker entries in ``link_prior`` (chain parameter indices of ``Chain.marker_slice``, prior sd in
+mm) the marker positions in the flange frame are fitted like the link parameters, under a
+Gaussian prior about the model's values (``calib.fit.FitOptions.tool_prior_mm``). A marker's
+position enters the prediction exactly (p = flange origin + R_flange·m is linear in m, so the
+linearised predictor below carries it without approximation). The combinations the data cannot
+tell apart — a shift along the last axis against that link's d, a rotation of the tool about
+the last axis against that axis's zero-offset — are decided by the priors, and the offsets'
+intervals include the tool's uncertainty.
+
 **Joint compliance** (``compliance=True``, models with link masses): joint i yields under the
 gravity torque τ_i(q) it carries by Δθ_i = k_i τ_i (``calib.gravity``), i.e. its angle is off by
 sign_i k_i τ_i in the controller's convention — like an offset that changes with the
@@ -125,12 +135,22 @@ class OffsetPosterior:
             + [f"{ax}.compliance" for ax in chain.model.axis_names[: self.C]]
         )
         self.free_names = [self.names[i] for i in self.free]
+        #: (L,) True where the entry is a tool-marker coordinate (mm, flange frame), not a link parameter.
+        self.is_tool = self.link_idx >= chain.marker_slice().start
         self.rows_per_sensor = np.bincount(self.sensor_index, minlength=self.S)
         self._rows_of_sensor = [np.flatnonzero(self.sensor_index == k_s) for k_s in range(self.S)]
         # Only the offsets move inside the fit: fold the rest of the kinematics once.
         markers_flange = np.array([mk.xyz for mk in chain.model.tool.markers], dtype=float)
         self._offset_fk = offset_kinematics(chain, data.q_rad, markers_flange[self.marker_index])
-        self._link_jac: np.ndarray | None = None  # (k, 3, L) when the link terms are linearised
+        self._link_jac: np.ndarray | None = None  # (k, 3, L_links) when the link terms are linearised
+        self._linearised = False
+        self._tool_fk = None  # offset kinematics at 4 points per row (marker, marker + e_x, e_y, e_z)
+        if self.is_tool.any():
+            # Per row, the entries of the tool vector holding its marker's x, y, z (T: "not free").
+            start = chain.marker_slice().start
+            col = {int(i) - start: k for k, i in enumerate(self.link_idx[self.is_tool])}
+            n_t = int(self.is_tool.sum())
+            self._row_tool = np.array([[col.get(3 * m + c, n_t) for c in range(3)] for m in self.marker_index], dtype=int)
         if self.C:
             from calib.gravity import gravity_torques
 
@@ -184,21 +204,48 @@ class OffsetPosterior:
         """
         if theta is None or not self.L:
             self._link_jac = None
+            self._linearised = False
             return
         full = self.full_vector(np.asarray(theta, dtype=float))
-        full[self.n + 6 * self.S: self.n + 6 * self.S + self.L] = 0.0
-        _, jac = self.chain.marker_jacobian(self.data.q_rad, self.chain_params(full))
-        self._link_jac = np.ascontiguousarray(jac[np.arange(self.n_rows), self.marker_index][..., self.link_idx])
-        self._link_jac_t = np.ascontiguousarray(self._link_jac.reshape(-1, self.L).T)  # (L, 3k)
+        lo = self.n + 6 * self.S
+        links = full[lo: lo + self.L]
+        links[~self.is_tool] = 0.0  # link terms about nominal; the tool stays at theta's values
+        params = self.chain_params(full)
+        self._linearised = True
+        link_cols = self.link_idx[~self.is_tool]
+        if link_cols.size:
+            _, jac = self.chain.marker_jacobian(self.data.q_rad, params)
+            self._link_jac = np.ascontiguousarray(jac[np.arange(self.n_rows), self.marker_index][..., link_cols])
+            self._link_jac_t = np.ascontiguousarray(self._link_jac.reshape(-1, link_cols.size).T)  # (L_links, 3k)
+        else:
+            self._link_jac = None
+        if self.is_tool.any():
+            self._tool_ref = links[self.is_tool].copy()
+            mk = params[self.chain.marker_slice()].reshape(-1, 3)[self.marker_index]  # (k, 3) at theta
+            pts = np.concatenate([mk, mk + [1.0, 0, 0], mk + [0, 1.0, 0], mk + [0, 0, 1.0]])
+            nominal = self.chain.nominal.copy()
+            self._tool_fk = offset_kinematics(self.chain, np.tile(self.data.q_rad, (4, 1)), pts, nominal)
 
     # --- prediction and residuals ----------------------------------------------------
     def predict(self, theta: np.ndarray) -> np.ndarray:
         """Predicted marker positions in each row's sensor frame: (..., k, 3) mm."""
         full = self.full_vector(theta)
-        if self.L and self._link_jac is not None:
+        if self.L and self._linearised:
             links = full[..., self.n + 6 * self.S: self.n + 6 * self.S + self.L]
-            p_base = self._offset_fk.positions(full[..., : self.n])
-            p_base = p_base + (links @ self._link_jac_t).reshape(p_base.shape)  # one BLAS product
+            if self._tool_fk is not None:
+                # Exact in the marker position: p = p(m_ref) + R_flange (m − m_ref), R's columns
+                # from the same folded kinematics at m_ref + e_x, e_y, e_z.
+                k = self.n_rows
+                four = self._tool_fk.positions(full[..., : self.n])  # (..., 4k, 3)
+                p_base = four[..., :k, :]
+                dev = links[..., self.is_tool] - self._tool_ref  # (..., T)
+                dev = np.concatenate([dev, np.zeros(dev.shape[:-1] + (1,))], axis=-1)[..., self._row_tool]  # (..., k, 3)
+                for c in range(3):
+                    p_base = p_base + dev[..., c, None] * (four[..., (c + 1) * k:(c + 2) * k, :] - four[..., :k, :])
+            else:
+                p_base = self._offset_fk.positions(full[..., : self.n])
+            if self._link_jac is not None:
+                p_base = p_base + (links[..., ~self.is_tool] @ self._link_jac_t).reshape(p_base.shape)  # one BLAS product
         elif self.L:
             pos = self.chain.marker_positions(self.data.q_rad, self.chain_params(full))  # (..., k, m, 3)
             p_base = pos[..., np.arange(self.n_rows), self.marker_index, :]

@@ -19,7 +19,7 @@ MIN_ESS = 100
 #: Accuracy rows of the summary: metric key → label (mean and 97.5 % percentile shown).
 SUMMARY_METRICS = {
     "absolute": "calibration set, after registration (eq. 18)",
-    "validation_absolute": "validation set, after registration (eq. 18)",
+    "validation_absolute": "validation set, with the calibration registration (eq. 18)",
     "validation_relative": "validation set, relative (eq. 17)",
     "theoretical_workspace": "theoretical, workspace (offsets + σ, Table VI)",
 }

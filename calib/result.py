@@ -11,6 +11,9 @@ Layout (``format: "remaster.fit/1"``; angles in degrees, lengths in mm)::
                      base2sensor_initial, corrections {x_mm, y_mm, z_mm, alpha_deg, beta_deg,
                      gamma_deg: {value, std, free}} (T* = Trans(x,y,z)·Rz(α)Ry(β)Rx(γ), applied
                      on the left of the initial registration, eq. 8)
+    tool             prior_mm (0: the model's markers taken as exact), markers: per fitted marker
+                     {marker, nominal_mm, value_mm, std_mm, ci95_mm [[lo, hi] ×3], prior_mm} in the
+                     flange frame; degeneracies: sentences naming what only the priors decide
     sigma_mm         per sensor: {value, std}
     diagnostics      method, sampler, chains, draws, acceptance, rhat/ess per parameter,
                      rhat_max, ess_min, timings (s)
@@ -191,6 +194,8 @@ def result_dict(
         },
         "joint_offsets": joint_offsets(result),
         "registration": registration(result),
+        "tool": {"prior_mm": result.diagnostics.get("tool_prior_mm"), "markers": result.tool,
+                 "degeneracies": result.diagnostics.get("tool_degeneracies", [])},
         "sigma_mm": {s: {"value": v[0], "std": v[1]} for s, v in result.sigma_mm.items()},
         "diagnostics": diagnostics(result),
         "identifiability": identifiability(result),

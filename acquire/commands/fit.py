@@ -114,6 +114,15 @@ def format_summary(doc: dict, controller_text: str) -> str:
             f"sensor {s}: σ = {sig['value']:.3f} ± {sig['std']:.3f} mm; registration correction "
             + ", ".join(f"{k} {v['value']:+.3f}" for k, v in corr.items())
         )
+    tool = doc.get("tool") or {}
+    for t in tool.get("markers") or []:
+        lines.append(
+            f"tool marker {t['marker']} (flange frame): "
+            + ", ".join(f"{c} {v:+.3f} ± {sd:.3f} mm (model {nom:+.1f})"
+                        for c, v, sd, nom in zip("xyz", t["value_mm"], t["std_mm"], t["nominal_mm"]))
+            + f"; prior ±{t['prior_mm']:g} mm")
+    if tool and not tool.get("markers"):
+        lines.append("tool markers: the model's positions taken as exact (--tool-prior-mm 0)")
     d = doc["diagnostics"]
     lp = d.get("link_prior")
     if lp:
@@ -195,6 +204,11 @@ def fit(
         help="MM,DEG: prior std of the link parameters (d, a in mm; α, β in degrees) the fast fit marginalises, "
         "so link errors widen the offsets' intervals instead of biasing them; 'none': the paper's model.",
     ),
+    tool_prior_mm: float = typer.Option(
+        10.0, "--tool-prior-mm",
+        help="Prior std (mm, per coordinate) of the measured markers' positions on the flange about the robot "
+        "model's: every method fits them and writes them to the corrected model; 0: the model's positions are exact.",
+    ),
     draws: int = typer.Option(1000, "--draws", help="fast: draws per chain (4 chains)."),
     paper_samples: int = typer.Option(200_000, "--paper-samples", help="paper: Metropolis samples; the last 1/8 are kept."),
     n_random: int = typer.Option(1000, "--random-configs", help="Random workspace configurations for the theoretical metric."),
@@ -256,8 +270,11 @@ def fit(
     cal = ds.calibration()
     if compliance and method == "paper":
         raise typer.BadParameter("the paper's model has no compliance: use --method fast or full", param_hint="--compliance")
+    if not (math.isfinite(tool_prior_mm) and 0 <= tool_prior_mm <= 100):
+        raise typer.BadParameter(f"expected 0 ≤ MM ≤ 100 (0: the markers' positions are exact), given {tool_prior_mm}",
+                                 param_hint="--tool-prior-mm")
     if method == "full":
-        _fit_full(model, cal, val, output, model_out, compliance=compliance)
+        _fit_full(model, cal, val, output, model_out, compliance=compliance, tool_prior_mm=tool_prior_mm)
         return
     options = FitOptions(
         link_tolerance=_link_tolerance(link_tolerance),
@@ -270,6 +287,7 @@ def fit(
         paper_samples=paper_samples,
         paper_burn_in=paper_samples - max(paper_samples // 8, 40),
         compliance=compliance,
+        tool_prior_mm=tool_prior_mm,
     )
     try:
         result = fit_offsets(model, cal, options)
@@ -278,9 +296,9 @@ def fit(
     log.info("fitted %d measurements in %.2f s (%s)", len(cal), result.diagnostics["seconds_total"], method)
     metrics = accuracy_metrics(
         Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad, result.applied_sigma_mm,
-        validation=val, n_random=n_random, seed=seed,
+        validation=val, n_random=n_random, seed=seed, markers_mm=result.fitted_markers_mm,
     )
-    metrics["notes"] = metric_notes(result)
+    metrics["notes"] = metric_notes(result) + metrics.get("notes", [])
     doc = result_dict(result, cal, metrics=metrics)
     refused = apply_guards(doc)
     values = controller_values(model, doc["joint_offsets"])
@@ -302,12 +320,12 @@ def fit(
 
 
 def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None,
-              *, compliance: bool = False) -> None:
+              *, compliance: bool = False, tool_prior_mm: float = 10.0) -> None:
     """``--method full``: Levenberg–Marquardt identification, corrected model YAML, EACPE/EMCPE."""
     from calib.identification import IdentOptions, ident_result_dict, identify, write_model_yaml
 
     try:
-        result = identify(model, cal, IdentOptions(compliance=compliance))
+        result = identify(model, cal, IdentOptions(compliance=compliance, tool_prior_mm=tool_prior_mm))
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
     doc = ident_result_dict(result, cal, val)
@@ -326,6 +344,10 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
     for part, m in doc["metrics"].items():
         b, a = m["before"], m["after"]
         lines.append(f"{part}: EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → {a['EMCPE']:.3f} mm")
+        if "reregistered" in m:
+            rb, ra = m["reregistered"]["before"], m["reregistered"]["after"]
+            lines.append(f"{part}, re-registered on its own points (optimistic): EACPE {rb['EACPE']:.3f} → {ra['EACPE']:.3f} mm")
+    lines += [f"note: {n}" for n in doc.get("metric_notes", [])]
     typer.echo("\n".join(lines))
     if model_out is None and output is not None:
         model_out = output.with_name(output.stem + ".model.yaml")

@@ -57,7 +57,7 @@ def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
     doc = json.loads(out.read_text())
     # Summary: each joint, its status, σ, diagnostics, metrics, values to enter.
     assert re.search(r"^A1\s+—\s+—\s+—\s+undetermined: ", text, flags=re.M)
-    for j in doc["joint_offsets"][1:]:
+    for j in doc["joint_offsets"][1:6]:
         value = re.escape(f"{j['value_deg']:+.4f}")
         assert re.search(rf"^{j['joint']}\s+{value}\s+{j['std_deg']:.4f}\s+\[.*\]\s+fitted$", text, flags=re.M)
     assert re.search(r"sensor mocap: σ = 0\.\d{3} ± 0\.\d{3} mm", text)
@@ -65,8 +65,12 @@ def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
     assert "validation_absolute" in text and "theoretical_workspace_offsets_only" in text
     assert "values to enter (sunrise):" in text and "leave unchanged" in text
     # The fitted offsets are close to the simulated truth (link errors and sag bias them a little).
-    fitted = np.array([j["value_deg"] for j in doc["joint_offsets"][1:]])
-    np.testing.assert_allclose(fitted, TRUE_OFFSETS_DEG[1:], atol=0.05)
+    fitted = np.array([j["value_deg"] for j in doc["joint_offsets"][1:6]])
+    np.testing.assert_allclose(fitted, TRUE_OFFSETS_DEG[1:6], atol=0.05)
+    # The tool is fitted by default (±10 mm prior): A7 cannot be told from a turn of the tool.
+    assert re.search(r"^A7\s+—\s+—\s+—\s+undetermined: not separable from the tool", text, flags=re.M)
+    assert re.search(r"^tool marker sir \(flange frame\): x [+-]\d+\.\d{3} ± 0\.\d{3} mm \(model -100\.0\)", text, flags=re.M)
+    assert doc["tool"]["prior_mm"] == 10.0 and doc["tool"]["markers"][0]["marker"] == "sir"
     # result.json: the sections of issue 3.
     assert set(doc) >= {"joint_offsets", "registration", "sigma_mm", "diagnostics", "identifiability", "metrics", "controller"}
     assert doc["joint_offsets"][0]["value_deg"] is None and doc["joint_offsets"][0]["identifiable"] is False
@@ -75,15 +79,28 @@ def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
         assert m[key]["after"]["mean"] < m[key]["before"]["mean"] / 2, key
     assert m["settings"]["n_random_configurations"] == 100
     assert doc["diagnostics"]["method"] == "fast" and doc["diagnostics"]["rhat_max"] < 1.05
-    assert [a["action"] for a in doc["controller"]["axes"]] == ["leave unchanged"] + ["enter"] * 6
+    assert [a["action"] for a in doc["controller"]["axes"]] == ["leave unchanged"] + ["enter"] * 5 + ["leave unchanged"]
     # report.html: self-contained (embedded PNGs, nothing fetched).
     html = rep.read_text()
     assert html.count('src="data:image/png;base64,') == 3  # TCP cloud (Fig. 5), traces, errors
     assert '<img alt="TCP cloud' in html and "id=summary" in html
     assert not re.search(r'(src|href)="(http|//)', html)
-    for heading in ("Values to enter", "Zero-offsets", "Accuracy before and after", "Identifiability", "Sampler diagnostics"):
+    for heading in ("Values to enter", "Zero-offsets", "Tool markers (flange frame, mm)", "Accuracy before and after", "Identifiability", "Sampler diagnostics"):
         assert heading in html
     assert f"wrote {out}" in text and f"wrote {rep}" in text
+
+
+def test_an_exact_tool_on_request_fits_the_last_offset_and_bad_priors_are_refused(app, tmp_path):
+    out = tmp_path / "exact.json"
+    res = run(app, CAL, "--robot", IIWA, "-o", out, "--tool-prior-mm", 0, *QUICK)
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    assert doc["tool"] == {"prior_mm": 0.0, "markers": [], "degeneracies": []}
+    assert "the model's positions taken as exact" in res.output
+    last = doc["joint_offsets"][6]
+    assert last["status"] == "fitted" and abs(last["value_deg"] - TRUE_OFFSETS_DEG[6]) < 0.05
+    bad = run(app, CAL, "--robot", IIWA, "--tool-prior-mm", -3, *QUICK)
+    assert bad.exit_code == 2 and "0≤MM≤100" in flat(bad.output) and "--tool-prior-mm" in flat(bad.output)
 
 
 def test_validation_rows_in_the_same_file_are_used(app, tmp_path):

@@ -1,6 +1,8 @@
 """`acquire fit --method full`: identification result, corrected model file the tools can load."""
 
 import json
+
+import pytest
 from pathlib import Path
 
 from typer.testing import CliRunner
@@ -31,6 +33,13 @@ def test_full_identification_writes_result_and_a_loadable_corrected_model(tmp_pa
     a3 = [j for j in model.joints if j.axis == "A3"][0]
     assert abs(a3.d - identified["A3.d"]["value"]) < 1e-6
     assert Chain(model).n_params == Chain(load_robot_model(ROBOT)).n_params
+    # The tool is fitted under its prior and takes what the last link's d, a, α would otherwise take.
+    assert doc["tool_prior_mm"] == 10.0
+    assert identified["sir.x"]["identified"] and not identified["A7.d"]["identified"]
+    assert "sir" in doc["excluded"]["A7.d"] and "does not move any measured marker" in doc["excluded"]["smr.x"]
+    assert model.tool.markers[1].xyz == pytest.approx(tuple(identified[f"sir.{c}"]["value"] for c in "xyz"), abs=1e-6)
+    assert "reregistered" in val and any("calibration registration" in n for n in doc["metric_notes"])
+    assert "re-registered on its own points (optimistic)" in res.output
 
 
 def test_unknown_method_is_refused():

@@ -462,7 +462,8 @@ def test_acquire_fit_reads_a_run_log_like_the_same_measurements_in_csv(tmp_path,
     app.callback()(lambda: None)
     fit_command.register(app)
     out = tmp_path / "result.json"
-    res = CliRunner().invoke(app, ["fit", str(path), "--robot", str(IIWA), "-o", str(out), "--seed", "3", "--draws", "300", "--random-configs", "50"])
+    res = CliRunner().invoke(app, ["fit", str(path), "--robot", str(IIWA), "-o", str(out), "--seed", "3", "--draws", "300", "--random-configs", "50",
+                                      "--tool-prior-mm", "0"])  # the simulated tool is the model's
     assert res.exit_code == 0, res.output
     doc = json.loads(out.read_text())
     assert doc["data"]["n_measurements"] == len(ds)

@@ -140,7 +140,7 @@ def test_compliances_are_fitted_with_the_offsets_and_their_intervals_cover_the_t
         rng = np.random.default_rng(100 + seed)
         q = rng.uniform(model.lower_limits_rad * 0.8, model.upper_limits_rad * 0.8, (40, 7))
         result = fit_offsets(model, _dataset(model, q, k_true, seed=seed),
-                             FitOptions(n_draws=500, compliance=True, link_tolerance=None))
+                             FitOptions(n_draws=500, compliance=True, link_tolerance=None, tool_prior_mm=0))
         truth = np.radians(np.random.default_rng(seed).normal(0, 0.05, 7))
         hits_o += [lo <= t <= hi for (lo, hi), t in zip(result.offsets_ci95_rad[1:], truth[1:])]
         comp = result.diagnostics["compliance"]

@@ -100,7 +100,8 @@ def test_fast_method_agrees_with_the_papers_sampler():
     xyz = apply(b2s, pos) + rng.normal(0.0, 0.6, pos.shape)
     ds = from_arrays(q, xyz, marker="smr")
     # The paper's model on both sides (no link-parameter priors), so both sample one posterior.
-    common = dict(joints=(2, 3), registration={"sensor": b2s}, fix_registration=True, seed=5, link_tolerance=None)
+    common = dict(joints=(2, 3), registration={"sensor": b2s}, fix_registration=True, seed=5, link_tolerance=None,
+                  tool_prior_mm=0)
     fast = fit_offsets(IIWA, ds, FitOptions(method="fast", n_draws=2000, **common))
     ref = fit_offsets(IIWA, ds, FitOptions(method="paper", paper_samples=40_000, paper_burn_in=8_000, **common))
     f_draws = np.concatenate([np.degrees(fast.offset_samples_rad[:, 1:3]), np.exp(fast.chains.flat[:, -1:])], 1)
