@@ -607,9 +607,10 @@ class RunController:
             self._time_scale = fc.time_scale
             extra = {"clock": clock, "sleep": sleep}
             driver = plan.commander.driver
-            # The cell runs time_scale × faster than real time; the commanders' silence and
-            # staleness limits (simulated time) get the same wall-time slack a real cell has.
-            ms = 100.0 * fc.time_scale
+            # The cell runs time_scale × faster than real time, and its fake controller is a
+            # thread that a busy machine can stall: the commanders' silence and staleness limits
+            # (simulated time) get 300 ms of wall time, not a real cell's 100 ms.
+            ms = 300.0 * fc.time_scale
             url = {"fri": f"fri://127.0.0.1:0?rt_priority=0&timeout_ms={ms:g}&max_state_age_ms={ms:g}",
                    "rsi": f"rsi://127.0.0.1:0?rt_priority=0&max_state_age_s={ms / 1000:g}"}.get(driver)
             if url is None:

@@ -23,6 +23,7 @@ from mcap.reader import make_reader
 
 pytest.importorskip("foxglove", reason="the live view needs foxglove-sdk")
 websockets_sync = pytest.importorskip("websockets.sync.client", reason="the live tests need the websockets package")
+import websockets.exceptions  # noqa: E402
 
 from acquire import foxglove_view as fv  # noqa: E402
 from acquire.live import LiveServer  # noqa: E402
@@ -185,7 +186,13 @@ def test_acquire_run_live_serves_the_robot_frames_and_the_joint_state(tmp_path):
 
         while not paired() or not scenes:
             assert time.monotonic() < deadline + 60 and proc.poll() is None, "no /tf, /joint_state and /markers pair received"
-            got = client.recv(0.5)
+            try:
+                got = client.recv(0.5)
+            except websockets.exceptions.ConnectionClosed as exc:  # the run ended: say why
+                tail = []
+                while not lines.empty():
+                    tail.append(lines.get_nowait())
+                raise AssertionError(f"live view closed ({exc}); the run said:\n{''.join(tail[-25:])}") from exc
             if got is None:
                 continue
             topic, t_ns, data = got

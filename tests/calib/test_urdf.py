@@ -84,7 +84,7 @@ def test_iiwa_import_equals_the_shipped_model_with_its_masses_and_centres_of_mas
     for ours, ref in zip(imp.model.joints, shipped.joints):
         assert ours.mass_kg == pytest.approx(ref.mass_kg)
         assert ours.com_mm == pytest.approx(ref.com_mm, abs=1e-9), ref.axis
-    assert [j.limits for j in imp.model.joints] == pytest.approx([j.limits for j in shipped.joints])
+    np.testing.assert_allclose([j.limits for j in imp.model.joints], [j.limits for j in shipped.joints], rtol=1e-6)
     assert all(j.max_speed == pytest.approx(math.degrees(10.0)) for j in imp.model.joints)  # the xacro's max_velocity
 
 
@@ -135,11 +135,12 @@ def test_exported_urdf_has_the_models_kinematics_in_yourdfpy_and_imports_back(tm
     assert imp.tip == "flange" and imp.model.axis_names == model.axis_names
     assert np.abs(Chain(imp.model).marker_positions(q) - Chain(model).marker_positions(q)).max() < 1e-8
     assert imp.model.marker_names == model.marker_names
-    assert [j.limits for j in imp.model.joints] == pytest.approx([j.limits for j in model.joints])
+    np.testing.assert_allclose([j.limits for j in imp.model.joints], [j.limits for j in model.joints], rtol=1e-6)
     assert [j.max_speed for j in imp.model.joints] == pytest.approx([j.max_speed for j in model.joints])
     assert imp.model.has_dynamics == model.has_dynamics
     if model.has_dynamics:
-        assert [j.com_mm for j in imp.model.joints] == pytest.approx([j.com_mm for j in model.joints], abs=1e-8)
+        for got, ref in zip([j.com_mm for j in imp.model.joints], [j.com_mm for j in model.joints]):
+            np.testing.assert_allclose(got, ref, atol=1e-8)
 
 
 def test_exported_urdf_joint_values_are_the_controllers_angles(tmp_path):
