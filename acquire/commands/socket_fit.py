@@ -166,12 +166,24 @@ def format_socket_summary(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def write_socket_model(model: RobotModel, fit: SocketFit, path: Path) -> Path:
+    """The corrected robot model whose tool is the fitted ball (marker ``ball``), as YAML."""
+    from calib.identification import corrected_model, write_model_yaml
+
+    chain = Chain(model)
+    ms = chain.marker_slice()
+    tool_model = model.model_copy(update={"tool": model.tool.model_copy(update={
+        "markers": [model.tool.markers[0].model_copy(update={"name": "ball", "xyz": (0.0, 0.0, 0.0)})]})})
+    params = np.concatenate([fit.params[: ms.start], fit.params[ms.start:ms.start + 3]])
+    write_model_yaml(corrected_model(tool_model, params), path)
+    return path
+
+
 def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: float | None,
                     link_tolerance: tuple[float, float] | None, output: Path | None, model_out: Path | None,
                     compliance: bool = False) -> dict:
     """Fit a socket CSV; print the summary; write the result and the corrected model. Exits 1
     when the values must not be entered."""
-    from calib.identification import corrected_model, write_model_yaml
     from calib.result import write_result
 
     try:
@@ -187,13 +199,7 @@ def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: 
     if model_out is None and output is not None:
         model_out = output.with_name(output.stem + ".model.yaml")
     if model_out is not None:
-        chain = Chain(model)
-        ms = chain.marker_slice()
-        tool_model = model.model_copy(update={"tool": model.tool.model_copy(update={
-            "markers": [model.tool.markers[0].model_copy(update={"name": "ball", "xyz": (0.0, 0.0, 0.0)})]})})
-        params = np.concatenate([fit.params[: ms.start], fit.params[ms.start:ms.start + 3]])
-        write_model_yaml(corrected_model(tool_model, params), model_out)
-        doc["model_file"] = str(model_out)
+        doc["model_file"] = str(write_socket_model(model, fit, model_out))
         typer.echo(f"wrote {model_out}")
     if output is not None:
         write_result(output, doc)
