@@ -946,6 +946,12 @@ def _fake_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
         errors.append((loc, f"the simulated cell has another robot (given a cell with {sim_model.name!r}; "
                             f"allowed: a cell with {model.name!r})"))
     for i, s in enumerate(plan.sensors):
+        if s.driver in JOINT_SENSOR_DRIVERS:
+            if cfg.sockets is None:
+                errors.append((("sensors", i, "driver"), f"the simulated cell {path.name} has no sockets for a "
+                                                         f"{s.driver} sensor (given {s.driver!r}; allowed: a cell with "
+                                                         "a sockets section, e.g. ../sim/socket.yaml)"))
+            continue
         if s.name not in cfg.sensor_names:
             errors.append((("sensors", i, "name"), f"no sensor of that name in the simulated cell {path.name} "
                                                    f"(given {s.name!r}; allowed {', '.join(cfg.sensor_names)})"))

@@ -99,6 +99,9 @@ def too_few_for_the_fit(lp, configs) -> str | None:
     from calib.fit import min_configurations
 
     fit = lp.plan.fit
+    if getattr(lp.plan, "socket", None) is not None:
+        # every socket gets ≥ 4 configurations (the plan's schema); calib.socket needs no more
+        return None
     n_fit = len(fit.joints) if fit.joints else lp.model.n_joints
     need = min_configurations(n_fit, [len(s.markers) for s in lp.plan.sensors], fix_registration=fit.fix_registration)
     if len(configs) >= need:
