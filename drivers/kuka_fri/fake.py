@@ -417,7 +417,7 @@ class FakeSunrise:
         with self._lock:
             self._drives = DriveState.ACTIVE
             self._safety = SafetyState.NORMAL_OPERATION
-            self._setpoint = self._q.copy()
+            self._setpoint = self._q - self._guide
 
     # ------------------------------------------------------------------ internals (lock held)
 
@@ -433,7 +433,7 @@ class FakeSunrise:
                 self._first_active_command = True
                 self._windows_since_applied = 1
             if new == SessionState.IDLE:
-                self._setpoint = self._q.copy()
+                self._setpoint = self._q - self._guide  # a hand on the arm does not move the set-point
                 self._idle_first_seq = self._seq
             self._state_changed.notify_all()
 
