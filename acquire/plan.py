@@ -45,6 +45,14 @@ commented example)::
       #   - {xyz_mm: [500, 0, 600], zyx_deg: [0, 90, 0], group: front, arm_angle_deg: 30}
       # joints: [[0, 30, 0, -60, 0, 45, 0], ...]     # explicit configurations, degrees
       # joints: {file: configs.csv}  # or a configurations file (calib.poses format)
+    # socket:                        # INSTEAD of poses: socket (sensorless) calibration, with one
+    #   ball_mm: [0, 0, 60]          # sensor {driver: socket, url: operator://terminal}; nominal ball
+    #   distance_mm: 50              # on the flange, mm; sockets' distance (caliper) [null: no scale]
+    #   configurations: 8            # per socket [8]
+    #   seed: 0                      # [0]
+    #   tilt_deg: [0, 45]            # ball axis from the vertical [0, 45]
+    #   placements:                  # socket positions from a tape, robot base frame, mm
+    #     - {name: front, sockets: [{name: "0", xyz_mm: [600, 0, 150]}, {name: "1", xyz_mm: [600, 50, 150]}]}
     selection:                       # optional: keep the m most informative (IOOPS)
       index: O6                      # O1 … O6 [O6]
       m: 40
@@ -95,7 +103,9 @@ Configuration ids (``PlannedConfig.config_id``; a resumed run matches on them):
   the width of ``n - 1``), its 4th feasible IK solution; pose group ``p07``;
 - cartesian: ``<group>-b<k>``, group defaulting to ``c00``, ``c01``, … (the pose's index);
 - joints list: ``j000``, ``j001``, … (pose and branch empty);
-- joints file: ``c<config>`` from the file's config column; pose group ``p<pose>``.
+- joints file: ``c<config>`` from the file's config column; pose group ``p<pose>``;
+- socket: ``<placement>-s<socket>-k<kk>`` — the kk-th approach to that socket
+  (``calib.socket_poses``); pose group ``<placement>/<socket>``; ``PlannedConfig.socket`` set.
 
 A selection keeps the ids of the configurations it keeps.
 """

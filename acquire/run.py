@@ -420,6 +420,19 @@ class RunController:
             except DriverError as exc:
                 log.warning("stop on abort: %s", exc)
 
+    def confirm(self) -> list[str]:
+        """The operator says the ball sits in the socket: every joint sensor waiting for it
+        records now. Returns what was being waited for (empty: nothing was)."""
+        waiting = []
+        for sp in list(self._sensors):
+            if callable(getattr(sp.sensor, "confirm", None)):
+                what = getattr(sp.sensor, "waiting_for", None)
+                if what:
+                    waiting.append(f"{sp.sensor.name}: {what}")
+                sp.sensor.confirm()
+        self._event_safe("confirmed", waiting=waiting)
+        return waiting
+
     def wait(self, timeout: float | None = None) -> RunSummary:
         if not self._done_evt.wait(timeout):
             raise TimeoutError(f"run {self.run_id} still {self._state} after {timeout} s")
