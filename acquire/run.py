@@ -58,6 +58,7 @@ from acquire.sequencer import (
 from acquire.suspenders import LostTargetSuspender, ReflectorPredictor
 from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError, LimitError, TargetLostError
 from drivers.protocols import JointLimits
+from acquire.plan import JOINT_SENSOR_DRIVERS
 from drivers.registry import load_driver
 
 log = logging.getLogger(__name__)
@@ -644,7 +645,8 @@ class RunController:
             launch = fc.start(port, plan.sensors)
             cmd.connect()
             sensors = [
-                SensorSpec(open_sensor(s, url=fc.sensor_url(s), commander=cmd, clock=clock, sleep=sleep),
+                SensorSpec(open_sensor(s, url=fc.sensor_url(s), commander=cmd, clock=clock,
+                                       **({"sleep": sleep} if s.driver in JOINT_SENSOR_DRIVERS else {})),
                            list(s.markers), float(s.noise_mm))
                 for s in plan.sensors
             ]
