@@ -21,7 +21,7 @@ from drivers.sim.cell import SimCell
 
 ROOT = Path(__file__).resolve().parents[2]
 
-pytestmark = pytest.mark.timeout(400)
+pytestmark = pytest.mark.timeout(300)
 
 
 def socket_plan(tmp_path: Path, **overrides) -> Path:
