@@ -1078,39 +1078,18 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     return doc, result_path, report_path
 
 
-def socket_dataset_from_run(log_path: Path, lp):
-    """The socket dataset (``calib.socket.SocketDataset``) of a socket run's samples: measured
-    joint angles, each with its record's placement and socket; the plan's socket distance."""
-    from acquire.recorder import read_run
-    from calib.socket import SocketDataset, with_distance
-
-    rc = read_run(log_path)
-    n = lp.model.n_joints
-    q, keys, ids = [], [], []
-    for rec in rc.samples:
-        sock = rec.get("socket")
-        qm = rec.get("q_measured_deg")
-        if not isinstance(sock, dict) or not isinstance(qm, list) or len(qm) != n:
-            raise ValueError(f"{log_path}: sample {rec.get('config_id')!r} is not a socket record with {n} joint angles")
-        q.append(qm)
-        keys.append((str(sock["placement"]), str(sock["socket"])))
-        ids.append(rec["config_id"])
-    groups = sorted(set(keys))
-    gidx = np.array([groups.index(k) for k in keys], dtype=int)
-    return SocketDataset(np.radians(np.array(q, dtype=float).reshape(-1, n)), gidx, groups,
-                         with_distance(groups, lp.plan.socket.distance_mm), ids, str(log_path))
-
-
 def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
     """Fit a socket run (``calib.socket.fit_socket``; held-out placements with three or more):
     ``result.json`` and the corrected model ``model.yaml`` beside the log. The plan's
     ``fit.method`` fast uses the link prior (``link_tolerance_*``), paper identifies without it."""
-    from acquire.commands.socket_fit import socket_result_dict, write_socket_model
+    from acquire.commands.socket_fit import read_socket_run, socket_result_dict, write_socket_model
     from calib.result import write_result
     from calib.socket import fit_socket, leave_one_placement_out
 
     model, fit = lp.model, lp.plan.fit
-    ds = socket_dataset_from_run(Path(log_path), lp)
+    ds = read_socket_run(Path(log_path), model.n_joints, distance_mm=lp.plan.socket.distance_mm)
+    if ds is None:
+        raise ValueError(f"{log_path}: no socket records to fit")
     method = "fast" if getattr(fit, "method", "fast") == "fast" else "full"
     tolerance = _link_tolerance(fit) if method == "fast" else None
     compliance = bool(getattr(fit, "compliance", False))

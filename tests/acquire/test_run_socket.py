@@ -101,6 +101,21 @@ def test_socket_run_interrupted_resumed_and_fitted_recovers_the_hidden_offsets(t
     assert Path(doc["model_file"]).is_file()
     assert doc["sigma_point_mm"] < 0.1
 
+    # the log fits again later, as any run's: `acquire fit RUN.mcap` sees the socket records
+    from typer.testing import CliRunner
+
+    from acquire.cli import app
+
+    out = CliRunner().invoke(app, ["fit", str(summary.log_path), "--robot", str(lp.model_path), "--compliance",
+                                   "-o", str(tmp_path / "refit.json")])
+    assert out.exit_code == 0, out.output
+    refit = json.loads((tmp_path / "refit.json").read_text())
+    assert refit["data"]["distances_mm"] and refit["data"]["n_configurations"] == len(ids)
+    for a, b in zip(refit["joint_offsets"], doc["joint_offsets"]):
+        assert (a["value_deg"] is None) == (b["value_deg"] is None)
+        if a["value_deg"] is not None:
+            assert a["value_deg"] == pytest.approx(b["value_deg"], abs=1e-9)
+
 
 def test_socket_plan_dry_run_lists_every_socket(tmp_path):
     from typer.testing import CliRunner
