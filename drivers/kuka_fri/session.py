@@ -349,8 +349,9 @@ class FriClientSession:
         # COMMANDING_ACTIVE
         if self._hold is None:
             # Commands start from the interpolator's position when the controller reports it (as
-            # the FRI SDK's clients do): under joint impedance — someone holding the arm — the
-            # measured position is off the set-point, and starting there would be a jump.
+            # the FRI SDK's LBRClient::command() does: setJointPosition(getIpoJointPosition()),
+            # FRI 1.x C++ client, LBRClient.cpp): under joint impedance — someone holding the arm
+            # — the measured position is off the set-point, and starting there would be a jump.
             start = snap.ipo_rad if snap.ipo_rad is not None and snap.ipo_rad.shape == (N_JOINTS,) else snap.measured_rad
             if start is None or start.shape != (N_JOINTS,):
                 return None
