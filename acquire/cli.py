@@ -40,6 +40,7 @@ COMMANDS: dict[str, CommandSpec] = {
     "pause": CommandSpec("acquire.commands.daemon", "Pause the run after its current configuration."),
     "resume": CommandSpec("acquire.commands.daemon", "Resume a paused run (the robot will move)."),
     "abort": CommandSpec("acquire.commands.daemon", "Stop the run safely now; its log is closed."),
+    "confirm": CommandSpec("acquire.commands.daemon", "Socket calibration: the ball sits in the socket, record now (the robot will move on)."),
     "runs": CommandSpec("acquire.commands.daemon", "List the runs in the daemon's state folder."),
     "watch": CommandSpec("acquire.commands.watch", "Show a live run or daemon (found on the bus by itself): progress, last sample, warnings."),
     "examples": CommandSpec("acquire.commands.examples", "List the packaged example plans, robot models and simulated cells (or copy a plan)."),

@@ -15,6 +15,8 @@ start      motion      start a run: ``{"plan": "/path/on/the/cell/pc.yaml"}`` (i
                        (saved in ``<state_dir>/plans/``; its relative paths resolve
                        from there); optional ``{"resume": RUN_ID}``
 resume     motion      continue a paused run
+confirm    motion      socket calibration: the ball sits in the socket, record now (the
+                       run then moves on)
 =========  ==========  ===========================================================
 
 Two lines of defence. First, Zenoh itself: loopback-only listeners by default; remote
@@ -62,6 +64,7 @@ OPERATIONS: dict[str, str] = {
     "abort": "control",
     "start": "motion",
     "resume": "motion",
+    "confirm": "motion",
 }
 
 #: Operations that can make the robot move.
@@ -207,6 +210,8 @@ class ControlBackend(Protocol):
 
     def abort(self, reason: str) -> dict: ...
 
+    def confirm(self) -> dict: ...
+
 
 def _zid_hex(source_info) -> str | None:
     if source_info is None:
@@ -299,6 +304,8 @@ class ControlServer:
             return b.pause()
         if op == "resume":
             return b.resume()
+        if op == "confirm":
+            return b.confirm()
         return b.abort(_opt_str(request, "reason") or f"aborted by {identity.describe()}")
 
 

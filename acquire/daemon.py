@@ -653,6 +653,11 @@ class Daemon:
         ctl.abort(reason)
         return {"run_id": ctl.run_id, "state": ctl.status()["state"]}
 
+    def confirm(self) -> dict:
+        ctl = self._active("confirm")
+        waiting = ctl.confirm()
+        return {"run_id": ctl.run_id, "state": ctl.status()["state"], "confirmed": waiting}
+
 
 def init_zenoh_log() -> None:
     """Zenoh's own log (Rust ``tracing``) on stderr when ``RUST_LOG`` is set — e.g. its

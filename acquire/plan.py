@@ -45,6 +45,14 @@ commented example)::
       #   - {xyz_mm: [500, 0, 600], zyx_deg: [0, 90, 0], group: front, arm_angle_deg: 30}
       # joints: [[0, 30, 0, -60, 0, 45, 0], ...]     # explicit configurations, degrees
       # joints: {file: configs.csv}  # or a configurations file (calib.poses format)
+    # socket:                        # INSTEAD of poses: socket (sensorless) calibration, with one
+    #   ball_mm: [0, 0, 60]          # sensor {driver: socket, url: operator://terminal}; nominal ball
+    #   distance_mm: 50              # on the flange, mm; sockets' distance (caliper) [null: no scale]
+    #   configurations: 8            # per socket [8]
+    #   seed: 0                      # [0]
+    #   tilt_deg: [0, 45]            # ball axis from the vertical [0, 45]
+    #   placements:                  # socket positions from a tape, robot base frame, mm
+    #     - {name: front, sockets: [{name: "0", xyz_mm: [600, 0, 150]}, {name: "1", xyz_mm: [600, 50, 150]}]}
     selection:                       # optional: keep the m most informative (IOOPS)
       index: O6                      # O1 … O6 [O6]
       m: 40
@@ -95,7 +103,9 @@ Configuration ids (``PlannedConfig.config_id``; a resumed run matches on them):
   the width of ``n - 1``), its 4th feasible IK solution; pose group ``p07``;
 - cartesian: ``<group>-b<k>``, group defaulting to ``c00``, ``c01``, … (the pose's index);
 - joints list: ``j000``, ``j001``, … (pose and branch empty);
-- joints file: ``c<config>`` from the file's config column; pose group ``p<pose>``.
+- joints file: ``c<config>`` from the file's config column; pose group ``p<pose>``;
+- socket: ``<placement>-s<socket>-k<kk>`` — the kk-th approach to that socket
+  (``calib.socket_poses``); pose group ``<placement>/<socket>``; ``PlannedConfig.socket`` set.
 
 A selection keeps the ids of the configurations it keeps.
 """
@@ -143,7 +153,9 @@ Range = tuple[float, float]
 #: Commander drivers that speak to one kind of controller (RobotModel.controller).
 CONTROLLER_OF_DRIVER = {"fri": "sunrise", "rsi": "kss"}
 #: URL schemes of the built-in drivers (the tracker takes any pyserial URL).
-URL_SCHEMES = {"fri": ("fri",), "rsi": ("rsi",), "natnet": ("natnet",), "emscon": ("emscon",)}
+URL_SCHEMES = {"fri": ("fri",), "rsi": ("rsi",), "natnet": ("natnet",), "emscon": ("emscon",), "socket": ("operator",)}
+#: Drivers that record joint angles, not marker positions (no ``markers``; a plan ``socket`` section).
+JOINT_SENSOR_DRIVERS = ("socket",)
 #: Sensor drivers that are laser trackers: one reflector, air for refraction, reflector choice.
 TRACKER_DRIVERS = ("tracker", "emscon")
 
@@ -216,8 +228,8 @@ class SensorSpec(_Strict):
     driver: str = Field(min_length=1, description="Driver name from drivers.registry (built-in: natnet, tracker).")
     url: str = Field(min_length=1, description="natnet://host[:port]?… or a pyserial URL (socket://host:port).")
     markers: dict[str, str] = Field(
-        min_length=1, description="Tool marker name (from the robot model) → the driver's selector for it."
-    )
+        default_factory=dict,
+        description="Tool marker name (from the robot model) → the driver's selector for it (none for a socket sensor).")
     noise_mm: float = Field(gt=0, le=100, description="Expected measurement noise, 1σ per axis, mm.")
     options: dict[str, Any] = Field(default_factory=dict, description="Extra keyword arguments for the driver.")
     environment: EnvironmentSpec | None = Field(
@@ -347,6 +359,34 @@ class FakeSpec(_Strict):
     time_scale: float = Field(1.0, gt=0, le=100, description="Simulated seconds per wall second.")
 
 
+class SocketPoint(_Strict):
+    """One socket of a placement: its name and where it roughly is (tape measure, ±10 mm)."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_-]+$", max_length=32, description="Socket name, e.g. 0 or 1.")
+    xyz_mm: Vec3 = Field(description="Approximate socket centre, robot base frame, mm.")
+
+
+class SocketPlacement(_Strict):
+    """One placement of the socket tool, with its sockets."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_-]+$", max_length=32, description="Placement name, e.g. front.")
+    sockets: list[SocketPoint] = Field(min_length=1, description="The tool's sockets in this placement.")
+
+
+class SocketSpec(_Strict):
+    """Sensorless socket calibration (``calib.socket``): the robot approaches each socket of each
+    placement in ``configurations`` orientations (``calib.socket_poses``), the operator guides
+    the ball in, and the socket sensor records the joint angles."""
+
+    ball_mm: Vec3 = Field(description="Nominal ball centre in the flange frame, mm (from the drawing).")
+    distance_mm: float | None = Field(None, gt=0, le=5000, description="Distance between the sockets of a "
+                                                                       "placement (caliper), mm; null: unknown (no scale).")
+    placements: list[SocketPlacement] = Field(min_length=1, description="Where the tool stands, one entry per placement.")
+    configurations: int = Field(8, ge=4, le=200, description="Configurations per socket.")
+    seed: int = Field(0, ge=0, description="Seed of the orientations tried.")
+    tilt_deg: Range = Field((0.0, 45.0), description="[low, high] tilt of the ball axis from the vertical, degrees.")
+
+
 class Plan(_Strict, CrossFieldChecked):
     """The ``plan.yaml`` schema; see the module docstring."""
 
@@ -354,7 +394,8 @@ class Plan(_Strict, CrossFieldChecked):
     robot: str = Field(min_length=1, description="Robot model YAML, relative to the plan's folder.")
     commander: CommanderSpec
     sensors: list[SensorSpec] = Field(min_length=1)
-    poses: PosesSpec
+    poses: PosesSpec | None = None
+    socket: SocketSpec | None = None
     selection: SelectionSpec | None = None
     sequencing: SequencingSpec = SequencingSpec()
     output: OutputSpec = OutputSpec()
@@ -364,16 +405,24 @@ class Plan(_Strict, CrossFieldChecked):
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         """Relations between fields that need no robot model, as (field path, message)."""
         errors: list[tuple[tuple, str]] = []
-        given = [k for k in ("generated", "cartesian", "joints") if getattr(self.poses, k) is not None]
-        if len(given) != 1:
+        errors += self._socket_errors()
+        given = [k for k in ("generated", "cartesian", "joints") if getattr(self.poses, k, None) is not None]
+        if self.poses is not None and len(given) != 1:
             errors.append((("poses",), f"give exactly one pose source (given: {', '.join(given) or 'none'}; "
                                        "allowed: one of generated, cartesian, joints)"))
+        for i, sp in enumerate(self.sensors):
+            if not sp.markers and sp.driver not in JOINT_SENSOR_DRIVERS:
+                errors.append((("sensors", i, "markers"), "List should have at least 1 item after validation, not 0 "
+                                                          "(given {}; allowed at least 1 items: tool marker → selector)"))
+            if sp.markers and sp.driver in JOINT_SENSOR_DRIVERS:
+                errors.append((("sensors", i, "markers"), f"a {sp.driver} sensor records joint angles, not markers "
+                                                          f"(given {dict(sp.markers)}; allowed: leave out)"))
         names = [s.name for s in self.sensors]
         for i, name in enumerate(names):
             if names.index(name) != i:
                 errors.append((("sensors", i, "name"), f"sensor names must be unique (given {name!r} again; "
                                                        f"allowed: a name not yet used by {', '.join(names[:i])})"))
-        g = self.poses.generated
+        g = self.poses.generated if self.poses is not None else None
         if g is not None:
             for key in ("radius_mm", "height_mm", "angle_deg", "roll_deg"):
                 lo, hi = getattr(g, key)
@@ -383,14 +432,14 @@ class Plan(_Strict, CrossFieldChecked):
             if g.radius_mm[0] < 0:
                 errors.append((("poses", "generated", "radius_mm"),
                                f"a radius cannot be negative (given low {g.radius_mm[0]:g}; allowed ≥ 0 mm)"))
-        if self.poses.cartesian:
+        if self.poses is not None and self.poses.cartesian:
             groups = [c.group or f"c{i:02d}" for i, c in enumerate(self.poses.cartesian)]
             for i, grp in enumerate(groups):
                 if groups.index(grp) != i:
                     errors.append((("poses", "cartesian", i, "group"),
                                    f"pose groups must be unique (given {grp!r}, also pose {groups.index(grp)}; "
                                    "allowed: a new name)"))
-        if isinstance(self.poses.joints, list) and self.selection is not None:
+        if self.poses is not None and isinstance(self.poses.joints, list) and self.selection is not None:
             n = len(self.poses.joints)
             if self.selection.m > n:
                 errors.append((("selection", "m"), f"cannot select more configurations than the plan has "
@@ -407,6 +456,51 @@ class Plan(_Strict, CrossFieldChecked):
                                                          "allowed: each axis once)"))
         return errors
 
+    def _socket_errors(self) -> list[tuple[tuple, str]]:
+        """A plan has poses or a socket section (not both); a socket plan has one socket sensor."""
+        errors: list[tuple[tuple, str]] = []
+        joint_sensors = [i for i, s in enumerate(self.sensors) if s.driver in JOINT_SENSOR_DRIVERS]
+        if self.poses is None and self.socket is None:
+            errors.append((("poses",), "Field required: the configurations to visit (given: neither poses nor socket; "
+                                       "allowed: poses, or a socket section for socket calibration)"))
+        elif self.poses is not None and self.socket is not None:
+            errors.append((("socket",), "a plan visits poses or sockets, not both (given poses and socket; "
+                                        "allowed: one of them — split it into two plans)"))
+        if self.socket is not None:
+            if len(joint_sensors) != 1 or len(self.sensors) != 1:
+                errors.append((("sensors",), f"a socket plan records with exactly one socket sensor and nothing else "
+                                             f"(given drivers {[s.driver for s in self.sensors]}; allowed "
+                                             "[socket])"))
+            sp = self.socket
+            lo, hi = sp.tilt_deg
+            if not 0 <= lo <= hi <= 90:
+                errors.append((("socket", "tilt_deg"), f"tilts run 0 ≤ low ≤ high ≤ 90 (given [{lo:g}, {hi:g}]; "
+                                                       "allowed e.g. [0, 45])"))
+            names = [p.name for p in sp.placements]
+            for i, name in enumerate(names):
+                if names.index(name) != i:
+                    errors.append((("socket", "placements", i, "name"), f"placement names must be unique (given "
+                                                                         f"{name!r} again; allowed a new name)"))
+            for i, p in enumerate(sp.placements):
+                sn = [s.name for s in p.sockets]
+                for j, name in enumerate(sn):
+                    if sn.index(name) != j:
+                        errors.append((("socket", "placements", i, "sockets", j, "name"),
+                                       f"socket names must be unique within a placement (given {name!r} again; "
+                                       "allowed a new name)"))
+                if sp.distance_mm is not None and len(p.sockets) >= 2:
+                    for j in range(1, len(p.sockets)):
+                        d = float(np.linalg.norm(np.subtract(p.sockets[j].xyz_mm, p.sockets[0].xyz_mm)))
+                        if abs(d - sp.distance_mm) > max(20.0, 0.5 * sp.distance_mm):
+                            errors.append((("socket", "placements", i, "sockets", j, "xyz_mm"),
+                                           f"{d:.0f} mm from socket {p.sockets[0].name!r}, but distance_mm is "
+                                           f"{sp.distance_mm:g} (given {list(p.sockets[j].xyz_mm)}; allowed within "
+                                           f"±{max(20.0, 0.5 * sp.distance_mm):.0f} mm of it)"))
+        elif joint_sensors:
+            i = joint_sensors[0]
+            errors.append((("sensors", i, "driver"), f"a {self.sensors[i].driver} sensor needs a socket section "
+                                                     "(given no socket section; allowed: add socket:, or another driver)"))
+        return errors
 
 
 # --- loaded and resolved plans ---------------------------------------------------------------
@@ -464,6 +558,7 @@ class PlannedConfig:
     pose: str  # pose group id ("" for explicit joint lists)
     branch: str  # IK branch label ("" when not from IK)
     q_rad: np.ndarray
+    socket: tuple[str, str] | None = None  # (placement, socket) of a socket plan: the operator guides the ball in
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, PlannedConfig):
@@ -688,7 +783,7 @@ def _driver_role(name: str) -> tuple[str | None, str | None]:
         return None, str(exc)
     if callable(getattr(cls, "move_to", None)):
         return "commander", None
-    if callable(getattr(cls, "measure", None)):
+    if callable(getattr(cls, "measure", None)) or callable(getattr(cls, "capture", None)):
         return "sensor", None
     return None, f"driver {name!r} ({cls.__module__}.{cls.__qualname__}) is neither a sensor nor a commander"
 
@@ -763,7 +858,7 @@ def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
                                                       f"(given {len(s.markers)}: {', '.join(s.markers)}; allowed 1)"))
 
     n = model.n_joints
-    p = plan.poses
+    p = plan.poses if plan.poses is not None else PosesSpec()
     if p.generated is not None and p.generated.arm_angles_deg and n != 7:
         errors.append((("poses", "generated", "arm_angles_deg"),
                        f"arm angles apply to 7-axis arms; {model.name} has {n} axes "
@@ -863,6 +958,12 @@ def _fake_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
         errors.append((loc, f"the simulated cell has another robot (given a cell with {sim_model.name!r}; "
                             f"allowed: a cell with {model.name!r})"))
     for i, s in enumerate(plan.sensors):
+        if s.driver in JOINT_SENSOR_DRIVERS:
+            if cfg.sockets is None:
+                errors.append((("sensors", i, "driver"), f"the simulated cell {path.name} has no sockets for a "
+                                                         f"{s.driver} sensor (given {s.driver!r}; allowed: a cell with "
+                                                         "a sockets section, e.g. ../sim/socket.yaml)"))
+            continue
         if s.name not in cfg.sensor_names:
             errors.append((("sensors", i, "name"), f"no sensor of that name in the simulated cell {path.name} "
                                                    f"(given {s.name!r}; allowed {', '.join(cfg.sensor_names)})"))
@@ -915,7 +1016,7 @@ def load_plan(path: str | Path) -> LoadedPlan:
     lp = LoadedPlan(plan=plan, path=path, text=text, model=model, model_path=model_path,
                     model_text=model_path.read_text(encoding="utf-8"), marks=marks)
     log.info("plan %s: cell %s, robot %s, %s poses, %d sensor(s)", path, plan.cell, model.name,
-             plan.poses.kind, len(plan.sensors))
+             plan.poses.kind if plan.poses is not None else "socket", len(plan.sensors))
     return lp
 
 
@@ -1022,6 +1123,34 @@ def _joints(lp: LoadedPlan) -> ResolvedPlan:
                         dropped=[], before_selection=len(configs))
 
 
+def _socket(lp: LoadedPlan) -> ResolvedPlan:
+    """Approach configurations for every socket of every placement (``calib.socket_poses``).
+    Ids ``<placement>-s<socket>-k<kk>``; pose group ``<placement>/<socket>``; ``socket`` set."""
+    from calib.socket_poses import socket_approaches
+
+    sp = lp.plan.socket
+    assert sp is not None
+    configs: list[PlannedConfig] = []
+    groups: list[str] = []
+    margin = lp.commander_margin_rad
+    width = max(2, len(str(sp.configurations - 1)))
+    for i, pl in enumerate(sp.placements):
+        for j, so in enumerate(pl.sockets):
+            seed = sp.seed + 1000 * i + j  # each socket its own orientations, same plan → same ones
+            try:
+                found = socket_approaches(lp.model, so.xyz_mm, sp.ball_mm, sp.configurations, seed=seed,
+                                          tilt_deg=sp.tilt_deg, limit_margin_rad=margin)
+            except ValueError as exc:
+                raise lp.error(("socket", "placements", i, "sockets", j, "xyz_mm"), str(exc)) from exc
+            group = f"{pl.name}/{so.name}"
+            groups.append(group)
+            for k, a in enumerate(found):
+                configs.append(PlannedConfig(f"{pl.name}-s{so.name}-k{k:0{width}d}", group, a.branch, _frozen(a.q),
+                                             socket=(pl.name, so.name)))
+    return ResolvedPlan(configs=configs, source="socket", candidates=len(configs), pose_groups=groups,
+                        dropped=[], before_selection=len(configs))
+
+
 def _select(lp: LoadedPlan, resolved: ResolvedPlan) -> ResolvedPlan:
     from calib.identification import information_blocks
     from calib.observability import ioops
@@ -1053,8 +1182,10 @@ def resolve_plan(lp: LoadedPlan) -> ResolvedPlan:
     at the plan's line when a pose has no IK solution or a selection is larger than the
     configurations it selects from.
     """
-    kind = lp.plan.poses.kind
-    if kind == "generated":
+    kind = lp.plan.poses.kind if lp.plan.poses is not None else "socket"
+    if kind == "socket":
+        resolved = _socket(lp)
+    elif kind == "generated":
         resolved = _generated(lp)
     elif kind == "cartesian":
         resolved = _cartesian(lp)

@@ -161,6 +161,8 @@ def plan_units_errors(plan, model: RobotModel) -> list[Problem]:
                            f"{s.noise_mm:g} mm is below what any sensor measures: this looks like metres "
                            f"(given {s.noise_mm:g}; allowed mm ≥ {NOISE_METRES_MM:g}, e.g. 0.03 for 30 µm)"))
     p = plan.poses
+    if p is None:  # a socket plan
+        return errors
     g = p.generated
     if g is not None:
         loc = ("poses", "generated")

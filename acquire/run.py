@@ -58,6 +58,7 @@ from acquire.sequencer import (
 from acquire.suspenders import LostTargetSuspender, ReflectorPredictor
 from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError, LimitError, TargetLostError
 from drivers.protocols import JointLimits
+from acquire.plan import JOINT_SENSOR_DRIVERS
 from drivers.registry import load_driver
 
 log = logging.getLogger(__name__)
@@ -144,9 +145,10 @@ def open_commander(spec, limits: JointLimits, *, url: str | None = None, **extra
     return cls.from_url(url or spec.url, limits=limits, **kwargs)
 
 
-def open_sensor(spec, *, url: str | None = None, **extra):
+def open_sensor(spec, *, url: str | None = None, commander=None, **extra):
     """Build and connect one plan sensor. A driver whose ``from_url`` takes ``markers`` gets
-    the plan's mapping (plan name → selector); one taking ``marker`` gets the single plan name."""
+    the plan's mapping (plan name → selector); one taking ``marker`` gets the single plan name.
+    A joint sensor (``attach``, e.g. the socket sensor) is attached to ``commander``."""
     cls = load_driver(spec.driver)
     kwargs = dict(getattr(spec, "options", None) or {})
     for k, v in extra.items():
@@ -171,6 +173,11 @@ def open_sensor(spec, *, url: str | None = None, **extra):
         sensor = cls.from_url(url or spec.url, **kwargs)
     if _accepts(cls.__init__, "name") or hasattr(sensor, "name"):
         sensor.name = spec.name
+    if callable(getattr(sensor, "attach", None)):
+        if commander is None:
+            raise ValueError(f"sensor {spec.name!r}: driver {spec.driver!r} reads the robot's joint states; "
+                             "open the commander first")
+        sensor.attach(commander)
     sensor.connect()
     return sensor
 
@@ -257,6 +264,14 @@ class FakeCell:
 
     def sensor_url(self, spec) -> str:
         """The fake device address for a plan sensor: by name, else the cell's sensor of its kind."""
+        from acquire.plan import JOINT_SENSOR_DRIVERS
+
+        if spec.driver in JOINT_SENSOR_DRIVERS:
+            # no device: the robot is the instrument, and the cell's operator guides it
+            if not self.cell.config.sockets:
+                raise RunError(f"sensor {spec.name!r} ({spec.driver}): the simulated cell {self.sim_config} has no "
+                               "sockets section; use a cell with sockets (e.g. fixtures/sim/socket.yaml)")
+            return spec.url
         addrs = self.launch.addresses
         kind = {"natnet": "natnet", "tracker": "tracker", "emscon": "emscon"}.get(spec.driver)
         if kind is None and spec.name in addrs:
@@ -407,6 +422,19 @@ class RunController:
                 cmd.stop()
             except DriverError as exc:
                 log.warning("stop on abort: %s", exc)
+
+    def confirm(self) -> list[str]:
+        """The operator says the ball sits in the socket: every joint sensor waiting for it
+        records now. Returns what was being waited for (empty: nothing was)."""
+        waiting = []
+        for sp in list(self._sensors):
+            if callable(getattr(sp.sensor, "confirm", None)):
+                what = getattr(sp.sensor, "waiting_for", None)
+                if what:
+                    waiting.append(f"{sp.sensor.name}: {what}")
+                sp.sensor.confirm()
+        self._event_safe("confirmed", waiting=waiting)
+        return waiting
 
     def wait(self, timeout: float | None = None) -> RunSummary:
         if not self._done_evt.wait(timeout):
@@ -621,14 +649,16 @@ class RunController:
             launch = fc.start(port, plan.sensors)
             cmd.connect()
             sensors = [
-                SensorSpec(open_sensor(s, url=fc.sensor_url(s), clock=clock), list(s.markers), float(s.noise_mm))
+                SensorSpec(open_sensor(s, url=fc.sensor_url(s), commander=cmd, clock=clock,
+                                       **({"sleep": sleep} if s.driver in JOINT_SENSOR_DRIVERS else {})),
+                           list(s.markers), float(s.noise_mm))
                 for s in plan.sensors
             ]
         else:
             cmd = open_commander(plan.commander, limits)
             self.commander = cmd
             cmd.connect()
-            sensors = [SensorSpec(open_sensor(s), list(s.markers), float(s.noise_mm)) for s in plan.sensors]
+            sensors = [SensorSpec(open_sensor(s, commander=cmd), list(s.markers), float(s.noise_mm)) for s in plan.sensors]
         self._sensors = sensors
         return cmd, sensors, clock, sleep
 
@@ -1029,6 +1059,8 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     Returns (result document, result path, report path). The plan's ``fit`` section chooses
     the method, joints, error model, registration handling and validation fraction.
     """
+    if getattr(lp.plan, "socket", None) is not None:
+        return fit_socket_run_log(log_path, lp)
     from acquire.recorder import dataset_from_run
     from calib.controller import apply_guards, controller_values
     from calib.fit import FitOptions, fit_offsets
@@ -1081,3 +1113,29 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
         log.warning("report not written (use `acquire fit %s`): %s", log_path, exc)
         report_path = None
     return doc, result_path, report_path
+
+
+def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
+    """Fit a socket run (``calib.socket.fit_socket``; held-out placements with three or more):
+    ``result.json`` and the corrected model ``model.yaml`` beside the log. The plan's
+    ``fit.method`` fast uses the link prior (``link_tolerance_*``), paper identifies without it."""
+    from acquire.commands.socket_fit import read_socket_run, socket_result_dict, write_socket_model
+    from calib.result import write_result
+    from calib.socket import fit_socket, leave_one_placement_out
+
+    model, fit = lp.model, lp.plan.fit
+    ds = read_socket_run(Path(log_path), model.n_joints, distance_mm=lp.plan.socket.distance_mm)
+    if ds is None:
+        raise ValueError(f"{log_path}: no socket records to fit")
+    method = "fast" if getattr(fit, "method", "fast") == "fast" else "full"
+    tolerance = _link_tolerance(fit) if method == "fast" else None
+    compliance = bool(getattr(fit, "compliance", False))
+    result = fit_socket(model, ds, tolerance=tolerance, compliance=compliance)
+    folds = leave_one_placement_out(model, ds, tolerance=tolerance, compliance=compliance) \
+        if len(ds.placements) >= 3 else []
+    doc = socket_result_dict(model, ds, result, folds, method)
+    base = Path(log_path)
+    doc["model_file"] = str(write_socket_model(model, result, base.with_name("model.yaml")))
+    result_path = base.with_name("result.json")
+    write_result(result_path, doc)
+    return doc, result_path, None

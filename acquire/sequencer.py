@@ -271,6 +271,16 @@ class ConfigProcedure:
         self.event = event
         self.on_reading = on_reading
 
+    @property
+    def position_sensors(self) -> list[SensorSpec]:
+        """Sensors that measure marker positions (settle on them and average their markers)."""
+        return [sp for sp in self.sensors if not is_joint_sensor(sp.sensor)]
+
+    @property
+    def joint_sensors(self) -> list[SensorSpec]:
+        """Joint sensors (``drivers.protocols.JointSensor``): they record the joint angles."""
+        return [sp for sp in self.sensors if is_joint_sensor(sp.sensor)]
+
     def move(self, cfg) -> float:
         """Move to ``cfg.q_rad``; returns the seconds it took. LimitError if refused."""
         t0 = self.clock()
@@ -283,7 +293,7 @@ class ConfigProcedure:
         s = self.settings
         res = wait_settled(
             self.commander,
-            [(sp.sensor, sp.markers, sp.noise_mm) for sp in self.sensors],
+            [(sp.sensor, sp.markers, sp.noise_mm) for sp in self.position_sensors],
             tolerance_rad=s.settle_tolerance_rad,
             window_s=s.settle_window_s,
             sensor_stable_mm=s.sensor_stable_mm,
@@ -295,8 +305,38 @@ class ConfigProcedure:
                    robot_s=round(res.robot_seconds, 4), sensor_s=round(res.sensor_seconds, 4), restarts=res.restarts)
         return res
 
+    def capture(self, cfg, attempts: int, t_start_wall: float) -> dict:
+        """At a socket configuration: the joint sensor records the joint angles once the ball is
+        held in the socket; the record carries them as ``q_measured_deg`` and, under ``socket``,
+        the placement, socket and what triggered the recording."""
+        s = self.settings
+        if getattr(cfg, "socket", None) is None:
+            raise ValueError(f"{cfg.config_id}: a joint sensor records at socket configurations only "
+                             "(the plan needs a socket section)")
+        placement, socket = cfg.socket
+        (sp,) = self.joint_sensors
+        cap = sp.sensor.capture(f"socket {socket} of placement {placement}", s.samples, s.measure_timeout_s)
+        self.event("measured", config_id=cfg.config_id, markers=0, trigger=cap.trigger)
+        return {
+            "config_id": cfg.config_id,
+            "pose": cfg.pose,
+            "branch": cfg.branch,
+            "q_target_deg": np.degrees(np.asarray(cfg.q_rad, dtype=float)).tolist(),
+            "q_measured_deg": np.degrees(cap.mean_rad).tolist(),
+            "q_measured_std_deg": np.degrees(cap.std_rad).tolist(),
+            "markers": [],
+            "socket": {"sensor": sp.sensor.name, "placement": placement, "socket": socket, "trigger": cap.trigger,
+                       "count": int(cap.count), "device_time": _finite(cap.device_time)},
+            "t_start": t_start_wall,
+            "t_end": self.wall(),
+            "attempts": int(attempts),
+        }
+
     def measure(self, cfg, attempts: int, t_start_wall: float) -> dict:
-        """Measure every marker of every sensor; the record of RUN_API.md."""
+        """Measure every marker of every sensor; the record of RUN_API.md. With a joint sensor
+        (socket calibration) the joint sensor's capture instead (``capture``)."""
+        if self.joint_sensors:
+            return self.capture(cfg, attempts, t_start_wall)
         s = self.settings
         sampler = JointSampler(self.commander, max(s.settle_window_s / 20, 0.004), self.sleep).start()
         markers = []
@@ -329,6 +369,11 @@ class ConfigProcedure:
     def settle_and_measure(self, cfg, attempts: int, t_start_wall: float) -> dict:
         self.settle(cfg)
         return self.measure(cfg, attempts, t_start_wall)
+
+
+def is_joint_sensor(sensor) -> bool:
+    """True for a ``drivers.protocols.JointSensor`` (it records joint angles, not markers)."""
+    return callable(getattr(sensor, "capture", None))
 
 
 def _finite(x) -> float | None:

@@ -183,3 +183,43 @@ class JointCommander(Protocol):
     def stop(self) -> None:
         """Decelerate within limits and hold."""
         ...
+
+
+@dataclass(frozen=True, slots=True)
+class JointCapture:
+    """Joint angles recorded by a joint sensor (e.g. a ball held in a socket).
+
+    mean_rad, std_rad: shape (n_axes,), controller convention, radians, over ``count`` states.
+    trigger: what ended the wait — ``"still"`` (the robot was guided away from its commanded
+    position and then held still for the settling window) or ``"confirm"`` (the operator).
+    """
+
+    label: str
+    mean_rad: np.ndarray
+    std_rad: np.ndarray
+    count: int
+    trigger: str
+    device_time: float
+    host_time: float
+
+
+@runtime_checkable
+class JointSensor(Protocol):
+    """Records the robot's joint angles when a condition holds (the operator's confirmation, the
+    robot held still after hand-guiding) instead of measuring marker positions. It reads the
+    run's commander (``attach``)."""
+
+    name: str
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def attach(self, commander: "JointCommander") -> None:
+        """The commander whose ``joint_state`` stream the sensor reads."""
+        ...
+
+    def capture(self, label: str, n: int, timeout: float) -> JointCapture:
+        """Wait for the trigger at ``label`` (what the operator is asked to do), then average
+        ``n`` joint states; DeviceTimeoutError after ``timeout`` seconds."""
+        ...

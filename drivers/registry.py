@@ -15,6 +15,7 @@ BUILTIN: dict[str, str] = {
     "emscon": "drivers.emscon.client:EmsconSensor",
     "rsi": "drivers.kuka_rsi.commander:RsiCommander",
     "fri": "drivers.kuka_fri.commander:FriCommander",
+    "socket": "drivers.socket.sensor:SocketSensor",
 }
 
 ENTRY_POINT_GROUP = "remaster.drivers"

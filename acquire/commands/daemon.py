@@ -233,8 +233,15 @@ def abort(reason: str = typer.Option("aborted by operator", "--reason", help="Wh
           tls_ca=tls_ca, tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
 
 
+def confirm(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+            token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
+            tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
+    """Socket calibration: the ball sits in the socket, record now (the robot will move on)."""
+    _call("confirm", None, **locals())
+
+
 def register(app: typer.Typer) -> None:
     """Add ``daemon`` and its clients to ``app``."""
     app.command("daemon")(daemon)
-    for fn in (status, start, pause, resume, abort, runs):
+    for fn in (status, start, pause, resume, abort, confirm, runs):
         app.command(fn.__name__)(fn)

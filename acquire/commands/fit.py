@@ -239,9 +239,17 @@ def fit(
         model = load_robot_model(robot)
     except ConfigError as exc:
         raise typer.BadParameter(str(exc), param_hint="--robot") from exc
-    from acquire.commands.socket_fit import fit_socket_file, is_socket_csv
+    from acquire.commands.socket_fit import SocketDataError, fit_socket_file, is_socket_csv, read_socket_run
 
-    if is_socket_csv(data):
+    socket_run = None
+    if data.suffix.lower() == ".mcap" and data.is_file():
+        try:
+            socket_run = read_socket_run(data, model.n_joints, distance_mm=socket_distance)
+        except SocketDataError as exc:
+            raise typer.BadParameter(str(exc), param_hint="DATA") from exc
+        except (ValueError, OSError):
+            socket_run = None  # not readable as a run here: load_dataset below says why
+    if socket_run is not None or is_socket_csv(data):
         sensor_only = {"--validate": validate is not None, "--joints": joints is not None, "--fix-registration": fix_registration,
                        "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper"}
         refused = [k for k, v in sensor_only.items() if v]
@@ -250,7 +258,7 @@ def fit(
                                      "held-out placements are scored automatically)", param_hint="DATA")
         fit_socket_file(data, model, method=method, distance_mm=socket_distance,
                         link_tolerance=_link_tolerance(link_tolerance),
-                        output=output, model_out=model_out, compliance=compliance)
+                        output=output, model_out=model_out, compliance=compliance, dataset=socket_run)
         return
     if socket_distance is not None:
         raise typer.BadParameter("--socket-distance applies to socket data (a CSV ending in placement,socket)",

@@ -100,6 +100,9 @@ def too_few_for_the_fit(lp, configs) -> str | None:
     from calib.fit import min_configurations
 
     fit = lp.plan.fit
+    if getattr(lp.plan, "socket", None) is not None:
+        # every socket gets ≥ 4 configurations (the plan's schema); calib.socket needs no more
+        return None
     n_fit = len(fit.joints) if fit.joints else lp.model.n_joints
     need = min_configurations(n_fit, [len(s.markers) for s in lp.plan.sensors], fix_registration=fit.fix_registration)
     if len(configs) >= need:
@@ -165,6 +168,30 @@ def _initial_q(lp, fake) -> np.ndarray:
     return 0.5 * (lp.model.lower_limits_rad + lp.model.upper_limits_rad)
 
 
+def socket_summary_lines(doc: dict) -> list[str]:
+    """What a socket run's summary adds: the ball, its play, every placement's scores (spread of
+    the predicted ball centre, socket-distance error) with the placement held out of the fit."""
+    b = doc["ball_mm"]
+    lines = ["ball on the flange: " + ", ".join(f"{v:.3f} ± {s:.3f}" for v, s in zip(b["value"], b["std"])) + " mm; "
+             f"ball's play in the sockets σ = {doc['sigma_point_mm']:.3f} mm"]
+    held = doc["scores"]["held_out"]
+    if held:
+        lines.append("held-out placements (fitted on the others, scored on this one), before → after:")
+        for h in held:
+            lines.append(f"  {h['placement']:<12} spread {h['before']['spread_mm']:.3f} → {h['after']['spread_mm']:.3f} mm, "
+                         f"distance error {h['before']['distance_error_mm']:.3f} → {h['after']['distance_error_mm']:.3f} mm")
+        mean = sum(h["after"]["spread_mm"] for h in held) / len(held)
+        lines.append(f"  mean held-out spread {mean:.3f} mm")
+    else:
+        lines.append("held-out placements: none (needs three or more placements)")
+    lines += [f"warning: {w}" for w in doc.get("warnings", [])]
+    if not doc.get("trusted", True):
+        lines.append(f"DO NOT ENTER these offsets: {doc.get('do_not_enter_reason', '')}")
+    if doc.get("model_file"):
+        lines.append(f"corrected model (tool: the fitted ball): {display_path(Path(doc['model_file']))}")
+    return lines
+
+
 def format_run_summary(summary, lp) -> str:
     lines = [
         f"run {summary.run_id}: {summary.state}" + (f" ({summary.reason})" if summary.reason else ""),
@@ -196,7 +223,7 @@ def format_run_summary(summary, lp) -> str:
                 row += f"  {j.get('status', '')}"
             lines.append(row)
         diag = summary.fit.get("diagnostics", {})
-        fitted_compliance = diag.get("compliance") or []
+        fitted_compliance = diag.get("compliance") or summary.fit.get("compliance") or []
         for c in fitted_compliance:
             if c["status"] == "fitted":
                 lines.append(f"compliance {c['joint']}: {c['value'] * 1e6:.2f} ± {c['std'] * 1e6:.2f} µrad/(N·m)")
@@ -212,6 +239,8 @@ def format_run_summary(summary, lp) -> str:
         if gsag and gsag.get("significant"):
             lines.append(f"warning: the residuals follow the joints' gravity torques (p = {gsag['p_value']:.1g}): "
                          "the arm sags and the fit does not model it — set fit.compliance: true in the plan")
+        if summary.fit.get("kind") == "socket":
+            lines += socket_summary_lines(summary.fit)
         lines.append("")
         lines.append(f"result: {display_path(summary.result_path)}")
         if summary.report_path is not None:

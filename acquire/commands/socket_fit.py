@@ -166,16 +166,62 @@ def format_socket_summary(doc: dict) -> str:
     return "\n".join(lines)
 
 
+def read_socket_run(path: Path, n_joints: int, *, distance_mm: float | None = None) -> SocketDataset | None:
+    """The socket dataset of an ``acquire run`` log (MCAP) whose samples are socket records:
+    measured joint angles with their placement and socket; the distance between sockets from
+    ``distance_mm`` or else the run's plan (``socket.distance_mm``). None for any other log."""
+    import yaml
+
+    from acquire.recorder import read_run
+    from calib.socket import with_distance
+
+    rc = read_run(path)
+    recs = [r for r in rc.samples if isinstance(r.get("socket"), dict)]
+    if not recs:
+        return None
+    if len(recs) != len(rc.samples):
+        raise SocketDataError(f"{path}: {len(rc.samples) - len(recs)} sample(s) are not socket records")
+    q, keys, ids = [], [], []
+    for rec in recs:
+        qm = rec.get("q_measured_deg")
+        if not isinstance(qm, list) or len(qm) != n_joints:
+            raise SocketDataError(f"{path}: configuration {rec.get('config_id')!r}: q_measured_deg must hold "
+                                  f"{n_joints} numbers, given {qm!r}")
+        q.append(qm)
+        keys.append((str(rec["socket"]["placement"]), str(rec["socket"]["socket"])))
+        ids.append(str(rec["config_id"]))
+    if distance_mm is None:
+        try:
+            distance_mm = (yaml.safe_load(rc.plan_text or "") or {}).get("socket", {}).get("distance_mm")
+        except yaml.YAMLError:
+            distance_mm = None
+    groups = sorted(set(keys))
+    gidx = np.array([groups.index(k) for k in keys], dtype=int)
+    return SocketDataset(np.radians(np.array(q, dtype=float)), gidx, groups, with_distance(groups, distance_mm), ids, str(path))
+
+
+def write_socket_model(model: RobotModel, fit: SocketFit, path: Path) -> Path:
+    """The corrected robot model whose tool is the fitted ball (marker ``ball``), as YAML."""
+    from calib.identification import corrected_model, write_model_yaml
+
+    chain = Chain(model)
+    ms = chain.marker_slice()
+    tool_model = model.model_copy(update={"tool": model.tool.model_copy(update={
+        "markers": [model.tool.markers[0].model_copy(update={"name": "ball", "xyz": (0.0, 0.0, 0.0)})]})})
+    params = np.concatenate([fit.params[: ms.start], fit.params[ms.start:ms.start + 3]])
+    write_model_yaml(corrected_model(tool_model, params), path)
+    return path
+
+
 def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: float | None,
                     link_tolerance: tuple[float, float] | None, output: Path | None, model_out: Path | None,
-                    compliance: bool = False) -> dict:
-    """Fit a socket CSV; print the summary; write the result and the corrected model. Exits 1
-    when the values must not be entered."""
-    from calib.identification import corrected_model, write_model_yaml
+                    compliance: bool = False, dataset: SocketDataset | None = None) -> dict:
+    """Fit a socket CSV (or ``dataset``, e.g. a socket run's, ``read_socket_run``); print the
+    summary; write the result and the corrected model. Exits 1 when the values must not be entered."""
     from calib.result import write_result
 
     try:
-        ds = read_socket_csv(path, model.n_joints, distance_mm=distance_mm)
+        ds = dataset if dataset is not None else read_socket_csv(path, model.n_joints, distance_mm=distance_mm)
         # fast: the link prior of the fast fit (--link-tolerance); full: identification without it.
         tolerance = None if method == "full" else link_tolerance
         fit = fit_socket(model, ds, tolerance=tolerance, compliance=compliance)
@@ -187,13 +233,7 @@ def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: 
     if model_out is None and output is not None:
         model_out = output.with_name(output.stem + ".model.yaml")
     if model_out is not None:
-        chain = Chain(model)
-        ms = chain.marker_slice()
-        tool_model = model.model_copy(update={"tool": model.tool.model_copy(update={
-            "markers": [model.tool.markers[0].model_copy(update={"name": "ball", "xyz": (0.0, 0.0, 0.0)})]})})
-        params = np.concatenate([fit.params[: ms.start], fit.params[ms.start:ms.start + 3]])
-        write_model_yaml(corrected_model(tool_model, params), model_out)
-        doc["model_file"] = str(model_out)
+        doc["model_file"] = str(write_socket_model(model, fit, model_out))
         typer.echo(f"wrote {model_out}")
     if output is not None:
         write_result(output, doc)

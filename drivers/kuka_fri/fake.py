@@ -235,6 +235,8 @@ class FakeSunrise:
         self._setpoint = q0.copy()  # commanded position (ipo + the client's overlay), rad
         self._ipo = q0.copy()  # the interpolator's position: the application's motion, rad
         self._windows_since_applied = 1
+        self._guide = np.zeros(N_JOINTS)  # the operator's hand: displacement from the set-point, rad
+        self._compliant = False  # joint-impedance mode while someone guides the arm
 
         self.stats = FakeSunriseStats()
         self._lock = threading.Lock()
@@ -284,6 +286,27 @@ class FakeSunrise:
         """The servo's actual joint positions, shape (7,), radians."""
         with self._lock:
             return self._q.copy()
+
+    def setpoint(self) -> np.ndarray:
+        """The commanded position the servo holds (the client's last set-point), shape (7,), rad."""
+        with self._lock:
+            return self._setpoint.copy()
+
+    def hand_guide(self, displacement_rad: np.ndarray) -> None:
+        """A person pushes the arm: the joint-impedance servo settles at set-point +
+        ``displacement_rad`` (7,) instead of the set-point, and the monitoring messages say
+        JOINT_IMPEDANCE_CONTROL_MODE (the robot application's hand-guiding mode, in which an iiwa
+        yields to the hand). Zeros: the hand lets go and the arm springs back."""
+        d = np.asarray(displacement_rad, dtype=float)
+        if d.shape != (N_JOINTS,) or not np.all(np.isfinite(d)):
+            raise ValueError(f"displacement must be {N_JOINTS} finite angles (rad), got {d!r}")
+        with self._lock:
+            self._guide = d.copy()
+            self._compliant = self._compliant or bool(np.any(d))
+
+    def release(self) -> None:
+        """The hand lets go."""
+        self.hand_guide(np.zeros(N_JOINTS))
 
     def start(self) -> "FakeSunrise":
         """Bind 127.0.0.1:0 and start sending."""
@@ -394,7 +417,7 @@ class FakeSunrise:
         with self._lock:
             self._drives = DriveState.ACTIVE
             self._safety = SafetyState.NORMAL_OPERATION
-            self._setpoint = self._q.copy()
+            self._setpoint = self._q - self._guide
 
     # ------------------------------------------------------------------ internals (lock held)
 
@@ -410,7 +433,7 @@ class FakeSunrise:
                 self._first_active_command = True
                 self._windows_since_applied = 1
             if new == SessionState.IDLE:
-                self._setpoint = self._q.copy()
+                self._setpoint = self._q - self._guide  # a hand on the arm does not move the set-point
                 self._idle_first_seq = self._seq
             self._state_changed.notify_all()
 
@@ -498,7 +521,7 @@ class FakeSunrise:
             return
         if self._first_active_command:
             self._first_active_command = False
-            jump = np.max(np.abs(cmd - self._q))
+            jump = np.max(np.abs(cmd - (self._q - self._guide)))  # a hand on the arm is not the client's
             if jump > self.start_tolerance_rad:
                 self._violation(
                     f"first command is {jump:.4g} rad from the measured position "
@@ -536,7 +559,7 @@ class FakeSunrise:
         h = dt / n_sub
         w, z = self._omega, self._zeta
         for _ in range(n_sub):  # semi-implicit Euler, stable for w*h << 1
-            acc = w * w * (self._setpoint - self._q) - 2 * z * w * self._qd
+            acc = w * w * (self._setpoint + self._guide - self._q) - 2 * z * w * self._qd
             self._qd += acc * h
             self._q += self._qd * h
 
@@ -589,7 +612,7 @@ class FakeSunrise:
                 safety_state=self._safety,
                 drive_state=(self._drives,) * N_JOINTS,
                 operation_mode=OperationMode.AUTOMATIC_MODE,
-                control_mode=ControlMode.POSITION_CONTROL_MODE,
+                control_mode=ControlMode.JOINT_IMPEDANCE_CONTROL_MODE if self._compliant else ControlMode.POSITION_CONTROL_MODE,
             ),
             monitor_data=MonitorData(
                 measured_joint_position=tuple(q.tolist()),

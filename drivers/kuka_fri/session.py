@@ -348,9 +348,14 @@ class FriClientSession:
             return None
         # COMMANDING_ACTIVE
         if self._hold is None:
-            if snap.measured_rad is None or snap.measured_rad.shape != (N_JOINTS,):
+            # Commands start from the interpolator's position when the controller reports it (as
+            # the FRI SDK's LBRClient::command() does: setJointPosition(getIpoJointPosition()),
+            # FRI 1.x C++ client, LBRClient.cpp): under joint impedance — someone holding the arm
+            # — the measured position is off the set-point, and starting there would be a jump.
+            start = snap.ipo_rad if snap.ipo_rad is not None and snap.ipo_rad.shape == (N_JOINTS,) else snap.measured_rad
+            if start is None or start.shape != (N_JOINTS,):
                 return None
-            self._hold = snap.measured_rad.copy()  # commands start from the measured position
+            self._hold = start.copy()
             self._last_sent = self._hold.copy()
             return self._hold.copy()
         m = self._motion

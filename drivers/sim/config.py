@@ -158,6 +158,26 @@ class SensorConfig(_Strict):
         return self
 
 
+class SocketTruth(_Strict):
+    """Where one socket of one placement really is (robot base frame, mm)."""
+
+    placement: str = Field(pattern=r"^[A-Za-z0-9_-]+$", max_length=32)
+    socket: str = Field(pattern=r"^[A-Za-z0-9_-]+$", max_length=32)
+    xyz_mm: Vec3
+
+
+class Sockets(_Strict):
+    """A socket tool in the cell and the operator who guides the ball into it
+    (``drivers.sim.socket_operator``)."""
+
+    ball_mm: Vec3 = Field(description="True ball centre in the flange frame, mm.")
+    play_mm: float = Field(0.02, ge=0, le=1, description="The ball's play in a socket, 1σ per axis, mm.")
+    capture_radius_mm: float = Field(30.0, gt=0, le=200, description="The operator guides the ball in from this far.")
+    approach_hold_s: float = Field(0.3, gt=0, le=60, description="Robot held still this long before the operator takes it, s.")
+    hold_s: float = Field(3.0, gt=0, le=600, description="How long the operator holds the ball in, s (less if the robot moves on).")
+    points: list[SocketTruth] = Field(min_length=1)
+
+
 class SimConfig(_Strict):
     """The whole simulated cell. Build a cell with ``SimCell(config)``."""
 
@@ -175,7 +195,14 @@ class SimConfig(_Strict):
     deflection: Deflection = Deflection()
     occlusion: Occlusion = Occlusion()
     cones_deg: Cones = Cones()
-    sensors: list[SensorConfig] = Field(min_length=1)
+    sensors: list[SensorConfig] = Field(default_factory=list)
+    sockets: Sockets | None = None
+
+    @model_validator(mode="after")
+    def _something_measures(self) -> "SimConfig":
+        if not self.sensors and self.sockets is None:
+            raise ValueError("a cell needs sensors or sockets (given neither)")
+        return self
 
     @field_validator("sensors")
     @classmethod

@@ -128,6 +128,7 @@ class SimLaunch:
         self.trackers: dict[str, tuple[object, object]] = {}  # name → (FakeTracker, its first server)
         self.emscon: dict[str, tuple[object, object]] = {}  # name → (FakeEmscon, EmsconServer)
         self.controller: object | None = None
+        self.socket_operator = None
         self._closers: list = []
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -145,6 +146,8 @@ class SimLaunch:
                 self._start_controller()
                 if self.want_operator:
                     self._start_operator()
+                    if self.cell.config.sockets is not None:
+                        self._start_socket_operator()
         except BaseException:
             self.close()
             raise
@@ -281,6 +284,17 @@ class SimLaunch:
             thread.join(timeout=2.0)
 
         self._closers.append(("operator", close))
+
+    def _start_socket_operator(self) -> None:
+        """The person who guides the ball into the cell's sockets (hand-guiding an iiwa)."""
+        from drivers.sim.socket_operator import SocketOperator
+
+        if not callable(getattr(self.controller, "hand_guide", None)):
+            log.warning("the cell has sockets but its %s controller cannot be hand-guided: the simulated operator "
+                        "guides an iiwa (FRI) only", self.cell.model.controller)
+            return
+        self.socket_operator = SocketOperator(self.cell, self.controller, seed=self.cell.config.seed).start()
+        self._closers.append(("socket operator", self.socket_operator.close))
 
     def restart_stopped_rsi(self) -> bool:
         """Start a new fake KR C4 (same ports, from the cell's current pose) if the RSI session

@@ -27,6 +27,7 @@ class Backend:
 
     def __init__(self) -> None:
         self.paused = 0
+        self.confirmed = 0
 
     def status(self, *, include_plan: bool) -> dict:
         return {"cell": CELL, "daemon": "ready", "run": None, "who": "daemon"}
@@ -49,6 +50,10 @@ class Backend:
 
     def abort(self, reason: str) -> dict:
         return {"state": "aborting"}
+
+    def confirm(self) -> dict:
+        self.confirmed += 1
+        return {"state": "running", "confirmed": ["socket: socket 0 of placement front"]}
 
 
 class Rogue:
@@ -164,6 +169,24 @@ def test_rogue_queryable_learns_nothing_usable_and_its_reply_is_refused(cell):
         assert server.authorizer.refusals >= 1
     finally:
         rogue.close()
+        server.close()
+
+
+def test_confirm_needs_the_motion_permission(cell):
+    """Socket calibration's confirm (the ball sits in the socket) lets the run move on: an
+    operator with ``motion`` may send it, an anonymous observer may not."""
+    daemon_bus, _, client_bus = cell
+    backend = Backend()
+    server = _server(daemon_bus, backend)
+    try:
+        _wait_routes(client_bus, 1)
+        op = ControlClient(client_bus.session, CELL, client="operator", token=TOKEN)
+        assert op.call("confirm")["confirmed"] == ["socket: socket 0 of placement front"]
+        assert backend.confirmed == 1
+        with pytest.raises(Refused, match="motion"):
+            server.dispatch("confirm", None, None, None)
+        assert backend.confirmed == 1
+    finally:
         server.close()
 
 

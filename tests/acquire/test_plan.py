@@ -351,7 +351,7 @@ def test_cross_field_checks_also_run_without_a_file():
 BAD_PLANS = [
     ("speed_too_high", 11, 10, "sequencing.speed", ["less than or equal to 1", "given 1.5", "allowed (0, 1]"]),
     ("unknown_key", 11, 9, "sequencing.sped", ["Extra inputs", "given 'sped'", "allowed keys speed, settle_window_s"]),
-    ("unknown_driver", 4, 21, "commander.driver", ["unknown driver", "given 'kuka'", "fri, natnet, rsi, tracker"]),
+    ("unknown_driver", 4, 21, "commander.driver", ["unknown driver", "given 'kuka'", "fri, natnet, rsi, socket, tracker"]),
     ("sensor_as_commander", 4, 21, "commander.driver", ["is a sensor, not a commander", "allowed fri, rsi"]),
     ("marker_not_on_tool", 11, 12, "sensors.0.markers.tcp", ["not on the robot's tool", "given 'tcp'", "allowed smr, sir"]),
     ("joints_wrong_length", 10, 7, "poses.joints.1", ["given 6", "allowed 7: A1, A2"]),
@@ -452,7 +452,9 @@ def test_the_format_documented_in_the_module_docstring_is_a_valid_plan(tmp_path)
 
     block = acquire.plan.__doc__.split("commented example)::\n\n", 1)[1].split("\n\nErrors:", 1)[0]
     data = yaml.safe_load("\n".join(line[4:] for line in block.splitlines()))
-    assert set(data) == set(Plan.model_fields)
+    # socket: the alternative to poses (socket calibration), documented commented out
+    assert set(data) | {"socket"} == set(Plan.model_fields)
+    assert "    # socket:" in block
     data["robot"] = str(IIWA)  # the documented paths are relative to fixtures/plans
     data["fake"]["sim_config"] = str(ROOT / "fixtures" / "sim" / "default.yaml")
     lp = load_plan(write(tmp_path, data))
