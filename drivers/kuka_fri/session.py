@@ -14,8 +14,9 @@ What the client answers, per session state (the vendor SDK's ``ClientApplication
   connection quality from these answers, so they are needed to reach MONITORING_READY; the
   echo moves nothing.
 - COMMANDING_WAIT: a command echoing the controller's interpolated (ipo) joint position.
-- COMMANDING_ACTIVE: our joint-position command. On entry the held position is the *measured*
-  position; a move plans from the held position along a ``JointTrajectory``, one receive
+- COMMANDING_ACTIVE: our joint-position command. On entry the held position is the ipo
+  position (the measured one when there is none), checked against the measured position
+  before any move; a move plans from the held position along a ``JointTrajectory``, one receive
   period per answer, each step bounded by the speed limit.
 
 Answers go to every ``receiveMultiplier``-th message received, with our own counter and the
