@@ -165,6 +165,7 @@ def test_summary_says_to_fit_the_compliances_when_the_arm_sags_and_stays_quiet_o
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(240)  # ~30 s of CPU; 74 s of wall time measured at a load average of 4–7 on 2 cores
 def test_compliances_are_fitted_with_the_offsets_and_their_intervals_cover_the_truth():
     """150 simulated cells that sag (6e-6 rad/(N·m) on A1–A4, 1.2e-5 on A5–A7) with link errors
     and the tool off its drawing, fitted with the default model plus compliances: the 95 %
