@@ -138,6 +138,7 @@ from calib.model import RobotModel, load_robot_model
 from calib.yamlfile import ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate
 from acquire.plan_guards import (
     commander_margin_rad,
+    confirm_input_errors,
     describe_config_rows,
     joints_margin_errors,
     model_units_errors,
@@ -878,6 +879,7 @@ def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
     elif isinstance(p.joints, JointsFile):
         errors += _joints_file_errors(p.joints, model, folder, plan.selection, margin, driver)
     errors += plan_units_errors(plan, model)
+    errors += confirm_input_errors(plan)
 
     if plan.fit.joints is not None:
         for i, j in enumerate(plan.fit.joints):

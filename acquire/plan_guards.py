@@ -106,6 +106,30 @@ def commander_margin_rad(plan) -> tuple[float, str]:
     return float(ask(spec.options)), spec.driver
 
 
+def confirm_input_errors(plan) -> list[Problem]:
+    """A joint sensor confirmed by a controller input (``input=`` in its URL, ``drivers.socket``)
+    needs a commander whose driver reads the controller's inputs (``digital_input``)."""
+    from urllib.parse import parse_qsl, urlsplit
+
+    from drivers.registry import load_driver
+
+    errors: list[Problem] = []
+    for i, s in enumerate(plan.sensors):
+        name = dict(parse_qsl(urlsplit(s.url).query)).get("input")
+        if name is None:
+            continue
+        try:
+            cls = load_driver(plan.commander.driver)
+        except (ValueError, ImportError):  # reported by the driver check
+            continue
+        if not callable(getattr(cls, "digital_input", None)):
+            errors.append((("sensors", i, "url"),
+                           f"input={name} confirms with a controller input, which the {plan.commander.driver!r} "
+                           "commander does not read (given that commander; allowed: a commander that reads inputs, "
+                           "e.g. fri — or leave input= out and confirm with Enter or `acquire confirm`)"))
+    return errors
+
+
 def margin_problem(q_deg: Sequence[float], model: RobotModel, margin_rad: float, driver: str) -> list[tuple[int, str]]:
     """Axes of one target (degrees, controller convention) the commander would refuse, as
     (axis index, message). Outside the model's limits and inside the margin are told apart."""

@@ -124,8 +124,9 @@ SAMPLE_SCHEMA: dict = {
                 "sensor": {"type": "string"},
                 "placement": {"type": "string"},
                 "socket": {"type": "string"},
-                "trigger": {"type": "string", "enum": ["still", "confirm"],
-                            "description": "guided then held still for the window, or the operator's confirmation"},
+                "trigger": {"type": "string", "enum": ["still", "confirm", "input"],
+                            "description": "guided then held still for the window, the operator's confirmation "
+                                           "(a key, the control call), or a controller input the operator pressed"},
                 "count": {"type": "integer", "minimum": 1},
                 "device_time": _NUM_OR_NULL,
             },

@@ -357,7 +357,8 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
         for i in range(n):
             if rms[i] < 0.05 * rms.max():
                 excluded_first[names[chain.n_params + i]] = (
-                    f"gravity turns this axis by only {rms[i]:.1g} N·m (rms) in this data: its sag cannot be seen")
+                    f"gravity turns this axis by only {rms[i] if rms[i] > 1e-9 * rms.max() else 0.0:.1g} N·m (rms) "
+                    "in this data: its sag cannot be seen")
             else:
                 cand.append(chain.n_params + i)
                 scale_of[chain.n_params + i] = lever * 1e-6 * rms[i]

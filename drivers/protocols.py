@@ -191,7 +191,8 @@ class JointCapture:
 
     mean_rad, std_rad: shape (n_axes,), controller convention, radians, over ``count`` states.
     trigger: what ended the wait — ``"still"`` (the robot was guided away from its commanded
-    position and then held still for the settling window) or ``"confirm"`` (the operator).
+    position and then held still for the settling window), ``"confirm"`` (the operator: a key,
+    the daemon's control call) or ``"input"`` (the operator pressed a controller input).
     """
 
     label: str
@@ -201,6 +202,15 @@ class JointCapture:
     trigger: str
     device_time: float
     host_time: float
+
+
+@runtime_checkable
+class DigitalInputs(Protocol):
+    """A commander that also reads the controller's digital inputs (e.g. a button on the flange)."""
+
+    def digital_input(self, name: str) -> bool:
+        """Whether input ``name`` is set now; DeviceTimeoutError when the controller's state is stale."""
+        ...
 
 
 @runtime_checkable

@@ -25,6 +25,10 @@ URL: ``fri://HOST:PORT?option=value&...`` where HOST:PORT is the local address t
   drop under load, the robot application restarting its overlay) to come back before it
   fails with a ``DeviceFaultError`` the run can wait out (default 10).
 - ``name=S``: device name for logs (default ``fri``).
+
+``digital_input(name)`` reads a BOOLEAN or DIGITAL controller IO that the robot application
+shares over FRI (``readIORequest`` of the monitoring messages), e.g. a button on the media
+flange that confirms a socket recording (``drivers.socket``).
 """
 
 from __future__ import annotations
@@ -41,8 +45,8 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, Clock, CommanderBase
-from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, ProtocolError
-from drivers.kuka_fri.messages import SessionState, decode_monitoring, encode_command
+from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, DriverError, ProtocolError
+from drivers.kuka_fri.messages import ConnectionQuality, IOType, SessionState, decode_monitoring, encode_command
 from drivers.kuka_fri.session import (
     N_JOINTS,
     FriClientSession,
@@ -61,11 +65,9 @@ _URL_OPTIONS = ("controller", "rt_priority", "timeout_ms", "max_speed", "start_t
 KNOWN_VERSIONS = ("1.11", "1.12", "1.13", "1.14", "1.15", "1.16", "2.5", "2.6", "2.7")
 
 
-def _quality_name(value: int) -> str:
-    from drivers.kuka_fri.messages import ConnectionQuality
-
+def _enum_name(cls, value: int) -> str:
     try:
-        return ConnectionQuality(value).name
+        return cls(value).name
     except ValueError:
         return str(value)
 
@@ -362,7 +364,7 @@ class FriCommander(CommanderBase):
         q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
         snap = self.session.snapshot()
         notes = ["session: no monitoring message yet"] if snap is None else [
-            f"session: {snap.session_state.name}, quality {_quality_name(snap.quality)}, "
+            f"session: {snap.session_state.name}, quality {_enum_name(ConnectionQuality, snap.quality)}, "
             f"{snap.layout}, receive period {(snap.receive_period_s or 0) * 1e3:.0f} ms",
         ]
         notes.append(f"exchange thread: {self.rt_scheduling}; foreign datagrams {self.foreign_datagrams}")
@@ -393,8 +395,8 @@ class FriCommander(CommanderBase):
                 )
             self._sleep(0.005)
 
-    def joint_state(self) -> JointState:
-        """Latest measured joint positions, shape (7,), radians; DeviceTimeoutError if stale."""
+    def _fresh_snapshot(self) -> SessionSnapshot:
+        """The latest monitoring message's snapshot; DeviceTimeoutError if none or stale."""
         snap: Optional[SessionSnapshot] = self.session.snapshot()
         if snap is None:
             raise DeviceTimeoutError(f"{self.name}: no monitoring message received yet")
@@ -404,9 +406,30 @@ class FriCommander(CommanderBase):
                 f"{self.name}: last monitoring message is {age * 1e3:.0f} ms old "
                 f"(allowed {self.max_state_age_s * 1e3:.0f} ms); is the controller sending?"
             )
+        return snap
+
+    def joint_state(self) -> JointState:
+        """Latest measured joint positions, shape (7,), radians; DeviceTimeoutError if stale."""
+        snap = self._fresh_snapshot()
         if snap.measured_rad is None:
             raise DeviceTimeoutError(f"{self.name}: controller sends no measured joint position")
         return joint_state_of(snap)
+
+    def digital_input(self, name: str) -> bool:
+        """Whether the controller IO ``name`` (a BOOLEAN or DIGITAL IO the robot application shares
+        over FRI, e.g. ``MediaFlange.UserButton``) is set in the latest monitoring message.
+        DeviceTimeoutError if that message is stale; DriverError if the IO is not shared or analog."""
+        snap = self._fresh_snapshot()
+        for io in snap.io:
+            if io.name != name:
+                continue
+            if io.type not in (IOType.BOOLEAN, IOType.DIGITAL):
+                raise DriverError(f"{self.name}: controller IO {name!r} is {_enum_name(IOType, io.type)}; "
+                                  "name a BOOLEAN or DIGITAL IO")
+            return bool(io.digital_value)
+        shared = ", ".join(repr(io.name) for io in snap.io) or "none"
+        raise DriverError(f"{self.name}: the controller shares no IO named {name!r} over FRI (it shares: {shared}); "
+                          "register it in the robot application's FRI configuration, or correct the name")
 
     def _wait_commanding(self) -> None:
         """A session that left COMMANDING_ACTIVE (a drop under load, a controller restart) comes

@@ -69,6 +69,9 @@ from drivers.kuka_fri.messages import (
     ControlMode,
     DriveState,
     FRIMonitoringMessage,
+    IODirection,
+    IOType,
+    IOValue,
     IpoData,
     MessageHeader,
     MonitorData,
@@ -145,6 +148,9 @@ class FakeSunrise:
     fri_version: message layout, one of ``FRI_VERSIONS`` (see the module docstring).
     application: run the shipped robot application's behaviour (start the overlay motion by
         itself ``application_start_cycles`` messages after MONITORING_READY, again after drops).
+    inputs: names of the BOOLEAN inputs the robot application shares over FRI (registered in
+        its FRI configuration), e.g. ``MediaFlange.UserButton``; all released until
+        ``set_input``. Every monitoring message carries them (``readIORequest``).
     """
 
     def __init__(
@@ -179,6 +185,7 @@ class FakeSunrise:
         fri_version: str = "1.15",
         application: bool = False,
         application_start_cycles: int = 20,
+        inputs: tuple[str, ...] = (),
     ) -> None:
         host, port = client_address
         if fri_version not in FRI_VERSIONS:
@@ -237,6 +244,10 @@ class FakeSunrise:
         self._windows_since_applied = 1
         self._guide = np.zeros(N_JOINTS)  # the operator's hand: displacement from the set-point, rad
         self._compliant = False  # joint-impedance mode while someone guides the arm
+        for name in inputs:
+            if not (isinstance(name, str) and 0 < len(name.encode("utf-8")) <= 63):
+                raise ValueError(f"an FRI IO name is 1–63 bytes of UTF-8 (<IO group>.<IO>), got {name!r}")
+        self._inputs = {name: False for name in inputs}  # shared BOOLEAN inputs: pressed or not
 
         self.stats = FakeSunriseStats()
         self._lock = threading.Lock()
@@ -307,6 +318,14 @@ class FakeSunrise:
     def release(self) -> None:
         """The hand lets go."""
         self.hand_guide(np.zeros(N_JOINTS))
+
+    def set_input(self, name: str, value: bool) -> None:
+        """Press (True) or release a shared BOOLEAN input (one of ``inputs``): the next
+        monitoring messages carry the new value."""
+        with self._lock:
+            if name not in self._inputs:
+                raise ValueError(f"the robot application shares no input {name!r} (it shares {sorted(self._inputs)})")
+            self._inputs[name] = bool(value)
 
     def start(self) -> "FakeSunrise":
         """Bind 127.0.0.1:0 and start sending."""
@@ -621,6 +640,7 @@ class FakeSunrise:
                 timestamp=stamp,
                 measured_cartesian_pose=pose,
                 measured_redundancy=red,
+                io=tuple(IOValue(name, IOType.BOOLEAN, IODirection.INPUT, int(v)) for name, v in self._inputs.items()),
             ),
             connection_info=ConnectionInfo(
                 self._state, self._quality(), self.send_period_ms, self.receive_multiplier

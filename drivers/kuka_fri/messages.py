@@ -96,6 +96,17 @@ class OverlayType(IntEnum):
     CARTESIAN = 2
 
 
+class IOType(IntEnum):
+    BOOLEAN = 0
+    DIGITAL = 1
+    ANALOG = 2
+
+
+class IODirection(IntEnum):
+    INPUT = 0
+    OUTPUT = 1
+
+
 JointValues = tuple[float, ...]
 
 
@@ -166,8 +177,23 @@ class RobotInfo:
 
 
 @dataclass(frozen=True, slots=True)
+class IOValue:
+    """One controller IO the robot application shares over FRI (``FriIOValue``; the application
+    registers it in its ``FRIConfiguration``). name: ``<IO group>.<IO>`` as Sunrise names it
+    (e.g. ``FRI.In_Bool_Clock_Enabled`` in KUKA's IOAccess example; at most 63 bytes);
+    ``digital_value`` carries BOOLEAN (0/1) and DIGITAL values, ``analog_value`` ANALOG ones."""
+
+    name: str
+    type: int
+    direction: int
+    digital_value: Optional[int] = None
+    analog_value: Optional[float] = None
+
+
+@dataclass(frozen=True, slots=True)
 class MonitorData:
-    """Joint positions in radians, torques in N·m, each shape (n_joints,) when present."""
+    """Joint positions in radians, torques in N·m, each shape (n_joints,) when present;
+    ``io``: the IOs the robot application shares (``readIORequest``), in the order sent."""
 
     measured_joint_position: Optional[JointValues] = None
     measured_torque: Optional[JointValues] = None
@@ -177,6 +203,7 @@ class MonitorData:
     timestamp: Optional[TimeStamp] = None
     measured_cartesian_pose: Optional[QuaternionTransformation] = None  # FRI 2.x
     measured_redundancy: Optional[RedundancyInformation] = None  # FRI 2.x
+    io: tuple[IOValue, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -325,6 +352,16 @@ def _enc_redundancy(field_number: int, r: Optional[RedundancyInformation]) -> by
     return wire.encode_bytes(field_number, wire.encode_int32(1, int(r.strategy)) + wire.encode_double(2, r.value))
 
 
+def _enc_io(field_number: int, v: IOValue) -> bytes:
+    out = wire.encode_bytes(1, v.name.encode("utf-8")) + wire.encode_int32(2, int(v.type))
+    out += wire.encode_int32(3, int(v.direction))
+    if v.digital_value is not None:
+        out += wire.tag(4, VARINT) + wire.encode_varint(int(v.digital_value))
+    if v.analog_value is not None:
+        out += wire.encode_double(5, v.analog_value)
+    return wire.encode_bytes(field_number, out)
+
+
 def _enc_monitor_data(m: MonitorData) -> bytes:
     return (
         _enc_joint_values(1, m.measured_joint_position)
@@ -332,6 +369,7 @@ def _enc_monitor_data(m: MonitorData) -> bytes:
         + _enc_joint_values(3, m.commanded_joint_position)
         + _enc_joint_values(4, m.commanded_torque)
         + _enc_joint_values(5, m.external_torque)
+        + b"".join(_enc_io(8, v) for v in m.io)
         + _enc_pose(9, m.measured_cartesian_pose)
         + _enc_redundancy(10, m.measured_redundancy)
         + (b"" if m.timestamp is None else wire.encode_bytes(15, _enc_timestamp(m.timestamp)))
@@ -596,8 +634,37 @@ def _dec_redundancy(payload, what: str) -> RedundancyInformation:
     return RedundancyInformation(strategy, value)
 
 
+def _dec_io(payload, what: str) -> IOValue:
+    """A ``FriIOValue``: 1 name (required string), 2 type, 3 direction (required enums),
+    4 digitalValue (uint64), 5 analogValue (double)."""
+    name = io_type = direction = digital = analog = None
+    for fn, wt, val in wire.iter_fields(payload):
+        if fn == 1:
+            _expect(wt, LEN, f"{what}.name")
+            try:
+                name = bytes(val).decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise ProtocolError(f"{what}.name is not UTF-8: {exc}") from None
+        elif fn == 2:
+            _expect(wt, VARINT, f"{what}.type")
+            io_type = _lenient_enum(IOType, val, f"{what}.type")
+        elif fn == 3:
+            _expect(wt, VARINT, f"{what}.direction")
+            direction = _lenient_enum(IODirection, val, f"{what}.direction")
+        elif fn == 4:
+            _expect(wt, VARINT, f"{what}.digitalValue")
+            digital = int(val)
+        elif fn == 5:
+            _expect(wt, I64, f"{what}.analogValue")
+            analog = wire.decode_double(val)
+    for value, fn, field_name in ((name, 1, "name"), (io_type, 2, "type"), (direction, 3, "direction")):
+        if value is None:
+            raise ProtocolError(f"{what}: required field {field_name} ({fn}) is missing")
+    return IOValue(name, io_type, direction, digital, analog)
+
+
 def _dec_monitor_data(payload) -> MonitorData:
-    parts = _collect(payload, {1, 2, 3, 4, 5, 9, 10, 15}, "MessageMonitorData")
+    parts = _collect(payload, {1, 2, 3, 4, 5, 8, 9, 10, 15}, "MessageMonitorData")
     kwargs = {}
     for fn, name in _MONITOR_JOINT_FIELDS.items():
         raw = _merged(parts.get(fn, []))
@@ -612,6 +679,8 @@ def _dec_monitor_data(payload) -> MonitorData:
     raw = _merged(parts.get(15, []))
     if raw is not None:
         kwargs["timestamp"] = _dec_timestamp(raw)
+    if 8 in parts:  # repeated: one FriIOValue per occurrence, never merged
+        kwargs["io"] = tuple(_dec_io(v, "MessageMonitorData.readIORequest") for v in parts[8])
     return MonitorData(**kwargs)
 
 

@@ -45,6 +45,7 @@ from drivers.kuka_fri.messages import (
     FRICommandMessage,
     FRIMonitoringMessage,
     FriLayout,
+    IOValue,
     MessageHeader,
     SafetyState,
     SessionState,
@@ -66,6 +67,7 @@ class SessionSnapshot:
 
     measured_rad / commanded_rad / ipo_rad: shape (n,), radians (None when absent).
     host_time: the client clock when it arrived; receive_period_s: send period × multiplier.
+    io: the controller IOs the robot application shares (``MonitorData.io``).
     """
 
     session_state: SessionState
@@ -81,6 +83,7 @@ class SessionSnapshot:
     receive_period_s: Optional[float]
     sequence_counter: int
     layout: Optional[FriLayout] = None
+    io: tuple[IOValue, ...] = ()
 
 
 @dataclass
@@ -445,6 +448,7 @@ def _snapshot_of(msg: FRIMonitoringMessage, now: float) -> SessionSnapshot:
         receive_period_s=period,
         sequence_counter=msg.header.sequence_counter,
         layout=layout_of(msg),
+        io=() if md is None else md.io,
     )
 
 

@@ -175,6 +175,10 @@ class Sockets(_Strict):
     capture_radius_mm: float = Field(30.0, gt=0, le=200, description="The operator guides the ball in from this far.")
     approach_hold_s: float = Field(0.3, gt=0, le=60, description="Robot held still this long before the operator takes it, s.")
     hold_s: float = Field(3.0, gt=0, le=600, description="How long the operator holds the ball in, s (less if the robot moves on).")
+    confirm_input: str | None = Field(
+        None, min_length=1, max_length=63,
+        description="A BOOLEAN input the robot application shares over FRI (e.g. MediaFlange.UserButton) that the "
+                    "operator presses once the ball sits in the socket, again while the robot stays; None: he only holds still.")
     points: list[SocketTruth] = Field(min_length=1)
 
 

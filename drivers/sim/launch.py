@@ -224,10 +224,12 @@ class SimLaunch:
             from drivers.protocols import JointLimits
 
             period = {} if self.fri_send_period_ms is None else {"send_period_ms": self.fri_send_period_ms}
+            sockets = self.cell.config.sockets
+            inputs = (sockets.confirm_input,) if sockets is not None and sockets.confirm_input else ()
             fake = FakeSunrise(
                 ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.cell,
                 clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
-                application=True, fri_version=self.fri_version, **period,
+                application=True, fri_version=self.fri_version, inputs=inputs, **period,
             )
             fake.start()
             host, port = fake.address

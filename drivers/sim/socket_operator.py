@@ -8,8 +8,11 @@ ball where it really sits on the flange) is within ``capture_radius_mm`` of a tr
 point, the operator solves for the joint angles near the set-point that put the true ball at the
 socket plus the play of the ball in it (Gauss–Newton, minimum-norm steps: the arm's self-motion
 is left alone, as a hand at the ball leaves it) and pushes the arm there
-(``FakeSunrise.hand_guide``). He lets go after ``hold_s`` or as soon as the robot is commanded
-elsewhere. He knows nothing of the run: only where the ball is and where the sockets are.
+(``FakeSunrise.hand_guide``). With a ``confirm_input`` he presses that button (``FakeSunrise.set_input``)
+``PRESS_AFTER_S`` after the push, once the arm has settled in the socket, for ``PRESS_S``, and
+again every other ``PRESS_S`` while the robot stays (a person presses again when nothing happens).
+He lets go after ``hold_s`` or as soon as the robot is commanded elsewhere. He knows nothing of
+the run: only where the ball is and where the sockets are.
 
 Units: mm, rad, simulated seconds (the cell's clock).
 """
@@ -30,6 +33,10 @@ POLL_S = 0.02
 #: A push larger than this on any axis (rad) is not a hand-guiding correction: the operator
 #: leaves the robot alone (the approach was not near this socket).
 MAX_PUSH_RAD = np.radians(5.0)
+#: Simulated seconds from the push to the first press of the confirm button (the arm has settled),
+#: and how long a press lasts (a pause as long follows before the next).
+PRESS_AFTER_S = 1.0
+PRESS_S = 0.3
 
 
 class SocketOperator:
@@ -49,6 +56,8 @@ class SocketOperator:
         self.names = [f"{p.placement}/{p.socket}" for p in spec.points]
         self.rng = np.random.default_rng([seed, 0x50C7])
         self.guided = 0  # how many times the ball was put into a socket
+        self.presses = 0  # how many times the confirm button went down
+        self._pressed = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -79,6 +88,14 @@ class SocketOperator:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
 
+    def _press(self, down: bool) -> None:
+        """Press or release the confirm button, if the cell has one."""
+        if self.spec.confirm_input:
+            if down and not self._pressed:
+                self.presses += 1
+            self._pressed = down
+            self.controller.set_input(self.spec.confirm_input, down)
+
     def _run(self) -> None:
         try:
             self._loop()
@@ -95,8 +112,11 @@ class SocketOperator:
             sp = self.controller.setpoint()
             if holding:
                 if np.max(np.abs(sp - held_sp)) > 1e-9 or now - t_hold >= self.spec.hold_s:
+                    self._press(False)
                     self.controller.release()
                     holding, last_sp, t_still, tried = False, sp, now, True
+                elif self.spec.confirm_input and now - t_hold >= PRESS_AFTER_S:
+                    self._press(int((now - t_hold - PRESS_AFTER_S) / PRESS_S) % 2 == 0)
                 continue
             if last_sp is None or np.max(np.abs(sp - last_sp)) > 1e-9:
                 last_sp, t_still, tried = sp, now, False

@@ -5,8 +5,11 @@ robot has approached a socket (the nominal model puts the ball within millimetre
 operator guides the ball into the socket (an iiwa in joint-impedance mode yields to the hand; a
 KR is jogged) and the sensor records the joint angles the controller measures when either
 
-- the operator confirms: a key press (Enter) on the terminal with ``operator://terminal``, or a
-  ``confirm()`` call (the daemon's control channel, a digital input), or
+- the operator confirms: a key press (Enter) on the terminal with ``operator://terminal``, a
+  ``confirm()`` call (the daemon's control channel), or a press of a controller input named by
+  ``input=`` (e.g. the media flange's user button, which the robot application shares over
+  FRI: the commander's ``digital_input``) — a press is a change from released to set during
+  the wait, so a button held or stuck from before confirms nothing — or
 - the robot has been *guided* — its measured position left the commanded one by more than
   ``guide_deg`` on some axis (the hand is holding it; a jogged robot never is, so a KR needs
   the confirmation) — and has then held still within ``still_deg`` for ``window_s``.
@@ -17,7 +20,9 @@ the position at the start of the wait stands in for it.
 
 URL: ``operator://terminal`` (Enter confirms; ignored when stdin is not a terminal) or
 ``operator://none`` (stillness and ``confirm()`` only), with options ``guide_deg=F`` (0.05),
-``still_deg=F`` (0.01), ``window_s=F`` (0.5), ``poll_s=F`` (0.01).
+``still_deg=F`` (0.01), ``window_s=F`` (0.5), ``poll_s=F`` (0.01) and ``input=NAME`` (a
+controller input that confirms, e.g. ``input=MediaFlange.UserButton``; needs a commander that
+reads inputs: FRI).
 
 Units: radians and seconds inside; options in degrees and seconds.
 """
@@ -35,9 +40,10 @@ import numpy as np
 
 from drivers.base import DeviceBase, check_timeout
 from drivers.errors import DeviceTimeoutError, DriverError
-from drivers.protocols import JointCapture, JointState
+from drivers.protocols import DigitalInputs, JointCapture, JointState
 
-_OPTIONS = {"guide_deg": "guide_rad", "still_deg": "still_rad", "window_s": "window_s", "poll_s": "poll_s"}
+_OPTIONS = {"guide_deg": "guide_rad", "still_deg": "still_rad", "window_s": "window_s", "poll_s": "poll_s",
+            "input": "confirm_input"}
 
 
 class SocketSensor(DeviceBase):
@@ -45,8 +51,9 @@ class SocketSensor(DeviceBase):
 
     def __init__(self, name: str = "socket", *, confirm_source: str = "none",
                  guide_rad: float = math.radians(0.05), still_rad: float = math.radians(0.01),
-                 window_s: float = 0.5, poll_s: float = 0.01, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, stdin=None) -> None:
+                 window_s: float = 0.5, poll_s: float = 0.01, confirm_input: str | None = None,
+                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep,
+                 stdin=None) -> None:
         super().__init__(name, clock=clock)
         if confirm_source not in ("terminal", "none"):
             raise ValueError(f"{name}: confirm source must be terminal or none (operator://terminal, "
@@ -57,7 +64,11 @@ class SocketSensor(DeviceBase):
         if still_rad >= guide_rad:
             raise ValueError(f"{name}: still_deg ({math.degrees(still_rad):g}) must be below guide_deg "
                              f"({math.degrees(guide_rad):g}): a robot held still must not count as guided")
+        if confirm_input is not None and not (isinstance(confirm_input, str) and confirm_input.strip()):
+            raise ValueError(f"{name}: input must name a controller input (e.g. MediaFlange.UserButton), "
+                             f"got {confirm_input!r}")
         self.confirm_source = confirm_source
+        self.confirm_input = confirm_input
         self.guide_rad, self.still_rad = float(guide_rad), float(still_rad)
         self.window_s, self.poll_s = float(window_s), float(poll_s)
         self._sleep = sleep
@@ -78,6 +89,9 @@ class SocketSensor(DeviceBase):
         for key, value in parse_qsl(parts.query, strict_parsing=False):
             if key not in _OPTIONS:
                 raise ValueError(f"socket sensor URL {url!r}: unknown option {key!r}; allowed {', '.join(_OPTIONS)}")
+            if key == "input":
+                kwargs["confirm_input"] = value
+                continue
             try:
                 v = float(value)
             except ValueError:
@@ -89,6 +103,10 @@ class SocketSensor(DeviceBase):
         return sensor
 
     def attach(self, commander) -> None:
+        if self.confirm_input is not None and not isinstance(commander, DigitalInputs):
+            raise ValueError(f"{self.name}: input={self.confirm_input} needs a commander that reads the controller's "
+                             f"inputs (FRI); {type(commander).__name__} reads none — confirm with Enter or "
+                             "`acquire confirm` instead")
         self._commander = commander
 
     def connect(self) -> None:
@@ -127,7 +145,8 @@ class SocketSensor(DeviceBase):
         deadline = self.clock() + timeout
         self._confirmed.clear()
         self.waiting_for = label
-        self.log.warning("guide the ball into %s and hold it still (or press Enter / confirm)", label)
+        self.log.warning("guide the ball into %s and hold it still (or press %s / confirm)", label,
+                         self.confirm_input or "Enter")
         try:
             trigger = self._wait(label, deadline, timeout)
             states = []
@@ -148,13 +167,27 @@ class SocketSensor(DeviceBase):
         return JointCapture(label=label, mean_rad=q.mean(axis=0), std_rad=std, count=n, trigger=trigger,
                             device_time=float(states[-1].device_time), host_time=float(states[-1].host_time))
 
+    def _pressed(self) -> bool | None:
+        """The confirming input's state, None without one or when the controller's message is stale."""
+        if self.confirm_input is None:
+            return None
+        try:
+            return self._commander.digital_input(self.confirm_input)
+        except DeviceTimeoutError:
+            return None
+
     def _wait(self, label: str, deadline: float, timeout: float) -> str:
         first = None
         ref_still = None
         t_still = 0.0
+        released = False  # the input was seen released during this wait: its next press confirms
         while True:
             if self._confirmed.is_set():
                 return "confirm"
+            pressed = self._pressed()
+            if pressed and released:
+                return "input"
+            released = released or pressed is False
             now = self.clock()
             if now > deadline:
                 raise DeviceTimeoutError(f"{self.name}: the ball was not held in {label} within {timeout:.3g} s; "

@@ -87,6 +87,9 @@ def _set(path, value):
     (lambda d: d["sensors"].append({"name": "mocap", "driver": "natnet", "url": "natnet://127.0.0.1",
                                      "markers": {"sir": "ms:tool:sir"}, "noise_mm": 0.03}),
      "sensors: a socket plan records with exactly one socket sensor"),
+    (lambda d: (d["commander"].update(driver="rsi", url="rsi://127.0.0.1:49152"),
+                d["sensors"][0].update(url="operator://none?input=MediaFlange.UserButton")),
+     "sensors.0.url: input=MediaFlange.UserButton confirms with a controller input, which the 'rsi' commander does not read"),
 ])
 def test_bad_socket_plans_name_file_line_and_field(tmp_path, mutate, fragment):
     path = plan_file(tmp_path, mutate)

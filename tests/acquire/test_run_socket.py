@@ -117,6 +117,36 @@ def test_socket_run_interrupted_resumed_and_fitted_recovers_the_hidden_offsets(t
             assert a["value_deg"] == pytest.approx(b["value_deg"], abs=1e-9)
 
 
+def test_socket_run_confirmed_by_the_button_on_the_flange(tmp_path):
+    """The operator confirms with the media flange's button, an input the robot application shares
+    over FRI (the fake Sunrise's ``readIORequest``; the cell's operator presses it once the ball
+    sits). With a stillness window longer than he holds the ball, every recording is the button's,
+    taken while the ball is held in the socket."""
+    doc = yaml.safe_load(socket_plan(tmp_path).read_text())
+    doc["sensors"][0]["url"] = "operator://none?window_s=30&input=MediaFlange.UserButton"
+    doc["socket"]["placements"] = doc["socket"]["placements"][:1]
+    doc["socket"]["configurations"] = 4
+    path = tmp_path / "button.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    lp = load_plan(path)
+    configs = resolve_configurations(lp)
+    assert len(configs) == 8
+    rc = RunController(lp, fake=True, fit=False)
+    rc.start()
+    summary = rc.wait(240)
+    assert summary.state == "finished", summary.reason
+    contents = read_run(summary.log_path)
+    ids = [s["config_id"] for s in contents.samples]
+    not_measured = {e["config_id"]: e["reason"] for e in contents.events if e["kind"] in ("skipped", "failed")}
+    assert set(ids) | set(not_measured) == {c.config_id for c in configs}
+    assert all(not_measured[c] for c in set(not_measured) - set(ids))  # an FRI drop under load says why
+    assert len(ids) >= 6
+    for rec in contents.samples:
+        assert rec["socket"]["trigger"] == "input"
+        push = np.abs(np.subtract(rec["q_measured_deg"], rec["q_target_deg"]))
+        assert 0.01 < push.max() < 5.0  # recorded with the hand on the arm, the ball in the socket
+
+
 def test_socket_plan_dry_run_lists_every_socket(tmp_path):
     from typer.testing import CliRunner
 

@@ -13,6 +13,8 @@ from calib.fit import FitOptions, fit_offsets
 from calib.gravity import gravity_torques, joint_frames
 from calib.kinematics import Chain
 from calib.model import load_robot_model, robot_model_from_dict
+from calib.report_summary import warnings
+from calib.result import result_dict
 from calib.transforms import exp_so3
 from calib.yamlfile import ConfigError
 
@@ -99,14 +101,27 @@ def test_masses_must_be_given_for_every_joint_or_none(tmp_path):
         gravity_torques(Chain(load_robot_model(ROBOTS / "kuka_kr6_r900_2.yaml")), np.zeros(6))
 
 
-def _dataset(model, q, sag_rad_per_nm, seed, noise_mm=0.02):
-    """Tracker-like rows of both markers from a true arm with hidden offsets and joint sag."""
+def _real_arm(chain, rng, *, link_mm=0.2, twist_deg=0.02, tool_mm=1.0):
+    """Chain parameters (P,) of an arm as built: d and a off the data sheet by ``link_mm`` (1σ),
+    α by ``twist_deg``, and every tool marker off its drawing position by ``tool_mm`` per axis."""
+    p = chain.nominal.copy()
+    p[chain.index("d")] += rng.normal(0, link_mm, chain.n)
+    p[chain.index("a")] += rng.normal(0, link_mm, chain.n)
+    p[chain.index("alpha")] += np.radians(rng.normal(0, twist_deg, chain.n))
+    ms = chain.marker_slice()
+    p[ms] += rng.normal(0, tool_mm, ms.stop - ms.start)
+    return p
+
+
+def _dataset(model, q, sag_rad_per_nm, seed, noise_mm=0.02, params=None):
+    """Tracker-like rows of both markers from a true arm (chain ``params``, default the data
+    sheet) with hidden offsets (returned, rad) and joint sag under its own weight."""
     chain = Chain(model)
     rng = np.random.default_rng(seed)
     offsets = np.radians(rng.normal(0, 0.05, 7))
     offsets[0] = 0.0
-    q_true = q + offsets + chain.sign * sag_rad_per_nm * gravity_torques(chain, q)
-    pos = chain.marker_positions(q_true)  # (k, m, 3), sensor = base frame shifted
+    q_true = q + offsets + chain.sign * sag_rad_per_nm * gravity_torques(chain, q, params)
+    pos = chain.marker_positions(q_true, params)  # (k, m, 3), sensor = base frame shifted
     k, m = pos.shape[:2]
     xyz = pos.reshape(-1, 3) + np.array([2000.0, 100.0, -300.0]) + rng.normal(0, noise_mm, (k * m, 3))
     rows = np.repeat(np.arange(k), m)
@@ -114,49 +129,81 @@ def _dataset(model, q, sag_rad_per_nm, seed, noise_mm=0.02):
         config=np.array([f"c{i}" for i in rows]), pose=np.array([""] * (k * m)), q_rad=q[rows], xyz_mm=xyz,
         marker=np.array(model.marker_names * k), sensor=np.array(["tracker"] * (k * m)),
         std_mm=np.full(k * m, noise_mm), count=np.full(k * m, 30), split=np.array(["cal"] * (k * m)),
-    )
+    ), offsets
 
 
-def test_fit_warns_when_residuals_follow_gravity_and_stays_quiet_without_sag():
+#: The simulated cell's compliances (fixtures/sim/default.yaml): rad/(N·m) per axis.
+K_TRUE = np.array([6e-6] * 4 + [1.2e-5] * 3)
+
+
+def _real_cell(model, seed, sag=K_TRUE, n_configs=40):
+    """A real cell's tracker data: 40 configurations, link errors, the tool off its drawing, sag."""
+    rng = np.random.default_rng(100 + seed)
+    q = rng.uniform(model.lower_limits_rad * 0.8, model.upper_limits_rad * 0.8, (n_configs, 7))
+    return _dataset(model, q, sag, seed, params=_real_arm(Chain(model), rng))
+
+
+def test_summary_says_to_fit_the_compliances_when_the_arm_sags_and_stays_quiet_otherwise():
+    """The guard on the fit's default model (link prior, fitted tool) and a real cell's nuisances:
+    a sagging arm fitted without the compliance model gets the summary's warning, with the
+    compliance model it does not; an arm that does not sag gets none."""
     model = load_robot_model(ROBOTS / "kuka_iiwa14_r820.yaml")
-    rng = np.random.default_rng(11)
-    q = rng.uniform(model.lower_limits_rad * 0.8, model.upper_limits_rad * 0.8, (40, 7))
-    options = FitOptions(n_draws=200, link_tolerance=None)
-    sag = fit_offsets(model, _dataset(model, q, np.full(7, 1e-5), seed=1), options).diagnostics["gravity_sag"]
+    data, _ = _real_cell(model, seed=1)
+
+    def fit(ds, compliance=False):
+        result = fit_offsets(model, ds, FitOptions(n_draws=200, compliance=compliance))
+        return result.diagnostics["gravity_sag"], warnings(result_dict(result, ds))
+
+    sag, said = fit(data)
     assert sag["significant"] and sag["p_value"] < 1e-6, sag
-    quiet = [fit_offsets(model, _dataset(model, q, np.zeros(7), seed=s), options).diagnostics["gravity_sag"]
-             for s in range(2, 6)]
-    assert not any(x["significant"] for x in quiet), quiet
+    assert any("fit the compliances too (--compliance)" in w for w in said), said
+    modelled, said = fit(data, compliance=True)
+    assert modelled is None and not any("--compliance" in w for w in said), said
+    for seed in range(2, 6):
+        quiet, said = fit(_real_cell(model, seed, sag=np.zeros(7))[0])
+        assert not quiet["significant"] and not any("--compliance" in w for w in said), (quiet, said)
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(240)  # ~30 s of CPU; 74 s of wall time measured at a load average of 4–7 on 2 cores
 def test_compliances_are_fitted_with_the_offsets_and_their_intervals_cover_the_truth():
-    """40 simulated arms that sag (6e-6 rad/(N·m) on A1–A4, 1.2e-5 on A5–A7): the fit with the
-    compliance model recovers offsets and the loaded axes' compliances inside their intervals;
-    the unloaded axes' compliances are reported as undetermined, not given a number."""
+    """150 simulated cells that sag (6e-6 rad/(N·m) on A1–A4, 1.2e-5 on A5–A7) with link errors
+    and the tool off its drawing, fitted with the default model plus compliances: the 95 %
+    intervals of the offsets and of the loaded axes' compliances cover the truth 93–97 % of the
+    time; the unloaded axes' compliances are reported as undetermined, not given a number.
+
+    Why so many cells: the intervals of one cell share its data, so the estimate is only as good
+    as the number of cells. Batches of 40 cells gave 92.9–97.5 % (offsets) and 91.7–97.5 %
+    (compliances) for the same fitter whose 400-cell coverage is 95.1 % and 94.8 % — the "92–93 %"
+    once measured here on 40 cells was that noise, not a bias (z-scores: mean 0.0, sd 1.0).
+    150 cells: ±0.9 % (1σ) for the offsets, ±1 % for the compliances.
+    """
     model = load_robot_model(ROBOTS / "kuka_iiwa14_r820.yaml")
-    k_true = np.array([6e-6] * 4 + [1.2e-5] * 3)
     hits_o, hits_k = [], []
-    for seed in range(40):
-        rng = np.random.default_rng(100 + seed)
-        q = rng.uniform(model.lower_limits_rad * 0.8, model.upper_limits_rad * 0.8, (40, 7))
-        result = fit_offsets(model, _dataset(model, q, k_true, seed=seed),
-                             FitOptions(n_draws=500, compliance=True, link_tolerance=None, tool_prior_mm=0))
-        truth = np.radians(np.random.default_rng(seed).normal(0, 0.05, 7))
-        hits_o += [lo <= t <= hi for (lo, hi), t in zip(result.offsets_ci95_rad[1:], truth[1:])]
+    for seed in range(150):
+        data, truth = _real_cell(model, seed)
+        result = fit_offsets(model, data, FitOptions(n_draws=500, compliance=True))
+        fitted = [i for i, s in enumerate(result.offset_status) if s == "fitted"]
+        assert fitted == [1, 2, 3, 4, 5], result.offset_status  # A1: the registration; A7: the tool
+        hits_o += [lo <= t <= hi for (lo, hi), t in zip(result.offsets_ci95_rad[fitted], truth[fitted])]
         comp = result.diagnostics["compliance"]
         assert [c["status"] for c in comp] == ["undetermined", "fitted", "fitted", "fitted",
                                                "undetermined", "undetermined", "undetermined"]
         assert "only" in comp[0]["reason"] and comp[6]["value"] is None
-        hits_k += [c["ci95"][0] <= k <= c["ci95"][1] for c, k in zip(comp, k_true) if c["status"] == "fitted"]
+        hits_k += [c["ci95"][0] <= k <= c["ci95"][1] for c, k in zip(comp, K_TRUE) if c["status"] == "fitted"]
         assert result.diagnostics["gravity_sag"] is None  # modelled: nothing to warn about
-    # Measured: 92–93 % for both, as the same fitter reaches without sag on this data (92 %).
-    assert 0.88 <= np.mean(hits_o) <= 0.98, np.mean(hits_o)
-    assert 0.88 <= np.mean(hits_k) <= 0.98, np.mean(hits_k)
+    assert len(hits_o) == 750 and len(hits_k) == 450
+    assert 0.93 <= np.mean(hits_o) <= 0.97, np.mean(hits_o)
+    assert 0.93 <= np.mean(hits_k) <= 0.97, np.mean(hits_k)
+
+
+def test_the_compliance_model_needs_link_masses():
+    model = load_robot_model(ROBOTS / "kuka_iiwa14_r820.yaml")
     massless = model.model_dump()
     for j in massless["joints"]:
         j["mass_kg"] = j["com_mm"] = None
     with pytest.raises(ValueError, match="needs link masses"):
-        fit_offsets(robot_model_from_dict(massless), _dataset(model, q, k_true, 0), FitOptions(compliance=True))
+        fit_offsets(robot_model_from_dict(massless), _real_cell(model, 0)[0], FitOptions(compliance=True))
 
 
 def test_full_identification_fits_the_compliances_too():
@@ -165,10 +212,10 @@ def test_full_identification_fits_the_compliances_too():
     from calib.identification import IdentOptions, identify
 
     model = load_robot_model(ROBOTS / "kuka_iiwa14_r820.yaml")
-    k_true = np.array([6e-6] * 4 + [1.2e-5] * 3)
+    k_true = K_TRUE
     rng = np.random.default_rng(100)
     q = rng.uniform(model.lower_limits_rad * 0.8, model.upper_limits_rad * 0.8, (60, 7))
-    data = _dataset(model, q, k_true, seed=0)
+    data, _ = _dataset(model, q, k_true, seed=0)
     plain = identify(model, data)
     sag = identify(model, data, IdentOptions(compliance=True))
     assert sag.rms_mm < 0.025 < 0.04 < plain.rms_mm  # noise is 0.02 mm per axis

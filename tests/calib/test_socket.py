@@ -157,6 +157,7 @@ def test_gravity_compliance_explains_the_real_iiwa_sockets_better(iiwa, real):
     assert max(a.spread_mm for _, a in sag) <= 0.50 and np.mean([a.distance_error_mm for _, a in sag]) <= 0.10
     fit = fit_socket(iiwa, real, compliance=True)
     assert "A1.compliance" in fit.excluded and "A7.compliance" in fit.excluded
+    assert "by only 0 N·m" in fit.excluded["A7.compliance"]  # a torque at rounding level is 0, not 5e-17
     loaded = np.isfinite(fit.compliance_std)
     assert loaded[1:4].all() and np.all(fit.compliance[loaded] > 0)  # A2–A4 carry the arm and yield
     assert fit.sigma_point_mm < 0.9 * fit_socket(iiwa, real).sigma_point_mm

@@ -28,6 +28,8 @@ ENUMS = {
     "ControlMode": ["POSITION_CONTROLMODE", "CARTESIAN_IMPEDANCE_CONTROLMODE", "JOINT_IMPEDANCE_CONTROLMODE",
                     "NO_CONTROLMODE"],
     "OverlayType": ["NO_OVERLAY", "JOINT", "CARTESIAN"],
+    "FriIOType": ["BOOLEAN", "DIGITAL", "ANALOG"],
+    "FriIODirection": ["INPUT", "OUTPUT"],
 }
 
 
@@ -39,6 +41,7 @@ def _fields(version: str) -> dict[str, list[tuple]]:
         ("measuredTorque", 2, OPT, MSG, "JointValues"),
         ("commandedTorque", 4, OPT, MSG, "JointValues"),
         ("externalTorque", 5, OPT, MSG, "JointValues"),
+        ("readIORequest", 8, REP, MSG, "FriIOValue"),
         ("timestamp", 15, OPT, MSG, "TimeStamp"),
     ]
     ipo = [
@@ -75,6 +78,9 @@ def _fields(version: str) -> dict[str, list[tuple]]:
         "JointValues": [("value", 1, REP, DBL, None)],
         "TimeStamp": [("sec", 1, REQ, U32, None), ("nanosec", 2, REQ, U32, None)],
         "Checksum": [("crc32", 1, OPT, I32, None)],
+        "FriIOValue": [("name", 1, REQ, STR, None), ("type", 2, REQ, ENUM, "FriIOType"),
+                       ("direction", 3, REQ, ENUM, "FriIODirection"), ("digitalValue", 4, OPT, U64, None),
+                       ("analogValue", 5, OPT, DBL, None)],
         "QuaternionTransformation": [("name", 1, REQ, STR, None), ("element", 2, REP, DBL, None),
                                      ("timestamp", 3, OPT, MSG, "TimeStamp")],
         "RedundancyInformation": [("strategy", 1, REQ, ENUM, "RedundancyStrategy"), ("value", 2, REQ, DBL, None)],

@@ -108,3 +108,47 @@ def test_without_a_commander_says_so():
     s = SocketSensor.from_url("operator://none")
     with pytest.raises(Exception, match="no commander attached"):
         s.capture("socket 0", 1, 1.0)
+
+
+class ArmWithButton(ScriptedArm):
+    """A commander that also reads a controller input: pressed while ``button(t)`` is true."""
+
+    def __init__(self, clock, path, button) -> None:
+        super().__init__(clock, path)
+        self.button = button
+
+    def digital_input(self, name: str) -> bool:
+        assert name == "MediaFlange.UserButton"
+        return bool(self.button(self.clock.now()))
+
+
+def button_sensor(clock, arm) -> SocketSensor:
+    s = SocketSensor.from_url("operator://none?window_s=0.5&poll_s=0.01&input=MediaFlange.UserButton",
+                              clock=clock.now, sleep=clock.sleep, commander=arm)
+    s.connect()
+    return s
+
+
+def test_a_press_of_the_controller_input_records_at_once():
+    clock = SteppedClock()
+    arm = ArmWithButton(clock, lambda t: np.full(7, 0.001), lambda t: 0.3 <= t < 0.5)
+    cap = button_sensor(clock, arm).capture("socket 0", 2, 30.0)
+    assert cap.trigger == "input" and 0.3 <= clock.t < 0.35
+
+
+def test_a_button_held_from_before_confirms_only_when_pressed_again():
+    clock = SteppedClock()
+    pressed = lambda t: t < 0.2 or 0.6 <= t < 0.8  # still held from the last socket, then pressed anew
+    cap = button_sensor(clock, ArmWithButton(clock, lambda t: np.zeros(7), pressed)).capture("socket 1", 2, 30.0)
+    assert cap.trigger == "input" and 0.6 <= clock.t < 0.65
+    clock = SteppedClock()
+    stuck = ArmWithButton(clock, lambda t: np.zeros(7), lambda t: True)  # stuck: never released
+    with pytest.raises(DeviceTimeoutError, match="not held in socket 1 within 2 s"):
+        button_sensor(clock, stuck).capture("socket 1", 2, 2.0)
+
+
+def test_an_input_needs_a_commander_that_reads_inputs():
+    clock = SteppedClock()
+    with pytest.raises(ValueError, match="input=MediaFlange.UserButton needs a commander that reads the controller's "
+                                         "inputs .*confirm with Enter"):
+        button_sensor(clock, ScriptedArm(clock, guided))
