@@ -32,13 +32,13 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy.optimize import least_squares
 
 from calib.dataset import Dataset, DatasetError
 from calib.fit import initial_registrations
 from calib.identifiability import exact_tolerance
 from calib.kinematics import KINDS, Chain
 from calib.model import RobotModel
+from calib.multistart import StartOutcome, disagreement, solve_from
 from calib.transforms import euler_zyx_to_matrix
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,8 @@ REG = ("x", "y", "z", "alpha", "beta", "gamma")
 class IdentOptions:
     """``orientation_weight``: L of eq. 19 (mm²); ``rank_tol``: relative residual below which a
     column counts as a combination of the kept ones; ``exclude``: parameter names to keep nominal;
-    ``cond_warn``: scaled condition number above which the fit is called ill-conditioned."""
+    ``cond_warn``: scaled condition number above which the fit is called ill-conditioned;
+    ``n_starts``, ``seed``, ``start_spread``, ``disagree_rel``: the multi-start solve (``identify``)."""
 
     orientation_weight: float = 100.0
     rank_tol: float = 1e-6
@@ -61,6 +62,15 @@ class IdentOptions:
     cond_warn: float = 1e4
     initial_registration: str = "least-squares"
     tool_prior_mm: float = 10.0
+    #: Starts of the solve (``identify``): 1 = the staged solve from nominal only; 2 adds the plain
+    #: one-stage solve from nominal; more add random starts (seeded by ``seed``).
+    n_starts: int = 6
+    seed: int = 0
+    #: Spread of the random starts about nominal: lengths (mm) and angles (degrees), per parameter;
+    #: marker positions are drawn from their prior (``tool_prior_mm``).
+    start_spread: tuple[float, float] = (2.0, 1.0)
+    #: Relative cost gap above which two starts' minima count as different (0.01: 1 %).
+    disagree_rel: float = 0.01
 
 
 @dataclass
@@ -80,6 +90,9 @@ class IdentResult:
     compliance_std: np.ndarray | None = None
     #: Prior std (mm per coordinate) of the marker positions; 0: taken as exact.
     tool_prior_mm: float = 0.0
+    #: Every start of the solve, best first: label, cost (½·Σ r² over residuals and prior rows,
+    #: mm²), rms of the position residuals (mm), evaluations, ``same_minimum`` as the best.
+    starts: list[dict] = field(default_factory=list)
 
     @property
     def chain_names(self) -> list[str]:
@@ -339,6 +352,8 @@ def identify(
 
     if not (math.isfinite(options.tool_prior_mm) and 0 <= options.tool_prior_mm <= 100):
         raise ValueError(f"tool_prior_mm must lie in 0…100 mm (0: exact markers), given {options.tool_prior_mm}")
+    if options.n_starts < 1:
+        raise ValueError(f"n_starts must be at least 1 (the staged solve from nominal), given {options.n_starts}")
     ms = chain.marker_slice()
     tool_pos = np.array([k for k, c in enumerate(free) if ms.start <= c < ms.stop], dtype=int)
     prior_weight = [0.0]  # σ / sd, set after a first solve without the prior
@@ -351,15 +366,13 @@ def identify(
         prior[np.arange(tool_pos.size), tool_pos] = prior_weight[0]
         return np.concatenate([jac(z), prior])
 
-    sol = least_squares(fun_p, np.zeros(len(free)), jac=jac_p, method="lm", max_nfev=options.max_nfev, xtol=1e-12, ftol=1e-12)
-    nfev = int(sol.nfev)
-    if tool_pos.size:
-        sigma = float(np.sqrt(np.mean(sol.fun[: 3 * len(data)] ** 2)))
-        prior_weight[0] = max(sigma, 1e-9) / options.tool_prior_mm
-        sol = least_squares(fun_p, sol.x, jac=jac_p, method="lm", max_nfev=options.max_nfev, xtol=1e-12, ftol=1e-12)
-        nfev += int(sol.nfev)
+    starts, sol = _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_weight, len(data))
+    nfev = sum(o.nfev for o in starts)
+    warnings = _start_warnings(starts, options, 3 * len(data))
+    for w in warnings:
+        log.warning(w)
     x = x0.copy()
-    x[free] = x0[free] + sol.x / scale[free]
+    x[free] = x0[free] + sol.z / scale[free]
     r = sol.fun[: sol.fun.size - tool_pos.size]
     n_pos = 3 * len(data)
     rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
@@ -371,7 +384,6 @@ def identify(
     cov = np.linalg.pinv(js.T @ js) * s2
     std = np.full(len(problem.names), np.nan)
     std[free] = np.sqrt(np.diag(cov)) / scale[free]
-    warnings = []
     if cond > options.cond_warn:
         warnings.append(
             f"ill-conditioned: scaled condition number {cond:.3g} > {options.cond_warn:g}; the weakest directions are "
@@ -379,6 +391,7 @@ def identify(
         )
         log.warning(warnings[-1])
     params, reg = problem.split(x)
+    worse = {id(o) for o in disagreement(starts, options.disagree_rel)}
     comp = comp_std = None
     if options.compliance:
         comp, comp_std = x[-chain.n:] * 1e-6, std[-chain.n:] * 1e-6
@@ -403,7 +416,87 @@ def identify(
         compliance=comp,
         compliance_std=comp_std,
         tool_prior_mm=float(options.tool_prior_mm) if options.fit_markers else 0.0,
+        starts=[{"label": o.label, "cost": o.cost, "rms_mm": _rms(o.fun[:n_pos]), "evaluations": o.nfev,
+                 "same_minimum": id(o) not in worse} for o in starts],
     )
+
+
+def _ratio(cost: float, best: float) -> str:
+    """How much higher a cost is than the best: '+35 %' or '×2.1e+04'."""
+    ratio = cost / max(best, 1e-300)
+    return f"+{ratio - 1:.0%}" if ratio < 10 else f"×{ratio:.2g}"
+
+
+def _rms(r: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(r ** 2)))
+
+
+def _stage_columns(problem: _Problem, free: list[int]) -> np.ndarray:
+    """Positions in ``free`` of the first stage: registration, marker positions, joint offsets."""
+    first = [k for k, c in enumerate(free) if c < problem.P and problem.names[c].rsplit(".", 1)[1] in ("offset", "x", "y", "z")]
+    first += [k for k, c in enumerate(free) if problem.P <= c < problem.P + problem.n_reg]
+    return np.array(sorted(first), dtype=int)
+
+
+def _random_start(problem: _Problem, free: list[int], scale: np.ndarray, options: IdentOptions,
+                  rng: np.random.Generator) -> np.ndarray:
+    """A start about nominal in the scaled units of the solve: lengths N(0, spread mm), angles
+    N(0, spread°) (times their lever arm), markers from their prior; compliances at 0."""
+    mm, deg = options.start_spread
+    z = np.zeros(len(free))
+    for k, c in enumerate(free):
+        if c >= problem.P + problem.n_reg:
+            continue
+        kind = problem.names[c].rsplit(".", 1)[1]
+        is_marker = c < problem.P and kind in ("x", "y", "z")
+        if is_marker:
+            z[k] = rng.normal(0.0, options.tool_prior_mm)
+        elif kind in ("d", "a", "x", "y", "z"):
+            z[k] = rng.normal(0.0, mm)
+        else:
+            z[k] = rng.normal(0.0, math.radians(deg)) * scale[c]
+    return z
+
+
+def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_weight, n_rows):
+    """The staged solve from nominal (registration → offsets + tools → everything; without the
+    tool prior first, whose weight σ/sd then comes from its σ: a continuation on the prior), the
+    plain one-stage solve from nominal, then random staged starts; all on the same objective.
+    Returns (outcomes best first, the best)."""
+    first = _stage_columns(problem, free)
+    staged = [first, None] if 0 < first.size < len(free) else [None]
+    z0 = np.zeros(len(free))
+    pre = solve_from("staged from nominal", fun_p, jac_p, z0, staged, options.max_nfev)
+    if tool_pos.size:
+        sigma = _rms(pre.fun[: 3 * n_rows])
+        prior_weight[0] = max(sigma, 1e-9) / options.tool_prior_mm
+    outcomes = [solve_from("staged from nominal", fun_p, jac_p, pre.z, [None], options.max_nfev)]
+    outcomes[0].nfev += pre.nfev
+    if options.n_starts >= 2:
+        outcomes.append(solve_from("plain from nominal", fun_p, jac_p, z0, [None], options.max_nfev))
+    rng = np.random.default_rng(options.seed)
+    for i in range(2, options.n_starts):
+        z = _random_start(problem, free, scale, options, rng)
+        outcomes.append(solve_from(f"random start {i - 1}", fun_p, jac_p, z, staged, options.max_nfev))
+    outcomes.sort(key=lambda o: o.cost)
+    return outcomes, outcomes[0]
+
+
+def _start_warnings(starts: list[StartOutcome], options: IdentOptions, n_pos: int) -> list[str]:
+    """Say when the starts ended in minima of materially different cost, naming the gap."""
+    worse = disagreement(starts, options.disagree_rel)
+    if not worse:
+        return []
+    best = starts[0]
+    gaps = ", ".join(f"{o.label}: rms {_rms(o.fun[:n_pos]):.4g} mm (cost {_ratio(o.cost, best.cost)})" for o in worse)
+    out = [f"the starts disagree: {len(worse)} of {len(starts)} ended in a worse minimum than the best "
+           f"({best.label}: rms {_rms(best.fun[:n_pos]):.4g} mm) — {gaps}; the best is kept"]
+    staged = next(o for o in starts if o.label == "staged from nominal")
+    if any(o is staged for o in worse):
+        out[0] += (f"; the staged solve from nominal stopped at rms {_rms(staged.fun[:n_pos]):.4g} mm: the nominal model "
+                   "is far from this robot or the data leave it several minima — check the model (units, conventions, "
+                   "tool), measure more varied configurations, and try more starts (--starts N)")
+    return out
 
 
 def corrected_model(model: RobotModel, params: np.ndarray) -> RobotModel:
