@@ -50,12 +50,15 @@ REG = ("x", "y", "z", "alpha", "beta", "gamma")
 class IdentOptions:
     """``orientation_weight``: L of eq. 19 (mm²); ``rank_tol``: relative residual below which a
     column counts as a combination of the kept ones; ``exclude``: parameter names to keep nominal;
-    ``cond_warn``: scaled condition number above which the fit is called ill-conditioned;
+    ``exclude_reasons``: (name, reason) pairs to keep nominal with the reason given (e.g. the CLI
+    option that asked for it); ``cond_warn``: scaled condition number above which the fit is called
+    ill-conditioned;
     ``n_starts``, ``seed``, ``start_spread``, ``disagree_rel``: the multi-start solve (``identify``)."""
 
     orientation_weight: float = 100.0
     rank_tol: float = 1e-6
     exclude: tuple[str, ...] = ()
+    exclude_reasons: tuple[tuple[str, str], ...] = ()
     fit_markers: bool = True
     compliance: bool = False
     max_nfev: int = 200
@@ -243,6 +246,7 @@ class _Problem:
 def _excluded_by_choice(model: RobotModel, chain: Chain, names: list[str], options: IdentOptions) -> dict[str, str]:
     """Parameters left out before looking at the data: by the options, or by the convention."""
     excluded: dict[str, str] = {n: "excluded by the options" for n in options.exclude}
+    excluded.update(dict(options.exclude_reasons))
     if model.convention == "dh":
         for i in chain.index("beta"):
             excluded[names[i]] = "β is not a parameter of the standard DH convention (use mdh for near-parallel axes)"
@@ -659,6 +663,7 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
         "rms_mm": result.rms_mm,
         "condition_number": result.condition_number,
         "evaluations": result.iterations,
+        "starts": result.starts,
         "warnings": result.warnings,
         "metrics": metrics,
         "metric_notes": notes,
