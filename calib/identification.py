@@ -39,7 +39,7 @@ from calib.identifiability import exact_tolerance
 from calib.kinematics import KINDS, Chain
 from calib.model import RobotModel
 from calib.multistart import StartOutcome, disagreement, solve_from
-from calib.transforms import euler_zyx_to_matrix
+from calib.transforms import apply, euler_zyx_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -395,6 +395,7 @@ def identify(
         )
         log.warning(warnings[-1])
     params, reg = problem.split(x)
+    warnings += _prior_conflicts(chain, params, options)
     worse = {id(o) for o in disagreement(starts, options.disagree_rel)}
     comp = comp_std = None
     if options.compliance:
@@ -463,19 +464,20 @@ def _random_start(problem: _Problem, free: list[int], scale: np.ndarray, options
 
 
 def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_weight, n_rows):
-    """The staged solve from nominal (registration → offsets + tools → everything; without the
-    tool prior first, whose weight σ/sd then comes from its σ: a continuation on the prior), the
-    plain one-stage solve from nominal, then random staged starts; all on the same objective.
-    Returns (outcomes best first, the best)."""
+    """Every start on one objective: the staged solve from nominal (registration, marker positions
+    and joint offsets first, then everything), the plain one-stage solve from nominal, then random
+    staged starts. With fitted markers, a staged solve without the tool prior first gives σ, and
+    so the prior rows' weight σ/sd. Returns (outcomes best first, the best)."""
     first = _stage_columns(problem, free)
     staged = [first, None] if 0 < first.size < len(free) else [None]
     z0 = np.zeros(len(free))
-    pre = solve_from("staged from nominal", fun_p, jac_p, z0, staged, options.max_nfev)
+    pre_nfev = 0
     if tool_pos.size:
-        sigma = _rms(pre.fun[: 3 * n_rows])
-        prior_weight[0] = max(sigma, 1e-9) / options.tool_prior_mm
-    outcomes = [solve_from("staged from nominal", fun_p, jac_p, pre.z, [None], options.max_nfev)]
-    outcomes[0].nfev += pre.nfev
+        pre = solve_from("without the tool prior", fun_p, jac_p, z0, staged, options.max_nfev)
+        prior_weight[0] = max(_rms(pre.fun[: 3 * n_rows]), 1e-9) / options.tool_prior_mm
+        pre_nfev = pre.nfev
+    outcomes = [solve_from("staged from nominal", fun_p, jac_p, z0, staged, options.max_nfev)]
+    outcomes[0].nfev += pre_nfev
     if options.n_starts >= 2:
         outcomes.append(solve_from("plain from nominal", fun_p, jac_p, z0, [None], options.max_nfev))
     rng = np.random.default_rng(options.seed)
@@ -484,6 +486,28 @@ def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_w
         outcomes.append(solve_from(f"random start {i - 1}", fun_p, jac_p, z, staged, options.max_nfev))
     outcomes.sort(key=lambda o: o.cost)
     return outcomes, outcomes[0]
+
+
+#: A fitted marker coordinate this many prior stds from the model's value conflicts with the prior.
+PRIOR_CONFLICT_SD = 4.0
+
+
+def _prior_conflicts(chain: Chain, params: np.ndarray, options: IdentOptions) -> list[str]:
+    """Markers fitted far outside their prior: the tool is not where the model says, or the solve
+    traded the tool against a joint turned far from its zero (another minimum)."""
+    if not options.fit_markers or options.tool_prior_mm == 0:
+        return []
+    ms = chain.marker_slice()
+    shift = np.linalg.norm((params[ms] - chain.nominal[ms]).reshape(-1, 3), axis=1)
+    far = [f"{m} {d:.3g} mm" for m, d in zip(chain.marker_names, shift) if d > PRIOR_CONFLICT_SD * options.tool_prior_mm]
+    if not far:
+        return []
+    msg = (f"markers fitted far outside their prior (±{options.tool_prior_mm:g} mm per coordinate) from the model's "
+           f"positions: {', '.join(far)} — either the tool is not where the model says (fix the model's tool, or give a "
+           "wider --tool-prior-mm) or the solve traded the tool against a joint turned far from its zero (another "
+           "minimum: check the model's joint zeros and conventions, try more --starts)")
+    log.warning(msg)
+    return [msg]
 
 
 def _start_warnings(starts: list[StartOutcome], options: IdentOptions, n_pos: int) -> list[str]:
@@ -640,9 +664,10 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
             before = absolute_errors(data, cal_before)
             after = pose_errors(result.model, result.params, data, result.base2sensor)
             return {"before": comprehensive_errors(before), "after": comprehensive_errors(after)}
+        val_params, located = locate_unseen_markers(result, sorted(set(data.marker.tolist()) - set(cal.marker.tolist())))
         b, a, rb, ra, caveats = validation_scores(cal, data, (cal_before, _marker_rows(chain, data, nominal)),
-                                                  (cal_after, _marker_rows(chain, data, result.params)),
-                                                  registration_after=result.base2sensor)
+                                                  (cal_after, _marker_rows(chain, data, val_params)),
+                                                  registration_after=result.base2sensor, located=located)
         notes.extend(caveats)
         return {"before": comprehensive_errors(b), "after": comprehensive_errors(a),
                 "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)}}
@@ -673,6 +698,41 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
              "reason": "" if math.isfinite(sd) else result.excluded.get(f"{ax}.compliance", "")}
             for ax, v, sd in zip(result.model.axis_names, result.compliance, result.compliance_std)],
     }
+
+
+def locate_unseen_markers(result: IdentResult, unseen: list[str]) -> tuple[np.ndarray, dict[str, str]]:
+    """Place markers the calibration did not measure from the model's marker layout (a nest
+    plate's drawing): the rigid transform that takes the model's positions of the fitted markers
+    onto their fitted positions carries the unseen ones too. Needs three fitted markers not on one
+    line; otherwise the unseen markers stay at the model's positions (and the scoring says so).
+
+    Returns (the identified parameter vector with the located markers, marker → how it was located).
+    """
+    from calib.registration import register_least_squares
+
+    chain = Chain(result.model)
+    fitted = [m for m in chain.marker_names if all(f"{m}.{c}" in result.free_names for c in "xyz")]
+    params = result.params.copy()
+    if not unseen or len(fitted) < 3:
+        return params, {}
+    ms = chain.marker_slice()
+    nominal = chain.nominal[ms].reshape(-1, 3)
+    now = params[ms].reshape(-1, 3)
+    idx = [chain.marker_names.index(m) for m in fitted]
+    try:
+        plate = register_least_squares(nominal[idx], now[idx]).base2sensor
+    except ValueError:  # the fitted markers lie on one line: the turn about it is unknown
+        return params, {}
+    misfit = float(np.sqrt(np.mean(np.sum((apply(plate, nominal[idx]) - now[idx]) ** 2, axis=1))))
+    how = (f"located from the model's marker layout, moved with the rigid transform that takes the model's "
+           f"{', '.join(fitted)} onto their fitted positions (misfit rms {misfit:.3f} mm) — right if the layout "
+           "(the plate's drawing) is; otherwise measure it in the calibration")
+    out = {}
+    for m in unseen:
+        k = chain.marker_names.index(m)
+        params[ms.start + 3 * k: ms.start + 3 * k + 3] = apply(plate, nominal[k])
+        out[m] = how
+    return params, out
 
 
 def _marker_rows(chain: Chain, data: Dataset, params: np.ndarray) -> np.ndarray:
