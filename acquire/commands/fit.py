@@ -389,7 +389,7 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
               report: Path | None, options) -> None:
     """``--method full``: Levenberg–Marquardt identification (``options``: ``calib.identification.IdentOptions``),
     corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report_ident``)."""
-    from calib.identification import ident_result_dict, identify, write_model_yaml
+    from calib.identification import corrected_model, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
 
     try:
         result = identify(model, cal, options)
@@ -421,9 +421,13 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
     if model_out is None and output is not None:
         model_out = output.with_name(output.stem + ".model.yaml")
     if model_out is not None:
-        write_model_yaml(result.corrected_model(), model_out)
+        # Markers the data did not measure move with the fitted ones (a nest plate), where that is known.
+        unfitted = [m for m in model.marker_names if f"{m}.x" not in result.free_names]
+        params, located = locate_unseen_markers(result, unfitted)
+        write_model_yaml(corrected_model(model, params), model_out)
         doc["model_file"] = str(model_out)
-        typer.echo(f"wrote {model_out}")
+        doc["model_file_markers_located"] = located
+        typer.echo(f"wrote {model_out}" + (f" (unmeasured markers {', '.join(located)} moved with the fitted ones)" if located else ""))
     if output is not None:
         write_result(output, doc)
         typer.echo(f"wrote {output}")
