@@ -72,7 +72,8 @@ class IdentOptions:
     #: Spread of the random starts about nominal: lengths (mm) and angles (degrees), per parameter;
     #: marker positions are drawn from their prior (``tool_prior_mm``).
     start_spread: tuple[float, float] = (2.0, 1.0)
-    #: Relative cost gap above which two starts' minima count as different (0.01: 1 %).
+    #: Relative cost gap above which two starts' minima count as different (0.01: 1 %; gaps of a
+    #: residual rms below ``COST_FLOOR_RMS_MM`` never count).
     disagree_rel: float = 0.01
 
 
@@ -396,7 +397,7 @@ def identify(
         log.warning(warnings[-1])
     params, reg = problem.split(x)
     warnings += _prior_conflicts(chain, params, options)
-    worse = {id(o) for o in disagreement(starts, options.disagree_rel)}
+    worse = {id(o) for o in disagreement(starts, options.disagree_rel, _cost_floor(starts))}
     comp = comp_std = None
     if options.compliance:
         comp, comp_std = x[-chain.n:] * 1e-6, std[-chain.n:] * 1e-6
@@ -488,6 +489,15 @@ def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_w
     return outcomes, outcomes[0]
 
 
+#: Residual rms (mm) below which two minima's costs count as equal whatever their ratio.
+COST_FLOOR_RMS_MM = 1e-4
+
+
+def _cost_floor(starts: list[StartOutcome]) -> float:
+    """The cost ½·n·(COST_FLOOR_RMS_MM)² of the residual vector's length n (mm²)."""
+    return 0.5 * starts[0].fun.size * COST_FLOOR_RMS_MM ** 2
+
+
 #: A fitted marker coordinate this many prior stds from the model's value conflicts with the prior.
 PRIOR_CONFLICT_SD = 4.0
 
@@ -512,7 +522,7 @@ def _prior_conflicts(chain: Chain, params: np.ndarray, options: IdentOptions) ->
 
 def _start_warnings(starts: list[StartOutcome], options: IdentOptions, n_pos: int) -> list[str]:
     """Say when the starts ended in minima of materially different cost, naming the gap."""
-    worse = disagreement(starts, options.disagree_rel)
+    worse = disagreement(starts, options.disagree_rel, _cost_floor(starts))
     if not worse:
         return []
     best = starts[0]

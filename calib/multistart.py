@@ -60,7 +60,8 @@ def solve_from(label: str, fun: Residuals, jac: Callable[[np.ndarray], np.ndarra
     return StartOutcome(label, z, 0.5 * float(r @ r), nfev, jac(z), r)
 
 
-def disagreement(outcomes: list[StartOutcome], rel: float) -> list[StartOutcome]:
-    """The starts whose cost is more than ``rel`` (relative) above the best's."""
+def disagreement(outcomes: list[StartOutcome], rel: float, floor: float = 0.0) -> list[StartOutcome]:
+    """The starts whose cost is more than ``rel`` (relative) and more than ``floor`` (absolute, the
+    cost's units) above the best's: on noise-free data, rounding-level costs differ by any ratio."""
     best = min(o.cost for o in outcomes)
-    return [o for o in outcomes if o.cost - best > rel * max(best, 1e-300)]
+    return [o for o in outcomes if o.cost - best > max(rel * best, floor)]

@@ -174,3 +174,11 @@ def test_the_corrected_model_places_a_second_unseen_tool_where_the_true_arm_does
              after.mean(), after.max(), before.mean(), before.max())
     assert after.mean() < 0.05 and after.max() < 0.15  # tracker noise: 0.03 mm per coordinate
     assert before.mean() > 20 * after.mean()
+
+
+def test_noise_free_data_do_not_make_rounding_level_costs_disagree():
+    """Without noise every start ends at a cost of rounding level, in ratios that mean nothing."""
+    cell = tracker_cell(seed=8, noise_mm=0.0)
+    result = identify(cell.model, cell.cal)
+    assert result.rms_mm < 1e-6
+    assert not [w for w in result.warnings if "starts disagree" in w] and all(s["same_minimum"] for s in result.starts)
