@@ -268,7 +268,8 @@ def fit(
             socket_run = None  # not readable as a run here: load_dataset below says why
     if socket_run is not None or is_socket_csv(data):
         sensor_only = {"--validate": validate is not None, "--joints": joints is not None, "--fix-registration": fix_registration,
-                       "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper"}
+                       "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper",
+                       "--starts": starts is not None}
         refused = [k for k, v in sensor_only.items() if v]
         if refused:
             raise typer.BadParameter(f"{', '.join(refused)} do not apply to socket data (no sensor, no registration; "

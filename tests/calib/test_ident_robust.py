@@ -45,7 +45,7 @@ def test_full_method_without_options_reaches_the_best_minimum_on_a_tracker_datas
                                    "--validate", str(tmp_path / "val.csv"), "--method", "full", "-o", str(out)])
     assert res.exit_code == 0, res.output
     doc = json.loads(out.read_text())
-    model, cal = load_robot_model(tmp_path / "robot.yaml"), None
+    model = load_robot_model(tmp_path / "robot.yaml")
     cal = read_csv(tmp_path / "cal.csv", model)
     best = _reference_cost(model, cal)
     costs = [s["cost"] for s in doc["starts"]]
