@@ -18,6 +18,13 @@ corrected model moves the tool, not the flange, and stays right for any other to
 (``IdentOptions.tool_prior_mm`` per coordinate; 0: exact, not fitted): prior rows
 σ/sd · (m − m_nominal) join the residuals, σ the rms of a first solve without them.
 
+**Starts.** Levenberg–Marquardt finds the minimum nearest its start. ``identify`` solves in
+stages from nominal (registration, marker positions and joint offsets first, then every
+parameter), also in one stage from nominal and from seeded random starts about it
+(``IdentOptions.n_starts``; ``calib.multistart``), all on one objective, keeps the best and says
+when starts end in minima of materially different cost, and when markers end far outside their
+prior (a tool traded against a joint turned far from its zero).
+
 Residuals: positions (mm). Where orientation is measured (``rotation`` given), the fused
 objective of the seed's eq. 19 is used: Σ L·(|Δn|² + |Δo|² + |Δa|²) + |Δp|² with L = 100 by
 default (rotation columns are unitless, so L has units of mm²).
