@@ -104,6 +104,8 @@ class IdentResult:
     #: Every start of the solve, best first: label, cost (½·Σ r² over residuals and prior rows,
     #: mm²), rms of the position residuals (mm), evaluations, ``same_minimum`` as the best.
     starts: list[dict] = field(default_factory=list)
+    #: Why the identified model must not be used (the guards of ``calib.controller``); [] if none.
+    do_not_use: list[str] = field(default_factory=list)
 
     @property
     def chain_names(self) -> list[str]:
@@ -404,6 +406,7 @@ def identify(
         log.warning(warnings[-1])
     params, reg = problem.split(x)
     warnings += _prior_conflicts(chain, params, options)
+    do_not_use = _implausible(problem, data, r[:n_pos].reshape(-1, 3))
     worse = {id(o) for o in disagreement(starts, options.disagree_rel, _cost_floor(starts))}
     comp = comp_std = None
     if options.compliance:
@@ -431,6 +434,7 @@ def identify(
         tool_prior_mm=float(options.tool_prior_mm) if options.fit_markers else 0.0,
         starts=[{"label": o.label, "cost": o.cost, "rms_mm": _rms(o.fun[:n_pos]), "evaluations": o.nfev,
                  "same_minimum": id(o) not in worse} for o in starts],
+        do_not_use=do_not_use,
     )
 
 
@@ -507,6 +511,26 @@ def _cost_floor(starts: list[StartOutcome]) -> float:
 
 #: A fitted marker coordinate this many prior stds from the model's value conflicts with the prior.
 PRIOR_CONFLICT_SD = 4.0
+
+
+def _implausible(problem: _Problem, data: Dataset, res: np.ndarray) -> list[str]:
+    """The fast fit's σ guard, per sensor: a residual rms above ``MIN_SIGMA_GUARD_MM`` and more than
+    ``MAX_SIGMA_OVER_NOISE`` × the sensor noise seen in the samples' spread (where the data carry
+    it) means the identified model does not describe the data. res: (k, 3) mm."""
+    from calib.controller import MAX_SIGMA_OVER_NOISE, MIN_SIGMA_GUARD_MM
+    from calib.fit import error_budget
+
+    out = []
+    for s, rows in zip(problem.sensors, problem.rows_of):
+        rms = float(np.sqrt(np.mean(res[rows] ** 2)))
+        noise = error_budget(data, {s: (rms, 0.0)})[s]["noise_mm"] or 0.0
+        if rms > max(MAX_SIGMA_OVER_NOISE * noise, MIN_SIGMA_GUARD_MM):
+            seen = f", {rms / noise:.0f}× the sensor noise ({noise:.3g} mm)" if noise else ""
+            out.append(f"sensor {s}: the identified model leaves an rms residual of {rms:.3g} mm per coordinate{seen}: "
+                       "it does not describe the data — a minimum far from this robot (check the model's joint zeros and "
+                       "conventions, try more --starts), or a wrong robot model, tool or units")
+            log.warning(out[-1])
+    return out
 
 
 def _prior_conflicts(chain: Chain, params: np.ndarray, options: IdentOptions) -> list[str]:
@@ -707,6 +731,7 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
         "evaluations": result.iterations,
         "starts": result.starts,
         "warnings": result.warnings,
+        "do_not_use": result.do_not_use,
         "metrics": metrics,
         "metric_notes": notes,
         "compliance": None if result.compliance is None else [

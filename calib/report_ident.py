@@ -21,8 +21,10 @@ from calib.report_format import CSS, Html, esc, num, table
 
 def _outcome(doc: dict) -> list[str]:
     warn = doc.get("warnings") or []
-    cls = "summary stop" if warn else "summary ok"
+    stop = doc.get("do_not_use") or []
+    cls = "summary stop" if warn or stop else "summary ok"
     out = [f"<div class='{cls}'><h2 id=summary>Outcome</h2>",
+           *(f"<p class='banner bad'>Do not use this model: {esc(r)}</p>" for r in stop),
            f"<p class=banner>{sum(p['identified'] for p in doc['parameters'])} parameters identified; rms residual "
            f"{num(doc['rms_mm'])} mm; scaled condition number {num(doc['condition_number'], 3)}</p>"]
     if warn:

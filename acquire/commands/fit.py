@@ -437,6 +437,9 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
 
         write_ident_report(report, result, cal, doc)
         typer.echo(f"wrote {report}")
+    if result.do_not_use:
+        typer.echo("DO NOT USE this identified model: " + "; ".join(result.do_not_use), err=True)
+        raise typer.Exit(1)
 
 
 def register(app: typer.Typer) -> None:

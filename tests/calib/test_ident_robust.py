@@ -182,3 +182,23 @@ def test_noise_free_data_do_not_make_rounding_level_costs_disagree():
     result = identify(cell.model, cell.cal)
     assert result.rms_mm < 1e-6
     assert not [w for w in result.warnings if "starts disagree" in w] and all(s["same_minimum"] for s in result.starts)
+
+
+def test_a_minimum_that_does_not_describe_the_data_is_refused_with_exit_status_1(tmp_path):
+    """J2's zero 180° from the model's: no start comes near (the best leaves hundreds of mm), and
+    the command says not to use the model and exits 1 — after writing what it found."""
+    cell = tracker_cell(2)
+    chain = Chain(cell.model)
+    truth = cell.truth.copy()
+    truth[1] += np.pi
+    cal = observe(chain, cell.cal.q_rad[::len(CAL_NESTS)], truth, CAL_NESTS, cell.base2sensor,
+                  np.random.default_rng(2), 0.03, "cal")
+    write_model_yaml(cell.model, tmp_path / "robot.yaml")
+    write_csv(cal, tmp_path / "cal.csv")
+    out = tmp_path / "full.json"
+    res = CliRunner().invoke(app, ["fit", str(tmp_path / "cal.csv"), "--robot", str(tmp_path / "robot.yaml"),
+                                   "--method", "full", "-o", str(out)])
+    doc = json.loads(out.read_text())
+    log.info("J2 180° off: rms %.1f mm; %s", doc["rms_mm"], doc["do_not_use"])
+    assert res.exit_code == 1 and "DO NOT USE this identified model" in res.output
+    assert doc["rms_mm"] > 10 and "does not describe the data" in doc["do_not_use"][0]
