@@ -18,6 +18,13 @@ corrected model moves the tool, not the flange, and stays right for any other to
 (``IdentOptions.tool_prior_mm`` per coordinate; 0: exact, not fitted): prior rows
 σ/sd · (m − m_nominal) join the residuals, σ the rms of a first solve without them.
 
+**Starts.** Levenberg–Marquardt finds the minimum nearest its start. ``identify`` solves in
+stages from nominal (registration, marker positions and joint offsets first, then every
+parameter), also in one stage from nominal and from seeded random starts about it
+(``IdentOptions.n_starts``; ``calib.multistart``), all on one objective, keeps the best and says
+when starts end in minima of materially different cost, and when markers end far outside their
+prior (a tool traded against a joint turned far from its zero).
+
 Residuals: positions (mm). Where orientation is measured (``rotation`` given), the fused
 objective of the seed's eq. 19 is used: Σ L·(|Δn|² + |Δo|² + |Δa|²) + |Δp|² with L = 100 by
 default (rotation columns are unitless, so L has units of mm²).
@@ -32,14 +39,14 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy.optimize import least_squares
 
 from calib.dataset import Dataset, DatasetError
 from calib.fit import initial_registrations
 from calib.identifiability import exact_tolerance
 from calib.kinematics import KINDS, Chain
 from calib.model import RobotModel
-from calib.transforms import euler_zyx_to_matrix
+from calib.multistart import StartOutcome, disagreement, solve_from
+from calib.transforms import apply, euler_zyx_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -50,17 +57,31 @@ REG = ("x", "y", "z", "alpha", "beta", "gamma")
 class IdentOptions:
     """``orientation_weight``: L of eq. 19 (mm²); ``rank_tol``: relative residual below which a
     column counts as a combination of the kept ones; ``exclude``: parameter names to keep nominal;
-    ``cond_warn``: scaled condition number above which the fit is called ill-conditioned."""
+    ``exclude_reasons``: (name, reason) pairs to keep nominal with the reason given (e.g. the CLI
+    option that asked for it); ``cond_warn``: scaled condition number above which the fit is called
+    ill-conditioned;
+    ``n_starts``, ``seed``, ``start_spread``, ``disagree_rel``: the multi-start solve (``identify``)."""
 
     orientation_weight: float = 100.0
     rank_tol: float = 1e-6
     exclude: tuple[str, ...] = ()
+    exclude_reasons: tuple[tuple[str, str], ...] = ()
     fit_markers: bool = True
     compliance: bool = False
     max_nfev: int = 200
     cond_warn: float = 1e4
     initial_registration: str = "least-squares"
     tool_prior_mm: float = 10.0
+    #: Starts of the solve (``identify``): 1 = the staged solve from nominal only; 2 adds the plain
+    #: one-stage solve from nominal; more add random starts (seeded by ``seed``).
+    n_starts: int = 6
+    seed: int = 0
+    #: Spread of the random starts about nominal: lengths (mm) and angles (degrees), per parameter;
+    #: marker positions are drawn from their prior (``tool_prior_mm``).
+    start_spread: tuple[float, float] = (2.0, 1.0)
+    #: Relative cost gap above which two starts' minima count as different (0.01: 1 %; gaps of a
+    #: residual rms below ``COST_FLOOR_RMS_MM`` never count).
+    disagree_rel: float = 0.01
 
 
 @dataclass
@@ -80,6 +101,11 @@ class IdentResult:
     compliance_std: np.ndarray | None = None
     #: Prior std (mm per coordinate) of the marker positions; 0: taken as exact.
     tool_prior_mm: float = 0.0
+    #: Every start of the solve, best first: label, cost (½·Σ r² over residuals and prior rows,
+    #: mm²), rms of the position residuals (mm), evaluations, ``same_minimum`` as the best.
+    starts: list[dict] = field(default_factory=list)
+    #: Why the identified model must not be used (the guards of ``calib.controller``); [] if none.
+    do_not_use: list[str] = field(default_factory=list)
 
     @property
     def chain_names(self) -> list[str]:
@@ -230,6 +256,7 @@ class _Problem:
 def _excluded_by_choice(model: RobotModel, chain: Chain, names: list[str], options: IdentOptions) -> dict[str, str]:
     """Parameters left out before looking at the data: by the options, or by the convention."""
     excluded: dict[str, str] = {n: "excluded by the options" for n in options.exclude}
+    excluded.update(dict(options.exclude_reasons))
     if model.convention == "dh":
         for i in chain.index("beta"):
             excluded[names[i]] = "β is not a parameter of the standard DH convention (use mdh for near-parallel axes)"
@@ -339,6 +366,8 @@ def identify(
 
     if not (math.isfinite(options.tool_prior_mm) and 0 <= options.tool_prior_mm <= 100):
         raise ValueError(f"tool_prior_mm must lie in 0…100 mm (0: exact markers), given {options.tool_prior_mm}")
+    if options.n_starts < 1:
+        raise ValueError(f"n_starts must be at least 1 (the staged solve from nominal), given {options.n_starts}")
     ms = chain.marker_slice()
     tool_pos = np.array([k for k, c in enumerate(free) if ms.start <= c < ms.stop], dtype=int)
     prior_weight = [0.0]  # σ / sd, set after a first solve without the prior
@@ -351,15 +380,13 @@ def identify(
         prior[np.arange(tool_pos.size), tool_pos] = prior_weight[0]
         return np.concatenate([jac(z), prior])
 
-    sol = least_squares(fun_p, np.zeros(len(free)), jac=jac_p, method="lm", max_nfev=options.max_nfev, xtol=1e-12, ftol=1e-12)
-    nfev = int(sol.nfev)
-    if tool_pos.size:
-        sigma = float(np.sqrt(np.mean(sol.fun[: 3 * len(data)] ** 2)))
-        prior_weight[0] = max(sigma, 1e-9) / options.tool_prior_mm
-        sol = least_squares(fun_p, sol.x, jac=jac_p, method="lm", max_nfev=options.max_nfev, xtol=1e-12, ftol=1e-12)
-        nfev += int(sol.nfev)
+    starts, sol = _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_weight, len(data))
+    nfev = sum(o.nfev for o in starts)
+    warnings = _start_warnings(starts, options, 3 * len(data))
+    for w in warnings:
+        log.warning(w)
     x = x0.copy()
-    x[free] = x0[free] + sol.x / scale[free]
+    x[free] = x0[free] + sol.z / scale[free]
     r = sol.fun[: sol.fun.size - tool_pos.size]
     n_pos = 3 * len(data)
     rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
@@ -371,7 +398,6 @@ def identify(
     cov = np.linalg.pinv(js.T @ js) * s2
     std = np.full(len(problem.names), np.nan)
     std[free] = np.sqrt(np.diag(cov)) / scale[free]
-    warnings = []
     if cond > options.cond_warn:
         warnings.append(
             f"ill-conditioned: scaled condition number {cond:.3g} > {options.cond_warn:g}; the weakest directions are "
@@ -379,6 +405,9 @@ def identify(
         )
         log.warning(warnings[-1])
     params, reg = problem.split(x)
+    warnings += _prior_conflicts(chain, params, options)
+    do_not_use = _implausible(problem, data, r[:n_pos].reshape(-1, 3))
+    worse = {id(o) for o in disagreement(starts, options.disagree_rel, _cost_floor(starts))}
     comp = comp_std = None
     if options.compliance:
         comp, comp_std = x[-chain.n:] * 1e-6, std[-chain.n:] * 1e-6
@@ -403,7 +432,140 @@ def identify(
         compliance=comp,
         compliance_std=comp_std,
         tool_prior_mm=float(options.tool_prior_mm) if options.fit_markers else 0.0,
+        starts=[{"label": o.label, "cost": o.cost, "rms_mm": _rms(o.fun[:n_pos]), "evaluations": o.nfev,
+                 "same_minimum": id(o) not in worse} for o in starts],
+        do_not_use=do_not_use,
     )
+
+
+def _ratio(cost: float, best: float) -> str:
+    """How much higher a cost is than the best: '+35 %' or '×2.1e+04'."""
+    ratio = cost / max(best, 1e-300)
+    return f"+{ratio - 1:.0%}" if ratio < 10 else f"×{ratio:.2g}"
+
+
+def _rms(r: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(r ** 2)))
+
+
+def _stage_columns(problem: _Problem, free: list[int]) -> np.ndarray:
+    """Positions in ``free`` of the first stage: registration, marker positions, joint offsets."""
+    first = [k for k, c in enumerate(free) if c < problem.P and problem.names[c].rsplit(".", 1)[1] in ("offset", "x", "y", "z")]
+    first += [k for k, c in enumerate(free) if problem.P <= c < problem.P + problem.n_reg]
+    return np.array(sorted(first), dtype=int)
+
+
+def _random_start(problem: _Problem, free: list[int], scale: np.ndarray, options: IdentOptions,
+                  rng: np.random.Generator) -> np.ndarray:
+    """A start about nominal in the scaled units of the solve: lengths N(0, spread mm), angles
+    N(0, spread°) (times their lever arm), markers from their prior; compliances at 0."""
+    mm, deg = options.start_spread
+    z = np.zeros(len(free))
+    for k, c in enumerate(free):
+        if c >= problem.P + problem.n_reg:
+            continue
+        kind = problem.names[c].rsplit(".", 1)[1]
+        is_marker = c < problem.P and kind in ("x", "y", "z")
+        if is_marker:
+            z[k] = rng.normal(0.0, options.tool_prior_mm)
+        elif kind in ("d", "a", "x", "y", "z"):
+            z[k] = rng.normal(0.0, mm)
+        else:
+            z[k] = rng.normal(0.0, math.radians(deg)) * scale[c]
+    return z
+
+
+def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_weight, n_rows):
+    """Every start on one objective: the staged solve from nominal (registration, marker positions
+    and joint offsets first, then everything), the plain one-stage solve from nominal, then random
+    staged starts. With fitted markers, a staged solve without the tool prior first gives σ, and
+    so the prior rows' weight σ/sd. Returns (outcomes best first, the best)."""
+    first = _stage_columns(problem, free)
+    staged = [first, None] if 0 < first.size < len(free) else [None]
+    z0 = np.zeros(len(free))
+    pre_nfev = 0
+    if tool_pos.size:
+        pre = solve_from("without the tool prior", fun_p, jac_p, z0, staged, options.max_nfev)
+        prior_weight[0] = max(_rms(pre.fun[: 3 * n_rows]), 1e-9) / options.tool_prior_mm
+        pre_nfev = pre.nfev
+    outcomes = [solve_from("staged from nominal", fun_p, jac_p, z0, staged, options.max_nfev)]
+    outcomes[0].nfev += pre_nfev
+    if options.n_starts >= 2:
+        outcomes.append(solve_from("plain from nominal", fun_p, jac_p, z0, [None], options.max_nfev))
+    rng = np.random.default_rng(options.seed)
+    for i in range(2, options.n_starts):
+        z = _random_start(problem, free, scale, options, rng)
+        outcomes.append(solve_from(f"random start {i - 1}", fun_p, jac_p, z, staged, options.max_nfev))
+    outcomes.sort(key=lambda o: o.cost)
+    return outcomes, outcomes[0]
+
+
+#: Residual rms (mm) below which two minima's costs count as equal whatever their ratio.
+COST_FLOOR_RMS_MM = 1e-4
+
+
+def _cost_floor(starts: list[StartOutcome]) -> float:
+    """The cost ½·n·(COST_FLOOR_RMS_MM)² of the residual vector's length n (mm²)."""
+    return 0.5 * starts[0].fun.size * COST_FLOOR_RMS_MM ** 2
+
+
+#: A fitted marker coordinate this many prior stds from the model's value conflicts with the prior.
+PRIOR_CONFLICT_SD = 4.0
+
+
+def _implausible(problem: _Problem, data: Dataset, res: np.ndarray) -> list[str]:
+    """The fast fit's σ guard, per sensor: a residual rms above ``MIN_SIGMA_GUARD_MM`` and more than
+    ``MAX_SIGMA_OVER_NOISE`` × the sensor noise seen in the samples' spread (where the data carry
+    it) means the identified model does not describe the data. res: (k, 3) mm."""
+    from calib.controller import MAX_SIGMA_OVER_NOISE, MIN_SIGMA_GUARD_MM
+    from calib.fit import error_budget
+
+    out = []
+    for s, rows in zip(problem.sensors, problem.rows_of):
+        rms = float(np.sqrt(np.mean(res[rows] ** 2)))
+        noise = error_budget(data, {s: (rms, 0.0)})[s]["noise_mm"] or 0.0
+        if rms > max(MAX_SIGMA_OVER_NOISE * noise, MIN_SIGMA_GUARD_MM):
+            seen = f", {rms / noise:.0f}× the sensor noise ({noise:.3g} mm)" if noise else ""
+            out.append(f"sensor {s}: the identified model leaves an rms residual of {rms:.3g} mm per coordinate{seen}: "
+                       "it does not describe the data — a minimum far from this robot (check the model's joint zeros and "
+                       "conventions, try more --starts), or a wrong robot model, tool or units")
+            log.warning(out[-1])
+    return out
+
+
+def _prior_conflicts(chain: Chain, params: np.ndarray, options: IdentOptions) -> list[str]:
+    """Markers fitted far outside their prior: the tool is not where the model says, or the solve
+    traded the tool against a joint turned far from its zero (another minimum)."""
+    if not options.fit_markers or options.tool_prior_mm == 0:
+        return []
+    ms = chain.marker_slice()
+    shift = np.linalg.norm((params[ms] - chain.nominal[ms]).reshape(-1, 3), axis=1)
+    far = [f"{m} {d:.3g} mm" for m, d in zip(chain.marker_names, shift) if d > PRIOR_CONFLICT_SD * options.tool_prior_mm]
+    if not far:
+        return []
+    msg = (f"markers fitted far outside their prior (±{options.tool_prior_mm:g} mm per coordinate) from the model's "
+           f"positions: {', '.join(far)} — either the tool is not where the model says (fix the model's tool, or give a "
+           "wider --tool-prior-mm) or the solve traded the tool against a joint turned far from its zero (another "
+           "minimum: check the model's joint zeros and conventions, try more --starts)")
+    log.warning(msg)
+    return [msg]
+
+
+def _start_warnings(starts: list[StartOutcome], options: IdentOptions, n_pos: int) -> list[str]:
+    """Say when the starts ended in minima of materially different cost, naming the gap."""
+    worse = disagreement(starts, options.disagree_rel, _cost_floor(starts))
+    if not worse:
+        return []
+    best = starts[0]
+    gaps = ", ".join(f"{o.label}: rms {_rms(o.fun[:n_pos]):.4g} mm (cost {_ratio(o.cost, best.cost)})" for o in worse)
+    out = [f"the starts disagree: {len(worse)} of {len(starts)} ended in a worse minimum than the best "
+           f"({best.label}: rms {_rms(best.fun[:n_pos]):.4g} mm) — {gaps}; the best is kept"]
+    staged = next(o for o in starts if o.label == "staged from nominal")
+    if any(o is staged for o in worse):
+        out[0] += (f"; the staged solve from nominal stopped at rms {_rms(staged.fun[:n_pos]):.4g} mm: the nominal model "
+                   "is far from this robot or the data leave it several minima — check the model (units, conventions, "
+                   "tool), measure more varied configurations, and try more starts (--starts N)")
+    return out
 
 
 def corrected_model(model: RobotModel, params: np.ndarray) -> RobotModel:
@@ -543,9 +705,10 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
             before = absolute_errors(data, cal_before)
             after = pose_errors(result.model, result.params, data, result.base2sensor)
             return {"before": comprehensive_errors(before), "after": comprehensive_errors(after)}
+        val_params, located = locate_unseen_markers(result, sorted(set(data.marker.tolist()) - set(cal.marker.tolist())))
         b, a, rb, ra, caveats = validation_scores(cal, data, (cal_before, _marker_rows(chain, data, nominal)),
-                                                  (cal_after, _marker_rows(chain, data, result.params)),
-                                                  registration_after=result.base2sensor)
+                                                  (cal_after, _marker_rows(chain, data, val_params)),
+                                                  registration_after=result.base2sensor, located=located)
         notes.extend(caveats)
         return {"before": comprehensive_errors(b), "after": comprehensive_errors(a),
                 "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)}}
@@ -566,7 +729,9 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
         "rms_mm": result.rms_mm,
         "condition_number": result.condition_number,
         "evaluations": result.iterations,
+        "starts": result.starts,
         "warnings": result.warnings,
+        "do_not_use": result.do_not_use,
         "metrics": metrics,
         "metric_notes": notes,
         "compliance": None if result.compliance is None else [
@@ -575,6 +740,41 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
              "reason": "" if math.isfinite(sd) else result.excluded.get(f"{ax}.compliance", "")}
             for ax, v, sd in zip(result.model.axis_names, result.compliance, result.compliance_std)],
     }
+
+
+def locate_unseen_markers(result: IdentResult, unseen: list[str]) -> tuple[np.ndarray, dict[str, str]]:
+    """Place markers the calibration did not measure from the model's marker layout (a nest
+    plate's drawing): the rigid transform that takes the model's positions of the fitted markers
+    onto their fitted positions carries the unseen ones too. Needs three fitted markers not on one
+    line; otherwise the unseen markers stay at the model's positions (and the scoring says so).
+
+    Returns (the identified parameter vector with the located markers, marker → how it was located).
+    """
+    from calib.registration import register_least_squares
+
+    chain = Chain(result.model)
+    fitted = [m for m in chain.marker_names if all(f"{m}.{c}" in result.free_names for c in "xyz")]
+    params = result.params.copy()
+    if not unseen or len(fitted) < 3:
+        return params, {}
+    ms = chain.marker_slice()
+    nominal = chain.nominal[ms].reshape(-1, 3)
+    now = params[ms].reshape(-1, 3)
+    idx = [chain.marker_names.index(m) for m in fitted]
+    try:
+        plate = register_least_squares(nominal[idx], now[idx]).base2sensor
+    except ValueError:  # the fitted markers lie on one line: the turn about it is unknown
+        return params, {}
+    misfit = float(np.sqrt(np.mean(np.sum((apply(plate, nominal[idx]) - now[idx]) ** 2, axis=1))))
+    how = (f"located from the model's marker layout, moved with the rigid transform that takes the model's "
+           f"{', '.join(fitted)} onto their fitted positions (misfit rms {misfit:.3f} mm) — right if the layout "
+           "(the plate's drawing) is; otherwise measure it in the calibration")
+    out = {}
+    for m in unseen:
+        k = chain.marker_names.index(m)
+        params[ms.start + 3 * k: ms.start + 3 * k + 3] = apply(plate, nominal[k])
+        out[m] = how
+    return params, out
 
 
 def _marker_rows(chain: Chain, data: Dataset, params: np.ndarray) -> np.ndarray:

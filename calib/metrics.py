@@ -113,7 +113,8 @@ def registered_errors(data: Dataset, p_robot: np.ndarray, base2sensor: dict[str,
 
 
 def validation_scores(cal: Dataset, val: Dataset, before: tuple[np.ndarray, np.ndarray],
-                      after: tuple[np.ndarray, np.ndarray], *, registration_after: dict[str, np.ndarray] | None = None
+                      after: tuple[np.ndarray, np.ndarray], *, registration_after: dict[str, np.ndarray] | None = None,
+                      located: dict[str, str] | None = None
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
     """Absolute errors of the validation rows, before and after, both scored the same way.
 
@@ -122,7 +123,8 @@ def validation_scores(cal: Dataset, val: Dataset, before: tuple[np.ndarray, np.n
     fit's own registration for the after model) and that registration scores the validation rows.
     Returns (before, after) with the calibration registration, (before, after) re-registered on
     the validation rows themselves (optimistic: shown beside, named as such), and caveats: sensors
-    the calibration data lack are re-registered in both; markers it lacks were not fitted.
+    the calibration data lack are re-registered in both; markers it lacks were not fitted, unless
+    ``located`` (marker → how the after model places it) says how they were located.
     """
     notes = []
     reg_b = registrations(cal, before[0])
@@ -134,7 +136,9 @@ def validation_scores(cal: Dataset, val: Dataset, before: tuple[np.ndarray, np.n
         reg_a.update({s: r for s, r in registrations(val, after[1]).items() if s in foreign})
         notes.append(f"validation sensor(s) {', '.join(foreign)} are not in the calibration data: their validation "
                      "points are scored with a registration fitted to those points themselves (optimistic)")
-    unseen = sorted(set(val.marker.tolist()) - set(cal.marker.tolist()))
+    located = located or {}
+    notes += [f"validation marker {m} was not measured in the calibration data: {how}" for m, how in sorted(located.items())]
+    unseen = sorted(set(val.marker.tolist()) - set(cal.marker.tolist()) - set(located))
     if unseen:
         notes.append(f"validation marker(s) {', '.join(unseen)} were not measured in the calibration data: their "
                      "position on the flange is the model's, not fitted, so their errors include the tool's error "

@@ -199,19 +199,27 @@ def fit(
     fix_registration: bool = typer.Option(False, "--fix-registration", help="Keep the initial registration (no T* correction)."),
     error: str = typer.Option("gaussian", "--error", help="Error model: gaussian (the paper's) or student (robust)."),
     seed: int = typer.Option(0, "--seed", help="Random seed."),
-    link_tolerance: str = typer.Option(
-        "0.2,0.02", "--link-tolerance",
-        help="MM,DEG: prior std of the link parameters (d, a in mm; α, β in degrees) the fast fit marginalises, "
-        "so link errors widen the offsets' intervals instead of biasing them; 'none': the paper's model.",
+    link_tolerance: Optional[str] = typer.Option(
+        None, "--link-tolerance",
+        help="fast, paper: MM,DEG: prior std of the link parameters (d, a in mm; α, β in degrees) the fit "
+        "marginalises, so link errors widen the offsets' intervals instead of biasing them; 'none': the paper's "
+        "model. Default 0.2,0.02. (full identifies the link parameters themselves.)",
     ),
     tool_prior_mm: float = typer.Option(
         10.0, "--tool-prior-mm",
         help="Prior std (mm, per coordinate) of the measured markers' positions on the flange about the robot "
         "model's: every method fits them and writes them to the corrected model; 0: the model's positions are exact.",
     ),
-    draws: int = typer.Option(1000, "--draws", help="fast: draws per chain (4 chains)."),
-    paper_samples: int = typer.Option(200_000, "--paper-samples", help="paper: Metropolis samples; the last 1/8 are kept."),
-    n_random: int = typer.Option(1000, "--random-configs", help="Random workspace configurations for the theoretical metric."),
+    draws: Optional[int] = typer.Option(None, "--draws", help="fast: draws per chain (4 chains). Default 1000."),
+    paper_samples: Optional[int] = typer.Option(
+        None, "--paper-samples", help="paper: Metropolis samples; the last 1/8 are kept. Default 200000."),
+    n_random: Optional[int] = typer.Option(
+        None, "--random-configs", help="fast, paper: random workspace configurations for the theoretical metric. Default 1000."),
+    starts: Optional[int] = typer.Option(
+        None, "--starts",
+        help="full: starts of the identification — the staged solve from nominal, the plain one, then random starts "
+        "(seeded by --seed); the best is kept and disagreeing starts are reported. Default 6.",
+    ),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="Write result.json here."),
     report: Optional[Path] = typer.Option(None, "--report", help="Write a self-contained report.html here."),
     model_out: Optional[Path] = typer.Option(
@@ -230,6 +238,15 @@ def fit(
     """Fit the joint zero-offsets (and the sensor registration and σ) to measured marker positions."""
     if method not in ("fast", "paper", "full"):
         raise typer.BadParameter(f"expected fast, paper or full, given {method!r}", param_hint="--method")
+    refuse_options(method, {"--link-tolerance": link_tolerance is not None, "--draws": draws is not None,
+                            "--paper-samples": paper_samples is not None, "--random-configs": n_random is not None,
+                            "--error": error != "gaussian", "--starts": starts is not None})
+    link_tolerance = "0.2,0.02" if link_tolerance is None else link_tolerance
+    draws = 1000 if draws is None else draws
+    paper_samples = 200_000 if paper_samples is None else paper_samples
+    n_random = 1000 if n_random is None else n_random
+    if starts is not None and starts < 1:
+        raise typer.BadParameter(f"must be at least 1 (the staged solve from nominal), given {starts}", param_hint="--starts")
     if error not in ("gaussian", "student"):
         raise typer.BadParameter(f"expected gaussian or student, given {error!r}", param_hint="--error")
     for name, value, low in (("--draws", draws, 10), ("--paper-samples", paper_samples, 80), ("--random-configs", n_random, 1)):
@@ -251,7 +268,8 @@ def fit(
             socket_run = None  # not readable as a run here: load_dataset below says why
     if socket_run is not None or is_socket_csv(data):
         sensor_only = {"--validate": validate is not None, "--joints": joints is not None, "--fix-registration": fix_registration,
-                       "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper"}
+                       "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper",
+                       "--starts": starts is not None}
         refused = [k for k, v in sensor_only.items() if v]
         if refused:
             raise typer.BadParameter(f"{', '.join(refused)} do not apply to socket data (no sensor, no registration; "
@@ -282,7 +300,11 @@ def fit(
         raise typer.BadParameter(f"expected 0 ≤ MM ≤ 100 (0: the markers' positions are exact), given {tool_prior_mm}",
                                  param_hint="--tool-prior-mm")
     if method == "full":
-        _fit_full(model, cal, val, output, model_out, compliance=compliance, tool_prior_mm=tool_prior_mm)
+        from calib.identification import IdentOptions  # the identification loads only for --method full
+
+        options = IdentOptions(compliance=compliance, tool_prior_mm=tool_prior_mm, seed=seed, n_starts=starts or 6,
+                               exclude_reasons=_full_exclusions(model, cal, _joints(joints, model.n_joints), fix_registration))
+        _fit_full(model, cal, val, output, model_out, report, options)
         return
     options = FitOptions(
         link_tolerance=_link_tolerance(link_tolerance),
@@ -327,19 +349,59 @@ def fit(
         raise typer.Exit(1)
 
 
+#: Options that only some methods use, with what to use instead elsewhere.
+METHOD_OPTIONS = {
+    "--link-tolerance": (("fast", "paper"), "--method full identifies the link parameters themselves: drop --link-tolerance"),
+    "--draws": (("fast",), "only the fast sampler takes draws (--method paper: --paper-samples; full samples nothing)"),
+    "--paper-samples": (("paper",), "only the paper's Metropolis takes samples (--method fast: --draws)"),
+    "--random-configs": (("fast", "paper"), "--method full scores the measured configurations and --validate data only"),
+    "--error": (("fast", "paper"), "--method full is least squares (Gaussian errors): use --method fast or paper for "
+                                   "the Student-t error model, or drop --error"),
+    "--starts": (("full",), "the fast and paper fits start from their least-squares mode: --starts applies to --method full"),
+}
+
+
+def refuse_options(method: str, given: dict[str, bool]) -> None:
+    """Exit 2 naming an option ``method`` does not use and what to use instead."""
+    for name, used in given.items():
+        methods, instead = METHOD_OPTIONS[name]
+        if used and method not in methods:
+            raise typer.BadParameter(f"{name} does not apply to --method {method}: {instead}", param_hint=name)
+
+
+def _full_exclusions(model: RobotModel, cal: Dataset, joints: tuple[int, ...] | None,
+                     fix_registration: bool) -> tuple[tuple[str, str], ...]:
+    """(parameter, reason) that --method full keeps nominal by the user's options: the zero-offsets
+    of the axes --joints leaves out (their link parameters are still identified), the registration
+    with --fix-registration (the least-squares one of the nominal model)."""
+    out = []
+    if joints is not None:
+        out += [(f"{ax}.offset", "zero-offset kept nominal: the axis is not in --joints")
+                for i, ax in enumerate(model.axis_names) if i + 1 not in joints]
+    if fix_registration:
+        from calib.identification import REG
+
+        out += [(f"{s}.{r}", "registration kept at the nominal model's least-squares one (--fix-registration)")
+                for s in cal.sensors for r in REG]
+    return tuple(out)
+
+
 def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None,
-              *, compliance: bool = False, tool_prior_mm: float = 10.0) -> None:
-    """``--method full``: Levenberg–Marquardt identification, corrected model YAML, EACPE/EMCPE."""
-    from calib.identification import IdentOptions, ident_result_dict, identify, write_model_yaml
+              report: Path | None, options) -> None:
+    """``--method full``: Levenberg–Marquardt identification (``options``: ``calib.identification.IdentOptions``),
+    corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report_ident``)."""
+    from calib.identification import corrected_model, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
 
     try:
-        result = identify(model, cal, IdentOptions(compliance=compliance, tool_prior_mm=tool_prior_mm))
+        result = identify(model, cal, options)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
     doc = ident_result_dict(result, cal, val)
     lines = [f"full identification of {model.name}: {len(result.free_names)} parameters from {len(cal)} measurements",
              f"rms residual {doc['rms_mm']:.4f} mm, scaled condition number {doc['condition_number']:.3g}"]
     lines += [f"warning: {w}" for w in result.warnings]
+    lines.append("starts (best first): " + "; ".join(
+        f"{s['label']} rms {s['rms_mm']:.4f} mm{'' if s['same_minimum'] else ' (worse minimum)'}" for s in result.starts))
     lines.append(f"{'parameter':<14}{'nominal':>12}{'identified':>14}{'± std':>10}")
     for p in doc["parameters"]:
         if p["identified"] and abs(p["change"]) > 0:
@@ -360,12 +422,24 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
     if model_out is None and output is not None:
         model_out = output.with_name(output.stem + ".model.yaml")
     if model_out is not None:
-        write_model_yaml(result.corrected_model(), model_out)
+        # Markers the data did not measure move with the fitted ones (a nest plate), where that is known.
+        unfitted = [m for m in model.marker_names if f"{m}.x" not in result.free_names]
+        params, located = locate_unseen_markers(result, unfitted)
+        write_model_yaml(corrected_model(model, params), model_out)
         doc["model_file"] = str(model_out)
-        typer.echo(f"wrote {model_out}")
+        doc["model_file_markers_located"] = located
+        typer.echo(f"wrote {model_out}" + (f" (unmeasured markers {', '.join(located)} moved with the fitted ones)" if located else ""))
     if output is not None:
         write_result(output, doc)
         typer.echo(f"wrote {output}")
+    if report is not None:
+        from calib.report_ident import write_ident_report  # the report's modules only when one is asked for
+
+        write_ident_report(report, result, cal, doc)
+        typer.echo(f"wrote {report}")
+    if result.do_not_use:
+        typer.echo("DO NOT USE this identified model: " + "; ".join(result.do_not_use), err=True)
+        raise typer.Exit(1)
 
 
 def register(app: typer.Typer) -> None:

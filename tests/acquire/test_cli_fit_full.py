@@ -45,3 +45,50 @@ def test_full_identification_writes_result_and_a_loadable_corrected_model(tmp_pa
 def test_unknown_method_is_refused():
     res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--method", "magic"])
     assert res.exit_code != 0 and "fast, paper or full" in res.output
+
+
+def test_full_identification_writes_a_report_and_lists_its_starts(tmp_path):
+    rep = tmp_path / "report.html"
+    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--validate", str(VAL), "--method", "full",
+                                   "--report", str(rep), "--starts", "3", "--seed", "5"])
+    assert res.exit_code == 0, res.output
+    assert "starts (best first): " in res.output and res.output.count("random start") == 1
+    html = rep.read_text()
+    for heading in ("Starts of the solve", "Identified parameters", "Kept nominal", "Accuracy before and after",
+                    "re-registered on its own points (optimistic)", "with the calibration registration"):
+        assert heading in html, heading
+    assert "<img" in html and "A3.d" in html
+
+
+def test_full_identification_honours_joints_and_fix_registration(tmp_path):
+    out = tmp_path / "full.json"
+    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--method", "full", "--joints", "2,3,4,5,6",
+                                   "--fix-registration", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    identified = {p["name"]: p for p in doc["parameters"]}
+    assert identified["A3.offset"]["identified"] and not identified["A7.offset"]["identified"]
+    assert "not in --joints" in doc["excluded"]["A7.offset"]
+    sensor = next(iter(doc["registration"]))
+    assert "--fix-registration" in doc["excluded"][f"{sensor}.x"]
+    free = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--method", "full", "-o", str(tmp_path / "b.json")])
+    assert free.exit_code == 0
+    assert json.loads((tmp_path / "b.json").read_text())["registration"][sensor] != doc["registration"][sensor]
+
+
+@pytest.mark.parametrize("option, value, says", [
+    ("--link-tolerance", "0.1,0.01", "identifies the link parameters themselves"),
+    ("--error", "student", "use --method fast or paper"),
+    ("--draws", "200", "only the fast sampler"),
+    ("--paper-samples", "4000", "only the paper's Metropolis"),
+    ("--random-configs", "50", "scores the measured configurations"),
+])
+def test_options_full_does_not_use_are_refused_saying_what_to_do(option, value, says):
+    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--method", "full", option, value])
+    text = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 2 and f"{option} does not apply to --method full" in text and says in text, res.output
+
+
+def test_starts_is_refused_for_the_fast_method():
+    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--starts", "4"])
+    assert res.exit_code == 2 and "--starts applies to" in " ".join(res.output.replace("│", " ").split())
