@@ -278,6 +278,7 @@ def fit(
                         link_tolerance=_link_tolerance(link_tolerance),
                         output=output, model_out=model_out, compliance=compliance, dataset=socket_run)
         return
+    refuse_options(method, {"--model-out": model_out is not None})  # a socket fit writes its model (above)
     if socket_distance is not None:
         raise typer.BadParameter("--socket-distance applies to socket data (a CSV ending in placement,socket)",
                                  param_hint="--socket-distance")
@@ -357,6 +358,8 @@ METHOD_OPTIONS = {
     "--random-configs": (("fast", "paper"), "--method full scores the measured configurations and --validate data only"),
     "--error": (("fast", "paper"), "--method full is least squares (Gaussian errors): use --method fast or paper for "
                                    "the Student-t error model, or drop --error"),
+    "--model-out": (("full",), "only --method full (and a socket fit) changes the robot model; the fast and paper fits write "
+                               "their offsets with -o; `acquire model export MODEL --result RESULT.json` applies them to a URDF"),
     "--starts": (("full",), "the fast and paper fits start from their least-squares mode: --starts applies to --method full"),
 }
 

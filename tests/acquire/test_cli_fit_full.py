@@ -89,6 +89,15 @@ def test_options_full_does_not_use_are_refused_saying_what_to_do(option, value, 
     assert res.exit_code == 2 and f"{option} does not apply to --method full" in text and says in text, res.output
 
 
+@pytest.mark.parametrize("method", ["fast", "paper"])
+def test_model_out_is_refused_where_the_model_is_not_changed(method, tmp_path):
+    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--method", method,
+                                   "--model-out", str(tmp_path / "m.yaml")])
+    text = " ".join(res.output.replace("│", " ").split())
+    assert res.exit_code == 2 and f"--model-out does not apply to --method {method}" in text, res.output
+    assert not (tmp_path / "m.yaml").exists()
+
+
 def test_starts_is_refused_for_the_fast_method():
     res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--starts", "4"])
     assert res.exit_code == 2 and "--starts applies to" in " ".join(res.output.replace("│", " ").split())
