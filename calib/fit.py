@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from calib.dataset import Dataset, DatasetError
 from calib.identifiability import Identifiability, analyse
@@ -306,6 +305,40 @@ def _resolve_tool(post_factory, mask: ParamMask, lever_mm: float, prior_mm: floa
     return mask
 
 
+def _levenberg_marquardt(fun, jac, x0: np.ndarray, *, tol: float = 1e-12, max_iter: int = 200) -> np.ndarray:
+    """Minimise |fun(x)|² (fun: (p,) → (m,), jac: its (m, p) Jacobian) from x0 (p,).
+
+    Levenberg–Marquardt with Marquardt's column scaling, each step a least-squares solve of the
+    damped system (no normal equations: offsets in rad next to translations in mm square into a
+    poor conditioning). Stops when a step changes x by less than ``tol`` relative, or the cost by
+    less than ``tol`` relative. Small dense problems only (the mode: tens of parameters)."""
+    x = np.asarray(x0, dtype=float).copy()
+    f = fun(x)
+    cost = float(f @ f)
+    lam = 1e-3
+    scale = np.zeros(x.size)
+    for _ in range(max_iter):
+        j = jac(x)
+        scale = np.maximum(scale, np.linalg.norm(j, axis=0))
+        d = np.where(scale > 0, scale, 1.0)
+        while True:
+            damped = np.vstack([j, np.diag(math.sqrt(lam) * d)])
+            step = np.linalg.lstsq(damped, np.concatenate([-f, np.zeros(x.size)]), rcond=None)[0]
+            x_new = x + step
+            f_new = fun(x_new)
+            cost_new = float(f_new @ f_new)
+            if cost_new <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e16:
+                return x
+        x, f, gain, cost = x_new, f_new, cost - cost_new, cost_new
+        lam = max(lam / 10.0, 1e-12)
+        if np.linalg.norm(d * step) <= tol * (np.linalg.norm(d * x) + tol) or gain <= tol * cost:
+            break
+    return x
+
+
 def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.ndarray]:
     """Posterior mode: θ (dim,) and log σ (S,)."""
     s_idx = post.sensor_index
@@ -330,8 +363,7 @@ def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.
             j = -(post.jacobian(t).reshape(post.n_rows, 3, -1) * w[:, :, None]).reshape(post.n_rows * 3, -1)
             return np.concatenate([j, prior_rows])
 
-        sol = least_squares(fun, theta, jac=jac, method="lm", xtol=1e-12, ftol=1e-12)
-        theta = sol.x
+        theta = _levenberg_marquardt(fun, jac, theta)
         r2 = np.sum(post.residuals(theta) ** 2, axis=-1)
         if error == "gaussian":
             # Mode of σ in (θ, log σ) coordinates: ∂/∂logσ [−(3n+1) log σ − E/2σ²] = 0.

@@ -44,10 +44,10 @@ are ~1e-4 of the sag itself). Flat prior on each k_i.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import gammaln
 
 from calib.dataset import Dataset
 from calib.kinematics import Chain, offset_kinematics
@@ -380,7 +380,7 @@ class OffsetPosterior:
             nu = self.nu
             # Multivariate t in 3-D with scale σ: density ∝ σ^-3 (1 + r²/(ν σ²))^(-(ν+3)/2).
             ll = -0.5 * (nu + 3) * np.log1p(r2 / (nu * sig2)) - 3.0 * log_sigma[..., self.sensor_index]
-            ll = ll + gammaln((nu + 3) / 2) - gammaln(nu / 2)
+            ll = ll + math.lgamma((nu + 3) / 2) - math.lgamma(nu / 2)
         out = ll.sum(axis=-1) - log_sigma.sum(axis=-1)
         if self.L:
             pos, sd = self.link_free()

@@ -10,7 +10,7 @@ import pytest
 
 from calib.dataset import Dataset
 from calib.fit import FitOptions, fit_offsets
-from calib.gravity import gravity_torques, joint_frames
+from calib.gravity import chi2_sf, gravity_torques, joint_frames
 from calib.kinematics import Chain
 from calib.model import load_robot_model, robot_model_from_dict
 from calib.transforms import exp_so3
@@ -115,6 +115,17 @@ def _dataset(model, q, sag_rad_per_nm, seed, noise_mm=0.02):
         marker=np.array(model.marker_names * k), sensor=np.array(["tracker"] * (k * m)),
         std_mm=np.full(k * m, noise_mm), count=np.full(k * m, 30), split=np.array(["cal"] * (k * m)),
     )
+
+
+def test_chi2_tail_probability_matches_scipy():
+    """The sag check's closed-form χ² tail (no scipy import on the fit's path) against scipy's,
+    over the degrees of freedom of 1–12 compliances, from the bulk far into the tail."""
+    from scipy.special import chdtrc
+
+    for dof in range(1, 13):
+        for x in (1e-4, 0.3, 1.0, 2.5, dof, 3.0 * dof + 7, 60.0, 250.0):
+            assert chi2_sf(dof, x) == pytest.approx(chdtrc(dof, x), rel=1e-10, abs=1e-300), (dof, x)
+    assert chi2_sf(4, 0.0) == 1.0
 
 
 def test_fit_warns_when_residuals_follow_gravity_and_stays_quiet_without_sag():
