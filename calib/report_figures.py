@@ -159,34 +159,38 @@ def tcp_cloud_figure(clouds: TcpClouds) -> str:
 
 
 def offset_trace_figure(result: FitResult) -> str | None:
-    """Trace plots and histograms of the fitted offsets (degrees); None when none is fitted."""
+    """Trace plots of the fitted offsets (degrees), each with its posterior histogram beside it on
+    the same vertical scale; None when none is fitted."""
     post = result.posterior
     fitted = [i for i, s in enumerate(result.offset_status) if s == "fitted"]
     if not fitted:
         return None
     axes = result.model.axis_names
     full = post.full_vector(result.chains.samples[..., : post.dim])  # (c, d, n + …)
-    fig = _figure(10, 1.5 * len(fitted) + 0.6, left=0.85, wspace=0.2, hspace=0.3, bottom=0.45)
-    ax = fig.subplots(len(fitted), 2, squeeze=False)
+    fig = _figure(10, 1.5 * len(fitted) + 0.6, left=0.85, wspace=0.05, hspace=0.3, bottom=0.45)
+    # The histogram shares its row's vertical axis and draws no axes of its own: tick labels are
+    # most of a figure's drawing cost, and the counts say nothing the shape does not.
+    ax = fig.subplots(len(fitted), 2, squeeze=False, gridspec_kw={"width_ratios": [4, 1]})
     step = max(1, math.ceil(full.shape[1] / TRACE_POINTS))
     x = np.arange(0, full.shape[1], step)
     for row, i in enumerate(fitted):
+        trace, hist = ax[row]
         for c in range(full.shape[0]):
-            ax[row, 0].plot(x, np.degrees(full[c, ::step, i]), lw=0.5)
-        ax[row, 0].set_ylabel(f"δ{axes[i]} (°)", fontsize=8)
+            trace.plot(x, np.degrees(full[c, ::step, i]), lw=0.5)
+        trace.set_ylabel(f"δ{axes[i]} (°)", fontsize=8)
+        trace.tick_params(labelsize=7)
+        trace.locator_params(axis="y", nbins=4)
         counts, edges = np.histogram(np.degrees(full[..., i].ravel()), bins=40)
-        ax[row, 1].stairs(counts, edges, fill=True, color="tab:blue", alpha=0.8)  # one artist, not 40 bars
-        ax[row, 1].axvline(math.degrees(result.offsets_rad[i]), color="k", lw=1)
-        for a in ax[row]:
-            a.tick_params(labelsize=7)
-            a.locator_params(axis="y", nbins=4)  # fewer tick labels: text is most of a figure's cost
+        hist.stairs(counts, edges, fill=True, color="tab:blue", alpha=0.8, orientation="horizontal")  # one artist
+        hist.axhline(math.degrees(result.offsets_rad[i]), color="k", lw=1)
+        hist.sharey(trace)
+        hist.set_axis_off()
         if row < len(fitted) - 1:  # the draw axis is common: label it once, at the bottom
-            ax[row, 0].sharex(ax[-1, 0])
-            ax[row, 0].tick_params(labelbottom=False)
+            trace.sharex(ax[-1, 0])
+            trace.tick_params(labelbottom=False)
     ax[0, 0].set_title("trace plots (one colour per chain)", fontsize=9)
-    ax[0, 1].set_title("posterior histograms (line: mean)", fontsize=9)
+    ax[0, 1].set_title("posterior (line: mean)", fontsize=9)
     ax[-1, 0].set_xlabel(f"draw (every {step}th shown)" if step > 1 else "draw", fontsize=8)
-    ax[-1, 1].set_xlabel("degrees", fontsize=8)
     return png(fig, "trace plots and posterior histograms of the fitted offsets", dpi=90)
 
 
