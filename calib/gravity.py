@@ -21,9 +21,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-# scipy.special's χ² survival function: the same as scipy.stats.chi2.sf without importing scipy.stats
-# (over a second of the `acquire fit` process's start-up).
-from scipy.special import chdtrc
 
 from calib.kinematics import Chain, joint_frames
 
@@ -55,6 +52,26 @@ def gravity_torques(chain: Chain, q: np.ndarray, params: np.ndarray | None = Non
         moment = np.cross(lever, weight[i:]).sum(axis=-2)  # N·mm
         tau[..., i] = np.einsum("...j,...j->...", moment, axes[..., i, :]) / 1000.0
     return tau
+
+
+def chi2_sf(dof: int, x: float) -> float:
+    """P(χ² with ``dof`` (integer ≥ 1) degrees of freedom > x), in closed form: the series of the
+    regularised upper gamma function for integer and half-integer shape (no scipy import)."""
+    if x <= 0:
+        return 1.0
+    h = 0.5 * x
+    if dof % 2 == 0:
+        term, total = 1.0, 1.0
+        for i in range(1, dof // 2):
+            term *= h / i
+            total += term
+        return min(1.0, math.exp(-h) * total)
+    term = math.sqrt(h) * 2.0 / math.sqrt(math.pi)  # h^(1/2) / Γ(3/2)
+    total = 0.0
+    for i in range((dof - 1) // 2):
+        total += term
+        term *= h / (i + 1.5)
+    return min(1.0, math.erfc(math.sqrt(h)) + math.exp(-h) * total)
 
 
 @dataclass(frozen=True)
@@ -99,7 +116,7 @@ def compliance_score(chain: Chain, q: np.ndarray, jac_offsets: np.ndarray, jac_f
     contrib = np.abs(coef * np.linalg.norm(jc_perp, axis=0))
     names = [ax for ax, k in zip(chain.model.axis_names, keep) if k]
     share = contrib / contrib.sum() if contrib.sum() > 0 else contrib
-    return ComplianceScore(stat, rank, float(chdtrc(rank, stat)), {n: float(v) for n, v in zip(names, share)})
+    return ComplianceScore(stat, rank, chi2_sf(rank, stat), {n: float(v) for n, v in zip(names, share)})
 
 
 def sag_check(post, theta: np.ndarray, sigma_mm: dict[str, float]) -> ComplianceScore | None:

@@ -512,22 +512,23 @@ def _intervals_many(s: _Solver, poses: np.ndarray) -> list[dict[str, list[tuple[
         n_gaps = max(cuts.size, 1)
         feas = feas_all[start : start + n_gaps]
         start += n_gaps
-        ends = np.append(cuts[1:], cuts[0] + 2 * np.pi) if cuts.size else None
+        # Plain Python from here: a handful of gaps and 8 labels per pose, where numpy's per-call cost dominated.
+        cuts_l = cuts.tolist()
+        ends_l = cuts_l[1:] + [cuts_l[0] + 2 * np.pi] if cuts_l else []
         per: dict[str, list[tuple[float, float]]] = {}
-        for c, label in enumerate(s.labels):
-            col = feas[:, c]
-            if col.all():
+        for label, col in zip(s.labels, feas.T.tolist()):
+            if all(col):
                 per[label] = [(-np.pi, np.pi)]
                 continue
             intervals: list[tuple[float, float]] = []
-            if col.any():
-                g0 = int(np.flatnonzero(~col)[0])
+            if any(col):
+                g0 = col.index(False)
                 run = None
-                for g in np.roll(np.arange(col.size), -g0)[1:]:  # starts after an infeasible gap
+                for g in [*range(g0 + 1, len(col)), *range(g0)]:  # starts after an infeasible gap
                     if col[g] and run is None:
-                        run = [cuts[g], ends[g]]
+                        run = [cuts_l[g], ends_l[g]]
                     elif col[g]:
-                        run[1] = ends[g]
+                        run[1] = ends_l[g]
                     elif run is not None:
                         intervals.extend(_split(*run))
                         run = None
@@ -561,7 +562,7 @@ def _split(lo: float, hi: float) -> list[tuple[float, float]]:
     """Arc from lo to hi (hi ≥ lo, hi − lo ≤ 2π) as intervals within [−π, π]."""
     if hi - lo >= 2 * np.pi:
         return [(-np.pi, np.pi)]
-    lo, hi = float(_wrap(lo)), float(_wrap(hi))
+    lo, hi = math.pi - (math.pi - lo) % (2 * math.pi), math.pi - (math.pi - hi) % (2 * math.pi)  # _wrap, on floats
     if hi >= lo:
         return [(lo, hi)]
     return [(lo, np.pi), (-np.pi, hi)]

@@ -267,36 +267,33 @@ class SrsGeometry:
         rel = t_rel[:, None, :3, :3]
         a_w, b_w, c_w = (m @ np.swapaxes(x, -1, -2) @ rel for x in (a_s, b_s, c_s))
         lims_lo, lims_hi = np.pi - np.mod(np.pi - lower, 2 * np.pi), np.pi - np.mod(np.pi - upper, 2 * np.pi)
-        roots = []
-
-        def add(a, b, c):  # a sin ψ + b cos ψ + c = 0, arrays (k, 2)
-            sol = solve_cosine(b, a, -c)
-            ok = (np.abs(sol.ratio) <= 1.0 + 1e-12) & reach[:, None]
-            roots.append(np.where(ok, sol.plus, np.nan))
-            roots.append(np.where(ok, sol.minus, np.nan))
-
-        for (aa, bb, cc), triple, joints in (
+        # Every equation a sin ψ + b cos ψ + c = 0 stacked, (M, k, 2) each, and solved in one call.
+        eq_a, eq_b, eq_c = [], [], []
+        for mats, triple, (j1, j2, j3) in (
             ((a_s, b_s, c_s), self.shoulder_triple, (0, 1, 2)),
             ((a_w, b_w, c_w), self.wrist_triple, (4, 5, 6)),
         ):
             a1, a2, a3 = triple.a1, triple.a2, triple.a3
-
-            def coef(u, x):  # uᵀ R x for R = A s + B c + C → three (k, 2) arrays
-                return tuple(np.einsum("i,...ij,j->...", u, mat, x) for mat in (aa, bb, cc))
-
-            f2 = coef(a1, a3)
-            n1, d1 = coef(a2, a3), coef(-cross(a1, a2), a3)
-            n3, d3 = coef(a1, a2), coef(a1, cross(a3, a2))
-            j1, j2, j3 = joints
-            for lim in (lims_lo[j2], lims_hi[j2]):
-                add(f2[0], f2[1], f2[2] - np.cos(lim - triple.aligned))
-            for target in (1.0, -1.0):  # singular arm angles
-                add(f2[0], f2[1], f2[2] - target)
-            for (n_, d_), j in (((n1, d1), j1), ((n3, d3), j3)):
+            # uᵀ R x for R = A s + B c + C: (3 parts A, B, C, 5 pairs, k, 2)
+            u = np.stack([a1, a2, -cross(a1, a2), a1, a1])
+            x = np.stack([a3, a3, a3, a2, cross(a3, a2)])
+            coef = np.stack([np.einsum("ei,...ij,ej->e...", u, mat, x) for mat in mats])
+            f2, n1, d1, n3, d3 = (coef[:, e] for e in range(5))
+            shifts = [np.cos(lim - triple.aligned) for lim in (lims_lo[j2], lims_hi[j2])] + [1.0, -1.0]  # limits, singular ψ
+            for shift in shifts:
+                eq_a.append(f2[0])
+                eq_b.append(f2[1])
+                eq_c.append(f2[2] - shift)
+            for n_, d_, j in ((n1, d1, j1), (n3, d3, j3)):
                 for lim in (lims_lo[j], lims_hi[j]):
                     cl, sl = np.cos(lim), np.sin(lim)
-                    add(n_[0] * cl - d_[0] * sl, n_[1] * cl - d_[1] * sl, n_[2] * cl - d_[2] * sl)
-        out = np.concatenate(roots, axis=1)  # (k, M)
+                    eq_a.append(n_[0] * cl - d_[0] * sl)
+                    eq_b.append(n_[1] * cl - d_[1] * sl)
+                    eq_c.append(n_[2] * cl - d_[2] * sl)
+        sol = solve_cosine(np.stack(eq_b), np.stack(eq_a), -np.stack(eq_c))
+        ok = (np.abs(sol.ratio) <= 1.0 + 1e-12) & reach[:, None]
+        out = np.where(ok, np.stack([sol.plus, sol.minus]), np.nan)  # (2, M, k, 2)
+        out = np.moveaxis(out, 2, 0).reshape(kp, -1)  # (k, M)
         return np.pi - np.mod(np.pi - out, 2 * np.pi)
 
     def arm_angle(self, q: np.ndarray) -> np.ndarray:

@@ -44,16 +44,21 @@ are ~1e-4 of the sag itself). Flat prior on each k_i.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import gammaln
 
 from calib.dataset import Dataset
 from calib.kinematics import Chain, offset_kinematics
+from calib.offset_expansion import OffsetExpansion, expand_offsets
 from calib.transforms import apply, euler_zyx_to_matrix
 
 REG_NAMES = ("x", "y", "z", "alpha", "beta", "gamma")
+#: The expanded predictor (``OffsetPosterior.expand``) must agree with the chain walk it stands for
+#: to this (mm) at the proposals farthest from the mode, or the batch is walked instead: the
+#: accuracy of the link terms' own first-order form, 1/1000 of a typical σ.
+EXPANSION_TOLERANCE_MM = 1e-4
 
 
 @dataclass(frozen=True)
@@ -144,6 +149,10 @@ class OffsetPosterior:
         self._offset_fk = offset_kinematics(chain, data.q_rad, markers_flange[self.marker_index])
         self._link_jac: np.ndarray | None = None  # (k, 3, L_links) when the link terms are linearised
         self._linearised = False
+        self._expansion: OffsetExpansion | None = None
+        #: Largest disagreement (mm) seen between the expanded predictor and the chain walk, and how
+        #: many batches fell back to the walk (``expand``).
+        self.expansion_check = {"max_error_mm": 0.0, "checked": 0, "walked_batches": 0}
         self._tool_fk = None  # offset kinematics at 4 points per row (marker, marker + e_x, e_y, e_z)
         if self.is_tool.any():
             # Per row, the entries of the tool vector holding its marker's x, y, z (T: "not free").
@@ -226,10 +235,50 @@ class OffsetPosterior:
             nominal = self.chain.nominal.copy()
             self._tool_fk = offset_kinematics(self.chain, np.tile(self.data.q_rad, (4, 1)), pts, nominal)
 
+    def expand(self, theta: np.ndarray | None) -> None:
+        """From now on, predict by ``calib.offset_expansion`` about ``theta``: second order in the
+        offsets, first in the link parameters (as ``linearise_links``), exact in the tool to first
+        order in the offsets — one matrix product per batch instead of a walk of the chain. Each
+        batch is checked at its two proposals farthest from ``theta`` against the walk
+        (``linearise_links`` about ``theta``) and walked instead if they differ by more than
+        ``EXPANSION_TOLERANCE_MM``. None: back to the exact chain."""
+        self.linearise_links(theta)
+        if theta is None:
+            self._expansion = None
+            return
+        full = self.full_vector(np.asarray(theta, dtype=float))
+        lo = self.n + 6 * self.S
+        links = full[lo: lo + self.L]
+        links[~self.is_tool] = 0.0
+        self._expansion_offsets = np.flatnonzero(self.mask.offsets)
+        self._expansion_ref = full[self._expansion_offsets].copy()
+        self._expansion = expand_offsets(self.chain, self.data.q_rad, self.marker_index, self.chain_params(full),
+                                         self._expansion_offsets, self.link_idx[~self.is_tool], self.link_idx[self.is_tool])
+
+    def _expanded_base(self, full: np.ndarray) -> np.ndarray:
+        """Markers in the base frame (..., k, 3) mm by the expansion, checked (see ``expand``)."""
+        lead = full.shape[:-1]
+        flat = full.reshape(-1, full.shape[-1])
+        lo = self.n + 6 * self.S
+        links = flat[:, lo: lo + self.L]
+        eps = flat[:, self._expansion_offsets] - self._expansion_ref
+        out = self._expansion.positions(eps, links[:, ~self.is_tool], links[:, self.is_tool] - self._tool_ref
+                                        if self.is_tool.any() else links[:, :0])
+        far = np.unique(np.argsort(np.abs(eps).sum(axis=-1))[-2:])
+        walked = self._walked_base(flat[far])
+        err = float(np.abs(walked - out[far]).max()) if far.size else 0.0
+        check = self.expansion_check
+        check["max_error_mm"] = max(check["max_error_mm"], err)
+        check["checked"] += int(far.size)
+        if err > EXPANSION_TOLERANCE_MM:
+            check["walked_batches"] += 1
+            out = self._walked_base(flat)
+        return out.reshape(lead + out.shape[-2:])
+
     # --- prediction and residuals ----------------------------------------------------
-    def predict(self, theta: np.ndarray) -> np.ndarray:
-        """Predicted marker positions in each row's sensor frame: (..., k, 3) mm."""
-        full = self.full_vector(theta)
+    def _walked_base(self, full: np.ndarray) -> np.ndarray:
+        """Markers in the base frame (..., k, 3) mm by walking the (offsets-only folded) chain; the
+        link terms to first order when ``linearise_links`` is on. Compliance sag not included."""
         if self.L and self._linearised:
             links = full[..., self.n + 6 * self.S: self.n + 6 * self.S + self.L]
             if self._tool_fk is not None:
@@ -251,6 +300,12 @@ class OffsetPosterior:
             p_base = pos[..., np.arange(self.n_rows), self.marker_index, :]
         else:
             p_base = self._offset_fk.positions(full[..., : self.n])  # (..., k, 3)
+        return p_base
+
+    def predict(self, theta: np.ndarray) -> np.ndarray:
+        """Predicted marker positions in each row's sensor frame: (..., k, 3) mm."""
+        full = self.full_vector(theta)
+        p_base = self._expanded_base(full) if self._expansion is not None else self._walked_base(full)
         if self.C:
             p_base = p_base + np.einsum("kjc,...c->...kj", self._sag, full[..., self.n_full - self.C :])
         rot, trans = self.corrections(full)  # (..., S, 3, 3), (..., S, 3)
@@ -325,7 +380,7 @@ class OffsetPosterior:
             nu = self.nu
             # Multivariate t in 3-D with scale σ: density ∝ σ^-3 (1 + r²/(ν σ²))^(-(ν+3)/2).
             ll = -0.5 * (nu + 3) * np.log1p(r2 / (nu * sig2)) - 3.0 * log_sigma[..., self.sensor_index]
-            ll = ll + gammaln((nu + 3) / 2) - gammaln(nu / 2)
+            ll = ll + math.lgamma((nu + 3) / 2) - math.lgamma(nu / 2)
         out = ll.sum(axis=-1) - log_sigma.sum(axis=-1)
         if self.L:
             pos, sd = self.link_free()

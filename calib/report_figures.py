@@ -114,6 +114,21 @@ def _limits(points: np.ndarray, pad: float = 0.15) -> tuple[tuple[float, float],
     return (centre[0] - half, centre[0] + half), (centre[1] - half, centre[1] + half)
 
 
+def _emptiest_corner(points: np.ndarray, xlim: tuple[float, float], ylim: tuple[float, float]) -> str:
+    """The legend location (matplotlib's corner names) whose corner — 45 % × 35 % of the axes —
+    holds the fewest of ``points`` (j, 2), data coordinates. matplotlib's ``loc="best"`` finds
+    the same by testing every vertex of every artist in Python, and cost a third of the figure."""
+    u = (points[:, 0] - xlim[0]) / (xlim[1] - xlim[0])
+    v = (points[:, 1] - ylim[0]) / (ylim[1] - ylim[0])
+    counts = {}
+    for name, (right, top) in (("upper left", (False, True)), ("upper right", (True, True)),
+                               ("lower left", (False, False)), ("lower right", (True, False))):
+        inside_u = u > 0.55 if right else u < 0.45
+        inside_v = v > 0.65 if top else v < 0.35
+        counts[name] = int(np.sum(inside_u & inside_v))
+    return min(counts, key=counts.get)  # ties: the first corner listed
+
+
 def tcp_cloud_figure(clouds: TcpClouds) -> str:
     """The paper's Fig. 5, one column per configuration; returns an ``<img>`` tag.
 
@@ -151,7 +166,11 @@ def tcp_cloud_figure(clouds: TcpClouds) -> str:
             axc.grid(True, lw=0.3)
             axc.set_xlabel("x − x_after (mm)", fontsize=7)
             axc.set_ylabel("y − y_after (mm)", fontsize=7)
-    leg = ax[0, 0].legend(fontsize=7, loc="best", framealpha=0.8)
+    first = ax[0, 0]
+    d0, nz0 = clouds.draws[0, :, :2] - clouds.after[0, :2], clouds.noisy[0, :, :2] - clouds.after[0, :2]
+    corner = _emptiest_corner(np.vstack([nz0, d0, clouds.before[0, :2] - clouds.after[0, :2], [0.0, 0.0]]),
+                              first.get_xlim(), first.get_ylim())
+    leg = first.legend(fontsize=7, loc=corner, framealpha=0.8)
     for h in leg.legend_handles[:2]:
         h.set_sizes([16])
         h.set_alpha(1.0)
@@ -159,34 +178,38 @@ def tcp_cloud_figure(clouds: TcpClouds) -> str:
 
 
 def offset_trace_figure(result: FitResult) -> str | None:
-    """Trace plots and histograms of the fitted offsets (degrees); None when none is fitted."""
+    """Trace plots of the fitted offsets (degrees), each with its posterior histogram beside it on
+    the same vertical scale; None when none is fitted."""
     post = result.posterior
     fitted = [i for i, s in enumerate(result.offset_status) if s == "fitted"]
     if not fitted:
         return None
     axes = result.model.axis_names
     full = post.full_vector(result.chains.samples[..., : post.dim])  # (c, d, n + …)
-    fig = _figure(10, 1.5 * len(fitted) + 0.6, left=0.85, wspace=0.2, hspace=0.3, bottom=0.45)
-    ax = fig.subplots(len(fitted), 2, squeeze=False)
+    fig = _figure(10, 1.5 * len(fitted) + 0.6, left=0.85, wspace=0.05, hspace=0.3, bottom=0.45)
+    # The histogram shares its row's vertical axis and draws no axes of its own: tick labels are
+    # most of a figure's drawing cost, and the counts say nothing the shape does not.
+    ax = fig.subplots(len(fitted), 2, squeeze=False, gridspec_kw={"width_ratios": [4, 1]})
     step = max(1, math.ceil(full.shape[1] / TRACE_POINTS))
     x = np.arange(0, full.shape[1], step)
     for row, i in enumerate(fitted):
+        trace, hist = ax[row]
         for c in range(full.shape[0]):
-            ax[row, 0].plot(x, np.degrees(full[c, ::step, i]), lw=0.5)
-        ax[row, 0].set_ylabel(f"δ{axes[i]} (°)", fontsize=8)
+            trace.plot(x, np.degrees(full[c, ::step, i]), lw=0.5)
+        trace.set_ylabel(f"δ{axes[i]} (°)", fontsize=8)
+        trace.tick_params(labelsize=7)
+        trace.locator_params(axis="y", nbins=4)
         counts, edges = np.histogram(np.degrees(full[..., i].ravel()), bins=40)
-        ax[row, 1].stairs(counts, edges, fill=True, color="tab:blue", alpha=0.8)  # one artist, not 40 bars
-        ax[row, 1].axvline(math.degrees(result.offsets_rad[i]), color="k", lw=1)
-        for a in ax[row]:
-            a.tick_params(labelsize=7)
-            a.locator_params(axis="y", nbins=4)  # fewer tick labels: text is most of a figure's cost
+        hist.stairs(counts, edges, fill=True, color="tab:blue", alpha=0.8, orientation="horizontal")  # one artist
+        hist.axhline(math.degrees(result.offsets_rad[i]), color="k", lw=1)
+        hist.sharey(trace)
+        hist.set_axis_off()
         if row < len(fitted) - 1:  # the draw axis is common: label it once, at the bottom
-            ax[row, 0].sharex(ax[-1, 0])
-            ax[row, 0].tick_params(labelbottom=False)
+            trace.sharex(ax[-1, 0])
+            trace.tick_params(labelbottom=False)
     ax[0, 0].set_title("trace plots (one colour per chain)", fontsize=9)
-    ax[0, 1].set_title("posterior histograms (line: mean)", fontsize=9)
+    ax[0, 1].set_title("posterior (line: mean)", fontsize=9)
     ax[-1, 0].set_xlabel(f"draw (every {step}th shown)" if step > 1 else "draw", fontsize=8)
-    ax[-1, 1].set_xlabel("degrees", fontsize=8)
     return png(fig, "trace plots and posterior histograms of the fitted offsets", dpi=90)
 
 

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy.special import gammaln
 
 LogDensity = Callable[[np.ndarray], np.ndarray]  # (..., d) -> (...)
 
@@ -190,4 +189,4 @@ def effective_sample_size(samples: np.ndarray) -> np.ndarray:
 
 def student_t_logpdf_constant(df: float, d: int) -> float:
     """Normalising constant of the standard multivariate t (for tests and reports)."""
-    return float(gammaln((df + d) / 2) - gammaln(df / 2) - 0.5 * d * math.log(df * math.pi))
+    return float(math.lgamma((df + d) / 2) - math.lgamma(df / 2) - 0.5 * d * math.log(df * math.pi))

@@ -34,7 +34,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from calib import csvdialect
 from calib.kinematics import KINDS, Chain
@@ -403,6 +402,8 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
                 prior[i] = mm
             elif kind in ("alpha", "beta"):
                 prior[i] = math.radians(deg)
+    from scipy.optimize import least_squares  # here, not at import: `acquire fit` loads this module for every file
+
     x = np.concatenate([nominal[free], pts0.ravel()])
     sigma, res, nfev = sigma_point_mm, None, 0
     for _ in range(2):  # fit, estimate the play from the residuals, refit with it

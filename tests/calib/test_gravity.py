@@ -10,7 +10,7 @@ import pytest
 
 from calib.dataset import Dataset
 from calib.fit import FitOptions, fit_offsets
-from calib.gravity import gravity_torques, joint_frames
+from calib.gravity import chi2_sf, gravity_torques, joint_frames
 from calib.kinematics import Chain
 from calib.model import load_robot_model, robot_model_from_dict
 from calib.report_summary import warnings
@@ -141,6 +141,17 @@ def _real_cell(model, seed, sag=K_TRUE, n_configs=40):
     rng = np.random.default_rng(100 + seed)
     q = rng.uniform(model.lower_limits_rad * 0.8, model.upper_limits_rad * 0.8, (n_configs, 7))
     return _dataset(model, q, sag, seed, params=_real_arm(Chain(model), rng))
+
+
+def test_chi2_tail_probability_matches_scipy():
+    """The sag check's closed-form χ² tail (no scipy import on the fit's path) against scipy's,
+    over the degrees of freedom of 1–12 compliances, from the bulk far into the tail."""
+    from scipy.special import chdtrc
+
+    for dof in range(1, 13):
+        for x in (1e-4, 0.3, 1.0, 2.5, dof, 3.0 * dof + 7, 60.0, 250.0):
+            assert chi2_sf(dof, x) == pytest.approx(chdtrc(dof, x), rel=1e-10, abs=1e-300), (dof, x)
+    assert chi2_sf(4, 0.0) == 1.0
 
 
 def test_summary_says_to_fit_the_compliances_when_the_arm_sags_and_stays_quiet_otherwise():

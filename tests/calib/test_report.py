@@ -165,3 +165,14 @@ def test_report_is_written_and_the_module_does_not_import_matplotlib(fitted, tmp
     assert path.read_text(encoding="utf-8").startswith("<!DOCTYPE html>")
     code = "import sys, calib.report; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_tcp_legend_goes_to_the_corner_with_the_fewest_points():
+    """The TCP figure's legend corner (in place of matplotlib's slow ``loc="best"``) avoids the data."""
+    from calib.report_figures import _emptiest_corner
+
+    rng = np.random.default_rng(0)
+    cloud = rng.normal([0.6, 0.6], 0.1, (500, 2))  # upper right of a unit box
+    assert _emptiest_corner(cloud, (0.0, 1.0), (0.0, 1.0)) == "lower left"
+    assert _emptiest_corner(cloud * [-1, 1] + [1, 0], (0.0, 1.0), (0.0, 1.0)) == "lower right"
+    assert _emptiest_corner(cloud * [1, -1] + [0, 1], (0.0, 1.0), (0.0, 1.0)) == "upper left"
