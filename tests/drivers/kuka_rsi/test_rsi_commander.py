@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from rsi_helpers import HOME_DEG, SETTLE_TOL, assert_stream_within_limits, deg, kr6_limits, rig
+from rsi_helpers import HOME_DEG, SETTLE_TOL, assert_stream_within_limits, deg, kr6_limits, pause_process, rig
 
 from drivers.errors import DeviceFaultError, DeviceTimeoutError, LimitError
 from drivers.kuka_rsi.commander import RsiCommander
@@ -32,13 +32,15 @@ def test_sequence_of_moves_reaches_every_target_in_real_time(limits):
             np.testing.assert_allclose(state.commanded_rad, deg(target), atol=1e-9)
         stats = f.stats()
         link = c.link_stats()
-    # The fake and the commander share one interpreter here, so a loaded machine can delay an
-    # answer past its cycle; the zero-late target is measured by tests/bench/bench_rsi.py. What
-    # must hold anywhere: late answers stay rare (a KR C4 tolerates a few), none is malformed.
+    # Deadline misses as the exchange process measured them (kernel arrival stamp to send): none
+    # when it runs SCHED_FIFO, whatever the load of this process. The fake's view also depends on
+    # the fake's own scheduling in this (loaded) process: late answers stay rare there (a KR C4
+    # tolerates a few), none is malformed.
     rare = max(3, stats.cycles // 200)
+    assert link.late_answers <= (0 if link.realtime else rare), link.report()
     assert stats.late <= rare and stats.stale_answers <= rare and stats.malformed_answers == 0
     assert stats.answers_on_time >= stats.cycles - 1 - rare  # the snapshot may fall inside a cycle
-    assert link.late_answers <= rare and link.guard_clamps == 0
+    assert link.guard_clamps == 0
     assert link.period_mean_s == pytest.approx(0.004, rel=0.05)
     ex = assert_stream_within_limits(f.received(), HOME_DEG, limits)
     # the limits are used, not just respected: time-optimal moves touch them
@@ -151,22 +153,18 @@ def test_stop_mid_motion_decelerates_within_limits_and_sends_the_stop_flag(limit
 
 
 def test_late_answers_beyond_the_limit_stop_the_fake_and_the_commander_reports_it(limits):
+    import threading
+
     with rig(limits, fake_kwargs={"late_limit": 8, "late_consecutive": True}, timeout_cycles=10) as (c, f):
-        inner = c._formatter
-
-        class Slow:
-            def format(self, *args):
-                time.sleep(0.006)  # longer than the 4 ms cycle
-                return inner.format(*args)
-
-        c._formatter = Slow()
+        # the exchange process is descheduled for 25 cycles mid-move (SIGSTOP, as a starved host would)
+        threading.Timer(0.1, pause_process, (c.exchange_pid, 0.1)).start()
         with pytest.raises((DeviceTimeoutError, DeviceFaultError)) as err:
             c.move_to(deg([40, -90, 90, 0, 45, 0]), speed=1.0, timeout=5.0)
         assert f.wait_stopped(1.0)
         stats = f.stats()
     assert stats.stopped_reason == "RSI timeout: 8 late answers (limit 8)"
     assert "controller" in str(err.value)
-    assert c.link_stats().late_answers > 0
+    assert c.link_stats().late_answers > 0  # the queued packets, answered late once it ran again
 
 
 def test_growing_controller_delay_ends_the_motion_with_a_device_fault(limits):

@@ -1,0 +1,347 @@
+"""A cyclic real-time exchange in its own OS process (used by the RSI and FRI commanders).
+
+The controller sends a packet every cycle (4 ms for RSI) and must get its answer within the
+cycle. In the main process an answering thread shares the interpreter lock and the garbage
+collector with fitting, MCAP writing and the bus; here the loop runs in a child process of its
+own, so nothing the main process does can make an answer late.
+
+Parent side (``ExchangeProcess``):
+
+- the UDP socket is bound by the parent (so ``bind()``/``address`` work synchronously) and
+  handed to the child at start (the spawn context duplicates its file descriptor); the parent
+  then closes its copy: the child owns the socket;
+- requests go to the child over a ``Pipe`` (``request(kind, *args)``); the child's events
+  (motion done, faults, log lines) come back over the same pipe and are handed to the parent's
+  ``on_event`` callback by one reader thread;
+- the latest state, counters and latency rings are read from a shared-memory block
+  (``SharedState``, a seqlock over numpy views: the child writes, the parent copies).
+
+Child side (``run_child``, the spawned process's entry point): asks for SCHED_FIFO and locks
+its memory (``mlockall``) where permitted (one log line saying which, a quiet fallback on
+EPERM), builds the driver's loop object, warms it up, then freezes and disables the garbage
+collector before the first packet. ``ChildLink`` gives the loop its requests without blocking,
+its events back, and ``parent_gone()``: true once the pipe reaches EOF or the process was
+re-parented (``os.getppid()`` changed), so a loop can stop the robot by itself when the main
+process dies (``PR_SET_PDEATHSIG`` is not used: it fires on the death of the parent *thread*).
+
+A loop class is built in the child as ``loop_cls(link, sock, state, **options)`` and must
+provide ``warm_up()`` and ``run()``; it returns from ``run`` to end the process.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import gc
+import logging
+import multiprocessing
+import os
+import threading
+import time
+from multiprocessing import shared_memory
+from typing import Any, Callable, Mapping
+
+import numpy as np
+
+__all__ = ["ExchangeProcess", "SharedState", "ChildLink", "run_child"]
+
+_MCL_CURRENT, _MCL_FUTURE = 1, 2
+
+
+class SharedState:
+    """Named float64 arrays in one shared-memory block, guarded by a seqlock.
+
+    layout: field name -> shape (a tuple; ``()`` is a scalar stored as shape (1,)). One writer
+    (the child, ``write()`` as a context manager around its updates); readers copy with
+    ``read(names)``, retrying while a write is in progress. Integers up to 2**53 are exact.
+    """
+
+    def __init__(self, layout: Mapping[str, tuple], name: str | None = None) -> None:
+        self.layout = {k: tuple(v) or (1,) for k, v in layout.items()}
+        sizes = {k: int(np.prod(s)) for k, s in self.layout.items()}
+        total = 8 * (1 + sum(sizes.values()))
+        self._owner = name is None
+        # (a spawned child shares the parent's resource tracker: the block is registered once
+        # and unlinked by the parent, or by the tracker when both processes are gone)
+        self.shm = shared_memory.SharedMemory(name=name, create=self._owner, size=total if self._owner else 0)
+        buf = np.ndarray((total // 8,), dtype=np.float64, buffer=self.shm.buf)
+        if self._owner:
+            buf[:] = 0.0
+        self._seq = np.ndarray((1,), dtype=np.int64, buffer=self.shm.buf)
+        self.views: dict[str, np.ndarray] = {}
+        off = 1
+        for k, shape in self.layout.items():
+            self.views[k] = buf[off : off + sizes[k]].reshape(shape)
+            off += sizes[k]
+
+    @property
+    def name(self) -> str:
+        return self.shm.name
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.views[key]
+
+    def write(self) -> "_WriteSection":
+        """``with state.write(): state["x"][:] = ...`` (child only)."""
+        return _WriteSection(self._seq)
+
+    def read(self, names, *, retries: int = 1000) -> dict[str, np.ndarray]:
+        """A consistent copy of the fields ``names`` (each as its shape, float64)."""
+        seq = self._seq
+        for _ in range(retries):
+            s1 = int(seq[0])
+            if s1 & 1:
+                time.sleep(0)
+                continue
+            out = {k: self.views[k].copy() for k in names}
+            if int(seq[0]) == s1:
+                return out
+        raise TimeoutError("shared state kept changing while being read (is the exchange process spinning?)")
+
+    def close(self) -> None:
+        self.views.clear()
+        self._seq = None
+        try:
+            self.shm.close()
+        except BufferError:  # a view still exported somewhere: the OS frees it at exit
+            pass
+        if self._owner:
+            try:
+                self.shm.unlink()
+            except FileNotFoundError:
+                pass
+
+
+class _WriteSection:
+    __slots__ = ("_seq",)
+
+    def __init__(self, seq: np.ndarray) -> None:
+        self._seq = seq
+
+    def __enter__(self) -> None:
+        self._seq[0] += 1  # odd: a write is in progress
+
+    def __exit__(self, *exc) -> None:
+        self._seq[0] += 1
+
+
+class ChildLink:
+    """The child's end of the pipe and its watch on the parent."""
+
+    def __init__(self, conn, parent_pid: int, name: str) -> None:
+        self.conn = conn
+        self.parent_pid = parent_pid
+        self.name = name
+        self._gone = False
+        self.realtime = "not set"
+
+    def requests(self) -> list[tuple]:
+        """The requests queued by the parent, oldest first; never blocks. An empty list once
+        the parent is gone."""
+        out: list[tuple] = []
+        if self._gone:
+            return out
+        try:
+            while self.conn.poll(0):
+                out.append(self.conn.recv())
+        except (EOFError, OSError):
+            self._gone = True
+        return out
+
+    def parent_gone(self) -> bool:
+        """True once the parent closed the pipe or died (the child was re-parented)."""
+        if not self._gone and os.getppid() != self.parent_pid:
+            self._gone = True
+        return self._gone
+
+    def send(self, *event) -> None:
+        """An event to the parent; dropped silently once the parent is gone."""
+        if self._gone:
+            return
+        try:
+            self.conn.send(event)
+        except (BrokenPipeError, EOFError, OSError):
+            self._gone = True
+
+    def log(self, level: int, fmt: str, *args) -> None:
+        """A log line, logged by the parent under its device logger (stderr once it is gone)."""
+        msg = fmt % args if args else fmt
+        if self._gone:
+            logging.getLogger(f"remaster.device.{self.name}").log(level, "%s", msg)
+        else:
+            self.send("log", level, msg)
+
+
+def _set_realtime(link: ChildLink, priority: int) -> None:
+    """SCHED_FIFO ``priority`` and locked memory where permitted; one log line either way."""
+    parts = []
+    if priority > 0 and hasattr(os, "sched_setscheduler"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            parts.append(f"SCHED_FIFO {priority}")
+        except OSError as exc:
+            parts.append(f"normal priority (SCHED_FIFO {priority} not permitted: {exc.strerror})")
+    else:
+        parts.append("normal priority (rt_priority=0)" if priority <= 0 else "normal priority (no SCHED_FIFO)")
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+            parts.append("memory locked")
+        else:
+            parts.append(f"memory not locked ({os.strerror(ctypes.get_errno())})")
+    except (OSError, AttributeError):
+        parts.append("memory not locked (no mlockall)")
+    link.realtime = ", ".join(parts)
+    level = logging.INFO if parts[0].startswith("SCHED_FIFO") or priority <= 0 else logging.WARNING
+    hint = "" if level == logging.INFO else (
+        "; it may answer late under load. Grant CAP_SYS_NICE and an RLIMIT_RTPRIO "
+        f"(systemd: AmbientCapabilities=CAP_SYS_NICE, LimitRTPRIO={priority}) to fix"
+    )
+    link.log(level, "%s: exchange process %d runs %s%s", link.name, os.getpid(), link.realtime, hint)
+
+
+def run_child(conn, parent_pid: int, name: str, state_name: str, layout, sock, loop_cls, options, priority) -> None:
+    """Entry point of the exchange process (spawned; see the module docstring)."""
+    link = ChildLink(conn, parent_pid, name)
+    state = SharedState(layout, name=state_name)
+    loop = None
+    try:
+        _set_realtime(link, priority)
+        loop = loop_cls(link, sock, state, **options)
+        loop.warm_up()
+        gc.collect()
+        gc.freeze()  # everything alive now is never scanned again
+        gc.disable()  # the loop allocates little and keeps no cycles: no collector pauses
+        link.send("ready", os.getpid(), link.realtime)
+        loop.run()
+    except BaseException as exc:  # noqa: BLE001 - report why the exchange ended, then exit
+        link.send("crashed", f"{type(exc).__name__}: {exc}")
+        raise
+    finally:
+        sock.close()
+        state.close()
+
+
+class ExchangeProcess:
+    """Parent-side handle of one exchange process. See the module docstring.
+
+    name: device name (logs). layout: the shared state's fields (``SharedState``).
+    loop_cls / options: the child's loop class (importable, top level) and its keyword options
+    (picklable). on_event: called in the reader thread with each event tuple from the child
+    (``("log", …)`` events are logged here and not passed on).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        layout: Mapping[str, tuple],
+        loop_cls: type,
+        options: Mapping[str, Any],
+        on_event: Callable[[tuple], None],
+        *,
+        rt_priority: int = 50,
+        log: logging.Logger | None = None,
+    ) -> None:
+        self.name = name
+        self.state = SharedState(layout)
+        self._layout = dict(layout)
+        self._loop_cls = loop_cls
+        self._options = dict(options)
+        self._on_event = on_event
+        self._priority = int(rt_priority)
+        self.log = log or logging.getLogger(f"remaster.device.{name}")
+        self._conn = None
+        self._proc = None
+        self._reader: threading.Thread | None = None
+        self._send_lock = threading.Lock()
+        self._ready = threading.Event()
+        self.pid: int | None = None
+        self.realtime = "not started"
+        self.crash: str | None = None
+
+    def start(self, sock, ready_timeout: float = 60.0) -> None:
+        """Spawn the child with ``sock`` and wait until it is ready for the first packet.
+
+        The parent's copy of ``sock`` is closed once the child has its own.
+        """
+        ctx = multiprocessing.get_context("spawn")
+        parent_conn, child_conn = ctx.Pipe(duplex=True)
+        proc = ctx.Process(
+            target=run_child,
+            name=f"{self.name}-exchange",
+            args=(child_conn, os.getpid(), self.name, self.state.name, self._layout, sock,
+                  self._loop_cls, self._options, self._priority),
+            daemon=False,  # it must outlive a dying parent long enough to stop the robot
+        )
+        proc.start()
+        child_conn.close()
+        sock.close()  # the child owns the socket now
+        self._conn, self._proc = parent_conn, proc
+        self._reader = threading.Thread(target=self._read_events, name=f"{self.name}-events", daemon=True)
+        self._reader.start()
+        deadline = time.monotonic() + ready_timeout
+        while not self._ready.wait(0.05):
+            if not proc.is_alive() or time.monotonic() > deadline:
+                why = (self.crash or f"exit code {proc.exitcode}") if not proc.is_alive() else "no answer in time"
+                self.close(timeout=1.0)
+                raise RuntimeError(f"{self.name}: the exchange process did not start ({why})")
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def request(self, *msg) -> None:
+        """Send one request tuple to the child. ConnectionError when it is gone."""
+        if self._conn is None:
+            raise ConnectionError(f"{self.name}: the exchange process is not running")
+        with self._send_lock:
+            try:
+                self._conn.send(msg)
+            except (BrokenPipeError, OSError) as exc:
+                raise ConnectionError(f"{self.name}: the exchange process is gone ({self.crash or exc})") from exc
+
+    def _read_events(self) -> None:
+        conn = self._conn
+        while True:
+            try:
+                event = conn.recv()
+            except (EOFError, OSError):
+                return
+            kind = event[0]
+            if kind == "log":
+                self.log.log(event[1], "%s", event[2])
+                continue
+            if kind == "ready":
+                self.pid, self.realtime = event[1], event[2]
+                self._ready.set()
+                continue
+            if kind == "crashed":
+                self.crash = event[1]
+                self.log.error("%s: the exchange process failed: %s", self.name, event[1])
+            try:
+                self._on_event(event)
+            except Exception:  # noqa: BLE001 - a handler bug must not stop the event stream
+                self.log.exception("%s: handling exchange event %r failed", self.name, kind)
+
+    def close(self, timeout: float = 2.0) -> None:
+        """Ask the child to end, wait ``timeout`` s (then terminate it), free the shared block."""
+        if self._proc is not None:
+            try:
+                self.request("close")
+            except ConnectionError:
+                pass
+            self._proc.join(timeout)
+            if self._proc.is_alive():
+                self.log.warning("%s: exchange process did not end; terminating it", self.name)
+                self._proc.terminate()
+                self._proc.join(1.0)
+            self._proc.close()
+            self._proc = None
+        if self._reader is not None and self._reader is not threading.current_thread():
+            self._reader.join(1.0)  # the child's exit closed its end: the reader saw EOF
+        self._reader = None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+        if self.state is not None:
+            self.state.close()
+            self.state = None
