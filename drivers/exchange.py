@@ -42,7 +42,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-__all__ = ["ExchangeProcess", "SharedState", "ChildLink", "run_child"]
+__all__ = ["ExchangeProcess", "SharedState", "ChildLink", "run_child", "set_realtime"]
 
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
 
@@ -171,8 +171,23 @@ class ChildLink:
             self.send("log", level, msg)
 
 
-def _set_realtime(link: ChildLink, priority: int) -> None:
-    """SCHED_FIFO ``priority`` and locked memory where permitted; one log line either way."""
+def lock_memory() -> str:
+    """``mlockall(MCL_CURRENT | MCL_FUTURE)`` for the calling process: no page fault on the
+    real-time path. Says what happened (refused without CAP_IPC_LOCK or a large enough
+    RLIMIT_MEMLOCK; nothing else changes then)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+            return "memory locked"
+        return f"memory not locked ({os.strerror(ctypes.get_errno())})"
+    except (OSError, AttributeError):
+        return "memory not locked (no mlockall)"
+
+
+def set_realtime(link: ChildLink, priority: int) -> None:
+    """SCHED_FIFO ``priority`` and locked memory (``mlockall``) for the calling process where
+    permitted; ``link.realtime`` says which, in one log line (a warning with the fix when
+    SCHED_FIFO was asked for and refused)."""
     parts = []
     if priority > 0 and hasattr(os, "sched_setscheduler"):
         try:
@@ -182,14 +197,7 @@ def _set_realtime(link: ChildLink, priority: int) -> None:
             parts.append(f"normal priority (SCHED_FIFO {priority} not permitted: {exc.strerror})")
     else:
         parts.append("normal priority (rt_priority=0)" if priority <= 0 else "normal priority (no SCHED_FIFO)")
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
-            parts.append("memory locked")
-        else:
-            parts.append(f"memory not locked ({os.strerror(ctypes.get_errno())})")
-    except (OSError, AttributeError):
-        parts.append("memory not locked (no mlockall)")
+    parts.append(lock_memory())
     link.realtime = ", ".join(parts)
     level = logging.INFO if parts[0].startswith("SCHED_FIFO") or priority <= 0 else logging.WARNING
     hint = "" if level == logging.INFO else (
@@ -205,7 +213,7 @@ def run_child(conn, parent_pid: int, name: str, state_name: str, layout, sock, l
     state = SharedState(layout, name=state_name)
     loop = None
     try:
-        _set_realtime(link, priority)
+        set_realtime(link, priority)
         loop = loop_cls(link, sock, state, **options)
         loop.warm_up()
         gc.collect()

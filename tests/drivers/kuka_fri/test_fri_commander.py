@@ -143,14 +143,10 @@ def test_sim_clock_runs_the_exchange_faster_than_real_time(limits):
         assert fake.stats.violations == []
 
 
-def test_sched_fifo_refusal_is_logged_clearly(limits, monkeypatch, caplog):
-    def refuse(pid, policy, param):
-        raise PermissionError(1, "Operation not permitted")
-
-    monkeypatch.setattr(os, "sched_setscheduler", refuse)
-    caplog.set_level(logging.WARNING, logger="remaster.device.fri")
-    with fri_pair(limits, commanding=False, url_query="rt_priority=40") as (c, fake):
+def test_the_exchange_process_reports_how_it_is_scheduled(limits):
+    # (the refusal of SCHED_FIFO and its log line: tests/drivers/test_exchange.py)
+    with fri_pair(limits, commanding=False, url_query="rt_priority=0") as (c, fake):
         c.wait_session(SessionState.MONITORING_READY, 5.0)
-        assert c.rt_scheduling == "normal (SCHED_FIFO not permitted)"
-    assert any("SCHED_FIFO priority 40 not permitted" in r.message and "LimitRTPRIO" in r.message
-               for r in caplog.records)
+        assert c.rt_scheduling.startswith("normal priority (rt_priority=0)")
+        assert c.exchange_pid not in (None, os.getpid())
+        assert "exchange process: normal priority" in " ".join(c.link_stats().notes)
