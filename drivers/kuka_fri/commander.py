@@ -314,6 +314,13 @@ class FriCommander(CommanderBase):
             realtime=self.rt_scheduling.startswith("SCHED_FIFO"), notes=tuple(notes),
         )
 
+    def latencies(self) -> np.ndarray:
+        """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),),
+        measured in the exchange process (kernel arrival stamp to the answer's send; 0 for a
+        message that needed no answer)."""
+        st = self._read(("count", "lat"))
+        return np.zeros(0) if st is None else self._ordered(st["lat"], int(st["count"][0]))
+
     @property
     def malformed_messages(self) -> int:
         st = self._read(("malformed",))

@@ -37,6 +37,7 @@ from drivers.kuka_fri.messages import (
 )
 from drivers.kuka_fri.session import FriClientSession, Motion, SessionCounters, SessionSnapshot
 from drivers.protocols import JointLimits
+from drivers.udp import enable_rx_timestamps, recv_stamped
 
 #: Most joint values a snapshot field carries (a controller may send a wrong count: kept to refuse).
 MAX_VALUES = 16
@@ -138,6 +139,7 @@ class FriLoop:
         self._orphan_since: Optional[float] = None
         self._held_since: Optional[float] = None
         self._last_warning = -math.inf
+        self._stamped = False
 
     def warm_up(self) -> None:
         self._publish()
@@ -184,6 +186,7 @@ class FriLoop:
 
     def run(self) -> None:
         self.sock.settimeout(min(0.02, self.receive_timeout_s / 2))
+        self._stamped = enable_rx_timestamps(self.sock)
         while not self._closing:
             if self._orphan_since is not None and self._orphan_should_exit():
                 return
@@ -204,7 +207,7 @@ class FriLoop:
     def _cycle(self) -> None:
         sock, session = self.sock, self.session
         try:
-            data, addr = sock.recvfrom(4096)
+            data, addr, arrived = recv_stamped(sock, 4096, self._stamped)
         except socket.timeout:
             session.check_silence(self.clock(), self.receive_timeout_s)
             return
@@ -236,7 +239,7 @@ class FriLoop:
                 sock.sendto(encode_command(reply), addr)
             except OSError as exc:
                 self._warn(f"send to {addr[0]}:{addr[1]} failed: {exc}")
-            self._count_answer(now)
+            self._count_answer(arrived)
 
     def _count_cycle(self, seq: int, now: float) -> None:
         prev, self._seen_seq = self._seen_seq, seq
@@ -248,8 +251,11 @@ class FriLoop:
         self.state["lat"][i] = 0.0
         c["count"] += 1
 
-    def _count_answer(self, received: float) -> None:
-        latency = self.clock() - received
+    def _count_answer(self, arrived: float) -> None:
+        """The answer to the message that reached the host at wall time ``arrived`` (kernel
+        stamp) is sent: its latency, in wall seconds, includes this process's wake-up. Late:
+        above the receive period (client clock; a faster-than-real-time clock makes it lenient)."""
+        latency = time.time() - arrived
         c = self._link_counts
         self.state["lat"][(c["count"] - 1) % self.W] = latency
         snap = self.session.snapshot()

@@ -38,7 +38,7 @@ from drivers.errors import (
     ProtocolError,
 )
 from drivers.kuka_rsi.codec import SenFormatter, parse_rob
-from drivers.kuka_rsi.udp import enable_rx_timestamps, recv_stamped
+from drivers.udp import enable_rx_timestamps, recv_stamped
 from drivers.trajectory import JointTrajectory
 
 #: Relative slack of the per-cycle guard: a row may exceed a limit by this fraction only
