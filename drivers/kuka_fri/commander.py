@@ -154,6 +154,7 @@ class FriCommander(CommanderBase):
         self._motions: dict[int, Motion] = {}  # handed to the exchange, not reported done
         self._ids = itertools.count(1)
         self._final_stats: Optional[LinkStats] = None
+        self._last_scheduling = "not started"
 
     # ------------------------------------------------------------------ construction
 
@@ -209,8 +210,8 @@ class FriCommander(CommanderBase):
 
     @property
     def rt_scheduling(self) -> str:
-        """How the exchange process is scheduled (``SCHED_FIFO 50, memory locked``, …)."""
-        return "not started" if self._exchange is None else self._exchange.realtime
+        """How the exchange process is (or last was) scheduled (``SCHED_FIFO 50, memory locked``, …)."""
+        return self._last_scheduling if self._exchange is None else self._exchange.realtime
 
     def connect(self) -> None:
         """Bind the UDP port and start the exchange process (answers start with the controller)."""
@@ -249,6 +250,7 @@ class FriCommander(CommanderBase):
             except DeviceTimeoutError as exc:
                 self.log.warning("stop on close did not finish: %s", exc)
         self._final_stats = self.link_stats()
+        self._last_scheduling = self._exchange.realtime
         self._exchange.close()
         self._exchange = None
         with self._lock:

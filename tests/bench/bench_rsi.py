@@ -6,8 +6,9 @@ Run: ``python tests/bench/bench_rsi.py [--seconds 60] [--cycle-ms 4] [--mcap /tm
 Set-up: a fake KR C4 (``drivers.kuka_rsi.fake.FakeKrc4``, SCHED_FIFO when permitted) and, in the
 loaded phase, a fake Motive (``drivers.natnet.fake.FakeMotive``, 240 Hz, unicast NatNet 3.0) run
 in a child process, like the real controller and the real Motive PC. This process runs the
-``RsiCommander`` (answering thread) and its main thread keeps the robot moving back and forth
-(planning a new trajectory every move), as the sequencer would.
+``RsiCommander`` (its answering loop runs in the commander's own exchange process) and its main
+thread keeps the robot moving back and forth (planning a new trajectory every move), as the
+sequencer would.
 
 Phases, each ``--seconds`` long, in the same run:
   baseline  the commander alone;
@@ -21,7 +22,8 @@ this process.
 Each phase starts measuring after a 1 s warm-up (connect, first plan, NatNet handshake); late
 answers during the warm-up are printed separately. Printed per phase: cycles answered; answer latency (kernel arrival stamp → answer sent) p50,
 p99, max in µs; late answers as the fake controller counted them (missing, wrong IPOC or after
-the cycle) and as the commander measured them (> one cycle); NatNet frames decoded; MCAP bytes.
+the cycle) and as the exchange process measured them on its own clock (> one cycle); NatNet
+frames decoded; MCAP bytes.
 Ratios: loaded / baseline. Target: p99 < 1 ms and no late answer.
 """
 
@@ -39,8 +41,7 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import Writer
 
-# Everything is imported before the real-time exchange starts (as a daemon would): importing a C
-# extension holds the interpreter lock for milliseconds.
+# Everything is imported before the measurement starts (as a daemon would).
 from drivers.errors import DriverError
 from drivers.kuka_rsi.commander import RsiCommander
 from drivers.natnet.client import NatNetSensor
