@@ -10,9 +10,12 @@ Parent side (``ExchangeProcess``):
 - the UDP socket is bound by the parent (so ``bind()``/``address`` work synchronously) and
   handed to the child at start (the spawn context duplicates its file descriptor); the parent
   then closes its copy: the child owns the socket;
-- requests go to the child over a ``Pipe`` (``request(kind, *args)``); the child's events
-  (motion done, faults, log lines) come back over the same pipe and are handed to the parent's
-  ``on_event`` callback by one reader thread;
+- requests go to the child over a stream socket pair (``request(kind, *args)``: a pickled
+  tuple behind a 4-byte length). The child reads it without ever blocking and unpickles only
+  complete messages: a parent descheduled half-way through writing a long move can never hold
+  the real-time loop (a blocking ``Connection.recv`` would wait for it: priority inversion);
+- the child's events (motion done, faults, log lines) come back over a ``Pipe`` and are handed
+  to the parent's ``on_event`` callback by one reader thread;
 - the latest state, counters and latency rings are read from a shared-memory block
   (``SharedState``, a seqlock over numpy views: the child writes, the parent copies).
 
@@ -20,7 +23,7 @@ Child side (``run_child``, the spawned process's entry point): asks for SCHED_FI
 its memory (``mlockall``) where permitted (one log line saying which, a quiet fallback on
 EPERM), builds the driver's loop object, warms it up, then freezes and disables the garbage
 collector before the first packet. ``ChildLink`` gives the loop its requests without blocking,
-its events back, and ``parent_gone()``: true once the pipe reaches EOF or the process was
+its events back, and ``parent_gone()``: true once the request socket reaches EOF or the process was
 re-parented (``os.getppid()`` changed), so a loop can stop the robot by itself when the main
 process dies (``PR_SET_PDEATHSIG`` is not used: it fires on the death of the parent *thread*).
 
@@ -35,6 +38,9 @@ import gc
 import logging
 import multiprocessing
 import os
+import pickle
+import socket
+import struct
 import threading
 import time
 from multiprocessing import shared_memory
@@ -45,6 +51,7 @@ import numpy as np
 __all__ = ["ExchangeProcess", "SharedState", "ChildLink", "run_child", "set_realtime"]
 
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
+_LENGTH = struct.Struct("<I")
 
 
 class SharedState:
@@ -125,26 +132,43 @@ class _WriteSection:
 
 
 class ChildLink:
-    """The child's end of the pipe and its watch on the parent."""
+    """The child's ends of the request socket and the event pipe, and its watch on the parent."""
 
-    def __init__(self, conn, parent_pid: int, name: str) -> None:
-        self.conn = conn
+    def __init__(self, requests: socket.socket, events, parent_pid: int, name: str) -> None:
+        requests.setblocking(False)
+        self._requests = requests
+        self._buf = bytearray()
+        self.events = events
         self.parent_pid = parent_pid
         self.name = name
         self._gone = False
         self.realtime = "not set"
 
     def requests(self) -> list[tuple]:
-        """The requests queued by the parent, oldest first; never blocks. An empty list once
-        the parent is gone."""
-        out: list[tuple] = []
+        """The complete requests the parent has sent, oldest first; never blocks (a message
+        still being written stays buffered). An empty list once the parent is gone."""
         if self._gone:
-            return out
-        try:
-            while self.conn.poll(0):
-                out.append(self.conn.recv())
-        except (EOFError, OSError):
-            self._gone = True
+            return []
+        buf = self._buf
+        while True:
+            try:
+                data = self._requests.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                self._gone = True
+                break
+            if not data:  # EOF: the parent closed its end or died
+                self._gone = True
+                break
+            buf += data
+        out: list[tuple] = []
+        while len(buf) >= _LENGTH.size:
+            (n,) = _LENGTH.unpack_from(buf)
+            if len(buf) < _LENGTH.size + n:
+                break
+            out.append(pickle.loads(bytes(buf[_LENGTH.size : _LENGTH.size + n])))
+            del buf[: _LENGTH.size + n]
         return out
 
     def parent_gone(self) -> bool:
@@ -158,7 +182,7 @@ class ChildLink:
         if self._gone:
             return
         try:
-            self.conn.send(event)
+            self.events.send(event)
         except (BrokenPipeError, EOFError, OSError):
             self._gone = True
 
@@ -207,9 +231,10 @@ def set_realtime(link: ChildLink, priority: int) -> None:
     link.log(level, "%s: exchange process %d runs %s%s", link.name, os.getpid(), link.realtime, hint)
 
 
-def run_child(conn, parent_pid: int, name: str, state_name: str, layout, sock, loop_cls, options, priority) -> None:
+def run_child(requests, events, parent_pid: int, name: str, state_name: str, layout, sock, loop_cls, options,
+              priority) -> None:
     """Entry point of the exchange process (spawned; see the module docstring)."""
-    link = ChildLink(conn, parent_pid, name)
+    link = ChildLink(requests, events, parent_pid, name)
     state = SharedState(layout, name=state_name)
     loop = None
     try:
@@ -258,6 +283,7 @@ class ExchangeProcess:
         self._priority = int(rt_priority)
         self.log = log or logging.getLogger(f"remaster.device.{name}")
         self._conn = None
+        self._requests: socket.socket | None = None
         self._proc = None
         self._reader: threading.Thread | None = None
         self._send_lock = threading.Lock()
@@ -272,18 +298,20 @@ class ExchangeProcess:
         The parent's copy of ``sock`` is closed once the child has its own.
         """
         ctx = multiprocessing.get_context("spawn")
-        parent_conn, child_conn = ctx.Pipe(duplex=True)
+        requests, child_requests = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        events, child_events = ctx.Pipe(duplex=False)
         proc = ctx.Process(
             target=run_child,
             name=f"{self.name}-exchange",
-            args=(child_conn, os.getpid(), self.name, self.state.name, self._layout, sock,
+            args=(child_requests, child_events, os.getpid(), self.name, self.state.name, self._layout, sock,
                   self._loop_cls, self._options, self._priority),
             daemon=False,  # it must outlive a dying parent long enough to stop the robot
         )
         proc.start()
-        child_conn.close()
+        child_requests.close()
+        child_events.close()
         sock.close()  # the child owns the socket now
-        self._conn, self._proc = parent_conn, proc
+        self._requests, self._conn, self._proc = requests, events, proc
         self._reader = threading.Thread(target=self._read_events, name=f"{self.name}-events", daemon=True)
         self._reader.start()
         deadline = time.monotonic() + ready_timeout
@@ -299,12 +327,13 @@ class ExchangeProcess:
 
     def request(self, *msg) -> None:
         """Send one request tuple to the child. ConnectionError when it is gone."""
-        if self._conn is None:
+        if self._requests is None:
             raise ConnectionError(f"{self.name}: the exchange process is not running")
+        payload = pickle.dumps(msg, protocol=pickle.HIGHEST_PROTOCOL)
         with self._send_lock:
             try:
-                self._conn.send(msg)
-            except (BrokenPipeError, OSError) as exc:
+                self._requests.sendall(_LENGTH.pack(len(payload)) + payload)
+            except OSError as exc:
                 raise ConnectionError(f"{self.name}: the exchange process is gone ({self.crash or exc})") from exc
 
     def _read_events(self) -> None:
@@ -350,6 +379,9 @@ class ExchangeProcess:
         if self._conn is not None:
             self._conn.close()
             self._conn = None
+        if self._requests is not None:
+            self._requests.close()
+            self._requests = None
         if self.state is not None:
             self.state.close()
             self.state = None

@@ -147,7 +147,7 @@ class FriCommander(CommanderBase):
         self.session_wait_s = float(session_wait_s)
         self.orphan_hold_s = float(orphan_hold_s)
         self.session = SessionView(self, start_tolerance_rad=float(start_tolerance_rad), expect_major=major)
-        self._W = 2000  # cycles in the latency ring
+        self._W = 1 << 16  # cycles in the latency ring
         self._exchange: Optional[ExchangeProcess] = None
         self._address: Optional[tuple[str, int]] = None
         self._lock = threading.Lock()

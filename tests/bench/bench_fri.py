@@ -11,8 +11,9 @@
    the baseline is a bare UDP echo thread in the same process.
 
 ``--load [--seconds 60]`` adds the shared-cell-PC test, two phases of ``--seconds`` each in the
-same run: a fake Sunrise (``FakeSunrise``, SCHED_FIFO when permitted) and a fake Motive (240 Hz)
-in a child process, the ``FriCommander`` here moving the robot back and forth at full speed;
+same run: a fake Sunrise (``FakeSunrise``, SCHED_FIFO when permitted) in a child process and, in
+the loaded phase, a fake Motive (240 Hz) in another; the ``FriCommander`` here moves the robot
+back and forth at full speed;
 
   unloaded  the commander alone;
   loaded    plus four CPU-bound hog processes, a zero-offset fit over and over in this process
@@ -234,14 +235,9 @@ WARMUP_S = 1.0
 
 
 def controller_process(conn, target, seconds: float, period_ms: int) -> None:
-    """Child: fake Sunrise and fake Motive for ``seconds``; sends back ports, then stats."""
-    from bench_rsi import PlateScene
-
+    """Child: fake Sunrise for ``seconds``; sends back its stats."""
     from drivers.kuka_fri.fake import FakeSunrise
-    from drivers.natnet.fake import FakeMotive
 
-    motive = FakeMotive(PlateScene(), rate_hz=240).start()
-    conn.send(("motive", motive.command_port))
     fake = FakeSunrise(tuple(target), limits=LIMITS, initial_position_rad=Q0, send_period_ms=period_ms,
                        rt_priority=60, max_runtime_s=seconds + 60)
     fake.start()
@@ -260,7 +256,6 @@ def controller_process(conn, target, seconds: float, period_ms: int) -> None:
     conn.recv()  # "stop"
     out = figures()
     fake.stop()
-    motive.close()
     conn.send(("stats", out))
 
 
@@ -280,22 +275,27 @@ def run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) -> 
 def _run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) -> dict:
     import multiprocessing as mp
 
-    from bench_rsi import Load
+    from bench_rsi import Load, motive_process
 
     from drivers.errors import DriverError
 
     c = FriCommander(LIMITS, bind=("127.0.0.1", 0))
     c.connect()
-    parent, child = mp.Pipe()
-    proc = mp.get_context("spawn").Process(target=controller_process, args=(child, c.address, seconds, period_ms))
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=controller_process, args=(child, c.address, seconds, period_ms))
     proc.start()
+    motive_conn, motive_proc = None, None
+    if loaded:
+        motive_conn, motive_child = ctx.Pipe()
+        motive_proc = ctx.Process(target=motive_process, args=(motive_child,))
+        motive_proc.start()
     load = None
     try:
-        motive_port = parent.recv()[1]
         parent.recv()  # ready: COMMANDING_ACTIVE
         c.wait_session(SessionState.COMMANDING_ACTIVE, 10.0)
-        if loaded:
-            load = Load(motive_port, mcap_path, c)
+        if motive_conn is not None:
+            load = Load(motive_conn.recv()[1], mcap_path, c)
             load.start()
         time.sleep(WARMUP_S)
         parent.send("mark")
@@ -325,6 +325,9 @@ def _run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) ->
             load.close()
         c.close()
         proc.join(10)
+        if motive_conn is not None:
+            motive_conn.send("stop")
+            motive_proc.join(10)
     p50, p99 = np.percentile(lat, [50, 99])
     return {
         "cycles": n, "p50_us": p50 * 1e6, "p99_us": p99 * 1e6, "max_us": lat.max() * 1e6,

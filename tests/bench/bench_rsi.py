@@ -4,8 +4,8 @@ same process decodes a 240 Hz NatNet stream and writes an MCAP log?
 Run: ``python tests/bench/bench_rsi.py [--seconds 60] [--cycle-ms 4] [--mcap /tmp/bench_rsi.mcap] [--load]``
 
 Set-up: a fake KR C4 (``drivers.kuka_rsi.fake.FakeKrc4``, SCHED_FIFO when permitted) and, in the
-loaded phase, a fake Motive (``drivers.natnet.fake.FakeMotive``, 240 Hz, unicast NatNet 3.0) run
-in a child process, like the real controller and the real Motive PC. This process runs the
+loaded phases, a fake Motive (``drivers.natnet.fake.FakeMotive``, 240 Hz, unicast NatNet 3.0) run
+in child processes of their own, like the real controller and the real Motive PC. This process runs the
 ``RsiCommander`` (its answering loop runs in the commander's own exchange process) and its main
 thread keeps the robot moving back and forth (planning a new trajectory every move), as the
 sequencer would.
@@ -76,16 +76,21 @@ class PlateScene:
         return [MarkerObservation(f"m{i + 1}", centre + p, True) for i, p in enumerate(self.LAYOUT)]
 
 
-def controller_process(conn, target, seconds: float, cycle_ms: int, with_motive: bool) -> None:
-    """Child: fake KR C4 (and fake Motive) for ``seconds``; sends back ports, then stats."""
+def motive_process(conn) -> None:
+    """Child: a fake Motive (240 Hz) until told to stop; sends back its command port. A process
+    of its own: its threads must not share an interpreter lock with the fake controller's."""
+    from drivers.natnet.fake import FakeMotive
+
+    motive = FakeMotive(PlateScene(), rate_hz=240).start()
+    conn.send(("motive", motive.command_port))
+    conn.recv()  # "stop"
+    motive.close()
+
+
+def controller_process(conn, target, seconds: float, cycle_ms: int) -> None:
+    """Child: fake KR C4 for ``seconds``; sends back its stats."""
     from drivers.kuka_rsi.fake import FakeKrc4
 
-    motive = None
-    if with_motive:
-        from drivers.natnet.fake import FakeMotive
-
-        motive = FakeMotive(PlateScene(), rate_hz=240).start()
-        conn.send(("motive", motive.command_port))
     fake = FakeKrc4(tuple(target), initial_deg=HOME_DEG, cycle_ms=cycle_ms, rt_priority=60, max_runtime_s=seconds + 30)
     fake.start()
     conn.send(("ready", None))
@@ -94,8 +99,6 @@ def controller_process(conn, target, seconds: float, cycle_ms: int, with_motive:
     conn.recv()  # "stop"
     s = fake.stats()
     fake.close()
-    if motive is not None:
-        motive.close()
     conn.send(("stats", {"cycles": s.cycles, "late": s.late, "on_time": s.answers_on_time, "stale": s.stale_answers, "events": s.late_events}))
 
 
@@ -177,15 +180,20 @@ def run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path, busy
 def _run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> dict:
     limits = kr6_limits()
     c = RsiCommander(limits, host="127.0.0.1", port=0, cycle_ms=cycle_ms, connect_timeout=5.0)
-    parent, child = mp.Pipe()
-    proc = mp.get_context("spawn").Process(target=controller_process, args=(child, c.bind(), seconds, cycle_ms, loaded))
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=controller_process, args=(child, c.bind(), seconds, cycle_ms))
     proc.start()
+    motive_conn, motive_proc = None, None
+    if loaded:
+        motive_conn, motive_child = ctx.Pipe()
+        motive_proc = ctx.Process(target=motive_process, args=(motive_child,))
+        motive_proc.start()
     load = None
     try:
-        msg = parent.recv()
-        if msg[0] == "motive":
-            load = Load(msg[1], mcap_path, c)
-            msg = parent.recv()
+        if motive_conn is not None:
+            load = Load(motive_conn.recv()[1], mcap_path, c)
+        parent.recv()  # ready
         c.connect()
         if load is not None:
             load.start()
@@ -220,6 +228,9 @@ def _run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> 
             load.close()
         c.close()
         proc.join(10)
+        if motive_conn is not None:
+            motive_conn.send("stop")
+            motive_proc.join(10)
     p50, p99 = np.percentile(lat, [50, 99])
     return {
         "cycles": n,
