@@ -30,10 +30,22 @@ import numpy as np
 
 from drivers.errors import DeviceFaultError, ProtocolError
 from drivers.kuka_fri.messages import (
+    MONITORING_MESSAGE_ID,
+    ConnectionInfo,
+    ConnectionQuality,
+    DriveState,
     FriLayout,
+    FRIMonitoringMessage,
+    IpoData,
+    MessageHeader,
+    MonitorData,
+    RobotInfo,
+    SafetyState,
     SessionState,
+    TimeStamp,
     decode_monitoring,
     encode_command,
+    encode_monitoring,
 )
 from drivers.kuka_fri.session import FriClientSession, Motion, SessionCounters, SessionSnapshot
 from drivers.protocols import JointLimits
@@ -101,6 +113,18 @@ def counters_from(st: dict) -> SessionCounters:
     return SessionCounters(**{k: int(st[k][0]) for k in COUNTERS})
 
 
+def _warm_up_message(seq: int, q: np.ndarray) -> FRIMonitoringMessage:
+    """A COMMANDING_ACTIVE monitoring message at joint position ``q`` (rad), 5 ms period."""
+    values = tuple(float(x) for x in q)
+    return FRIMonitoringMessage(
+        MessageHeader(MONITORING_MESSAGE_ID, seq, max(seq - 1, 0)),
+        RobotInfo(7, SafetyState.NORMAL_OPERATION, (DriveState.ACTIVE,) * 7, 2, 0),
+        MonitorData(values, (0.0,) * 7, values, timestamp=TimeStamp.from_seconds(seq * 0.005)),
+        ConnectionInfo(SessionState.COMMANDING_ACTIVE, ConnectionQuality.EXCELLENT, 5, 1),
+        IpoData(values, 1, 1),
+    )
+
+
 class _LinkLogHandler(logging.Handler):
     """Hands the session's log records to the main process (its device logger logs them)."""
 
@@ -142,6 +166,25 @@ class FriLoop:
         self._stamped = False
 
     def warm_up(self) -> None:
+        """Run every code path of a cycle, a move and a stop once on a throw-away session (wire
+        round trip included), so first-call costs happen before the first real message."""
+        quiet = logging.getLogger(f"remaster.device.{self.name}.warm_up")
+        quiet.propagate = False
+        quiet.addHandler(logging.NullHandler())
+        lim = self.session.limits
+        dry = FriClientSession(lim, expect_major=None, logger=quiet)
+        q = (np.asarray(lim.lower_rad) + np.asarray(lim.upper_rad)) / 2
+        for seq in range(12):
+            data = encode_monitoring(_warm_up_message(seq, q))
+            reply = dry.on_monitoring(decode_monitoring(data), seq * 0.005)
+            if seq == 2:
+                dry.begin_move(q + 0.01, 1.0, "warm-up")
+            if seq == 6:
+                dry.request_stop()
+            if reply is not None:
+                encode_command(reply)
+                q = np.asarray(reply.command_data.joint_position)
+        dry.check_silence(1.0, 0.1)
         self._publish()
 
     # -- requests and events ------------------------------------------------------------------
