@@ -22,7 +22,9 @@ Parent side (``ExchangeProcess``):
 Child side (``run_child``, the spawned process's entry point): asks for SCHED_FIFO and locks
 its memory (``mlockall``) where permitted (one log line saying which, a quiet fallback on
 EPERM), builds the driver's loop object, warms it up, then freezes and disables the garbage
-collector before the first packet. ``ChildLink`` gives the loop its requests without blocking,
+collector before the first packet. It ignores SIGINT (Ctrl-C reaches the whole process group;
+the parent decides how to stop) and takes SIGTERM as an order to end on its own. ``ChildLink``
+gives the loop its requests without blocking,
 its events back, and ``parent_gone()``: true once the request socket reaches EOF or the process was
 re-parented (``os.getppid()`` changed), so a loop can stop the robot by itself when the main
 process dies (``PR_SET_PDEATHSIG`` is not used: it fires on the death of the parent *thread*).
@@ -39,6 +41,7 @@ import logging
 import multiprocessing
 import os
 import pickle
+import signal
 import socket
 import struct
 import threading
@@ -142,6 +145,7 @@ class ChildLink:
         self.parent_pid = parent_pid
         self.name = name
         self._gone = False
+        self.terminate_requested = False
         self.realtime = "not set"
 
     def requests(self) -> list[tuple]:
@@ -172,10 +176,15 @@ class ChildLink:
         return out
 
     def parent_gone(self) -> bool:
-        """True once the parent closed the pipe or died (the child was re-parented)."""
+        """True once the loop is on its own and must bring the robot to an orderly end: the
+        parent closed its end or died (the child was re-parented), or SIGTERM asked this
+        process to end (an administrator, or systemd stopping the unit's control group)."""
         if not self._gone and os.getppid() != self.parent_pid:
             self._gone = True
-        return self._gone
+        return self._gone or self.terminate_requested
+
+    def _on_sigterm(self, signum, frame) -> None:
+        self.terminate_requested = True
 
     def send(self, *event) -> None:
         """An event to the parent; dropped silently once the parent is gone."""
@@ -235,6 +244,10 @@ def run_child(requests, events, parent_pid: int, name: str, state_name: str, lay
               priority) -> None:
     """Entry point of the exchange process (spawned; see the module docstring)."""
     link = ChildLink(requests, events, parent_pid, name)
+    # Ctrl-C in a terminal reaches the whole process group: the parent decides how to stop the
+    # robot and needs this process for it. SIGTERM ends the exchange in order (stop, hold, end).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, link._on_sigterm)  # noqa: SLF001 - the link owns the flag
     state = SharedState(layout, name=state_name)
     loop = None
     try:

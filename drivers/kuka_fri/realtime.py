@@ -5,7 +5,7 @@ in this process) compute the answer, sends it, then publishes the session's snap
 command, the counters and the latency ring to the shared state, and reads the main process's
 requests after the answer is out.
 
-Requests (tuples over the pipe): ``("move", id, trajectory, dt, max_step_rad, limits_scaled,
+Requests (tuples over the request socket): ``("move", id, trajectory, dt, max_step_rad, limits_scaled,
 planned_s, hold_rad)`` — a move the main process checked and planned from ``hold_rad``;
 ``("stop",)``; ``("close",)``.
 
@@ -192,7 +192,9 @@ class FriLoop:
     def _handle_requests(self) -> None:
         for req in self.link.requests():
             kind = req[0]
-            if kind == "move":
+            if kind == "move" and self._orphan_since is not None:
+                self.link.send("done", req[1], DeviceFaultError(f"{self.name}: the FRI exchange is ending; not moving"))
+            elif kind == "move":
                 _, id_, traj, dt, max_step, limits_scaled, planned_s, hold = req
                 motion = Motion(traj, dt, max_step, limits_scaled, planned_s=planned_s)
                 try:
@@ -207,8 +209,8 @@ class FriLoop:
                 self._closing = True
         if self._orphan_since is None and self.link.parent_gone():
             self._orphan_since = time.monotonic()
-            self.log.warning("%s: the main process is gone; stopping the robot, then ending the FRI exchange",
-                             self.name)
+            self.log.warning("%s: on its own (the main process is gone or SIGTERM came); stopping the robot, "
+                             "then ending the FRI exchange", self.name)
             self.session.request_stop()
 
     def _report_done(self) -> None:

@@ -197,6 +197,9 @@ class RsiCommander(CommanderBase):
                 sock.close()
                 raise ConnectionLostError(f"{self.name}: cannot listen on {self.host}:{self.port}: {exc}") from exc
             self._address = sock.getsockname()
+            self._first.clear()
+            self._axis_error = None
+            self._final_stats = None
             lim = self.limits
             options = dict(
                 n_axes=lim.n_axes, dt=self.dt, timeout_cycles=self.timeout_cycles, delay_limit=self.delay_limit,

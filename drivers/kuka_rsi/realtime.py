@@ -6,7 +6,7 @@ against the per-cycle limits (position, velocity and acceleration per cycle; a v
 is clamped and the motion stopped), format (``%`` template), send to the packet's source.
 Requests from the main process are read after the answer is out.
 
-Requests (tuples over the pipe): ``("move", id, rows_deg, traj, session)`` — rows of shape
+Requests (tuples over the request socket): ``("move", id, rows_deg, traj, session)`` — rows of shape
 (m, n) in degrees, the AK values of the next m cycles, ``traj`` sampled at ``(k + 1) · dt`` for
 row k (to plan a stop from the current state); ``("stop",)``; ``("end_session",)`` (the Stop
 flag goes out with the next answer); ``("close",)``.
@@ -148,7 +148,9 @@ class RsiLoop:
     def _handle_requests(self) -> None:
         for req in self.link.requests():
             kind = req[0]
-            if kind == "move":
+            if kind == "move" and self._orphan_since is not None:
+                self.link.send("done", req[1], DeviceFaultError(f"{self.name}: the RSI exchange is ending; not moving"))
+            elif kind == "move":
                 _, id_, rows, traj, session = req
                 self._pending = _Motion(id_, rows, traj, session)
                 self._fault_open = False  # the parent raised it before planning this move
@@ -164,8 +166,8 @@ class RsiLoop:
                 self._closing = True
         if self._orphan_since is None and self.link.parent_gone():
             self._orphan_since = time.monotonic()
-            self.link.log(logging.WARNING, "%s: the main process is gone; stopping the robot and ending RSI",
-                          self.name)
+            self.link.log(logging.WARNING, "%s: on its own (the main process is gone or SIGTERM came); "
+                          "stopping the robot and ending RSI", self.name)
             p, self._pending = self._pending, None
             if self._motion is not None:
                 self._stop_req = True

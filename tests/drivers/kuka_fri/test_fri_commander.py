@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 import math
 import os
 import threading
@@ -150,3 +149,18 @@ def test_the_exchange_process_reports_how_it_is_scheduled(limits):
         assert c.rt_scheduling.startswith("normal priority (rt_priority=0)")
         assert c.exchange_pid not in (None, os.getpid())
         assert "exchange process: normal priority" in " ".join(c.link_stats().notes)
+
+
+def test_ctrl_c_does_not_reach_the_exchange_and_sigterm_ends_commanding(limits):
+    import signal
+
+    with fri_pair(limits, initial_position_rad=Q0) as (c, fake):
+        pid = c.exchange_pid
+        os.kill(pid, signal.SIGINT)  # Ctrl-C goes to the whole process group: the exchange ignores it
+        target = np.radians(TARGETS_DEG[0])
+        c.move_to(target, 1.0, timeout=10.0)
+        c.wait_settled(1e-5, 0.05, 5.0)
+        os.kill(pid, signal.SIGTERM)  # on its own: holds, then stops answering; Sunrise ends commanding
+        fake.wait_state(SessionState.MONITORING_WAIT, 5.0)
+        assert fake.stats.session_drops == 1 and fake.stats.violations == []
+        np.testing.assert_allclose(fake.stats.commands[-1][1], target, atol=1e-9)

@@ -291,3 +291,21 @@ def test_twelve_ms_cycle_and_sim_clock_time_scale():
         period = c.link_stats().period_mean_s
         assert_stream_within_limits(f.received(), HOME_DEG, limits, dt=0.012)
     assert period == pytest.approx(0.006, rel=0.1)  # 12 ms of simulated time in 6 ms of wall time
+
+
+def test_ctrl_c_does_not_reach_the_exchange_and_sigterm_ends_rsi_in_order(limits):
+    import os
+    import signal
+
+    with rig(limits) as (c, f):
+        pid = c.exchange_pid
+        os.kill(pid, signal.SIGINT)  # Ctrl-C goes to the whole process group: the exchange ignores it
+        c.move_to(deg(SEQUENCE_DEG[0]), speed=1.0, timeout=5.0)
+        c.wait_settled(SETTLE_TOL, 0.05, 3.0)
+        os.kill(pid, signal.SIGTERM)  # an orderly end on its own: hold, then the Stop flag
+        assert f.wait_stopped(5.0)
+        stats = f.stats()
+        received = f.received()
+    assert stats.stopped_reason == "Stop flag from the sensor" and stats.malformed_answers == 0
+    assert received[-1].stop and not any(r.stop for r in received[:-1])
+    np.testing.assert_allclose(np.array(received[-1].correction_deg) + HOME_DEG, SEQUENCE_DEG[0], atol=1e-6)
