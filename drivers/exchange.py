@@ -35,6 +35,7 @@ provide ``warm_up()`` and ``run()``; it returns from ``run`` to end the process.
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import gc
 import logging
@@ -325,6 +326,7 @@ class ExchangeProcess:
         child_events.close()
         sock.close()  # the child owns the socket now
         self._requests, self._conn, self._proc = requests, events, proc
+        atexit.register(self._at_exit)  # runs before multiprocessing joins its children
         self._reader = threading.Thread(target=self._read_events, name=f"{self.name}-events", daemon=True)
         self._reader.start()
         deadline = time.monotonic() + ready_timeout
@@ -372,8 +374,21 @@ class ExchangeProcess:
             except Exception:  # noqa: BLE001 - a handler bug must not stop the event stream
                 self.log.exception("%s: handling exchange event %r failed", self.name, kind)
 
+    def _at_exit(self) -> None:
+        """The program ends without ``close()``: closing our end of the request socket makes the
+        child end on its own (stop, hold, end the session) before the interpreter waits for it."""
+        if self._requests is not None:
+            self._requests.close()
+            self._requests = None
+        if self._proc is not None:
+            self._proc.join(30.0)
+        if self.state is not None and (self._proc is None or not self._proc.is_alive()):
+            self.state.close()
+            self.state = None
+
     def close(self, timeout: float = 2.0) -> None:
         """Ask the child to end, wait ``timeout`` s (then terminate it), free the shared block."""
+        atexit.unregister(self._at_exit)
         if self._proc is not None:
             try:
                 self.request("close")
@@ -382,8 +397,11 @@ class ExchangeProcess:
             self._proc.join(timeout)
             if self._proc.is_alive():
                 self.log.warning("%s: exchange process did not end; terminating it", self.name)
-                self._proc.terminate()
-                self._proc.join(1.0)
+                self._proc.terminate()  # SIGTERM: it still ends in order if it can
+                self._proc.join(5.0)
+                if self._proc.is_alive():
+                    self._proc.kill()
+                    self._proc.join(1.0)
             self._proc.close()
             self._proc = None
         if self._reader is not None and self._reader is not threading.current_thread():
