@@ -61,11 +61,12 @@ def test_a_sequence_of_moves_reaches_every_target_and_answers_in_time(limits):
             np.testing.assert_allclose(state.position_rad, target, atol=1e-4)
             np.testing.assert_allclose(scene.q, fake.actual_position())
         stats = fake.stats
-    # The fake and the client share one interpreter here, so a loaded machine can delay an
-    # answer past its window; the zero-late target is measured by tests/bench/bench_fri.py.
-    # What must hold anywhere: late or missed windows stay rare and never cost the session.
-    assert stats.late_answers + stats.missed_windows <= max(3, stats.answers // 200), \
-        f"{stats.late_answers} late, {stats.missed_windows} missed of {stats.answers}; fake overruns {fake.overruns}"
+        link = commander.link_stats()
+    # Late answers are the exchange process's own deadline misses (kernel arrival stamp to send),
+    # not the fake's view, which races the fake's scheduling in this test process. They stay
+    # rare and never cost the session; the zero-late target under load is measured by
+    # tests/bench/bench_fri.py --load.
+    assert link.late_answers <= max(3, link.packets // 200), link.report()
     assert stats.session_drops == 0
     assert stats.bad_reflections == 0 and stats.malformed_answers == 0
     assert stats.violations == []
