@@ -96,20 +96,23 @@ class SharedState:
         return _WriteSection(self._seq)
 
     def read(self, names, *, retries: int = 1000) -> dict[str, np.ndarray]:
-        """A consistent copy of the fields ``names`` (each as its shape, float64)."""
-        seq = self._seq
+        """A consistent copy of the fields ``names`` (each as its shape, float64).
+        ConnectionError once the block is closed (another thread may close it meanwhile)."""
+        seq, views = self._seq, self.views
+        if seq is None:
+            raise ConnectionError("the exchange's shared state is closed")
         for _ in range(retries):
             s1 = int(seq[0])
             if s1 & 1:
                 time.sleep(0)
                 continue
-            out = {k: self.views[k].copy() for k in names}
+            out = {k: views[k].copy() for k in names}
             if int(seq[0]) == s1:
                 return out
         raise TimeoutError("shared state kept changing while being read (is the exchange process spinning?)")
 
     def close(self) -> None:
-        self.views.clear()
+        self.views = {}  # (a reader still holding the old views keeps their memory mapped)
         self._seq = None
         try:
             self.shm.close()

@@ -278,9 +278,13 @@ class FriCommander(CommanderBase):
 
     def _read(self, names) -> Optional[dict]:
         ex = self._exchange
-        if ex is None or ex.state is None:
+        state = None if ex is None else ex.state
+        if state is None:
             return None
-        return ex.state.read(names)
+        try:
+            return state.read(names)
+        except ConnectionError:  # closed meanwhile by another thread
+            return None
 
     def _ordered(self, ring: np.ndarray, count: int) -> np.ndarray:
         if count <= self._W:

@@ -230,6 +230,7 @@ class FriLoop:
     # -- the loop -----------------------------------------------------------------------------
 
     def run(self) -> None:
+        self._drain()
         self.sock.settimeout(min(0.02, self.receive_timeout_s / 2))
         self._stamped = enable_rx_timestamps(self.sock)
         while not self._closing:
@@ -239,6 +240,16 @@ class FriLoop:
             self._publish()
             self._report_done()
             self._handle_requests()
+
+    def _drain(self) -> None:
+        """Discard messages queued before the loop ran (while this process started): their
+        answer windows are over; the next message starts the exchange."""
+        self.sock.setblocking(False)
+        try:
+            while True:
+                self.sock.recvfrom(4096)
+        except (BlockingIOError, InterruptedError):
+            pass
 
     def _orphan_should_exit(self) -> bool:
         """Orphaned: at rest and held for ``orphan_hold_s`` (or no controller to stop): exit."""

@@ -293,9 +293,13 @@ class RsiCommander(CommanderBase):
     def _snapshot(self, *extra: str) -> dict | None:
         """The latest packet's state from the exchange process (None before the first)."""
         ex = self._exchange
-        if ex is None or ex.state is None:
+        state = None if ex is None else ex.state
+        if state is None:
             return None
-        st = ex.state.read(realtime.SCALARS + ("actual", "cmd", "ref") + extra)
+        try:
+            st = state.read(realtime.SCALARS + ("actual", "cmd", "ref") + extra)
+        except ConnectionError:  # closed meanwhile by another thread
+            return None
         if not st["has_state"][0]:
             return None
         return st
@@ -334,7 +338,12 @@ class RsiCommander(CommanderBase):
         ex = self._exchange
         if ex is None and self._final_stats is not None:
             return self._final_stats
-        snap = None if ex is None else ex.state.read(realtime.SCALARS + ("lat", "rx"))
+        try:
+            snap = None if ex is None or ex.state is None else ex.state.read(realtime.SCALARS + ("lat", "rx"))
+        except ConnectionError:  # closed meanwhile by another thread
+            snap = None
+            if self._final_stats is not None:
+                return self._final_stats
         if snap is None:
             count, lat, rx = 0, np.zeros(0), np.zeros(0)
             snap = dict.fromkeys(realtime.SCALARS, np.zeros(1))
@@ -374,9 +383,12 @@ class RsiCommander(CommanderBase):
         """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),),
         measured in the exchange process (kernel arrival stamp to the answer's send)."""
         ex = self._exchange
-        if ex is None:
+        try:
+            snap = None if ex is None or ex.state is None else ex.state.read(("count", "lat"))
+        except ConnectionError:  # closed meanwhile by another thread
+            snap = None
+        if snap is None:
             return np.zeros(0)
-        snap = ex.state.read(("count", "lat"))
         return self._ordered(snap["lat"], int(snap["count"][0]))
 
     # -- motion -------------------------------------------------------------------------------
