@@ -37,7 +37,7 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, CommanderBase, check_timeout
-from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, DriverError, LimitError
+from drivers.errors import ConnectionLostError, DeviceTimeoutError, DriverError, LimitError
 from drivers.exchange import ExchangeProcess
 from drivers.kuka_rsi import realtime
 from drivers.protocols import JointLimits, JointState, LinkStats
