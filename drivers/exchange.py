@@ -31,6 +31,10 @@ process dies (``PR_SET_PDEATHSIG`` is not used: it fires on the death of the par
 
 A loop class is built in the child as ``loop_cls(link, sock, state, **options)`` and must
 provide ``warm_up()`` and ``run()``; it returns from ``run`` to end the process.
+
+The spawn start method re-imports the main script in the child: a script that opens a
+commander must do so under ``if __name__ == "__main__":`` (the ``acquire`` entry point, pytest
+and ``python -c`` need nothing).
 """
 
 from __future__ import annotations
