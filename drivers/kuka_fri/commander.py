@@ -2,16 +2,19 @@
 
 The controller (Sunrise) is the sender: it sends a monitoring message every send period to
 this client's UDP port (30200 by default); the client answers to the sender's address. The
-exchange runs in its own thread (``fri-rt``, SCHED_FIFO when permitted) around
-``FriClientSession``; ``move_to`` only plans, hands the trajectory over and waits. Because a
-Python thread holding the GIL keeps it up to the interpreter's switch interval (5 ms, a whole
-FRI period), ``connect`` lowers that interval to 0.5 ms and ``close`` restores it.
+exchange runs in a process of its own (``drivers/kuka_fri/realtime.py`` run by
+``drivers/exchange.py``: SCHED_FIFO and locked memory when permitted, its garbage collector
+frozen) around ``FriClientSession``; nothing this process does (fitting, writing, the bus) can
+delay an answer. ``move_to`` checks and plans here, hands the trajectory over and waits;
+``session`` is a read-only view of the exchange's session (snapshot, held position,
+counters). If this process dies, the exchange process stops a running motion within its
+limits, holds, then stops answering (Sunrise ends commanding) and exits.
 
 URL: ``fri://HOST:PORT?option=value&...`` where HOST:PORT is the local address to bind
 (``0.0.0.0:30200`` on the cell PC, ``127.0.0.1:0`` in tests). Options:
 
 - ``controller=IP``: accept monitoring messages only from this address (default: any).
-- ``rt_priority=N``: SCHED_FIFO priority of the exchange thread, 0 to not ask (default 50).
+- ``rt_priority=N``: SCHED_FIFO priority of the exchange process, 0 to not ask (default 50).
 - ``timeout_ms=N``: silence after which a running motion fails with DeviceTimeoutError
   (default 100).
 - ``max_speed=F``: highest speed fraction the plan allows, (0, 1] (default 1).
@@ -33,10 +36,9 @@ flange that confirms a socket recording (``drivers.socket``).
 
 from __future__ import annotations
 
+import itertools
 import math
-import os
 import socket
-import sys
 import threading
 import time
 from typing import Callable, Optional
@@ -45,14 +47,18 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, Clock, CommanderBase
-from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, DriverError, ProtocolError
-from drivers.kuka_fri.messages import ConnectionQuality, IOType, SessionState, decode_monitoring, encode_command
+from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, DriverError
+from drivers.exchange import ExchangeProcess
+from drivers.kuka_fri import realtime
+from drivers.kuka_fri.messages import ConnectionQuality, IOType, SessionState
 from drivers.kuka_fri.session import (
     N_JOINTS,
-    FriClientSession,
+    Motion,
     MotionStoppedError,
+    SessionCounters,
     SessionSnapshot,
     joint_state_of,
+    plan_move,
 )
 from drivers.protocols import JointLimits, JointState, LinkStats
 
@@ -91,8 +97,10 @@ class FriCommander(CommanderBase):
     bind: local (host, port) to receive monitoring messages on; port 0 picks a free one.
     controller_host: accept datagrams only from this IP (None: any sender).
     receive_timeout_s: silence (client clock) after which a running motion fails.
-    switch_interval_s: interpreter thread switch interval while connected (None: leave it).
-    clock / sleep: client time source and sleep (inject a ``SimClock``'s ``now``/``sleep``).
+    clock / sleep: client time source and sleep (inject a ``SimClock``'s ``now``/``sleep``);
+    the clock must be picklable (the exchange process reads it too).
+    orphan_hold_s: how long the exchange process holds the stopped robot after this process
+    died before it stops answering.
     """
 
     controller_stops_on_late_answers = False
@@ -112,7 +120,7 @@ class FriCommander(CommanderBase):
         limit_margin_rad: float = DEFAULT_LIMIT_MARGIN_RAD,
         fri_version: str = "auto",
         session_wait_s: float = 10.0,
-        switch_interval_s: Optional[float] = 0.0005,
+        orphan_hold_s: float = 0.5,
         clock: Clock = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
     ) -> None:
@@ -131,10 +139,6 @@ class FriCommander(CommanderBase):
         self.rt_priority = rt_priority
         self.receive_timeout_s = float(receive_timeout_s)
         self._sleep_fn = sleep
-        if switch_interval_s is not None and not switch_interval_s > 0:
-            raise ValueError(f"switch_interval_s must be positive or None, got {switch_interval_s}")
-        self.switch_interval_s = switch_interval_s
-        self._saved_switch_interval: Optional[float] = None
         try:
             major = _fri_major(str(fri_version))
         except ValueError as exc:
@@ -143,23 +147,17 @@ class FriCommander(CommanderBase):
             raise ValueError(f"session_wait_s must be >= 0, got {session_wait_s}")
         self.fri_version = str(fri_version)
         self.session_wait_s = float(session_wait_s)
-        self.session = FriClientSession(limits, start_tolerance_rad=start_tolerance_rad, expect_major=major,
-                                        logger=self.log)
-        # link statistics, written by the exchange thread only (a ring of the last _W cycles)
-        self._W = 2000
-        self._rx = np.zeros(self._W)
-        self._lat = np.zeros(self._W)
-        self._count = 0
-        self._late = 0
-        self._gaps = 0
-        self._seen_seq: Optional[int] = None
-        self.rt_scheduling: str = "not started"
-        self.malformed_messages = 0
-        self.foreign_datagrams = 0
-        self._sock: Optional[socket.socket] = None
-        self._thread: Optional[threading.Thread] = None
-        self._running = threading.Event()
-        self._last_warning = -math.inf
+        self.orphan_hold_s = float(orphan_hold_s)
+        self.session = SessionView(self, start_tolerance_rad=float(start_tolerance_rad), expect_major=major)
+        self._W = 1 << 16  # cycles in the latency ring
+        self._exchange: Optional[ExchangeProcess] = None
+        self._address: Optional[tuple[str, int]] = None
+        self._lock = threading.Lock()
+        self._motions: dict[int, Motion] = {}  # handed to the exchange, not reported done
+        self._io_tables: dict[int, tuple] = {}  # generation -> the shared IOs' (name, type, direction)
+        self._ids = itertools.count(1)
+        self._final_stats: Optional[LinkStats] = None
+        self._last_scheduling = "not started"
 
     # ------------------------------------------------------------------ construction
 
@@ -204,13 +202,23 @@ class FriCommander(CommanderBase):
     @property
     def address(self) -> tuple[str, int]:
         """The bound local (host, port); the controller sends here."""
-        if self._sock is None:
+        if self._exchange is None:
             raise RuntimeError(f"{self.name}: not connected")
-        return self._sock.getsockname()
+        return self._address
+
+    @property
+    def exchange_pid(self) -> Optional[int]:
+        """Process id of the exchange process (None when not connected)."""
+        return None if self._exchange is None else self._exchange.pid
+
+    @property
+    def rt_scheduling(self) -> str:
+        """How the exchange process is (or last was) scheduled (``SCHED_FIFO 50, memory locked``, …)."""
+        return self._last_scheduling if self._exchange is None else self._exchange.realtime
 
     def connect(self) -> None:
-        """Bind the UDP port and start the exchange thread (answers start with the controller)."""
-        if self._thread is not None:
+        """Bind the UDP port and start the exchange process (answers start with the controller)."""
+        if self._exchange is not None:
             return
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -218,147 +226,88 @@ class FriCommander(CommanderBase):
         except OSError as exc:
             sock.close()
             raise ConnectionLostError(f"{self.name}: cannot bind UDP {self.bind[0]}:{self.bind[1]}: {exc}") from exc
-        sock.settimeout(min(0.02, self.receive_timeout_s / 2))
-        self._sock = sock
-        self._running.set()
-        self._shorten_switch_interval()
-        self._thread = threading.Thread(target=self._rt_loop, name=f"{self.name}-rt", daemon=True)
-        self._thread.start()
-        self.log.info("FRI client listening on %s:%d", *self.address)
+        self._address = sock.getsockname()
+        options = dict(
+            limits=self.limits, start_tolerance_rad=self.session.start_tolerance_rad,
+            expect_major=self.session.expect_major, controller_host=self.controller_host,
+            receive_timeout_s=self.receive_timeout_s, clock=self.clock, window=self._W,
+            orphan_hold_s=self.orphan_hold_s,
+        )
+        ex = ExchangeProcess(self.name, realtime.layout(self._W), realtime.FriLoop, options, self._on_event,
+                             rt_priority=self.rt_priority, log=self.log)
+        try:
+            ex.start(sock)
+        except RuntimeError as exc:
+            raise ConnectionLostError(str(exc)) from exc
+        self._exchange = ex
+        self._final_stats = None
+        self.log.info("FRI client listening on %s:%d; exchange process %s: %s", *self._address, ex.pid, ex.realtime)
 
     def close(self) -> None:
-        """Stop a running motion (decelerating), end the exchange thread and close the port."""
-        if self._thread is None:
+        """Stop a running motion (decelerating), end the exchange process (it closes the port)."""
+        if self._exchange is None:
             return
         if self.session.motion_active():
             try:
                 self.stop()
             except DeviceTimeoutError as exc:
                 self.log.warning("stop on close did not finish: %s", exc)
-        self._running.clear()
-        self._thread.join(timeout=2.0)
-        self._thread = None
-        if self._saved_switch_interval is not None:
-            if sys.getswitchinterval() == self.switch_interval_s:
-                sys.setswitchinterval(self._saved_switch_interval)
-            self._saved_switch_interval = None
-        if self._sock is not None:
-            self._sock.close()
-            self._sock = None
+        self._final_stats = self.link_stats()
+        self._last_scheduling = self._exchange.realtime
+        self._exchange.close()
+        self._exchange = None
+        with self._lock:
+            left, self._motions = list(self._motions.values()), {}
+        for m in left:
+            m.error = ConnectionLostError(f"{self.name}: closed")
+            m.done.set()
 
-    # ------------------------------------------------------------------ the exchange thread
+    def _on_event(self, event: tuple) -> None:
+        """Reader thread: one event from the exchange process (see ``realtime``)."""
+        kind = event[0]
+        if kind == "done":
+            with self._lock:
+                m = self._motions.pop(event[1], None)
+            if m is not None:
+                m.error = event[2]
+                m.done.set()
+        elif kind == "io_table":
+            gen, table = event[1], event[2]
+            self._io_tables = {g: t for g, t in self._io_tables.items() if g >= gen - 1} | {gen: table}
+        elif kind == "crashed":
+            err = ConnectionLostError(f"{self.name}: the FRI exchange process failed: {event[1]}")
+            with self._lock:
+                left, self._motions = list(self._motions.values()), {}
+            for m in left:
+                m.error = err
+                m.done.set()
 
-    def _shorten_switch_interval(self) -> None:
-        """A Python thread holding the GIL keeps it for up to ``sys.getswitchinterval()``
-        (5 ms by default): a whole FRI period. While connected we lower it so the exchange
-        thread gets the interpreter within ``switch_interval_s`` of its datagram."""
-        if self.switch_interval_s is None or sys.getswitchinterval() <= self.switch_interval_s:
-            return
-        self._saved_switch_interval = sys.getswitchinterval()
-        sys.setswitchinterval(self.switch_interval_s)
-        self.log.info(
-            "thread switch interval lowered from %.1f ms to %.2f ms for the FRI exchange",
-            self._saved_switch_interval * 1e3, self.switch_interval_s * 1e3,
-        )
+    def _read(self, names) -> Optional[dict]:
+        ex = self._exchange
+        state = None if ex is None else ex.state
+        if state is None:
+            return None
+        try:
+            return state.read(names)
+        except ConnectionError:  # closed meanwhile by another thread
+            return None
 
-    def _set_realtime(self) -> None:
-        if self.rt_priority == 0:
-            self.rt_scheduling = "normal (rt_priority=0)"
-            return
-        if not hasattr(os, "sched_setscheduler"):
-            self.rt_scheduling = "normal (no SCHED_FIFO on this platform)"
-            self.log.warning("SCHED_FIFO is not available on this platform; FRI runs at normal priority")
-            return
-        try:  # pid 0: the calling thread on Linux
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
-            self.rt_scheduling = f"SCHED_FIFO {self.rt_priority}"
-            self.log.info("FRI exchange thread runs SCHED_FIFO priority %d", self.rt_priority)
-        except PermissionError as exc:
-            self.rt_scheduling = "normal (SCHED_FIFO not permitted)"
-            self.log.warning(
-                "SCHED_FIFO priority %d not permitted (%s): the FRI exchange runs at normal priority "
-                "and may answer late under load. Grant it with LimitRTPRIO=%d in the systemd unit, "
-                "an rtprio limit in /etc/security/limits.d, or CAP_SYS_NICE.",
-                self.rt_priority, exc, self.rt_priority,
-            )
-
-    def _rt_loop(self) -> None:
-        self._set_realtime()
-        sock = self._sock
-        assert sock is not None
-        session = self.session
-        while self._running.is_set():
-            try:
-                data, addr = sock.recvfrom(4096)
-            except socket.timeout:
-                session.check_silence(self.clock(), self.receive_timeout_s)
-                continue
-            except OSError as exc:
-                if not self._running.is_set():
-                    break
-                self._warn(f"receive failed: {exc}")
-                continue
-            now = self.clock()
-            if self.controller_host is not None and addr[0] != self.controller_host:
-                self.foreign_datagrams += 1
-                session.check_silence(now, self.receive_timeout_s)
-                continue
-            try:
-                msg = decode_monitoring(data)
-            except ProtocolError as exc:
-                self.malformed_messages += 1
-                self._warn(f"malformed monitoring message ({len(data)} bytes) from {addr[0]}:{addr[1]}: {exc}")
-                session.check_silence(now, self.receive_timeout_s)
-                continue
-            self._count_cycle(msg.header.sequence_counter, now)
-            try:
-                reply = session.on_monitoring(msg, now)
-            except Exception as exc:  # noqa: BLE001 - the exchange thread must survive a bug
-                self.log.exception("FRI cycle failed; ending any motion")
-                session.abort(DeviceFaultError(f"{self.name}: FRI cycle failed: {exc!r}"))
-                continue
-            if reply is not None:
-                try:
-                    sock.sendto(encode_command(reply), addr)
-                except OSError as exc:
-                    self._warn(f"send to {addr[0]}:{addr[1]} failed: {exc}")
-                self._count_answer(now)
-
-    def _count_cycle(self, seq: int, now: float) -> None:
-        """Exchange thread: one monitoring message arrived at ``now``."""
-        prev, self._seen_seq = self._seen_seq, seq
-        if prev is not None and seq > prev + 1 and seq - prev < (1 << 31):
-            self._gaps += seq - prev - 1
-        i = self._count % self._W
-        self._rx[i] = now
-        self._lat[i] = 0.0
-        self._count += 1
-
-    def _count_answer(self, received: float) -> None:
-        """Exchange thread: the answer to the message received at ``received`` is sent."""
-        latency = self.clock() - received
-        self._lat[(self._count - 1) % self._W] = latency
-        snap = self.session.snapshot()
-        if snap is not None and snap.receive_period_s and latency > snap.receive_period_s:
-            self._late += 1
-
-    def _warn(self, text: str) -> None:
-        """Rate-limited warning: at most one per second from the exchange thread."""
-        t = time.monotonic()
-        if t - self._last_warning >= 1.0:
-            self._last_warning = t
-            self.log.warning("%s", text)
-
-    def _ordered(self, ring: np.ndarray) -> np.ndarray:
-        count = self._count
+    def _ordered(self, ring: np.ndarray, count: int) -> np.ndarray:
         if count <= self._W:
             return ring[:count].copy()
         i = count % self._W
         return np.concatenate([ring[i:], ring[:i]])
 
     def link_stats(self) -> LinkStats:
-        """Timing of the last cycles (see ``LinkStats``). Costs O(window); not for the RT path."""
-        rx, lat = self._ordered(self._rx), self._ordered(self._lat)
+        """Timing of the last cycles, measured in the exchange process (see ``LinkStats``).
+        Costs O(window); not for a tight loop."""
+        st = self._read(realtime.LINK + realtime.COUNTERS + ("lat", "rx"))
+        if st is None:
+            if self._final_stats is not None:
+                return self._final_stats
+            st = {k: np.zeros(max(1, self._W)) for k in realtime.LINK + realtime.COUNTERS + ("lat", "rx")}
+        count = int(st["count"][0])
+        rx, lat = self._ordered(st["rx"], count), self._ordered(st["lat"], count)
         n = lat.shape[0]
         per = np.diff(rx) if n > 1 else np.zeros(1)
         q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
@@ -367,15 +316,32 @@ class FriCommander(CommanderBase):
             f"session: {snap.session_state.name}, quality {_enum_name(ConnectionQuality, snap.quality)}, "
             f"{snap.layout}, receive period {(snap.receive_period_s or 0) * 1e3:.0f} ms",
         ]
-        notes.append(f"exchange thread: {self.rt_scheduling}; foreign datagrams {self.foreign_datagrams}")
+        notes.append(f"exchange process: {self.rt_scheduling}; foreign datagrams {int(st['foreign'][0])}")
         return LinkStats(
-            packets=self._count, window=n, period_mean_s=float(per.mean()), period_std_s=float(per.std()),
+            packets=count, window=n, period_mean_s=float(per.mean()), period_std_s=float(per.std()),
             period_max_s=float(per.max()), latency_p50_s=float(q[0]), latency_p99_s=float(q[1]),
-            latency_max_s=float(lat.max()) if n else 0.0, late_answers=self._late, gaps=self._gaps,
-            malformed=self.malformed_messages, restarts=self.session.counters.restarts,
-            guard_clamps=self.session.counters.step_clamps, delay=None,
+            latency_max_s=float(lat.max()) if n else 0.0, late_answers=int(st["late"][0]),
+            gaps=int(st["gaps"][0]), malformed=int(st["malformed"][0]), restarts=int(st["restarts"][0]),
+            guard_clamps=int(st["step_clamps"][0]), delay=None,
             realtime=self.rt_scheduling.startswith("SCHED_FIFO"), notes=tuple(notes),
         )
+
+    def latencies(self) -> np.ndarray:
+        """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),),
+        measured in the exchange process (kernel arrival stamp to the answer's send; 0 for a
+        message that needed no answer)."""
+        st = self._read(("count", "lat"))
+        return np.zeros(0) if st is None else self._ordered(st["lat"], int(st["count"][0]))
+
+    @property
+    def malformed_messages(self) -> int:
+        st = self._read(("malformed",))
+        return 0 if st is None else int(st["malformed"][0])
+
+    @property
+    def foreign_datagrams(self) -> int:
+        st = self._read(("foreign",))
+        return 0 if st is None else int(st["foreign"][0])
 
     # ------------------------------------------------------------------ JointCommander
 
@@ -420,6 +386,10 @@ class FriCommander(CommanderBase):
         over FRI, e.g. ``MediaFlange.UserButton``) is set in the latest monitoring message.
         DeviceTimeoutError if that message is stale; DriverError if the IO is not shared or analog."""
         snap = self._fresh_snapshot()
+        deadline = time.monotonic() + 1.0
+        while not snap.io and self.session.io_pending() and time.monotonic() < deadline:
+            time.sleep(0.005)  # the IO names of a new table are on their way from the exchange
+            snap = self._fresh_snapshot()
         for io in snap.io:
             if io.name != name:
                 continue
@@ -468,6 +438,24 @@ class FriCommander(CommanderBase):
         if motion.error is not None:
             raise motion.error
 
+    def _hand_over(self, motion: Motion, hold: np.ndarray) -> None:
+        """Send a checked, planned motion to the exchange process; its ``done`` is set when the
+        exchange reports it ended (or refused it)."""
+        motion_id = next(self._ids)
+        with self._lock:
+            self._motions[motion_id] = motion
+        try:
+            self._exchange.request("move", motion_id, motion.trajectory, motion.dt, motion.max_step_rad,
+                                   motion.limits_scaled, motion.planned_s, hold)
+        except (ConnectionError, AttributeError) as exc:
+            with self._lock:
+                self._motions.pop(motion_id, None)
+            raise ConnectionLostError(f"{self.name}: the FRI exchange process is not running ({exc})") from exc
+
+    def _active_motion(self) -> Optional[Motion]:
+        with self._lock:
+            return next(iter(self._motions.values()), None)
+
     def _stop_wait_s(self, motion) -> float:
         """Wall time to wait for a stop to finish: the worst stop time plus slack."""
         v, a, _ = motion.limits_scaled
@@ -481,6 +469,87 @@ class FriCommander(CommanderBase):
             return
         if not motion.done.wait(self._stop_wait_s(motion)):
             raise DeviceTimeoutError(f"{self.name}: stop did not complete; is the controller sending?")
+        deadline = time.monotonic() + 1.0  # the exchange publishes the end right before it reports it
+        while self.session.motion_active() and time.monotonic() < deadline:
+            time.sleep(0.002)
 
     def _sleep(self, dt: float) -> None:
         self._sleep_fn(dt)
+
+
+class SessionView:
+    """The main process's read-only view of the exchange process's ``FriClientSession`` (same
+    names: ``snapshot``, ``session_state``, ``held_position``, ``motion_active``, ``counters``),
+    plus ``begin_move`` (checked and planned here, streamed there) and ``request_stop``."""
+
+    def __init__(self, commander: FriCommander, *, start_tolerance_rad: float, expect_major: Optional[int]) -> None:
+        self._c = commander
+        self.limits = commander.limits
+        self.start_tolerance_rad = start_tolerance_rad
+        self.expect_major = expect_major
+        self._cached: Optional[SessionSnapshot] = None
+
+    def _read(self, names) -> Optional[dict]:
+        return self._c._read(names)  # noqa: SLF001 - the view belongs to its commander
+
+    def snapshot(self) -> Optional[SessionSnapshot]:
+        """The latest monitoring message as the exchange saw it (the same object until the next)."""
+        st = self._read(realtime.SNAP + realtime.layout_arrays())
+        if st is None:
+            return self._cached
+        c = self._cached
+        tables = self._c._io_tables  # noqa: SLF001 - the view belongs to its commander
+        same = c is not None and c.host_time == st["host_time"][0] and c.sequence_counter == int(st["seq"][0])
+        if same and (c.io or not int(st["n_io"][0]) or realtime.io_pending(st, tables)):
+            return c  # (rebuilt when the names of its IO values have arrived since)
+        self._cached = realtime.snapshot_from(st, tables)
+        return self._cached
+
+    def io_pending(self) -> bool:
+        """The exchange shares IO values whose names have not reached this process yet."""
+        st = self._read(realtime.SNAP)
+        return st is not None and realtime.io_pending(st, self._c._io_tables)  # noqa: SLF001
+
+    @property
+    def session_state(self) -> Optional[SessionState]:
+        snap = self.snapshot()
+        return None if snap is None else snap.session_state
+
+    def held_position(self) -> Optional[np.ndarray]:
+        st = self._read(("has_hold", "hold"))
+        return None if st is None or not st["has_hold"][0] else st["hold"].copy()
+
+    def motion_active(self) -> bool:
+        """A move is handed over and not reported done, or the exchange is still streaming one."""
+        if self._c._active_motion() is not None:  # noqa: SLF001
+            return True
+        st = self._read(("busy",))
+        return st is not None and bool(st["busy"][0])
+
+    @property
+    def counters(self) -> SessionCounters:
+        st = self._read(realtime.COUNTERS)
+        return SessionCounters() if st is None else realtime.counters_from(st)
+
+    def begin_move(self, target_rad: np.ndarray, speed: float, name: str) -> Motion:
+        """Check and plan a move here (LimitError: nothing moved), then hand it to the exchange,
+        which starts it only if the session and the held position are still as checked."""
+        st = self._read(realtime.SNAP + realtime.layout_arrays() + ("hold",))
+        snap = None if st is None else realtime.snapshot_from(st)
+        hold = None if st is None or not st["has_hold"][0] else st["hold"].copy()
+        busy = self.motion_active()
+        motion = plan_move(snap, hold, busy, target_rad, speed, limits=self.limits,
+                           start_tolerance_rad=self.start_tolerance_rad, expect_major=self.expect_major, name=name)
+        self._c._hand_over(motion, hold)  # noqa: SLF001
+        return motion
+
+    def request_stop(self) -> Optional[Motion]:
+        """Ask the exchange to decelerate the current motion; returns it (None if idle)."""
+        motion = self._c._active_motion()  # noqa: SLF001
+        ex = self._c._exchange  # noqa: SLF001
+        if ex is not None:
+            try:
+                ex.request("stop")
+            except ConnectionError:
+                pass
+        return motion

@@ -165,27 +165,18 @@ class FriClientSession:
         Raises LimitError (nothing moved) when the session, robot or state does not allow it.
         """
         snap = self.snapshot()
-        if snap is None:
-            raise LimitError(f"{name}: no monitoring message received yet; is the controller sending?")
-        self._check_ready(snap, name)
         with self._lock:
             hold = None if self._hold is None else self._hold.copy()
             busy = self._motion is not None
-        if busy:
-            raise LimitError(f"{name}: a move is already in progress; stop() it first")
-        if hold is None:
-            raise LimitError(f"{name}: no command held yet in COMMANDING_ACTIVE; wait one cycle")
-        gap = float(np.max(np.abs(snap.measured_rad - hold)))
-        if gap > self.start_tolerance_rad:
-            raise LimitError(
-                f"{name}: measured position is {math.degrees(gap):.3f}° from the commanded one "
-                f"(allowed {math.degrees(self.start_tolerance_rad):.3f}°); wait until settled"
-            )
-        lim = self.limits
-        v, a, j = scaled_limits(lim.max_velocity_rad_s, lim.max_acceleration_rad_s2, speed)
-        traj = JointTrajectory.plan(hold, target_rad, v, a, j)
-        dt = snap.receive_period_s
-        motion = Motion(traj, dt, v * dt * (1 + 1e-9) + 1e-12, (v, a, j), planned_s=traj.duration)
+        motion = plan_move(snap, hold, busy, target_rad, speed, limits=self.limits,
+                           start_tolerance_rad=self.start_tolerance_rad, expect_major=self.expect_major, name=name)
+        self.adopt(motion, hold, name)
+        return motion
+
+    def adopt(self, motion: Motion, hold: np.ndarray, name: str) -> None:
+        """Start streaming ``motion``, planned from the held position ``hold``, if nothing
+        changed meanwhile. DeviceFaultError (transient, nothing moved) when the session left
+        COMMANDING_ACTIVE or the held position changed; LimitError when a move is running."""
         with self._lock:
             if self._motion is not None:
                 raise LimitError(f"{name}: a move is already in progress; stop() it first")
@@ -195,41 +186,6 @@ class FriClientSession:
             if self._hold is None or not np.array_equal(self._hold, hold):
                 raise DeviceFaultError(f"{name}: the held position changed while planning; retry")
             self._motion = motion
-        return motion
-
-    def _check_ready(self, snap: SessionSnapshot, name: str) -> None:
-        if snap.session_state != SessionState.COMMANDING_ACTIVE:
-            raise LimitError(
-                f"{name}: session is {snap.session_state.name}; a move needs COMMANDING_ACTIVE "
-                "(start the FRI joint-position overlay in the robot application)"
-            )
-        if snap.number_of_joints is not None and snap.number_of_joints != N_JOINTS:
-            raise LimitError(f"{name}: controller reports {snap.number_of_joints} joints, expected {N_JOINTS}")
-        if self.expect_major is not None and snap.layout is not None and snap.layout.major != self.expect_major:
-            raise LimitError(
-                f"{name}: the controller sends {snap.layout} messages but fri_version in the URL says "
-                f"{self.expect_major}.x; fix the URL (or leave fri_version out to follow the controller)"
-            )
-        if snap.measured_rad is None:
-            raise LimitError(f"{name}: controller sends no measured joint position")
-        # FRI 2.x sends no commanded position: the held command is our own, so nothing is lost.
-        for what, arr in (("measured", snap.measured_rad), ("commanded", snap.commanded_rad)):
-            if arr is None:
-                continue
-            if arr.shape != (self.limits.n_axes,):
-                raise LimitError(
-                    f"{name}: controller reports {arr.shape[0]} {what} joint values, "
-                    f"the robot model has {self.limits.n_axes}"
-                )
-            if not np.all(np.isfinite(arr)):
-                raise LimitError(f"{name}: {what} joint position is not finite: {arr}")
-        if snap.safety_state is not None and snap.safety_state != SafetyState.NORMAL_OPERATION:
-            raise LimitError(f"{name}: safety state is {_name(SafetyState, snap.safety_state)}")
-        bad = [i + 1 for i, d in enumerate(snap.drive_state) if d != DriveState.ACTIVE]
-        if bad or len(snap.drive_state) not in (0, N_JOINTS):
-            raise LimitError(f"{name}: drives not ACTIVE on axes {bad or snap.drive_state}")
-        if snap.receive_period_s is None:
-            raise LimitError(f"{name}: controller reports no sendPeriod/receiveMultiplier")
 
     def request_stop(self) -> Optional[Motion]:
         """Ask the RT side to decelerate the current motion; returns it (None if idle)."""
@@ -396,6 +352,67 @@ class FriClientSession:
             m.done.set()
             return q
         return np.asarray(m.trajectory.sample(t)[0], dtype=float)
+
+
+def plan_move(snap: Optional[SessionSnapshot], hold: Optional[np.ndarray], busy: bool, target_rad: np.ndarray,
+              speed: float, *, limits: JointLimits, start_tolerance_rad: float, expect_major: Optional[int],
+              name: str) -> Motion:
+    """Check a move against the latest monitoring message ``snap`` and the held command
+    ``hold`` (shape (7,), rad; None when nothing is held yet) and plan it; ``busy``: a move is
+    running. LimitError (nothing moved) when it is not allowed. Pure: touches no session."""
+    if snap is None:
+        raise LimitError(f"{name}: no monitoring message received yet; is the controller sending?")
+    check_ready(snap, limits, expect_major, name)
+    if busy:
+        raise LimitError(f"{name}: a move is already in progress; stop() it first")
+    if hold is None:
+        raise LimitError(f"{name}: no command held yet in COMMANDING_ACTIVE; wait one cycle")
+    gap = float(np.max(np.abs(snap.measured_rad - hold)))
+    if gap > start_tolerance_rad:
+        raise LimitError(
+            f"{name}: measured position is {math.degrees(gap):.3f}° from the commanded one "
+            f"(allowed {math.degrees(start_tolerance_rad):.3f}°); wait until settled"
+        )
+    v, a, j = scaled_limits(limits.max_velocity_rad_s, limits.max_acceleration_rad_s2, speed)
+    traj = JointTrajectory.plan(hold, target_rad, v, a, j)
+    dt = snap.receive_period_s
+    return Motion(traj, dt, v * dt * (1 + 1e-9) + 1e-12, (v, a, j), planned_s=traj.duration)
+
+
+def check_ready(snap: SessionSnapshot, limits: JointLimits, expect_major: Optional[int], name: str) -> None:
+    """Refuse a move (LimitError) the latest monitoring message ``snap`` does not allow."""
+    if snap.session_state != SessionState.COMMANDING_ACTIVE:
+        raise LimitError(
+            f"{name}: session is {snap.session_state.name}; a move needs COMMANDING_ACTIVE "
+            "(start the FRI joint-position overlay in the robot application)"
+        )
+    if snap.number_of_joints is not None and snap.number_of_joints != N_JOINTS:
+        raise LimitError(f"{name}: controller reports {snap.number_of_joints} joints, expected {N_JOINTS}")
+    if expect_major is not None and snap.layout is not None and snap.layout.major != expect_major:
+        raise LimitError(
+            f"{name}: the controller sends {snap.layout} messages but fri_version in the URL says "
+            f"{expect_major}.x; fix the URL (or leave fri_version out to follow the controller)"
+        )
+    if snap.measured_rad is None:
+        raise LimitError(f"{name}: controller sends no measured joint position")
+    # FRI 2.x sends no commanded position: the held command is our own, so nothing is lost.
+    for what, arr in (("measured", snap.measured_rad), ("commanded", snap.commanded_rad)):
+        if arr is None:
+            continue
+        if arr.shape != (limits.n_axes,):
+            raise LimitError(
+                f"{name}: controller reports {arr.shape[0]} {what} joint values, "
+                f"the robot model has {limits.n_axes}"
+            )
+        if not np.all(np.isfinite(arr)):
+            raise LimitError(f"{name}: {what} joint position is not finite: {arr}")
+    if snap.safety_state is not None and snap.safety_state != SafetyState.NORMAL_OPERATION:
+        raise LimitError(f"{name}: safety state is {_name(SafetyState, snap.safety_state)}")
+    bad = [i + 1 for i, d in enumerate(snap.drive_state) if d != DriveState.ACTIVE]
+    if bad or len(snap.drive_state) not in (0, N_JOINTS):
+        raise LimitError(f"{name}: drives not ACTIVE on axes {bad or snap.drive_state}")
+    if snap.receive_period_s is None:
+        raise LimitError(f"{name}: controller reports no sendPeriod/receiveMultiplier")
 
 
 def _name(cls, value) -> str:

@@ -38,7 +38,7 @@ from scipy.linalg import expm
 from drivers.errors import ProtocolError
 from drivers.kuka_rsi.codec import RobFormatter, parse_sen
 from drivers.kuka_rsi.ethernet_config import RsiEthernetConfig
-from drivers.kuka_rsi.udp import enable_rx_timestamps, recv_stamped
+from drivers.udp import enable_rx_timestamps, recv_stamped
 from drivers.sim.clock import SimClock
 from drivers.sim.scene import RobotScene
 

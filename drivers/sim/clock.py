@@ -18,6 +18,14 @@ class SimClock:
         self._wall0 = time.monotonic()
         self._lock = threading.Lock()
 
+    def __getstate__(self) -> dict:
+        # picklable (an exchange process reads the same clock: the monotonic clock is system-wide)
+        return {"time_scale": self.time_scale, "_wall0": self._wall0}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
     def now(self) -> float:
         """Simulated seconds since the clock was made."""
         return (time.monotonic() - self._wall0) * self.time_scale

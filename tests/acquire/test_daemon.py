@@ -271,16 +271,13 @@ def test_health_monitor_flags_new_late_real_time_answers_and_a_silent_recorder(t
         cmd.connect()
         wait_until(lambda: _fresh_state(cmd), 5, "RSI state")
         assert mon.check(cmd, expect_stream=True, run_status=None).ok  # baseline
-        inner = cmd._formatter
-
-        class Slow:  # the exchange thread answers later than the 4 ms cycle
-            def format(self, *args):
-                time.sleep(0.006)
-                return inner.format(*args)
-
-        cmd._formatter = Slow()
+        # the exchange process is not scheduled for ~8 cycles (SIGSTOP): its answers come late
+        os.kill(cmd.exchange_pid, signal.SIGSTOP)
+        try:
+            time.sleep(0.03)
+        finally:
+            os.kill(cmd.exchange_pid, signal.SIGCONT)
         wait_until(lambda: cmd.link_stats().late_answers >= 3, 5, "late answers")
-        cmd._formatter = inner
         bad = mon.check(cmd, expect_stream=True, run_status=None)
         assert not bad.ok and "late real-time answers since the last check" in bad.reason
         # healthy again at the first check with no new late answer since the one before

@@ -9,13 +9,30 @@
 3. Loopback answer latency: a raw controller socket sends monitoring messages every period to
    a connected ``FriCommander`` that is moving, and times each answer (p50 / p99 / max, µs);
    the baseline is a bare UDP echo thread in the same process.
+
+``--load [--seconds 60]`` adds the shared-cell-PC test, two phases of ``--seconds`` each in the
+same run: a fake Sunrise (``FakeSunrise``, SCHED_FIFO when permitted) in a child process and, in
+the loaded phase, a fake Motive (240 Hz) in another; the ``FriCommander`` here moves the robot
+back and forth at full speed;
+
+  unloaded  the commander alone;
+  loaded    plus four CPU-bound hog processes, a zero-offset fit over and over in this process
+            (``tests/bench/loadgen.py``), a ``NatNetSensor`` decoding every frame and an MCAP
+            writer logging every NatNet sample and every joint state (100 Hz).
+
+Printed per phase, after a 1 s warm-up: cycles; answer latency p50 / p99 / max in µs as the
+exchange process measured it (kernel arrival stamp to the answer's send); late answers as the
+exchange process counted them (> one receive period) and as the fake controller saw them (late
+reflections + missed answer windows); session drops. Target: p99 < 1 ms and no late answer.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
+import os
 import socket
 import sys
 import threading
@@ -25,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_rsi, loadgen
 
 from drivers.kuka_fri.commander import FriCommander  # noqa: E402
 from drivers.kuka_fri.messages import (  # noqa: E402
@@ -202,8 +220,8 @@ def bench_latency(cycles: int, period_ms: int) -> None:
     mover.join(2.0)
     commander.close()
     ctl.close()
-    print(f"3. loopback answer latency, {cycles} cycles at {period_ms} ms "
-          f"(exchange thread: {commander.rt_scheduling})")
+    print(f"3. loopback answer latency, {cycles} cycles at {period_ms} ms, timed by the controller socket "
+          f"(exchange process: {commander.rt_scheduling})")
     print("                      p50 µs    p99 µs    max µs")
     for name, t in (("bare UDP echo", base), ("FriCommander", ours)):
         print(f"   {name:<16} {np.median(t):9.1f} {np.percentile(t, 99):9.1f} {t.max():9.1f}")
@@ -213,14 +231,151 @@ def bench_latency(cycles: int, period_ms: int) -> None:
           f"p99 = {np.percentile(ours, 99) / (period * 1e6):.3f} of the period")
 
 
+WARMUP_S = 1.0
+
+
+def controller_process(conn, target, seconds: float, period_ms: int) -> None:
+    """Child: fake Sunrise for ``seconds``; sends back its stats."""
+    from drivers.kuka_fri.fake import FakeSunrise
+
+    fake = FakeSunrise(tuple(target), limits=LIMITS, initial_position_rad=Q0, send_period_ms=period_ms,
+                       rt_priority=60, max_runtime_s=seconds + 60)
+    fake.start()
+    fake.wait_state(SessionState.MONITORING_READY, 10.0)
+    fake.start_commanding()
+    fake.wait_state(SessionState.COMMANDING_ACTIVE, 10.0)
+    conn.send(("ready", None))
+
+    def figures():
+        st = fake.stats
+        return {"sent": st.sent, "answers": st.answers, "late": st.late_answers, "missed": st.missed_windows,
+                "drops": st.session_drops, "violations": len(st.violations), "malformed": st.malformed_answers}
+
+    conn.recv()  # "mark": the measurement starts after the warm-up
+    conn.send(("mark", figures()))
+    conn.recv()  # "stop"
+    out = figures()
+    fake.stop()
+    conn.send(("stats", out))
+
+
+def run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) -> dict:
+    """One phase; ``loaded`` adds the hogs, the fit loop, NatNet decoding and MCAP writing."""
+    if not loaded:
+        return _run_phase(seconds, period_ms, mcap_path, loaded)
+    from loadgen import FitLoop, Hogs, wait_for_load
+
+    with Hogs(4), FitLoop() as fits:
+        wait_for_load()
+        r = _run_phase(seconds, period_ms, mcap_path, loaded)
+        r["fits"] = fits.fits
+        return r
+
+
+def _run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) -> dict:
+    import multiprocessing as mp
+
+    from bench_rsi import Load, motive_process
+
+    from drivers.errors import DriverError
+
+    c = FriCommander(LIMITS, bind=("127.0.0.1", 0))
+    c.connect()
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=controller_process, args=(child, c.address, seconds, period_ms))
+    proc.start()
+    motive_conn, motive_proc = None, None
+    if loaded:
+        motive_conn, motive_child = ctx.Pipe()
+        motive_proc = ctx.Process(target=motive_process, args=(motive_child,))
+        motive_proc.start()
+    load = None
+    try:
+        parent.recv()  # ready: COMMANDING_ACTIVE
+        c.wait_session(SessionState.COMMANDING_ACTIVE, 10.0)
+        if motive_conn is not None:
+            load = Load(motive_conn.recv()[1], mcap_path, c)
+            load.start()
+        time.sleep(WARMUP_S)
+        parent.send("mark")
+        at_mark = parent.recv()[1]
+        st0 = c.link_stats()
+        t_end = time.monotonic() + seconds
+        moves, fault = 0, None
+        targets = [TARGET, Q0]
+        while time.monotonic() < t_end:
+            try:
+                c.move_to(targets[moves % 2], 1.0, 60.0)
+                c.wait_settled(np.radians(0.05), 0.05, 10.0)
+            except DriverError as exc:  # reported, not hidden: the phase ends here
+                fault = f"{type(exc).__name__}: {exc}"
+                break
+            moves += 1
+        st = c.link_stats()
+        n = st.packets - st0.packets
+        lat = c.latencies()[-n:] if n > 0 else np.zeros(1)
+        mcap_bytes = load.close() if load is not None else 0
+        frames = load.frames if load is not None else 0
+        load = None
+        parent.send("stop")
+        end = parent.recv()[1]
+    finally:
+        if load is not None:
+            load.close()
+        c.close()
+        proc.join(10)
+        if motive_conn is not None:
+            motive_conn.send("stop")
+            motive_proc.join(10)
+    p50, p99 = np.percentile(lat, [50, 99])
+    return {
+        "cycles": n, "p50_us": p50 * 1e6, "p99_us": p99 * 1e6, "max_us": lat.max() * 1e6,
+        "late_ours": st.late_answers - st0.late_answers,
+        "late_ctrl": (end["late"] - at_mark["late"]) + (end["missed"] - at_mark["missed"]),
+        "drops": end["drops"] - at_mark["drops"], "violations": end["violations"], "malformed": end["malformed"],
+        "moves": moves, "frames": frames, "mcap_bytes": mcap_bytes, "scheduling": c.rt_scheduling, "fault": fault,
+    }
+
+
+def bench_load(seconds: float, period_ms: int, mcap_path: Path) -> None:
+    from loadgen import load_average
+
+    print(f"4. shared cell PC, {period_ms} ms period, {seconds:g} s per phase, {os.cpu_count()} CPUs")
+    quiet = run_phase(seconds, period_ms, mcap_path, loaded=False)
+    busy = run_phase(seconds, period_ms, mcap_path, loaded=True)
+    print(f"   loaded phase: 4 CPU hogs + {busy['fits']} zero-offset fits in this process + NatNet + MCAP; "
+          f"load average {load_average()}")
+    print(f"   {'phase':<9} {'cycles':>7} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'late(ours)':>10} "
+          f"{'late(ctrl)':>10} {'drops':>5} {'moves':>5} {'NatNet':>7} {'MCAP bytes':>11}")
+    for name, r in (("unloaded", quiet), ("loaded", busy)):
+        print(f"   {name:<9} {r['cycles']:>7} {r['p50_us']:>8.0f} {r['p99_us']:>8.0f} {r['max_us']:>8.0f} "
+              f"{r['late_ours']:>10} {r['late_ctrl']:>10} {r['drops']:>5} {r['moves']:>5} {r['frames']:>7} "
+              f"{r['mcap_bytes']:>11}")
+        if r["fault"]:
+            print(f"   {name}: phase ended early by a fault: {r['fault']}")
+        if r["violations"] or r["malformed"]:
+            print(f"   {name}: the controller saw {r['violations']} limit violations, {r['malformed']} malformed answers")
+    print(f"   ratio loaded/unloaded: p50 {busy['p50_us'] / quiet['p50_us']:.2f}x, "
+          f"p99 {busy['p99_us'] / quiet['p99_us']:.2f}x, max {busy['max_us'] / quiet['max_us']:.2f}x")
+    ok = all(r["p99_us"] < 1000 and r["late_ours"] == 0 and r["late_ctrl"] == 0 for r in (quiet, busy))
+    print(f"   exchange process: {busy['scheduling']}; target p99 < 1 ms and no late answer: {'MET' if ok else 'NOT MET'}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cycles", type=int, default=2000)
     ap.add_argument("--period-ms", type=int, default=5)
+    ap.add_argument("--load", action="store_true", help="add the shared-cell-PC phases (unloaded, loaded)")
+    ap.add_argument("--seconds", type=float, default=60.0, help="length of each --load phase (s)")
+    ap.add_argument("--mcap", type=Path, default=Path("/tmp/bench_fri.mcap"))
     args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     bench_codec(5000)
     bench_session(args.cycles, args.period_ms)
     bench_latency(args.cycles, args.period_ms)
+    if args.load:
+        bench_load(args.seconds, args.period_ms, args.mcap)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 import math
 import os
 import threading
@@ -62,11 +61,12 @@ def test_a_sequence_of_moves_reaches_every_target_and_answers_in_time(limits):
             np.testing.assert_allclose(state.position_rad, target, atol=1e-4)
             np.testing.assert_allclose(scene.q, fake.actual_position())
         stats = fake.stats
-    # The fake and the client share one interpreter here, so a loaded machine can delay an
-    # answer past its window; the zero-late target is measured by tests/bench/bench_fri.py.
-    # What must hold anywhere: late or missed windows stay rare and never cost the session.
-    assert stats.late_answers + stats.missed_windows <= max(3, stats.answers // 200), \
-        f"{stats.late_answers} late, {stats.missed_windows} missed of {stats.answers}; fake overruns {fake.overruns}"
+        link = commander.link_stats()
+    # Late answers are the exchange process's own deadline misses (kernel arrival stamp to send),
+    # not the fake's view, which races the fake's scheduling in this test process. They stay
+    # rare and never cost the session; the zero-late target under load is measured by
+    # tests/bench/bench_fri.py --load.
+    assert link.late_answers <= max(3, link.packets // 200), link.report()
     assert stats.session_drops == 0
     assert stats.bad_reflections == 0 and stats.malformed_answers == 0
     assert stats.violations == []
@@ -143,14 +143,25 @@ def test_sim_clock_runs_the_exchange_faster_than_real_time(limits):
         assert fake.stats.violations == []
 
 
-def test_sched_fifo_refusal_is_logged_clearly(limits, monkeypatch, caplog):
-    def refuse(pid, policy, param):
-        raise PermissionError(1, "Operation not permitted")
-
-    monkeypatch.setattr(os, "sched_setscheduler", refuse)
-    caplog.set_level(logging.WARNING, logger="remaster.device.fri")
-    with fri_pair(limits, commanding=False, url_query="rt_priority=40") as (c, fake):
+def test_the_exchange_process_reports_how_it_is_scheduled(limits):
+    # (the refusal of SCHED_FIFO and its log line: tests/drivers/test_exchange.py)
+    with fri_pair(limits, commanding=False, url_query="rt_priority=0") as (c, fake):
         c.wait_session(SessionState.MONITORING_READY, 5.0)
-        assert c.rt_scheduling == "normal (SCHED_FIFO not permitted)"
-    assert any("SCHED_FIFO priority 40 not permitted" in r.message and "LimitRTPRIO" in r.message
-               for r in caplog.records)
+        assert c.rt_scheduling.startswith("normal priority (rt_priority=0)")
+        assert c.exchange_pid not in (None, os.getpid())
+        assert "exchange process: normal priority" in " ".join(c.link_stats().notes)
+
+
+def test_ctrl_c_does_not_reach_the_exchange_and_sigterm_ends_commanding(limits):
+    import signal
+
+    with fri_pair(limits, initial_position_rad=Q0) as (c, fake):
+        pid = c.exchange_pid
+        os.kill(pid, signal.SIGINT)  # Ctrl-C goes to the whole process group: the exchange ignores it
+        target = np.radians(TARGETS_DEG[0])
+        c.move_to(target, 1.0, timeout=10.0)
+        c.wait_settled(1e-5, 0.05, 5.0)
+        os.kill(pid, signal.SIGTERM)  # on its own: holds, then stops answering; Sunrise ends commanding
+        fake.wait_state(SessionState.MONITORING_WAIT, 5.0)
+        assert fake.stats.session_drops == 1 and fake.stats.violations == []
+        np.testing.assert_allclose(fake.stats.commands[-1][1], target, atol=1e-9)

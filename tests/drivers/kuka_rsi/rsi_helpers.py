@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import signal
+import time
 
 import numpy as np
 
@@ -94,3 +97,13 @@ def deg(x) -> np.ndarray:
 
 
 SETTLE_TOL = math.radians(0.0005)
+
+
+def pause_process(pid: int, seconds: float) -> None:
+    """Stop process ``pid`` for ``seconds`` (SIGSTOP/SIGCONT): an exchange process the host did
+    not schedule, seen from the controller as late answers."""
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep(seconds)
+    finally:
+        os.kill(pid, signal.SIGCONT)

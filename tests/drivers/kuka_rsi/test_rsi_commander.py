@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from rsi_helpers import HOME_DEG, SETTLE_TOL, assert_stream_within_limits, deg, kr6_limits, rig
+from rsi_helpers import HOME_DEG, SETTLE_TOL, assert_stream_within_limits, deg, kr6_limits, pause_process, rig
 
 from drivers.errors import DeviceFaultError, DeviceTimeoutError, LimitError
 from drivers.kuka_rsi.commander import RsiCommander
@@ -32,13 +32,14 @@ def test_sequence_of_moves_reaches_every_target_in_real_time(limits):
             np.testing.assert_allclose(state.commanded_rad, deg(target), atol=1e-9)
         stats = f.stats()
         link = c.link_stats()
-    # The fake and the commander share one interpreter here, so a loaded machine can delay an
-    # answer past its cycle; the zero-late target is measured by tests/bench/bench_rsi.py. What
-    # must hold anywhere: late answers stay rare (a KR C4 tolerates a few), none is malformed.
+    # Late answers are the exchange process's own deadline misses (kernel arrival stamp to send),
+    # not the fake's view, which races the fake's scheduling in this test process. They stay rare
+    # (a KR C4 tolerates a few); the zero-late target under load is measured by
+    # tests/bench/bench_rsi.py --load. Nothing malformed, ever.
     rare = max(3, stats.cycles // 200)
-    assert stats.late <= rare and stats.stale_answers <= rare and stats.malformed_answers == 0
-    assert stats.answers_on_time >= stats.cycles - 1 - rare  # the snapshot may fall inside a cycle
-    assert link.late_answers <= rare and link.guard_clamps == 0
+    assert link.late_answers <= rare, link.report()
+    assert stats.malformed_answers == 0
+    assert link.guard_clamps == 0
     assert link.period_mean_s == pytest.approx(0.004, rel=0.05)
     ex = assert_stream_within_limits(f.received(), HOME_DEG, limits)
     # the limits are used, not just respected: time-optimal moves touch them
@@ -151,22 +152,18 @@ def test_stop_mid_motion_decelerates_within_limits_and_sends_the_stop_flag(limit
 
 
 def test_late_answers_beyond_the_limit_stop_the_fake_and_the_commander_reports_it(limits):
+    import threading
+
     with rig(limits, fake_kwargs={"late_limit": 8, "late_consecutive": True}, timeout_cycles=10) as (c, f):
-        inner = c._formatter
-
-        class Slow:
-            def format(self, *args):
-                time.sleep(0.006)  # longer than the 4 ms cycle
-                return inner.format(*args)
-
-        c._formatter = Slow()
+        # the exchange process is descheduled for 25 cycles mid-move (SIGSTOP, as a starved host would)
+        threading.Timer(0.1, pause_process, (c.exchange_pid, 0.1)).start()
         with pytest.raises((DeviceTimeoutError, DeviceFaultError)) as err:
             c.move_to(deg([40, -90, 90, 0, 45, 0]), speed=1.0, timeout=5.0)
         assert f.wait_stopped(1.0)
         stats = f.stats()
     assert stats.stopped_reason == "RSI timeout: 8 late answers (limit 8)"
     assert "controller" in str(err.value)
-    assert c.link_stats().late_answers > 0
+    assert c.link_stats().late_answers > 0  # the queued packets, answered late once it ran again
 
 
 def test_growing_controller_delay_ends_the_motion_with_a_device_fault(limits):
@@ -293,3 +290,21 @@ def test_twelve_ms_cycle_and_sim_clock_time_scale():
         period = c.link_stats().period_mean_s
         assert_stream_within_limits(f.received(), HOME_DEG, limits, dt=0.012)
     assert period == pytest.approx(0.006, rel=0.1)  # 12 ms of simulated time in 6 ms of wall time
+
+
+def test_ctrl_c_does_not_reach_the_exchange_and_sigterm_ends_rsi_in_order(limits):
+    import os
+    import signal
+
+    with rig(limits) as (c, f):
+        pid = c.exchange_pid
+        os.kill(pid, signal.SIGINT)  # Ctrl-C goes to the whole process group: the exchange ignores it
+        c.move_to(deg(SEQUENCE_DEG[0]), speed=1.0, timeout=5.0)
+        c.wait_settled(SETTLE_TOL, 0.05, 3.0)
+        os.kill(pid, signal.SIGTERM)  # an orderly end on its own: hold, then the Stop flag
+        assert f.wait_stopped(5.0)
+        stats = f.stats()
+        received = f.received()
+    assert stats.stopped_reason == "Stop flag from the sensor" and stats.malformed_answers == 0
+    assert received[-1].stop and not any(r.stop for r in received[:-1])
+    np.testing.assert_allclose(np.array(received[-1].correction_deg) + HOME_DEG, SEQUENCE_DEG[0], atol=1e-6)

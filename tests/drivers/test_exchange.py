@@ -1,0 +1,77 @@
+"""The exchange-process machinery: the seqlocked shared state and the real-time set-up."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import pytest
+
+from drivers import exchange
+from drivers.exchange import SharedState
+
+
+class RecordingLink:
+    name = "rsi"
+
+    def __init__(self) -> None:
+        self.lines: list[tuple[int, str]] = []
+        self.realtime = "not set"
+
+    def log(self, level, fmt, *args) -> None:
+        self.lines.append((level, fmt % args))
+
+
+def test_shared_state_round_trips_fields_between_two_handles():
+    owner = SharedState({"t": (), "q": (3,), "ring": (4,)})
+    other = SharedState({"t": (), "q": (3,), "ring": (4,)}, name=owner.name)
+    try:
+        with other.write():
+            other["t"][0] = 2.5
+            other["q"][:] = [1.0, 2.0, 3.0]
+        got = owner.read(("t", "q", "ring"))
+        assert got["t"].tolist() == [2.5] and got["q"].tolist() == [1.0, 2.0, 3.0] and got["ring"].tolist() == [0] * 4
+        got["q"][0] = 99.0  # a copy: the block is untouched
+        assert owner["q"][0] == 1.0
+    finally:
+        other.close()
+        owner.close()
+
+
+def test_a_read_never_returns_a_half_written_state():
+    state = SharedState({"q": (2,)})
+    try:
+        section = state.write()
+        section.__enter__()  # a writer stopped half-way (odd sequence number)
+        state["q"][0] = 1.0
+        with pytest.raises(TimeoutError, match="kept changing"):
+            state.read(("q",), retries=50)
+        section.__exit__(None, None, None)
+        assert state.read(("q",))["q"].tolist() == [1.0, 0.0]
+    finally:
+        state.close()
+
+
+@pytest.fixture
+def no_mlock(monkeypatch):
+    """(never lock the test process's memory)"""
+    monkeypatch.setattr(exchange, "lock_memory", lambda: "memory not locked (test)")
+
+
+def test_sched_fifo_refusal_is_logged_clearly_with_the_fix(monkeypatch, no_mlock):
+    def refuse(pid, policy, param):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    link = RecordingLink()
+    exchange.set_realtime(link, 40)
+    assert link.realtime.startswith("normal priority (SCHED_FIFO 40 not permitted")
+    (level, text), = link.lines
+    assert level == logging.WARNING and "LimitRTPRIO=40" in text and "may answer late under load" in text
+
+
+def test_no_priority_asked_is_said_without_a_warning(no_mlock):
+    link = RecordingLink()
+    exchange.set_realtime(link, 0)
+    assert link.realtime.startswith("normal priority (rt_priority=0)")
+    assert [lvl for lvl, _ in link.lines] == [logging.INFO]
