@@ -72,6 +72,8 @@ DEFAULT_TIME_SCALE = 4.0
 MIN_WALL_PERIOD_S = 0.002
 #: Configurations failing in a row after which the run stops as failed (the cell is not usable).
 MAX_CONSECUTIVE_FAILURES = 3
+#: Wall seconds the run waits after connecting for the controller's first joint state.
+FIRST_STATE_TIMEOUT_S = 15.0
 #: Expected sample rate (Hz) per sensor driver, for the cell-time estimate only.
 SENSOR_RATE_HZ = {"natnet": 120.0, "tracker": 1000.0, "emscon": 1000.0}
 
@@ -722,7 +724,7 @@ class RunController:
         self._clock, self._sleep = clock, sleep
         if self._abort.is_set():
             return self._finish(clock, 0.0)
-        start_q = np.asarray(cmd.joint_state().position_rad, dtype=float)
+        start_q = np.asarray(cmd.first_state(FIRST_STATE_TIMEOUT_S).position_rad, dtype=float)
         order = order_configurations(todo, start_q, cmd.limits, s.speed)
         settle_est = estimate_settle_s(s.settle_window_s)
         measure_est = estimate_measure_s(s.samples, [SENSOR_RATE_HZ.get(sp.driver, 100.0) for sp in self.plan.sensors])

@@ -153,6 +153,19 @@ class CommanderBase(DeviceBase):
     def joint_state(self) -> JointState:  # pragma: no cover - overridden
         raise NotImplementedError
 
+    def first_state(self, timeout: float) -> JointState:
+        """The measured state once the controller streams (right after ``connect()`` a controller
+        may not have sent yet: an FRI robot application opens its session when it is ready);
+        DeviceTimeoutError naming the last reason after ``timeout`` seconds (wall time)."""
+        deadline = time.monotonic() + check_timeout(timeout)
+        while True:
+            try:
+                return self.joint_state()
+            except DeviceTimeoutError:
+                if time.monotonic() > deadline:
+                    raise
+            time.sleep(0.01)
+
     def check_state(self, state: JointState) -> JointState:
         """Refuse a stale, wrongly sized or non-finite measured state."""
         q = np.asarray(state.position_rad, dtype=float)

@@ -94,6 +94,7 @@ def move(
         raise typer.BadParameter(str(exc), param_hint="--commander") from exc
     try:
         cmd.connect()
+        cmd.first_state(15.0)  # the controller streams
         time.sleep(0.5)  # half a second of cycles for the timing figures
         typer.echo(f"robot: {model.name} ({limits.n_axes} axes), commander {commander}")
         typer.echo(_link_report(cmd, names))
