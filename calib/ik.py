@@ -54,6 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib.ik_scalar import WristArmScalar
 from calib.ik_spherical_wrist import REACH_SLACK, RawSolutions, WristArmGeometry
 from calib.ik_spherical_wrist import branch_labels as wrist_arm_labels
 from calib.ik_srs import SrsGeometry
@@ -100,6 +101,17 @@ class NoFeasibleArmAngle(ValueError):
 
 # --- solver set-up (cached per model and parameter vector) ---------------------------------------
 @dataclass
+class _OnePose:
+    """What ``_solve_one`` needs, as plain floats: the closed form, the FK parameter vector (P),
+    the limits (n) rad, and per joint the ±360° steps tried, as (2πk rad, label suffix)."""
+
+    closed_form: WristArmScalar
+    params: list[float]
+    lower: list[float]
+    upper: list[float]
+    steps: list[list[tuple[float, str]]]
+
+@dataclass
 class _Solver:
     model: RobotModel
     chain: Chain
@@ -110,6 +122,7 @@ class _Solver:
     polish: bool  # closed form is on an approximation: polish every row
     shifts: np.ndarray  # (n_combos, n) multiples of 2π to try for ±360° equivalents
     shift_labels: list[str]
+    one_pose: _OnePose | None  # the one-pose float path (6R with an exact closed form)
 
 
 #: Solvers kept per model: one per parameter vector, oldest dropped first.
@@ -128,21 +141,28 @@ def _solvers_of(model: RobotModel) -> dict[bytes | None, _Solver]:
     return solvers
 
 
-def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
-    """Every combination of ±360° multiples that can bring a wrapped angle into the limits.
-
-    For joint j the multiples k with [lo − 2πk, hi − 2πk] overlapping (−π, π]; joints whose
-    limits lie inside (−π, π] only get k = 0. Returns shifts (C, n) rad (row 0 all zeros) and
-    label suffixes such as " A6-360".
-    """
+def _shift_steps(model: RobotModel) -> list[list[int]]:
+    """Per joint, the multiples k of 360° for which [lo − 2πk, hi − 2πk] overlaps (−π, π],
+    in the order tried (0, then ±1, …); joints whose limits lie inside (−π, π] only get k = 0."""
     lo, hi = model.lower_limits_rad, model.upper_limits_rad
-    n = model.n_joints
     per_joint = []
-    for j in range(n):
+    for j in range(model.n_joints):
         ks = [k for k in range(-3, 4) if lo[j] - 2 * np.pi * k <= np.pi and hi[j] - 2 * np.pi * k > -np.pi]
         per_joint.append(sorted(ks, key=lambda k: (abs(k), k)))
-    combos = np.array(list(itertools.product(*per_joint)), dtype=float).reshape(-1, n)
-    labels = ["".join(f" {model.axis_names[j]}{int(360 * c[j]):+d}" for j in range(n) if c[j] != 0) for c in combos]
+    return per_joint
+
+
+def _shift_label(model: RobotModel, j: int, k: float) -> str:
+    return f" {model.axis_names[j]}{int(360 * k):+d}" if k != 0 else ""
+
+
+def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
+    """Every combination of ±360° multiples that can bring a wrapped angle into the limits
+    (``_shift_steps``). Returns shifts (C, n) rad (row 0 all zeros) and label suffixes such as
+    " A6-360"."""
+    n = model.n_joints
+    combos = np.array(list(itertools.product(*_shift_steps(model))), dtype=float).reshape(-1, n)
+    labels = ["".join(_shift_label(model, j, c[j]) for j in range(n)) for c in combos]
     return combos * 2 * math.pi, labels
 
 
@@ -169,7 +189,16 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
             geometry = cls.from_axes(ScrewAxes.from_chain(chain, chain.with_offsets(params[:n])), names, model.name)
             polish = True
     shifts, shift_labels = _wide_shifts(model)
-    return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels)
+    one_pose = None
+    if kind == "6r" and not polish:
+        one_pose = _OnePose(
+            closed_form=WristArmScalar(geometry),
+            params=(chain.nominal if params is None else params).tolist(),
+            lower=model.lower_limits_rad.tolist(),
+            upper=model.upper_limits_rad.tolist(),
+            steps=[[(k * 2 * math.pi, _shift_label(model, j, k)) for k in map(float, ks)] for j, ks in enumerate(_shift_steps(model))],
+        )
+    return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels, one_pose)
 
 
 def _solver(model: RobotModel, params: np.ndarray | None) -> _Solver:
@@ -383,6 +412,78 @@ def _assemble(s: _Solver, raw: RawSolutions, q: np.ndarray, within_limits: bool)
     return out
 
 
+#: The one-pose path accepts a row only this far inside the FK tolerances, and a ±360° candidate
+#: only this far (rad) from a limit; anything closer goes to the vectorised path, so rounding
+#: differences between the two can never change which rows come back.
+_ONE_POSE_TOLERANCE_SHARE = 0.5
+_ONE_POSE_LIMIT_MARGIN_RAD = 1e-9
+
+
+def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions | None:
+    """``solve_many`` for one pose (4, 4) of a 6R arm in plain floats, or None where the pose needs
+    the vectorised path: not a clean rigid transform (it raises there), out of reach, near a
+    singularity (``calib.ik_scalar``), a row near a tolerance or limit, or no row within limits.
+    Same rows, labels and order as ``solve_many`` (to rounding, ≲1e-12 rad)."""
+    one = s.one_pose
+    if one is None:
+        return None
+    m = pose.tolist()
+    if m[3] != [0.0, 0.0, 0.0, 1.0] or not all(math.isfinite(x) for row in m for x in row):
+        return None
+    rot = (tuple(m[0][:3]), tuple(m[1][:3]), tuple(m[2][:3]))
+    pos = (m[0][3], m[1][3], m[2][3])
+    cols = tuple(zip(*rot))
+    for i in range(3):
+        for j in range(i, 3):
+            c = cols[i][0] * cols[j][0] + cols[i][1] * cols[j][1] + cols[i][2] * cols[j][2]
+            if abs(c - (i == j)) > 1e-6:
+                return None
+    x, y, z = cols
+    if (x[1] * y[2] - x[2] * y[1]) * z[0] + (x[2] * y[0] - x[0] * y[2]) * z[1] + (x[0] * y[1] - x[1] * y[0]) * z[2] < 0:
+        return None
+    branches = one.closed_form.solve(rot, pos)
+    if branches is None:
+        return None
+    tol_p = POSITION_TOLERANCE_MM * _ONE_POSE_TOLERANCE_SHARE
+    tol_r = ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE
+    rows: list[list[float]] = []
+    labels: list[str] = []
+    lo, hi = one.lower, one.upper
+    for b, q in enumerate(branches):
+        if q is None:
+            continue
+        fx, fy, fz, fp = s.chain._walk_floats(q, one.params)
+        if math.dist(fp, pos) > tol_p:
+            return None
+        # rotation angle θ from the Frobenius distance ‖R − R_target‖ = 2√2 sin(θ/2)
+        frob = math.sqrt(sum((f[i] - c[i]) ** 2 for f, c in zip((fx, fy, fz), cols) for i in range(3)))
+        if 2.0 * math.asin(min(1.0, frob / (2.0 * math.sqrt(2.0)))) > tol_r:
+            return None
+        if not within_limits:
+            rows.append(q)
+            labels.append(s.labels[b])
+            continue
+        options = []
+        for j, qj in enumerate(q):
+            fits = []
+            for step, suffix in one.steps[j]:
+                v = qj + step
+                if abs(v - lo[j]) < _ONE_POSE_LIMIT_MARGIN_RAD or abs(v - hi[j]) < _ONE_POSE_LIMIT_MARGIN_RAD:
+                    return None
+                if lo[j] <= v <= hi[j]:
+                    fits.append((v, suffix))
+            if not fits:
+                break
+            options.append(fits)
+        else:
+            for combo in itertools.product(*options):
+                rows.append([v for v, _ in combo])
+                labels.append(s.labels[b] + "".join(suffix for _, suffix in combo))
+    if not rows:
+        return None  # "limits": the vectorised path names the least-violated limit
+    return IkSolutions(np.array(rows), labels, "ok", "")
+
+
 def _slack(s: _Solver) -> float:
     """Reach slack: a perturbed model may reach a little beyond the nominal one."""
     return POLISH_REACH_SLACK if s.polish else REACH_SLACK
@@ -445,10 +546,19 @@ def solve_all(
     within_limits: bool = True,
     params: np.ndarray | None = None,
 ) -> IkSolutions:
-    """Every IK solution of one flange pose (4, 4) mm; see ``solve_many``."""
+    """Every IK solution of one flange pose (4, 4) mm; see ``solve_many``.
+
+    A 6R arm's pose away from singularities, reach boundaries and limits is solved in plain
+    floats (``_solve_one``: one pose through numpy costs some hundred tiny array calls); the
+    result is ``solve_many``'s, rows equal to rounding.
+    """
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4):
         raise ValueError(f"pose must be one (4, 4) flange frame, got shape {pose.shape}")
+    if arm_angle is None:
+        one = _solve_one(_solver(model, params), pose, within_limits)
+        if one is not None:
+            return one
     return solve_many(model, pose[None], arm_angle=arm_angle, within_limits=within_limits, params=params)[0]
 
 

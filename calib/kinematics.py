@@ -160,8 +160,11 @@ class Chain:
         """``_walk`` for one configuration (n,) and one parameter vector (P,) in plain floats:
         a single call costs microseconds, not the overhead of dozens of tiny numpy operations.
         Returns the flange's x, y, z columns and origin, each a list of 3 floats."""
+        return self._walk_floats(q.tolist(), p.tolist())
+
+    def _walk_floats(self, qf: list[float], pf: list[float]) -> tuple[list, list, list, list]:
+        """``_walk_one`` on plain lists: qf (n) rad, pf (P) — for callers already in floats."""
         n = self.n
-        qf, pf = q.tolist(), p.tolist()
         (xx, xy, xz), (yx, yy, yz), (zx, zy, zz), (ox, oy, oz) = self._base_f
         cos, sin = math.cos, math.sin
         for i in range(n):
