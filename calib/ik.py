@@ -103,13 +103,12 @@ class NoFeasibleArmAngle(ValueError):
 @dataclass
 class _OnePose:
     """What ``_solve_one`` needs, as plain floats: the closed form, the FK parameter vector (P),
-    the limits (n) rad, and per joint the ±360° steps tried, as (2πk rad, label suffix)."""
+    and per joint its limits moved ``_ONE_POSE_LIMIT_MARGIN_RAD`` in and out (inner lo, inner hi,
+    outer lo, outer hi) rad with the ±360° steps tried, as (2πk rad, label suffix)."""
 
     closed_form: WristArmScalar
     params: list[float]
-    lower: list[float]
-    upper: list[float]
-    steps: list[list[tuple[float, str]]]
+    steps: list[tuple[float, float, float, float, list[tuple[float, str]]]]
 
 @dataclass
 class _Solver:
@@ -194,9 +193,13 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
         one_pose = _OnePose(
             closed_form=WristArmScalar(geometry),
             params=(chain.nominal if params is None else params).tolist(),
-            lower=model.lower_limits_rad.tolist(),
-            upper=model.upper_limits_rad.tolist(),
-            steps=[[(k * 2 * math.pi, _shift_label(model, j, k)) for k in map(float, ks)] for j, ks in enumerate(_shift_steps(model))],
+            steps=[
+                (lo + _ONE_POSE_LIMIT_MARGIN_RAD, hi - _ONE_POSE_LIMIT_MARGIN_RAD,
+                 lo - _ONE_POSE_LIMIT_MARGIN_RAD, hi + _ONE_POSE_LIMIT_MARGIN_RAD,
+                 [(k * 2 * math.pi, _shift_label(model, j, k)) for k in map(float, ks)])
+                for j, (lo, hi, ks) in enumerate(
+                    zip(model.lower_limits_rad.tolist(), model.upper_limits_rad.tolist(), _shift_steps(model)))
+            ],
         )
     return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels, one_pose)
 
@@ -445,40 +448,47 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
     if branches is None:
         return None
     tol_p = POSITION_TOLERANCE_MM * _ONE_POSE_TOLERANCE_SHARE
-    tol_r = ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE
+    # rotation angle θ from the Frobenius distance ‖R − R_target‖² = 8 sin²(θ/2)
+    tol_frob_sq = 8.0 * math.sin(ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE / 2.0) ** 2
+    (tx0, tx1, tx2), (ty0, ty1, ty2), (tz0, tz1, tz2) = cols
+    walk, params, labels_b, steps = s.chain._walk_floats, one.params, s.labels, one.steps
     rows: list[list[float]] = []
     labels: list[str] = []
-    lo, hi = one.lower, one.upper
     for b, q in enumerate(branches):
         if q is None:
             continue
-        fx, fy, fz, fp = s.chain._walk_floats(q, one.params)
-        if math.dist(fp, pos) > tol_p:
-            return None
-        # rotation angle θ from the Frobenius distance ‖R − R_target‖ = 2√2 sin(θ/2)
-        frob = math.sqrt(sum((f[i] - c[i]) ** 2 for f, c in zip((fx, fy, fz), cols) for i in range(3)))
-        if 2.0 * math.asin(min(1.0, frob / (2.0 * math.sqrt(2.0)))) > tol_r:
+        (fx0, fx1, fx2), (fy0, fy1, fy2), (fz0, fz1, fz2), fp = walk(q, params)
+        frob_sq = (
+            (fx0 - tx0) ** 2 + (fx1 - tx1) ** 2 + (fx2 - tx2) ** 2
+            + (fy0 - ty0) ** 2 + (fy1 - ty1) ** 2 + (fy2 - ty2) ** 2
+            + (fz0 - tz0) ** 2 + (fz1 - tz1) ** 2 + (fz2 - tz2) ** 2
+        )
+        if math.dist(fp, pos) > tol_p or frob_sq > tol_frob_sq:
             return None
         if not within_limits:
             rows.append(q)
-            labels.append(s.labels[b])
+            labels.append(labels_b[b])
             continue
         options = []
-        for j, qj in enumerate(q):
+        for qj, (inner_lo, inner_hi, outer_lo, outer_hi, joint_steps) in zip(q, steps):
             fits = []
-            for step, suffix in one.steps[j]:
+            for step, suffix in joint_steps:
                 v = qj + step
-                if abs(v - lo[j]) < _ONE_POSE_LIMIT_MARGIN_RAD or abs(v - hi[j]) < _ONE_POSE_LIMIT_MARGIN_RAD:
-                    return None
-                if lo[j] <= v <= hi[j]:
+                if inner_lo <= v <= inner_hi:
                     fits.append((v, suffix))
+                elif outer_lo <= v <= outer_hi:
+                    return None  # within the margin of a limit
             if not fits:
                 break
             options.append(fits)
         else:
+            if all(len(f) == 1 for f in options):
+                rows.append([f[0][0] for f in options])
+                labels.append(labels_b[b] + "".join(f[0][1] for f in options))
+                continue
             for combo in itertools.product(*options):
                 rows.append([v for v, _ in combo])
-                labels.append(s.labels[b] + "".join(suffix for _, suffix in combo))
+                labels.append(labels_b[b] + "".join(suffix for _, suffix in combo))
     if not rows:
         return None  # "limits": the vectorised path names the least-violated limit
     return IkSolutions(np.array(rows), labels, "ok", "")

@@ -24,6 +24,9 @@ from calib.ik_spherical_wrist import WristArmGeometry
 #: differences between the two paths can never put a pose on different sides of that flag.
 FALLBACK_MARGIN = 1e-4
 
+#: A wrapped angle this close to ±π (rad) sends the pose to the vectorised solver.
+_NEAR_PI = math.pi - 1e-9
+
 Vec = tuple[float, float, float]
 
 
@@ -72,32 +75,6 @@ def _roots(a: float, b: float, d: float) -> tuple[float, float, float, float]:
     return phi + beta, phi - beta, r, ratio
 
 
-def _mat_t_vec(m: tuple[Vec, Vec, Vec], v: Vec) -> Vec:
-    """mᵀ v for m given as rows."""
-    return (
-        m[0][0] * v[0] + m[1][0] * v[1] + m[2][0] * v[2],
-        m[0][1] * v[0] + m[1][1] * v[1] + m[2][1] * v[2],
-        m[0][2] * v[0] + m[1][2] * v[1] + m[2][2] * v[2],
-    )
-
-
-def _rot_rows(w: Vec, angle: float) -> tuple[Vec, Vec, Vec]:
-    """Rotation matrix about unit w by angle, as rows."""
-    c, s = math.cos(angle), math.sin(angle)
-    t = 1.0 - c
-    x, y, z = w
-    return (
-        (c + x * x * t, x * y * t - z * s, x * z * t + y * s),
-        (y * x * t + z * s, c + y * y * t, y * z * t - x * s),
-        (z * x * t - y * s, z * y * t + x * s, c + z * z * t),
-    )
-
-
-def _mat_mul(a: tuple[Vec, Vec, Vec], b: tuple[Vec, Vec, Vec]) -> tuple[Vec, Vec, Vec]:
-    cols = tuple(zip(*b))
-    return tuple(tuple(_dot(row, col) for col in cols) for row in a)  # type: ignore[return-value]
-
-
 def _wrap(a: float) -> float:
     return math.pi - (math.pi - a) % (2 * math.pi)
 
@@ -110,11 +87,9 @@ class WristArmScalar:
         self.w = [_t(x) for x in w]
         self.p = [_t(x) for x in p]
         hi = g.axes.home_inv
-        self.home_inv_rot = tuple(_t(hi[i, :3]) for i in range(3))
         c0 = _t(g.wrist_centre)
-        self.c0 = c0
         # the wrist centre as the home-inverse carries it: c = R_pose · c0h + p_pose
-        self.c0h = tuple(float(_dot(self.home_inv_rot[i], c0) + hi[i, 3]) for i in range(3))
+        self.c0h = _t(hi[:3, :3] @ g.wrist_centre + hi[:3, 3])
         self.n12 = _cross(self.w[0], self.w[1])
         self.lateral = float(g.lateral)
         self.facing_sign = float(g.facing_sign)
@@ -132,29 +107,34 @@ class WristArmScalar:
         tr = g.wrist
         self.a1, self.a2, self.a3 = _t(tr.a1), _t(tr.a2), _t(tr.a3)
         self.wn12 = _cross(self.a1, self.a2)
+        self.aligned = float(tr.aligned)
+        # R_home⁻¹·a2 and R_home⁻¹·a3: R_rel·a = R_pose·(R_home⁻¹·a)
+        self.home_inv_a2, self.home_inv_a3 = _t(hi[:3, :3] @ tr.a2), _t(hi[:3, :3] @ tr.a3)
 
     def solve(self, rot: tuple[Vec, Vec, Vec], pos: Vec) -> list[list[float] | None] | None:
         """The 8 branches for the flange pose ``rot`` (rows) and ``pos`` (mm), wrapped to (−π, π];
         an entry is None where the branch does not exist (its elbow is out of reach). Returns None
         when the pose needs the vectorised solver (see the module docstring)."""
-        w, p = self.w, self.p
-        r_rel = _mat_mul(rot, self.home_inv_rot)
-        c = tuple(_dot(rot[i], self.c0h) + pos[i] for i in range(3))
-        # --- A1 ---
-        v = (c[0] - p[0][0], c[1] - p[0][1], c[2] - p[0][2])
-        sh = _roots(_dot(v, w[1]), _dot(v, self.n12), self.lateral)
+        w0, w1, w2 = self.w[0], self.w[1], self.w[2]
+        p0, p1, p2 = self.p[0], self.p[1], self.p[2]
+        c0h, ha2, ha3 = self.c0h, self.home_inv_a2, self.home_inv_a3
+        # the relative rotation R_rel = rot · R_home⁻¹ is only needed applied to the wrist's a2, a3
+        r0, r1, r2 = rot
+        rel_a2 = (_dot(r0, ha2), _dot(r1, ha2), _dot(r2, ha2))
+        rel_a3 = (_dot(r0, ha3), _dot(r1, ha3), _dot(r2, ha3))
+        # --- A1 --- (v: wrist centre from the point on axis 1)
+        v = (_dot(r0, c0h) + pos[0] - p0[0], _dot(r1, c0h) + pos[1] - p0[1], _dot(r2, c0h) + pos[2] - p0[2])
+        sh = _roots(_dot(v, w1), _dot(v, self.n12), self.lateral)
         # out of reach, or near it, or the wrist centre (near) the shoulder's singular surface
         if abs(sh[3]) > 1.0 - FALLBACK_MARGIN or sh[2] * math.sqrt(1.0 - sh[3] ** 2) < FALLBACK_MARGIN:
             return None
         q1_pair = (sh[1], sh[0]) if self.facing_sign > 0 else (sh[0], sh[1])
         out: list[list[float] | None] = []
-        w0, w1, w2, p0, p1, p2 = w[0], w[1], w[2], p[0], p[1], p[2]
         any_arm = False
         for q1 in q1_pair:
-            # --- A3 ---
+            # --- A3 --- (the wrist centre with A1 undone, seen from axis 2)
             cr = _rotate(w0, -q1, v)
-            c1 = (cr[0] + p0[0], cr[1] + p0[1], cr[2] + p0[2])
-            to_c1 = (c1[0] - p1[0], c1[1] - p1[1], c1[2] - p1[2])
+            to_c1 = (cr[0] + p0[0] - p1[0], cr[1] + p0[1] - p1[1], cr[2] + p0[2] - p1[2])
             d = _perp(w1, to_c1)
             el = _roots(self.el_a, self.el_b, self.el_k - _dot(d, d) / 2.0)
             if abs(el[3]) > 1.0 + FALLBACK_MARGIN:
@@ -164,40 +144,43 @@ class WristArmScalar:
                 return None  # elbow (near) stretched or folded, or at the reach boundary
             any_arm = True
             q3_pair = (el[0], el[1]) if self.elbow_up_sign > 0 else (el[1], el[0])
+            # R123ᵀ·x = Rot(w3, −q3) Rot(w2, −q2) Rot(w1, −q1) x: the first turn is shared
+            b_a3, b_a2 = _rotate(w0, -q1, rel_a3), _rotate(w0, -q1, rel_a2)
             for q3 in q3_pair:
                 # --- A2 ---
                 mv = _rotate(w2, q3, self.c0_from_p2)
                 moved = (mv[0] + p2[0] - p1[0], mv[1] + p2[1] - p1[1], mv[2] + p2[2] - p1[2])
                 q2 = _angle_about(w1, moved, to_c1)
-                # --- A4..A6 ---
-                r123 = _mat_mul(_mat_mul(_rot_rows(w0, q1), _rot_rows(w1, q2)), _rot_rows(w2, q3))
-                wrist = self._decompose(r123, r_rel)
+                # --- A4..A6 --- on the wrist rotation R123ᵀ·R_rel, through its images of a3 and a2
+                target = _rotate(w2, -q3, _rotate(w1, -q2, b_a3))
+                r_a2 = _rotate(w2, -q3, _rotate(w1, -q2, b_a2))
+                wrist = self._decompose(target, r_a2)
                 if wrist is None:
                     return None
+                arm = [_wrap(q1), _wrap(q2), _wrap(q3)]
                 for t4, t5, t6 in wrist:
-                    out.append([_wrap(q1), _wrap(q2), _wrap(q3), _wrap(t4), _wrap(t5), _wrap(t6)])
+                    row = arm + [_wrap(t4), _wrap(t5), _wrap(t6)]
+                    if max(row) > _NEAR_PI or min(row) < -_NEAR_PI:
+                        return None  # π or −π? the two paths may round a joint to either end
+                    out.append(row)
         return out if any_arm else None
 
-    def _decompose(self, r123: tuple[Vec, Vec, Vec], r_rel: tuple[Vec, Vec, Vec]):
-        """Both (t4, t5, t6) with Rot(a1,t4)Rot(a2,t5)Rot(a3,t6) = r123ᵀ·r_rel (noflip first),
-        or None near the wrist singularity."""
+    def _decompose(self, target: Vec, r_a2: Vec) -> list[tuple[float, float, float]] | None:
+        """Both (t4, t5, t6) with Rot(a1,t4)Rot(a2,t5)Rot(a3,t6) = R (noflip first), given
+        target = R·a3 and r_a2 = R·a2; None near the wrist singularity."""
         a1, a2, a3 = self.a1, self.a2, self.a3
-        # r = r123ᵀ r_rel; r·a and friends without forming r
-        target = _mat_t_vec(r123, tuple(_dot(row, a3) for row in r_rel))
-        r_a2 = _mat_t_vec(r123, tuple(_dot(row, a2) for row in r_rel))
         alpha = _dot(target, a1)
         pt = _cross(a1, target)
         gamma = math.sqrt(_dot(pt, pt))
         if gamma < FALLBACK_MARGIN:
             return None
         n = self.wn12
-        out = []
-        for sgn in (-1.0, 1.0):
-            g = sgn * gamma
-            z = (alpha * a1[0] + g * n[0], alpha * a1[1] + g * n[1], alpha * a1[2] + g * n[2])
-            t2 = _angle_about(a2, a3, z)
-            t1 = _angle_about(a1, z, target)
-            r12 = _mat_mul(_rot_rows(a1, t1), _rot_rows(a2, t2))
-            t3 = _angle_about(a3, a2, _mat_t_vec(r12, r_a2))
-            out.append((t1, t2, t3))
-        return out
+        # noflip: z = α a1 − γ (a1 × a2), so sin(t2 − aligned) = +γ
+        z = (alpha * a1[0] - gamma * n[0], alpha * a1[1] - gamma * n[1], alpha * a1[2] - gamma * n[2])
+        t2 = _angle_about(a2, a3, z)
+        t1 = _angle_about(a1, z, target)
+        # t3 from a vector ⟂ a3: Rot(a3, t3)·a2 = (Rot(a1,t1)Rot(a2,t2))ᵀ · R·a2
+        t3 = _angle_about(a3, a2, _rotate(a2, -t2, _rotate(a1, -t1, r_a2)))
+        # flip: Rot(a1,π)·Rot(a3,π) = Rot(a2, 2·aligned) (half-turns about two axes ⟂ a2) turns
+        # the noflip solution into (t1 + π, 2·aligned − t2, t3 + π)
+        return [(t1, t2, t3), (t1 + math.pi, 2.0 * self.aligned - t2, t3 + math.pi)]
