@@ -47,9 +47,11 @@ poses up to ``POLISH_REACH_SLACK`` beyond the nominal reach are tried too.
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import logging
 import math
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,13 +104,12 @@ class NoFeasibleArmAngle(ValueError):
 # --- solver set-up (cached per model and parameter vector) ---------------------------------------
 @dataclass
 class _OnePose:
-    """What ``_solve_one`` needs, as plain floats: the closed form, the FK parameter vector (P),
-    and per joint its limits moved ``_ONE_POSE_LIMIT_MARGIN_RAD`` in and out (inner lo, inner hi,
-    outer lo, outer hi) rad with the ±360° steps tried, as (2πk rad, label suffix)."""
+    """What ``_solve_one`` needs, as plain floats: the closed form, the FK links
+    (``Chain._links_floats``), and per joint the ±360° steps that fit (``_fitting_steps``)."""
 
     closed_form: WristArmScalar
-    params: list[float]
-    steps: list[tuple[float, float, float, float, list[tuple[float, str]]]]
+    links: list[tuple[float, ...]]
+    steps: list[tuple[list[float], list[list[tuple[float, str]]]]]
 
 @dataclass
 class _Solver:
@@ -165,6 +166,19 @@ def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
     return combos * 2 * math.pi, labels
 
 
+def _fitting_steps(model: RobotModel) -> list[tuple[list[float], list[list[tuple[float, str]]]]]:
+    """Per joint: the wrapped angles at which some ±360° image meets a limit (lo − 2πk, hi − 2πk;
+    sorted) and, for each stretch between them (``bisect`` index), the steps (2πk rad, label
+    suffix) that put the angle within limits, in ``_shift_steps`` order."""
+    out = []
+    for j, (lo, hi, ks) in enumerate(zip(model.lower_limits_rad.tolist(), model.upper_limits_rad.tolist(), _shift_steps(model))):
+        steps = [(k * 2 * math.pi, _shift_label(model, j, k)) for k in map(float, ks)]
+        breaks = sorted(lim - step for step, _ in steps for lim in (lo, hi))
+        mids = [breaks[0] - 1.0] + [0.5 * (a + b) for a, b in zip(breaks, breaks[1:])] + [breaks[-1] + 1.0]
+        out.append((breaks, [[(st, sf) for st, sf in steps if lo <= x + st <= hi] for x in mids]))
+    return out
+
+
 def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solver:
     n = model.n_joints
     names = tuple(model.axis_names)
@@ -192,14 +206,8 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
     if kind == "6r" and not polish:
         one_pose = _OnePose(
             closed_form=WristArmScalar(geometry),
-            params=(chain.nominal if params is None else params).tolist(),
-            steps=[
-                (lo + _ONE_POSE_LIMIT_MARGIN_RAD, hi - _ONE_POSE_LIMIT_MARGIN_RAD,
-                 lo - _ONE_POSE_LIMIT_MARGIN_RAD, hi + _ONE_POSE_LIMIT_MARGIN_RAD,
-                 [(k * 2 * math.pi, _shift_label(model, j, k)) for k in map(float, ks)])
-                for j, (lo, hi, ks) in enumerate(
-                    zip(model.lower_limits_rad.tolist(), model.upper_limits_rad.tolist(), _shift_steps(model)))
-            ],
+            links=chain._links_floats((chain.nominal if params is None else params).tolist()),
+            steps=_fitting_steps(model),
         )
     return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels, one_pose)
 
@@ -431,33 +439,35 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
     if one is None:
         return None
     m = pose.tolist()
-    if m[3] != [0.0, 0.0, 0.0, 1.0] or not all(math.isfinite(x) for row in m for x in row):
+    (r00, r01, r02, p0), (r10, r11, r12, p1), (r20, r21, r22, p2), last = m
+    if last != [0.0, 0.0, 0.0, 1.0] or not math.isfinite(r00 + r01 + r02 + p0 + r10 + r11 + r12 + p1 + r20 + r21 + r22 + p2):
+        return None  # (a sum overflowing to inf only sends a huge pose the slow way)
+    # a rigid transform to 1e-6, as ``_check_poses`` asks (which raises where this declines)
+    if max(
+        abs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0), abs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0),
+        abs(r02 * r02 + r12 * r12 + r22 * r22 - 1.0), abs(r00 * r01 + r10 * r11 + r20 * r21),
+        abs(r00 * r02 + r10 * r12 + r20 * r22), abs(r01 * r02 + r11 * r12 + r21 * r22),
+    ) > 1e-6 or (r10 * r21 - r20 * r11) * r02 + (r20 * r01 - r00 * r21) * r12 + (r00 * r11 - r10 * r01) * r22 < 0:
         return None
-    rot = (tuple(m[0][:3]), tuple(m[1][:3]), tuple(m[2][:3]))
-    pos = (m[0][3], m[1][3], m[2][3])
-    cols = tuple(zip(*rot))
-    for i in range(3):
-        for j in range(i, 3):
-            c = cols[i][0] * cols[j][0] + cols[i][1] * cols[j][1] + cols[i][2] * cols[j][2]
-            if abs(c - (i == j)) > 1e-6:
-                return None
-    x, y, z = cols
-    if (x[1] * y[2] - x[2] * y[1]) * z[0] + (x[2] * y[0] - x[0] * y[2]) * z[1] + (x[0] * y[1] - x[1] * y[0]) * z[2] < 0:
-        return None
+    rot = ((r00, r01, r02), (r10, r11, r12), (r20, r21, r22))
+    pos = (p0, p1, p2)
     branches = one.closed_form.solve(rot, pos)
     if branches is None:
         return None
     tol_p = POSITION_TOLERANCE_MM * _ONE_POSE_TOLERANCE_SHARE
     # rotation angle θ from the Frobenius distance ‖R − R_target‖² = 8 sin²(θ/2)
     tol_frob_sq = 8.0 * math.sin(ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE / 2.0) ** 2
-    (tx0, tx1, tx2), (ty0, ty1, ty2), (tz0, tz1, tz2) = cols
-    walk, params, labels_b, steps = s.chain._walk_floats, one.params, s.labels, one.steps
+    tx0, tx1, tx2, ty0, ty1, ty2, tz0, tz1, tz2 = r00, r10, r20, r01, r11, r21, r02, r12, r22  # columns
+    walk, flange, links, labels_b, steps = s.chain._walk_links, s.chain._flange_floats, one.links, s.labels, one.steps
+    arm = None
     rows: list[list[float]] = []
     labels: list[str] = []
     for b, q in enumerate(branches):
         if q is None:
             continue
-        (fx0, fx1, fx2), (fy0, fy1, fy2), (fz0, fz1, fz2), fp = walk(q, params)
+        if b % 2 == 0 or arm is None:  # branches 2i, 2i + 1 (noflip, flip) share A1..A3
+            arm = walk(q[:3], links)
+        (fx0, fx1, fx2), (fy0, fy1, fy2), (fz0, fz1, fz2), fp = flange(walk(q[3:], links, arm, 3))
         frob_sq = (
             (fx0 - tx0) ** 2 + (fx1 - tx1) ** 2 + (fx2 - tx2) ** 2
             + (fy0 - ty0) ** 2 + (fy1 - ty1) ** 2 + (fy2 - ty2) ** 2
@@ -470,25 +480,20 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
             labels.append(labels_b[b])
             continue
         options = []
-        for qj, (inner_lo, inner_hi, outer_lo, outer_hi, joint_steps) in zip(q, steps):
-            fits = []
-            for step, suffix in joint_steps:
-                v = qj + step
-                if inner_lo <= v <= inner_hi:
-                    fits.append((v, suffix))
-                elif outer_lo <= v <= outer_hi:
-                    return None  # within the margin of a limit
-            if not fits:
+        for qj, (breaks, fits) in zip(q, steps):
+            i = bisect.bisect(breaks, qj)
+            if (i and qj - breaks[i - 1] < _ONE_POSE_LIMIT_MARGIN_RAD) or (
+                i < len(breaks) and breaks[i] - qj < _ONE_POSE_LIMIT_MARGIN_RAD
+            ):
+                return None  # within the margin of a limit (or of one of its ±360° images)
+            if not fits[i]:
                 break
-            options.append(fits)
+            options.append(fits[i])
         else:
-            if all(len(f) == 1 for f in options):
-                rows.append([f[0][0] for f in options])
-                labels.append(labels_b[b] + "".join(f[0][1] for f in options))
-                continue
             for combo in itertools.product(*options):
-                rows.append([v for v, _ in combo])
-                labels.append(labels_b[b] + "".join(suffix for _, suffix in combo))
+                shifts, suffixes = zip(*combo)
+                rows.append(list(map(operator.add, q, shifts)))
+                labels.append(labels_b[b] + "".join(suffixes))
     if not rows:
         return None  # "limits": the vectorised path names the least-violated limit
     return IkSolutions(np.array(rows), labels, "ok", "")

@@ -69,7 +69,7 @@ class Chain:
         # Plain-float copies for the one-configuration path (``_walk_one``).
         self._theta0_f = self.theta0.tolist()
         self._sign_f = self.sign.tolist()
-        self._base_f = self.base[:3, :].T.tolist()  # columns x, y, z, origin
+        self._base_flat = tuple(self.base[:3, :].T.ravel().tolist())  # columns x, y, z, origin
         self._flange_f = self.flange[:3, :].tolist()
         axes = model.axis_names
         self.param_names = [f"{ax}.{kind}" for kind in KINDS for ax in axes] + [
@@ -164,25 +164,43 @@ class Chain:
 
     def _walk_floats(self, qf: list[float], pf: list[float]) -> tuple[list, list, list, list]:
         """``_walk_one`` on plain lists: qf (n) rad, pf (P) — for callers already in floats."""
-        n = self.n
-        (xx, xy, xz), (yx, yy, yz), (zx, zy, zz), (ox, oy, oz) = self._base_f
+        return self._flange_floats(self._walk_links(qf, self._links_floats(pf)))
+
+    def _links_floats(self, pf: list[float]) -> list[tuple[float, ...]]:
+        """Per joint of parameter list pf (P): (θ0, sign, δ, d, a, cos α, sin α, cos β, sin β) —
+        what ``_walk_links`` needs, computed once for many walks with the same parameters."""
+        n, cos, sin = self.n, math.cos, math.sin
+        return [
+            (self._theta0_f[i], self._sign_f[i], pf[i], pf[n + i], pf[2 * n + i],
+             cos(pf[3 * n + i]), sin(pf[3 * n + i]), cos(pf[4 * n + i]), sin(pf[4 * n + i]))
+            for i in range(n)
+        ]
+
+    def _walk_links(self, qf: list[float], links: list[tuple[float, ...]], frame: tuple | None = None,
+                    start: int = 0) -> tuple[float, ...]:
+        """The frame after joints ``start`` … ``start + len(links) − 1`` as 12 floats (x, y, z
+        columns, origin), from ``frame`` (the frame before joint ``start``; None: the base);
+        qf holds the angles of those joints only, rad; links from ``_links_floats``."""
+        xx, xy, xz, yx, yy, yz, zx, zy, zz, ox, oy, oz = frame or self._base_flat
         cos, sin = math.cos, math.sin
-        for i in range(n):
-            th = self._theta0_f[i] + self._sign_f[i] * (qf[i] + pf[i])
+        for q, (th0, sign, off, d, a, ca, sa, cb, sb) in zip(qf, links[start:] if start else links):
+            th = th0 + sign * (q + off)
             ct, st = cos(th), sin(th)
-            d, a, al, be = pf[n + i], pf[2 * n + i], pf[3 * n + i], pf[4 * n + i]
             x1x, x1y, x1z = ct * xx + st * yx, ct * xy + st * yy, ct * xz + st * yz
             y1x, y1y, y1z = ct * yx - st * xx, ct * yy - st * xy, ct * yz - st * xz
             ox, oy, oz = ox + a * x1x + d * zx, oy + a * x1y + d * zy, oz + a * x1z + d * zz
-            ca, sa = cos(al), sin(al)
             yx, yy, yz = ca * y1x + sa * zx, ca * y1y + sa * zy, ca * y1z + sa * zz
             z2x, z2y, z2z = ca * zx - sa * y1x, ca * zy - sa * y1y, ca * zz - sa * y1z
-            if be:
-                cb, sb = cos(be), sin(be)
+            if sb:
                 xx, xy, xz = cb * x1x - sb * z2x, cb * x1y - sb * z2y, cb * x1z - sb * z2z
                 zx, zy, zz = sb * x1x + cb * z2x, sb * x1y + cb * z2y, sb * x1z + cb * z2z
             else:
                 xx, xy, xz, zx, zy, zz = x1x, x1y, x1z, z2x, z2y, z2z
+        return xx, xy, xz, yx, yy, yz, zx, zy, zz, ox, oy, oz
+
+    def _flange_floats(self, frame: tuple[float, ...]) -> tuple[list, list, list, list]:
+        """The flange's x, y, z columns and origin (lists of 3 floats) from the last joint's frame."""
+        xx, xy, xz, yx, yy, yz, zx, zy, zz, ox, oy, oz = frame
         f = self._flange_f
         pos = [ox + f[0][3] * xx + f[1][3] * yx + f[2][3] * zx,
                oy + f[0][3] * xy + f[1][3] * yy + f[2][3] * zy,
