@@ -4,8 +4,8 @@
 time goes into a few hundred numpy calls on 3-vectors. ``WristArmScalar.solve`` repeats the same
 closed form (same equations, same branch order b = 4·shoulder + 2·elbow + wrist) with the
 ``math`` module on tuples, and only for the plain case: it returns ``None`` — "use the
-vectorised path" — whenever the pose is out of reach or within ``FALLBACK_MARGIN`` of a
-singularity, so messages, representatives and duplicate handling there stay the vectorised
+vectorised path" — whenever the pose is out of reach or near a singularity (``FALLBACK_MARGIN``,
+``RATIO_MARGIN``), so messages, representatives and duplicate handling there stay the vectorised
 solver's alone. Away from singularities the 8 branches are distinct by far more than
 ``calib.ik.DUPLICATE_TOLERANCE_RAD`` (each pair differs in a root pair φ ± β with sin β above
 the margin), so no duplicate test is needed.
@@ -19,10 +19,14 @@ import math
 
 from calib.ik_spherical_wrist import WristArmGeometry
 
-#: Poses nearer than this to a singularity (rad, or mm for the shoulder) or to the reach boundary
-#: (relative) are left to the vectorised solver. 100× its ``SINGULAR_TOLERANCE``: rounding
-#: differences between the two paths can never put a pose on different sides of that flag.
+#: Poses nearer than this to a singularity (rad, or mm for the shoulder) are left to the
+#: vectorised solver. 100× its ``SINGULAR_TOLERANCE``: rounding differences between the two
+#: paths can never put a pose on different sides of that flag.
 FALLBACK_MARGIN = 1e-4
+#: The same for a root pair's ratio |d / r| (1 where the roots coincide): within this of 1 is
+#: left to the vectorised solver (sin β < 4.5e-5, far above the flag's 1e-6; its reach test
+#: allows 1e-12).
+RATIO_MARGIN = 1e-9
 
 #: A wrapped angle this close to ±π (rad) sends the pose to the vectorised solver.
 _NEAR_PI = math.pi - 1e-9
@@ -48,17 +52,28 @@ def _perp(w: Vec, v: Vec) -> Vec:
 
 
 def _rotate(w: Vec, angle: float, v: Vec) -> Vec:
-    """Rodrigues: v rotated about unit w by angle."""
+    """Rodrigues: v rotated about unit w by angle (written out: this runs ~30 times a pose)."""
     c, s = math.cos(angle), math.sin(angle)
-    x = _cross(w, v)
-    k = _dot(w, v) * (1.0 - c)
-    return (v[0] * c + x[0] * s + w[0] * k, v[1] * c + x[1] * s + w[1] * k, v[2] * c + x[2] * s + w[2] * k)
+    w0, w1, w2 = w
+    v0, v1, v2 = v
+    k = (w0 * v0 + w1 * v1 + w2 * v2) * (1.0 - c)
+    return (
+        v0 * c + (w1 * v2 - w2 * v1) * s + w0 * k,
+        v1 * c + (w2 * v0 - w0 * v2) * s + w1 * k,
+        v2 * c + (w0 * v1 - w1 * v0) * s + w2 * k,
+    )
 
 
 def _angle_about(w: Vec, p: Vec, q: Vec) -> float:
     """Subproblem 1: the angle rotating p onto q about unit w (components ⟂ w)."""
-    pp, qq = _perp(w, p), _perp(w, q)
-    return math.atan2(_dot(w, _cross(pp, qq)), _dot(pp, qq))
+    w0, w1, w2 = w
+    kp = w0 * p[0] + w1 * p[1] + w2 * p[2]
+    kq = w0 * q[0] + w1 * q[1] + w2 * q[2]
+    p0, p1, p2 = p[0] - kp * w0, p[1] - kp * w1, p[2] - kp * w2
+    q0, q1, q2 = q[0] - kq * w0, q[1] - kq * w1, q[2] - kq * w2
+    return math.atan2(
+        w0 * (p1 * q2 - p2 * q1) + w1 * (p2 * q0 - p0 * q2) + w2 * (p0 * q1 - p1 * q0), p0 * q0 + p1 * q1 + p2 * q2
+    )
 
 
 def _roots(a: float, b: float, d: float) -> tuple[float, float, float, float]:
@@ -126,7 +141,7 @@ class WristArmScalar:
         v = (_dot(r0, c0h) + pos[0] - p0[0], _dot(r1, c0h) + pos[1] - p0[1], _dot(r2, c0h) + pos[2] - p0[2])
         sh = _roots(_dot(v, w1), _dot(v, self.n12), self.lateral)
         # out of reach, or near it, or the wrist centre (near) the shoulder's singular surface
-        if abs(sh[3]) > 1.0 - FALLBACK_MARGIN or sh[2] * math.sqrt(1.0 - sh[3] ** 2) < FALLBACK_MARGIN:
+        if abs(sh[3]) > 1.0 - RATIO_MARGIN or sh[2] * math.sqrt(1.0 - sh[3] ** 2) < FALLBACK_MARGIN:
             return None
         q1_pair = (sh[1], sh[0]) if self.facing_sign > 0 else (sh[0], sh[1])
         out: list[list[float] | None] = []
@@ -137,10 +152,10 @@ class WristArmScalar:
             to_c1 = (cr[0] + p0[0] - p1[0], cr[1] + p0[1] - p1[1], cr[2] + p0[2] - p1[2])
             d = _perp(w1, to_c1)
             el = _roots(self.el_a, self.el_b, self.el_k - _dot(d, d) / 2.0)
-            if abs(el[3]) > 1.0 + FALLBACK_MARGIN:
+            if abs(el[3]) > 1.0 + RATIO_MARGIN:
                 out.extend([None] * 4)  # this shoulder root's elbow cannot reach: its branches are absent
                 continue
-            if abs(el[3]) > 1.0 - FALLBACK_MARGIN:
+            if abs(el[3]) > 1.0 - RATIO_MARGIN:
                 return None  # elbow (near) stretched or folded, or at the reach boundary
             any_arm = True
             q3_pair = (el[0], el[1]) if self.elbow_up_sign > 0 else (el[1], el[0])
