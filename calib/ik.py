@@ -430,6 +430,23 @@ _ONE_POSE_TOLERANCE_SHARE = 0.5
 _ONE_POSE_LIMIT_MARGIN_RAD = 1e-9
 
 
+def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]] | None:
+    """Per joint of the wrapped row q (n) rad, the ±360° steps (``_OnePose.steps``) that put it
+    within limits; [] when some joint has none; None when a joint is within
+    ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images."""
+    options = []
+    for qj, (breaks, fits) in zip(q, steps):
+        i = bisect.bisect(breaks, qj)
+        if (i and qj - breaks[i - 1] < _ONE_POSE_LIMIT_MARGIN_RAD) or (
+            i < len(breaks) and breaks[i] - qj < _ONE_POSE_LIMIT_MARGIN_RAD
+        ):
+            return None
+        if not fits[i]:
+            return []
+        options.append(fits[i])
+    return options
+
+
 def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions | None:
     """``solve_many`` for one pose (4, 4) of a 6R arm in plain floats, or None where the pose needs
     the vectorised path: not a clean rigid transform (it raises there), out of reach, near a
@@ -459,14 +476,21 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
     tol_frob_sq = 8.0 * math.sin(ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE / 2.0) ** 2
     tx0, tx1, tx2, ty0, ty1, ty2, tz0, tz1, tz2 = r00, r10, r20, r01, r11, r21, r02, r12, r22  # columns
     walk, flange, links, labels_b, steps = s.chain._walk_links, s.chain._flange_floats, one.links, s.labels, one.steps
-    arm = None
+    arms: dict[int, tuple[float, ...]] = {}  # branches 2i, 2i + 1 (noflip, flip) share A1..A3
     rows: list[list[float]] = []
     labels: list[str] = []
     for b, q in enumerate(branches):
         if q is None:
             continue
-        if b % 2 == 0 or arm is None:  # branches 2i, 2i + 1 (noflip, flip) share A1..A3
-            arm = walk(q[:3], links)
+        if within_limits:  # first, as a row outside the limits needs no FK check: it is dropped either way
+            options = _steps_within_limits(q, steps)
+            if options is None:
+                return None
+            if not options:
+                continue
+        arm = arms.get(b >> 1)
+        if arm is None:
+            arm = arms[b >> 1] = walk(q[:3], links)
         (fx0, fx1, fx2), (fy0, fy1, fy2), (fz0, fz1, fz2), fp = flange(walk(q[3:], links, arm, 3))
         frob_sq = (
             (fx0 - tx0) ** 2 + (fx1 - tx1) ** 2 + (fx2 - tx2) ** 2
@@ -479,21 +503,10 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
             rows.append(q)
             labels.append(labels_b[b])
             continue
-        options = []
-        for qj, (breaks, fits) in zip(q, steps):
-            i = bisect.bisect(breaks, qj)
-            if (i and qj - breaks[i - 1] < _ONE_POSE_LIMIT_MARGIN_RAD) or (
-                i < len(breaks) and breaks[i] - qj < _ONE_POSE_LIMIT_MARGIN_RAD
-            ):
-                return None  # within the margin of a limit (or of one of its ±360° images)
-            if not fits[i]:
-                break
-            options.append(fits[i])
-        else:
-            for combo in itertools.product(*options):
-                shifts, suffixes = zip(*combo)
-                rows.append(list(map(operator.add, q, shifts)))
-                labels.append(labels_b[b] + "".join(suffixes))
+        for combo in itertools.product(*options):
+            shifts, suffixes = zip(*combo)
+            rows.append(list(map(operator.add, q, shifts)))
+            labels.append(labels_b[b] + "".join(suffixes))
     if not rows:
         return None  # "limits": the vectorised path names the least-violated limit
     return IkSolutions(np.array(rows), labels, "ok", "")
