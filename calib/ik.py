@@ -51,7 +51,6 @@ import bisect
 import itertools
 import logging
 import math
-import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -431,9 +430,9 @@ _ONE_POSE_LIMIT_MARGIN_RAD = 1e-9
 
 
 def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]] | None:
-    """Per joint of the wrapped row q (n) rad, the ±360° steps (``_OnePose.steps``) that put it
-    within limits; [] when some joint has none; None when a joint is within
-    ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images."""
+    """Per joint of the wrapped row q (n) rad, its ±360° images (``_OnePose.steps``) within
+    limits as (angle rad, label suffix); [] when some joint has none; None when a joint is
+    within ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images."""
     options = []
     for qj, (breaks, fits) in zip(q, steps):
         i = bisect.bisect(breaks, qj)
@@ -443,7 +442,7 @@ def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]]
             return None
         if not fits[i]:
             return []
-        options.append(fits[i])
+        options.append([(qj + step, suffix) for step, suffix in fits[i]])
     return options
 
 
@@ -504,8 +503,8 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
             labels.append(labels_b[b])
             continue
         for combo in itertools.product(*options):
-            shifts, suffixes = zip(*combo)
-            rows.append(list(map(operator.add, q, shifts)))
+            values, suffixes = zip(*combo)
+            rows.append(values)
             labels.append(labels_b[b] + "".join(suffixes))
     if not rows:
         return None  # "limits": the vectorised path names the least-violated limit

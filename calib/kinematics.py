@@ -201,14 +201,13 @@ class Chain:
     def _flange_floats(self, frame: tuple[float, ...]) -> tuple[list, list, list, list]:
         """The flange's x, y, z columns and origin (lists of 3 floats) from the last joint's frame."""
         xx, xy, xz, yx, yy, yz, zx, zy, zz, ox, oy, oz = frame
-        f = self._flange_f
-        pos = [ox + f[0][3] * xx + f[1][3] * yx + f[2][3] * zx,
-               oy + f[0][3] * xy + f[1][3] * yy + f[2][3] * zy,
-               oz + f[0][3] * xz + f[1][3] * yz + f[2][3] * zz]
-        cols = [[f[0][k] * xx + f[1][k] * yx + f[2][k] * zx,
-                 f[0][k] * xy + f[1][k] * yy + f[2][k] * zy,
-                 f[0][k] * xz + f[1][k] * yz + f[2][k] * zz] for k in range(3)]
-        return cols[0], cols[1], cols[2], pos
+        (f00, f01, f02, f03), (f10, f11, f12, f13), (f20, f21, f22, f23) = self._flange_f
+        return (
+            [f00 * xx + f10 * yx + f20 * zx, f00 * xy + f10 * yy + f20 * zy, f00 * xz + f10 * yz + f20 * zz],
+            [f01 * xx + f11 * yx + f21 * zx, f01 * xy + f11 * yy + f21 * zy, f01 * xz + f11 * yz + f21 * zz],
+            [f02 * xx + f12 * yx + f22 * zx, f02 * xy + f12 * yy + f22 * zy, f02 * xz + f12 * yz + f22 * zz],
+            [ox + f03 * xx + f13 * yx + f23 * zx, oy + f03 * xy + f13 * yy + f23 * zy, oz + f03 * xz + f13 * yz + f23 * zz],
+        )
 
     def _single(self, q: np.ndarray, params: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
         """(q, p) when the call is one configuration with one parameter vector, else None."""
