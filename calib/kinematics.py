@@ -66,11 +66,12 @@ class Chain:
                 nominal_markers.ravel(),
             ]
         )
-        # Plain-float copies for the one-configuration path (``_walk_one``).
+        # Plain-float copies for the one-configuration path (``_walk_one``, ``_walk_links``).
         self._theta0_f = self.theta0.tolist()
         self._sign_f = self.sign.tolist()
         self._base_flat = tuple(self.base[:3, :].T.ravel().tolist())  # columns x, y, z, origin
         self._flange_f = self.flange[:3, :].tolist()
+        self._nominal_links = self._links_floats(self.nominal.tolist())
         axes = model.axis_names
         self.param_names = [f"{ax}.{kind}" for kind in KINDS for ax in axes] + [
             f"{mk}.{c}" for mk in self.marker_names for c in "xyz"
@@ -160,11 +161,8 @@ class Chain:
         """``_walk`` for one configuration (n,) and one parameter vector (P,) in plain floats:
         a single call costs microseconds, not the overhead of dozens of tiny numpy operations.
         Returns the flange's x, y, z columns and origin, each a list of 3 floats."""
-        return self._walk_floats(q.tolist(), p.tolist())
-
-    def _walk_floats(self, qf: list[float], pf: list[float]) -> tuple[list, list, list, list]:
-        """``_walk_one`` on plain lists: qf (n) rad, pf (P) — for callers already in floats."""
-        return self._flange_floats(self._walk_links(qf, self._links_floats(pf)))
+        links = self._nominal_links if p is self.nominal else self._links_floats(p.tolist())
+        return self._flange_floats(self._walk_links(q.tolist(), links))
 
     def _links_floats(self, pf: list[float]) -> list[tuple[float, ...]]:
         """Per joint of parameter list pf (P): (θ0, sign, δ, d, a, cos α, sin α, cos β, sin β) —
