@@ -2,10 +2,10 @@
 
 ``calib.ik_spherical_wrist.WristArmGeometry.solve`` is vectorised over poses; for one pose its
 time goes into a few hundred numpy calls on 3-vectors. ``WristArmScalar.solve`` repeats the same
-closed form (same equations, same branch order b = 4·shoulder + 2·elbow + wrist) with the
-``math`` module on tuples, and only for the plain case: it returns ``None`` — "use the
+closed form (same equations, same branch order b = 4·shoulder + 2·elbow + wrist; the wrist
+flip comes from the noflip solution by a half-turn identity) with the ``math`` module on tuples, and only for the plain case: it returns ``None`` — "use the
 vectorised path" — whenever the pose is out of reach or near a singularity (``FALLBACK_MARGIN``,
-``RATIO_MARGIN``), so messages, representatives and duplicate handling there stay the vectorised
+``RATIO_MARGIN``) or a joint lands within 1e-9 rad of ±π, so messages, representatives and duplicate handling there stay the vectorised
 solver's alone. Away from singularities the 8 branches are distinct by far more than
 ``calib.ik.DUPLICATE_TOLERANCE_RAD`` (each pair differs in a root pair φ ± β with sin β above
 the margin), so no duplicate test is needed.
