@@ -58,7 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.ik_scalar import WristArmScalar
+from calib.ik_scalar import SrsScalar, WristArmScalar
 from calib.ik_spherical_wrist import REACH_SLACK, RawSolutions, WristArmGeometry
 from calib.ik_spherical_wrist import branch_labels as wrist_arm_labels
 from calib.ik_srs import SrsGeometry
@@ -109,7 +109,7 @@ class _OnePose:
     """What ``_solve_one`` needs, as plain floats: the closed form, the FK links
     (``Chain._links_floats``), and per joint the ±360° steps that fit (``_fitting_steps``)."""
 
-    closed_form: WristArmScalar
+    closed_form: WristArmScalar | SrsScalar
     links: list[tuple[float, ...]]
     steps: list[tuple[list[float], list[list[tuple[float, str]]]]]
 
@@ -124,7 +124,7 @@ class _Solver:
     polish: bool  # closed form is on an approximation: polish every row
     shifts: np.ndarray  # (n_combos, n) multiples of 2π to try for ±360° equivalents
     shift_labels: list[str]
-    one_pose: _OnePose | None  # the one-pose float path (6R with an exact closed form)
+    one_pose: _OnePose | None  # the one-pose float path (where the closed form is exact)
 
 
 #: Solvers kept per model: one per parameter vector, oldest dropped first.
@@ -205,9 +205,9 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
             polish = True
     shifts, shift_labels = _wide_shifts(model)
     one_pose = None
-    if kind == "6r" and not polish:
+    if not polish:
         one_pose = _OnePose(
-            closed_form=WristArmScalar(geometry),
+            closed_form=WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry),
             links=chain._links_floats((chain.nominal if params is None else params).tolist()),
             steps=_fitting_steps(model),
         )
@@ -449,11 +449,12 @@ def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]]
     return options
 
 
-def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions | None:
-    """``solve_many`` for one pose (4, 4) of a 6R arm in plain floats, or None where the pose needs
-    the vectorised path: not a clean rigid transform (it raises there), out of reach, near a
-    singularity (``calib.ik_scalar``), a row near a tolerance or limit, or no row within limits.
-    Same rows, labels and order as ``solve_many`` (to rounding, ≲1e-12 rad)."""
+def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | None = None) -> IkSolutions | None:
+    """``solve_many`` for one pose (4, 4) in plain floats (6R; 7R at the arm angle ``psi`` rad),
+    or None where the pose needs the vectorised path: not a clean rigid transform (it raises
+    there), out of reach, near a singularity (``calib.ik_scalar``), a row near a tolerance or
+    limit, or no row within limits. Same rows, labels and order as ``solve_many`` (to rounding,
+    ≲1e-12 rad)."""
     one = s.one_pose
     if one is None:
         return None
@@ -470,7 +471,12 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
         return None
     rot = ((r00, r01, r02), (r10, r11, r12), (r20, r21, r22))
     pos = (p0, p1, p2)
-    branches = one.closed_form.solve(rot, pos)
+    if s.kind == "6r":
+        branches = one.closed_form.solve(rot, pos)
+    elif psi is not None and math.isfinite(psi):
+        branches = one.closed_form.solve(rot, pos, psi)
+    else:
+        return None
     if branches is None:
         return None
     tol_p = POSITION_TOLERANCE_MM * _ONE_POSE_TOLERANCE_SHARE
@@ -478,7 +484,8 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
     tol_frob_sq = 8.0 * math.sin(ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE / 2.0) ** 2
     tx0, tx1, tx2, ty0, ty1, ty2, tz0, tz1, tz2 = r00, r10, r20, r01, r11, r21, r02, r12, r22  # columns
     walk, flange, links, labels_b, steps = s.chain._walk_links, s.chain._flange_floats, one.links, s.labels, one.steps
-    arms: dict[int, tuple[float, ...]] = {}  # branches 2i, 2i + 1 (noflip, flip) share A1..A3
+    shared = one.closed_form.shared_joints
+    arms: dict[int, tuple[float, ...]] = {}  # branches 2i, 2i + 1 differ only after the shared joints
     rows: list[list[float]] = []
     labels: list[str] = []
     for b, q in enumerate(branches):
@@ -492,8 +499,8 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool) -> IkSolutions
                 continue
         arm = arms.get(b >> 1)
         if arm is None:
-            arm = arms[b >> 1] = walk(q[:3], links)
-        (fx0, fx1, fx2), (fy0, fy1, fy2), (fz0, fz1, fz2), fp = flange(walk(q[3:], links, arm, 3))
+            arm = arms[b >> 1] = walk(q[:shared], links)
+        (fx0, fx1, fx2), (fy0, fy1, fy2), (fz0, fz1, fz2), fp = flange(walk(q[shared:], links, arm, shared))
         frob_sq = (
             (fx0 - tx0) ** 2 + (fx1 - tx1) ** 2 + (fx2 - tx2) ** 2
             + (fy0 - ty0) ** 2 + (fy1 - ty1) ** 2 + (fy2 - ty2) ** 2
@@ -578,17 +585,22 @@ def solve_all(
 ) -> IkSolutions:
     """Every IK solution of one flange pose (4, 4) mm; see ``solve_many``.
 
-    A 6R arm's pose away from singularities, reach boundaries and limits is solved in plain
-    floats (``_solve_one``: one pose through numpy costs some hundred tiny array calls); the
-    result is ``solve_many``'s, rows equal to rounding.
+    A pose away from singularities, reach boundaries and limits (6R; 7R at a given arm angle)
+    is solved in plain floats (``_solve_one``: one pose through numpy costs some hundred tiny
+    array calls); the result is ``solve_many``'s, rows equal to rounding.
     """
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4):
         raise ValueError(f"pose must be one (4, 4) flange frame, got shape {pose.shape}")
-    if arm_angle is None:
-        one = _solve_one(_solver(model, params), pose, within_limits)
-        if one is not None:
-            return one
+    s = _solver(model, params)
+    if s.kind == "6r" and arm_angle is None:
+        one = _solve_one(s, pose, within_limits)
+    elif s.kind == "7r" and isinstance(arm_angle, (float, int, np.floating, np.integer)):
+        one = _solve_one(s, pose, within_limits, float(arm_angle))
+    else:
+        one = None
+    if one is not None:
+        return one
     return solve_many(model, pose[None], arm_angle=arm_angle, within_limits=within_limits, params=params)[0]
 
 

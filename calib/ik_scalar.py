@@ -18,6 +18,8 @@ from __future__ import annotations
 import math
 
 from calib.ik_spherical_wrist import WristArmGeometry
+from calib.ik_srs import SrsGeometry
+from calib.ik_subproblems import SphericalTriple
 
 #: Poses nearer than this to a singularity (rad, or mm for the shoulder) are left to the
 #: vectorised solver. 100× its ``SINGULAR_TOLERANCE``: rounding differences between the two
@@ -90,12 +92,49 @@ def _roots(a: float, b: float, d: float) -> tuple[float, float, float, float]:
     return phi + beta, phi - beta, r, ratio
 
 
-def _wrap(a: float) -> float:
-    return math.pi - (math.pi - a) % (2 * math.pi)
+class _Triple:
+    """``calib.ik_subproblems.SphericalTriple`` as floats: three intersecting axes a1 ⟂ a2 ⟂ a3."""
+
+    def __init__(self, triple: SphericalTriple) -> None:
+        self.a1, self.a2, self.a3 = _t(triple.a1), _t(triple.a2), _t(triple.a3)
+        self.n12 = _cross(self.a1, self.a2)
+        self.aligned = float(triple.aligned)
+
+    def decompose(self, target: Vec, r_a2: Vec) -> list[tuple[float, float, float]] | None:
+        """Both (t1, t2, t3) with Rot(a1,t1)Rot(a2,t2)Rot(a3,t3) = R (branch 0: sin(t2 − aligned)
+        > 0), given target = R·a3 and r_a2 = R·a2; None within ``FALLBACK_MARGIN`` of the singularity."""
+        a1, a2, a3 = self.a1, self.a2, self.a3
+        alpha = _dot(target, a1)
+        pt = _cross(a1, target)
+        gamma = math.sqrt(_dot(pt, pt))
+        if gamma < FALLBACK_MARGIN:
+            return None
+        n = self.n12
+        # branch 0: z = α a1 − γ (a1 × a2), so sin(t2 − aligned) = +γ
+        z = (alpha * a1[0] - gamma * n[0], alpha * a1[1] - gamma * n[1], alpha * a1[2] - gamma * n[2])
+        t2 = _angle_about(a2, a3, z)
+        t1 = _angle_about(a1, z, target)
+        # t3 from a vector ⟂ a3: Rot(a3, t3)·a2 = (Rot(a1,t1)Rot(a2,t2))ᵀ · R·a2
+        t3 = _angle_about(a3, a2, _rotate(a2, -t2, _rotate(a1, -t1, r_a2)))
+        # branch 1: Rot(a1,π)·Rot(a3,π) = Rot(a2, 2·aligned) (half-turns about two axes ⟂ a2)
+        # turns branch 0 into (t1 + π, 2·aligned − t2, t3 + π)
+        return [(t1, t2, t3), (t1 + math.pi, 2.0 * self.aligned - t2, t3 + math.pi)]
+
+
+def _wrap_row(row: list[float]) -> list[float] | None:
+    """Angles wrapped to (−π, π]; None if one lands within 1e-9 of ±π, where the two paths
+    may round it to either end."""
+    out = [math.pi - (math.pi - a) % (2 * math.pi) for a in row]
+    if max(out) > _NEAR_PI or min(out) < -_NEAR_PI:
+        return None
+    return out
 
 
 class WristArmScalar:
     """``WristArmGeometry`` as plain floats, for one pose at a time."""
+
+    #: branches 2i and 2i + 1 (wrist noflip, flip) share A1..A3
+    shared_joints = 3
 
     def __init__(self, g: WristArmGeometry) -> None:
         w, p = g.axes.omega, g.axes.points
@@ -120,9 +159,7 @@ class WristArmScalar:
         self.el_k = (_dot(x, x) + _dot(y, y)) / 2.0 - xa * ya - 0.5 * (xa - ya) ** 2
         self.c0_from_p2 = x
         tr = g.wrist
-        self.a1, self.a2, self.a3 = _t(tr.a1), _t(tr.a2), _t(tr.a3)
-        self.wn12 = _cross(self.a1, self.a2)
-        self.aligned = float(tr.aligned)
+        self.wrist = _Triple(tr)
         # R_home⁻¹·a2 and R_home⁻¹·a3: R_rel·a = R_pose·(R_home⁻¹·a)
         self.home_inv_a2, self.home_inv_a3 = _t(hi[:3, :3] @ tr.a2), _t(hi[:3, :3] @ tr.a3)
 
@@ -169,33 +206,117 @@ class WristArmScalar:
                 # --- A4..A6 --- on the wrist rotation R123ᵀ·R_rel, through its images of a3 and a2
                 target = _rotate(w2, -q3, _rotate(w1, -q2, b_a3))
                 r_a2 = _rotate(w2, -q3, _rotate(w1, -q2, b_a2))
-                wrist = self._decompose(target, r_a2)
+                wrist = self.wrist.decompose(target, r_a2)
                 if wrist is None:
                     return None
-                arm = [_wrap(q1), _wrap(q2), _wrap(q3)]
                 for t4, t5, t6 in wrist:
-                    row = arm + [_wrap(t4), _wrap(t5), _wrap(t6)]
-                    if max(row) > _NEAR_PI or min(row) < -_NEAR_PI:
-                        return None  # π or −π? the two paths may round a joint to either end
+                    row = _wrap_row([q1, q2, q3, t4, t5, t6])
+                    if row is None:
+                        return None
                     out.append(row)
         return out if any_arm else None
 
-    def _decompose(self, target: Vec, r_a2: Vec) -> list[tuple[float, float, float]] | None:
-        """Both (t4, t5, t6) with Rot(a1,t4)Rot(a2,t5)Rot(a3,t6) = R (noflip first), given
-        target = R·a3 and r_a2 = R·a2; None near the wrist singularity."""
-        a1, a2, a3 = self.a1, self.a2, self.a3
-        alpha = _dot(target, a1)
-        pt = _cross(a1, target)
-        gamma = math.sqrt(_dot(pt, pt))
-        if gamma < FALLBACK_MARGIN:
+
+class SrsScalar:
+    """``SrsGeometry`` as plain floats, for one pose at a given arm angle (same equations and
+    branch order b = 4·[GC2 < 0] + 2·[GC4 < 0] + [GC6 < 0] as ``SrsGeometry.solve``)."""
+
+    #: branches 2i and 2i + 1 (GC6 = ±1) share A1..A4
+    shared_joints = 4
+
+    def __init__(self, g: SrsGeometry) -> None:
+        w, p = g.axes.omega, g.axes.points
+        self.w = [_t(x) for x in w]
+        hi = g.axes.home_inv
+        self.w0h = _t(hi[:3, :3] @ g.wrist_point + hi[:3, 3])  # wrist point: W = R_pose · w0h + p_pose
+        self.shoulder = _t(g.shoulder)
+        self.facing = _t(g.facing)
+        self.q3_ref = float(g.q3_ref)
+        self.p4 = _t(p[3])
+        self.wp_from_p4 = _t(g.wrist_point - p[3])
+        # subproblem 3 about axis 4: A cos q4 + B sin q4 = K − |W − S|²/2
+        w3 = self.w[3]
+        x, y = self.wp_from_p4, _t(g.shoulder - p[3])
+        xp, yp = _perp(w3, x), _perp(w3, y)
+        self.el_a = _dot(xp, yp)
+        self.el_b = _dot(_cross(w3, xp), yp)
+        self.el_k = (_dot(x, x) + _dot(y, y)) / 2.0 - _dot(w3, x) * _dot(w3, y)
+        self.n12 = _cross(self.w[0], self.w[1])
+        self.shoulder_triple = _Triple(g.shoulder_triple)
+        self.wrist_triple = _Triple(g.wrist_triple)
+        self.home_inv_a2 = _t(hi[:3, :3] @ g.wrist_triple.a2)
+        self.home_inv_a3 = _t(hi[:3, :3] @ g.wrist_triple.a3)
+
+    def _reference(self, q4: float, v: Vec) -> tuple[float, float] | None:
+        """(a, b): the A1, A2 of the reference shoulder rotation R_ref = Rot(ω1,a)Rot(ω2,b)Rot(ω3,q3_ref)
+        for elbow angle q4 and S→W vector v, the root whose shoulder faces W; None when the two
+        roots face it (nearly) alike."""
+        w0, w1, w2 = self.w[0], self.w[1], self.w[2]
+        ur = _rotate(self.w[3], q4, self.wp_from_p4)
+        u = (ur[0] + self.p4[0] - self.shoulder[0], ur[1] + self.p4[1] - self.shoulder[1], ur[2] + self.p4[2] - self.shoulder[2])
+        u = _rotate(w2, self.q3_ref, u)
+        alpha, beta = _dot(v, w0), _dot(u, w1)
+        gamma = math.sqrt(max(_dot(u, u) - alpha * alpha - beta * beta, 0.0))
+        n = self.n12
+        roots = []
+        for sgn in (1.0, -1.0):
+            g = sgn * gamma
+            z = (alpha * w0[0] + beta * w1[0] + g * n[0], alpha * w0[1] + beta * w1[1] + g * n[1],
+                 alpha * w0[2] + beta * w1[2] + g * n[2])
+            b = _angle_about(w1, u, z)
+            a = _angle_about(w0, z, v)
+            roots.append((_dot(_rotate(w0, a, self.facing), v), a, b))
+        (face0, a0, b0), (face1, a1, b1) = roots
+        if abs(face1 - face0) < FALLBACK_MARGIN:
             return None
-        n = self.wn12
-        # noflip: z = α a1 − γ (a1 × a2), so sin(t2 − aligned) = +γ
-        z = (alpha * a1[0] - gamma * n[0], alpha * a1[1] - gamma * n[1], alpha * a1[2] - gamma * n[2])
-        t2 = _angle_about(a2, a3, z)
-        t1 = _angle_about(a1, z, target)
-        # t3 from a vector ⟂ a3: Rot(a3, t3)·a2 = (Rot(a1,t1)Rot(a2,t2))ᵀ · R·a2
-        t3 = _angle_about(a3, a2, _rotate(a2, -t2, _rotate(a1, -t1, r_a2)))
-        # flip: Rot(a1,π)·Rot(a3,π) = Rot(a2, 2·aligned) (half-turns about two axes ⟂ a2) turns
-        # the noflip solution into (t1 + π, 2·aligned − t2, t3 + π)
-        return [(t1, t2, t3), (t1 + math.pi, 2.0 * self.aligned - t2, t3 + math.pi)]
+        return (a1, b1) if face1 > face0 else (a0, b0)
+
+    def solve(self, rot: tuple[Vec, Vec, Vec], pos: Vec, psi: float) -> list[list[float]] | None:
+        """The 8 global configurations for the flange pose ``rot`` (rows) and ``pos`` (mm) at arm
+        angle ``psi`` rad, wrapped to (−π, π]; None when the pose needs the vectorised solver: out
+        of reach, or near the elbow, shoulder or wrist singularity or the wrist point near axis 1."""
+        w0, w1, w2, w3 = self.w[0], self.w[1], self.w[2], self.w[3]
+        r0, r1, r2 = rot
+        s = self.shoulder
+        wh = self.w0h
+        v = (_dot(r0, wh) + pos[0] - s[0], _dot(r1, wh) + pos[1] - s[1], _dot(r2, wh) + pos[2] - s[2])
+        vv = _dot(v, v)
+        el = _roots(self.el_a, self.el_b, self.el_k - vv / 2.0)
+        if abs(el[3]) > 1.0 - RATIO_MARGIN:
+            return None  # out of reach, or the elbow (near) stretched
+        off = _perp(w0, v)
+        if _dot(off, off) < FALLBACK_MARGIN**2:
+            return None  # the wrist point (near) axis 1: the reference plane is undefined
+        norm_v = math.sqrt(vv)
+        axis = (v[0] / norm_v, v[1] / norm_v, v[2] / norm_v)
+        ha2, ha3 = self.home_inv_a2, self.home_inv_a3
+        rel_a2 = (_dot(r0, ha2), _dot(r1, ha2), _dot(r2, ha2))
+        rel_a3 = (_dot(r0, ha3), _dot(r1, ha3), _dot(r2, ha3))
+        sa2, sa3 = self.shoulder_triple.a2, self.shoulder_triple.a3
+        out: list[list[float] | None] = [None] * 8
+        for g4, q4 in enumerate((el[1], el[0])):  # GC4 = +1: the "−" root
+            ref = self._reference(q4, v)
+            if ref is None:
+                return None
+            a, b = ref
+
+            def r_s(x: Vec) -> Vec:  # Rot(v̂, ψ)·R_ref·x
+                return _rotate(axis, psi, _rotate(w0, a, _rotate(w1, b, _rotate(w2, self.q3_ref, x))))
+
+            shoulder = self.shoulder_triple.decompose(r_s(sa3), r_s(sa2))
+            if shoulder is None:
+                return None
+            for g2, (t1, t2, t3) in enumerate(shoulder):
+                # R_w = (R1 R2 R3 R4)ᵀ·R_rel, needed on the wrist's a3 and a2
+                def back(x: Vec) -> Vec:
+                    return _rotate(w3, -q4, _rotate(w2, -t3, _rotate(w1, -t2, _rotate(w0, -t1, x))))
+
+                wrist = self.wrist_triple.decompose(back(rel_a3), back(rel_a2))
+                if wrist is None:
+                    return None
+                for g6, (t5, t6, t7) in enumerate(wrist):
+                    row = _wrap_row([t1, t2, t3, q4, t5, t6, t7])
+                    if row is None:
+                        return None
+                    out[4 * g2 + 2 * g4 + g6] = row
+        return out
