@@ -5,9 +5,9 @@ Public API (mm, rad, controller convention — the numbers the pendant shows, in
 ``solve_all(model, pose, *, arm_angle=None, within_limits=True, params=None) -> IkSolutions``
 ``solve_many(model, poses, **same) -> list[IkSolutions]`` — vectorised over poses: for many poses
     one call is several times faster than a ``solve_all`` loop (6R: ~3×; 7R: ~50×), see
-    tests/bench/bench_ik.py. ``solve_all`` on a 6R arm solves in plain floats (``calib.ik_scalar``)
-    and hands singular, boundary and limit cases to ``solve_many``; the result is the same (rows to
-    rounding, tests/calib/test_ik_one_pose.py)
+    tests/bench/bench_ik.py. ``solve_all`` (6R; 7R at a given arm angle) solves in plain floats
+    (``calib.ik_scalar``) and hands singular, boundary and limit cases to ``solve_many``; the
+    result is the same (rows to rounding, tests/calib/test_ik_one_pose.py)
 ``arm_angle_intervals(model, pose, *, params=None) -> list[(lo, hi)]`` (7R; merged over the
     global configurations; ``arm_angle_intervals_by_configuration`` gives them per label,
     ``arm_angle_intervals_many`` for many poses at once)
@@ -462,12 +462,12 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
     (r00, r01, r02, p0), (r10, r11, r12, p1), (r20, r21, r22, p2), last = m
     if last != [0.0, 0.0, 0.0, 1.0] or not math.isfinite(r00 + r01 + r02 + p0 + r10 + r11 + r12 + p1 + r20 + r21 + r22 + p2):
         return None  # (a sum overflowing to inf only sends a huge pose the slow way)
-    # a rigid transform to 1e-6, as ``_check_poses`` asks (which raises where this declines)
+    # a rigid transform to half the 1e-6 ``_check_poses`` asks (it raises where that fails)
     if max(
         abs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0), abs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0),
         abs(r02 * r02 + r12 * r12 + r22 * r22 - 1.0), abs(r00 * r01 + r10 * r11 + r20 * r21),
         abs(r00 * r02 + r10 * r12 + r20 * r22), abs(r01 * r02 + r11 * r12 + r21 * r22),
-    ) > 1e-6 or (r10 * r21 - r20 * r11) * r02 + (r20 * r01 - r00 * r21) * r12 + (r00 * r11 - r10 * r01) * r22 < 0:
+    ) > 0.5e-6 or (r10 * r21 - r20 * r11) * r02 + (r20 * r01 - r00 * r21) * r12 + (r00 * r11 - r10 * r01) * r22 < 0:
         return None
     rot = ((r00, r01, r02), (r10, r11, r12), (r20, r21, r22))
     pos = (p0, p1, p2)
