@@ -438,6 +438,14 @@ def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]]
     within ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images."""
     options = []
     for qj, (breaks, fits) in zip(q, steps):
+        if len(breaks) == 2:  # one image only (k = 0 where the limits lie inside (−π, π])
+            lo, hi = breaks
+            if lo + _ONE_POSE_LIMIT_MARGIN_RAD < qj < hi - _ONE_POSE_LIMIT_MARGIN_RAD:
+                options.append([(qj + step, suffix) for step, suffix in fits[1]])
+                continue
+            if lo - _ONE_POSE_LIMIT_MARGIN_RAD <= qj <= hi + _ONE_POSE_LIMIT_MARGIN_RAD:
+                return None
+            return []
         i = bisect.bisect(breaks, qj)
         if (i and qj - breaks[i - 1] < _ONE_POSE_LIMIT_MARGIN_RAD) or (
             i < len(breaks) and breaks[i] - qj < _ONE_POSE_LIMIT_MARGIN_RAD

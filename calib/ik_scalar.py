@@ -299,21 +299,20 @@ class SrsScalar:
             if ref is None:
                 return None
             a, b = ref
+            q3_ref = self.q3_ref
 
             def r_s(x: Vec) -> Vec:  # Rot(v̂, ψ)·R_ref·x
-                return _rotate(axis, psi, _rotate(w0, a, _rotate(w1, b, _rotate(w2, self.q3_ref, x))))
+                return _rotate(axis, psi, _rotate(w0, a, _rotate(w1, b, _rotate(w2, q3_ref, x))))
+
+            def wrist_of(x: Vec) -> Vec:  # (R_s R4)ᵀ·x: R1 R2 R3 = R_s for both shoulder roots
+                return _rotate(w3, -q4, _rotate(w2, -q3_ref, _rotate(w1, -b, _rotate(w0, -a, _rotate(axis, -psi, x)))))
 
             shoulder = self.shoulder_triple.decompose(r_s(sa3), r_s(sa2))
-            if shoulder is None:
+            # the wrist rotation (R_s R4)ᵀ·R_rel is the same for both shoulder roots: one decomposition
+            wrist = self.wrist_triple.decompose(wrist_of(rel_a3), wrist_of(rel_a2))
+            if shoulder is None or wrist is None:
                 return None
             for g2, (t1, t2, t3) in enumerate(shoulder):
-                # R_w = (R1 R2 R3 R4)ᵀ·R_rel, needed on the wrist's a3 and a2
-                def back(x: Vec) -> Vec:
-                    return _rotate(w3, -q4, _rotate(w2, -t3, _rotate(w1, -t2, _rotate(w0, -t1, x))))
-
-                wrist = self.wrist_triple.decompose(back(rel_a3), back(rel_a2))
-                if wrist is None:
-                    return None
                 for g6, (t5, t6, t7) in enumerate(wrist):
                     row = _wrap_row([t1, t2, t3, q4, t5, t6, t7])
                     if row is None:
