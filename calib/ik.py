@@ -3,8 +3,11 @@
 Public API (mm, rad, controller convention — the numbers the pendant shows, in radians):
 
 ``solve_all(model, pose, *, arm_angle=None, within_limits=True, params=None) -> IkSolutions``
-``solve_many(model, poses, **same) -> list[IkSolutions]`` — vectorised over poses: one call for
-    many poses is ~50× faster than a ``solve_all`` loop (see tests/bench/bench_ik.py)
+``solve_many(model, poses, **same) -> list[IkSolutions]`` — vectorised over poses: for many poses
+    one call is several times faster than a ``solve_all`` loop (6R: ~3×; 7R: ~50×), see
+    tests/bench/bench_ik.py. ``solve_all`` (6R; 7R at a given arm angle) solves in plain floats
+    (``calib.ik_scalar``) and hands singular, boundary and limit cases to ``solve_many``; the
+    result is the same (rows to rounding, tests/calib/test_ik_one_pose.py)
 ``arm_angle_intervals(model, pose, *, params=None) -> list[(lo, hi)]`` (7R; merged over the
     global configurations; ``arm_angle_intervals_by_configuration`` gives them per label,
     ``arm_angle_intervals_many`` for many poses at once)
@@ -47,6 +50,7 @@ poses up to ``POLISH_REACH_SLACK`` beyond the nominal reach are tried too.
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import logging
 import math
@@ -54,6 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib.ik_scalar import SrsScalar, WristArmScalar
 from calib.ik_spherical_wrist import REACH_SLACK, RawSolutions, WristArmGeometry
 from calib.ik_spherical_wrist import branch_labels as wrist_arm_labels
 from calib.ik_srs import SrsGeometry
@@ -100,6 +105,15 @@ class NoFeasibleArmAngle(ValueError):
 
 # --- solver set-up (cached per model and parameter vector) ---------------------------------------
 @dataclass
+class _OnePose:
+    """What ``_solve_one`` needs, as plain floats: the closed form, the FK links
+    (``Chain._links_floats``), and per joint the ±360° steps that fit (``_fitting_steps``)."""
+
+    closed_form: WristArmScalar | SrsScalar
+    links: list[tuple[float, ...]]
+    steps: list[tuple[list[float], list[list[tuple[float, str]]]]]
+
+@dataclass
 class _Solver:
     model: RobotModel
     chain: Chain
@@ -110,6 +124,7 @@ class _Solver:
     polish: bool  # closed form is on an approximation: polish every row
     shifts: np.ndarray  # (n_combos, n) multiples of 2π to try for ±360° equivalents
     shift_labels: list[str]
+    one_pose: _OnePose | None  # the one-pose float path (where the closed form is exact)
 
 
 #: Solvers kept per model: one per parameter vector, oldest dropped first.
@@ -128,22 +143,42 @@ def _solvers_of(model: RobotModel) -> dict[bytes | None, _Solver]:
     return solvers
 
 
-def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
-    """Every combination of ±360° multiples that can bring a wrapped angle into the limits.
-
-    For joint j the multiples k with [lo − 2πk, hi − 2πk] overlapping (−π, π]; joints whose
-    limits lie inside (−π, π] only get k = 0. Returns shifts (C, n) rad (row 0 all zeros) and
-    label suffixes such as " A6-360".
-    """
+def _shift_steps(model: RobotModel) -> list[list[int]]:
+    """Per joint, the multiples k of 360° for which [lo − 2πk, hi − 2πk] overlaps (−π, π],
+    in the order tried (0, then ±1, …); joints whose limits lie inside (−π, π] only get k = 0."""
     lo, hi = model.lower_limits_rad, model.upper_limits_rad
-    n = model.n_joints
     per_joint = []
-    for j in range(n):
+    for j in range(model.n_joints):
         ks = [k for k in range(-3, 4) if lo[j] - 2 * np.pi * k <= np.pi and hi[j] - 2 * np.pi * k > -np.pi]
         per_joint.append(sorted(ks, key=lambda k: (abs(k), k)))
-    combos = np.array(list(itertools.product(*per_joint)), dtype=float).reshape(-1, n)
-    labels = ["".join(f" {model.axis_names[j]}{int(360 * c[j]):+d}" for j in range(n) if c[j] != 0) for c in combos]
+    return per_joint
+
+
+def _shift_label(model: RobotModel, j: int, k: float) -> str:
+    return f" {model.axis_names[j]}{int(360 * k):+d}" if k != 0 else ""
+
+
+def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
+    """Every combination of ±360° multiples that can bring a wrapped angle into the limits
+    (``_shift_steps``). Returns shifts (C, n) rad (row 0 all zeros) and label suffixes such as
+    " A6-360"."""
+    n = model.n_joints
+    combos = np.array(list(itertools.product(*_shift_steps(model))), dtype=float).reshape(-1, n)
+    labels = ["".join(_shift_label(model, j, c[j]) for j in range(n)) for c in combos]
     return combos * 2 * math.pi, labels
+
+
+def _fitting_steps(model: RobotModel) -> list[tuple[list[float], list[list[tuple[float, str]]]]]:
+    """Per joint: the wrapped angles at which some ±360° image meets a limit (lo − 2πk, hi − 2πk;
+    sorted) and, for each stretch between them (``bisect`` index), the steps (2πk rad, label
+    suffix) that put the angle within limits, in ``_shift_steps`` order."""
+    out = []
+    for j, (lo, hi, ks) in enumerate(zip(model.lower_limits_rad.tolist(), model.upper_limits_rad.tolist(), _shift_steps(model))):
+        steps = [(k * 2 * math.pi, _shift_label(model, j, k)) for k in map(float, ks)]
+        breaks = sorted(lim - step for step, _ in steps for lim in (lo, hi))
+        mids = [breaks[0] - 1.0] + [0.5 * (a + b) for a, b in zip(breaks, breaks[1:])] + [breaks[-1] + 1.0]
+        out.append((breaks, [[(st, sf) for st, sf in steps if lo <= x + st <= hi] for x in mids]))
+    return out
 
 
 def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solver:
@@ -169,7 +204,14 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
             geometry = cls.from_axes(ScrewAxes.from_chain(chain, chain.with_offsets(params[:n])), names, model.name)
             polish = True
     shifts, shift_labels = _wide_shifts(model)
-    return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels)
+    one_pose = None
+    if not polish:
+        one_pose = _OnePose(
+            closed_form=WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry),
+            links=chain._links_floats((chain.nominal if params is None else params).tolist()),
+            steps=_fitting_steps(model),
+        )
+    return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels, one_pose)
 
 
 def _solver(model: RobotModel, params: np.ndarray | None) -> _Solver:
@@ -383,6 +425,110 @@ def _assemble(s: _Solver, raw: RawSolutions, q: np.ndarray, within_limits: bool)
     return out
 
 
+#: The one-pose path accepts a row only this far inside the FK tolerances, and a ±360° candidate
+#: only this far (rad) from a limit; anything closer goes to the vectorised path, so rounding
+#: differences between the two can never change which rows come back.
+_ONE_POSE_TOLERANCE_SHARE = 0.5
+_ONE_POSE_LIMIT_MARGIN_RAD = 1e-9
+
+
+def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]] | None:
+    """Per joint of the wrapped row q (n) rad, its ±360° images (``_OnePose.steps``) within
+    limits as (angle rad, label suffix); [] when some joint has none; None when a joint is
+    within ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images."""
+    options = []
+    for qj, (breaks, fits) in zip(q, steps):
+        if len(breaks) == 2:  # one image only (k = 0 where the limits lie inside (−π, π])
+            lo, hi = breaks
+            if lo + _ONE_POSE_LIMIT_MARGIN_RAD < qj < hi - _ONE_POSE_LIMIT_MARGIN_RAD:
+                options.append([(qj + step, suffix) for step, suffix in fits[1]])
+                continue
+            if lo - _ONE_POSE_LIMIT_MARGIN_RAD <= qj <= hi + _ONE_POSE_LIMIT_MARGIN_RAD:
+                return None
+            return []
+        i = bisect.bisect(breaks, qj)
+        if (i and qj - breaks[i - 1] < _ONE_POSE_LIMIT_MARGIN_RAD) or (
+            i < len(breaks) and breaks[i] - qj < _ONE_POSE_LIMIT_MARGIN_RAD
+        ):
+            return None
+        if not fits[i]:
+            return []
+        options.append([(qj + step, suffix) for step, suffix in fits[i]])
+    return options
+
+
+def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | None = None) -> IkSolutions | None:
+    """``solve_many`` for one pose (4, 4) in plain floats (6R; 7R at the arm angle ``psi`` rad),
+    or None where the pose needs the vectorised path: not a clean rigid transform (it raises
+    there), out of reach, near a singularity (``calib.ik_scalar``), a row near a tolerance or
+    limit, or no row within limits. Same rows, labels and order as ``solve_many`` (to rounding,
+    ≲1e-12 rad)."""
+    one = s.one_pose
+    if one is None:
+        return None
+    m = pose.tolist()
+    (r00, r01, r02, p0), (r10, r11, r12, p1), (r20, r21, r22, p2), last = m
+    if last != [0.0, 0.0, 0.0, 1.0] or not math.isfinite(r00 + r01 + r02 + p0 + r10 + r11 + r12 + p1 + r20 + r21 + r22 + p2):
+        return None  # (a sum overflowing to inf only sends a huge pose the slow way)
+    # a rigid transform to half the 1e-6 ``_check_poses`` asks (it raises where that fails)
+    if max(
+        abs(r00 * r00 + r10 * r10 + r20 * r20 - 1.0), abs(r01 * r01 + r11 * r11 + r21 * r21 - 1.0),
+        abs(r02 * r02 + r12 * r12 + r22 * r22 - 1.0), abs(r00 * r01 + r10 * r11 + r20 * r21),
+        abs(r00 * r02 + r10 * r12 + r20 * r22), abs(r01 * r02 + r11 * r12 + r21 * r22),
+    ) > 0.5e-6 or (r10 * r21 - r20 * r11) * r02 + (r20 * r01 - r00 * r21) * r12 + (r00 * r11 - r10 * r01) * r22 < 0:
+        return None
+    rot = ((r00, r01, r02), (r10, r11, r12), (r20, r21, r22))
+    pos = (p0, p1, p2)
+    if s.kind == "6r":
+        branches = one.closed_form.solve(rot, pos)
+    elif psi is not None and math.isfinite(psi):
+        branches = one.closed_form.solve(rot, pos, psi)
+    else:
+        return None
+    if branches is None:
+        return None
+    tol_p = POSITION_TOLERANCE_MM * _ONE_POSE_TOLERANCE_SHARE
+    # rotation angle θ from the Frobenius distance ‖R − R_target‖² = 8 sin²(θ/2)
+    tol_frob_sq = 8.0 * math.sin(ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE / 2.0) ** 2
+    tx0, tx1, tx2, ty0, ty1, ty2, tz0, tz1, tz2 = r00, r10, r20, r01, r11, r21, r02, r12, r22  # columns
+    walk, flange, links, labels_b, steps = s.chain._walk_links, s.chain._flange_floats, one.links, s.labels, one.steps
+    shared = one.closed_form.shared_joints
+    arms: dict[int, tuple[float, ...]] = {}  # branches 2i, 2i + 1 differ only after the shared joints
+    rows: list[list[float]] = []
+    labels: list[str] = []
+    for b, q in enumerate(branches):
+        if q is None:
+            continue
+        if within_limits:  # first, as a row outside the limits needs no FK check: it is dropped either way
+            options = _steps_within_limits(q, steps)
+            if options is None:
+                return None
+            if not options:
+                continue
+        arm = arms.get(b >> 1)
+        if arm is None:
+            arm = arms[b >> 1] = walk(q[:shared], links)
+        (fx0, fx1, fx2), (fy0, fy1, fy2), (fz0, fz1, fz2), fp = flange(walk(q[shared:], links, arm, shared))
+        frob_sq = (
+            (fx0 - tx0) ** 2 + (fx1 - tx1) ** 2 + (fx2 - tx2) ** 2
+            + (fy0 - ty0) ** 2 + (fy1 - ty1) ** 2 + (fy2 - ty2) ** 2
+            + (fz0 - tz0) ** 2 + (fz1 - tz1) ** 2 + (fz2 - tz2) ** 2
+        )
+        if math.dist(fp, pos) > tol_p or frob_sq > tol_frob_sq:
+            return None
+        if not within_limits:
+            rows.append(q)
+            labels.append(labels_b[b])
+            continue
+        for combo in itertools.product(*options):
+            values, suffixes = zip(*combo)
+            rows.append(values)
+            labels.append(labels_b[b] + "".join(suffixes))
+    if not rows:
+        return None  # "limits": the vectorised path names the least-violated limit
+    return IkSolutions(np.array(rows), labels, "ok", "")
+
+
 def _slack(s: _Solver) -> float:
     """Reach slack: a perturbed model may reach a little beyond the nominal one."""
     return POLISH_REACH_SLACK if s.polish else REACH_SLACK
@@ -445,10 +591,24 @@ def solve_all(
     within_limits: bool = True,
     params: np.ndarray | None = None,
 ) -> IkSolutions:
-    """Every IK solution of one flange pose (4, 4) mm; see ``solve_many``."""
+    """Every IK solution of one flange pose (4, 4) mm; see ``solve_many``.
+
+    A pose away from singularities, reach boundaries and limits (6R; 7R at a given arm angle)
+    is solved in plain floats (``_solve_one``: one pose through numpy costs some hundred tiny
+    array calls); the result is ``solve_many``'s, rows equal to rounding.
+    """
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4):
         raise ValueError(f"pose must be one (4, 4) flange frame, got shape {pose.shape}")
+    s = _solver(model, params)
+    if s.kind == "6r" and arm_angle is None:
+        one = _solve_one(s, pose, within_limits)
+    elif s.kind == "7r" and isinstance(arm_angle, (float, int, np.floating, np.integer)):
+        one = _solve_one(s, pose, within_limits, float(arm_angle))
+    else:
+        one = None
+    if one is not None:
+        return one
     return solve_many(model, pose[None], arm_angle=arm_angle, within_limits=within_limits, params=params)[0]
 
 

@@ -66,11 +66,12 @@ class Chain:
                 nominal_markers.ravel(),
             ]
         )
-        # Plain-float copies for the one-configuration path (``_walk_one``).
+        # Plain-float copies for the one-configuration path (``_walk_one``, ``_walk_links``).
         self._theta0_f = self.theta0.tolist()
         self._sign_f = self.sign.tolist()
-        self._base_f = self.base[:3, :].T.tolist()  # columns x, y, z, origin
+        self._base_flat = tuple(self.base[:3, :].T.ravel().tolist())  # columns x, y, z, origin
         self._flange_f = self.flange[:3, :].tolist()
+        self._nominal_links = self._links_floats(self.nominal.tolist())
         axes = model.axis_names
         self.param_names = [f"{ax}.{kind}" for kind in KINDS for ax in axes] + [
             f"{mk}.{c}" for mk in self.marker_names for c in "xyz"
@@ -160,34 +161,51 @@ class Chain:
         """``_walk`` for one configuration (n,) and one parameter vector (P,) in plain floats:
         a single call costs microseconds, not the overhead of dozens of tiny numpy operations.
         Returns the flange's x, y, z columns and origin, each a list of 3 floats."""
-        n = self.n
-        qf, pf = q.tolist(), p.tolist()
-        (xx, xy, xz), (yx, yy, yz), (zx, zy, zz), (ox, oy, oz) = self._base_f
+        links = self._nominal_links if p is self.nominal else self._links_floats(p.tolist())
+        return self._flange_floats(self._walk_links(q.tolist(), links))
+
+    def _links_floats(self, pf: list[float]) -> list[tuple[float, ...]]:
+        """Per joint of parameter list pf (P): (θ0, sign, δ, d, a, cos α, sin α, cos β, sin β) —
+        what ``_walk_links`` needs, computed once for many walks with the same parameters."""
+        n, cos, sin = self.n, math.cos, math.sin
+        return [
+            (self._theta0_f[i], self._sign_f[i], pf[i], pf[n + i], pf[2 * n + i],
+             cos(pf[3 * n + i]), sin(pf[3 * n + i]), cos(pf[4 * n + i]), sin(pf[4 * n + i]))
+            for i in range(n)
+        ]
+
+    def _walk_links(self, qf: list[float], links: list[tuple[float, ...]], frame: tuple | None = None,
+                    start: int = 0) -> tuple[float, ...]:
+        """The frame after joints ``start`` … ``start + len(links) − 1`` as 12 floats (x, y, z
+        columns, origin), from ``frame`` (the frame before joint ``start``; None: the base);
+        qf holds the angles of those joints only, rad; links from ``_links_floats``."""
+        xx, xy, xz, yx, yy, yz, zx, zy, zz, ox, oy, oz = frame or self._base_flat
         cos, sin = math.cos, math.sin
-        for i in range(n):
-            th = self._theta0_f[i] + self._sign_f[i] * (qf[i] + pf[i])
+        for q, (th0, sign, off, d, a, ca, sa, cb, sb) in zip(qf, links[start:] if start else links):
+            th = th0 + sign * (q + off)
             ct, st = cos(th), sin(th)
-            d, a, al, be = pf[n + i], pf[2 * n + i], pf[3 * n + i], pf[4 * n + i]
             x1x, x1y, x1z = ct * xx + st * yx, ct * xy + st * yy, ct * xz + st * yz
             y1x, y1y, y1z = ct * yx - st * xx, ct * yy - st * xy, ct * yz - st * xz
             ox, oy, oz = ox + a * x1x + d * zx, oy + a * x1y + d * zy, oz + a * x1z + d * zz
-            ca, sa = cos(al), sin(al)
             yx, yy, yz = ca * y1x + sa * zx, ca * y1y + sa * zy, ca * y1z + sa * zz
             z2x, z2y, z2z = ca * zx - sa * y1x, ca * zy - sa * y1y, ca * zz - sa * y1z
-            if be:
-                cb, sb = cos(be), sin(be)
+            if sb:
                 xx, xy, xz = cb * x1x - sb * z2x, cb * x1y - sb * z2y, cb * x1z - sb * z2z
                 zx, zy, zz = sb * x1x + cb * z2x, sb * x1y + cb * z2y, sb * x1z + cb * z2z
             else:
                 xx, xy, xz, zx, zy, zz = x1x, x1y, x1z, z2x, z2y, z2z
-        f = self._flange_f
-        pos = [ox + f[0][3] * xx + f[1][3] * yx + f[2][3] * zx,
-               oy + f[0][3] * xy + f[1][3] * yy + f[2][3] * zy,
-               oz + f[0][3] * xz + f[1][3] * yz + f[2][3] * zz]
-        cols = [[f[0][k] * xx + f[1][k] * yx + f[2][k] * zx,
-                 f[0][k] * xy + f[1][k] * yy + f[2][k] * zy,
-                 f[0][k] * xz + f[1][k] * yz + f[2][k] * zz] for k in range(3)]
-        return cols[0], cols[1], cols[2], pos
+        return xx, xy, xz, yx, yy, yz, zx, zy, zz, ox, oy, oz
+
+    def _flange_floats(self, frame: tuple[float, ...]) -> tuple[list, list, list, list]:
+        """The flange's x, y, z columns and origin (lists of 3 floats) from the last joint's frame."""
+        xx, xy, xz, yx, yy, yz, zx, zy, zz, ox, oy, oz = frame
+        (f00, f01, f02, f03), (f10, f11, f12, f13), (f20, f21, f22, f23) = self._flange_f
+        return (
+            [f00 * xx + f10 * yx + f20 * zx, f00 * xy + f10 * yy + f20 * zy, f00 * xz + f10 * yz + f20 * zz],
+            [f01 * xx + f11 * yx + f21 * zx, f01 * xy + f11 * yy + f21 * zy, f01 * xz + f11 * yz + f21 * zz],
+            [f02 * xx + f12 * yx + f22 * zx, f02 * xy + f12 * yy + f22 * zy, f02 * xz + f12 * yz + f22 * zz],
+            [ox + f03 * xx + f13 * yx + f23 * zx, oy + f03 * xy + f13 * yy + f23 * zy, oz + f03 * xz + f13 * yz + f23 * zz],
+        )
 
     def _single(self, q: np.ndarray, params: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
         """(q, p) when the call is one configuration with one parameter vector, else None."""

@@ -96,7 +96,8 @@ def test_solve_all_matches_solve_many_row_for_row(name):
     for i in range(5):
         one = ik.solve_all(m, poses[i], **kw)
         assert one.branch == many[i].branch
-        np.testing.assert_array_equal(one.q, many[i].q)
+        # a 6R pose is solved in plain floats (calib.ik_scalar): equal to rounding, not bit for bit
+        np.testing.assert_allclose(one.q, many[i].q, rtol=0, atol=1e-12)
 
 
 def test_principal_branches_without_limit_filter_are_wrapped_and_eight():
