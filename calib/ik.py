@@ -55,6 +55,7 @@ import itertools
 import logging
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -78,6 +79,11 @@ POLISH_ITERATIONS = 12
 #: With a polished (perturbed) model, poses up to this relative excess over the nominal reach
 #: are still tried: the clamped nominal solution is polished, and kept only if it converges.
 POLISH_REACH_SLACK = 0.02
+#: The one-pose path accepts a row only this far inside the FK tolerances, and a ±360° candidate
+#: only this far (rad) from a limit; anything closer goes to the vectorised path, so rounding
+#: differences between the two can never change which rows come back.
+_ONE_POSE_TOLERANCE_SHARE = 0.5
+_ONE_POSE_LIMIT_MARGIN_RAD = 1e-9
 
 @dataclass(frozen=True)
 class IkSolutions:
@@ -104,14 +110,35 @@ class NoFeasibleArmAngle(ValueError):
 
 
 # --- solver set-up (cached per model and parameter vector) ---------------------------------------
+#: The ±360° choice of a joint whose angle is within limits as it is: (step rad, label suffix) pairs.
+_UNSHIFTED = ((0.0, ""),)
+
+
+class _JointImages(NamedTuple):
+    """Which ±360° images of one joint's wrapped angle x (rad) are within limits (``_fitting_steps``):
+    ``inner`` when inner_lo < x < inner_hi (the widest stretch, already shrunk by
+    ``_ONE_POSE_LIMIT_MARGIN_RAD``), else ``fits[bisect(breaks, x)]``; each is a tuple of
+    (step rad, label suffix) pairs, empty where no image fits."""
+
+    inner_lo: float
+    inner_hi: float
+    inner: tuple[tuple[float, str], ...]
+    breaks: list[float]
+    fits: list[tuple[tuple[float, str], ...]]
+
+
 @dataclass
 class _OnePose:
-    """What ``_solve_one`` needs, as plain floats: the closed form, the FK links
-    (``Chain._links_floats``), and per joint the ±360° steps that fit (``_fitting_steps``)."""
+    """What ``_solve_one`` needs, as plain floats: the closed form; the FK links
+    (``Chain._links_floats``, right angles snapped); the flange frame's inverse as rows of
+    (R_fᵀ | −R_fᵀ·t_f) and |t_f| mm (rows are checked at the last joint's frame against
+    pose·flange⁻¹); per joint the ±360° images that fit (``_fitting_steps``)."""
 
     closed_form: WristArmScalar | SrsScalar
     links: list[tuple[float, ...]]
-    steps: list[tuple[list[float], list[list[tuple[float, str]]]]]
+    flange_inv: list[list[float]]
+    flange_reach: float
+    images: list[_JointImages]
 
 @dataclass
 class _Solver:
@@ -168,16 +195,20 @@ def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
     return combos * 2 * math.pi, labels
 
 
-def _fitting_steps(model: RobotModel) -> list[tuple[list[float], list[list[tuple[float, str]]]]]:
+def _fitting_steps(model: RobotModel) -> list[_JointImages]:
     """Per joint: the wrapped angles at which some ±360° image meets a limit (lo − 2πk, hi − 2πk;
     sorted) and, for each stretch between them (``bisect`` index), the steps (2πk rad, label
-    suffix) that put the angle within limits, in ``_shift_steps`` order."""
+    suffix) that put the angle within limits, in ``_shift_steps`` order; the stretch overlapping
+    (−π, π] most is also given as an interval, tested first."""
     out = []
+    margin = _ONE_POSE_LIMIT_MARGIN_RAD
     for j, (lo, hi, ks) in enumerate(zip(model.lower_limits_rad.tolist(), model.upper_limits_rad.tolist(), _shift_steps(model))):
         steps = [(k * 2 * math.pi, _shift_label(model, j, k)) for k in map(float, ks)]
         breaks = sorted(lim - step for step, _ in steps for lim in (lo, hi))
         mids = [breaks[0] - 1.0] + [0.5 * (a + b) for a, b in zip(breaks, breaks[1:])] + [breaks[-1] + 1.0]
-        out.append((breaks, [[(st, sf) for st, sf in steps if lo <= x + st <= hi] for x in mids]))
+        fits = [tuple((st, sf) for st, sf in steps if lo <= x + st <= hi) for x in mids]
+        i = max(range(1, len(breaks)), key=lambda i: min(breaks[i], math.pi) - max(breaks[i - 1], -math.pi))
+        out.append(_JointImages(breaks[i - 1] + margin, breaks[i] - margin, fits[i], breaks, fits))
     return out
 
 
@@ -206,10 +237,13 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
     shifts, shift_labels = _wide_shifts(model)
     one_pose = None
     if not polish:
+        flange_inv = np.linalg.inv(chain.flange)
         one_pose = _OnePose(
             closed_form=WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry),
-            links=chain._links_floats((chain.nominal if params is None else params).tolist()),
-            steps=_fitting_steps(model),
+            links=chain._links_floats((chain.nominal if params is None else params).tolist(), snap_right_angles=True),
+            flange_inv=flange_inv[:3].tolist(),
+            flange_reach=float(np.linalg.norm(chain.flange[:3, 3])),
+            images=_fitting_steps(model),
         )
     return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels, one_pose)
 
@@ -425,27 +459,15 @@ def _assemble(s: _Solver, raw: RawSolutions, q: np.ndarray, within_limits: bool)
     return out
 
 
-#: The one-pose path accepts a row only this far inside the FK tolerances, and a ±360° candidate
-#: only this far (rad) from a limit; anything closer goes to the vectorised path, so rounding
-#: differences between the two can never change which rows come back.
-_ONE_POSE_TOLERANCE_SHARE = 0.5
-_ONE_POSE_LIMIT_MARGIN_RAD = 1e-9
-
-
-def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]] | None:
-    """Per joint of the wrapped row q (n) rad, its ±360° images (``_OnePose.steps``) within
-    limits as (angle rad, label suffix); [] when some joint has none; None when a joint is
-    within ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images."""
-    options = []
-    for qj, (breaks, fits) in zip(q, steps):
-        if len(breaks) == 2:  # one image only (k = 0 where the limits lie inside (−π, π])
-            lo, hi = breaks
-            if lo + _ONE_POSE_LIMIT_MARGIN_RAD < qj < hi - _ONE_POSE_LIMIT_MARGIN_RAD:
-                options.append([(qj + step, suffix) for step, suffix in fits[1]])
-                continue
-            if lo - _ONE_POSE_LIMIT_MARGIN_RAD <= qj <= hi + _ONE_POSE_LIMIT_MARGIN_RAD:
-                return None
-            return []
+def _limit_images(q: list[float], images: list[_JointImages]) -> list[tuple[tuple[float, str], ...]] | None:
+    """Per joint of the wrapped row q (n) rad, its ±360° images within limits as (step rad,
+    label suffix) pairs; [] when some joint has none; None when a joint is within
+    ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images."""
+    picks = []
+    for qj, (inner_lo, inner_hi, inner, breaks, fits) in zip(q, images):
+        if inner_lo < qj < inner_hi:
+            picks.append(inner)
+            continue
         i = bisect.bisect(breaks, qj)
         if (i and qj - breaks[i - 1] < _ONE_POSE_LIMIT_MARGIN_RAD) or (
             i < len(breaks) and breaks[i] - qj < _ONE_POSE_LIMIT_MARGIN_RAD
@@ -453,8 +475,8 @@ def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]]
             return None
         if not fits[i]:
             return []
-        options.append([(qj + step, suffix) for step, suffix in fits[i]])
-    return options
+        picks.append(fits[i])
+    return picks
 
 
 def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | None = None) -> IkSolutions | None:
@@ -487,12 +509,9 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
         return None
     if branches is None:
         return None
-    tol_p = POSITION_TOLERANCE_MM * _ONE_POSE_TOLERANCE_SHARE
-    # rotation angle θ from the Frobenius distance ‖R − R_target‖² = 8 sin²(θ/2)
-    tol_frob_sq = 8.0 * math.sin(ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE / 2.0) ** 2
-    tx0, tx1, tx2, ty0, ty1, ty2, tz0, tz1, tz2 = r00, r10, r20, r01, r11, r21, r02, r12, r22  # columns
-    walk, flange, links, labels_b, steps = s.chain._walk_links, s.chain._flange_floats, one.links, s.labels, one.steps
-    shared = one.closed_form.shared_joints
+    checked = _last_frame_check(one, rot, pos)
+    walk, links, labels_b, images = s.chain._walk_links, one.links, s.labels, one.images
+    n, shared = len(links), one.closed_form.shared_joints
     arms: dict[int, tuple[float, ...]] = {}  # branches 2i, 2i + 1 differ only after the shared joints
     rows: list[list[float]] = []
     labels: list[str] = []
@@ -500,33 +519,58 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
         if q is None:
             continue
         if within_limits:  # first, as a row outside the limits needs no FK check: it is dropped either way
-            options = _steps_within_limits(q, steps)
-            if options is None:
+            picks = _limit_images(q, images)
+            if picks is None:
                 return None
-            if not options:
+            if not picks:
                 continue
         arm = arms.get(b >> 1)
         if arm is None:
             arm = arms[b >> 1] = walk(q[:shared], links)
-        (fx0, fx1, fx2), (fy0, fy1, fy2), (fz0, fz1, fz2), fp = flange(walk(q[shared:], links, arm, shared))
+        if not checked(walk(q[shared:], links, arm, shared)):
+            return None
+        if not within_limits or picks.count(_UNSHIFTED) == n:
+            rows.append(q)
+            labels.append(labels_b[b])
+            continue
+        for combo in itertools.product(*picks):
+            rows.append([qj + step for qj, (step, _) in zip(q, combo)])
+            labels.append(labels_b[b] + "".join(suffix for _, suffix in combo))
+    if not rows:
+        return None  # "limits": the vectorised path names the least-violated limit
+    return IkSolutions(np.array(rows), labels, "ok", "")
+
+
+def _last_frame_check(one: _OnePose, rot: tuple, pos: tuple):
+    """A test of the last joint's frame (12 floats from ``Chain._walk_links``) against the flange
+    pose ``rot`` (rows), ``pos`` (mm): true when the flange it carries is within
+    ``_ONE_POSE_TOLERANCE_SHARE`` of the FK tolerances of the pose.
+
+    The frame is compared with pose·flange⁻¹ (computed here once, not a flange product per row):
+    the rotation's Frobenius distance is the flange's (the flange rotation is orthonormal); the
+    flange position error is at most the origin's plus |t_f|·that distance, so the position
+    test on that bound is never looser than ``solve_many``'s."""
+    (g00, g01, g02, g03), (g10, g11, g12, g13), (g20, g21, g22, g23) = one.flange_inv
+    target = []  # columns x, y, z, origin of pose·flange⁻¹
+    for c0, c1, c2 in ((g00, g10, g20), (g01, g11, g21), (g02, g12, g22), (g03, g13, g23)):
+        target.extend(r[0] * c0 + r[1] * c1 + r[2] * c2 for r in rot)
+    target[9], target[10], target[11] = target[9] + pos[0], target[10] + pos[1], target[11] + pos[2]
+    tx0, tx1, tx2, ty0, ty1, ty2, tz0, tz1, tz2, to0, to1, to2 = target
+    tol_p = POSITION_TOLERANCE_MM * _ONE_POSE_TOLERANCE_SHARE
+    # rotation angle θ from the Frobenius distance ‖R − R_target‖² = 8 sin²(θ/2)
+    tol_frob_sq = 8.0 * math.sin(ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE / 2.0) ** 2
+    reach = one.flange_reach
+
+    def checked(frame: tuple[float, ...]) -> bool:
+        fx0, fx1, fx2, fy0, fy1, fy2, fz0, fz1, fz2, fo0, fo1, fo2 = frame
         frob_sq = (
             (fx0 - tx0) ** 2 + (fx1 - tx1) ** 2 + (fx2 - tx2) ** 2
             + (fy0 - ty0) ** 2 + (fy1 - ty1) ** 2 + (fy2 - ty2) ** 2
             + (fz0 - tz0) ** 2 + (fz1 - tz1) ** 2 + (fz2 - tz2) ** 2
         )
-        if math.dist(fp, pos) > tol_p or frob_sq > tol_frob_sq:
-            return None
-        if not within_limits:
-            rows.append(q)
-            labels.append(labels_b[b])
-            continue
-        for combo in itertools.product(*options):
-            values, suffixes = zip(*combo)
-            rows.append(values)
-            labels.append(labels_b[b] + "".join(suffixes))
-    if not rows:
-        return None  # "limits": the vectorised path names the least-violated limit
-    return IkSolutions(np.array(rows), labels, "ok", "")
+        return frob_sq <= tol_frob_sq and math.hypot(fo0 - to0, fo1 - to1, fo2 - to2) + reach * math.sqrt(frob_sq) <= tol_p
+
+    return checked
 
 
 def _slack(s: _Solver) -> float:

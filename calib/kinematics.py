@@ -164,15 +164,22 @@ class Chain:
         links = self._nominal_links if p is self.nominal else self._links_floats(p.tolist())
         return self._flange_floats(self._walk_links(q.tolist(), links))
 
-    def _links_floats(self, pf: list[float]) -> list[tuple[float, ...]]:
+    def _links_floats(self, pf: list[float], snap_right_angles: bool = False) -> list[tuple[float, ...]]:
         """Per joint of parameter list pf (P): (θ0, sign, δ, d, a, cos α, sin α, cos β, sin β) —
-        what ``_walk_links`` needs, computed once for many walks with the same parameters."""
+        what ``_walk_links`` needs, computed once for many walks with the same parameters.
+
+        ``snap_right_angles``: a twist α within 1e-15 rad of ±90° gets cos α = 0 exactly (its
+        float cosine is 6e-17), so ``_walk_links`` takes its short right-angle step; the frames
+        then differ from the unsnapped walk's by ~1e-15 relative (for checks, not for Chain.fk)."""
         n, cos, sin = self.n, math.cos, math.sin
-        return [
-            (self._theta0_f[i], self._sign_f[i], pf[i], pf[n + i], pf[2 * n + i],
-             cos(pf[3 * n + i]), sin(pf[3 * n + i]), cos(pf[4 * n + i]), sin(pf[4 * n + i]))
-            for i in range(n)
-        ]
+        links = []
+        for i in range(n):
+            ca, sa = cos(pf[3 * n + i]), sin(pf[3 * n + i])
+            if snap_right_angles and abs(ca) < 1e-15:
+                ca, sa = 0.0, math.copysign(1.0, sa)
+            links.append((self._theta0_f[i], self._sign_f[i], pf[i], pf[n + i], pf[2 * n + i],
+                          ca, sa, cos(pf[4 * n + i]), sin(pf[4 * n + i])))
+        return links
 
     def _walk_links(self, qf: list[float], links: list[tuple[float, ...]], frame: tuple | None = None,
                     start: int = 0) -> tuple[float, ...]:
@@ -186,9 +193,18 @@ class Chain:
             ct, st = cos(th), sin(th)
             x1x, x1y, x1z = ct * xx + st * yx, ct * xy + st * yy, ct * xz + st * yz
             y1x, y1y, y1z = ct * yx - st * xx, ct * yy - st * xy, ct * yz - st * xz
-            ox, oy, oz = ox + a * x1x + d * zx, oy + a * x1y + d * zy, oz + a * x1z + d * zz
-            yx, yy, yz = ca * y1x + sa * zx, ca * y1y + sa * zy, ca * y1z + sa * zz
-            z2x, z2y, z2z = ca * zx - sa * y1x, ca * zy - sa * y1y, ca * zz - sa * y1z
+            # exact zeros (a = 0, d = 0, α = 0, snapped α = ±90°) skip terms that add nothing
+            if a:
+                ox, oy, oz = ox + a * x1x, oy + a * x1y, oz + a * x1z
+            if d:
+                ox, oy, oz = ox + d * zx, oy + d * zy, oz + d * zz
+            if not ca:  # α = ±90° (``snap_right_angles``), sa = ±1
+                yx, yy, yz, z2x, z2y, z2z = sa * zx, sa * zy, sa * zz, -sa * y1x, -sa * y1y, -sa * y1z
+            elif not sa:  # α = 0: cos α = 1 exactly
+                yx, yy, yz, z2x, z2y, z2z = y1x, y1y, y1z, zx, zy, zz
+            else:
+                yx, yy, yz = ca * y1x + sa * zx, ca * y1y + sa * zy, ca * y1z + sa * zz
+                z2x, z2y, z2z = ca * zx - sa * y1x, ca * zy - sa * y1y, ca * zz - sa * y1z
             if sb:
                 xx, xy, xz = cb * x1x - sb * z2x, cb * x1y - sb * z2y, cb * x1z - sb * z2z
                 zx, zy, zz = sb * x1x + cb * z2x, sb * x1y + cb * z2y, sb * x1z + cb * z2z
