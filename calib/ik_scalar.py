@@ -100,6 +100,16 @@ class _Triple:
         self.n12 = _cross(self.a1, self.a2)
         self.aligned = float(triple.aligned)
 
+    def rotated(self, w: Vec, angle: float) -> _Triple:
+        """The same triple with its axes turned by Rot(w, angle) = Q: its ``decompose(Q·x, Q·y)``
+        gives the angles ``decompose(x, y)`` gives here (the subproblems only use dot and cross
+        products, which a rotation of every vector leaves unchanged)."""
+        out = object.__new__(_Triple)
+        out.a1, out.a2, out.a3 = (_rotate(w, angle, a) for a in (self.a1, self.a2, self.a3))
+        out.n12 = _cross(out.a1, out.a2)
+        out.aligned = self.aligned
+        return out
+
     def decompose(self, target: Vec, r_a2: Vec) -> list[tuple[float, float, float]] | None:
         """Both (t1, t2, t3) with Rot(a1,t1)Rot(a2,t2)Rot(a3,t3) = R (branch 0: sin(t2 − aligned)
         > 0), given target = R·a3 and r_a2 = R·a2; None within ``FALLBACK_MARGIN`` of the singularity."""
@@ -121,10 +131,13 @@ class _Triple:
         return [(t1, t2, t3), (t1 + math.pi, 2.0 * self.aligned - t2, t3 + math.pi)]
 
 
+_PI, _TWO_PI = math.pi, 2.0 * math.pi
+
+
 def _wrap_row(row: list[float]) -> list[float] | None:
-    """Angles wrapped to (−π, π]; None if one lands within 1e-9 of ±π, where the two paths
-    may round it to either end."""
-    out = [math.pi - (math.pi - a) % (2 * math.pi) for a in row]
+    """Angles wrapped to (−π, π] (left as they are when already there); None if one lands within
+    1e-9 of ±π, where the two paths may round it to either end."""
+    out = [a if -_PI < a <= _PI else _PI - (_PI - a) % _TWO_PI for a in row]
     if max(out) > _NEAR_PI or min(out) < -_NEAR_PI:
         return None
     return out
@@ -243,18 +256,26 @@ class SrsScalar:
         self.el_k = (_dot(x, x) + _dot(y, y)) / 2.0 - _dot(w3, x) * _dot(w3, y)
         self.n12 = _cross(self.w[0], self.w[1])
         self.shoulder_triple = _Triple(g.shoulder_triple)
-        self.wrist_triple = _Triple(g.wrist_triple)
         self.home_inv_a2 = _t(hi[:3, :3] @ g.wrist_triple.a2)
         self.home_inv_a3 = _t(hi[:3, :3] @ g.wrist_triple.a3)
+        # The reference shoulder ends in the fixed Rot(ω3, q3_ref) = Q; folded into constants:
+        # Q·Rot(ω4, q4)·x = Rot(Q·ω4, q4)·Q·x, the shoulder axes' images Q·a, and the wrist
+        # triple turned by Q (it decomposes Q·(R_s R4)ᵀ·R_rel, so Qᵀ is never applied).
+        w2, q3 = self.w[2], self.q3_ref
+        self.w3_ref = _rotate(w2, q3, w3)
+        self.wp_ref = _rotate(w2, q3, self.wp_from_p4)
+        self.p4_ref = _rotate(w2, q3, (self.p4[0] - self.shoulder[0], self.p4[1] - self.shoulder[1], self.p4[2] - self.shoulder[2]))
+        self.sa2_ref = _rotate(w2, q3, self.shoulder_triple.a2)
+        self.sa3_ref = _rotate(w2, q3, self.shoulder_triple.a3)
+        self.wrist_triple = _Triple(g.wrist_triple).rotated(w2, q3)
 
     def _reference(self, q4: float, v: Vec) -> tuple[float, float] | None:
         """(a, b): the A1, A2 of the reference shoulder rotation R_ref = Rot(ω1,a)Rot(ω2,b)Rot(ω3,q3_ref)
         for elbow angle q4 and S→W vector v, the root whose shoulder faces W; None when the two
         roots face it (nearly) alike."""
-        w0, w1, w2 = self.w[0], self.w[1], self.w[2]
-        ur = _rotate(self.w[3], q4, self.wp_from_p4)
-        u = (ur[0] + self.p4[0] - self.shoulder[0], ur[1] + self.p4[1] - self.shoulder[1], ur[2] + self.p4[2] - self.shoulder[2])
-        u = _rotate(w2, self.q3_ref, u)
+        w0, w1 = self.w[0], self.w[1]
+        ur, c = _rotate(self.w3_ref, q4, self.wp_ref), self.p4_ref
+        u = (ur[0] + c[0], ur[1] + c[1], ur[2] + c[2])  # Rot(ω3, q3_ref)·(W − S) at A1 = A2 = 0
         alpha, beta = _dot(v, w0), _dot(u, w1)
         gamma = math.sqrt(max(_dot(u, u) - alpha * alpha - beta * beta, 0.0))
         n = self.n12
@@ -275,7 +296,7 @@ class SrsScalar:
         """The 8 global configurations for the flange pose ``rot`` (rows) and ``pos`` (mm) at arm
         angle ``psi`` rad, wrapped to (−π, π]; None when the pose needs the vectorised solver: out
         of reach, or near the elbow, shoulder or wrist singularity or the wrist point near axis 1."""
-        w0, w1, w2, w3 = self.w[0], self.w[1], self.w[2], self.w[3]
+        w0, w1 = self.w[0], self.w[1]
         r0, r1, r2 = rot
         s = self.shoulder
         wh = self.w0h
@@ -290,26 +311,25 @@ class SrsScalar:
         norm_v = math.sqrt(vv)
         axis = (v[0] / norm_v, v[1] / norm_v, v[2] / norm_v)
         ha2, ha3 = self.home_inv_a2, self.home_inv_a3
-        rel_a2 = (_dot(r0, ha2), _dot(r1, ha2), _dot(r2, ha2))
-        rel_a3 = (_dot(r0, ha3), _dot(r1, ha3), _dot(r2, ha3))
-        sa2, sa3 = self.shoulder_triple.a2, self.shoulder_triple.a3
+        # Rot(v̂, −ψ)·R_rel·a for the wrist's a2, a3 (the first turn of (R_s R4)ᵀ, the same for both elbow roots)
+        rel_a2 = _rotate(axis, -psi, (_dot(r0, ha2), _dot(r1, ha2), _dot(r2, ha2)))
+        rel_a3 = _rotate(axis, -psi, (_dot(r0, ha3), _dot(r1, ha3), _dot(r2, ha3)))
+        w3_ref, sa2, sa3 = self.w3_ref, self.sa2_ref, self.sa3_ref
         out: list[list[float] | None] = [None] * 8
         for g4, q4 in enumerate((el[1], el[0])):  # GC4 = +1: the "−" root
             ref = self._reference(q4, v)
             if ref is None:
                 return None
             a, b = ref
-            q3_ref = self.q3_ref
-
-            def r_s(x: Vec) -> Vec:  # Rot(v̂, ψ)·R_ref·x
-                return _rotate(axis, psi, _rotate(w0, a, _rotate(w1, b, _rotate(w2, q3_ref, x))))
-
-            def wrist_of(x: Vec) -> Vec:  # (R_s R4)ᵀ·x: R1 R2 R3 = R_s for both shoulder roots
-                return _rotate(w3, -q4, _rotate(w2, -q3_ref, _rotate(w1, -b, _rotate(w0, -a, _rotate(axis, -psi, x)))))
-
-            shoulder = self.shoulder_triple.decompose(r_s(sa3), r_s(sa2))
-            # the wrist rotation (R_s R4)ᵀ·R_rel is the same for both shoulder roots: one decomposition
-            wrist = self.wrist_triple.decompose(wrist_of(rel_a3), wrist_of(rel_a2))
+            # R_s = Rot(v̂, ψ)·R_ref: the shoulder triple's images R_s·a3, R_s·a2
+            s3 = _rotate(axis, psi, _rotate(w0, a, _rotate(w1, b, sa3)))
+            s2 = _rotate(axis, psi, _rotate(w0, a, _rotate(w1, b, sa2)))
+            shoulder = self.shoulder_triple.decompose(s3, s2)
+            # the wrist rotation (R_s R4)ᵀ·R_rel is the same for both shoulder roots: one decomposition,
+            # of Q·(R_s R4)ᵀ·R_rel = Rot(Q·ω4, −q4)·Rot(ω2, −b)·Rot(ω1, −a)·Rot(v̂, −ψ)·R_rel (triple turned by Q)
+            m3 = _rotate(w3_ref, -q4, _rotate(w1, -b, _rotate(w0, -a, rel_a3)))
+            m2 = _rotate(w3_ref, -q4, _rotate(w1, -b, _rotate(w0, -a, rel_a2)))
+            wrist = self.wrist_triple.decompose(m3, m2)
             if shoulder is None or wrist is None:
                 return None
             for g2, (t1, t2, t3) in enumerate(shoulder):
