@@ -139,6 +139,7 @@ class _OnePose:
     flange_inv: list[list[float]]
     flange_reach: float
     images: list[_JointImages]
+    shiftable: list[int]  # the joints with a ±360° image within limits somewhere
 
 @dataclass
 class _Solver:
@@ -207,6 +208,7 @@ def _fitting_steps(model: RobotModel) -> list[_JointImages]:
         breaks = sorted(lim - step for step, _ in steps for lim in (lo, hi))
         mids = [breaks[0] - 1.0] + [0.5 * (a + b) for a, b in zip(breaks, breaks[1:])] + [breaks[-1] + 1.0]
         fits = [tuple((st, sf) for st, sf in steps if lo <= x + st <= hi) for x in mids]
+        fits = [_UNSHIFTED if f == _UNSHIFTED else f for f in fits]  # one object: tested with ``is``
         i = max(range(1, len(breaks)), key=lambda i: min(breaks[i], math.pi) - max(breaks[i - 1], -math.pi))
         out.append(_JointImages(breaks[i - 1] + margin, breaks[i] - margin, fits[i], breaks, fits))
     return out
@@ -238,12 +240,14 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
     one_pose = None
     if not polish:
         flange_inv = np.linalg.inv(chain.flange)
+        images = _fitting_steps(model)
         one_pose = _OnePose(
             closed_form=WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry),
             links=chain._links_floats((chain.nominal if params is None else params).tolist(), snap_right_angles=True),
             flange_inv=flange_inv[:3].tolist(),
             flange_reach=float(np.linalg.norm(chain.flange[:3, 3])),
-            images=_fitting_steps(model),
+            images=images,
+            shiftable=[j for j, im in enumerate(images) if any(f not in ((), _UNSHIFTED) for f in im.fits)],
         )
     return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels, one_pose)
 
@@ -510,8 +514,8 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
     if branches is None:
         return None
     checked = _last_frame_check(one, rot, pos)
-    walk, links, labels_b, images = s.chain._walk_links, one.links, s.labels, one.images
-    n, shared = len(links), one.closed_form.shared_joints
+    walk, links, labels_b, images, shiftable = s.chain._walk_links, one.links, s.labels, one.images, one.shiftable
+    shared = one.closed_form.shared_joints
     arms: dict[int, tuple[float, ...]] = {}  # branches 2i, 2i + 1 differ only after the shared joints
     rows: list[list[float]] = []
     labels: list[str] = []
@@ -529,13 +533,22 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
             arm = arms[b >> 1] = walk(q[:shared], links)
         if not checked(walk(q[shared:], links, arm, shared)):
             return None
-        if not within_limits or picks.count(_UNSHIFTED) == n:
+        if not within_limits:
             rows.append(q)
             labels.append(labels_b[b])
             continue
-        for combo in itertools.product(*picks):
-            rows.append([qj + step for qj, (step, _) in zip(q, combo)])
-            labels.append(labels_b[b] + "".join(suffix for _, suffix in combo))
+        # the row and its ±360° images, in ``itertools.product(*picks)`` order (earlier joints vary slowest)
+        row_images, label_images = [q], [labels_b[b]]
+        for j in shiftable:
+            pick = picks[j]
+            if pick is _UNSHIFTED:
+                continue
+            row_images, label_images = zip(*[
+                (row if not step else row[:j] + [row[j] + step] + row[j + 1:], label + suffix)
+                for row, label in zip(row_images, label_images) for step, suffix in pick
+            ])
+        rows.extend(row_images)
+        labels.extend(label_images)
     if not rows:
         return None  # "limits": the vectorised path names the least-violated limit
     return IkSolutions(np.array(rows), labels, "ok", "")
