@@ -564,11 +564,14 @@ def _last_frame_check(one: _OnePose, rot: tuple, pos: tuple):
     flange position error is at most the origin's plus |t_f|·that distance, so the position
     test on that bound is never looser than ``solve_many``'s."""
     (g00, g01, g02, g03), (g10, g11, g12, g13), (g20, g21, g22, g23) = one.flange_inv
-    target = []  # columns x, y, z, origin of pose·flange⁻¹
-    for c0, c1, c2 in ((g00, g10, g20), (g01, g11, g21), (g02, g12, g22), (g03, g13, g23)):
-        target.extend(r[0] * c0 + r[1] * c1 + r[2] * c2 for r in rot)
-    target[9], target[10], target[11] = target[9] + pos[0], target[10] + pos[1], target[11] + pos[2]
-    tx0, tx1, tx2, ty0, ty1, ty2, tz0, tz1, tz2, to0, to1, to2 = target
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rot
+    # columns x, y, z, origin of pose·flange⁻¹
+    tx0, tx1, tx2 = r00 * g00 + r01 * g10 + r02 * g20, r10 * g00 + r11 * g10 + r12 * g20, r20 * g00 + r21 * g10 + r22 * g20
+    ty0, ty1, ty2 = r00 * g01 + r01 * g11 + r02 * g21, r10 * g01 + r11 * g11 + r12 * g21, r20 * g01 + r21 * g11 + r22 * g21
+    tz0, tz1, tz2 = r00 * g02 + r01 * g12 + r02 * g22, r10 * g02 + r11 * g12 + r12 * g22, r20 * g02 + r21 * g12 + r22 * g22
+    to0 = r00 * g03 + r01 * g13 + r02 * g23 + pos[0]
+    to1 = r10 * g03 + r11 * g13 + r12 * g23 + pos[1]
+    to2 = r20 * g03 + r21 * g13 + r22 * g23 + pos[2]
     tol_p = POSITION_TOLERANCE_MM * _ONE_POSE_TOLERANCE_SHARE
     # rotation angle θ from the Frobenius distance ‖R − R_target‖² = 8 sin²(θ/2)
     tol_frob_sq = 8.0 * math.sin(ORIENTATION_TOLERANCE_RAD * _ONE_POSE_TOLERANCE_SHARE / 2.0) ** 2
