@@ -16,7 +16,8 @@ extra) — its C++ Levenberg–Marquardt ``ETS.ik_LM`` on the same robot built a
 from our model (base and flange frames included, axis senses folded into the joint values),
 joint limits on, ``tol=1e-14`` (position error ≲ 1e-3 mm; its default 1e-6 leaves ~1 mm), one
 call per pose from its random start: ONE solution per pose, where ``solve_all`` returns every
-branch. The ratio column is our poses/s ÷ ik_LM's poses/s (> 1: we are faster).
+branch. The ratio column is our poses/s ÷ ik_LM's poses/s (> 1: we are faster). Both sides are
+timed alike: best of 3 runs (the ψ-picked and interval loops: 1 run), each after ``gc.collect()``.
 
 Rates are poses/s and solutions/s (rows returned: every branch and ±360° equivalent within
 limits). A correctness check, not a peer: ``calib.ik_numeric.solve_numeric`` (our own
@@ -27,6 +28,7 @@ many solutions as the analytic solver.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import sys
 import time
@@ -68,8 +70,13 @@ def rtb_ets(model, chain: Chain):
 
 
 def best_of(fn, repeats: int = 3) -> tuple[float, object]:
+    """The shortest of ``repeats`` runs of fn (s) and its last result. Each run starts after a full
+    garbage collection, so the garbage of earlier sections (and of the other side) is not
+    collected on this one's clock."""
     best, out = float("inf"), None
     for _ in range(repeats):
+        out = None
+        gc.collect()
         t0 = time.perf_counter()
         out = fn()
         best = min(best, time.perf_counter() - t0)
@@ -105,9 +112,8 @@ def main() -> None:
         # the peer: roboticstoolbox's compiled ik_LM, one solution per pose
         ets = rtb_ets(model, chain)
         npk = min(args.peer_poses, len(poses))
-        t0 = time.perf_counter()
-        peer = [ets.ik_LM(metres(poses[i]), joint_limits=True, tol=1e-14) for i in range(npk)]
-        peer_rate = npk / (time.perf_counter() - t0)
+        t, peer = best_of(lambda: [ets.ik_LM(metres(poses[i]), joint_limits=True, tol=1e-14) for i in range(npk)])
+        peer_rate = npk / t
         ok = [i for i, sol in enumerate(peer) if sol.success]
         peer_err = max((float(np.abs(chain.fk(chain.sign * peer[i].q)[:3, 3] - poses[i][:3, 3]).max()) for i in ok), default=float("nan"))
 
@@ -126,7 +132,7 @@ def main() -> None:
         rows.append(("solve_many (vectorised)" + (", given ψ" if seven else ""), len(poses) / t, sum(map(len, res)) / t, res))
         m = min(len(poses), 500)
         t, res = best_of(
-            lambda: [ik.solve_all(model, poses[i], arm_angle=None if psi is None else float(psi[i])) for i in range(m)], 1
+            lambda: [ik.solve_all(model, poses[i], arm_angle=None if psi is None else float(psi[i])) for i in range(m)]
         )
         rows.append(("solve_all loop" + (", given ψ" if seven else ""), m / t, sum(map(len, res)) / t, res))
         if seven:
