@@ -78,6 +78,49 @@ def _angle_about(w: Vec, p: Vec, q: Vec) -> float:
     )
 
 
+#: An axis whose other two components are below this (and the third ±1 to it) is taken as a
+#: coordinate axis: DH axes at home are, up to cos 90° = 6e-17.
+_COORDINATE_AXIS_TOLERANCE = 1e-15
+
+
+def _axis_ops(w: Vec):
+    """(rotate(angle, v), angle_about(p, q)): ``_rotate`` and ``_angle_about`` about the unit
+    axis w, written out for w = ±x, ±y, ±z (a third of the general formulas' arithmetic)."""
+    k = max(range(3), key=lambda i: abs(w[i]))
+    sign = math.copysign(1.0, w[k])
+    if abs(w[k] - sign) > _COORDINATE_AXIS_TOLERANCE or max(abs(w[(k + 1) % 3]), abs(w[(k + 2) % 3])) > _COORDINATE_AXIS_TOLERANCE:
+        return (lambda angle, v: _rotate(w, angle, v)), (lambda p, q: _angle_about(w, p, q))
+    cos, sin, atan2 = math.cos, math.sin, math.atan2
+    if k == 0:
+
+        def rotate(angle: float, v: Vec) -> Vec:
+            c, s = cos(angle), sign * sin(angle)
+            return (v[0], c * v[1] - s * v[2], s * v[1] + c * v[2])
+
+        def angle_about(p: Vec, q: Vec) -> float:
+            return atan2(sign * (p[1] * q[2] - p[2] * q[1]), p[1] * q[1] + p[2] * q[2])
+
+    elif k == 1:
+
+        def rotate(angle: float, v: Vec) -> Vec:
+            c, s = cos(angle), sign * sin(angle)
+            return (c * v[0] + s * v[2], v[1], c * v[2] - s * v[0])
+
+        def angle_about(p: Vec, q: Vec) -> float:
+            return atan2(sign * (p[2] * q[0] - p[0] * q[2]), p[2] * q[2] + p[0] * q[0])
+
+    else:
+
+        def rotate(angle: float, v: Vec) -> Vec:
+            c, s = cos(angle), sign * sin(angle)
+            return (c * v[0] - s * v[1], s * v[0] + c * v[1], v[2])
+
+        def angle_about(p: Vec, q: Vec) -> float:
+            return atan2(sign * (p[0] * q[1] - p[1] * q[0]), p[0] * q[0] + p[1] * q[1])
+
+    return rotate, angle_about
+
+
 def _roots(a: float, b: float, d: float) -> tuple[float, float, float, float]:
     """``a cos t + b sin t = d`` → (plus, minus, r, ratio = d / r); plus/minus are NaN when
     |ratio| > 1 (no real root) and the ratio is infinite when r = 0."""
@@ -95,20 +138,17 @@ def _roots(a: float, b: float, d: float) -> tuple[float, float, float, float]:
 class _Triple:
     """``calib.ik_subproblems.SphericalTriple`` as floats: three intersecting axes a1 ⟂ a2 ⟂ a3."""
 
-    def __init__(self, triple: SphericalTriple) -> None:
-        self.a1, self.a2, self.a3 = _t(triple.a1), _t(triple.a2), _t(triple.a3)
+    def __init__(self, triple: SphericalTriple, turn: tuple[Vec, float] | None = None) -> None:
+        """``turn`` = (w, angle): the triple with its axes turned by Rot(w, angle) = Q, whose
+        ``decompose(Q·x, Q·y)`` gives the angles the unturned one gives for (x, y) (the
+        subproblems only use dot and cross products, which a rotation of every vector keeps)."""
+        axes = [_t(triple.a1), _t(triple.a2), _t(triple.a3)]
+        if turn is not None:
+            axes = [_rotate(turn[0], turn[1], a) for a in axes]
+        self.a1, self.a2, self.a3 = axes
+        (self.rot1, self.ang1), (self.rot2, self.ang2), (_, self.ang3) = (_axis_ops(a) for a in axes)
         self.n12 = _cross(self.a1, self.a2)
         self.aligned = float(triple.aligned)
-
-    def rotated(self, w: Vec, angle: float) -> _Triple:
-        """The same triple with its axes turned by Rot(w, angle) = Q: its ``decompose(Q·x, Q·y)``
-        gives the angles ``decompose(x, y)`` gives here (the subproblems only use dot and cross
-        products, which a rotation of every vector leaves unchanged)."""
-        out = object.__new__(_Triple)
-        out.a1, out.a2, out.a3 = (_rotate(w, angle, a) for a in (self.a1, self.a2, self.a3))
-        out.n12 = _cross(out.a1, out.a2)
-        out.aligned = self.aligned
-        return out
 
     def decompose(self, target: Vec, r_a2: Vec) -> list[tuple[float, float, float]] | None:
         """Both (t1, t2, t3) with Rot(a1,t1)Rot(a2,t2)Rot(a3,t3) = R (branch 0: sin(t2 − aligned)
@@ -122,10 +162,10 @@ class _Triple:
         n = self.n12
         # branch 0: z = α a1 − γ (a1 × a2), so sin(t2 − aligned) = +γ
         z = (alpha * a1[0] - gamma * n[0], alpha * a1[1] - gamma * n[1], alpha * a1[2] - gamma * n[2])
-        t2 = _angle_about(a2, a3, z)
-        t1 = _angle_about(a1, z, target)
+        t2 = self.ang2(a3, z)
+        t1 = self.ang1(z, target)
         # t3 from a vector ⟂ a3: Rot(a3, t3)·a2 = (Rot(a1,t1)Rot(a2,t2))ᵀ · R·a2
-        t3 = _angle_about(a3, a2, _rotate(a2, -t2, _rotate(a1, -t1, r_a2)))
+        t3 = self.ang3(a2, self.rot2(-t2, self.rot1(-t1, r_a2)))
         # branch 1: Rot(a1,π)·Rot(a3,π) = Rot(a2, 2·aligned) (half-turns about two axes ⟂ a2)
         # turns branch 0 into (t1 + π, 2·aligned − t2, t3 + π)
         return [(t1, t2, t3), (t1 + math.pi, 2.0 * self.aligned - t2, t3 + math.pi)]
@@ -153,6 +193,7 @@ class WristArmScalar:
         w, p = g.axes.omega, g.axes.points
         self.w = [_t(x) for x in w]
         self.p = [_t(x) for x in p]
+        self.ops = [_axis_ops(x) for x in self.w[:3]]  # (rotate, angle_about) about A1..A3
         hi = g.axes.home_inv
         c0 = _t(g.wrist_centre)
         # the wrist centre as the home-inverse carries it: c = R_pose · c0h + p_pose
@@ -180,7 +221,8 @@ class WristArmScalar:
         """The 8 branches for the flange pose ``rot`` (rows) and ``pos`` (mm), wrapped to (−π, π];
         an entry is None where the branch does not exist (its elbow is out of reach). Returns None
         when the pose needs the vectorised solver (see the module docstring)."""
-        w0, w1, w2 = self.w[0], self.w[1], self.w[2]
+        w1 = self.w[1]
+        (rot0, _), (rot1, ang1), (rot2, _) = self.ops
         p0, p1, p2 = self.p[0], self.p[1], self.p[2]
         c0h, ha2, ha3 = self.c0h, self.home_inv_a2, self.home_inv_a3
         # the relative rotation R_rel = rot · R_home⁻¹ is only needed applied to the wrist's a2, a3
@@ -198,7 +240,7 @@ class WristArmScalar:
         any_arm = False
         for q1 in q1_pair:
             # --- A3 --- (the wrist centre with A1 undone, seen from axis 2)
-            cr = _rotate(w0, -q1, v)
+            cr = rot0(-q1, v)
             to_c1 = (cr[0] + p0[0] - p1[0], cr[1] + p0[1] - p1[1], cr[2] + p0[2] - p1[2])
             d = _perp(w1, to_c1)
             el = _roots(self.el_a, self.el_b, self.el_k - _dot(d, d) / 2.0)
@@ -210,15 +252,15 @@ class WristArmScalar:
             any_arm = True
             q3_pair = (el[0], el[1]) if self.elbow_up_sign > 0 else (el[1], el[0])
             # R123ᵀ·x = Rot(w3, −q3) Rot(w2, −q2) Rot(w1, −q1) x: the first turn is shared
-            b_a3, b_a2 = _rotate(w0, -q1, rel_a3), _rotate(w0, -q1, rel_a2)
+            b_a3, b_a2 = rot0(-q1, rel_a3), rot0(-q1, rel_a2)
             for q3 in q3_pair:
                 # --- A2 ---
-                mv = _rotate(w2, q3, self.c0_from_p2)
+                mv = rot2(q3, self.c0_from_p2)
                 moved = (mv[0] + p2[0] - p1[0], mv[1] + p2[1] - p1[1], mv[2] + p2[2] - p1[2])
-                q2 = _angle_about(w1, moved, to_c1)
+                q2 = ang1(moved, to_c1)
                 # --- A4..A6 --- on the wrist rotation R123ᵀ·R_rel, through its images of a3 and a2
-                target = _rotate(w2, -q3, _rotate(w1, -q2, b_a3))
-                r_a2 = _rotate(w2, -q3, _rotate(w1, -q2, b_a2))
+                target = rot2(-q3, rot1(-q2, b_a3))
+                r_a2 = rot2(-q3, rot1(-q2, b_a2))
                 wrist = self.wrist.decompose(target, r_a2)
                 if wrist is None:
                     return None
@@ -267,14 +309,16 @@ class SrsScalar:
         self.p4_ref = _rotate(w2, q3, (self.p4[0] - self.shoulder[0], self.p4[1] - self.shoulder[1], self.p4[2] - self.shoulder[2]))
         self.sa2_ref = _rotate(w2, q3, self.shoulder_triple.a2)
         self.sa3_ref = _rotate(w2, q3, self.shoulder_triple.a3)
-        self.wrist_triple = _Triple(g.wrist_triple).rotated(w2, q3)
+        self.wrist_triple = _Triple(g.wrist_triple, turn=(w2, q3))
+        self.ops = [_axis_ops(x) for x in (self.w[0], self.w[1], self.w3_ref)]  # about A1, A2, Q·A4
 
     def _reference(self, q4: float, v: Vec) -> tuple[float, float] | None:
         """(a, b): the A1, A2 of the reference shoulder rotation R_ref = Rot(ω1,a)Rot(ω2,b)Rot(ω3,q3_ref)
         for elbow angle q4 and S→W vector v, the root whose shoulder faces W; None when the two
         roots face it (nearly) alike."""
         w0, w1 = self.w[0], self.w[1]
-        ur, c = _rotate(self.w3_ref, q4, self.wp_ref), self.p4_ref
+        (rot0, ang0), (_, ang1), (rot3, _) = self.ops
+        ur, c = rot3(q4, self.wp_ref), self.p4_ref
         u = (ur[0] + c[0], ur[1] + c[1], ur[2] + c[2])  # Rot(ω3, q3_ref)·(W − S) at A1 = A2 = 0
         alpha, beta = _dot(v, w0), _dot(u, w1)
         gamma = math.sqrt(max(_dot(u, u) - alpha * alpha - beta * beta, 0.0))
@@ -284,9 +328,9 @@ class SrsScalar:
             g = sgn * gamma
             z = (alpha * w0[0] + beta * w1[0] + g * n[0], alpha * w0[1] + beta * w1[1] + g * n[1],
                  alpha * w0[2] + beta * w1[2] + g * n[2])
-            b = _angle_about(w1, u, z)
-            a = _angle_about(w0, z, v)
-            roots.append((_dot(_rotate(w0, a, self.facing), v), a, b))
+            b = ang1(u, z)
+            a = ang0(z, v)
+            roots.append((_dot(rot0(a, self.facing), v), a, b))
         (face0, a0, b0), (face1, a1, b1) = roots
         if abs(face1 - face0) < FALLBACK_MARGIN:
             return None
@@ -296,7 +340,8 @@ class SrsScalar:
         """The 8 global configurations for the flange pose ``rot`` (rows) and ``pos`` (mm) at arm
         angle ``psi`` rad, wrapped to (−π, π]; None when the pose needs the vectorised solver: out
         of reach, or near the elbow, shoulder or wrist singularity or the wrist point near axis 1."""
-        w0, w1 = self.w[0], self.w[1]
+        w0 = self.w[0]
+        (rot0, _), (rot1, _), (rot3, _) = self.ops
         r0, r1, r2 = rot
         s = self.shoulder
         wh = self.w0h
@@ -314,7 +359,7 @@ class SrsScalar:
         # Rot(v̂, −ψ)·R_rel·a for the wrist's a2, a3 (the first turn of (R_s R4)ᵀ, the same for both elbow roots)
         rel_a2 = _rotate(axis, -psi, (_dot(r0, ha2), _dot(r1, ha2), _dot(r2, ha2)))
         rel_a3 = _rotate(axis, -psi, (_dot(r0, ha3), _dot(r1, ha3), _dot(r2, ha3)))
-        w3_ref, sa2, sa3 = self.w3_ref, self.sa2_ref, self.sa3_ref
+        sa2, sa3 = self.sa2_ref, self.sa3_ref
         out: list[list[float] | None] = [None] * 8
         for g4, q4 in enumerate((el[1], el[0])):  # GC4 = +1: the "−" root
             ref = self._reference(q4, v)
@@ -322,13 +367,13 @@ class SrsScalar:
                 return None
             a, b = ref
             # R_s = Rot(v̂, ψ)·R_ref: the shoulder triple's images R_s·a3, R_s·a2
-            s3 = _rotate(axis, psi, _rotate(w0, a, _rotate(w1, b, sa3)))
-            s2 = _rotate(axis, psi, _rotate(w0, a, _rotate(w1, b, sa2)))
+            s3 = _rotate(axis, psi, rot0(a, rot1(b, sa3)))
+            s2 = _rotate(axis, psi, rot0(a, rot1(b, sa2)))
             shoulder = self.shoulder_triple.decompose(s3, s2)
             # the wrist rotation (R_s R4)ᵀ·R_rel is the same for both shoulder roots: one decomposition,
             # of Q·(R_s R4)ᵀ·R_rel = Rot(Q·ω4, −q4)·Rot(ω2, −b)·Rot(ω1, −a)·Rot(v̂, −ψ)·R_rel (triple turned by Q)
-            m3 = _rotate(w3_ref, -q4, _rotate(w1, -b, _rotate(w0, -a, rel_a3)))
-            m2 = _rotate(w3_ref, -q4, _rotate(w1, -b, _rotate(w0, -a, rel_a2)))
+            m3 = rot3(-q4, rot1(-b, rot0(-a, rel_a3)))
+            m2 = rot3(-q4, rot1(-b, rot0(-a, rel_a2)))
             wrist = self.wrist_triple.decompose(m3, m2)
             if shoulder is None or wrist is None:
                 return None
