@@ -514,10 +514,11 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
     if branches is None:
         return None
     checked = _last_frame_check(one, rot, pos)
-    walk, links, labels_b, images, shiftable = s.chain._walk_links, one.links, s.labels, one.images, one.shiftable
+    walk, labels_b, images, shiftable = s.chain._walk_links, s.labels, one.images, one.shiftable
     shared = one.closed_form.shared_joints
-    arms: dict[int, tuple[float, ...]] = {}  # branches 2i, 2i + 1 differ only after the shared joints
-    rows: list[list[float]] = []
+    arm_links, wrist_links = one.links[:shared], one.links[shared:]
+    arm_of, arm = -1, ()  # branches 2i, 2i + 1 differ only after the shared joints: one walk to there
+    flat: list[float] = []  # the rows, one after the other
     labels: list[str] = []
     for b, q in enumerate(branches):
         if q is None:
@@ -528,13 +529,12 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
                 return None
             if not picks:
                 continue
-        arm = arms.get(b >> 1)
-        if arm is None:
-            arm = arms[b >> 1] = walk(q[:shared], links)
-        if not checked(walk(q[shared:], links, arm, shared)):
+        if b >> 1 != arm_of:
+            arm_of, arm = b >> 1, walk(q[:shared], arm_links)
+        if not checked(walk(q[shared:], wrist_links, arm)):
             return None
         if not within_limits:
-            rows.append(q)
+            flat.extend(q)
             labels.append(labels_b[b])
             continue
         # the row and its ±360° images, in ``itertools.product(*picks)`` order (earlier joints vary slowest)
@@ -543,15 +543,23 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
             pick = picks[j]
             if pick is _UNSHIFTED:
                 continue
-            row_images, label_images = zip(*[
-                (row if not step else row[:j] + [row[j] + step] + row[j + 1:], label + suffix)
-                for row, label in zip(row_images, label_images) for step, suffix in pick
-            ])
-        rows.extend(row_images)
+            grown_rows, grown_labels = [], []
+            for row, label in zip(row_images, label_images):
+                for step, suffix in pick:
+                    if step:
+                        shifted = row.copy()
+                        shifted[j] += step
+                        grown_rows.append(shifted)
+                    else:
+                        grown_rows.append(row)
+                    grown_labels.append(label + suffix)
+            row_images, label_images = grown_rows, grown_labels
+        for row in row_images:
+            flat.extend(row)
         labels.extend(label_images)
-    if not rows:
+    if not labels:
         return None  # "limits": the vectorised path names the least-violated limit
-    return IkSolutions(np.array(rows), labels, "ok", "")
+    return IkSolutions(np.fromiter(flat, float, len(flat)).reshape(len(labels), -1), labels, "ok", "")
 
 
 def _last_frame_check(one: _OnePose, rot: tuple, pos: tuple):
