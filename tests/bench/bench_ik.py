@@ -16,8 +16,9 @@ extra) — its C++ Levenberg–Marquardt ``ETS.ik_LM`` on the same robot built a
 from our model (base and flange frames included, axis senses folded into the joint values),
 joint limits on, ``tol=1e-14`` (position error ≲ 1e-3 mm; its default 1e-6 leaves ~1 mm), one
 call per pose from its random start: ONE solution per pose, where ``solve_all`` returns every
-branch. The ratio column is our poses/s ÷ ik_LM's poses/s (> 1: we are faster). Both sides are
-timed alike: best of 3 runs (the ψ-picked and interval loops: 1 run), each after ``gc.collect()``.
+branch. The ratio column is our poses/s ÷ ik_LM's poses/s (> 1: we are faster). Every timing is
+the best of 3 runs (the ψ-picked and interval loops: 1 run), each after ``gc.collect()``; the
+peer and the ``solve_all`` loop, compared head to head, alternate over 5 runs each.
 
 Rates are poses/s and solutions/s (rows returned: every branch and ±360° equivalent within
 limits). A correctness check, not a peer: ``calib.ik_numeric.solve_numeric`` (our own
@@ -70,17 +71,24 @@ def rtb_ets(model, chain: Chain):
 
 
 def best_of(fn, repeats: int = 3) -> tuple[float, object]:
-    """The shortest of ``repeats`` runs of fn (s) and its last result. Each run starts after a full
-    garbage collection, so the garbage of earlier sections (and of the other side) is not
-    collected on this one's clock."""
-    best, out = float("inf"), None
+    """The shortest of ``repeats`` runs of fn (s) and its last result."""
+    return best_of_alternating([fn], repeats)[0]
+
+
+def best_of_alternating(fns, repeats: int) -> list[tuple[float, object]]:
+    """Per function, the shortest of ``repeats`` runs (s) and its last result, the runs of all
+    functions interleaved (a, b, a, b, …) so that a busy phase of a shared machine falls on each
+    side alike. Each run starts after a full garbage collection, so the garbage of earlier
+    sections (and of the other side) is not collected on this one's clock."""
+    best, outs = [float("inf")] * len(fns), [None] * len(fns)
     for _ in range(repeats):
-        out = None
-        gc.collect()
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
+        for k, fn in enumerate(fns):
+            outs[k] = None
+            gc.collect()
+            t0 = time.perf_counter()
+            outs[k] = fn()
+            best[k] = min(best[k], time.perf_counter() - t0)
+    return list(zip(best, outs))
 
 
 def main() -> None:
@@ -109,10 +117,15 @@ def main() -> None:
         psi = ik.arm_angle_of(model, q) if seven else None
         ik.solve_many(model, poses[:10], arm_angle=None if psi is None else psi[:10])  # warm the cache
 
-        # the peer: roboticstoolbox's compiled ik_LM, one solution per pose
+        # the peer, roboticstoolbox's compiled ik_LM (one solution per pose), and our solve_all loop
+        # (every solution, one call per pose): their runs interleaved
         ets = rtb_ets(model, chain)
         npk = min(args.peer_poses, len(poses))
-        t, peer = best_of(lambda: [ets.ik_LM(metres(poses[i]), joint_limits=True, tol=1e-14) for i in range(npk)])
+        m = min(len(poses), 500)
+        (t, peer), (t_loop, loop_res) = best_of_alternating([
+            lambda: [ets.ik_LM(metres(poses[i]), joint_limits=True, tol=1e-14) for i in range(npk)],
+            lambda: [ik.solve_all(model, poses[i], arm_angle=None if psi is None else float(psi[i])) for i in range(m)],
+        ], 5)
         peer_rate = npk / t
         ok = [i for i, sol in enumerate(peer) if sol.success]
         peer_err = max((float(np.abs(chain.fk(chain.sign * peer[i].q)[:3, 3] - poses[i][:3, 3]).max()) for i in ok), default=float("nan"))
@@ -130,11 +143,7 @@ def main() -> None:
         rows = []
         t, res = best_of(lambda: ik.solve_many(model, poses, arm_angle=psi))
         rows.append(("solve_many (vectorised)" + (", given ψ" if seven else ""), len(poses) / t, sum(map(len, res)) / t, res))
-        m = min(len(poses), 500)
-        t, res = best_of(
-            lambda: [ik.solve_all(model, poses[i], arm_angle=None if psi is None else float(psi[i])) for i in range(m)]
-        )
-        rows.append(("solve_all loop" + (", given ψ" if seven else ""), m / t, sum(map(len, res)) / t, res))
+        rows.append(("solve_all loop" + (", given ψ" if seven else ""), m / t_loop, sum(map(len, loop_res)) / t_loop, loop_res))
         if seven:
             m7 = min(len(poses), 200)
             t, res = best_of(lambda: ik.solve_many(model, poses[:m7]), 1)
