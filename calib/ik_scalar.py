@@ -44,6 +44,13 @@ def _dot(a: Vec, b: Vec) -> float:
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def _apply(rows: tuple[Vec, Vec, Vec], v: Vec) -> Vec:
+    """The matrix with rows ``rows`` times v."""
+    (a0, a1, a2), (b0, b1, b2), (c0, c1, c2) = rows
+    v0, v1, v2 = v
+    return (a0 * v0 + a1 * v1 + a2 * v2, b0 * v0 + b1 * v1 + b2 * v2, c0 * v0 + c1 * v1 + c2 * v2)
+
+
 def _cross(a: Vec, b: Vec) -> Vec:
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
@@ -177,6 +184,8 @@ _PI, _TWO_PI = math.pi, 2.0 * math.pi
 def _wrap_row(row: list[float]) -> list[float] | None:
     """Angles wrapped to (−π, π] (left as they are when already there); None if one lands within
     1e-9 of ±π, where the two paths may round it to either end."""
+    if max(row) < _NEAR_PI and min(row) > -_NEAR_PI:
+        return row
     out = [a if -_PI < a <= _PI else _PI - (_PI - a) % _TWO_PI for a in row]
     if max(out) > _NEAR_PI or min(out) < -_NEAR_PI:
         return None
@@ -226,11 +235,10 @@ class WristArmScalar:
         p0, p1, p2 = self.p[0], self.p[1], self.p[2]
         c0h, ha2, ha3 = self.c0h, self.home_inv_a2, self.home_inv_a3
         # the relative rotation R_rel = rot · R_home⁻¹ is only needed applied to the wrist's a2, a3
-        r0, r1, r2 = rot
-        rel_a2 = (_dot(r0, ha2), _dot(r1, ha2), _dot(r2, ha2))
-        rel_a3 = (_dot(r0, ha3), _dot(r1, ha3), _dot(r2, ha3))
+        rel_a2, rel_a3 = _apply(rot, ha2), _apply(rot, ha3)
         # --- A1 --- (v: wrist centre from the point on axis 1)
-        v = (_dot(r0, c0h) + pos[0] - p0[0], _dot(r1, c0h) + pos[1] - p0[1], _dot(r2, c0h) + pos[2] - p0[2])
+        c = _apply(rot, c0h)
+        v = (c[0] + pos[0] - p0[0], c[1] + pos[1] - p0[1], c[2] + pos[2] - p0[2])
         sh = _roots(_dot(v, w1), _dot(v, self.n12), self.lateral)
         # out of reach, or near it, or the wrist centre (near) the shoulder's singular surface
         if abs(sh[3]) > 1.0 - RATIO_MARGIN or sh[2] * math.sqrt(1.0 - sh[3] ** 2) < FALLBACK_MARGIN:
@@ -342,10 +350,9 @@ class SrsScalar:
         of reach, or near the elbow, shoulder or wrist singularity or the wrist point near axis 1."""
         w0 = self.w[0]
         (rot0, _), (rot1, _), (rot3, _) = self.ops
-        r0, r1, r2 = rot
         s = self.shoulder
-        wh = self.w0h
-        v = (_dot(r0, wh) + pos[0] - s[0], _dot(r1, wh) + pos[1] - s[1], _dot(r2, wh) + pos[2] - s[2])
+        wp = _apply(rot, self.w0h)
+        v = (wp[0] + pos[0] - s[0], wp[1] + pos[1] - s[1], wp[2] + pos[2] - s[2])
         vv = _dot(v, v)
         el = _roots(self.el_a, self.el_b, self.el_k - vv / 2.0)
         if abs(el[3]) > 1.0 - RATIO_MARGIN:
@@ -357,8 +364,7 @@ class SrsScalar:
         axis = (v[0] / norm_v, v[1] / norm_v, v[2] / norm_v)
         ha2, ha3 = self.home_inv_a2, self.home_inv_a3
         # Rot(v̂, −ψ)·R_rel·a for the wrist's a2, a3 (the first turn of (R_s R4)ᵀ, the same for both elbow roots)
-        rel_a2 = _rotate(axis, -psi, (_dot(r0, ha2), _dot(r1, ha2), _dot(r2, ha2)))
-        rel_a3 = _rotate(axis, -psi, (_dot(r0, ha3), _dot(r1, ha3), _dot(r2, ha3)))
+        rel_a2, rel_a3 = _rotate(axis, -psi, _apply(rot, ha2)), _rotate(axis, -psi, _apply(rot, ha3))
         sa2, sa3 = self.sa2_ref, self.sa3_ref
         out: list[list[float] | None] = [None] * 8
         for g4, q4 in enumerate((el[1], el[0])):  # GC4 = +1: the "−" root
