@@ -517,7 +517,7 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
     walk, labels_b, images, shiftable = s.chain._walk_links, s.labels, one.images, one.shiftable
     shared = one.closed_form.shared_joints
     arm_links, wrist_links = one.links[:shared], one.links[shared:]
-    arm_of, arm = -1, ()  # branches 2i, 2i + 1 differ only after the shared joints: one walk to there
+    arm_q, arm = None, ()  # branches 2i, 2i + 1 share their first joints: one walk to there serves both
     flat: list[float] = []  # the rows, one after the other
     labels: list[str] = []
     for b, q in enumerate(branches):
@@ -529,8 +529,9 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
                 return None
             if not picks:
                 continue
-        if b >> 1 != arm_of:
-            arm_of, arm = b >> 1, walk(q[:shared], arm_links)
+        if q[:shared] != arm_q:
+            arm_q = q[:shared]
+            arm = walk(arm_q, arm_links)
         if not checked(walk(q[shared:], wrist_links, arm)):
             return None
         if not within_limits:

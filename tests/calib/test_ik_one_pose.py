@@ -185,6 +185,42 @@ def test_one_pose_path_refuses_what_solve_many_refuses():
         ik.solve_all(m, np.eye(4), arm_angle=0.1)
 
 
+@pytest.mark.parametrize("name", SIX + SEVEN)
+def test_one_pose_path_rejects_closed_form_rows_that_miss_the_pose(name, monkeypatch):
+    """The FK check is real: a closed-form row off by 1e-7 rad in any one joint (a flange error of
+    ~1e-4 mm or ~1e-7 rad, far above the tolerances) makes the float path hand the pose over, and
+    solve_all still returns solve_many's solutions. Also for the second row of a branch pair,
+    whose first joints the check walks only once when they equal the first row's."""
+    m = model(name)
+    n = m.n_joints
+    q = np.radians([20.0, -50.0, 30.0, 40.0, 35.0, -25.0, 15.0][:n])
+    pose = Chain(m).fk(q)
+    psi = float(ik.arm_angle_of(m, q)) if n == 7 else None
+    s = ik._solver(m, None)
+    closed_form = s.one_pose.closed_form
+    honest = closed_form.solve
+    expected = ik.solve_many(m, pose[None], within_limits=False, arm_angle=psi)[0]
+    expected_within = ik.solve_many(m, pose[None], arm_angle=psi)[0]
+    assert ik._solve_one(s, pose, False, psi) is not None, "the clean pose must take the float path"
+    rot, pos = tuple(map(tuple, pose[:3, :3].tolist())), tuple(pose[:3, 3].tolist())
+    branches = honest(rot, pos) if psi is None else honest(rot, pos, psi)
+    for b in (i for i, row in enumerate(branches) if row is not None):
+        for j in range(n):
+
+            def corrupted(*args, b=b, j=j, **kwargs):
+                rows = honest(*args, **kwargs)
+                rows[b] = list(rows[b])
+                rows[b][j] += 1e-7
+                return rows
+
+            monkeypatch.setattr(closed_form, "solve", corrupted)
+            assert ik._solve_one(s, pose, False, psi) is None, f"branch {b} joint {j + 1} off by 1e-7 rad was accepted"
+            assert_same(ik.solve_all(m, pose, within_limits=False, arm_angle=psi), expected, f"branch {b} joint {j + 1}")
+            # within limits too (a row the corruption takes outside them is dropped, as solve_many drops the true one)
+            assert_same(ik.solve_all(m, pose, arm_angle=psi), expected_within, f"branch {b} joint {j + 1}, limits")
+    monkeypatch.setattr(closed_form, "solve", honest)
+
+
 # --- 7R at a given arm angle ---------------------------------------------------------------------
 @pytest.mark.parametrize("within_limits", [True, False])
 @pytest.mark.parametrize("name", SEVEN)
