@@ -534,16 +534,15 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
             arm = walk(arm_q, arm_links)
         if not checked(walk(q[shared:], wrist_links, arm)):
             return None
-        if not within_limits:
+        shifted = [j for j in shiftable if picks[j] is not _UNSHIFTED] if within_limits else ()
+        if not shifted:
             flat.extend(q)
             labels.append(labels_b[b])
             continue
         # the row and its ±360° images, in ``itertools.product(*picks)`` order (earlier joints vary slowest)
         row_images, label_images = [q], [labels_b[b]]
-        for j in shiftable:
+        for j in shifted:
             pick = picks[j]
-            if pick is _UNSHIFTED:
-                continue
             grown_rows, grown_labels = [], []
             for row, label in zip(row_images, label_images):
                 for step, suffix in pick:

@@ -320,15 +320,15 @@ class SrsScalar:
         self.wrist_triple = _Triple(g.wrist_triple, turn=(w2, q3))
         self.ops = [_axis_ops(x) for x in (self.w[0], self.w[1], self.w3_ref)]  # about A1, A2, Q·A4
 
-    def _reference(self, q4: float, v: Vec) -> tuple[float, float] | None:
+    def _reference(self, q4: float, v: Vec, alpha: float) -> tuple[float, float] | None:
         """(a, b): the A1, A2 of the reference shoulder rotation R_ref = Rot(ω1,a)Rot(ω2,b)Rot(ω3,q3_ref)
-        for elbow angle q4 and S→W vector v, the root whose shoulder faces W; None when the two
-        roots face it (nearly) alike."""
+        for elbow angle q4, S→W vector v and alpha = v·ω1, the root whose shoulder faces W; None
+        when the two roots face it (nearly) alike."""
         w0, w1 = self.w[0], self.w[1]
         (rot0, ang0), (_, ang1), (rot3, _) = self.ops
         ur, c = rot3(q4, self.wp_ref), self.p4_ref
         u = (ur[0] + c[0], ur[1] + c[1], ur[2] + c[2])  # Rot(ω3, q3_ref)·(W − S) at A1 = A2 = 0
-        alpha, beta = _dot(v, w0), _dot(u, w1)
+        beta = _dot(u, w1)
         gamma = math.sqrt(max(_dot(u, u) - alpha * alpha - beta * beta, 0.0))
         n = self.n12
         roots = []
@@ -336,13 +336,13 @@ class SrsScalar:
             g = sgn * gamma
             z = (alpha * w0[0] + beta * w1[0] + g * n[0], alpha * w0[1] + beta * w1[1] + g * n[1],
                  alpha * w0[2] + beta * w1[2] + g * n[2])
-            b = ang1(u, z)
             a = ang0(z, v)
-            roots.append((_dot(rot0(a, self.facing), v), a, b))
-        (face0, a0, b0), (face1, a1, b1) = roots
+            roots.append((_dot(rot0(a, self.facing), v), a, z))
+        (face0, a0, z0), (face1, a1, z1) = roots
         if abs(face1 - face0) < FALLBACK_MARGIN:
             return None
-        return (a1, b1) if face1 > face0 else (a0, b0)
+        a, z = (a1, z1) if face1 > face0 else (a0, z0)
+        return a, ang1(u, z)
 
     def solve(self, rot: tuple[Vec, Vec, Vec], pos: Vec, psi: float) -> list[list[float]] | None:
         """The 8 global configurations for the flange pose ``rot`` (rows) and ``pos`` (mm) at arm
@@ -360,6 +360,7 @@ class SrsScalar:
         off = _perp(w0, v)
         if _dot(off, off) < FALLBACK_MARGIN**2:
             return None  # the wrist point (near) axis 1: the reference plane is undefined
+        alpha = _dot(v, w0)
         norm_v = math.sqrt(vv)
         axis = (v[0] / norm_v, v[1] / norm_v, v[2] / norm_v)
         ha2, ha3 = self.home_inv_a2, self.home_inv_a3
@@ -368,7 +369,7 @@ class SrsScalar:
         sa2, sa3 = self.sa2_ref, self.sa3_ref
         out: list[list[float] | None] = [None] * 8
         for g4, q4 in enumerate((el[1], el[0])):  # GC4 = +1: the "−" root
-            ref = self._reference(q4, v)
+            ref = self._reference(q4, v, alpha)
             if ref is None:
                 return None
             a, b = ref
