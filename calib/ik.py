@@ -488,7 +488,9 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
     or None where the pose needs the vectorised path: not a clean rigid transform (it raises
     there), out of reach, near a singularity (``calib.ik_scalar``), a row near a tolerance or
     limit, or no row within limits. Same rows, labels and order as ``solve_many`` (to rounding,
-    ≲1e-12 rad)."""
+    ≲1e-12 rad). Every row within limits (every row, without limits) is checked by FK in floats
+    (``Chain._walk_links``) before it is returned (``_last_frame_check``); ±360° images share
+    their row's check."""
     one = s.one_pose
     if one is None:
         return None
@@ -547,9 +549,9 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
             for row, label in zip(row_images, label_images):
                 for step, suffix in pick:
                     if step:
-                        shifted = row.copy()
-                        shifted[j] += step
-                        grown_rows.append(shifted)
+                        image = row.copy()
+                        image[j] += step
+                        grown_rows.append(image)
                     else:
                         grown_rows.append(row)
                     grown_labels.append(label + suffix)
