@@ -32,6 +32,12 @@ RATIO_MARGIN = 1e-9
 
 #: A wrapped angle this close to ±π (rad) sends the pose to the vectorised solver.
 _NEAR_PI = math.pi - 1e-9
+_PI, _TWO_PI = math.pi, 2.0 * math.pi
+
+
+def _wrap(a: float) -> float:
+    """a wrapped to (−π, π] (left as it is when already there)."""
+    return a if -_PI < a <= _PI else _PI - (_PI - a) % _TWO_PI
 
 Vec = tuple[float, float, float]
 
@@ -174,19 +180,16 @@ class _Triple:
         # t3 from a vector ⟂ a3: Rot(a3, t3)·a2 = (Rot(a1,t1)Rot(a2,t2))ᵀ · R·a2
         t3 = self.ang3(a2, self.rot2(-t2, self.rot1(-t1, r_a2)))
         # branch 1: Rot(a1,π)·Rot(a3,π) = Rot(a2, 2·aligned) (half-turns about two axes ⟂ a2)
-        # turns branch 0 into (t1 + π, 2·aligned − t2, t3 + π)
-        return [(t1, t2, t3), (t1 + math.pi, 2.0 * self.aligned - t2, t3 + math.pi)]
-
-
-_PI, _TWO_PI = math.pi, 2.0 * math.pi
+        # turns branch 0 into (t1 + π, 2·aligned − t2, t3 + π), here wrapped to (−π, π] (t1 ± π, t3 ± π)
+        return [(t1, t2, t3), (t1 - _PI if t1 > 0.0 else t1 + _PI, _wrap(2.0 * self.aligned - t2), t3 - _PI if t3 > 0.0 else t3 + _PI)]
 
 
 def _wrap_row(row: list[float]) -> list[float] | None:
-    """Angles wrapped to (−π, π] (left as they are when already there); None if one lands within
-    1e-9 of ±π, where the two paths may round it to either end."""
+    """Angles wrapped to (−π, π] (the solvers wrap as they go: usually there already); None if
+    one lands within 1e-9 of ±π, where the two paths may round it to either end."""
     if max(row) < _NEAR_PI and min(row) > -_NEAR_PI:
         return row
-    out = [a if -_PI < a <= _PI else _PI - (_PI - a) % _TWO_PI for a in row]
+    out = [_wrap(a) for a in row]
     if max(out) > _NEAR_PI or min(out) < -_NEAR_PI:
         return None
     return out
@@ -243,7 +246,7 @@ class WristArmScalar:
         # out of reach, or near it, or the wrist centre (near) the shoulder's singular surface
         if abs(sh[3]) > 1.0 - RATIO_MARGIN or sh[2] * math.sqrt(1.0 - sh[3] ** 2) < FALLBACK_MARGIN:
             return None
-        q1_pair = (sh[1], sh[0]) if self.facing_sign > 0 else (sh[0], sh[1])
+        q1_pair = (_wrap(sh[1]), _wrap(sh[0])) if self.facing_sign > 0 else (_wrap(sh[0]), _wrap(sh[1]))
         out: list[list[float] | None] = []
         any_arm = False
         for q1 in q1_pair:
@@ -258,7 +261,7 @@ class WristArmScalar:
             if abs(el[3]) > 1.0 - RATIO_MARGIN:
                 return None  # elbow (near) stretched or folded, or at the reach boundary
             any_arm = True
-            q3_pair = (el[0], el[1]) if self.elbow_up_sign > 0 else (el[1], el[0])
+            q3_pair = (_wrap(el[0]), _wrap(el[1])) if self.elbow_up_sign > 0 else (_wrap(el[1]), _wrap(el[0]))
             # R123ᵀ·x = Rot(w3, −q3) Rot(w2, −q2) Rot(w1, −q1) x: the first turn is shared
             b_a3, b_a2 = rot0(-q1, rel_a3), rot0(-q1, rel_a2)
             for q3 in q3_pair:
@@ -368,7 +371,7 @@ class SrsScalar:
         rel_a2, rel_a3 = _rotate(axis, -psi, _apply(rot, ha2)), _rotate(axis, -psi, _apply(rot, ha3))
         sa2, sa3 = self.sa2_ref, self.sa3_ref
         out: list[list[float] | None] = [None] * 8
-        for g4, q4 in enumerate((el[1], el[0])):  # GC4 = +1: the "−" root
+        for g4, q4 in enumerate((_wrap(el[1]), _wrap(el[0]))):  # GC4 = +1: the "−" root
             ref = self._reference(q4, v, alpha)
             if ref is None:
                 return None
