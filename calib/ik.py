@@ -536,7 +536,7 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
             arm = walk(arm_q, arm_links)
         if not checked(walk(q[shared:], wrist_links, arm)):
             return None
-        shifted = [j for j in shiftable if picks[j] is not _UNSHIFTED] if within_limits else ()
+        shifted = [j for j in shiftable if picks[j] is not _UNSHIFTED] if within_limits and shiftable else ()
         if not shifted:
             flat.extend(q)
             labels.append(labels_b[b])
