@@ -54,7 +54,8 @@ import bisect
 import itertools
 import logging
 import math
-from dataclasses import dataclass
+import operator
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -140,6 +141,15 @@ class _OnePose:
     flange_reach: float
     images: list[_JointImages]
     shiftable: list[int]  # the joints with a ±360° image within limits somewhere
+    # the widest stretches of all joints, for ``_limit_images``' first test (from ``images``)
+    inner_lo: list[float] = field(init=False)
+    inner_hi: list[float] = field(init=False)
+    inner: list[tuple[tuple[float, str], ...]] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.inner_lo = [im.inner_lo for im in self.images]
+        self.inner_hi = [im.inner_hi for im in self.images]
+        self.inner = [im.inner for im in self.images]
 
 @dataclass
 class _Solver:
@@ -463,11 +473,15 @@ def _assemble(s: _Solver, raw: RawSolutions, q: np.ndarray, within_limits: bool)
     return out
 
 
-def _limit_images(q: list[float], images: list[_JointImages]) -> list[tuple[tuple[float, str], ...]] | None:
+def _limit_images(q: list[float], one: _OnePose) -> list[tuple[tuple[float, str], ...]] | None:
     """Per joint of the wrapped row q (n) rad, its ±360° images within limits as (step rad,
     label suffix) pairs; [] when some joint has none; None when a joint is within
-    ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images."""
+    ``_ONE_POSE_LIMIT_MARGIN_RAD`` of a limit or of one of its ±360° images. (Do not modify
+    the list returned: it may be ``one.inner``.)"""
+    if all(map(operator.lt, one.inner_lo, q)) and all(map(operator.lt, q, one.inner_hi)):
+        return one.inner  # every joint on its widest stretch: tested without a Python loop
     picks = []
+    images = one.images
     for qj, (inner_lo, inner_hi, inner, breaks, fits) in zip(q, images):
         if inner_lo < qj < inner_hi:
             picks.append(inner)
@@ -516,8 +530,8 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
     if branches is None:
         return None
     checked = _last_frame_check(one, rot, pos)
-    walk, labels_b, images, shiftable = s.chain._walk_links, s.labels, one.images, one.shiftable
-    shared = one.closed_form.shared_joints
+    walk, labels_b, shiftable = s.chain._walk_links, s.labels, one.shiftable
+    n, shared = len(one.links), one.closed_form.shared_joints
     arm_links, wrist_links = one.links[:shared], one.links[shared:]
     arm_q, arm = None, ()  # branches 2i, 2i + 1 share their first joints: one walk to there serves both
     flat: list[float] = []  # the rows, one after the other
@@ -526,7 +540,7 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
         if q is None:
             continue
         if within_limits:  # first, as a row outside the limits needs no FK check: it is dropped either way
-            picks = _limit_images(q, images)
+            picks = _limit_images(q, one)
             if picks is None:
                 return None
             if not picks:
@@ -536,15 +550,16 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
             arm = walk(arm_q, arm_links)
         if not checked(walk(q[shared:], wrist_links, arm)):
             return None
-        shifted = [j for j in shiftable if picks[j] is not _UNSHIFTED] if within_limits and shiftable else ()
-        if not shifted:
+        if not within_limits or picks.count(_UNSHIFTED) == n:  # the row is its only image
             flat.extend(q)
             labels.append(labels_b[b])
             continue
         # the row and its ±360° images, in ``itertools.product(*picks)`` order (earlier joints vary slowest)
         row_images, label_images = [q], [labels_b[b]]
-        for j in shifted:
+        for j in shiftable:
             pick = picks[j]
+            if pick is _UNSHIFTED:
+                continue
             grown_rows, grown_labels = [], []
             for row, label in zip(row_images, label_images):
                 for step, suffix in pick:

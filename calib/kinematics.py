@@ -191,25 +191,28 @@ class Chain:
         for q, (th0, sign, off, d, a, ca, sa, cb, sb) in zip(qf, links[start:] if start else links):
             th = th0 + sign * (q + off)
             ct, st = cos(th), sin(th)
-            x1x, x1y, x1z = ct * xx + st * yx, ct * xy + st * yy, ct * xz + st * yz
-            y1x, y1y, y1z = ct * yx - st * xx, ct * yy - st * xy, ct * yz - st * xz
+            # x, y turned about z by θ (x1, y1), in place
+            xx, yx = ct * xx + st * yx, ct * yx - st * xx
+            xy, yy = ct * xy + st * yy, ct * yy - st * xy
+            xz, yz = ct * xz + st * yz, ct * yz - st * xz
             # exact zeros (a = 0, d = 0, α = 0, snapped α = ±90°) skip terms that add nothing
             if a:
-                ox, oy, oz = ox + a * x1x, oy + a * x1y, oz + a * x1z
+                ox, oy, oz = ox + a * xx, oy + a * xy, oz + a * xz
             if d:
                 ox, oy, oz = ox + d * zx, oy + d * zy, oz + d * zz
-            if not ca:  # α = ±90° (``snap_right_angles``), sa = ±1
-                yx, yy, yz, z2x, z2y, z2z = sa * zx, sa * zy, sa * zz, -sa * y1x, -sa * y1y, -sa * y1z
-            elif not sa:  # α = 0: cos α = 1 exactly
-                yx, yy, yz, z2x, z2y, z2z = y1x, y1y, y1z, zx, zy, zz
-            else:
-                yx, yy, yz = ca * y1x + sa * zx, ca * y1y + sa * zy, ca * y1z + sa * zz
-                z2x, z2y, z2z = ca * zx - sa * y1x, ca * zy - sa * y1y, ca * zz - sa * y1z
+            if not ca:  # α = ±90° (``snap_right_angles``): y = ±z, z = ∓y1
+                if sa > 0.0:
+                    yx, yy, yz, zx, zy, zz = zx, zy, zz, -yx, -yy, -yz
+                else:
+                    yx, yy, yz, zx, zy, zz = -zx, -zy, -zz, yx, yy, yz
+            elif sa:  # (α = 0: cos α = 1 exactly, y and z stay)
+                yx, zx = ca * yx + sa * zx, ca * zx - sa * yx
+                yy, zy = ca * yy + sa * zy, ca * zy - sa * yy
+                yz, zz = ca * yz + sa * zz, ca * zz - sa * yz
             if sb:
-                xx, xy, xz = cb * x1x - sb * z2x, cb * x1y - sb * z2y, cb * x1z - sb * z2z
-                zx, zy, zz = sb * x1x + cb * z2x, sb * x1y + cb * z2y, sb * x1z + cb * z2z
-            else:
-                xx, xy, xz, zx, zy, zz = x1x, x1y, x1z, z2x, z2y, z2z
+                xx, zx = cb * xx - sb * zx, sb * xx + cb * zx
+                xy, zy = cb * xy - sb * zy, sb * xy + cb * zy
+                xz, zz = cb * xz - sb * zz, sb * xz + cb * zz
         return xx, xy, xz, yx, yy, yz, zx, zy, zz, ox, oy, oz
 
     def _flange_floats(self, frame: tuple[float, ...]) -> tuple[list, list, list, list]:
