@@ -206,21 +206,29 @@ def _wide_shifts(model: RobotModel) -> tuple[np.ndarray, list[str]]:
     return combos * 2 * math.pi, labels
 
 
-def _fitting_steps(model: RobotModel) -> list[_JointImages]:
+def _fitting_steps(model: RobotModel) -> list[tuple[list[float], list[tuple[tuple[float, str], ...]]]]:
     """Per joint: the wrapped angles at which some ±360° image meets a limit (lo − 2πk, hi − 2πk;
     sorted) and, for each stretch between them (``bisect`` index), the steps (2πk rad, label
-    suffix) that put the angle within limits, in ``_shift_steps`` order; the stretch overlapping
-    (−π, π] most is also given as an interval, tested first."""
+    suffix) that put the angle within limits, in ``_shift_steps`` order (the unshifted angle alone
+    as the one object ``_UNSHIFTED``)."""
     out = []
-    margin = _ONE_POSE_LIMIT_MARGIN_RAD
     for j, (lo, hi, ks) in enumerate(zip(model.lower_limits_rad.tolist(), model.upper_limits_rad.tolist(), _shift_steps(model))):
         steps = [(k * 2 * math.pi, _shift_label(model, j, k)) for k in map(float, ks)]
         breaks = sorted(lim - step for step, _ in steps for lim in (lo, hi))
         mids = [breaks[0] - 1.0] + [0.5 * (a + b) for a, b in zip(breaks, breaks[1:])] + [breaks[-1] + 1.0]
         fits = [tuple((st, sf) for st, sf in steps if lo <= x + st <= hi) for x in mids]
-        fits = [_UNSHIFTED if f == _UNSHIFTED else f for f in fits]  # one object: tested with ``is``
+        out.append((breaks, [_UNSHIFTED if f == _UNSHIFTED else f for f in fits]))
+    return out
+
+
+def _joint_images(steps: list[tuple[list[float], list[tuple[tuple[float, str], ...]]]]) -> list[_JointImages]:
+    """``_fitting_steps`` with, per joint, the stretch overlapping (−π, π] most as an interval
+    (shrunk by ``_ONE_POSE_LIMIT_MARGIN_RAD``), tested first."""
+    out = []
+    for breaks, fits in steps:
         i = max(range(1, len(breaks)), key=lambda i: min(breaks[i], math.pi) - max(breaks[i - 1], -math.pi))
-        out.append(_JointImages(breaks[i - 1] + margin, breaks[i] - margin, fits[i], breaks, fits))
+        m = _ONE_POSE_LIMIT_MARGIN_RAD
+        out.append(_JointImages(breaks[i - 1] + m, breaks[i] - m, fits[i], breaks, fits))
     return out
 
 
@@ -250,7 +258,7 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
     one_pose = None
     if not polish:
         flange_inv = np.linalg.inv(chain.flange)
-        images = _fitting_steps(model)
+        images = _joint_images(_fitting_steps(model))
         one_pose = _OnePose(
             closed_form=WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry),
             links=chain._links_floats((chain.nominal if params is None else params).tolist(), snap_right_angles=True),

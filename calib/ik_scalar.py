@@ -313,21 +313,24 @@ class SrsScalar:
         self.home_inv_a3 = _t(hi[:3, :3] @ g.wrist_triple.a3)
         # The reference shoulder ends in the fixed Rot(ω3, q3_ref) = Q; folded into constants:
         # Q·Rot(ω4, q4)·x = Rot(Q·ω4, q4)·Q·x, the shoulder axes' images Q·a, and the wrist
-        # triple turned by Q (it decomposes Q·(R_s R4)ᵀ·R_rel, so Qᵀ is never applied).
+        # triple turned by Q, ``wrist_triple_q`` (it decomposes Q·(R_s R4)ᵀ·R_rel, so Qᵀ is never applied).
         w2, q3 = self.w[2], self.q3_ref
         self.w3_ref = _rotate(w2, q3, w3)
         self.wp_ref = _rotate(w2, q3, self.wp_from_p4)
         self.p4_ref = _rotate(w2, q3, (self.p4[0] - self.shoulder[0], self.p4[1] - self.shoulder[1], self.p4[2] - self.shoulder[2]))
         self.sa2_ref = _rotate(w2, q3, self.shoulder_triple.a2)
         self.sa3_ref = _rotate(w2, q3, self.shoulder_triple.a3)
-        self.wrist_triple = _Triple(g.wrist_triple, turn=(w2, q3))
+        self.wrist_triple = _Triple(g.wrist_triple)
+        self.wrist_triple_q = _Triple(g.wrist_triple, turn=(w2, q3))
         self.ops = [_axis_ops(x) for x in (self.w[0], self.w[1], self.w3_ref)]  # about A1, A2, Q·A4
 
-    def _reference(self, q4: float, v: Vec, alpha: float) -> tuple[float, float] | None:
+    def _reference(self, q4: float, v: Vec, alpha: float | None = None) -> tuple[float, float] | None:
         """(a, b): the A1, A2 of the reference shoulder rotation R_ref = Rot(ω1,a)Rot(ω2,b)Rot(ω3,q3_ref)
-        for elbow angle q4, S→W vector v and alpha = v·ω1, the root whose shoulder faces W; None
-        when the two roots face it (nearly) alike."""
+        for elbow angle q4 and S→W vector v (alpha = v·ω1 if known), the root whose shoulder
+        faces W; None when the two roots face it (nearly) alike."""
         w0, w1 = self.w[0], self.w[1]
+        if alpha is None:
+            alpha = _dot(v, w0)
         (rot0, ang0), (_, ang1), (rot3, _) = self.ops
         ur, c = rot3(q4, self.wp_ref), self.p4_ref
         u = (ur[0] + c[0], ur[1] + c[1], ur[2] + c[2])  # Rot(ω3, q3_ref)·(W − S) at A1 = A2 = 0
@@ -384,7 +387,7 @@ class SrsScalar:
             # of Q·(R_s R4)ᵀ·R_rel = Rot(Q·ω4, −q4)·Rot(ω2, −b)·Rot(ω1, −a)·Rot(v̂, −ψ)·R_rel (triple turned by Q)
             m3 = rot3(-q4, rot1(-b, rot0(-a, rel_a3)))
             m2 = rot3(-q4, rot1(-b, rot0(-a, rel_a2)))
-            wrist = self.wrist_triple.decompose(m3, m2)
+            wrist = self.wrist_triple_q.decompose(m3, m2)
             if shoulder is None or wrist is None:
                 return None
             for g2, (t1, t2, t3) in enumerate(shoulder):
