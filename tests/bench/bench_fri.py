@@ -20,6 +20,10 @@ back and forth at full speed;
             (``tests/bench/loadgen.py``), a ``NatNetSensor`` decoding every frame and an MCAP
             writer logging every NatNet sample and every joint state (100 Hz).
 
+Each phase keeps every answer (``loadgen.AnswerLog``) and prints the machine's own stalls seen
+by ``loadgen.StallProbe`` (SCHED_FIFO 70 per CPU, above the exchange and the fake) with the
+late answers that fell in one.
+
 Printed per phase, after a 1 s warm-up: cycles; answer latency p50 / p99 / max in µs as the
 exchange process measured it (kernel arrival stamp to the answer's send); late answers as the
 exchange process counted them (> one receive period) and as the fake controller saw them (late
