@@ -639,10 +639,11 @@ class RunController:
             driver = plan.commander.driver
             # The cell runs time_scale × faster than real time, and its fake controller is a
             # thread that a busy machine can stall: the commanders' silence and staleness limits
-            # (simulated time) get 300 ms of wall time, not a real cell's 100 ms.
+            # (simulated time) get 300 ms of wall time, not a real cell's 100 ms. The exchange
+            # process keeps its real-time priority, as against a real controller.
             ms = 300.0 * fc.time_scale
-            url = {"fri": f"fri://127.0.0.1:0?rt_priority=0&timeout_ms={ms:g}&max_state_age_ms={ms:g}",
-                   "rsi": f"rsi://127.0.0.1:0?rt_priority=0&max_state_age_s={ms / 1000:g}"}.get(driver)
+            url = {"fri": f"fri://127.0.0.1:0?timeout_ms={ms:g}&max_state_age_ms={ms:g}",
+                   "rsi": f"rsi://127.0.0.1:0?max_state_age_s={ms / 1000:g}"}.get(driver)
             if url is None:
                 raise RunError(f"--fake has no fake controller for commander driver {driver!r} (fri, rsi)")
             cmd = open_commander(plan.commander, limits, url=url, **extra)
