@@ -280,9 +280,7 @@ def _run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) ->
     import multiprocessing as mp
 
     from bench_rsi import Load, motive_process
-    from loadgen import AnswerLog, StallProbe
-
-    from drivers.errors import DriverError
+    from loadgen import AnswerLog, StallProbe, shuttle
 
     c = FriCommander(LIMITS, bind=("127.0.0.1", 0))
     c.connect()
@@ -307,20 +305,8 @@ def _run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) ->
         at_mark = parent.recv()[1]
         st0 = c.link_stats()
         answers = AnswerLog(c)
-        t_end = time.monotonic() + seconds
-        moves, fault = 0, None
-        targets = [TARGET, Q0]
         with StallProbe() as probe:
-            while time.monotonic() < t_end:
-                try:
-                    c.move_to(targets[moves % 2], 1.0, 60.0)
-                    c.wait_settled(np.radians(0.05), 0.05, 10.0)
-                except DriverError as exc:  # reported, not hidden: the phase ends here
-                    fault = f"{type(exc).__name__}: {exc}"
-                    break
-                moves += 1
-                answers.poll()
-            answers.poll()
+            moves, fault = shuttle(c, [TARGET, Q0], seconds, answers, speed=1.0, move_timeout=60.0, settle_timeout=10.0)
         st = c.link_stats()
         figures = answers.figures(period_ms * 1e-3)
         mcap_bytes = load.close() if load is not None else 0

@@ -51,7 +51,7 @@ from drivers.kuka_rsi.commander import RsiCommander
 from drivers.natnet.client import NatNetSensor
 from drivers.protocols import JointLimits
 from drivers.sim.scene import MarkerObservation
-from loadgen import AnswerLog, StallProbe
+from loadgen import AnswerLog, StallProbe, shuttle
 
 HOME_DEG = [0.0, -90.0, 90.0, 0.0, 45.0, 0.0]
 AWAY_DEG = [40.0, -70.0, 70.0, 30.0, 60.0, 90.0]
@@ -219,21 +219,9 @@ def _run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> 
         late_warmup = parent.recv()[1]
         late0 = c.link_stats().late_answers
         answers = AnswerLog(c)
-        t_end = time.monotonic() + seconds
-        moves = 0
         targets = [np.radians(AWAY_DEG), np.radians(HOME_DEG)]
-        fault = None
         with StallProbe() as probe:
-            while time.monotonic() < t_end:
-                try:
-                    c.move_to(targets[moves % 2], speed=0.5, timeout=30.0)
-                    c.wait_settled(np.radians(0.05), 0.05, 5.0)
-                except DriverError as exc:  # reported, not hidden: the phase ends here
-                    fault = f"{type(exc).__name__}: {exc}"
-                    break
-                moves += 1
-                answers.poll()
-            answers.poll()
+            moves, fault = shuttle(c, targets, seconds, answers, speed=0.5, move_timeout=30.0, settle_timeout=5.0)
         st = c.link_stats()
         figures = answers.figures(cycle_ms * 1e-3)
         mcap_bytes = load.close() if load is not None else 0

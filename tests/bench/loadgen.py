@@ -219,3 +219,25 @@ class StallProbe:
         return (f"machine stalls seen by the probe ({self.scheduling}, each CPU, {self.period_s * 1e3:g} ms sleeps, "
                 f"> {self.threshold_s * 1e3:g} ms late, {self.wakes} wake-ups): {st.shape[0]}, longest "
                 f"{longest:.1f} ms; late answers inside one: {inside} of {late_windows.shape[0]}")
+
+
+def shuttle(commander, targets, seconds: float, answers: AnswerLog, *, speed: float, move_timeout: float,
+            settle_timeout: float) -> tuple[int, str | None]:
+    """Move the robot back and forth between ``targets`` (rad) for ``seconds``, as a sequencer
+    would (move, then settle to 0.05° for 50 ms), polling ``answers`` after each move.
+    ``(moves, fault)``: a driver error ends it and comes back as text — reported, not hidden."""
+    from drivers.errors import DriverError
+
+    t_end = time.monotonic() + seconds
+    moves = 0
+    try:
+        while time.monotonic() < t_end:
+            commander.move_to(targets[moves % len(targets)], speed=speed, timeout=move_timeout)
+            commander.wait_settled(np.radians(0.05), 0.05, settle_timeout)
+            moves += 1
+            answers.poll()
+    except DriverError as exc:
+        return moves, f"{type(exc).__name__}: {exc}"
+    finally:
+        answers.poll()
+    return moves, None
