@@ -1,4 +1,4 @@
-"""A self-contained ``report.html`` of a fit: one file, PNG plots embedded as base64.
+"""A self-contained ``report.html`` of a fit: one file, its plots inline SVG (``calib.svg``).
 
 Sections: a one-screen summary (``calib.report_summary``: enter / do not enter, the values,
 accuracy before/after, warnings); the values to enter with the controller's sign convention;
@@ -7,7 +7,7 @@ identifiability (every direction the data leave weak or undetermined, named as t
 of parameters it mixes — ``calib.identifiability``); sampler diagnostics; and figures
 (``calib.report_figures``): the paper's TCP cloud (Fig. 5), trace plots and posterior
 histograms, and the post-registration error per configuration. The HTML reflows down to a
-phone's width; matplotlib is imported only while drawing.
+phone's width: the figures are vector graphics, and panels side by side wrap.
 """
 
 from __future__ import annotations

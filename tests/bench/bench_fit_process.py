@@ -83,7 +83,7 @@ def main() -> None:
         doc = result_dict(res, cal, metrics=metrics)
         t0 = time.perf_counter()
         write_report(Path(tmp) / "again.html", res, cal, doc)
-        t_report = time.perf_counter() - t0  # first report of this process: imports matplotlib
+        t_report = time.perf_counter() - t0  # first report of this process: imports the report's modules
         t0 = time.perf_counter()
         write_report(Path(tmp) / "again.html", res, cal, doc)
         t_report_warm = time.perf_counter() - t0
@@ -95,7 +95,7 @@ def main() -> None:
     print(f"  fit_offsets in process (the fit):      {f:7.3f} s   (runs {', '.join(f'{t:.2f}' for t in fit_t)})")
     print(f"  ratio process / fit: {p / f:.2f}x  (target <= 2x)")
     print(f"  where the rest goes: fresh interpreter + `import acquire.commands.fit` {statistics.median(imp):.3f} s, "
-          f"metrics {t_metrics:.3f} s, report {t_report:.3f} s cold (matplotlib import included) / {t_report_warm:.3f} s warm")
+          f"metrics {t_metrics:.3f} s, report {t_report:.3f} s cold (its imports included) / {t_report_warm:.3f} s warm")
 
 
 if __name__ == "__main__":
