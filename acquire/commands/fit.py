@@ -22,6 +22,7 @@ import numpy as np
 import typer
 
 from calib.controller import apply_guards, controller_values
+from calib.csvdialect import is_socket_csv
 from calib.dataset import Dataset, DatasetError, read_csv
 from calib.fit import FitOptions, FitResult, fit_offsets
 from calib.kinematics import Chain
@@ -256,10 +257,10 @@ def fit(
         model = load_robot_model(robot)
     except ConfigError as exc:
         raise typer.BadParameter(str(exc), param_hint="--robot") from exc
-    from acquire.commands.socket_fit import SocketDataError, fit_socket_file, is_socket_csv, read_socket_run
-
     socket_run = None
     if data.suffix.lower() == ".mcap" and data.is_file():
+        from acquire.commands.socket_fit import SocketDataError, read_socket_run  # the socket fit only for its data
+
         try:
             socket_run = read_socket_run(data, model.n_joints, distance_mm=socket_distance)
         except SocketDataError as exc:
@@ -267,6 +268,8 @@ def fit(
         except (ValueError, OSError):
             socket_run = None  # not readable as a run here: load_dataset below says why
     if socket_run is not None or is_socket_csv(data):
+        from acquire.commands.socket_fit import fit_socket_file
+
         sensor_only = {"--validate": validate is not None, "--joints": joints is not None, "--fix-registration": fix_registration,
                        "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper",
                        "--starts": starts is not None}

@@ -12,6 +12,10 @@ Both are medians of ``--repeat`` runs, interleaved (process, fit, process, …) 
 hits both alike. Prints both, their ratio (issue 16's target: ≤ 2×), and where the rest of the
 process goes (imports of a fresh interpreter, metrics and report in this process), plus the load.
 Data: fixtures/datasets/iiwa14_sim_{cal,val}.csv and the LBR iiwa 14 model of fixtures/robots.
+
+The child processes inherit this environment: with ``PYTHONDONTWRITEBYTECODE`` set (and no
+``PYTHONPYCACHEPREFIX``) every start compiles the checkout's own modules again, which an installed
+wheel never does (pip writes their bytecode at install time); the first line says which.
 """
 
 from __future__ import annotations
@@ -90,7 +94,7 @@ def main() -> None:
 
     p, f = statistics.median(proc_t), statistics.median(fit_t)
     print(f"checkout {root}; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; {len(cal)} measurements, {model.name}; "
-          f"medians of {args.repeat}")
+          f"medians of {args.repeat}; bytecode cache {'off: own modules compiled at each start' if sys.dont_write_bytecode and not sys.pycache_prefix else 'on'}")
     print(f"  acquire fit … --report, whole process: {p:7.3f} s   (runs {', '.join(f'{t:.2f}' for t in proc_t)})")
     print(f"  fit_offsets in process (the fit):      {f:7.3f} s   (runs {', '.join(f'{t:.2f}' for t in fit_t)})")
     print(f"  ratio process / fit: {p / f:.2f}x  (target <= 2x)")
