@@ -81,7 +81,7 @@ HEAVY_FOR_HELP = ["scipy", "scipy.stats", "matplotlib", "matplotlib.pyplot", "ca
 
 
 @pytest.mark.parametrize("name, shows", [("watch", "--raw"), ("run", "--listen"), ("poses", "--sensor-origin"),
-                                         ("select", "--candidates"), ("status", "--cell")])
+                                         ("select", "--candidates"), ("status", "--cell"), ("fit", "--report")])
 def test_a_sub_command_help_loads_only_its_own_module_and_nothing_heavy(tmp_path, name, shows):
     res, proc = _probe(tmp_path, name, "--help")
     assert res["code"] == 0, proc.stderr
