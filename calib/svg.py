@@ -97,7 +97,7 @@ class Axes:
     def px(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Data (x, y) → pixel (X, Y) of the figure."""
         x0, y0, w, h = self.box
-        (a, b), (c, d) = self.xlim, (self._ty(np.asarray(self.ylim, dtype=float)))
+        (a, b), (c, d) = self.xlim, self._ty(np.asarray(self.ylim, dtype=float))
         X = x0 + (np.asarray(x, dtype=float) - a) / (b - a) * w
         Y = y0 + h - (self._ty(np.asarray(y, dtype=float)) - c) / (d - c) * h
         return X, Y
