@@ -204,7 +204,7 @@ class TheoreticalDraws:
         return float(e.mean(axis=1).std(ddof=1) / np.sqrt(e.shape[0])) if e.shape[0] > 1 else float("inf")
 
     def worst_draws_sd(self) -> float:
-        """The largest std of the per-draw means over the four sets (× √d: what one draw adds)."""
+        """The largest std of the per-draw means over the four sets: the spread one draw adds."""
         return max(self.draws_se(e) * np.sqrt(e.shape[0]) for pair in self.errors.values() for e in pair)
 
 
@@ -249,7 +249,8 @@ def _theoretical_four(
         done = want
         if mc_se_mm is not None:
             sd = TheoreticalDraws({key: (b[:done], a[:done]) for key, (b, a) in out.items()}).worst_draws_sd()
-            want = min(order.size, max(done, int(np.ceil((sd / mc_se_mm) ** 2))))
+            need = (sd / mc_se_mm) ** 2  # infinite from a single draw: take all there are
+            want = order.size if not np.isfinite(need) else min(order.size, max(done, int(np.ceil(need))))
     return TheoreticalDraws({key: (b[:done], a[:done]) for key, (b, a) in out.items()})
 
 

@@ -190,6 +190,9 @@ def test_theoretical_draws_stop_at_the_stated_precision_and_not_much_later():
                 assert m[key][when]["mean"] == pytest.approx(full[key][when]["mean"],
                                                              abs=4 * math.hypot(m[key][when]["mc_se"], full[key][when]["mc_se"]))
     assert used[0.01] < used[0.001]
+    truth = np.radians([0.0, -0.2, 0.15, 0.1, 0.4, -0.1, 0.9])
+    one = accuracy_metrics(CHAIN, _exact_dataset(truth), truth, truth[None], 0.3, n_random=10)  # a single posterior draw
+    assert one["settings"]["draws_measured"] == 1 and one["theoretical_workspace"]["after"]["mc_se"] > 0
 
 
 def test_the_stated_standard_error_is_the_spread_over_seeds():
