@@ -38,6 +38,8 @@ What comes back (``IkSolutions``):
 
 7R arm angle: given as a float (or one per pose); ``None`` picks, per pose, the centre of the
 widest feasible interval when ``within_limits`` (status ``"limits"`` if there is none), else 0.
+Arcs as wide to 1e-9 rad (the iiwa's feasible set is often symmetric: two arcs of one width)
+tie, and the tie goes to the centre nearest ψ = 0, then to the positive one.
 
 ``params``: a ``Chain`` parameter vector (P,), e.g. a fitted model. If its geometry still
 belongs to the solver's class (zero-offsets only, say) the closed form is built from it and is
@@ -668,35 +670,41 @@ def _intervals_many(s: _Solver, poses: np.ndarray) -> list[dict[str, list[tuple[
         if not reach[i]:
             out.append({label: [] for label in s.labels})
             continue
-        cuts = cuts_per[i]
-        n_gaps = max(cuts.size, 1)
-        feas = feas_all[start : start + n_gaps]
+        n_gaps = max(cuts_per[i].size, 1)
+        out.append(_label_intervals(s.labels, cuts_per[i].tolist(), feas_all[start : start + n_gaps].T.tolist()))
         start += n_gaps
-        # Plain Python from here: a handful of gaps and 8 labels per pose, where numpy's per-call cost dominated.
-        cuts_l = cuts.tolist()
-        ends_l = cuts_l[1:] + [cuts_l[0] + 2 * np.pi] if cuts_l else []
-        per: dict[str, list[tuple[float, float]]] = {}
-        for label, col in zip(s.labels, feas.T.tolist()):
-            if all(col):
-                per[label] = [(-np.pi, np.pi)]
-                continue
-            intervals: list[tuple[float, float]] = []
-            if any(col):
-                g0 = col.index(False)
-                run = None
-                for g in [*range(g0 + 1, len(col)), *range(g0)]:  # starts after an infeasible gap
-                    if col[g] and run is None:
-                        run = [cuts_l[g], ends_l[g]]
-                    elif col[g]:
-                        run[1] = ends_l[g]
-                    elif run is not None:
-                        intervals.extend(_split(*run))
-                        run = None
-                if run is not None:
-                    intervals.extend(_split(*run))
-            per[label] = _merge(intervals)
-        out.append(per)
     return out
+
+
+def _label_intervals(labels: list[str], cuts: list[float], columns: list[list[bool]]) -> dict[str, list[tuple[float, float]]]:
+    """``_gap_intervals`` per label, columns holding each label's gap feasibility."""
+    return {label: _gap_intervals(cuts, col) for label, col in zip(labels, columns)}
+
+
+def _gap_intervals(cuts: list[float], feasible: list[bool]) -> list[tuple[float, float]]:
+    """Feasible arm-angle intervals (sorted, merged, within [−π, π]) from the sorted crossings
+    ψ (rad, in (−π, π]) and whether each gap between them is feasible (gap g from cuts[g] to the
+    next, the last through ±π; one gap, the whole circle, when there is no crossing). Plain
+    Python: a handful of gaps per pose, where numpy's per-call cost dominated."""
+    if all(feasible):
+        return [(-np.pi, np.pi)]
+    if not any(feasible):
+        return []
+    ends = cuts[1:] + [cuts[0] + 2 * np.pi]
+    intervals: list[tuple[float, float]] = []
+    g0 = feasible.index(False)
+    run = None
+    for g in [*range(g0 + 1, len(feasible)), *range(g0)]:  # starts after an infeasible gap
+        if feasible[g] and run is None:
+            run = [cuts[g], ends[g]]
+        elif feasible[g]:
+            run[1] = ends[g]
+        elif run is not None:
+            intervals.extend(_split(*run))
+            run = None
+    if run is not None:
+        intervals.extend(_split(*run))
+    return _merge(intervals)
 
 
 def arm_angle_intervals_by_configuration(
@@ -767,11 +775,42 @@ def _arcs(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
     return arcs
 
 
-def _pick(ivs: list[tuple[float, float]], prefer: float | None) -> float:
+#: Feasible arcs as wide as the widest to this (rad) tie for ``_widest_centre`` (the iiwa's
+#: feasible set is often symmetric under ψ → ψ + π or ψ → −ψ: two arcs of one width).
+_PICK_TIE_RAD = 1e-9
+
+
+def _widest_centre(ivs: list[tuple[float, float]], guard: float = 0.0) -> float | None:
+    """The centre (rad, in (−π, π]) of the widest arc of the feasible intervals ``ivs``; arcs
+    within ``_PICK_TIE_RAD`` of the widest tie, and a tie goes to the centre nearest ψ = 0,
+    then (centres ±c alike to ``_PICK_TIE_RAD``) to the positive one.
+
+    ``guard`` > 0 (rad): None where a width or a distance from 0 lies within ``guard`` of a tie
+    threshold, so that intervals equal to rounding never pick different arcs.
+    """
     arcs = _arcs(ivs)
+    top = max(hi - lo for lo, hi in arcs)
+    tied = []
+    for lo, hi in arcs:
+        short = top - (hi - lo)
+        if abs(short - _PICK_TIE_RAD) <= guard:
+            return None
+        if short < _PICK_TIE_RAD:
+            tied.append(math.pi - (math.pi - 0.5 * (lo + hi)) % (2 * math.pi))
+    nearest = min(map(abs, tied))
+    closest = []
+    for c in tied:
+        if abs(abs(c) - nearest - _PICK_TIE_RAD) <= guard:
+            return None
+        if abs(c) - nearest < _PICK_TIE_RAD:
+            closest.append(c)
+    return max(closest)
+
+
+def _pick(ivs: list[tuple[float, float]], prefer: float | None) -> float:
     if prefer is None:
-        lo, hi = max(arcs, key=lambda a: a[1] - a[0])
-        return float(_wrap(0.5 * (lo + hi)))
+        return _widest_centre(ivs)
+    arcs = _arcs(ivs)
     best, best_d = prefer, math.inf
     for lo, hi in arcs:
         off = float(_wrap(prefer - lo))
@@ -791,7 +830,7 @@ def pick_arm_angle(
 ) -> float:
     """An arm angle ψ (rad, in (−π, π]) at which some configuration is within limits (7R).
 
-    ``prefer=None``: the centre of the widest feasible arc. Otherwise ``prefer`` itself if
+    ``prefer=None``: the centre of the widest feasible arc (ties: see the module docstring). Otherwise ``prefer`` itself if
     feasible, else the feasible ψ closest to it (on the circle), 1e-6 rad inside the arc's end
     (or its centre if the arc is narrower). Raises ``NoFeasibleArmAngle`` (a ``ValueError``)
     when there is none.
