@@ -60,6 +60,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib.ik_arm_angle_scalar import SrsArmAngleScalar
 from calib.ik_scalar import SrsScalar, WristArmScalar
 from calib.ik_spherical_wrist import REACH_SLACK, RawSolutions, WristArmGeometry
 from calib.ik_spherical_wrist import branch_labels as wrist_arm_labels
@@ -109,11 +110,13 @@ class NoFeasibleArmAngle(ValueError):
 @dataclass
 class _OnePose:
     """What ``_solve_one`` needs, as plain floats: the closed form, the FK links
-    (``Chain._links_floats``), and per joint the ±360° steps that fit (``_fitting_steps``)."""
+    (``Chain._links_floats``), per joint the ±360° steps that fit (``_fitting_steps``), and
+    (7R) the feasible arm-angle gaps (``_intervals_one``)."""
 
     closed_form: WristArmScalar | SrsScalar
     links: list[tuple[float, ...]]
     steps: list[tuple[list[float], list[list[tuple[float, str]]]]]
+    arm_angles: SrsArmAngleScalar | None = None
 
 @dataclass
 class _Solver:
@@ -208,10 +211,15 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
     shifts, shift_labels = _wide_shifts(model)
     one_pose = None
     if not polish:
+        closed_form = WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry)
+        steps = _fitting_steps(model)
         one_pose = _OnePose(
-            closed_form=WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry),
+            closed_form=closed_form,
             links=chain._links_floats((chain.nominal if params is None else params).tolist()),
-            steps=_fitting_steps(model),
+            steps=steps,
+            arm_angles=None if kind == "6r" else SrsArmAngleScalar(
+                geometry, closed_form, model.lower_limits_rad.tolist(), model.upper_limits_rad.tolist(), steps
+            ),
         )
     return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels, one_pose)
 
@@ -460,11 +468,11 @@ def _steps_within_limits(q: list[float], steps) -> list[list[tuple[float, str]]]
 
 
 def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | None = None) -> IkSolutions | None:
-    """``solve_many`` for one pose (4, 4) in plain floats (6R; 7R at the arm angle ``psi`` rad),
-    or None where the pose needs the vectorised path: not a clean rigid transform (it raises
-    there), out of reach, near a singularity (``calib.ik_scalar``), a row near a tolerance or
-    limit, or no row within limits. Same rows, labels and order as ``solve_many`` (to rounding,
-    ≲1e-12 rad)."""
+    """``solve_many`` for one pose (4, 4) in plain floats (6R; 7R at the arm angle ``psi`` rad,
+    or with ``psi=None`` and ``within_limits`` the one ``solve_many`` picks), or None where the pose
+    needs the vectorised path: not a clean rigid transform (it raises there), out of reach, near
+    a singularity (``calib.ik_scalar``), no clear pick, a row near a tolerance or limit, or no
+    row within limits. Same rows, labels and order as ``solve_many`` (to rounding, ≲1e-12 rad)."""
     one = s.one_pose
     if one is None:
         return None
@@ -483,6 +491,8 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
     pos = (p0, p1, p2)
     if s.kind == "6r":
         branches = one.closed_form.solve(rot, pos)
+    elif psi is None and within_limits:
+        branches = _picked_configurations(s, rot, pos)
     elif psi is not None and math.isfinite(psi):
         branches = one.closed_form.solve(rot, pos, psi)
     else:
@@ -595,15 +605,17 @@ def solve_all(
 ) -> IkSolutions:
     """Every IK solution of one flange pose (4, 4) mm; see ``solve_many``.
 
-    A pose away from singularities, reach boundaries and limits (6R; 7R at a given arm angle)
-    is solved in plain floats (``_solve_one``: one pose through numpy costs some hundred tiny
-    array calls); the result is ``solve_many``'s, rows equal to rounding.
+    A pose away from singularities, reach boundaries and limits (6R; 7R at a given arm angle or,
+    within limits, the one picked) is solved in plain floats (``_solve_one``: one pose through
+    numpy costs some hundred tiny array calls); the result is ``solve_many``'s, rows equal to
+    rounding. (7R with ``within_limits=False`` and no arm angle solves at ψ = 0, where the iiwa's
+    A3 is 0 or ±π — an end rounding chooses — in every pose: the vectorised path's alone.)
     """
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4):
         raise ValueError(f"pose must be one (4, 4) flange frame, got shape {pose.shape}")
     s = _solver(model, params)
-    if s.kind == "6r" and arm_angle is None:
+    if arm_angle is None and (s.kind == "6r" or within_limits):
         one = _solve_one(s, pose, within_limits)
     elif s.kind == "7r" and isinstance(arm_angle, (float, int, np.floating, np.integer)):
         one = _solve_one(s, pose, within_limits, float(arm_angle))
@@ -705,6 +717,20 @@ def _gap_intervals(cuts: list[float], feasible: list[bool]) -> list[tuple[float,
     if run is not None:
         intervals.extend(_split(*run))
     return _merge(intervals)
+
+
+def _picked_configurations(s: _Solver, rot, pos) -> list[list[float] | None] | None:
+    """For one 7R pose given as plain floats (rotation rows, position mm): the configurations
+    that may be within limits at the arm angle ``solve_many`` picks (``_widest_centre`` of
+    ``_intervals_many``'s intervals, here from ``calib.ik_arm_angle_scalar``), in the form of
+    ``SrsScalar.solve``; None where the float path cannot decide, there is no feasible arm
+    angle ("limits": the vectorised path writes the message), or a tie rounding could decide."""
+    one = s.one_pose.arm_angles.pose(rot, pos)
+    if one is None:
+        return None
+    ivs = _gap_intervals(one.cuts, one.feasible)  # the union over the configurations, merged
+    psi = _widest_centre(ivs, guard=0.5 * _PICK_TIE_RAD) if ivs else None
+    return None if psi is None else one.configurations(psi)
 
 
 def arm_angle_intervals_by_configuration(
