@@ -111,7 +111,7 @@ class NoFeasibleArmAngle(ValueError):
 class _OnePose:
     """What ``_solve_one`` needs, as plain floats: the closed form, the FK links
     (``Chain._links_floats``), per joint the ±360° steps that fit (``_fitting_steps``), and
-    (7R) the feasible arm-angle gaps (``_intervals_one``)."""
+    (7R) the feasible arm angles (``_picked_configurations``)."""
 
     closed_form: WristArmScalar | SrsScalar
     links: list[tuple[float, ...]]
@@ -683,14 +683,10 @@ def _intervals_many(s: _Solver, poses: np.ndarray) -> list[dict[str, list[tuple[
             out.append({label: [] for label in s.labels})
             continue
         n_gaps = max(cuts_per[i].size, 1)
-        out.append(_label_intervals(s.labels, cuts_per[i].tolist(), feas_all[start : start + n_gaps].T.tolist()))
+        cuts, columns = cuts_per[i].tolist(), feas_all[start : start + n_gaps].T.tolist()
+        out.append({label: _gap_intervals(cuts, col) for label, col in zip(s.labels, columns)})
         start += n_gaps
     return out
-
-
-def _label_intervals(labels: list[str], cuts: list[float], columns: list[list[bool]]) -> dict[str, list[tuple[float, float]]]:
-    """``_gap_intervals`` per label, columns holding each label's gap feasibility."""
-    return {label: _gap_intervals(cuts, col) for label, col in zip(labels, columns)}
 
 
 def _gap_intervals(cuts: list[float], feasible: list[bool]) -> list[tuple[float, float]]:

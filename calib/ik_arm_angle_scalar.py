@@ -19,9 +19,10 @@ with the ``math`` module (Shimizu et al. 2008, in the notation of ``calib.ik_srs
 - some configuration is feasible where, for an elbow root within limits, some shoulder branch
   and some wrist branch are: the union over the 8 configurations that ``calib.ik`` merges.
 
-``PoseArmAngles`` holds the combined roots, the feasibility of each gap between them (what
-``calib.ik._gap_intervals`` turns into intervals, as for the vectorised path) and, for the arm
-angle picked from them, the configurations read off the same sinusoids.
+``PoseArmAngles`` holds the roots where that union's feasibility changes, the feasibility of
+each gap between them (what ``calib.ik._gap_intervals`` turns into intervals, as for the
+vectorised path) and, for the arm angle picked from them, the configurations read off the same
+sinusoids.
 
 Only the plain case: ``pose`` and ``PoseArmAngles.configurations`` return None — "use the
 vectorised path" — out of reach or near a singularity (``calib.ik_scalar``'s margins), near a
@@ -70,9 +71,17 @@ def _wrap(a: float) -> float:
 
 
 def _sinusoid(k: Vec, a: Vec, b: Vec) -> Sinusoid:
-    """(Rot(k, ψ)·a)·b = sin ψ (k × a)·b + cos ψ (a·b − (k·a)(k·b)) + (k·a)(k·b), unit k."""
-    c = _dot(k, a) * _dot(k, b)
-    return _dot(_cross(k, a), b), _dot(a, b) - c, c
+    """(Rot(k, ψ)·a)·b = sin ψ (k × a)·b + cos ψ (a·b − (k·a)(k·b)) + (k·a)(k·b), unit k
+    (written out: this runs 20 times a pose)."""
+    k0, k1, k2 = k
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    c = (k0 * a0 + k1 * a1 + k2 * a2) * (k0 * b0 + k1 * b1 + k2 * b2)
+    return (
+        (k1 * a2 - k2 * a1) * b0 + (k2 * a0 - k0 * a2) * b1 + (k0 * a1 - k1 * a0) * b2,
+        a0 * b0 + a1 * b1 + a2 * b2 - c,
+        c,
+    )
 
 
 def _at(x: Sinusoid, s: float, c: float) -> float:
@@ -152,18 +161,20 @@ class _Triple:
 
     def any_feasible(self, s: float, c: float, f2: Sinusoid, n1: Sinusoid, d1: Sinusoid, n3: Sinusoid, d3: Sinusoid) -> bool:
         """Whether either branch is within limits where sin ψ = s, cos ψ = c (a joint is read
-        only while its branch is still in question)."""
+        only while its branch is still in question; written out: this runs ~25 times a pose)."""
         w1, w2, w3 = self.windows
-        beta = math.acos(min(1.0, max(-1.0, _at(f2, s, c))))
-        ok0 = _inside(_wrap(self.aligned + beta), w2)
-        ok1 = _inside(_wrap(self.aligned - beta), w2)
+        x = f2[0] * s + f2[1] * c + f2[2]
+        beta = math.acos(1.0 if x > 1.0 else -1.0 if x < -1.0 else x)
+        t2, t2_flip = self.aligned + beta, self.aligned - beta  # wrapped below: aligned ∈ (−π, π], β ∈ [0, π]
+        ok0 = _inside(t2 - _TWO_PI if t2 > math.pi else t2, w2)
+        ok1 = _inside(t2_flip + _TWO_PI if t2_flip <= -math.pi else t2_flip, w2)
         if ok0 or ok1:
-            t1 = math.atan2(_at(n1, s, c), _at(d1, s, c))
+            t1 = math.atan2(n1[0] * s + n1[1] * c + n1[2], d1[0] * s + d1[1] * c + d1[2])
             ok0 = ok0 and _inside(t1, w1)
-            ok1 = ok1 and _inside(_wrap(t1 + math.pi), w1)
+            ok1 = ok1 and _inside(t1 - math.pi if t1 > 0.0 else t1 + math.pi, w1)
         if ok0 or ok1:
-            t3 = math.atan2(_at(n3, s, c), _at(d3, s, c))
-            return (ok0 and _inside(t3, w3)) or (ok1 and _inside(_wrap(t3 + math.pi), w3))
+            t3 = math.atan2(n3[0] * s + n3[1] * c + n3[2], d3[0] * s + d3[1] * c + d3[2])
+            return (ok0 and _inside(t3, w3)) or (ok1 and _inside(t3 - math.pi if t3 > 0.0 else t3 + math.pi, w3))
         return False
 
     @staticmethod
@@ -247,38 +258,37 @@ class SrsArmAngleScalar:
         frame = (v, (v[0] / norm_v, v[1] / norm_v, v[2] / norm_v), rot)
         q4s = (el[1], el[0])  # GC4 = +1: the "−" root
         sinusoids: list = [None, None]  # per elbow root within limits: (shoulder's, wrist's)
-        # per triple of an elbow root within limits: its crossings, and per gap between them
-        # whether either branch is feasible; marks: crossing → [(triple, its index there)]
-        owns: list[tuple[list[float], list[bool]]] = []
-        marks: dict[float, list[tuple[int, int]]] = {}
+        # per triple of an elbow root within limits (shoulder, wrist, shoulder, wrist, …): whether
+        # either branch is feasible in its gap through ±π, and the crossings where that changes
+        state: list[bool] = []
+        changes: dict[float, list[tuple[int, bool]]] = {}
+        every: set[float] = set()
         for g4, q4 in enumerate(q4s):
             if not _inside(_wrap(q4), self.elbow_windows):
                 continue
             sinusoids[g4] = self._sinusoids(q4, *frame)
             for triple, sins in zip((self.shoulder, self.wrist), sinusoids[g4]):
                 cuts = triple.crossings(*sins)
-                for i, cut in enumerate(cuts):
-                    marks.setdefault(cut, []).append((len(owns), i))
+                every.update(cuts)
                 mids = [0.5 * (lo + hi) for lo, hi in zip(cuts, [*cuts[1:], cuts[0] + _TWO_PI])] if cuts else [0.0]
-                owns.append((cuts, [triple.any_feasible(math.sin(m), math.cos(m), *sins) for m in mids]))
-        cuts = sorted(marks)
-        for lo, hi in zip(cuts, [*cuts[1:], cuts[0] + _TWO_PI] if cuts else []):
+                feas = [triple.any_feasible(math.sin(m), math.cos(m), *sins) for m in mids]
+                for cut, before, after in zip(cuts, [feas[-1], *feas], feas):
+                    if before != after:
+                        changes.setdefault(cut, []).append((len(state), after))
+                state.append(feas[-1])
+        every_sorted = sorted(every)
+        for lo, hi in zip(every_sorted, [*every_sorted[1:], every_sorted[0] + _TWO_PI] if every else []):
             if hi - lo < CUT_MARGIN:
                 raise _Undecided
-        # walk the gaps of all crossings: each triple's gap index follows its own crossings
-        # (−1 before its first: its gap through ±π, the last)
-        at = [-1] * len(owns)
-        elbows = [(t, owns[t][1], owns[t + 1][1]) for t in range(0, len(owns), 2)]  # (shoulder, wrist)
+        # Sweep the crossings where some triple's feasibility changes (the others never split a
+        # run of feasible gaps, so the intervals are the same): a gap is feasible where both
+        # triples of an elbow root are.
+        cuts = sorted(changes)
         feasible = []
         for cut in cuts or [None]:
-            for t, i in marks.get(cut, ()):
-                at[t] = i
-            gap = False
-            for t, shoulder, wrist in elbows:
-                if shoulder[at[t]] and wrist[at[t + 1]]:
-                    gap = True
-                    break
-            feasible.append(gap)
+            for t, after in changes.get(cut, ()):
+                state[t] = after
+            feasible.append(any(state[t] and state[t + 1] for t in range(0, len(state), 2)))
         return PoseArmAngles(self, cuts, feasible, q4s, sinusoids, frame)
 
     def _sinusoids(self, q4: float, v: Vec, axis: Vec, rot) -> tuple[tuple[Sinusoid, ...], tuple[Sinusoid, ...]]:
@@ -318,9 +328,9 @@ def _neg(x: Sinusoid) -> Sinusoid:
 class PoseArmAngles:
     """One pose's feasible arm angles (``SrsArmAngleScalar.pose``).
 
-    cuts: the sorted crossings (rad, in (−π, π]); feasible: per gap, whether some configuration
-    is within limits there — gap g runs from cuts[g] to the next crossing (the last through ±π;
-    with no crossing, one gap: the whole circle).
+    cuts: the sorted crossings (rad, in (−π, π]) where feasibility changes; feasible: per gap,
+    whether some configuration is within limits there — gap g runs from cuts[g] to the next
+    crossing (the last through ±π; with no crossing, one gap: the whole circle).
     """
 
     def __init__(self, owner: SrsArmAngleScalar, cuts: list[float], feasible: list[bool], q4s, sinusoids, frame) -> None:
