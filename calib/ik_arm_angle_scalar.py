@@ -159,23 +159,32 @@ class _Triple:
                     out.add(root)
         return sorted(out)
 
-    def any_feasible(self, s: float, c: float, f2: Sinusoid, n1: Sinusoid, d1: Sinusoid, n3: Sinusoid, d3: Sinusoid) -> bool:
-        """Whether either branch is within limits where sin ψ = s, cos ψ = c (a joint is read
-        only while its branch is still in question; written out: this runs ~25 times a pose)."""
+    def gap_feasibility(self, cuts: list[float], sins: tuple[Sinusoid, ...]) -> list[bool]:
+        """Per gap between the sorted crossings ``cuts`` (the last through ±π; one gap if there
+        is none), whether either branch is within limits, read at the gap's middle from the
+        sinusoids (f2, n1, d1, n3, d3). A joint is read only while its branch is still in
+        question (written out: this runs ~25 times a pose)."""
         w1, w2, w3 = self.windows
-        x = f2[0] * s + f2[1] * c + f2[2]
-        beta = math.acos(1.0 if x > 1.0 else -1.0 if x < -1.0 else x)
-        t2, t2_flip = self.aligned + beta, self.aligned - beta  # wrapped below: aligned ∈ (−π, π], β ∈ [0, π]
-        ok0 = _inside(t2 - _TWO_PI if t2 > math.pi else t2, w2)
-        ok1 = _inside(t2_flip + _TWO_PI if t2_flip <= -math.pi else t2_flip, w2)
-        if ok0 or ok1:
-            t1 = math.atan2(n1[0] * s + n1[1] * c + n1[2], d1[0] * s + d1[1] * c + d1[2])
-            ok0 = ok0 and _inside(t1, w1)
-            ok1 = ok1 and _inside(t1 - math.pi if t1 > 0.0 else t1 + math.pi, w1)
-        if ok0 or ok1:
-            t3 = math.atan2(n3[0] * s + n3[1] * c + n3[2], d3[0] * s + d3[1] * c + d3[2])
-            return (ok0 and _inside(t3, w3)) or (ok1 and _inside(t3 - math.pi if t3 > 0.0 else t3 + math.pi, w3))
-        return False
+        al = self.aligned
+        (fa, fb, fc), (n1a, n1b, n1c), (d1a, d1b, d1c), (n3a, n3b, n3c), (d3a, d3b, d3c) = sins
+        out = []
+        for m in [0.5 * (lo + hi) for lo, hi in zip(cuts, [*cuts[1:], cuts[0] + _TWO_PI])] if cuts else [0.0]:
+            s, c = math.sin(m), math.cos(m)
+            x = fa * s + fb * c + fc
+            beta = math.acos(1.0 if x > 1.0 else -1.0 if x < -1.0 else x)
+            t2, t2_flip = al + beta, al - beta  # wrapped below: aligned ∈ (−π, π], β ∈ [0, π]
+            ok0 = _inside(t2 - _TWO_PI if t2 > math.pi else t2, w2)
+            ok1 = _inside(t2_flip + _TWO_PI if t2_flip <= -math.pi else t2_flip, w2)
+            if ok0 or ok1:
+                t1 = math.atan2(n1a * s + n1b * c + n1c, d1a * s + d1b * c + d1c)
+                ok0 = ok0 and _inside(t1, w1)
+                ok1 = ok1 and _inside(t1 - math.pi if t1 > 0.0 else t1 + math.pi, w1)
+            if ok0 or ok1:
+                t3 = math.atan2(n3a * s + n3b * c + n3c, d3a * s + d3b * c + d3c)
+                ok0 = ok0 and _inside(t3, w3)
+                ok1 = ok1 and _inside(t3 - math.pi if t3 > 0.0 else t3 + math.pi, w3)
+            out.append(ok0 or ok1)
+        return out
 
     @staticmethod
     def regular(s: float, c: float, f2: Sinusoid, n1: Sinusoid, d1: Sinusoid, n3: Sinusoid, d3: Sinusoid) -> tuple[float, float]:
@@ -270,8 +279,7 @@ class SrsArmAngleScalar:
             for triple, sins in zip((self.shoulder, self.wrist), sinusoids[g4]):
                 cuts = triple.crossings(*sins)
                 every.update(cuts)
-                mids = [0.5 * (lo + hi) for lo, hi in zip(cuts, [*cuts[1:], cuts[0] + _TWO_PI])] if cuts else [0.0]
-                feas = [triple.any_feasible(math.sin(m), math.cos(m), *sins) for m in mids]
+                feas = triple.gap_feasibility(cuts, sins)
                 for cut, before, after in zip(cuts, [feas[-1], *feas], feas):
                     if before != after:
                         changes.setdefault(cut, []).append((len(state), after))
