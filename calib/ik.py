@@ -4,10 +4,12 @@ Public API (mm, rad, controller convention — the numbers the pendant shows, in
 
 ``solve_all(model, pose, *, arm_angle=None, within_limits=True, params=None) -> IkSolutions``
 ``solve_many(model, poses, **same) -> list[IkSolutions]`` — vectorised over poses: for many poses
-    one call is several times faster than a ``solve_all`` loop (6R: ~3×; 7R: ~50×), see
-    tests/bench/bench_ik.py. ``solve_all`` (6R; 7R at a given arm angle) solves in plain floats
-    (``calib.ik_scalar``) and hands singular, boundary and limit cases to ``solve_many``; the
-    result is the same (rows to rounding, tests/calib/test_ik_one_pose.py)
+    one call is several times faster than a ``solve_all`` loop (6R: ~3×; 7R at given arm angles:
+    ~4×; but with the arm angle picked a ``solve_all`` loop is ~2× faster), see
+    tests/bench/bench_ik.py. ``solve_all`` (6R; 7R at a given arm angle, or within limits at the
+    one picked) solves in plain floats (``calib.ik_scalar``, ``calib.ik_arm_angle_scalar``) and
+    hands singular, boundary and limit cases to ``solve_many``; the result is the same (rows to
+    rounding, tests/calib/test_ik_one_pose.py, tests/calib/test_arm_angle_one_pose.py)
 ``arm_angle_intervals(model, pose, *, params=None) -> list[(lo, hi)]`` (7R; merged over the
     global configurations; ``arm_angle_intervals_by_configuration`` gives them per label,
     ``arm_angle_intervals_many`` for many poses at once)
