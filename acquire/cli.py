@@ -3,7 +3,7 @@
 Start-up is kept short: a sub-command's module (``acquire/commands/<name>.py``) is imported only
 when that sub-command runs (or shows its own ``--help``). ``acquire --help`` lists the commands
 from the :data:`COMMANDS` table without importing any of them, so it never pays for numpy,
-scipy, matplotlib or Zenoh. A module listed here must expose ``register(app)`` adding exactly
+scipy or Zenoh. A module listed here must expose ``register(app)`` adding exactly
 the commands the table names for it, with the table's help as their first docstring line
 (tests/acquire/test_cli_startup.py checks both).
 """

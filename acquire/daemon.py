@@ -202,8 +202,7 @@ class DeviceHost:
             raise ValueError(f"the simulated cell's controller {cell.model.controller!r} has no commander; "
                              "allowed: sunrise (fri), kss (rsi)")
         cls = load_driver(driver)
-        cmd = cls.from_url(f"{driver}://127.0.0.1:0?rt_priority=0", limits=JointLimits.from_model(cell.model),
-                           clock=clock.now)
+        cmd = cls.from_url(f"{driver}://127.0.0.1:0", limits=JointLimits.from_model(cell.model), clock=clock.now)
         cmd.name = "controller"
         self.commander = cmd
         port = cmd.bind()[1] if callable(getattr(cmd, "bind", None)) else (cmd.connect() or cmd.address[1])

@@ -639,10 +639,11 @@ class RunController:
             driver = plan.commander.driver
             # The cell runs time_scale × faster than real time, and its fake controller is a
             # thread that a busy machine can stall: the commanders' silence and staleness limits
-            # (simulated time) get 300 ms of wall time, not a real cell's 100 ms.
+            # (simulated time) get 300 ms of wall time, not a real cell's 100 ms. The exchange
+            # process keeps its real-time priority, as against a real controller.
             ms = 300.0 * fc.time_scale
-            url = {"fri": f"fri://127.0.0.1:0?rt_priority=0&timeout_ms={ms:g}&max_state_age_ms={ms:g}",
-                   "rsi": f"rsi://127.0.0.1:0?rt_priority=0&max_state_age_s={ms / 1000:g}"}.get(driver)
+            url = {"fri": f"fri://127.0.0.1:0?timeout_ms={ms:g}&max_state_age_ms={ms:g}",
+                   "rsi": f"rsi://127.0.0.1:0?max_state_age_s={ms / 1000:g}"}.get(driver)
             if url is None:
                 raise RunError(f"--fake has no fake controller for commander driver {driver!r} (fri, rsi)")
             cmd = open_commander(plan.commander, limits, url=url, **extra)
@@ -933,6 +934,28 @@ class RunController:
             self._skip_reasons[cfg.config_id] = reason
         return kind
 
+    def _log_link(self) -> None:
+        """The real-time link over the run into the log (event ``link``): cycles, late answers,
+        answer latency p50/p99/max (µs, over the last ``window`` cycles), missing and malformed
+        packets, the exchange's scheduling — how the exchange kept its deadline on this PC."""
+        stats = getattr(self.commander, "link_stats", None)
+        if not callable(stats):
+            return
+        try:
+            st = stats()
+        except DriverError as exc:
+            log.warning("link figures: %s", exc)
+            return
+        self._event_safe(
+            "link", packets=st.packets, window=st.window, late_answers=st.late_answers,
+            latency_p50_us=round(st.latency_p50_s * 1e6, 1), latency_p99_us=round(st.latency_p99_s * 1e6, 1),
+            latency_max_us=round(st.latency_max_s * 1e6, 1), gaps=st.gaps, malformed=st.malformed,
+            restarts=st.restarts, realtime=st.realtime, notes=list(st.notes),
+        )
+        if st.late_answers:
+            log.warning("%s: %d late real-time answer(s) in this run (%s)", getattr(self.commander, "name", "commander"),
+                        st.late_answers, "; ".join(st.report()[:2]))
+
     def _finish(self, clock, cell_seconds: float) -> RunSummary:
         aborted = self._abort.is_set()
         if aborted:
@@ -942,8 +965,10 @@ class RunController:
                     self.commander.stop()
                 except DriverError as exc:
                     log.warning("stop: %s", exc)
+            self._log_link()
             self._event_safe("aborted", reason=self._reason)
         else:
+            self._log_link()
             self._event_safe("run_finished", measured=self._measured, skipped=self._skipped, failed=self._failed)
         truth = sag = None
         if self._fake_cell is not None:

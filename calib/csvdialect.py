@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Iterable, Sequence
 
 SEPARATORS = {",": "comma ','", ";": "semicolon ';'", "\t": "tab"}
@@ -117,3 +118,19 @@ def width_error(source: str, lineno: int, cells: Sequence[str], n_header: int, d
         msg += (" — decimal commas in a comma-separated file? (the header is comma-separated; a value like '12,5' "
                 "splits in two); export with ';' as the separator or '.' as the decimal mark")
     return msg
+
+
+def is_socket_csv(path: Path) -> bool:
+    """True for a CSV whose header (first non-comment line) ends in ``placement,socket`` (the
+    format of ``calib.socket``; the rest is ``calib.dataset``'s). Reads one line: deciding which
+    fit runs costs nothing of the fit the file does not need."""
+    if path.suffix.lower() != ".csv":
+        return False
+    try:
+        with path.open(encoding="utf-8-sig") as fh:
+            for line in fh:
+                if line.strip() and not line.lstrip().startswith("#"):
+                    return split_header(line)[-2:] == ["placement", "socket"]
+    except (OSError, UnicodeDecodeError):
+        return False
+    return False

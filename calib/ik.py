@@ -4,10 +4,12 @@ Public API (mm, rad, controller convention — the numbers the pendant shows, in
 
 ``solve_all(model, pose, *, arm_angle=None, within_limits=True, params=None) -> IkSolutions``
 ``solve_many(model, poses, **same) -> list[IkSolutions]`` — vectorised over poses: for many poses
-    one call is several times faster than a ``solve_all`` loop (6R: ~3×; 7R: ~50×), see
-    tests/bench/bench_ik.py. ``solve_all`` (6R; 7R at a given arm angle) solves in plain floats
-    (``calib.ik_scalar``) and hands singular, boundary and limit cases to ``solve_many``; the
-    result is the same (rows to rounding, tests/calib/test_ik_one_pose.py)
+    one call is several times faster than a ``solve_all`` loop (6R: ~3×; 7R at given arm angles:
+    ~4×; but with the arm angle picked a ``solve_all`` loop is ~2× faster), see
+    tests/bench/bench_ik.py. ``solve_all`` (6R; 7R at a given arm angle, or within limits at the
+    one picked) solves in plain floats (``calib.ik_scalar``, ``calib.ik_arm_angle_scalar``) and
+    hands singular, boundary and limit cases to ``solve_many``; the result is the same (rows to
+    rounding, tests/calib/test_ik_one_pose.py, tests/calib/test_arm_angle_one_pose.py)
 ``arm_angle_intervals(model, pose, *, params=None) -> list[(lo, hi)]`` (7R; merged over the
     global configurations; ``arm_angle_intervals_by_configuration`` gives them per label,
     ``arm_angle_intervals_many`` for many poses at once)
@@ -38,6 +40,8 @@ What comes back (``IkSolutions``):
 
 7R arm angle: given as a float (or one per pose); ``None`` picks, per pose, the centre of the
 widest feasible interval when ``within_limits`` (status ``"limits"`` if there is none), else 0.
+Arcs as wide to 1e-9 rad (the iiwa's feasible set is often symmetric: two arcs of one width)
+tie, and the tie goes to the centre nearest ψ = 0, then to the positive one.
 
 ``params``: a ``Chain`` parameter vector (P,), e.g. a fitted model. If its geometry still
 belongs to the solver's class (zero-offsets only, say) the closed form is built from it and is
@@ -60,6 +64,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from calib.ik_arm_angle_scalar import SrsArmAngleScalar
 from calib.ik_scalar import SrsScalar, WristArmScalar
 from calib.ik_spherical_wrist import REACH_SLACK, RawSolutions, WristArmGeometry
 from calib.ik_spherical_wrist import branch_labels as wrist_arm_labels
@@ -133,7 +138,8 @@ class _OnePose:
     """What ``_solve_one`` needs, as plain floats: the closed form; the FK links
     (``Chain._links_floats``, right angles snapped); the flange frame's inverse as rows of
     (R_fᵀ | −R_fᵀ·t_f) and |t_f| mm (rows are checked at the last joint's frame against
-    pose·flange⁻¹); per joint the ±360° images that fit (``_fitting_steps``)."""
+    pose·flange⁻¹); per joint the ±360° images that fit (``_fitting_steps``, ``_joint_images``);
+    (7R) the feasible arm angles (``_picked_configurations``)."""
 
     closed_form: WristArmScalar | SrsScalar
     links: list[tuple[float, ...]]
@@ -141,6 +147,7 @@ class _OnePose:
     flange_reach: float
     images: list[_JointImages]
     shiftable: list[int]  # the joints with a ±360° image within limits somewhere
+    arm_angles: SrsArmAngleScalar | None
     # the widest stretches of all joints, for ``_limit_images``' first test (from ``images``)
     inner_lo: list[float] = field(init=False)
     inner_hi: list[float] = field(init=False)
@@ -257,15 +264,19 @@ def _build(model: RobotModel, chain: Chain, params: np.ndarray | None) -> _Solve
     shifts, shift_labels = _wide_shifts(model)
     one_pose = None
     if not polish:
-        flange_inv = np.linalg.inv(chain.flange)
-        images = _joint_images(_fitting_steps(model))
+        closed_form = WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry)
+        steps = _fitting_steps(model)
+        images = _joint_images(steps)
         one_pose = _OnePose(
-            closed_form=WristArmScalar(geometry) if kind == "6r" else SrsScalar(geometry),
+            closed_form=closed_form,
             links=chain._links_floats((chain.nominal if params is None else params).tolist(), snap_right_angles=True),
-            flange_inv=flange_inv[:3].tolist(),
+            flange_inv=np.linalg.inv(chain.flange)[:3].tolist(),
             flange_reach=float(np.linalg.norm(chain.flange[:3, 3])),
             images=images,
             shiftable=[j for j, im in enumerate(images) if any(f not in ((), _UNSHIFTED) for f in im.fits)],
+            arm_angles=None if kind == "6r" else SrsArmAngleScalar(
+                geometry, closed_form, model.lower_limits_rad.tolist(), model.upper_limits_rad.tolist(), steps
+            ),
         )
     return _Solver(model, chain, kind, geometry, labels, params, polish, shifts, shift_labels, one_pose)
 
@@ -506,11 +517,12 @@ def _limit_images(q: list[float], one: _OnePose) -> list[tuple[tuple[float, str]
 
 
 def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | None = None) -> IkSolutions | None:
-    """``solve_many`` for one pose (4, 4) in plain floats (6R; 7R at the arm angle ``psi`` rad),
-    or None where the pose needs the vectorised path: not a clean rigid transform (it raises
-    there), out of reach, near a singularity (``calib.ik_scalar``), a row near a tolerance or
-    limit, or no row within limits. Same rows, labels and order as ``solve_many`` (to rounding,
-    ≲1e-12 rad). Every row within limits (every row, without limits) is checked by FK in floats
+    """``solve_many`` for one pose (4, 4) in plain floats (6R; 7R at the arm angle ``psi`` rad,
+    or with ``psi=None`` and ``within_limits`` the one ``solve_many`` picks), or None where the pose
+    needs the vectorised path: not a clean rigid transform (it raises there), out of reach, near
+    a singularity (``calib.ik_scalar``), no clear pick, a row near a tolerance or limit, or no
+    row within limits. Same rows, labels and order as ``solve_many`` (to rounding, ≲1e-12 rad).
+    Every row within limits (every row, without limits) is checked by FK in floats
     (``Chain._walk_links``) before it is returned (``_last_frame_check``); ±360° images share
     their row's check."""
     one = s.one_pose
@@ -531,6 +543,8 @@ def _solve_one(s: _Solver, pose: np.ndarray, within_limits: bool, psi: float | N
     pos = (p0, p1, p2)
     if s.kind == "6r":
         branches = one.closed_form.solve(rot, pos)
+    elif psi is None and within_limits:
+        branches = _picked_configurations(s, rot, pos)
     elif psi is not None and math.isfinite(psi):
         branches = one.closed_form.solve(rot, pos, psi)
     else:
@@ -686,15 +700,17 @@ def solve_all(
 ) -> IkSolutions:
     """Every IK solution of one flange pose (4, 4) mm; see ``solve_many``.
 
-    A pose away from singularities, reach boundaries and limits (6R; 7R at a given arm angle)
-    is solved in plain floats (``_solve_one``: one pose through numpy costs some hundred tiny
-    array calls); the result is ``solve_many``'s, rows equal to rounding.
+    A pose away from singularities, reach boundaries and limits (6R; 7R at a given arm angle or,
+    within limits, the one picked) is solved in plain floats (``_solve_one``: one pose through
+    numpy costs some hundred tiny array calls); the result is ``solve_many``'s, rows equal to
+    rounding. (7R with ``within_limits=False`` and no arm angle solves at ψ = 0, where the iiwa's
+    A3 is 0 or ±π — an end rounding chooses — in every pose: the vectorised path's alone.)
     """
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (4, 4):
         raise ValueError(f"pose must be one (4, 4) flange frame, got shape {pose.shape}")
     s = _solver(model, params)
-    if s.kind == "6r" and arm_angle is None:
+    if arm_angle is None and (s.kind == "6r" or within_limits):
         one = _solve_one(s, pose, within_limits)
     elif s.kind == "7r" and isinstance(arm_angle, (float, int, np.floating, np.integer)):
         one = _solve_one(s, pose, within_limits, float(arm_angle))
@@ -761,35 +777,51 @@ def _intervals_many(s: _Solver, poses: np.ndarray) -> list[dict[str, list[tuple[
         if not reach[i]:
             out.append({label: [] for label in s.labels})
             continue
-        cuts = cuts_per[i]
-        n_gaps = max(cuts.size, 1)
-        feas = feas_all[start : start + n_gaps]
+        n_gaps = max(cuts_per[i].size, 1)
+        cuts, columns = cuts_per[i].tolist(), feas_all[start : start + n_gaps].T.tolist()
+        out.append({label: _gap_intervals(cuts, col) for label, col in zip(s.labels, columns)})
         start += n_gaps
-        # Plain Python from here: a handful of gaps and 8 labels per pose, where numpy's per-call cost dominated.
-        cuts_l = cuts.tolist()
-        ends_l = cuts_l[1:] + [cuts_l[0] + 2 * np.pi] if cuts_l else []
-        per: dict[str, list[tuple[float, float]]] = {}
-        for label, col in zip(s.labels, feas.T.tolist()):
-            if all(col):
-                per[label] = [(-np.pi, np.pi)]
-                continue
-            intervals: list[tuple[float, float]] = []
-            if any(col):
-                g0 = col.index(False)
-                run = None
-                for g in [*range(g0 + 1, len(col)), *range(g0)]:  # starts after an infeasible gap
-                    if col[g] and run is None:
-                        run = [cuts_l[g], ends_l[g]]
-                    elif col[g]:
-                        run[1] = ends_l[g]
-                    elif run is not None:
-                        intervals.extend(_split(*run))
-                        run = None
-                if run is not None:
-                    intervals.extend(_split(*run))
-            per[label] = _merge(intervals)
-        out.append(per)
     return out
+
+
+def _gap_intervals(cuts: list[float], feasible: list[bool]) -> list[tuple[float, float]]:
+    """Feasible arm-angle intervals (sorted, merged, within [−π, π]) from the sorted crossings
+    ψ (rad, in (−π, π]) and whether each gap between them is feasible (gap g from cuts[g] to the
+    next, the last through ±π; one gap, the whole circle, when there is no crossing). Plain
+    Python: a handful of gaps per pose, where numpy's per-call cost dominated."""
+    if all(feasible):
+        return [(-np.pi, np.pi)]
+    if not any(feasible):
+        return []
+    ends = cuts[1:] + [cuts[0] + 2 * np.pi]
+    intervals: list[tuple[float, float]] = []
+    g0 = feasible.index(False)
+    run = None
+    for g in [*range(g0 + 1, len(feasible)), *range(g0)]:  # starts after an infeasible gap
+        if feasible[g] and run is None:
+            run = [cuts[g], ends[g]]
+        elif feasible[g]:
+            run[1] = ends[g]
+        elif run is not None:
+            intervals.extend(_split(*run))
+            run = None
+    if run is not None:
+        intervals.extend(_split(*run))
+    return _merge(intervals)
+
+
+def _picked_configurations(s: _Solver, rot, pos) -> list[list[float] | None] | None:
+    """For one 7R pose given as plain floats (rotation rows, position mm): the configurations
+    that may be within limits at the arm angle ``solve_many`` picks (``_widest_centre`` of
+    ``_intervals_many``'s intervals, here from ``calib.ik_arm_angle_scalar``), in the form of
+    ``SrsScalar.solve``; None where the float path cannot decide, there is no feasible arm
+    angle ("limits": the vectorised path writes the message), or a tie rounding could decide."""
+    one = s.one_pose.arm_angles.pose(rot, pos)
+    if one is None:
+        return None
+    ivs = _gap_intervals(one.cuts, one.feasible)  # the union over the configurations, merged
+    psi = _widest_centre(ivs, guard=0.5 * _PICK_TIE_RAD) if ivs else None
+    return None if psi is None else one.configurations(psi)
 
 
 def arm_angle_intervals_by_configuration(
@@ -860,11 +892,42 @@ def _arcs(intervals: list[tuple[float, float]]) -> list[tuple[float, float]]:
     return arcs
 
 
-def _pick(ivs: list[tuple[float, float]], prefer: float | None) -> float:
+#: Feasible arcs as wide as the widest to this (rad) tie for ``_widest_centre`` (the iiwa's
+#: feasible set is often symmetric under ψ → ψ + π or ψ → −ψ: two arcs of one width).
+_PICK_TIE_RAD = 1e-9
+
+
+def _widest_centre(ivs: list[tuple[float, float]], guard: float = 0.0) -> float | None:
+    """The centre (rad, in (−π, π]) of the widest arc of the feasible intervals ``ivs``; arcs
+    within ``_PICK_TIE_RAD`` of the widest tie, and a tie goes to the centre nearest ψ = 0,
+    then (centres ±c alike to ``_PICK_TIE_RAD``) to the positive one.
+
+    ``guard`` > 0 (rad): None where a width or a distance from 0 lies within ``guard`` of a tie
+    threshold, so that intervals equal to rounding never pick different arcs.
+    """
     arcs = _arcs(ivs)
+    top = max(hi - lo for lo, hi in arcs)
+    tied = []
+    for lo, hi in arcs:
+        short = top - (hi - lo)
+        if abs(short - _PICK_TIE_RAD) <= guard:
+            return None
+        if short < _PICK_TIE_RAD:
+            tied.append(math.pi - (math.pi - 0.5 * (lo + hi)) % (2 * math.pi))
+    nearest = min(map(abs, tied))
+    closest = []
+    for c in tied:
+        if abs(abs(c) - nearest - _PICK_TIE_RAD) <= guard:
+            return None
+        if abs(c) - nearest < _PICK_TIE_RAD:
+            closest.append(c)
+    return max(closest)
+
+
+def _pick(ivs: list[tuple[float, float]], prefer: float | None) -> float:
     if prefer is None:
-        lo, hi = max(arcs, key=lambda a: a[1] - a[0])
-        return float(_wrap(0.5 * (lo + hi)))
+        return _widest_centre(ivs)
+    arcs = _arcs(ivs)
     best, best_d = prefer, math.inf
     for lo, hi in arcs:
         off = float(_wrap(prefer - lo))
@@ -884,7 +947,7 @@ def pick_arm_angle(
 ) -> float:
     """An arm angle ψ (rad, in (−π, π]) at which some configuration is within limits (7R).
 
-    ``prefer=None``: the centre of the widest feasible arc. Otherwise ``prefer`` itself if
+    ``prefer=None``: the centre of the widest feasible arc (ties: see the module docstring). Otherwise ``prefer`` itself if
     feasible, else the feasible ψ closest to it (on the circle), 1e-6 rad inside the arc's end
     (or its centre if the arc is narrower). Raises ``NoFeasibleArmAngle`` (a ``ValueError``)
     when there is none.

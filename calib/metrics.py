@@ -29,23 +29,30 @@ from calib.transforms import apply
 
 @dataclass(frozen=True)
 class Summary:
+    """mm. ``mc_se``: the Monte-Carlo standard error of ``mean`` where the values are random
+    draws (the theoretical metrics), else None (and left out of ``to_dict``)."""
+
     mean: float
     p2_5: float
     p97_5: float
     max: float
     count: int
+    mc_se: float | None = None
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        out = asdict(self)
+        if self.mc_se is None:
+            del out["mc_se"]
+        return out
 
 
-def summarize(values: np.ndarray) -> Summary:
+def summarize(values: np.ndarray, mc_se: float | None = None) -> Summary:
     v = np.asarray(values, dtype=float).ravel()
     if v.size == 0:
         nan = float("nan")
-        return Summary(nan, nan, nan, nan, 0)
+        return Summary(nan, nan, nan, nan, 0, mc_se)
     lo, hi = np.percentile(v, [2.5, 97.5])
-    return Summary(float(v.mean()), float(lo), float(hi), float(v.max()), int(v.size))
+    return Summary(float(v.mean()), float(lo), float(hi), float(v.max()), int(v.size), mc_se)
 
 
 def predicted_base(chain: Chain, data: Dataset, offsets_rad: np.ndarray, *,
@@ -178,6 +185,29 @@ def theoretical_errors(
     return out.ravel()
 
 
+@dataclass
+class TheoreticalDraws:
+    """The four theoretical error sets at k configurations, each (d, k) mm: rows are posterior
+    draws, columns configurations. Keys ``""`` (with σ) and ``"_offsets_only"``; values (before,
+    after). ``draws_se(e)``: the standard error of ``e.mean()`` from the draws (the
+    configurations held fixed)."""
+
+    errors: dict[str, tuple[np.ndarray, np.ndarray]]
+
+    @property
+    def n_draws(self) -> int:
+        return self.errors[""][0].shape[0]
+
+    @staticmethod
+    def draws_se(e: np.ndarray) -> float:
+        """Std of the per-draw means over √d: the draws are independent, the configurations shared."""
+        return float(e.mean(axis=1).std(ddof=1) / np.sqrt(e.shape[0])) if e.shape[0] > 1 else float("inf")
+
+    def worst_draws_sd(self) -> float:
+        """The largest std of the per-draw means over the four sets: the spread one draw adds."""
+        return max(self.draws_se(e) * np.sqrt(e.shape[0]) for pair in self.errors.values() for e in pair)
+
+
 def _theoretical_four(
     chain: Chain,
     q_rad: np.ndarray,
@@ -188,28 +218,49 @@ def _theoretical_four(
     *,
     rng: np.random.Generator,
     n_draws: int,
-) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    mc_se_mm: float | None = None,
+    min_draws: int = 100,
+) -> TheoreticalDraws:
     """``theoretical_errors`` for both references, with and without σ, from one evaluation of
     the drawn TCPs (the costly part): the same draws and the same ε serve before and after, so the
-    before/after pair is compared on common random numbers. Each array is (n_draws · k,) mm, as
-    ``theoretical_errors`` returns. Keys: ``""`` (with σ) and ``"_offsets_only"``; values
-    (before, after).
+    before/after pair is compared on common random numbers.
+
+    Posterior draws are taken in a random order without replacement, at most ``n_draws``. With
+    ``mc_se_mm`` the draws stop once each of the four means' standard error from the draws
+    (``TheoreticalDraws.draws_se``) is at most ``mc_se_mm`` — after ``min_draws``, then as many as
+    the spread seen so far says are needed, re-checked; without it all ``n_draws`` are used.
     """
-    pick = rng.choice(offset_draws_rad.shape[0], size=min(n_draws, offset_draws_rad.shape[0]), replace=False)
-    draws = offset_draws_rad[pick]
+    order = rng.permutation(offset_draws_rad.shape[0])[: min(n_draws, offset_draws_rad.shape[0])]
     fk = offset_kinematics(chain, q_rad, np.zeros(3))
     refs = [fk.positions(np.asarray(r, dtype=float)) for r in (before_rad, after_rad)]  # (k, 3) each
-    out = {key: (np.empty((draws.shape[0], q_rad.shape[0])), np.empty((draws.shape[0], q_rad.shape[0])))
-           for key in ("", "_offsets_only")}
-    for start in range(0, draws.shape[0], 256):
-        block = slice(start, start + 256)
-        tcp = np.moveaxis(fk.positions(draws[block]), -1, 0)  # (3, b, k)
-        noisy = tcp + rng.normal(0.0, sigma_mm, size=tcp.shape)
-        for key, pts in (("", noisy), ("_offsets_only", tcp)):
-            for side, ref in zip(out[key], refs):
-                dx, dy, dz = pts[0] - ref[:, 0], pts[1] - ref[:, 1], pts[2] - ref[:, 2]
-                side[block] = np.sqrt(dx * dx + dy * dy + dz * dz)  # |·| without norm's generic reduction
-    return {key: (b.ravel(), a.ravel()) for key, (b, a) in out.items()}
+    k = q_rad.shape[0]
+    out = {key: (np.empty((order.size, k)), np.empty((order.size, k))) for key in ("", "_offsets_only")}
+    done = 0
+    want = order.size if mc_se_mm is None else min(min_draws, order.size)
+    while done < want:
+        for start in range(done, want, 256):
+            block = slice(start, min(start + 256, want))
+            tcp = np.moveaxis(fk.positions(offset_draws_rad[order[block]]), -1, 0)  # (3, b, k)
+            noisy = tcp + rng.normal(0.0, sigma_mm, size=tcp.shape)
+            for key, pts in (("", noisy), ("_offsets_only", tcp)):
+                for side, ref in zip(out[key], refs):
+                    dx, dy, dz = pts[0] - ref[:, 0], pts[1] - ref[:, 1], pts[2] - ref[:, 2]
+                    side[block] = np.sqrt(dx * dx + dy * dy + dz * dz)  # |·| without norm's generic reduction
+        done = want
+        if mc_se_mm is not None:
+            sd = TheoreticalDraws({key: (b[:done], a[:done]) for key, (b, a) in out.items()}).worst_draws_sd()
+            need = (sd / mc_se_mm) ** 2  # infinite from a single draw: take all there are
+            want = order.size if not np.isfinite(need) else min(order.size, max(done, int(np.ceil(need))))
+    return TheoreticalDraws({key: (b[:done], a[:done]) for key, (b, a) in out.items()})
+
+
+def _mc_se(e: np.ndarray, *, random_configurations: bool) -> float:
+    """Standard error of ``e.mean()`` for errors (d draws, k configurations): from the draws, plus
+    for a random sample of configurations the spread of the per-configuration means over √k."""
+    se = TheoreticalDraws.draws_se(e)
+    if random_configurations and e.shape[1] > 1:
+        se = float(np.hypot(se, e.mean(axis=0).std(ddof=1) / np.sqrt(e.shape[1])))
+    return se
 
 
 def random_configurations(chain: Chain, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -237,12 +288,17 @@ def _pair(before: np.ndarray, after: np.ndarray) -> dict:
     return {"before": summarize(before).to_dict(), "after": summarize(after).to_dict()}
 
 
-#: Posterior draws per configuration for the theoretical metrics. The default fit's 4 × 1000 draws
-#: hold ~1000–1600 effective ones; with 1000 random configurations the summaries' Monte-Carlo
-#: spread over seeds (configurations fixed) is 0.0003 mm for the means and ≤ 0.002 mm for the
-#: 2.5 / 97.5 % points at 1000 draws — 2000 draws, twice the cost, left the means unchanged and
-#: the percentiles at ≤ 0.0013 mm. (The max is a sample extreme: it moves by ~0.1 mm either way.)
+#: At most this many posterior draws per configuration for the theoretical metrics (the default
+#: fit has 4 × 1000 draws, ~1000–1600 of them effective).
 THEORETICAL_DRAWS = 1000
+
+#: The precision the theoretical means are computed to: draws are added until the standard error
+#: each mean owes to the draws is at most this (mm) — the last decimal the terminal summary prints.
+#: The iiwa example (180 measured, 1000 random configurations) stops at ~600 draws for the
+#: measured configurations (their errors with σ need the most) and ~120 for the workspace, a
+#: fifth of the evaluations of 1000 each. The 2.5 / 97.5 % points move 2–4 times as much as
+#: the means between seeds; the max is a sample extreme (it grows with the count ``n``).
+MC_SE_MM = 0.001
 
 
 def accuracy_metrics(
@@ -256,6 +312,7 @@ def accuracy_metrics(
     markers_mm: dict[str, np.ndarray] | None = None,
     n_random: int = 1000,
     n_draws: int = THEORETICAL_DRAWS,
+    mc_se_mm: float | None = MC_SE_MM,
     seed: int = 0,
 ) -> dict:
     """Every metric of the paper's Sec. V–VI, before (nominal offsets) and after (applied ones).
@@ -275,6 +332,13 @@ def accuracy_metrics(
     (flange frame, mm) that belong to the "after" model. ``notes``: caveats. Plus ``offsets_share``:
     mean error from the offsets alone ÷ mean error with σ, over the workspace (the paper's
     "95 % before, 15 % after"), and ``settings`` (n_random, n_draws, σ, seed).
+
+    The theoretical metrics are Monte-Carlo estimates: at most ``n_draws`` posterior draws per
+    configuration, fewer once every mean's standard error from the draws is at most ``mc_se_mm``
+    (None: all ``n_draws``; ``_theoretical_four``). Each of their summaries carries ``mc_se``, the
+    standard error of its mean: from the draws at the measured configurations (a fixed set), from
+    the draws and the random configurations together over the workspace. ``settings`` gives the
+    draws used per configuration (``draws_measured``, ``draws_workspace``) and ``mc_se_target_mm``.
     """
     rng = np.random.default_rng(seed)
     zero = np.zeros(chain.n)
@@ -287,10 +351,15 @@ def accuracy_metrics(
     out["absolute"] = _pair(absolute_errors(data, before), absolute_errors(data, after))
     q_meas = np.unique(data.q_rad, axis=0)
     q_rand = random_configurations(chain, n_random, rng)
+    used = {}
     for where, q in (("measured", q_meas), ("workspace", q_rand)):
-        four = _theoretical_four(chain, q, zero, applied, offset_draws_rad, sigma_mm, rng=rng, n_draws=n_draws)
-        for suffix, (b, a) in four.items():
-            out[f"theoretical_{where}{suffix}"] = _pair(b, a)
+        four = _theoretical_four(chain, q, zero, applied, offset_draws_rad, sigma_mm, rng=rng, n_draws=n_draws,
+                                 mc_se_mm=mc_se_mm)
+        used[where] = four.n_draws
+        for suffix, pair in four.errors.items():
+            out[f"theoretical_{where}{suffix}"] = {
+                when: summarize(e, _mc_se(e, random_configurations=where == "workspace")).to_dict()
+                for when, e in zip(("before", "after"), pair)}
     ws, wo = out["theoretical_workspace"], out["theoretical_workspace_offsets_only"]
     out["offsets_share"] = {k: (wo[k]["mean"] / ws[k]["mean"] if ws[k]["mean"] > 0 else float("nan")) for k in ("before", "after")}
     if validation is not None and len(validation):
@@ -309,6 +378,9 @@ def accuracy_metrics(
         "n_random_configurations": int(n_random),
         "n_measured_configurations": int(q_meas.shape[0]),
         "n_draws": int(min(n_draws, offset_draws_rad.shape[0])),
+        "draws_measured": used["measured"],
+        "draws_workspace": used["workspace"],
+        "mc_se_target_mm": mc_se_mm,
         "sigma_mm": float(sigma_mm),
         "seed": int(seed),
         "tcp": "flange origin",

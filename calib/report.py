@@ -1,4 +1,4 @@
-"""A self-contained ``report.html`` of a fit: one file, PNG plots embedded as base64.
+"""A self-contained ``report.html`` of a fit: one file, its plots inline SVG (``calib.svg``).
 
 Sections: a one-screen summary (``calib.report_summary``: enter / do not enter, the values,
 accuracy before/after, warnings); the values to enter with the controller's sign convention;
@@ -7,7 +7,7 @@ identifiability (every direction the data leave weak or undetermined, named as t
 of parameters it mixes — ``calib.identifiability``); sampler diagnostics; and figures
 (``calib.report_figures``): the paper's TCP cloud (Fig. 5), trace plots and posterior
 histograms, and the post-registration error per configuration. The HTML reflows down to a
-phone's width; matplotlib is imported only while drawing.
+phone's width: the figures are vector graphics, and panels side by side wrap.
 """
 
 from __future__ import annotations
@@ -114,10 +114,22 @@ def _metrics_section(doc: dict) -> list[str]:
         if isinstance(metrics.get(key), dict) and "before" in metrics[key]:
             for when in ("before", "after"):
                 m = metrics[key][when]
-                rows.append([when, *(Html(num(m[f])) for f in ("mean", "p2_5", "p97_5", "max")), m["count"]])
+                mean = num(m["mean"]) + (f" <span class=small>±{num(m['mc_se'], 1)}</span>" if m.get("mc_se") is not None else "")
+                rows.append([when, Html(mean), *(Html(num(m[f])) for f in ("p2_5", "p97_5", "max")), m["count"]])
                 groups.append(title if when == "before" else None)
     out = ["<h2 id=accuracy>Accuracy before and after (mm)</h2>",
            table(["", "mean", "2.5 %", "97.5 %", "max", "n"], rows, groups=groups)]
+    settings = metrics.get("settings") or {}
+    if "draws_workspace" in settings:
+        target = settings.get("mc_se_target_mm")
+        out.append(
+            "<p class=small>The theoretical rows are Monte-Carlo estimates; ±: the standard error of their mean "
+            f"(posterior draws; over the workspace also its {settings['n_random_configurations']} random configurations). "
+            f"Draws per configuration: {settings['draws_measured']} at the measured configurations, "
+            f"{settings['draws_workspace']} over the workspace"
+            + (f", added until the draws' share of each standard error was at most {num(target, 1)} mm" if target else "")
+            + ". The 2.5 / 97.5 % points vary 2–4 times as much as the means; the max is the largest of n values "
+            "and grows with n.</p>")
     share = metrics.get("offsets_share")
     if share:
         out.append(f"<p>Share of the workspace error explained by the offsets alone (Table VII ÷ Table VI): "

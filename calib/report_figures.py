@@ -1,20 +1,18 @@
-"""The report's figures, as inline PNG ``<img>`` tags; matplotlib is imported only when drawing.
-
-No pyplot: each figure is a ``matplotlib.figure.Figure`` rendered by the Agg canvas, so drawing
-needs no display, touches no global state and is safe in the daemon's worker threads.
+"""The report's figures as inline SVG (``calib.svg``), drawn from numpy arrays with no plotting library.
 
 ``tcp_clouds`` computes the paper's Fig. 5 (Sec. V-C): for chosen measured configurations, the
 TCP (flange origin, robot base frame, mm) predicted with the nominal offsets ("before", red),
 with the applied offsets ("after", green), with posterior draws of the offsets (yellow) and with
 those draws plus the isotropic error σ (blue). ``tcp_cloud_figure`` draws it per configuration:
-the top row at a scale that shows the move from before to after, the bottom row zoomed on the
+the top panel at a scale that shows the move from before to after, the bottom one zoomed on the
 after-clouds. X–Y plane of the robot base, as in the paper.
+
+A figure of several panels side by side is several ``<svg>`` in a ``<div class="figs">`` that
+wraps: on a phone the panels stack instead of shrinking to an unreadable width.
 """
 
 from __future__ import annotations
 
-import base64
-import io
 import math
 from dataclasses import dataclass
 
@@ -24,34 +22,17 @@ from calib.dataset import Dataset
 from calib.fit import FitResult
 from calib.kinematics import Chain, offset_kinematics
 from calib.metrics import absolute_errors, predicted_base
+from calib.svg import COLOURS, TAB10, Figure, data_limits
 
 
 #: Draws per chain shown in a trace plot: a line of 1000 points at this width is a smear of the
-#: same envelope; every ``step``-th draw keeps the mixing visible at a fraction of the cost.
+#: same envelope; every ``step``-th draw keeps the mixing visible at a fraction of the size.
 TRACE_POINTS = 250
 
 
-def _figure(width_in: float, height_in: float, *, left: float = 0.7, right: float = 0.15, bottom: float = 0.5,
-            top: float = 0.3, wspace: float = 0.35, hspace: float = 0.45):
-    """A bare Agg figure with fixed margins in inches (no layout engine: constrained layout
-    measured every tick label and cost more than drawing the report's plots)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg  # lazy: keeps matplotlib out of the CLI's start-up
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width_in, height_in))
-    FigureCanvasAgg(fig)
-    fig.subplots_adjust(left=left / width_in, right=1 - right / width_in, bottom=bottom / height_in,
-                        top=1 - top / height_in, wspace=wspace, hspace=hspace)
-    return fig
-
-
-def png(fig, alt: str, dpi: int = 100) -> str:
-    """``fig`` as an inline ``<img>`` (PNG, base64), drawn by the Agg canvas."""
-    buf = io.BytesIO()
-    # zlib level 1: a few per cent larger than the default 6 and about half its encoding time
-    fig.savefig(buf, format="png", dpi=dpi, pil_kwargs={"compress_level": 1})
-    data = base64.b64encode(buf.getvalue()).decode("ascii")
-    return f'<img alt="{alt}" src="data:image/png;base64,{data}">'
+def side_by_side(svgs: list[str]) -> str:
+    """Panels in a row that wraps on a narrow screen."""
+    return '<div class="figs">' + "".join(svgs) + "</div>"
 
 
 @dataclass(frozen=True)
@@ -115,9 +96,8 @@ def _limits(points: np.ndarray, pad: float = 0.15) -> tuple[tuple[float, float],
 
 
 def _emptiest_corner(points: np.ndarray, xlim: tuple[float, float], ylim: tuple[float, float]) -> str:
-    """The legend location (matplotlib's corner names) whose corner — 45 % × 35 % of the axes —
-    holds the fewest of ``points`` (j, 2), data coordinates. matplotlib's ``loc="best"`` finds
-    the same by testing every vertex of every artist in Python, and cost a third of the figure."""
+    """The legend corner ("upper left", … as ``calib.svg.Axes.legend`` takes) whose region — 45 % ×
+    35 % of the axes — holds the fewest of ``points`` (j, 2), data coordinates."""
     u = (points[:, 0] - xlim[0]) / (xlim[1] - xlim[0])
     v = (points[:, 1] - ylim[0]) / (ylim[1] - ylim[0])
     counts = {}
@@ -130,51 +110,37 @@ def _emptiest_corner(points: np.ndarray, xlim: tuple[float, float], ylim: tuple[
 
 
 def tcp_cloud_figure(clouds: TcpClouds) -> str:
-    """The paper's Fig. 5, one column per configuration; returns an ``<img>`` tag.
+    """The paper's Fig. 5, one ``<svg>`` per configuration (``side_by_side``).
 
-    Top row: before (red), after (green), draws + σ (blue) and offset draws (yellow) at a scale
-    that shows the move. Bottom row: zoomed on the offset draws alone (with the after point), the
-    part of the error the offsets' uncertainty leaves.
+    Top: before (red), after (green), draws + σ (blue) and offset draws (yellow) at a scale that
+    shows the move, with equal x and y scales. Bottom: zoomed on the offset draws alone (with the
+    after point), the part of the error the offsets' uncertainty leaves.
     """
-    k = len(clouds.rows)
-    fig = _figure(3.4 * k + 0.4, 6.8, left=0.6, wspace=0.45, hspace=0.35)
-    ax = fig.subplots(2, k, squeeze=False)
-    for c in range(k):
+    out = []
+    for c in range(len(clouds.rows)):
         origin = clouds.after[c, :2]
         b, a = clouds.before[c, :2] - origin, np.zeros(2)
         d, nz = clouds.draws[c, :, :2] - origin, clouds.noisy[c, :, :2] - origin
-        top, bottom = ax[0, c], ax[1, c]
-        top.scatter(nz[:, 0], nz[:, 1], s=2, color="tab:blue", alpha=0.35, lw=0, label="offset draws + σ", rasterized=True)
-        top.scatter(d[:, 0], d[:, 1], s=2, color="gold", alpha=0.9, lw=0, label="offset draws", rasterized=True)
-        top.annotate("", xy=a, xytext=b, arrowprops={"arrowstyle": "->", "color": "0.4", "lw": 0.8})
-        top.plot(*a, "o", color="tab:green", ms=6, mec="k", mew=0.5, label="after")
-        top.plot(*b, "o", color="tab:red", ms=6, mec="k", mew=0.5, label="before")
-        top.set_title(f"configuration {clouds.config[c]}: before → after {clouds.shift_mm[c]:.3g} mm", fontsize=8)
-        lims = [_limits(np.vstack([nz, [a], [b]]))]
-        bottom.scatter(d[:, 0], d[:, 1], s=3, color="goldenrod", alpha=0.6, lw=0, rasterized=True)
-        bottom.plot(*a, "o", color="tab:green", ms=5, mec="k", mew=0.5)
-        spread = np.percentile(np.linalg.norm(d, axis=1), 95)
-        bottom.set_title(f"offset draws alone: 95 % within {spread:.2g} mm", fontsize=8)
+        fig = Figure(330, 660)
+        top = fig.axes((62, 28, 250, 250), *_limits(np.vstack([nz, [a], [b]])))
+        top.scatter(nz[:, 0], nz[:, 1], size=2, color=COLOURS["blue"], opacity=0.35, label="offset draws + σ")
+        top.scatter(d[:, 0], d[:, 1], size=2, color=COLOURS["gold"], opacity=0.9, label="offset draws")
+        top.arrow(b, a)
+        top.marker(*a, color=COLOURS["green"], label="after")
+        top.marker(*b, color=COLOURS["red"], label="before")
+        labels = {"xlabel": "x − x_after (mm)", "ylabel": "y − y_after (mm)", "grid": True}
+        top.frame(title=f"configuration {clouds.config[c]}: before → after {clouds.shift_mm[c]:.3g} mm", **labels)
         lo, hi = np.percentile(d, [0.5, 99.5], axis=0)
-        lims.append(_limits(np.vstack([lo, hi, a])))
-        for axc, (xl, yl) in zip((top, bottom), lims):
-            axc.set_xlim(*xl)
-            axc.set_ylim(*yl)
-            axc.set_aspect("equal", adjustable="box")
-            axc.tick_params(labelsize=7)
-            axc.locator_params(nbins=5)
-            axc.grid(True, lw=0.3)
-            axc.set_xlabel("x − x_after (mm)", fontsize=7)
-            axc.set_ylabel("y − y_after (mm)", fontsize=7)
-    first = ax[0, 0]
-    d0, nz0 = clouds.draws[0, :, :2] - clouds.after[0, :2], clouds.noisy[0, :, :2] - clouds.after[0, :2]
-    corner = _emptiest_corner(np.vstack([nz0, d0, clouds.before[0, :2] - clouds.after[0, :2], [0.0, 0.0]]),
-                              first.get_xlim(), first.get_ylim())
-    leg = first.legend(fontsize=7, loc=corner, framealpha=0.8)
-    for h in leg.legend_handles[:2]:
-        h.set_sizes([16])
-        h.set_alpha(1.0)
-    return png(fig, "TCP cloud (Fig. 5): before, after, posterior draws of the offsets with and without σ")
+        bottom = fig.axes((62, 368, 250, 250), *_limits(np.vstack([lo, hi, a])))
+        bottom.scatter(d[:, 0], d[:, 1], size=3, color=COLOURS["goldenrod"], opacity=0.6)
+        bottom.marker(*a, color=COLOURS["green"], size=7)
+        spread = np.percentile(np.linalg.norm(d, axis=1), 95)
+        bottom.frame(title=f"offset draws alone: 95 % within {spread:.2g} mm", **labels)
+        if c == 0:
+            top.legend(_emptiest_corner(np.vstack([nz, d, [b], [a]]), top.xlim, top.ylim))
+        out.append(fig.svg(f"TCP cloud (Fig. 5), configuration {clouds.config[c]}: before, after, posterior draws of the "
+                           "offsets with and without σ"))
+    return side_by_side(out)
 
 
 def offset_trace_figure(result: FitResult) -> str | None:
@@ -186,48 +152,60 @@ def offset_trace_figure(result: FitResult) -> str | None:
         return None
     axes = result.model.axis_names
     full = post.full_vector(result.chains.samples[..., : post.dim])  # (c, d, n + …)
-    fig = _figure(10, 1.5 * len(fitted) + 0.6, left=0.85, wspace=0.05, hspace=0.3, bottom=0.45)
-    # The histogram shares its row's vertical axis and draws no axes of its own: tick labels are
-    # most of a figure's drawing cost, and the counts say nothing the shape does not.
-    ax = fig.subplots(len(fitted), 2, squeeze=False, gridspec_kw={"width_ratios": [4, 1]})
     step = max(1, math.ceil(full.shape[1] / TRACE_POINTS))
     x = np.arange(0, full.shape[1], step)
+    row_h, gap, top_margin = 100, 24, 28
+    fig = Figure(760, top_margin + len(fitted) * (row_h + gap) - gap + 50)
+    xlim = data_limits(x)
     for row, i in enumerate(fitted):
-        trace, hist = ax[row]
+        y0 = top_margin + row * (row_h + gap)
+        values = np.degrees(full[..., i])
+        ylim = data_limits(values)
+        trace = fig.axes((80, y0, 540, row_h), xlim, ylim)
         for c in range(full.shape[0]):
-            trace.plot(x, np.degrees(full[c, ::step, i]), lw=0.5)
-        trace.set_ylabel(f"δ{axes[i]} (°)", fontsize=8)
-        trace.tick_params(labelsize=7)
-        trace.locator_params(axis="y", nbins=4)
-        counts, edges = np.histogram(np.degrees(full[..., i].ravel()), bins=40)
-        hist.stairs(counts, edges, fill=True, color="tab:blue", alpha=0.8, orientation="horizontal")  # one artist
-        hist.axhline(math.degrees(result.offsets_rad[i]), color="k", lw=1)
-        hist.sharey(trace)
-        hist.set_axis_off()
-        if row < len(fitted) - 1:  # the draw axis is common: label it once, at the bottom
-            trace.sharex(ax[-1, 0])
-            trace.tick_params(labelbottom=False)
-    ax[0, 0].set_title("trace plots (one colour per chain)", fontsize=9)
-    ax[0, 1].set_title("posterior (line: mean)", fontsize=9)
-    ax[-1, 0].set_xlabel(f"draw (every {step}th shown)" if step > 1 else "draw", fontsize=8)
-    return png(fig, "trace plots and posterior histograms of the fitted offsets", dpi=90)
+            trace.line(x, values[c, ::step], color=TAB10[c % len(TAB10)], width=0.6)
+        last = row == len(fitted) - 1
+        trace.frame(ylabel=f"δ{axes[i]} (°)", xticks=last, ynbins=4,
+                    xlabel=(f"draw (every {step}th shown)" if step > 1 else "draw") if last else "")
+        # The histogram shares its row's vertical scale and draws no axes of its own: the counts
+        # say nothing the shape does not.
+        counts, edges = np.histogram(values.ravel(), bins=40, range=ylim)
+        hist = fig.axes((630, y0, 110, row_h), (0.0, counts.max() * 1.05), ylim)
+        hist.stairs_horizontal(counts, edges, color=COLOURS["blue"])
+        hist.hline(math.degrees(result.offsets_rad[i]), color="#000")
+    fig.text(80 + 270, top_margin - 8, "trace plots (one colour per chain)")
+    fig.text(630 + 55, top_margin - 8, "posterior (line: mean)")
+    return fig.svg("trace plots and posterior histograms of the fitted offsets")
 
 
 def error_figure(result: FitResult, data: Dataset) -> str:
     """Post-registration error (eq. 18) per measurement and against the distance from the sensor,
-    before (nominal offsets) and after (applied offsets)."""
+    before (nominal offsets) and after (applied offsets); two ``<svg>`` side by side."""
     chain = Chain(result.model)
     before = absolute_errors(data, predicted_base(chain, data, np.zeros(chain.n)))
     after = absolute_errors(data, predicted_base(chain, data, result.applied_offsets_rad))
-    fig = _figure(10, 3.4, wspace=0.25)
-    ax = fig.subplots(1, 2)
-    idx = np.arange(len(data))
+    idx = np.arange(len(data), dtype=float)
     dist = np.linalg.norm(data.xyz_mm, axis=1) / 1000.0
-    for a, x, xlabel in ((ax[0], idx, "measurement (row)"), (ax[1], dist, "distance from the sensor (m)")):
-        a.plot(x, before, ".", color="tab:red", label="before (nominal offsets)")
-        a.plot(x, after, ".", color="tab:green", label="after (applied offsets)")
-        a.set_xlabel(xlabel, fontsize=8)
-        a.set_ylabel("error after registration, eq. 18 (mm)", fontsize=8)
-        a.tick_params(labelsize=7)
-        a.legend(fontsize=7)
-    return png(fig, "post-registration error per measurement, before and after", dpi=90)
+    out = []
+    for x, xlabel in ((idx, "measurement (row)"), (dist, "distance from the sensor (m)")):
+        out.append(error_scatter(x, before, after, xlabel=xlabel, ylabel="error after registration, eq. 18 (mm)",
+                                 labels=("before (nominal offsets)", "after (applied offsets)"),
+                                 alt=f"post-registration error against {xlabel}, before and after"))
+    return side_by_side(out)
+
+
+def error_scatter(x: np.ndarray, before: np.ndarray, after: np.ndarray, *, xlabel: str, ylabel: str,
+                  labels: tuple[str, str], alt: str, width: float = 480, logy: bool = False) -> str:
+    """Errors (mm) before (red) and after (green) against ``x`` (k,), one ``<svg>`` ``width`` px
+    wide; from 0 up (``logy``: on a log scale around the data)."""
+    both = np.concatenate([before, after])
+    ylim = data_limits(both, log=True) if logy else (min(0.0, float(both.min())), data_limits(both)[1])
+    xlim = data_limits(x)
+    fig = Figure(width, 300)
+    ax = fig.axes((64, 14, width - 80, 220), xlim, ylim, logy=logy)
+    ax.scatter(x, before, size=4, color=COLOURS["red"], label=labels[0])
+    ax.scatter(x, after, size=4, color=COLOURS["green"], label=labels[1])
+    ax.frame(xlabel=xlabel, ylabel=ylabel)
+    y = np.log10(both) if logy else both
+    ax.legend(_emptiest_corner(np.column_stack([np.concatenate([x, x]), y]), xlim, tuple(np.log10(ylim)) if logy else ylim))
+    return fig.svg(alt)

@@ -107,7 +107,8 @@ th{background:#eee}td.l,th.l{text-align:left}tr.note td{font-size:0.85em;color:#
 tr.note div,tr.group div{position:sticky;left:0.5em;max-width:calc(100vw - 3em)}
 tr.group td{background:#f3f3f3;font-weight:600}
 .warn{color:#a40}.bad{color:#b00}.good{color:#060}.small{font-size:0.85em;color:#555}
-img{max-width:100%;height:auto;border:1px solid #ddd;margin:0.5em 0}
+svg.fig{max-width:100%;height:auto;border:1px solid #ddd;margin:0.5em 0;background:#fff}
+.figs{display:flex;flex-wrap:wrap;gap:0 0.5em}
 pre{background:#f6f6f6;padding:0.6em;overflow-x:auto}
 pre.wrap,code.wrap{white-space:pre-wrap;overflow-wrap:anywhere}
 .summary{border:2px solid #888;border-radius:6px;padding:0.6em 1em;margin:1em 0;background:#fcfcfc}

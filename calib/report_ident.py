@@ -78,23 +78,18 @@ def _accuracy(doc: dict) -> list[str]:
 def _error_figure(result: IdentResult, cal: Dataset) -> list[str]:
     from calib.kinematics import Chain
     from calib.metrics import registrations
-    from calib.report_figures import _figure, png
+    from calib.report_figures import error_scatter
 
     chain = Chain(result.model)
     idx = np.array([chain.marker_names.index(m) for m in cal.marker])
     nominal = chain.marker_positions(cal.q_rad)[np.arange(len(cal)), idx]
     before = pose_errors(result.model, chain.nominal, cal, registrations(cal, nominal))
     after = pose_errors(result.model, result.params, cal, result.base2sensor)
-    fig = _figure(10, 3.2)
-    ax = fig.subplots(1, 1)
-    ax.plot(np.arange(len(cal)), before, ".", color="tab:red", label="before (nominal, least-squares registration)")
-    ax.plot(np.arange(len(cal)), after, ".", color="tab:green", label="after (identified, its registration)")
-    ax.set_yscale("log")
-    ax.set_xlabel("measurement (row)", fontsize=8)
-    ax.set_ylabel("position error (mm)", fontsize=8)
-    ax.tick_params(labelsize=7)
-    ax.legend(fontsize=7)
-    return ["<h2>Error per measurement</h2>", png(fig, "position error per calibration measurement, before and after", dpi=90)]
+    figure = error_scatter(np.arange(len(cal), dtype=float), before, after, xlabel="measurement (row)",
+                           ylabel="position error (mm)", width=760, logy=True,
+                           labels=("before (nominal, least-squares registration)", "after (identified, its registration)"),
+                           alt="position error per calibration measurement, before and after")
+    return ["<h2>Error per measurement</h2>", figure]
 
 
 def render_ident_report(result: IdentResult, cal: Dataset, doc: dict) -> str:

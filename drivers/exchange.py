@@ -62,6 +62,16 @@ _MCL_CURRENT, _MCL_FUTURE = 1, 2
 _LENGTH = struct.Struct("<I")
 
 
+def ring_in_order(ring: np.ndarray, count: int) -> np.ndarray:
+    """The entries of a ring buffer that has had ``count`` writes (write ``k`` went to slot
+    ``k % len(ring)``), oldest first: shape (min(count, len(ring)),) — a copy."""
+    w = ring.shape[0]
+    if count <= w:
+        return ring[:count].copy()
+    i = count % w
+    return np.concatenate([ring[i:], ring[:i]])
+
+
 class SharedState:
     """Named float64 arrays in one shared-memory block, guarded by a seqlock.
 

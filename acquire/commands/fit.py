@@ -16,23 +16,26 @@ from __future__ import annotations
 import logging
 import math
 from pathlib import Path
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
-import numpy as np
 import typer
 
-from calib.controller import apply_guards, controller_values
-from calib.dataset import Dataset, DatasetError, read_csv
-from calib.fit import FitOptions, FitResult, fit_offsets
-from calib.kinematics import Chain
-from calib.metrics import accuracy_metrics
-from calib.model import RobotModel, load_robot_model
-from calib.result import result_dict, write_result
-from calib.yamlfile import ConfigError
+if TYPE_CHECKING:  # the fit's modules load when it runs, not for `acquire fit --help`
+    from calib.dataset import Dataset
+    from calib.fit import FitResult
+    from calib.model import RobotModel
 
 log = logging.getLogger(__name__)
 
-Loader = Callable[[Path, RobotModel], Dataset]
+Loader = Callable[[Path, "RobotModel"], "Dataset"]
+
+
+def dataset_from_csv(path: Path, model: RobotModel) -> Dataset:
+    """A CSV of ``calib.dataset``'s format as a dataset."""
+    from calib.dataset import read_csv
+
+    return read_csv(path, model)
+
 
 def dataset_from_run(path: Path, model: RobotModel) -> Dataset:
     """A run's MCAP log as a dataset (``acquire.recorder``, imported only for .mcap input)."""
@@ -41,12 +44,14 @@ def dataset_from_run(path: Path, model: RobotModel) -> Dataset:
     return load(path, model)
 
 
-#: Input loaders by lower-case file suffix.
-LOADERS: dict[str, Loader] = {".csv": read_csv, ".mcap": dataset_from_run}
+#: Input loaders by lower-case file suffix; each imports its reader when called.
+LOADERS: dict[str, Loader] = {".csv": dataset_from_csv, ".mcap": dataset_from_run}
 
 
 def load_dataset(path: Path, model: RobotModel) -> Dataset:
     """Read ``path`` with the loader for its suffix; DatasetError on unknown suffixes."""
+    from calib.dataset import DatasetError
+
     loader = LOADERS.get(path.suffix.lower())
     if loader is None:
         raise DatasetError(f"{path}: no loader for {path.suffix or 'files without a suffix'!r}; known: {sorted(LOADERS)}")
@@ -252,14 +257,28 @@ def fit(
     for name, value, low in (("--draws", draws, 10), ("--paper-samples", paper_samples, 80), ("--random-configs", n_random, 1)):
         if value < low:
             raise typer.BadParameter(f"must be at least {low}, given {value}", param_hint=name)
+    # The fit's own modules: imported here, so that `acquire fit --help` and a refused option cost
+    # no numpy and no fitter.
+    import numpy as np
+
+    from calib.controller import apply_guards, controller_values
+    from calib.csvdialect import is_socket_csv
+    from calib.dataset import DatasetError
+    from calib.fit import FitOptions, fit_offsets
+    from calib.kinematics import Chain
+    from calib.metrics import accuracy_metrics
+    from calib.model import load_robot_model
+    from calib.result import result_dict, write_result
+    from calib.yamlfile import ConfigError
+
     try:
         model = load_robot_model(robot)
     except ConfigError as exc:
         raise typer.BadParameter(str(exc), param_hint="--robot") from exc
-    from acquire.commands.socket_fit import SocketDataError, fit_socket_file, is_socket_csv, read_socket_run
-
     socket_run = None
     if data.suffix.lower() == ".mcap" and data.is_file():
+        from acquire.commands.socket_fit import SocketDataError, read_socket_run  # the socket fit only for its data
+
         try:
             socket_run = read_socket_run(data, model.n_joints, distance_mm=socket_distance)
         except SocketDataError as exc:
@@ -267,6 +286,8 @@ def fit(
         except (ValueError, OSError):
             socket_run = None  # not readable as a run here: load_dataset below says why
     if socket_run is not None or is_socket_csv(data):
+        from acquire.commands.socket_fit import fit_socket_file
+
         sensor_only = {"--validate": validate is not None, "--joints": joints is not None, "--fix-registration": fix_registration,
                        "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper",
                        "--starts": starts is not None}
@@ -394,6 +415,7 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
     """``--method full``: Levenberg–Marquardt identification (``options``: ``calib.identification.IdentOptions``),
     corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report_ident``)."""
     from calib.identification import corrected_model, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
+    from calib.result import write_result
 
     try:
         result = identify(model, cal, options)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from calib.csvdialect import is_socket_csv  # noqa: F401 - the format test, here with the socket fit it chooses
 from calib.kinematics import Chain
 from calib.model import RobotModel
 from calib.socket import (
@@ -30,22 +31,6 @@ MAX_PLAUSIBLE_PLAY_MM = 1.0
 #: An offset whose 95 % interval is wider than ± this (degrees) is too weakly determined to
 #: enter: the correction could be worse than leaving the axis as it is.
 MAX_ENTER_CI95_DEG = 0.1
-
-
-def is_socket_csv(path: Path) -> bool:
-    """True for a CSV whose header (first non-comment line) ends in ``placement,socket``."""
-    if path.suffix.lower() != ".csv":
-        return False
-    from calib.csvdialect import split_header
-
-    try:
-        with path.open(encoding="utf-8-sig") as fh:
-            for line in fh:
-                if line.strip() and not line.lstrip().startswith("#"):
-                    return split_header(line)[-2:] == ["placement", "socket"]
-    except (OSError, UnicodeDecodeError):
-        return False
-    return False
 
 
 def _deg(kind: str) -> bool:

@@ -48,7 +48,7 @@ import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, Clock, CommanderBase
 from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, DriverError
-from drivers.exchange import ExchangeProcess
+from drivers.exchange import ExchangeProcess, ring_in_order
 from drivers.kuka_fri import realtime
 from drivers.kuka_fri.messages import ConnectionQuality, IOType, SessionState
 from drivers.kuka_fri.session import (
@@ -292,12 +292,6 @@ class FriCommander(CommanderBase):
         except ConnectionError:  # closed meanwhile by another thread
             return None
 
-    def _ordered(self, ring: np.ndarray, count: int) -> np.ndarray:
-        if count <= self._W:
-            return ring[:count].copy()
-        i = count % self._W
-        return np.concatenate([ring[i:], ring[:i]])
-
     def link_stats(self) -> LinkStats:
         """Timing of the last cycles, measured in the exchange process (see ``LinkStats``).
         Costs O(window); not for a tight loop."""
@@ -307,7 +301,7 @@ class FriCommander(CommanderBase):
                 return self._final_stats
             st = {k: np.zeros(max(1, self._W)) for k in realtime.LINK + realtime.COUNTERS + ("lat", "rx")}
         count = int(st["count"][0])
-        rx, lat = self._ordered(st["rx"], count), self._ordered(st["lat"], count)
+        rx, lat = ring_in_order(st["rx"], count), ring_in_order(st["lat"], count)
         n = lat.shape[0]
         per = np.diff(rx) if n > 1 else np.zeros(1)
         q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
@@ -331,7 +325,18 @@ class FriCommander(CommanderBase):
         measured in the exchange process (kernel arrival stamp to the answer's send; 0 for a
         message that needed no answer)."""
         st = self._read(("count", "lat"))
-        return np.zeros(0) if st is None else self._ordered(st["lat"], int(st["count"][0]))
+        return np.zeros(0) if st is None else ring_in_order(st["lat"], int(st["count"][0]))
+
+    def answer_log(self) -> tuple[int, np.ndarray, np.ndarray]:
+        """``(messages, arrived, latency)``: monitoring messages so far and, for the last
+        min(messages, window) of them, oldest first, each shape (m,), the arrival time on the
+        commander's ``clock`` (s; ``time.monotonic`` by default) and the answer latency (s; 0 for
+        a message that needed no answer) — to place late answers in time (benches poll it)."""
+        st = self._read(("count", "lat", "rx"))
+        if st is None:
+            return 0, np.zeros(0), np.zeros(0)
+        count = int(st["count"][0])
+        return count, ring_in_order(st["rx"], count), ring_in_order(st["lat"], count)
 
     @property
     def malformed_messages(self) -> int:

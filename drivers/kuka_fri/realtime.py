@@ -388,12 +388,23 @@ class FriLoop:
         """IO values into the shared state (inside ``_publish``'s write); a changed set of IOs
         goes to the main process as a new ``io_table`` first (rare: the application's config)."""
         st = self.state
-        key = tuple((io.name, int(io.type), int(io.direction)) for io in ios)
-        if key != self._io_key:
-            self._io_key, self._io_gen = key, self._io_gen + 1
-            self.link.send("io_table", self._io_gen, key)
+        if self._io_table_changed(ios):
+            self._io_key = tuple((io.name, int(io.type), int(io.direction)) for io in ios)
+            self._io_gen += 1
+            self.link.send("io_table", self._io_gen, self._io_key)
         st["io_gen"][0] = self._io_gen
         st["n_io"][0] = len(ios)
         for i, io in enumerate(ios):
             st["io_digital"][i] = math.nan if io.digital_value is None else io.digital_value
             st["io_analog"][i] = math.nan if io.analog_value is None else io.analog_value
+
+    def _io_table_changed(self, ios) -> bool:
+        """Whether the IOs' names, types or directions differ from the last table sent — compared
+        in place, without building a new table every cycle (the hot path)."""
+        key = self._io_key
+        if len(ios) != len(key):
+            return True
+        for io, (name, io_type, direction) in zip(ios, key):
+            if io.name != name or io.type != io_type or io.direction != direction:
+                return True
+        return False

@@ -38,7 +38,7 @@ import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, CommanderBase, check_timeout
 from drivers.errors import ConnectionLostError, DeviceTimeoutError, DriverError, LimitError
-from drivers.exchange import ExchangeProcess
+from drivers.exchange import ExchangeProcess, ring_in_order
 from drivers.kuka_rsi import realtime
 from drivers.protocols import JointLimits, JointState, LinkStats
 from drivers.trajectory import JointTrajectory, default_jerk, scaled_limits
@@ -349,7 +349,7 @@ class RsiCommander(CommanderBase):
             snap = dict.fromkeys(realtime.SCALARS, np.zeros(1))
         else:
             count = int(snap["count"][0])
-            lat, rx = self._ordered(snap["lat"], count), self._ordered(snap["rx"], count)
+            lat, rx = ring_in_order(snap["lat"], count), ring_in_order(snap["rx"], count)
         n = lat.shape[0]
         per = np.diff(rx) if n > 1 else np.zeros(1)
         q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
@@ -373,12 +373,6 @@ class RsiCommander(CommanderBase):
             notes=(f"controller Delay {delay}", f"exchange process: {ex.realtime if ex else 'not running'}"),
         )
 
-    def _ordered(self, ring: np.ndarray, count: int) -> np.ndarray:
-        if count <= self._W:
-            return ring[:count].copy()
-        i = count % self._W
-        return np.concatenate([ring[i:], ring[:i]])
-
     def latencies(self) -> np.ndarray:
         """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),),
         measured in the exchange process (kernel arrival stamp to the answer's send)."""
@@ -389,7 +383,22 @@ class RsiCommander(CommanderBase):
             snap = None
         if snap is None:
             return np.zeros(0)
-        return self._ordered(snap["lat"], int(snap["count"][0]))
+        return ring_in_order(snap["lat"], int(snap["count"][0]))
+
+    def answer_log(self) -> tuple[int, np.ndarray, np.ndarray]:
+        """``(packets, arrived, latency)``: packets answered so far and, for the last
+        min(packets, stats_window) of them, oldest first, each shape (m,), the kernel's arrival
+        stamp (wall-clock s, ``time.time`` scale) and the answer latency (s) — to place late
+        answers in time (benches poll it to keep more than the ring holds)."""
+        ex = self._exchange
+        try:
+            snap = None if ex is None or ex.state is None else ex.state.read(("count", "lat", "rx"))
+        except ConnectionError:  # closed meanwhile by another thread
+            snap = None
+        if snap is None:
+            return 0, np.zeros(0), np.zeros(0)
+        count = int(snap["count"][0])
+        return count, ring_in_order(snap["rx"], count), ring_in_order(snap["lat"], count)
 
     # -- motion -------------------------------------------------------------------------------
 

@@ -196,6 +196,48 @@ class DaemonProcess:
                 return int(line.split()[1])
         raise AssertionError("no VmRSS in /proc status")
 
+    def sockets(self) -> int:
+        n = 0
+        for fd in os.listdir(f"/proc/{self.pid}/fd"):
+            try:
+                n += os.readlink(f"/proc/{self.pid}/fd/{fd}").startswith("socket:")
+            except OSError:  # closed meanwhile
+                pass
+        return n
+
+
+def start_abort_cycles(proc: DaemonProcess, op, cycles: int) -> list[tuple]:
+    """Start the example plan and abort it once running, ``cycles`` times; after each, the row
+    (cycle, threads, fds, sockets, rss_kb, python_heap_kb) of the daemon (heap: run it with
+    ``PYTHONTRACEMALLOC=1``)."""
+    rows = []
+    for cycle in range(cycles):
+        run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
+        wait_until(lambda: (op.call("status")["run"] or {}).get("state") == "running", 30, f"run {run_id} running")
+        op.call("abort", {"reason": f"soak cycle {cycle}"})
+        st = wait_until(lambda: (s := op.call("status"))["run"] is None and s, 30, f"run {run_id} ended")
+        assert st["healthy"], st["health"]
+        rows.append((cycle, proc.threads(), proc.fds(), proc.sockets(), proc.rss_kb(), st["memory"]["python_heap_kb"]))
+    return rows
+
+
+def leak_figures(rows: list[tuple], warm_up: int) -> dict:
+    """Growth from row ``warm_up`` to the end and robust (Theil–Sen) slopes per cycle of the
+    rows of ``start_abort_cycles``; ``line``: the figures for a person."""
+    from scipy.stats import theilslopes
+
+    base, end = rows[warm_up], rows[-1]
+    steady = rows[warm_up:]
+    cycles = [r[0] for r in steady]
+    heap_slope = theilslopes([r[5] for r in steady], cycles)[0]
+    rss_slope = theilslopes([r[4] for r in steady], cycles)[0]
+    line = (f"after {len(rows)} start/abort cycles (baseline = cycle {warm_up}): threads {base[1]}→{end[1]}, "
+            f"fds {base[2]}→{end[2]}, sockets {base[3]}→{end[3]}, "
+            f"Python heap {base[5] / 1024:.2f}→{end[5] / 1024:.2f} MiB (robust slope {heap_slope:+.1f} kB/cycle), "
+            f"RSS {base[4] / 1024:.1f}→{end[4] / 1024:.1f} MiB ({(end[4] - base[4]) / 1024:+.1f} MiB, "
+            f"robust slope {rss_slope:+.0f} kB/cycle)")
+    return {"base": base, "end": end, "heap_slope": heap_slope, "rss_slope": rss_slope, "line": line}
+
 
 def open_client(port: int, *, tls: dict | None = None, proto: str = "tcp"):
     """A client-mode Bus connected to the daemon's router, returned once the daemon's

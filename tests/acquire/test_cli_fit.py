@@ -80,10 +80,10 @@ def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
     assert m["settings"]["n_random_configurations"] == 100
     assert doc["diagnostics"]["method"] == "fast" and doc["diagnostics"]["rhat_max"] < 1.05
     assert [a["action"] for a in doc["controller"]["axes"]] == ["leave unchanged"] + ["enter"] * 5 + ["leave unchanged"]
-    # report.html: self-contained (embedded PNGs, nothing fetched).
+    # report.html: self-contained (inline SVG figures, nothing fetched).
     html = rep.read_text()
-    assert html.count('src="data:image/png;base64,') == 3  # TCP cloud (Fig. 5), traces, errors
-    assert '<img alt="TCP cloud' in html and "id=summary" in html
+    assert html.count("<svg ") == 6  # TCP cloud (Fig. 5) per configuration, traces, errors two ways
+    assert html.count('aria-label="TCP cloud') == 3 and "id=summary" in html and "<img" not in html
     assert not re.search(r'(src|href)="(http|//)', html)
     for heading in ("Values to enter", "Zero-offsets", "Tool markers (flange frame, mm)", "Accuracy before and after", "Identifiability", "Sampler diagnostics"):
         assert heading in html

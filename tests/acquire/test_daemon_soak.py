@@ -9,16 +9,15 @@ from __future__ import annotations
 import os
 
 import pytest
-from scipy.stats import theilslopes
-
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     OPERATOR_TOKEN,
     DaemonProcess,
     NotifySocket,
     control,
     free_port,
+    leak_figures,
     open_client,
-    wait_until,
+    start_abort_cycles,
     write_config,
 )
 
@@ -39,18 +38,6 @@ MAX_HEAP_SLOPE_KB = 8
 MAX_RSS_GROWTH_KB = 8 * 1024
 
 
-def _sockets(pid: int) -> int:
-    import os
-
-    n = 0
-    for fd in os.listdir(f"/proc/{pid}/fd"):
-        try:
-            n += os.readlink(f"/proc/{pid}/fd/{fd}").startswith("socket:")
-        except OSError:  # closed meanwhile
-            pass
-    return n
-
-
 @pytest.mark.slow
 @pytest.mark.timeout(360)  # 12 runs started and aborted: minutes on a loaded 2-core machine
 def test_start_abort_cycles_leak_no_threads_sockets_or_memory(tmp_path):
@@ -58,19 +45,11 @@ def test_start_abort_cycles_leak_no_threads_sockets_or_memory(tmp_path):
     port = free_port()
     proc = DaemonProcess(write_config(tmp_path, port), notify, watchdog_usec=2_000_000,
                          env={"PYTHONTRACEMALLOC": "1"})
-    rows = []
     try:
         proc.wait_ready()
         with open_client(port) as bus:
             op = control(bus, "operator", OPERATOR_TOKEN)
-            for cycle in range(CYCLES):
-                run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
-                wait_until(lambda: (op.call("status")["run"] or {}).get("state") == "running", 30, f"run {run_id} running")
-                op.call("abort", {"reason": f"soak cycle {cycle}"})
-                st = wait_until(lambda: (s := op.call("status"))["run"] is None and s, 30, f"run {run_id} ended")
-                assert st["healthy"], st["health"]
-                rows.append((cycle, proc.threads(), proc.fds(), _sockets(proc.pid), proc.rss_kb(),
-                             st["memory"]["python_heap_kb"]))
+            rows = start_abort_cycles(proc, op, CYCLES)
             assert len(op.call("runs")["runs"]) <= CYCLES
         pings = notify.count("WATCHDOG", "1")
         assert proc.stop() == 0
@@ -80,16 +59,9 @@ def test_start_abort_cycles_leak_no_threads_sockets_or_memory(tmp_path):
     print("\ncycle threads fds sockets rss_kb heap_kb")
     for r in rows:
         print("%5d %7d %3d %7d %6d %7.1f" % r)
-    base, end = rows[WARM_UP], rows[-1]
-    steady = rows[WARM_UP:]
-    cycles = [r[0] for r in steady]
-    heap_slope = theilslopes([r[5] for r in steady], cycles)[0]
-    rss_slope = theilslopes([r[4] for r in steady], cycles)[0]
-    print(f"after {CYCLES} start/abort cycles (baseline = cycle {WARM_UP}): threads {base[1]}→{end[1]}, "
-          f"fds {base[2]}→{end[2]}, sockets {base[3]}→{end[3]}, "
-          f"Python heap {base[5] / 1024:.2f}→{end[5] / 1024:.2f} MiB (robust slope {heap_slope:+.1f} kB/cycle), "
-          f"RSS {base[4] / 1024:.1f}→{end[4] / 1024:.1f} MiB ({(end[4] - base[4]) / 1024:+.1f} MiB, "
-          f"robust slope {rss_slope:+.0f} kB/cycle); watchdog pings {pings}")
+    leak = leak_figures(rows, WARM_UP)
+    base, end, heap_slope = leak["base"], leak["end"], leak["heap_slope"]
+    print(f"{leak['line']}; watchdog pings {pings}")
     assert end[1] - base[1] <= MAX_THREAD_GROWTH, rows
     assert end[2] - base[2] <= MAX_FD_GROWTH, rows
     assert end[3] - base[3] <= MAX_FD_GROWTH, rows

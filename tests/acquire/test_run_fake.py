@@ -46,8 +46,13 @@ def test_complete_fake_run_logs_every_configuration_and_fits_near_the_truth(tmp_
         (marker,) = rec["markers"]
         assert marker["sensor"] == "mocap" and marker["marker"] == "sir" and marker["count"] == 5
     kinds = [e["kind"] for e in contents.events]
-    for kind in ("run_started", "moved", "settled", "measured", "run_finished"):
+    for kind in ("run_started", "moved", "settled", "measured", "link", "run_finished"):
         assert kind in kinds
+    # the real-time link over the run, just before its end: every cycle of the run counted
+    (link,) = [e for e in contents.events if e["kind"] == "link"]
+    assert kinds.index("link") == kinds.index("run_finished") - 1
+    assert link["packets"] > 0.5 * (contents.events[-1]["t"] - contents.events[0]["t"]) / 0.005  # FRI, 5 ms cycles
+    assert link["malformed"] == 0 and 0 < link["latency_p50_us"] <= link["latency_p99_us"] <= link["latency_max_us"]
     assert contents.message_counts.get("/joint_state", 0) > 10
     assert contents.message_counts.get("/mocap/markers", 0) > 10
     # the Foxglove view: the robot's frames with each joint state, markers in the scene, events as log lines

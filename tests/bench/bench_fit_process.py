@@ -10,8 +10,13 @@ figures, writing) — wall time. The fit itself: ``calib.fit.fit_offsets`` with 
 default options on the same calibration rows, in this process after a warm-up — wall time.
 Both are medians of ``--repeat`` runs, interleaved (process, fit, process, …) so a load change
 hits both alike. Prints both, their ratio (issue 16's target: ≤ 2×), and where the rest of the
-process goes (imports of a fresh interpreter, metrics and report in this process), plus the load.
+process goes (a fresh interpreter importing ``COMMAND_IMPORTS``, metrics and report in this
+process), plus the load.
 Data: fixtures/datasets/iiwa14_sim_{cal,val}.csv and the LBR iiwa 14 model of fixtures/robots.
+
+The child processes inherit this environment: with ``PYTHONDONTWRITEBYTECODE`` set (and no
+``PYTHONPYCACHEPREFIX``) every start compiles the checkout's own modules again, which an installed
+wheel never does (pip writes their bytecode at install time); the first line says which.
 """
 
 from __future__ import annotations
@@ -26,6 +31,11 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
+
+#: What the command imports before it reads anything: the CLI, the command and the modules the
+#: command imports when it runs (the report's own modules are counted with the report).
+COMMAND_IMPORTS = ["acquire.cli", "acquire.commands.fit", "calib.controller", "calib.dataset", "calib.fit",
+                   "calib.metrics", "calib.model", "calib.result"]
 
 
 def main() -> None:
@@ -71,7 +81,7 @@ def main() -> None:
         imp = []
         for _ in range(args.repeat):
             t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-c", "import acquire.commands.fit"], cwd=tmp, env=env, check=True)
+            subprocess.run([sys.executable, "-c", "import " + ", ".join(COMMAND_IMPORTS)], cwd=tmp, env=env, check=True)
             imp.append(time.perf_counter() - t0)
         _, res = fit_once()
         t0 = time.perf_counter()
@@ -83,19 +93,19 @@ def main() -> None:
         doc = result_dict(res, cal, metrics=metrics)
         t0 = time.perf_counter()
         write_report(Path(tmp) / "again.html", res, cal, doc)
-        t_report = time.perf_counter() - t0  # first report of this process: imports matplotlib
+        t_report = time.perf_counter() - t0  # first report of this process: imports the report's modules
         t0 = time.perf_counter()
         write_report(Path(tmp) / "again.html", res, cal, doc)
         t_report_warm = time.perf_counter() - t0
 
     p, f = statistics.median(proc_t), statistics.median(fit_t)
     print(f"checkout {root}; load average {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores; {len(cal)} measurements, {model.name}; "
-          f"medians of {args.repeat}")
+          f"medians of {args.repeat}; bytecode cache {'off: own modules compiled at each start' if sys.dont_write_bytecode and not sys.pycache_prefix else 'on'}")
     print(f"  acquire fit … --report, whole process: {p:7.3f} s   (runs {', '.join(f'{t:.2f}' for t in proc_t)})")
     print(f"  fit_offsets in process (the fit):      {f:7.3f} s   (runs {', '.join(f'{t:.2f}' for t in fit_t)})")
     print(f"  ratio process / fit: {p / f:.2f}x  (target <= 2x)")
-    print(f"  where the rest goes: fresh interpreter + `import acquire.commands.fit` {statistics.median(imp):.3f} s, "
-          f"metrics {t_metrics:.3f} s, report {t_report:.3f} s cold (matplotlib import included) / {t_report_warm:.3f} s warm")
+    print(f"  where the rest goes: fresh interpreter + the command's imports {statistics.median(imp):.3f} s, "
+          f"metrics {t_metrics:.3f} s, report {t_report:.3f} s cold (its imports included) / {t_report_warm:.3f} s warm")
 
 
 if __name__ == "__main__":

@@ -20,6 +20,10 @@ back and forth at full speed;
             (``tests/bench/loadgen.py``), a ``NatNetSensor`` decoding every frame and an MCAP
             writer logging every NatNet sample and every joint state (100 Hz).
 
+Each phase keeps every answer (``loadgen.AnswerLog``) and prints the machine's own stalls seen
+by ``loadgen.StallProbe`` (SCHED_FIFO 70 per CPU, above the exchange and the fake) with the
+late answers that fell in one.
+
 Printed per phase, after a 1 s warm-up: cycles; answer latency p50 / p99 / max in µs as the
 exchange process measured it (kernel arrival stamp to the answer's send); late answers as the
 exchange process counted them (> one receive period) and as the fake controller saw them (late
@@ -276,8 +280,7 @@ def _run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) ->
     import multiprocessing as mp
 
     from bench_rsi import Load, motive_process
-
-    from drivers.errors import DriverError
+    from loadgen import AnswerLog, StallProbe, shuttle
 
     c = FriCommander(LIMITS, bind=("127.0.0.1", 0))
     c.connect()
@@ -301,20 +304,11 @@ def _run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) ->
         parent.send("mark")
         at_mark = parent.recv()[1]
         st0 = c.link_stats()
-        t_end = time.monotonic() + seconds
-        moves, fault = 0, None
-        targets = [TARGET, Q0]
-        while time.monotonic() < t_end:
-            try:
-                c.move_to(targets[moves % 2], 1.0, 60.0)
-                c.wait_settled(np.radians(0.05), 0.05, 10.0)
-            except DriverError as exc:  # reported, not hidden: the phase ends here
-                fault = f"{type(exc).__name__}: {exc}"
-                break
-            moves += 1
+        answers = AnswerLog(c)
+        with StallProbe() as probe:
+            moves, fault = shuttle(c, [TARGET, Q0], seconds, answers, speed=1.0, move_timeout=60.0, settle_timeout=10.0)
         st = c.link_stats()
-        n = st.packets - st0.packets
-        lat = c.latencies()[-n:] if n > 0 else np.zeros(1)
+        figures = answers.figures(period_ms * 1e-3)
         mcap_bytes = load.close() if load is not None else 0
         frames = load.frames if load is not None else 0
         load = None
@@ -328,9 +322,8 @@ def _run_phase(seconds: float, period_ms: int, mcap_path: Path, loaded: bool) ->
         if motive_conn is not None:
             motive_conn.send("stop")
             motive_proc.join(10)
-    p50, p99 = np.percentile(lat, [50, 99])
     return {
-        "cycles": n, "p50_us": p50 * 1e6, "p99_us": p99 * 1e6, "max_us": lat.max() * 1e6,
+        **figures, "stall_line": probe.summary(figures["late_windows"], clock="monotonic"),
         "late_ours": st.late_answers - st0.late_answers,
         "late_ctrl": (end["late"] - at_mark["late"]) + (end["missed"] - at_mark["missed"]),
         "drops": end["drops"] - at_mark["drops"], "violations": end["violations"], "malformed": end["malformed"],
@@ -354,6 +347,9 @@ def bench_load(seconds: float, period_ms: int, mcap_path: Path) -> None:
               f"{r['mcap_bytes']:>11}")
         if r["fault"]:
             print(f"   {name}: phase ended early by a fault: {r['fault']}")
+        print(f"   {name}: {r['stall_line']}")
+        if r["lost"]:
+            print(f"   {name}: {r['lost']} answers left the latency ring unread (not in the percentiles)")
         if r["violations"] or r["malformed"]:
             print(f"   {name}: the controller saw {r['violations']} limit violations, {r['malformed']} malformed answers")
     print(f"   ratio loaded/unloaded: p50 {busy['p50_us'] / quiet['p50_us']:.2f}x, "

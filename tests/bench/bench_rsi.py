@@ -24,6 +24,10 @@ answers during the warm-up are printed separately. Printed per phase: cycles ans
 p99, max in µs; late answers as the fake controller counted them (missing, wrong IPOC or after
 the cycle) and as the exchange process measured them on its own clock (> one cycle); NatNet
 frames decoded; MCAP bytes.
+Every answer of the phase is kept (``loadgen.AnswerLog`` polls the commander's ring), and
+``loadgen.StallProbe`` (a SCHED_FIFO 70 process per CPU, above the exchange's 50 and the fake's
+60, sleeping 1 ms at a time) prints the machine's own stalls and how many late answers fell in
+one — when no user process got the CPU, the lateness is the kernel's or the hypervisor's.
 Ratios: loaded / baseline. Target: p99 < 1 ms and no late answer.
 """
 
@@ -47,6 +51,7 @@ from drivers.kuka_rsi.commander import RsiCommander
 from drivers.natnet.client import NatNetSensor
 from drivers.protocols import JointLimits
 from drivers.sim.scene import MarkerObservation
+from loadgen import AnswerLog, StallProbe, shuttle
 
 HOME_DEG = [0.0, -90.0, 90.0, 0.0, 45.0, 0.0]
 AWAY_DEG = [40.0, -70.0, 70.0, 30.0, 60.0, 90.0]
@@ -212,23 +217,13 @@ def _run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> 
         time.sleep(WARMUP_S)  # start-up transients (imports, first planning, handshakes) excluded
         parent.send("mark")
         late_warmup = parent.recv()[1]
-        n0 = c.link_stats().packets
         late0 = c.link_stats().late_answers
-        t_end = time.monotonic() + seconds
-        moves = 0
+        answers = AnswerLog(c)
         targets = [np.radians(AWAY_DEG), np.radians(HOME_DEG)]
-        fault = None
-        while time.monotonic() < t_end:
-            try:
-                c.move_to(targets[moves % 2], speed=0.5, timeout=30.0)
-                c.wait_settled(np.radians(0.05), 0.05, 5.0)
-            except DriverError as exc:  # reported, not hidden: the phase ends here
-                fault = f"{type(exc).__name__}: {exc}"
-                break
-            moves += 1
+        with StallProbe() as probe:
+            moves, fault = shuttle(c, targets, seconds, answers, speed=0.5, move_timeout=30.0, settle_timeout=5.0)
         st = c.link_stats()
-        n = st.packets - n0
-        lat = c.latencies()[-n:] if n > 0 else np.zeros(1)
+        figures = answers.figures(cycle_ms * 1e-3)
         mcap_bytes = load.close() if load is not None else 0
         frames = load.frames if load is not None else 0
         silences = load.silences if load is not None else 0
@@ -244,12 +239,9 @@ def _run_phase(seconds: float, cycle_ms: int, loaded: bool, mcap_path: Path) -> 
         if motive_conn is not None:
             motive_conn.send("stop")
             motive_proc.join(10)
-    p50, p99 = np.percentile(lat, [50, 99])
     return {
-        "cycles": n,
-        "p50_us": p50 * 1e6,
-        "p99_us": p99 * 1e6,
-        "max_us": lat.max() * 1e6,
+        **figures,
+        "stall_line": probe.summary(figures["late_windows"]),
         "late_fake": fake_stats["late"] - late_warmup,
         "late_warmup": late_warmup,
         "late_commander": st.late_answers - late0,
@@ -301,6 +293,9 @@ def main() -> None:
             print(f"  {name}: phase ended early by a fault: {r['fault']}")
         print(f"  {name}: {r['late_warmup']} late answer(s) during the {WARMUP_S:g} s warm-up (not counted above); "
               f"{r['silences']} NatNet read(s) timed out")
+        print(f"  {name}: {r['stall_line']}")
+        if r["lost"]:
+            print(f"  {name}: {r['lost']} answers left the latency ring unread (not in the percentiles)")
         for e in r["late_events"][:10]:
             print(f"  {name} late event: {e}")
     print(f"  slowest single load operation: {loaded['slowest'][0] * 1e3:.2f} ms ({loaded['slowest'][1]})")

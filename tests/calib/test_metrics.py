@@ -130,7 +130,7 @@ def test_before_after_and_all_metrics_on_noise_free_data():
     assert ba["absolute"]["after"]["max"] < 1e-6 and ba["relative"]["after"]["max"] < 1e-6
     assert ba["absolute"]["before"]["mean"] > 0.5 and ba["relative"]["before"]["mean"] > 0.5
     draws = truth + np.radians(0.01) * np.random.default_rng(7).standard_normal((500, 7))
-    m = accuracy_metrics(CHAIN, cal, truth, draws, 0.3, validation=val, n_random=50, n_draws=200, seed=1)
+    m = accuracy_metrics(CHAIN, cal, truth, draws, 0.3, validation=val, n_random=50, n_draws=200, mc_se_mm=None, seed=1)
     expected = {
         "relative", "absolute", "theoretical_measured", "theoretical_measured_offsets_only", "theoretical_workspace",
         "theoretical_workspace_offsets_only", "validation_relative", "validation_absolute", "validation_absolute_reregistered", "offsets_share",
@@ -152,6 +152,56 @@ def test_before_after_and_all_metrics_on_noise_free_data():
     assert m["offsets_share"]["after"] == pytest.approx(after_only / m["theoretical_workspace"]["after"]["mean"])
     assert m["offsets_share"]["before"] > 0.9 > m["offsets_share"]["after"]
     assert m["settings"]["n_random_configurations"] == 50 and m["settings"]["n_draws"] == 200
+    assert m["settings"]["draws_measured"] == m["settings"]["draws_workspace"] == 200  # mc_se_mm=None: all of them
     for key in expected - {"offsets_share", "settings", "notes"}:
         for when in ("before", "after"):
-            assert set(m[key][when]) == {"mean", "p2_5", "p97_5", "max", "count"}
+            stated = {"mc_se"} if key.startswith("theoretical") else set()  # Monte-Carlo estimates carry their error
+            assert set(m[key][when]) == {"mean", "p2_5", "p97_5", "max", "count"} | stated
+
+
+def _theoretical(seed: int, **kw) -> dict:
+    """Theoretical metrics with a fresh posterior sample per seed (the draws are Monte-Carlo too)."""
+    truth = np.radians([0.0, -0.2, 0.15, 0.1, 0.4, -0.1, 0.9])
+    draws = truth + np.radians(0.01) * np.random.default_rng(100 + seed).standard_normal((2000, 7))
+    return accuracy_metrics(CHAIN, _exact_dataset(truth), truth, draws, 0.3, n_random=40, seed=seed, **kw)
+
+
+def test_theoretical_draws_stop_at_the_stated_precision_and_not_much_later():
+    """At the measured configurations (a fixed set) the mean's error is the draws' alone: the draws
+    stop once every mean's error is within the target, or at the cap; and not far past the point
+    where the spread says the target is met."""
+    full = _theoretical(0, mc_se_mm=None, n_draws=1500)
+    assert full["settings"]["draws_measured"] == full["settings"]["draws_workspace"] == 1500
+    used = {}
+    for target in (0.01, 0.001):
+        m = _theoretical(0, mc_se_mm=target)
+        d = used[target] = m["settings"]["draws_measured"]
+        assert m["settings"]["mc_se_target_mm"] == target and 100 <= d <= 1000
+        se = [m[key][when]["mc_se"] for key in ("theoretical_measured", "theoretical_measured_offsets_only")
+              for when in ("before", "after")]
+        if d < 1000:
+            assert max(se) <= target * 1.0001
+        if d > 100:  # grown past the minimum: to about what the spread asks for
+            assert d <= 1.3 * d * (max(se) / target) ** 2 + 1
+        for key in ("theoretical_measured", "theoretical_workspace"):
+            for when in ("before", "after"):
+                assert m[key][when]["count"] == m["settings"][f"draws_{key.split('_')[1]}"] * m["settings"][
+                    f"n_{'random' if 'workspace' in key else 'measured'}_configurations"]
+                assert m[key][when]["mean"] == pytest.approx(full[key][when]["mean"],
+                                                             abs=4 * math.hypot(m[key][when]["mc_se"], full[key][when]["mc_se"]))
+    assert used[0.01] < used[0.001]
+    truth = np.radians([0.0, -0.2, 0.15, 0.1, 0.4, -0.1, 0.9])
+    one = accuracy_metrics(CHAIN, _exact_dataset(truth), truth, truth[None], 0.3, n_random=10)  # a single posterior draw
+    assert one["settings"]["draws_measured"] == 1 and one["theoretical_workspace"]["after"]["mc_se"] > 0
+
+
+def test_the_stated_standard_error_is_the_spread_over_seeds():
+    """The mean's stated Monte-Carlo error against its actual spread over 24 seeds (a new
+    posterior sample, new ε, new random configurations): the two agree within the sampling error
+    of a std."""
+    runs = [_theoretical(seed, mc_se_mm=0.002) for seed in range(24)]
+    for key in ("theoretical_measured", "theoretical_workspace", "theoretical_workspace_offsets_only"):
+        for when in ("before", "after"):
+            means = np.array([r[key][when]["mean"] for r in runs])
+            stated = np.mean([r[key][when]["mc_se"] for r in runs])
+            assert 0.6 < means.std(ddof=1) / stated < 1.6, (key, when, means.std(ddof=1), stated)

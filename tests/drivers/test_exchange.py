@@ -5,10 +5,11 @@ from __future__ import annotations
 import logging
 import os
 
+import numpy as np
 import pytest
 
 from drivers import exchange
-from drivers.exchange import SharedState
+from drivers.exchange import SharedState, ring_in_order
 
 
 class RecordingLink:
@@ -75,3 +76,12 @@ def test_no_priority_asked_is_said_without_a_warning(no_mlock):
     exchange.set_realtime(link, 0)
     assert link.realtime.startswith("normal priority (rt_priority=0)")
     assert [lvl for lvl, _ in link.lines] == [logging.INFO]
+
+
+def test_ring_in_order_returns_the_last_entries_oldest_first():
+    ring = np.zeros(4)
+    for k in range(6):  # writes 0..5: slots hold 4, 5, 2, 3
+        ring[k % 4] = k
+    np.testing.assert_array_equal(ring_in_order(ring, 6), [2, 3, 4, 5])
+    np.testing.assert_array_equal(ring_in_order(ring, 3), [4, 5, 2])  # not yet wrapped: first 3 slots
+    assert ring_in_order(ring, 0).shape == (0,)

@@ -161,9 +161,18 @@ def test_late_answers_beyond_the_limit_stop_the_fake_and_the_commander_reports_i
             c.move_to(deg([40, -90, 90, 0, 45, 0]), speed=1.0, timeout=5.0)
         assert f.wait_stopped(1.0)
         stats = f.stats()
+        link = c.link_stats()  # the fake has stopped sending: these no longer change
+        packets, arrived, latency = c.answer_log()
     assert stats.stopped_reason == "RSI timeout: 8 late answers (limit 8)"
     assert "controller" in str(err.value)
-    assert c.link_stats().late_answers > 0  # the queued packets, answered late once it ran again
+    assert link.late_answers > 0  # the queued packets, answered late once it ran again
+    # the answer log places them: every late answer arrived while the process was stopped
+    assert packets == arrived.shape[0] == latency.shape[0] == link.packets
+    late = latency > 0.004
+    assert late.sum() == link.late_answers
+    assert np.ptp(arrived[late]) < 0.1 + 0.1  # within the 0.1 s pause (plus its wake-up)
+    sent = arrived[late] + latency[late]
+    assert np.ptp(sent) < 0.1  # and were answered in one burst when it ran again
 
 
 def test_growing_controller_delay_ends_the_motion_with_a_device_fault(limits):
