@@ -4,8 +4,8 @@ Public API (mm, rad, controller convention — the numbers the pendant shows, in
 
 ``solve_all(model, pose, *, arm_angle=None, within_limits=True, params=None) -> IkSolutions``
 ``solve_many(model, poses, **same) -> list[IkSolutions]`` — vectorised over poses: for many poses
-    one call is several times faster than a ``solve_all`` loop (6R: ~3×; 7R at given arm angles:
-    ~4×; but with the arm angle picked a ``solve_all`` loop is ~2× faster), see
+    one call is faster than a ``solve_all`` loop (6R and 7R at given arm angles: ~2×; but with
+    the arm angle picked a ``solve_all`` loop is ~2× faster), see
     tests/bench/bench_ik.py. ``solve_all`` (6R; 7R at a given arm angle, or within limits at the
     one picked) solves in plain floats (``calib.ik_scalar``, ``calib.ik_arm_angle_scalar``) and
     hands singular, boundary and limit cases to ``solve_many``; the result is the same (rows to
