@@ -221,6 +221,24 @@ def test_one_pose_path_rejects_closed_form_rows_that_miss_the_pose(name, monkeyp
     monkeypatch.setattr(closed_form, "solve", honest)
 
 
+def test_rotations_written_out_per_coordinate_axis_equal_the_general_formulas():
+    """``calib.ik_scalar._axis_ops``: the per-axis rotation and subproblem 1 for ±x, ±y, ±z (to
+    1e-15, as DH axes are) agree with Rodrigues and the general subproblem; other axes use those."""
+    from calib.ik_scalar import _angle_about, _axis_ops, _rotate
+
+    rng = np.random.default_rng(11)
+    tilted = rng.normal(size=3)
+    axes = [tuple(float(x) for x in sign * np.eye(3)[k]) for k in range(3) for sign in (1.0, -1.0)]
+    axes += [(6.123233995736766e-17, 1.0, 6.123233995736766e-17), tuple((tilted / np.linalg.norm(tilted)).tolist())]
+    for w in axes:
+        rotate, angle_about = _axis_ops(w)
+        for _ in range(20):
+            v, p, q = (tuple(rng.normal(size=3).tolist()) for _ in range(3))
+            angle = float(rng.uniform(-4.0, 4.0))
+            np.testing.assert_allclose(rotate(angle, v), _rotate(w, angle, v), rtol=0, atol=1e-14, err_msg=str(w))
+            assert abs(angle_about(p, q) - _angle_about(w, p, q)) < 1e-14, w
+
+
 # --- 7R at a given arm angle ---------------------------------------------------------------------
 @pytest.mark.parametrize("within_limits", [True, False])
 @pytest.mark.parametrize("name", SEVEN)
