@@ -26,7 +26,8 @@ What comes back (``IkSolutions``):
 
 - every row reproduces the pose — each candidate is run through ``Chain.fk`` and kept only if
   the position is within ``POSITION_TOLERANCE_MM`` (1e-6 mm) and the orientation within
-  ``ORIENTATION_TOLERANCE_RAD`` (1e-9 rad); nothing else is ever returned;
+  ``ORIENTATION_TOLERANCE_RAD`` (1e-9 rad); nothing else is ever returned (``solve_all``'s
+  float path runs the same FK in plain floats and keeps a row only within half of each);
 - with ``within_limits=True`` (default) every row is inside the model's joint limits, and a
   joint whose limits reach beyond ±180° contributes each of its ±360° equivalents that fits
   (the KR 6's A4 and A6, and A2 near −180°; the TX60's J4 and J6): they are distinct
