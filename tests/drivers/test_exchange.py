@@ -85,3 +85,15 @@ def test_ring_in_order_returns_the_last_entries_oldest_first():
     np.testing.assert_array_equal(ring_in_order(ring, 6), [2, 3, 4, 5])
     np.testing.assert_array_equal(ring_in_order(ring, 3), [4, 5, 2])  # not yet wrapped: first 3 slots
     assert ring_in_order(ring, 0).shape == (0,)
+
+
+def test_the_exchange_process_does_not_trace_allocations_a_traced_parent_asked_for():
+    import subprocess
+    import sys
+
+    # spawn passes the environment on: a child of a daemon run with PYTHONTRACEMALLOC=1 starts traced
+    code = ("import tracemalloc; from drivers.exchange import stop_tracing; "
+            "print(tracemalloc.is_tracing(), end=' '); stop_tracing(); print(tracemalloc.is_tracing())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
+                         env=dict(os.environ, PYTHONTRACEMALLOC="1"))
+    assert out.stdout.split() == ["True", "False"], out.stderr
