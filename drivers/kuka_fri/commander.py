@@ -324,8 +324,7 @@ class FriCommander(CommanderBase):
         """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),),
         measured in the exchange process (kernel arrival stamp to the answer's send; 0 for a
         message that needed no answer)."""
-        st = self._read(("count", "lat"))
-        return np.zeros(0) if st is None else ring_in_order(st["lat"], int(st["count"][0]))
+        return self.answer_log()[2]
 
     def answer_log(self) -> tuple[int, np.ndarray, np.ndarray]:
         """``(messages, arrived, latency)``: monitoring messages so far and, for the last

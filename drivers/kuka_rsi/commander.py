@@ -376,14 +376,7 @@ class RsiCommander(CommanderBase):
     def latencies(self) -> np.ndarray:
         """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),),
         measured in the exchange process (kernel arrival stamp to the answer's send)."""
-        ex = self._exchange
-        try:
-            snap = None if ex is None or ex.state is None else ex.state.read(("count", "lat"))
-        except ConnectionError:  # closed meanwhile by another thread
-            snap = None
-        if snap is None:
-            return np.zeros(0)
-        return ring_in_order(snap["lat"], int(snap["count"][0]))
+        return self.answer_log()[2]
 
     def answer_log(self) -> tuple[int, np.ndarray, np.ndarray]:
         """``(packets, arrived, latency)``: packets answered so far and, for the last
