@@ -61,6 +61,7 @@ class ReceivedCommand:
 class FakeKrc4Stats:
     """Counters of one fake controller (read with ``FakeKrc4.stats()``, a snapshot)."""
 
+    # counted when a cycle's answer window closes: a snapshot has cycles == answers_on_time + late_total
     cycles: int = 0  # state packets due (sent, dropped or garbled)
     sent: int = 0
     answers_on_time: int = 0
@@ -319,13 +320,13 @@ class FakeKrc4:
             if self.jitter_s > 0:
                 time.sleep(self._rng.uniform(0, self.jitter_s))
             expect_answer = not silent
+            sent = False
             if not silent:
-                st.cycles += 1
                 if garble:
                     packet = packet[: len(packet) // 2] + b"<<garbled"
                 if not drop:
                     sock.sendto(packet, self.target)
-                    st.sent += 1
+                    sent = True
             # the answer may take a full cycle from the actual send (our own wake-up delay must
             # not shorten it); the next packet goes out on schedule once the answer is in
             t_sent = time.monotonic()
@@ -342,7 +343,9 @@ class FakeKrc4:
             if now - next_t > cycle_wall:  # fell behind by more than a cycle: resynchronise
                 next_t = now
             with self._lock:
-                if expect_answer:
+                if expect_answer:  # a cycle is counted once its answer window has closed
+                    st.cycles += 1
+                    st.sent += sent
                     if answered:
                         st.answers_on_time += 1
                         st.late_consecutive = 0

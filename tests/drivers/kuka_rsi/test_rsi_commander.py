@@ -188,8 +188,11 @@ def test_malformed_packets_are_skipped_and_the_move_completes(limits):
         c.move_to(deg([25, -90, 90, 0, 45, 0]), speed=1.0, timeout=5.0)
         state = c.wait_settled(SETTLE_TOL, 0.1, 3.0)
         stats = f.stats()
-        assert c.link_stats().malformed == 10
-    assert 10 <= stats.late <= 12  # a garbled packet cannot be answered (+ slack for a loaded host)
+        link = c.link_stats()  # read after the fake's snapshot: its late count bounds the fake's
+        assert link.malformed == 10
+    # a garbled packet cannot be answered; any other late cycle is one the exchange answered late
+    # by its own clock (a stall of the host), never a silent one
+    assert 10 <= stats.late <= 10 + link.late_answers, (stats.late_events, link.report())
     assert stats.stopped_reason is None
     np.testing.assert_allclose(np.degrees(state.position_rad)[0], 25.0, atol=1e-3)
     assert_stream_within_limits(f.received(), HOME_DEG, limits)
@@ -201,14 +204,16 @@ def test_packet_loss_is_survived_within_limits_and_counted(limits):
         for target in SEQUENCE_DEG[:2]:
             c.move_to(deg(target), speed=1.0, timeout=5.0)
         state = c.wait_settled(SETTLE_TOL, 0.1, 3.0)
-        gaps = c.link_stats().gaps
         stats = f.stats()
+        link = c.link_stats()  # read after the fake's snapshot: its late count bounds the fake's
     np.testing.assert_allclose(np.degrees(state.position_rad), SEQUENCE_DEG[1], atol=1e-3)
     lost = stats.cycles - stats.sent
     assert lost > 5
-    assert abs(gaps - lost) <= 1  # (a loss in the last cycle is seen with the next packet)
-    # the lost packets went unanswered; + slack for a rare late answer on a loaded host
-    assert lost <= stats.late <= lost + 1
+    assert stats.cycles == stats.answers_on_time + stats.late_total  # one snapshot, whole cycles
+    assert abs(link.gaps - lost) <= 1  # (a loss in the last cycle is seen with the next packet)
+    # the lost packets went unanswered; any other late cycle is one the exchange answered late by
+    # its own clock (a stall of the host)
+    assert lost <= stats.late <= lost + link.late_answers, (stats.late_events, link.report())
     assert_stream_within_limits(f.received(), HOME_DEG, limits)
 
 
