@@ -1039,33 +1039,39 @@ class JointStateTap:
         return self
 
     def _loop(self) -> None:
+        skipped = 0  # ticks whose state could not be recorded (reported once, then every 100th)
         while not self._halt.wait(self.period_s):
             try:
                 st = self.commander.joint_state()
             except (DriverError, AttributeError):
                 continue
-            t_ns = time.time_ns()
             try:
-                self.runlog.record_joint_state(self.device, st.position_rad, names=self.names,
-                                               device_time=float(st.device_time), log_time_ns=t_ns)
-            except (OSError, ValueError, RuntimeError, AttributeError):
-                return  # the log is closing
-            if self.view is not None:
-                try:
-                    tf = self.view.transforms(st.position_rad, t_ns)
-                except ValueError as exc:  # e.g. a non-finite joint reading: no frames this tick
-                    log.debug("no frame transforms: %s", exc)
-                else:
-                    try:
-                        self.runlog.record_transforms(tf, log_time_ns=t_ns)
-                    except (OSError, ValueError, RuntimeError):
-                        return  # the log is closing
-            if self._key is not None:
-                try:
-                    self.bus.publish(self._key, {"name": self.names, "position_deg": np.degrees(st.position_rad).tolist(),
-                                                 "device_time": float(st.device_time)})
-                except Exception as exc:  # noqa: BLE001 - the bus must never stop a run
-                    log.debug("bus publish failed: %s", exc)
+                self._tick(st)
+            except (OSError, ValueError, RuntimeError, AttributeError) as exc:
+                if getattr(self.runlog, "closed", False):
+                    return  # the log is closing: the run is over
+                skipped += 1
+                if skipped == 1 or skipped % 100 == 0:
+                    log.warning("joint state not recorded (%d tick(s) so far): %s", skipped, exc)
+
+    def _tick(self, st) -> None:
+        """Record one joint state (and its frames) in the log and publish it on the bus."""
+        t_ns = time.time_ns()
+        self.runlog.record_joint_state(self.device, st.position_rad, names=self.names,
+                                       device_time=float(st.device_time), log_time_ns=t_ns)
+        if self.view is not None:
+            try:
+                tf = self.view.transforms(st.position_rad, t_ns)
+            except ValueError as exc:  # e.g. a non-finite joint reading: no frames this tick
+                log.debug("no frame transforms: %s", exc)
+            else:
+                self.runlog.record_transforms(tf, log_time_ns=t_ns)
+        if self._key is not None:
+            try:
+                self.bus.publish(self._key, {"name": self.names, "position_deg": np.degrees(st.position_rad).tolist(),
+                                             "device_time": float(st.device_time)})
+            except Exception as exc:  # noqa: BLE001 - the bus must never stop a run
+                log.debug("bus publish failed: %s", exc)
 
     def stop(self) -> None:
         self._halt.set()

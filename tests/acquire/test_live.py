@@ -57,6 +57,7 @@ class FoxgloveClient:
         self.server_info: dict | None = None
         self._subs: dict[int, str] = {}
         self._next = 1
+        self.notices: list[str] = []
 
     def _handle_text(self, text: str) -> None:
         msg = json.loads(text)
@@ -65,6 +66,8 @@ class FoxgloveClient:
         elif msg["op"] == "advertise":
             for ch in msg["channels"]:
                 self.channels[ch["topic"]] = ch
+        elif msg["op"] in ("status", "unadvertise"):  # kept for a failure's message
+            self.notices.append(text[:300])
 
     def recv(self, timeout: float) -> tuple[str, int, bytes] | None:
         """The next message data frame (topic, timestamp ns, payload), or None on timeout."""
@@ -192,7 +195,13 @@ def test_acquire_run_live_serves_the_robot_frames_and_the_joint_state(tmp_path):
                 tail = []
                 while not lines.empty():
                     tail.append(lines.get_nowait())
-                raise AssertionError(f"live view closed ({exc}); the run said:\n{''.join(tail[-25:])}") from exc
+                with_mocap = sum("mocap" in {f["child_frame_id"] for f in d["transforms"]} for d in tfs.values())
+                raise AssertionError(
+                    f"live view closed ({exc}) before a pair: received /tf {len(tfs)} ({with_mocap} with base → mocap), "
+                    f"/joint_state {len(joints)}, common stamps {len(set(tfs) & set(joints))}, /markers {len(scenes)}; "
+                    f"server notices {client.notices[-5:]}; the run's warnings:\n"
+                    f"{''.join([x for x in tail if 'WARNING' in x or 'ERROR' in x][-10:])}the run said:\n{''.join(tail[-25:])}"
+                ) from exc
             if got is None:
                 continue
             topic, t_ns, data = got

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +18,9 @@ from drivers.kuka_fri.messages import SessionState
 from drivers.protocols import JointCommander
 from drivers.registry import load_driver
 from drivers.sim.clock import SimClock
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/drivers: shared helpers
+from late_answers import late_outside_stalls  # noqa: E402
 
 Q0 = np.radians([0.0, 20.0, 0.0, -60.0, 0.0, 45.0, 0.0])
 TARGETS_DEG = [
@@ -62,11 +67,15 @@ def test_a_sequence_of_moves_reaches_every_target_and_answers_in_time(limits):
             np.testing.assert_allclose(scene.q, fake.actual_position())
         stats = fake.stats
         link = commander.link_stats()
+        answered, arrived, latency = commander.answer_log()
     # Late answers are the exchange process's own deadline misses (kernel arrival stamp to send),
-    # not the fake's view, which races the fake's scheduling in this test process. They stay
-    # rare and never cost the session; the zero-late target under load is measured by
+    # not the fake's view, which races the fake's scheduling in this test process. Apart from
+    # those in a stall of the whole machine (the real-time fake stalled too) they stay rare, and
+    # none costs the session; the zero-late target under load is measured by
     # tests/bench/bench_fri.py --load.
-    assert link.late_answers <= max(3, link.packets // 200), link.report()
+    assert arrived.size == answered  # every answer of the test, none rolled out of the ring
+    own = late_outside_stalls(arrived, latency, 0.005)
+    assert own.size <= max(3, link.packets // 200), link.report()
     assert stats.session_drops == 0
     assert stats.bad_reflections == 0 and stats.malformed_answers == 0
     assert stats.violations == []

@@ -47,6 +47,13 @@ def rig(limits: JointLimits | None = None, *, fake_kwargs=None, connect=True, **
     fake_kwargs.setdefault("max_runtime_s", 60.0)
     if not fake_kwargs.get("lockstep"):
         fake_kwargs.setdefault("rt_priority", 40)  # keep the 4 ms cycle on a loaded test host
+    else:
+        # The lockstep fake is an ordinary thread of this process (it answers as fast as the
+        # exchange does, so a real-time one would hold a CPU): on a loaded machine it can stall
+        # for a few hundred ms between packets. Lockstep tests check the command stream, so the
+        # commander's silence and staleness limits are widened (silence is tested in real time).
+        commander_kwargs.setdefault("timeout_cycles", 500)
+        commander_kwargs.setdefault("max_state_age_s", 2.0)
     f = FakeKrc4(c.bind(), **fake_kwargs)
     try:
         f.start()

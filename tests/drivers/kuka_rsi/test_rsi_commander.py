@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +16,9 @@ from drivers.kuka_rsi.commander import RsiCommander
 from drivers.protocols import JointCommander
 from drivers.registry import load_driver
 from drivers.trajectory import motion_time
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/drivers: shared helpers
+from late_answers import late_outside_stalls  # noqa: E402
 
 SEQUENCE_DEG = [
     [20.0, -80.0, 100.0, 10.0, 30.0, -45.0],
@@ -32,12 +37,15 @@ def test_sequence_of_moves_reaches_every_target_in_real_time(limits):
             np.testing.assert_allclose(state.commanded_rad, deg(target), atol=1e-9)
         stats = f.stats()
         link = c.link_stats()
+        answered, arrived, latency = c.answer_log()
     # Late answers are the exchange process's own deadline misses (kernel arrival stamp to send),
-    # not the fake's view, which races the fake's scheduling in this test process. They stay rare
-    # (a KR C4 tolerates a few); the zero-late target under load is measured by
+    # not the fake's view, which races the fake's scheduling in this test process. Apart from
+    # those in a stall of the whole machine (the real-time fake stalled too) they stay rare (a
+    # KR C4 tolerates a few); the zero-late target under load is measured by
     # tests/bench/bench_rsi.py --load. Nothing malformed, ever.
-    rare = max(3, stats.cycles // 200)
-    assert link.late_answers <= rare, link.report()
+    assert arrived.size == answered  # every answer of the test, none rolled out of the ring
+    own = late_outside_stalls(arrived, latency, 0.004)
+    assert own.size <= max(3, stats.cycles // 200), link.report()
     assert stats.malformed_answers == 0
     assert link.guard_clamps == 0
     assert link.period_mean_s == pytest.approx(0.004, rel=0.05)
@@ -49,10 +57,10 @@ def test_sequence_of_moves_reaches_every_target_in_real_time(limits):
 def test_speed_override_slows_the_stream_proportionally(limits):
     target = deg([30, -90, 90, 0, 45, 0])
     with rig(limits, fake_kwargs={"lockstep": True}) as (c, f):
-        n0 = len(f.received())
+        ipoc0 = f.received()[-1].ipoc  # (by IPOC: a busy test process may let the record roll over)
         c.move_to(target, speed=0.25, timeout=20.0)
         time.sleep(0.02)
-        n_moving = sum(1 for r in f.received()[n0:] if 1e-9 < r.correction_deg[0] < 30.0 - 1e-9)
+        n_moving = sum(1 for r in f.received() if r.ipoc > ipoc0 and 1e-9 < r.correction_deg[0] < 30.0 - 1e-9)
         ex = assert_stream_within_limits(f.received(), HOME_DEG, limits)
     assert ex["velocity_ratio"] <= 0.25 * 1.001  # (wire rounding)
     assert ex["acceleration_ratio"] <= 0.25**2 * 1.001
