@@ -335,8 +335,10 @@ class Daemon:
                  " (mTLS)" if zc.tls and zc.tls.enable_mtls else "")
         if cfg.live.enabled:
             from acquire.live import LiveServer
+            from acquire.recorder import advertise_run_channels
 
             self.live = LiveServer(cfg.live.host, cfg.live.port, name=f"remaster {cfg.cell}")
+            advertise_run_channels(self.live)  # (each sensor's channel comes with its first run)
         self._status("bringing up devices")
         self._bring_up_devices()
         self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))

@@ -178,6 +178,35 @@ MARKER_FRAME_SCHEMA: dict = {
 }
 
 
+#: topic → (schema name, JSON schema) of the run's own records.
+RUN_CHANNELS: dict[str, tuple[str, dict]] = {
+    SAMPLE_TOPIC: ("remaster.Sample", SAMPLE_SCHEMA),
+    EVENT_TOPIC: ("remaster.RunEvent", EVENT_SCHEMA),
+}
+#: (schema name, JSON schema) of every ``/<sensor>/markers`` channel.
+MARKER_FRAME_CHANNEL: tuple[str, dict] = ("remaster.MarkerFrame", MARKER_FRAME_SCHEMA)
+
+
+def schema_bytes(json_schema: dict) -> bytes:
+    """The bytes a channel's JSON schema is stored and advertised as (one encoding, so a live
+    channel advertised before its log exists is the same channel the log later writes to)."""
+    return json.dumps(json_schema, sort_keys=True, separators=(",", ":")).encode("utf-8")
+
+
+def advertise_run_channels(live: Any, sensors: tuple[str, ...] | list[str] = ()) -> None:
+    """Advertise on ``live`` (``acquire.live.LiveServer``) every channel a run writes — the run's
+    records, the Foxglove view's ``/tf``, ``/markers``, ``/joint_state``, ``/log`` and each sensor's
+    ``/<sensor>/markers`` — before its address is given to anyone.
+
+    A channel created while a viewer is connecting can be advertised to it before the Foxglove SDK
+    knows the viewer has it; the viewer's subscription is then refused ("attempted to subscribe to
+    unknown channel") and that topic stays dark for the whole run. Channels that exist before the
+    viewer connects are not exposed to that race."""
+    channels = {**RUN_CHANNELS, **fv.CHANNELS, **{f"/{s}/markers": MARKER_FRAME_CHANNEL for s in sensors}}
+    for topic, (schema_name, json_schema) in channels.items():
+        live.advertise(topic, schema_name, schema_bytes(json_schema))
+
+
 _stamp = fv.stamp
 
 
@@ -359,8 +388,8 @@ class RunLog:
             self._writer.add_metadata("remaster.robot_model", {"text": model_text})
             self._writer.add_attachment(now_ns, now_ns, "plan.yaml", "application/yaml", plan_text.encode("utf-8"))
             self._writer.add_attachment(now_ns, now_ns, "robot.yaml", "application/yaml", model_text.encode("utf-8"))
-            self.channel(SAMPLE_TOPIC, "remaster.Sample", SAMPLE_SCHEMA)
-            self.channel(EVENT_TOPIC, "remaster.RunEvent", EVENT_SCHEMA)
+            self.channel(SAMPLE_TOPIC, *RUN_CHANNELS[SAMPLE_TOPIC])
+            self.channel(EVENT_TOPIC, *RUN_CHANNELS[EVENT_TOPIC])
             self.channel(fv.LOG_TOPIC, *fv.CHANNELS[fv.LOG_TOPIC])
             self._durable()
         _fsync_dir(path.parent)
@@ -423,7 +452,7 @@ class RunLog:
             raise RunLogError(f"{self.path}: topic must look like /device/stream (chunks of [A-Za-z0-9_.-]), given {topic!r}")
         if not isinstance(json_schema, dict):
             raise RunLogError(f"{self.path}: json_schema of {topic} must be a dict, given {type(json_schema).__name__}")
-        data = json.dumps(json_schema, sort_keys=True, separators=(",", ":")).encode("utf-8")
+        data = schema_bytes(json_schema)
         with self._lock:
             self._check_open()
             known = self._channels.get(topic)
@@ -523,7 +552,7 @@ class RunLog:
         """
         topic = f"/{sensor}/markers"
         if topic not in self._channels:
-            self.channel(topic, "remaster.MarkerFrame", MARKER_FRAME_SCHEMA)
+            self.channel(topic, *MARKER_FRAME_CHANNEL)
         t = time.time_ns() if log_time_ns is None else int(log_time_ns)
         quality = quality or {}
         frame = {

@@ -323,9 +323,11 @@ def run(
     server = None
     if live:
         from acquire.live import LiveServer, LiveServerError
+        from acquire.recorder import advertise_run_channels
 
         try:
             server = LiveServer(live_host, live_port, name=f"remaster {lp.plan.cell}")
+            advertise_run_channels(server, [spec.name for spec in lp.plan.sensors])
         except (LiveServerError, ValueError) as exc:
             if bus is not None:
                 bus.close()

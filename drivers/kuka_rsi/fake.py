@@ -47,6 +47,10 @@ log = logging.getLogger("remaster.device.fake_krc4")
 __all__ = ["FakeKrc4", "FakeKrc4Stats", "ReceivedCommand"]
 
 
+#: Pause of the lockstep fake between an answer and its next packet (see ``FakeKrc4._loop``).
+LOCKSTEP_REST_S = 0.0005
+
+
 @dataclass(frozen=True, slots=True)
 class ReceivedCommand:
     """One answer as the fake received it. correction_deg: AK then EK, degrees."""
@@ -86,8 +90,8 @@ class FakeKrc4:
     n_axes robot axes (≤ 6) and n_external external axes; ``initial_deg`` shape (n_axes +
     n_external,). Servo: natural frequency ``servo_hz`` and damping ``servo_damping`` (0.6 →
     ~10 % overshoot, settling ≈ 4/(ζω) ≈ 70 ms at 15 Hz). ``lockstep``: send the next packet as
-    soon as the answer is in (still within the cycle deadline), so tests run faster than real
-    time while the simulated time advances one cycle per packet. ``rt_priority`` > 0 runs the
+    soon as the answer is in (still within the cycle deadline; after a 0.5 ms rest), so tests run
+    faster than real time while the simulated time advances one cycle per packet. ``rt_priority`` > 0 runs the
     cycle thread SCHED_FIFO (like a controller, it then keeps its period on a loaded host).
     """
 
@@ -335,7 +339,12 @@ class FakeKrc4:
             next_t += cycle_wall
             now = time.monotonic()
             if self.lockstep and answered:
-                next_t = now
+                # a short rest, never a full cycle: the lockstep controller is a thread of the
+                # commander's own process, and without a pause it would take the interpreter lock
+                # back at every answer — each cycle a write of the exchange's shared state inside
+                # any read a starved thread of that process began (seen: a read retried for 60 s)
+                time.sleep(LOCKSTEP_REST_S)
+                next_t = time.monotonic()
             elif not answered:
                 next_t = max(next_t, now)
             elif next_t > now:

