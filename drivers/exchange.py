@@ -82,9 +82,10 @@ class SharedState:
 
     Fields are stored smallest first, so the latest state (scalars and short arrays) lies in a
     few hundred contiguous bytes before the rings: a reader copies the span of the fields it
-    asks for in one ``memcpy``. A copy field by field took long enough on a loaded machine
-    (tens of Python calls, each a chance to be preempted) for a fast writer to change the block
-    during every attempt, and the reader spun until the writer stopped.
+    asks for in one ``memcpy``, with few points where another thread of its process can take the
+    interpreter lock mid-copy. (Copied field by field, tens of calls, a read beside a test's
+    lockstep controller, a thread of the same process that made the exchange write at every
+    such switch, once retried for 60 s on a loaded machine.)
     """
 
     def __init__(self, layout: Mapping[str, tuple], name: str | None = None) -> None:
