@@ -41,7 +41,6 @@ def rig(limits: JointLimits | None = None, *, fake_kwargs=None, connect=True, **
     """A commander on an ephemeral loopback port and a fake KR C4 sending to it."""
     limits = limits or kr6_limits()
     commander_kwargs.setdefault("connect_timeout", 3.0)
-    c = RsiCommander(limits, host="127.0.0.1", port=0, **commander_kwargs)
     fake_kwargs = dict(fake_kwargs or {})
     fake_kwargs.setdefault("initial_deg", HOME_DEG)
     fake_kwargs.setdefault("max_runtime_s", 60.0)
@@ -54,6 +53,7 @@ def rig(limits: JointLimits | None = None, *, fake_kwargs=None, connect=True, **
         # commander's silence and staleness limits are widened (silence is tested in real time).
         commander_kwargs.setdefault("timeout_cycles", 500)
         commander_kwargs.setdefault("max_state_age_s", 2.0)
+    c = RsiCommander(limits, host="127.0.0.1", port=0, **commander_kwargs)
     f = FakeKrc4(c.bind(), **fake_kwargs)
     try:
         f.start()
