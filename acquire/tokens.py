@@ -76,7 +76,7 @@ def check_token(token: str) -> str:
     if bits < MIN_TOKEN_BITS:
         raise WeakToken(f"token too weak: at most {bits:.0f} bits from its {n} characters, at least "
                         f"{MIN_TOKEN_BITS} needed; {fix}")
-    if len(set(token)) < 12:
+    if len(set(token)) < 8:
         raise WeakToken(f"token too repetitive: {len(set(token))} distinct characters; {fix}")
     words = token.replace("-", " ").replace("_", " ").replace(".", " ").split()
     if all(w.isalpha() and (w.islower() or w.isupper()) for w in words):

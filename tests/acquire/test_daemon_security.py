@@ -25,7 +25,7 @@ from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under 
     free_port,
     make_certs,
     open_client,
-    sha256,
+    scram,
     wait_until,
     write_config,
 )
@@ -45,7 +45,7 @@ def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tm
         proc.wait_ready()
         with open_client(port) as bus:
             anon = control(bus)
-            thief = control(bus, "operator", "guessed-token")
+            thief = control(bus, "operator", "Guessed-token-but-long-enough-9")
             viewer = control(bus, "viewer", VIEWER_TOKEN)
             inline = (tmp_path / "plans" / "example.yaml").read_text()
             attempts = [
@@ -129,9 +129,9 @@ def test_mtls_and_access_control_refuse_strangers_and_viewers(tmp_path, notify):
                        "listen_private_key": str(pki["localhost"][1]), "enable_mtls": True},
                "access_control": _acl(CELL)},
         auth={"clients": [
-            {"name": "operator", "token_sha256": sha256(OPERATOR_TOKEN), "allow": ["observe", "read", "control", "motion"],
+            {"name": "operator", "scram": scram(OPERATOR_TOKEN), "allow": ["observe", "read", "control", "motion"],
              "cert_common_names": ["operator"]},
-            {"name": "viewer", "token_sha256": sha256(VIEWER_TOKEN), "allow": ["observe"]},
+            {"name": "viewer", "scram": scram(VIEWER_TOKEN), "allow": ["observe"]},
         ]},
     )
     # Zenoh logs its ACL decisions at trace level (see the drop-in example): the refusals the
