@@ -203,6 +203,9 @@ class Authorizer:
         """Raise Refused (and log it, rate-limited per source) unless ``identity`` may perform ``operation``."""
         need = OPERATIONS[operation]
         if need in identity.permissions:
+            if credential_problem:  # e.g. a wrong proof for status: answered, unsigned, as anonymous
+                self.warn(source, "control/%s answered as %s: credentials refused (%s)", operation,
+                          identity.describe(), credential_problem)
             return
         reason = f"needs permission {need!r}; {identity.describe()} holds {sorted(identity.permissions)}"
         if credential_problem:
