@@ -147,7 +147,8 @@ class Authorizer:
         self._link_subject = link_subject or (lambda zid: None)
         self.refusals = 0
         self._lock = threading.Lock()
-        self.exchanges = exchanges or control_auth.ExchangeTable(self._credentials)
+        decoy = next((c.scram.iterations for c in auth.clients), control_auth.DEFAULT_ITERATIONS)
+        self.exchanges = exchanges or control_auth.ExchangeTable(self._credentials, decoy_iterations=decoy)
         self.throttle = throttle or Throttle()
 
     def _credentials(self, name: str) -> control_auth.Credentials | None:
@@ -163,7 +164,7 @@ class Authorizer:
         dropped = self.throttle.admit(source)
         if dropped is None:
             return
-        line = fmt % args if args else fmt
+        line = clip(fmt % args if args else fmt, 600)
         suffix = f" [{dropped} similar lines from {source} suppressed]" if dropped else ""
         log.warning("%s%s", line, suffix)
 

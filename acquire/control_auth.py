@@ -50,6 +50,7 @@ authenticated and the client says so.
 from __future__ import annotations
 
 import base64
+import copy
 import hashlib
 import hmac
 import json
@@ -248,7 +249,9 @@ class ClientResponder:
         if not isinstance(final, str) or not isinstance(mac, str):
             return False
         try:
-            self._scram.set_server_final(final)
+            # A copy: scramp's client takes one server-final; other responders' replies to the
+            # same client-final come first in any order.
+            copy.copy(self._scram).set_server_final(final)
         except ScramException:
             return False
         return hmac.compare_digest(mac, reply_mac(self._key, body))
@@ -277,12 +280,15 @@ class ExchangeTable:
     """The daemon's side: pending exchanges of this daemon instance (thread-safe).
 
     lookup: client name → its Credentials, or None for an unknown name (which then gets decoy
-    credentials, so the server-first does not tell which names exist).
+    credentials: a salt stable per name and ``decoy_iterations``, so the server-first does not
+    tell which names exist; give the configured clients' count).
     """
 
     def __init__(self, lookup: Callable[[str], Credentials | None], *, ttl_s: float = EXCHANGE_TTL_S,
-                 max_pending: int = MAX_PENDING, clock: Callable[[], float] = time.monotonic) -> None:
+                 max_pending: int = MAX_PENDING, clock: Callable[[], float] = time.monotonic,
+                 decoy_iterations: int = DEFAULT_ITERATIONS) -> None:
         self._lookup = lookup
+        self.decoy_iterations = decoy_iterations
         self.ttl_s = ttl_s
         self.max_pending = max_pending
         self._clock = clock
@@ -298,7 +304,7 @@ class ExchangeTable:
         if creds is not None:
             return (creds.salt, creds.stored_key, creds.server_key, creds.iterations), True
         salt = hmac.new(self._decoy_secret, name.encode(), hashlib.sha256).digest()[:16]
-        return (salt, secrets.token_bytes(32), secrets.token_bytes(32), DEFAULT_ITERATIONS), False
+        return (salt, secrets.token_bytes(32), secrets.token_bytes(32), self.decoy_iterations), False
 
     def first(self, client_first: str) -> tuple[str, str]:
         """(server-first, client name) for a client-first; the exchange is then pending."""

@@ -34,7 +34,7 @@ class Clock:
 
 
 def _table(clock=None, creds=CREDS) -> auth.ExchangeTable:
-    return auth.ExchangeTable(lambda name: creds if name == "operator" else None,
+    return auth.ExchangeTable(lambda name: creds if name == "operator" else None, decoy_iterations=creds.iterations,
                               **({"clock": clock} if clock else {}))
 
 
@@ -62,6 +62,8 @@ def test_an_exchange_proves_both_sides_once():
     verified = table.final(final, cell=CELL, op="pause", payload=b'{"x":1}')
     assert verified.client == "operator" and verified.server_final.startswith("v=")
     reply = _signed(verified, {"ok": True, "state": "paused"})
+    # Another responder's reply to the same client-final, arriving first, changes nothing.
+    assert not responder.verify({"ok": True, "scram": "v=" + base64.b64encode(b"x" * 32).decode(), "mac": "0" * 64})
     assert responder.verify(reply)
     assert not responder.verify({**reply, "state": "running"})  # the MAC covers the body
     # Single use: the same client-final again finds no exchange.
@@ -109,8 +111,9 @@ def test_a_wrong_token_and_an_unknown_name_fail_alike():
     # iterations), so the daemon does not tell which names exist; its proof fails.
     firsts = [table.first(_msg(auth.ClientExchange(TOKEN, "nobody", CELL, "pause", None).first_attachment()))[0]
               for _ in range(2)]
-    salts = {dict(p.split("=", 1) for p in f.split(","))["s"] for f in firsts}
-    assert len(salts) == 1 and salts != {base64.b64encode(CREDS.salt).decode()}
+    fields = [dict(p.split("=", 1) for p in f.split(",")) for f in firsts]
+    assert len({f["s"] for f in fields}) == 1 and fields[0]["s"] != base64.b64encode(CREDS.salt).decode()
+    assert {f["i"] for f in fields} == {str(CREDS.iterations)}
     _, _, final = _exchange(table, client="nobody", payload=None)
     with pytest.raises(auth.ProofError, match="wrong token for client 'nobody'"):
         table.final(final, cell=CELL, op="pause", payload=None)

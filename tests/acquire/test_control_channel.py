@@ -230,3 +230,58 @@ def test_anonymous_client_refuses_conflicting_responders(cell):
     finally:
         rogue.close()
         server.close()
+
+
+class StandIn(Rogue):
+    """A rogue that plays the daemon's part of SCRAM with keys of its own (it knows none)."""
+
+    def __init__(self, bus: Bus) -> None:
+        from scramp import ScramMechanism
+
+        mech = ScramMechanism("SCRAM-SHA-256")
+
+        def answer(key: str, att: bytes | None) -> dict:
+            cred = json.loads(att) if att else {}
+            if cred.get("scram") == "client-first":
+                server = mech.make_server(lambda name: (b"s" * 16, b"k" * 32, b"k" * 32, 4096))
+                server.set_client_first(cred["msg"])
+                return {"ok": True, "server_first": server.get_server_first()}
+            return {"ok": True, "state": "paused", "who": "stand-in", "scram": "v=" + "A" * 43 + "=", "mac": "0" * 64}
+
+        super().__init__(bus, {})
+        self._q.undeclare()
+
+        def handler(query) -> None:
+            att = _bytes(query.attachment)
+            with self._lock:
+                self.seen.append((str(query.key_expr), _bytes(query.payload), att))
+            query.reply(query.key_expr, json.dumps(answer(str(query.key_expr), att)))
+
+        self._q = bus.session.declare_queryable(f"remaster/{CELL}/control/**", handler)
+
+
+def test_with_a_stand_in_answering_too_the_client_completes_with_the_daemon_only(cell):
+    daemon_bus, rogue_bus, client_bus = cell
+    backend = Backend()
+    server = _server(daemon_bus, backend)
+    stand_in = StandIn(rogue_bus)
+    try:
+        _wait_routes(client_bus, 2)
+        op = ControlClient(client_bus.session, CELL, client="operator", token=TOKEN)
+        assert op.call("pause") == {"ok": True, "state": "paused"} and op.last_reply_verified
+        assert backend.paused == 1  # performed once, by the daemon
+        assert op.call("status")["who"] == "daemon"
+        # What the stand-in collected: client-finals over the daemon's nonces (used up) and, when
+        # the client tried the stand-in's server-first before the daemon's, over its own; none
+        # gets anything done by the daemon.
+        assert stand_in.wait_for(4, timeout=20), stand_in.seen
+        finals = [(k, p, a) for k, p, a in stand_in.seen if a and json.loads(a)["scram"] == "client-final"]
+        assert len(finals) >= 2
+        for key, payload, attachment in finals:
+            op_name = key.rsplit("/", 1)[1]
+            with pytest.raises(Refused, match="exchange unknown to this daemon"):
+                server.dispatch(op_name if op_name != "status" else "pause", payload, attachment, None)
+        assert backend.paused == 1
+    finally:
+        stand_in.close()
+        server.close()
