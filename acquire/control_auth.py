@@ -45,6 +45,18 @@ only**; ``daemon_config.load_daemon_config`` refuses a file other users may read
 
 Anonymous queries (no attachment) keep observe-only access; their replies cannot be
 authenticated and the client says so.
+
+Limits, by design: an exchange lives ``EXCHANGE_TTL_S`` = 10 s because the client computes
+PBKDF2 (twice on its first exchange in a process: once inside ``scramp``, once for the reply
+key's ServerKey) between the two round trips — ~0.7 s each at 600 000 iterations on an idle
+cell PC, several seconds on a loaded one. Whoever can reach the control keys can still deny
+service: flood client-firsts (the oldest of ``MAX_PENDING`` pending exchanges is dropped), or
+answer as a stand-in with server-firsts the client then spends up to ``MAX_RESPONDERS`` PBKDF2s
+of at most ``MAX_CLIENT_ITERATIONS`` on. Neither makes anything happen that the operator did
+not ask for, nor lets the client report a success the daemon did not sign. A client-final is
+delivered to every matching queryable, so a local process may race it to the daemon: the daemon
+then performs the operation the client asked for, once, and the client's own copy is refused
+as used (the client reports that it could not attribute a reply, exit 3).
 """
 
 from __future__ import annotations
