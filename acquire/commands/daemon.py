@@ -87,7 +87,7 @@ _TOKEN_FILE = typer.Option(None, "--token-file", help="File holding the client's
 _CA = typer.Option(None, "--tls-ca", help="CA certificate (PEM) that signed the daemon's certificate.")
 _CERT = typer.Option(None, "--tls-cert", help="This client's certificate (PEM), for mTLS.")
 _KEY = typer.Option(None, "--tls-key", help="This client's private key (PEM), for mTLS.")
-_TIMEOUT = typer.Option(10.0, "--timeout", help="Seconds to wait for the daemon's reply.")
+_TIMEOUT = typer.Option(10.0, "--timeout", help="Seconds to wait for the daemon's reply (per round trip; two with credentials).")
 _JSON = typer.Option(False, "--json", help="Print the reply as JSON.")
 
 
