@@ -10,6 +10,7 @@ from __future__ import annotations
 import errno
 import logging
 import os
+import re
 import subprocess
 import sys
 from collections import Counter
@@ -48,10 +49,9 @@ def test_a_full_disk_stops_the_run_in_one_line_with_the_log_readable_and_resume_
     errors = [line for line in out.stderr.splitlines() if line.startswith("ERROR")]
     assert len(errors) == 1, errors
     [log] = run_logs(tmp_path / "runs")
-    assert errors[0].endswith(f"stopped: cannot write the run log {log}: No space left on device "
-                              f"({errors[0].split('(')[1].split(')')[0]}); the log is closed at its last complete "
-                              f"record ({errors[0].rsplit('(', 1)[1]}"), errors[0]
-    assert " free on its file system" in errors[0] and ", readable)" in errors[0]
+    assert re.fullmatch(rf"ERROR acquire\.run: run \S+ stopped: cannot write the run log {re.escape(str(log))}: "
+                        r"No space left on device \([0-9.]+ k?M?G?B free on its file system\); the log is closed at "
+                        r"its last complete record \([0-9.]+ k?M?B, readable\)", errors[0]), errors[0]
     assert f"resume with: acquire run {plan} --resume " in out.stdout, out.stdout
 
     # Sealed: complete and indexed for every reader, holding exactly what remaster reads back.
@@ -59,13 +59,14 @@ def test_a_full_disk_stops_the_run_in_one_line_with_the_log_readable_and_resume_
     assert first.complete and first.dropped_bytes == 0
     topics = _mcap_messages(log)
     assert topics["/run/sample"] == len(first.samples) and topics["/run/event"] == len(first.events)
-    assert 0 < len(first.samples) < len(configs)
+    assert len(first.samples) < len(configs)
+    # The text log failed too (fake_disk: from the first ENOSPC on) and stopped without a word.
+    assert "stopped: cannot write the run log" not in log.with_suffix(".log").read_text()
     assert not list(log.parent.glob(f"*{RESERVE_SUFFIX}"))  # the reserve was spent on the summary
-    # No configuration was measured after its events could no longer be written: the run's last
-    # record is not a move or settle of a configuration without its sample.
-    measured = {s["config_id"] for s in first.samples}
-    started = [e["config_id"] for e in first.events if e["kind"] in ("moved", "settled") and "config_id" in e]
-    assert set(started) - measured <= {started[-1]} if started else True
+    # The robot held: no configuration was moved to after the one in flight when the disk filled
+    # (the fake cell answers every move; "move to" is the commander's line for each).
+    moves = sum(1 for line in out.stderr.splitlines() if "remaster.device.fri: move to [" in line)
+    assert moves <= len(first.samples) + 1, (moves, len(first.samples))
 
     # Space freed: the resume measures the rest, each configuration once.
     proc = popen(*args, "--resume", str(log))
@@ -75,9 +76,7 @@ def test_a_full_disk_stops_the_run_in_one_line_with_the_log_readable_and_resume_
     counts = Counter(s["config_id"] for s in contents.samples)
     ended = {e["config_id"] for e in contents.events if e["kind"] in ("skipped", "failed")}
     assert max(counts.values()) == 1 and set(counts) | ended == configs
-    assert not set(counts) & measured - set(s["config_id"] for s in first.samples)
-    for segment in contents.files:
-        assert _mcap_messages(segment)["/run/sample"] >= 0  # each segment opens in the mcap reader
+    assert sum(_mcap_messages(segment)["/run/sample"] for segment in contents.files) == len(contents.samples)
 
 
 @pytest.mark.parametrize("stays_full", [False, True])
