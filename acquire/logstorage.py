@@ -145,7 +145,8 @@ class LogFile(io.FileIO):
         """Remove the reserve a killed writer left beside ``log_path`` (if any)."""
         Path(str(log_path) + RESERVE_SUFFIX).unlink(missing_ok=True)
 
-    def _release_reserve(self) -> None:
+    def release_reserve(self) -> None:
+        """Give the reserve's space back (before writing the summary, and on close)."""
         try:
             _unlink(self.reserve_path)
         except FileNotFoundError:
@@ -159,7 +160,7 @@ class LogFile(io.FileIO):
             free: int | None = shutil.disk_usage(self.path.parent).free
         except OSError:
             free = None
-        self._release_reserve()
+        self.release_reserve()
         sealed, kept = self._seal()
         self.error = StorageError(self.path, cause, free, sealed, kept)
         return self.error
@@ -191,4 +192,4 @@ class LogFile(io.FileIO):
             if self.error is None:
                 raise
         finally:
-            self._release_reserve()
+            self.release_reserve()

@@ -656,6 +656,7 @@ class RunLog:
             self._halt.set()
             try:
                 if self._fh.error is None:
+                    self._fh.release_reserve()  # its space is for this summary
                     self._writer.finish()
                     self._fh.fsync()
             except StorageError as exc:  # sealed readable by LogFile; one line, no traceback

@@ -163,3 +163,21 @@ def test_text_log_handler_stops_quietly_on_a_full_disk(tmp_path, capsys):
     handler.close()
     assert isinstance(handler.failed, OSError) and handler.failed.errno == errno.ENOSPC
     assert capsys.readouterr().err == ""  # no "--- Logging error ---" per record
+
+
+def test_a_disk_full_but_for_the_reserve_still_closes_the_log_normally(tmp_path, monkeypatch, caplog):
+    import acquire.logstorage as storage
+    import fake_disk  # tests/acquire: the byte budget behind logstorage's system calls
+
+    monkeypatch.setattr(fake_disk, "state", {"left": 10**9, "sizes": {}, "full": False})
+    for name in ("write", "fallocate", "unlink"):
+        monkeypatch.setattr(storage, f"_{name}", getattr(fake_disk, name))
+    path = tmp_path / "r.mcap"
+    rl = RunLog.create(path, run_id="r1", plan_text="plan: 1\n", model_text="model: 1\n", metadata={}, flush_interval_s=0)
+    rl.sample({"config_id": "c1", "q_measured_deg": [1.0], "markers": []})
+    fake_disk.state["left"] = 0  # every byte but the reserve's is taken
+    with caplog.at_level(logging.ERROR):
+        rl.close()  # gives the reserve back, then writes the summary in its space
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]  # no storage error: closed as usual
+    assert not fake_disk.state["full"] and read_run(path).complete
+    assert _mcap_messages(path)["/run/sample"] == 1
