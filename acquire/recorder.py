@@ -445,14 +445,13 @@ class RunLog:
             live=live,
         )
         self.recovered = contents
-        self.event(
-            "log_resumed",
-            segment=self.segment,
-            previous_files=[p.name for p in contents.files],
-            recovered_samples=len(contents.samples),
-            recovered_events=len(contents.events),
-            dropped_bytes=contents.dropped_bytes,
-        )
+        try:
+            self.event("log_resumed", segment=self.segment, previous_files=[p.name for p in contents.files],
+                       recovered_samples=len(contents.samples), recovered_events=len(contents.events),
+                       dropped_bytes=contents.dropped_bytes)
+        except StorageError:
+            self.close()
+            raise
         return self
 
     # -- writing ------------------------------------------------------------------------------
@@ -489,9 +488,8 @@ class RunLog:
             return channel_id
 
     def write(self, topic: str, message: dict, *, log_time_ns: int | None = None) -> None:
-        """Append one JSON message to a registered channel (reaches the OS within flush_interval_s).
-        Once the log cannot be written (``StorageError``) stream messages are dropped without a
-        word: the next ``sample`` or ``event`` raises the error."""
+        """Append one JSON message to a registered channel (reaches the OS within flush_interval_s);
+        dropped without a word once the log is sealed (the next sample or event raises StorageError)."""
         data = encode_json(message)
         t = time.time_ns() if log_time_ns is None else int(log_time_ns)
         with self._lock:
