@@ -55,6 +55,7 @@ from acquire.sequencer import (
     move_times,
     order_configurations,
 )
+from acquire.logstorage import StorageError
 from acquire.suspenders import LostTargetSuspender, ReflectorPredictor
 from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError, LimitError, TargetLostError
 from drivers.protocols import JointLimits
@@ -549,6 +550,14 @@ class RunController:
         summary = None
         try:
             summary = self._run()
+        except StorageError as exc:  # disk full / I/O error: the log is sealed; stop here, the robot holds
+            log.error("run %s stopped: %s", self.run_id, exc)
+            runlog, self._runlog = self._runlog, None  # nothing more can be written to it
+            if runlog is not None:
+                runlog.close()
+            with self._lock:
+                self._reason = str(exc)
+            self._set_state("failed", self._reason)
         except BaseException as exc:  # noqa: BLE001 - the thread must always report how it ended
             log.exception("run %s failed", self.run_id)
             with self._lock:

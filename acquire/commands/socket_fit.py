@@ -155,10 +155,9 @@ def read_socket_run(path: Path, n_joints: int, *, distance_mm: float | None = No
     """The socket dataset of an ``acquire run`` log (MCAP) whose samples are socket records:
     measured joint angles with their placement and socket; the distance between sockets from
     ``distance_mm`` or else the run's plan (``socket.distance_mm``). None for any other log."""
-    import yaml
-
     from acquire.recorder import read_run
     from calib.socket import with_distance
+    from calib.yamlfile import ConfigError, parse_yaml_text
 
     rc = read_run(path)
     recs = [r for r in rc.samples if isinstance(r.get("socket"), dict)]
@@ -177,9 +176,11 @@ def read_socket_run(path: Path, n_joints: int, *, distance_mm: float | None = No
         ids.append(str(rec["config_id"]))
     if distance_mm is None:
         try:
-            distance_mm = (yaml.safe_load(rc.plan_text or "") or {}).get("socket", {}).get("distance_mm")
-        except yaml.YAMLError:
-            distance_mm = None
+            plan = parse_yaml_text(rc.plan_text or "", f"{path} (recorded plan)")[0]
+        except ConfigError:
+            plan = None
+        socket = plan.get("socket") if isinstance(plan, dict) else None
+        distance_mm = socket.get("distance_mm") if isinstance(socket, dict) else None
     groups = sorted(set(keys))
     gidx = np.array([groups.index(k) for k in keys], dtype=int)
     return SocketDataset(np.radians(np.array(q, dtype=float)), gidx, groups, with_distance(groups, distance_mm), ids, str(path))
