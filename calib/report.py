@@ -18,6 +18,7 @@ from pathlib import Path
 from calib.dataset import Dataset
 from calib.fit import FitResult
 from calib.identifiability import WEAK_NOISE_FACTOR
+from calib.report_compliance import compliance_section
 from calib.report_format import CSS, Html, esc, fixed, num, table
 from calib.report_summary import summary_html
 
@@ -271,6 +272,7 @@ def render_report(result: FitResult, data: Dataset, doc: dict, controller_text: 
     parts += _tool_section(doc)
     parts += _registration_section(doc)
     parts += _metrics_section(doc)
+    parts += compliance_section(doc.get("diagnostics", {}).get("compliance"))
     parts += _identifiability_section(doc)
     parts += _diagnostics_section(doc)
     parts += _figures_section(result, data)

@@ -16,6 +16,7 @@ import numpy as np
 
 from calib.dataset import Dataset
 from calib.identification import IdentResult, pose_errors
+from calib.report_compliance import compliance_section
 from calib.report_format import CSS, Html, esc, num, table
 
 
@@ -101,7 +102,8 @@ def render_ident_report(result: IdentResult, cal: Dataset, doc: dict) -> str:
              f"<h1>Full identification: {name}</h1>",
              f"<p class=small>{len(cal)} calibration measurements; tool prior ±{num(doc['tool_prior_mm'], 3)} mm per "
              f"coordinate; {doc['evaluations']} evaluations</p>"]
-    parts += _outcome(doc) + _starts(doc) + _parameters(doc) + _accuracy(doc) + _error_figure(result, cal)
+    parts += _outcome(doc) + _starts(doc) + _parameters(doc) + compliance_section(doc.get("compliance"))
+    parts += _accuracy(doc) + _error_figure(result, cal)
     parts.append("</body></html>")
     return "\n".join(parts)
 

@@ -15,7 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from calib.dataset import read_csv, write_csv
+from calib.dataset import from_arrays, read_csv, write_csv
 from calib.identification import IdentOptions, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
 from calib.kinematics import Chain
 from calib.metrics import registered_errors
@@ -188,21 +188,23 @@ def test_noise_free_data_do_not_make_rounding_level_costs_disagree():
 
 
 def test_a_minimum_that_does_not_describe_the_data_is_refused_with_exit_status_1(tmp_path):
-    """J2's zero 120° from the model's (not a flip the starts try): no start comes near (the best
-    leaves hundreds of mm), and the command says not to use the model and exits 1 — after writing
-    what it found."""
+    """The data's J2 and J3 columns exchanged (a robot model that is not this arm's: no parameter
+    set describes it; a zero 120°–180° off is now reached by the flipped-zero starts): no start
+    comes near (the best leaves about 100 mm), and the command says not to use the model and
+    exits 1 — after writing what it found."""
     cell = tracker_cell(2)
     chain = Chain(cell.model)
-    truth = cell.truth.copy()
-    truth[1] += np.radians(120.0)
-    cal = observe(chain, cell.cal.q_rad[::len(CAL_NESTS)], truth, CAL_NESTS, cell.base2sensor,
+    cal = observe(chain, cell.cal.q_rad[::len(CAL_NESTS)], cell.truth, CAL_NESTS, cell.base2sensor,
                   np.random.default_rng(2), 0.03, "cal")
+    swapped = cal.q_rad.copy()
+    swapped[:, [1, 2]] = swapped[:, [2, 1]]
+    cal = from_arrays(swapped, cal.xyz_mm, marker=cal.marker)
     write_model_yaml(cell.model, tmp_path / "robot.yaml")
     write_csv(cal, tmp_path / "cal.csv")
     out = tmp_path / "full.json"
     res = CliRunner().invoke(app, ["fit", str(tmp_path / "cal.csv"), "--robot", str(tmp_path / "robot.yaml"),
                                    "--method", "full", "-o", str(out)])
     doc = json.loads(out.read_text())
-    log.info("J2 120° off: rms %.1f mm; %s", doc["rms_mm"], doc["do_not_use"])
+    log.info("J2/J3 exchanged: rms %.1f mm; %s", doc["rms_mm"], doc["do_not_use"])
     assert res.exit_code == 1 and "DO NOT USE this identified model" in res.output
     assert doc["rms_mm"] > 10 and "does not describe the data" in doc["do_not_use"][0]
