@@ -776,6 +776,11 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
     and its registration. Validation points are scored with those calibration registrations
     (``calib.metrics.validation_scores``); ``validation.reregistered`` is the optimistic figure with
     a registration fitted to the validation points, named as such. ``metric_notes``: how, and caveats.
+
+    ``validation`` holds only the validation points of markers the calibration measured (their
+    positions were fitted): the headline. Points of markers it never measured are scored apart in
+    ``validation_unseen_markers``, with each marker's estimated placement and its uncertainty
+    (``unseen_marker_placement``) — an estimate, never mixed into the headline.
     """
     from calib.metrics import absolute_errors, validation_scores
 
@@ -805,22 +810,36 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
              "model with the identified registration; validation points are scored with these calibration "
              "registrations (never one fitted to the points being scored)"]
 
-    def scored(data: Dataset, is_cal: bool) -> dict:
-        if is_cal:
-            before = absolute_errors(data, cal_before)
-            after = pose_errors(result.model, result.params, data, result.base2sensor)
-            return {"before": comprehensive_errors(before), "after": comprehensive_errors(after)}
-        val_params, located = locate_unseen_markers(result, sorted(set(data.marker.tolist()) - set(cal.marker.tolist())))
+    def scored(data: Dataset, after_params: np.ndarray, located: dict[str, str] | None = None) -> dict:
         b, a, rb, ra, caveats = validation_scores(cal, data, (cal_before, _marker_rows(chain, data, nominal)),
-                                                  (cal_after, _marker_rows(chain, data, val_params)),
+                                                  (cal_after, _marker_rows(chain, data, after_params)),
                                                   registration_after=result.base2sensor, located=located)
         notes.extend(caveats)
         return {"before": comprehensive_errors(b), "after": comprehensive_errors(a),
-                "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)}}
+                "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)},
+                "n_points": int(len(data)), "markers": sorted(set(data.marker.tolist()))}
 
-    metrics = {"calibration": scored(cal, True)}
+    metrics = {"calibration": {"before": comprehensive_errors(absolute_errors(cal, cal_before)),
+                               "after": comprehensive_errors(pose_errors(result.model, result.params, cal, result.base2sensor))}}
     if val is not None and len(val):
-        metrics["validation"] = scored(val, False)
+        # Headline: only markers the calibration measured (their positions are fitted). Markers it
+        # never measured are placed by an estimate: scored apart, labelled, never in the headline.
+        seen = np.isin(val.marker, cal.marker)
+        if seen.any():
+            metrics["validation"] = scored(val.subset(seen), result.params)
+        if not seen.all():
+            unseen = val.subset(~seen)
+            names = sorted(set(unseen.marker.tolist()))
+            placed, located, sd = unseen_marker_placement(result, names)
+            block = scored(unseen, placed, located)
+            block["placement"] = {m: {"how": located.get(m, "the model's position (not fitted, not located)"),
+                                      "uncertainty_mm": sd.get(m)} for m in names}
+            block["label"] = ("held-out points of markers the calibration never measured: their position on the flange "
+                              "is estimated (see placement), not measured, so this figure is not the validation headline")
+            metrics["validation_unseen_markers"] = block
+            if not seen.any():
+                notes.append("no validation point is of a marker the calibration measured: there is no validation "
+                             "headline; validation_unseen_markers scores them with estimated marker positions")
     if result.compliance is not None:
         notes.append("after: the identified kinematics without the fitted sag (a corrected model file carries "
                      "kinematics only); the sag the compliances explain is left in these errors")
@@ -846,6 +865,43 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
              "reason": "" if math.isfinite(sd) else result.excluded.get(f"{ax}.compliance", "")}
             for ax, v, sd in zip(result.model.axis_names, result.compliance, result.compliance_std)],
     }
+
+
+#: Draws of the fitted markers (within their std) for the located marker's placement uncertainty.
+PLACEMENT_DRAWS = 200
+
+
+def unseen_marker_placement(result: IdentResult, unseen: list[str], seed: int = 0
+                            ) -> tuple[np.ndarray, dict[str, str], dict[str, float]]:
+    """``locate_unseen_markers`` with the uncertainty of each located marker (mm, rms of the 3-D
+    error): the fitted markers' std carried through the rigid transform (``PLACEMENT_DRAWS``
+    seeded draws) combined with the layout's misfit rms (how far the drawing's layout is from the
+    fitted markers: the unseen marker's own drawing error is of that order). An estimate: the
+    unseen marker's real position was never measured."""
+    from calib.registration import register_least_squares
+
+    params, located = locate_unseen_markers(result, unseen)
+    if not located:
+        return params, located, {}
+    chain = Chain(result.model)
+    ms = chain.marker_slice()
+    fitted = [m for m in chain.marker_names if all(f"{m}.{c}" in result.free_names for c in "xyz")]
+    idx = [chain.marker_names.index(m) for m in fitted]
+    nominal = chain.nominal[ms].reshape(-1, 3)
+    now = result.params[ms].reshape(-1, 3)[idx]
+    sd = np.nan_to_num(result.std[ms].reshape(-1, 3)[idx])
+    plate = register_least_squares(nominal[idx], now).base2sensor
+    misfit = float(np.sqrt(np.mean(np.sum((apply(plate, nominal[idx]) - now) ** 2, axis=1))))
+    rng = np.random.default_rng(seed)
+    out = {}
+    draws = [register_least_squares(nominal[idx], now + rng.normal(0.0, 1.0, now.shape) * sd).base2sensor
+             for _ in range(PLACEMENT_DRAWS)]
+    for m in located:
+        k = chain.marker_names.index(m)
+        pts = np.array([apply(t, nominal[k]) for t in draws])
+        spread = float(np.sqrt(np.sum(np.var(pts, axis=0))))
+        out[m] = float(math.hypot(spread, misfit))
+    return params, located, out
 
 
 def locate_unseen_markers(result: IdentResult, unseen: list[str]) -> tuple[np.ndarray, dict[str, str]]:

@@ -32,6 +32,8 @@ METRIC_TITLES = {
     "validation_relative": "Validation set, relative (Table VIII)",
     "validation_absolute": "Validation set, absolute with the calibration registration (Table VIII)",
     "validation_absolute_reregistered": "Validation set, absolute re-registered on the validation points (optimistic)",
+    "validation_absolute_unseen_markers": "Validation points of markers the calibration never measured (model's "
+                                          "marker position; not the headline)",
 }
 
 VERDICT_CLASS = {"determined": "good", "weakly determined": "warn", "not determined": "bad"}

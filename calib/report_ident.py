@@ -60,11 +60,18 @@ def _parameters(doc: dict) -> list[str]:
 
 def _accuracy(doc: dict) -> list[str]:
     rows, groups = [], []
-    titles = {"calibration": "Calibration set", "validation": "Validation set, with the calibration registration"}
+    titles = {"calibration": "Calibration set", "validation": "Validation set, with the calibration registration",
+              "validation_unseen_markers": "Validation points of markers the calibration never measured (placement "
+                                           "estimated, not the headline), with the calibration registration"}
     for part, m in doc["metrics"].items():
         blocks = [(titles.get(part, part), m)]
         if "reregistered" in m:
             blocks.append((f"{titles.get(part, part).split(',')[0]}, re-registered on its own points (optimistic)", m["reregistered"]))
+        if m.get("placement"):
+            groups_note = "; ".join(f"{k}: ±{num(v['uncertainty_mm'], 2)} mm" for k, v in m["placement"].items()
+                                    if v.get("uncertainty_mm") is not None)
+            if groups_note:
+                blocks[0] = (f"{blocks[0][0]} — estimated placement uncertainty {groups_note}", m)
         for title, b in blocks:
             for when in ("before", "after"):
                 rows.append([when, Html(num(b[when]["EACPE"])), Html(num(b[when]["EMCPE"]))])
