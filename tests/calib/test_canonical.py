@@ -7,7 +7,8 @@ import math
 import numpy as np
 
 from calib.canonical import canonical_params, wrap_angle, wrap_deg
-from calib.identification import IdentOptions, identify
+from calib.controller import controller_values
+from calib.identification import IdentOptions, ident_result_dict, identify
 from calib.kinematics import Chain
 from tests.calib.tracker_sim import CAL_NESTS, observe, tracker_cell
 
@@ -124,6 +125,9 @@ def test_a_zero_off_by_180_degrees_reaches_the_best_minimum_and_is_reported_wrap
     assert np.all((off > -math.pi) & (off <= math.pi))
     assert abs(abs(math.degrees(off[1])) - 180.0) < 1.0
     assert abs(wrap_angle(off[1] - truth[1])) < 4 * result.std[1]
+    doc = ident_result_dict(result, cal)
+    entry = {p["name"]: p for p in doc["parameters"]}["J2.offset"]
+    assert -180.0 < entry["value"] <= 180.0 and abs(abs(entry["value"]) - 180.0) < 1.0
     lengths = chain.index("a")
     assert np.all(np.abs(result.params[lengths] - chain.nominal[lengths]) < 2.0)
     for kind in ("alpha", "beta"):
@@ -136,3 +140,13 @@ def test_a_right_nominal_model_solves_no_flipped_start():
     result = identify(cell.model, cell.cal)
     assert not [s for s in result.starts if "180°" in s["label"]]
     assert result.canonical == []
+
+
+def test_controller_values_are_wrapped():
+    """A whole turn is no correction: an offset written as −361.10° is entered as −1.10°."""
+    cell = tracker_cell(0)
+    entries = [{"joint": ax, "index": i + 1, "identifiable": i == 4, "value_deg": -361.10 if i == 4 else None,
+                "std_deg": 0.01 if i == 4 else None, "status": "fitted" if i == 4 else "undetermined"}
+               for i, ax in enumerate(cell.model.axis_names)]
+    values = controller_values(cell.model, entries)
+    assert abs(values.axes[4].delta_deg + 1.10) < 1e-9 and abs(values.axes[4].correction_deg - 1.10) < 1e-9
