@@ -28,6 +28,7 @@ def _outcome(doc: dict) -> list[str]:
            *(f"<p class='banner bad'>Do not use this model: {esc(r)}</p>" for r in stop),
            f"<p class=banner>{sum(p['identified'] for p in doc['parameters'])} parameters identified; rms residual "
            f"{num(doc['rms_mm'])} mm; scaled condition number {num(doc['condition_number'], 3)}</p>"]
+    out += [f"<p class=small>{esc(c)}</p>" for c in doc.get("canonical") or []]
     if warn:
         out.append("<ul>" + "".join(f"<li class=warn>{esc(w)}</li>" for w in warn) + "</ul>")
     else:
@@ -47,7 +48,9 @@ def _starts(doc: dict) -> list[str]:
             table(["start", "cost (mm²)", "÷ best", "rms (mm)", "evaluations", "best minimum"], rows),
             "<p class=small>staged: registration, marker positions and joint offsets first, then every identifiable "
             "parameter; plain: every parameter at once from the nominal model; random: staged from a start drawn about "
-            "nominal (seeded). Cost: ½·Σ r² over the residuals and the tool prior's rows.</p>"]
+            "nominal (seeded); \"J<i> zero +180°\": nominal with that joint's zero turned half a turn and the registration "
+            "re-fitted, solved only when its first stage beat nominal's. Cost: ½·Σ r² over the residuals and the tool "
+            "prior's rows.</p>"]
 
 
 def _parameters(doc: dict) -> list[str]:
