@@ -546,6 +546,12 @@ def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_w
 #: At most this many ±180° zero flips are continued past the screen (the ones whose first stage
 #: ends lowest); a model with more than this many zeros off by 180° is not what this is for.
 MAX_FLIP_STARTS = 2
+#: The flips are screened only when nominal's first stage (registration, markers, offsets) leaves
+#: more than this rms (mm per coordinate): with a right model it leaves the link errors (tenths of
+#: a mm, about 1 mm on a poor arm); a zero half a turn off moves the markers by twice their
+#: distance from that axis (tens to hundreds of mm), which the first stage cannot absorb. Below
+#: it the screen would cost n small solves (half a normal fit's time) for nothing.
+FLIP_SCREEN_RMS_MM = 2.0
 #: Evaluations of a flip's first stage in the screen: a right flip converges in a few (5–15 seen
 #: on the tracker cell), a wrong one needs a hundred and more to reach a poor minimum anyway.
 SCREEN_NFEV = 30
@@ -586,14 +592,17 @@ def _flip_screen(problem, free, scale, options, fun_p, jac_p, first):
     A flip is worth a full solve only when the data prefer it at first order: each flip (one
     joint at a time) and nominal get the cheap first stage (registration, markers and offsets,
     nearly linear); flips whose first stage ends materially lower (``disagree_rel``) than
-    nominal's are kept, best first, at most ``MAX_FLIP_STARTS``. On a right nominal model no flip
-    passes and the screen costs n small solves. Run without the tool prior (it is not set yet).
+    nominal's are kept, best first, at most ``MAX_FLIP_STARTS``. The screen runs only when
+    nominal's first stage leaves more than ``FLIP_SCREEN_RMS_MM``: on a right nominal model it
+    costs nothing. Run without the tool prior (it is not set yet).
 
     Returns (every screened start as (label, outcome), the kept flips as (label, outcome))."""
     z0 = np.zeros(len(free))
     cols = first if first is not None else None
     screened = [("nominal", solve_from("first stage from nominal", fun_p, jac_p, z0, [cols], options.max_nfev))]
-    for k, c in enumerate(free if options.n_starts >= 2 else []):  # n_starts 1: the staged solve only
+    if options.n_starts < 2 or _rms(screened[0][1].fun[: 3 * len(problem.data)]) <= FLIP_SCREEN_RMS_MM:
+        return screened, []  # n_starts 1: the staged solve only; a first stage this close needs no flip
+    for k, c in enumerate(free):
         name = problem.names[c]
         if c >= problem.P or not name.endswith(".offset"):
             continue
