@@ -48,6 +48,18 @@ def wrap_deg(a: float) -> float:
     return math.degrees(wrap_angle(math.radians(a)))
 
 
+def wrapped_only(chain: Chain, params: np.ndarray) -> np.ndarray:
+    """``params`` (P,) with the offsets in (−π, π] and every twist and torsion within π of its
+    nominal value: the same kinematics, no mirror mapped."""
+    n, nom = chain.n, chain.nominal
+    p = np.asarray(params, dtype=float).copy()
+    p[:n] = wrap_angle(p[:n])
+    for kind in ("alpha", "beta"):
+        i = chain.index(kind)
+        p[i] = nom[i] + wrap_angle(p[i] - nom[i])
+    return p
+
+
 @dataclass(frozen=True)
 class Mapping:
     """The canonical parameter vector (P,), what was changed (one line per link), and the largest

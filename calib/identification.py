@@ -398,7 +398,7 @@ def identify(
         log.warning(w)
     x = x0.copy()
     x[free] = x0[free] + sol.z / scale[free]
-    x, sol, canonical = _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options)
+    x, sol, canonical = _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options, tool_pos.size)
     r = sol.fun[: sol.fun.size - tool_pos.size]
     n_pos = 3 * len(data)
     rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
@@ -451,25 +451,32 @@ def identify(
     )
 
 
-def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options):
+def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options, n_prior):
     """The best solution on the nominal model's branch (``calib.canonical``): offsets wrapped to
-    (−180°, 180°], mirrored links mapped back with the same forward kinematics. A mirror moves
-    markers toward their prior, so the mapped point is polished (a few LM steps; same minimum)
-    and its Jacobian gives the stds. Returns (x, outcome, lines saying what was mapped)."""
-    from calib.canonical import canonical_params
+    (−180°, 180°], mirrored links mapped back with the same forward kinematics. The mapped point
+    must give the same residuals (else, e.g. measured orientations that see a turned flange, only
+    the wrapping is kept). A mirror moves markers toward their prior, so the mapped point is
+    polished (a few LM steps; same minimum) and its Jacobian gives the stds. ``n_prior``: the
+    prior rows at the end of the residuals. Returns (x, outcome, lines saying what was mapped)."""
+    from calib.canonical import FK_TOLERANCE_MM, canonical_params, wrapped_only
 
     names = {problem.names[c] for c in free}
     measured = sorted(set(data.marker.tolist()))
-    mapping = canonical_params(chain, x[: problem.P], names, problem.uq, measured)
+    original = x[: problem.P].copy()
+    mapping = canonical_params(chain, original, names, problem.uq, measured)
     x = x.copy()
     x[: problem.P] = mapping.params
     if not mapping.changes:
         return x, sol, []
     z = (x[free] - x0[free]) * scale[free]
+    n_res = sol.fun.size - n_prior
+    if np.abs(fun_p(z)[:n_res] - sol.fun[:n_res]).max() > FK_TOLERANCE_MM * math.sqrt(max(options.orientation_weight, 1.0)):
+        x[: problem.P] = wrapped_only(chain, original)
+        return x, sol, []
     polished = solve_from(sol.label, fun_p, jac_p, z, [None], options.max_nfev)
     polished.nfev += sol.nfev
     x[free] = x0[free] + polished.z / scale[free]
-    x[: problem.P] = canonical_params(chain, x[: problem.P], names, problem.uq, measured).params  # wrap again
+    x[: problem.P] = wrapped_only(chain, x[: problem.P])
     lines = [f"reported on the nominal model's branch (same forward kinematics, largest change of a measured "
              f"marker {mapping.fk_change_mm:.1g} mm): " + "; ".join(mapping.changes)]
     log.info(lines[0])
