@@ -150,3 +150,35 @@ def test_controller_values_are_wrapped():
                for i, ax in enumerate(cell.model.axis_names)]
     values = controller_values(cell.model, entries)
     assert abs(values.axes[4].delta_deg + 1.10) < 1e-9 and abs(values.axes[4].correction_deg - 1.10) < 1e-9
+
+
+def test_acquire_fit_full_reports_the_half_turned_zero_wrapped(tmp_path):
+    """The same through the command: result.json, the console line and the corrected model."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from acquire.cli import app
+    from calib.dataset import write_csv
+    from calib.identification import write_model_yaml
+    from calib.model import load_robot_model
+
+    cell, chain, truth, cal = _zero_off(3, 1)  # J4; before the flipped-zero starts: mirrored, tool turned
+    write_model_yaml(cell.model, tmp_path / "robot.yaml")
+    write_csv(cal, tmp_path / "cal.csv")
+    out = tmp_path / "full.json"
+    res = CliRunner().invoke(app, ["fit", str(tmp_path / "cal.csv"), "--robot", str(tmp_path / "robot.yaml"),
+                                   "--method", "full", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    by = {p["name"]: p for p in doc["parameters"]}
+    j4 = by["J4.offset"]["value"]
+    # Within 0.1° of the truth (parameters the data cannot separate, kept nominal, bias it by ~0.02°).
+    assert -180.0 < j4 <= 180.0 and abs(wrap_deg(j4 - np.degrees(truth[3]))) < 0.1
+    assert all(-180.0 < p["value"] <= 180.0 for n, p in by.items() if n.endswith(".offset"))
+    assert abs(by["J5.alpha"]["value"] - by["J5.alpha"]["nominal"]) < 1.0
+    assert not [w for w in doc["warnings"] if "far outside their prior" in w]
+    line = next(x for x in res.output.splitlines() if x.startswith("J4.offset"))
+    assert f"{j4:.4f}" in line
+    corrected = load_robot_model(doc["model_file"])
+    assert abs(wrap_deg(corrected.joints[3].theta - cell.model.joints[3].theta - j4)) < 1e-6
