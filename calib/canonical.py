@@ -134,7 +134,7 @@ def canonical_params(chain: Chain, params: np.ndarray, free: set[str], q_rad: np
                     nxt[s2] = (c, path + [(v, bool(s), new)])
         best = nxt
     candidates = sorted(best.values(), key=lambda t: t[0])
-    wrapped = _assemble(chain, p0, [("id", False, link(i, "id", False)) for i in range(n)])
+    wrapped = wrapped_only(chain, p0)
     base_cost = sum(cost(i, link(i, "id", False)) for i in range(n))
     q = np.asarray(q_rad, dtype=float)
     for c, path in candidates:
