@@ -77,7 +77,8 @@ def test_robot_models_load_by_packaged_name_when_no_such_file_exists(tmp_path, m
     monkeypatch.chdir(tmp_path)
     assert load_robot_model("kuka_iiwa14_r820").name == "KUKA LBR iiwa 14 R820"
     assert load_robot_model("kuka_kr6_r900_2.yaml").n_joints == 6
-    with pytest.raises(ConfigError, match="no such robot model file .*packaged model: kuka_iiwa14_r820"):
+    assert load_robot_model("franka_panda").tool.markers[0].name == "ball"
+    with pytest.raises(ConfigError, match="no such robot model file .*packaged model: .*kuka_iiwa14_r820"):
         load_robot_model("kuka_iiwa99")
     with pytest.raises(ConfigError, match="no such robot model file"):
         load_robot_model(tmp_path / "models" / "kuka_iiwa14_r820.yaml")  # a path is never swapped for a name
