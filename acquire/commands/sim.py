@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import os
 import select
+import signal
 import sys
 import threading
 import time
@@ -126,16 +127,31 @@ def sim(
         interactive = sys.stdin is not None and sys.stdin.isatty()
         typer.echo(KEY_HELP if interactive else
                    "faults: one line on stdin 'FAULT [DEVICE|all] [DURATION_S] [PROBABILITY]'")
-        typer.echo(f"running for up to {duration:g} s; Ctrl-C to stop", )
-        sys.stdout.flush()
         try:
-            (_keys if interactive else _lines)(launch, time.monotonic() + duration)
+            with _sigterm_as_interrupt():
+                (_keys if interactive else _lines)(launch, time.monotonic() + duration)
         except KeyboardInterrupt:
             typer.echo("stopping")
     finally:
         launch.close()
     q = np.degrees(cell.joint_positions())
     typer.echo(f"stopped; final joints (deg) {np.round(q, 3).tolist()}")
+
+
+class _sigterm_as_interrupt:
+    """SIGTERM (systemd, ``kill``) stops the cell like Ctrl-C: every fake is closed properly."""
+
+    def __enter__(self):
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            def stop(_signum, _frame):
+                raise KeyboardInterrupt
+            self._old = signal.signal(signal.SIGTERM, stop)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
 
 
 def _inject(launch: SimLaunch, fault: str, device: str | None, duration_s: float | None, probability: float) -> str:
@@ -145,6 +161,11 @@ def _inject(launch: SimLaunch, fault: str, device: str | None, duration_s: float
         return f"error: {exc}"
     when = "" if fault == "controller_restart" else f" for {duration_s or DEFAULT_DURATION_S:g} s"
     return f"fault {fault} on {', '.join(hit)}{when}"
+
+
+def _running(deadline: float) -> None:
+    typer.echo(f"running for up to {max(0.0, deadline - time.monotonic()):.0f} s; Ctrl-C to stop")
+    sys.stdout.flush()
 
 
 def _lines(launch: SimLaunch, deadline: float) -> None:
@@ -165,6 +186,7 @@ def _lines(launch: SimLaunch, deadline: float) -> None:
             print(_inject(launch, f.fault, f.device, f.duration_s, f.probability), flush=True)
 
     threading.Thread(target=read, name="sim-stdin", daemon=True).start()
+    _running(deadline)
     try:
         while time.monotonic() < deadline:
             time.sleep(min(POLL_S, max(0.0, deadline - time.monotonic())))
@@ -180,7 +202,8 @@ def _keys(launch: SimLaunch, deadline: float) -> None:
     fd = sys.stdin.fileno()
     saved = termios.tcgetattr(fd)
     try:
-        tty.setcbreak(fd)
+        tty.setcbreak(fd)  # before saying we run: a key typed from then on is read at once
+        _running(deadline)
         while time.monotonic() < deadline:
             ready, _, _ = select.select([fd], [], [], min(POLL_S, max(0.0, deadline - time.monotonic())))
             if not ready:
