@@ -10,8 +10,9 @@ fires the cell file's ``faults:`` list at their ``at_s`` (wall seconds after the
 fault               what the device does
 ==================  ===================================================================================
 session_drop        FRI: the session falls back to MONITORING_WAIT (the application restarts its
-                    motion once the client answers again). RSI: the KR C4 stops sending for
-                    ``duration_s`` (the commander's link times out). Tracker (line, emScon): every TCP
+                    motion once the client answers again). RSI: the link is down both ways for
+                    ``duration_s``: every cycle is late, and at the KR C4's late limit its RSI
+                    program stops (the cell's simulated operator restarts it). Tracker (line, emScon): every TCP
                     connection is closed. NatNet: Motive forgets its unicast clients (they must
                     CONNECT again).
 drives_off          FRI: drive state OFF, brakes hold, for ``duration_s`` (then ACTIVE again). Sunrise
@@ -101,6 +102,11 @@ def parse_command(line: str) -> Fault:
     return Fault(parts[0], device, duration, probability)
 
 
+def _rsi_link_back(fake) -> None:
+    fake.drop_outgoing(probability=0.0)
+    fake.drop_answers(0.0)
+
+
 class FaultInjector:
     """Applies faults to the fakes of a started ``drivers.sim.launch.SimLaunch``.
 
@@ -170,9 +176,10 @@ class FaultInjector:
             if "fri" in kinds:
                 ctrl.inject_fault("session_drop")
                 return None
-            if "rsi" in kinds:
-                ctrl.stop_sending()
-                return lambda: launch.controller.resume_sending()
+            if "rsi" in kinds:  # the link is down both ways; RSI counts each cycle late
+                ctrl.drop_outgoing(probability=1.0)
+                ctrl.drop_answers(1.0)
+                return lambda: _rsi_link_back(launch.controller)
             if "natnet" in kinds:
                 launch.motives[device].restart(forget_clients=True)
                 return None

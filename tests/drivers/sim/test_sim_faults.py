@@ -151,3 +151,79 @@ def test_injected_faults_reach_the_fake_controller_and_sensors():
                 launch.inject("drives_off", "mocap")
             with pytest.raises(FaultError, match=r"no device 'laser'.*controller, mocap, tracker"):
                 launch.inject("beam_break", "laser")
+
+
+def test_packet_loss_shows_as_gaps_in_the_fri_counter_and_the_natnet_frame_numbers():
+    from drivers.natnet import codec as natnet
+
+    cell = SimCell.from_yaml(DEFAULT_CONFIG_PATH, clock=SimClock(1.0))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as fri_client, \
+            socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as natnet_client:
+        for s in (fri_client, natnet_client):
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(WAIT_S)
+        with SimLaunch(cell, fri_port=fri_client.getsockname()[1], max_runtime_s=60, operator=False) as launch:
+            natnet_client.sendto(natnet.encode_packet(natnet.Connect(layout="ping")),
+                                 ("127.0.0.1", launch.addresses["mocap"].port))
+
+            def counters(sock, n, decode):
+                return [decode(sock.recv(65536)) for _ in range(n)]
+
+            def frame_no(data):
+                msg = natnet.decode_packet(data, (3, 0, 0, 0))
+                return msg.frame_number if isinstance(msg, natnet.FrameOfData) else None
+
+            def fri_no(data):
+                return decode_monitoring(data).header.sequence_counter
+
+            def gaps(numbers):
+                numbers = [n for n in numbers if n is not None]
+                return sum(b - a - 1 for a, b in zip(numbers, numbers[1:]))
+
+            assert gaps(counters(fri_client, 100, fri_no)) == 0
+            assert gaps(counters(natnet_client, 60, frame_no)) == 0
+            launch.inject("packet_loss", None, duration_s=30.0, probability=0.5)
+            fri_lost = gaps(counters(fri_client, 100, fri_no))
+            natnet_lost = gaps(counters(natnet_client, 60, frame_no))
+    assert fri_lost >= 20 and natnet_lost >= 15, (fri_lost, natnet_lost)  # about one in two lost
+
+
+def test_rsi_session_drop_cuts_the_link_for_its_duration_and_a_restart_restarts_the_ipoc():
+    from drivers.kuka_rsi.codec import SenFormatter, parse_rob
+
+    data = load_sim_config(DEFAULT_CONFIG_PATH).model_dump()
+    data["robot"] = str(DEFAULT_CONFIG_PATH.parent.parent / "robots" / "kuka_kr6_r900_2.yaml")
+    data["initial_joint_positions_deg"] = [0, -90, 90, 0, 45, 0]
+    data["deflection"] = {"link_masses_kg": None, "compliance_rad_per_nm": None}
+    data["occlusion"] = {"link_radii_mm": None}
+    from drivers.sim.config import SimConfig
+
+    cell = SimCell(SimConfig.model_validate(data), clock=SimClock(time_scale=0.25))
+    sen = SenFormatter(6)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as commander:
+        commander.bind(("127.0.0.1", 0))
+        commander.settimeout(WAIT_S)
+        with SimLaunch(cell, rsi_port=commander.getsockname()[1], max_runtime_s=60, operator=False) as launch:
+            def answer(n):
+                ipocs = []
+                for _ in range(n):
+                    raw, peer = commander.recvfrom(65536)
+                    rob = parse_rob(raw)
+                    ipocs.append(rob.ipoc)
+                    commander.sendto(sen.format([0.0] * 6, False, rob.ipoc), peer)
+                return ipocs
+
+            answer(20)
+            with pytest.raises(FaultError, match=r"drives_off does not apply to 'controller' \(rsi\)"):
+                launch.inject("drives_off", "controller")
+            launch.inject("session_drop", "controller", duration_s=1.0)
+            commander.settimeout(0.5)
+            with pytest.raises(TimeoutError):
+                while True:  # drain what was in flight, then silence
+                    answer(1)
+            commander.settimeout(WAIT_S)
+            assert wait_for(lambda: ("session_drop", "controller", "off") in [h[1:] for h in launch.faults.history])
+            before = answer(5)[-1]
+            launch.inject("controller_restart", "controller")
+            after = answer(50)
+    assert min(after) < before  # the restarted program counts its IPOC from the start again
