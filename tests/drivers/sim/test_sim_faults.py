@@ -227,3 +227,21 @@ def test_rsi_session_drop_cuts_the_link_for_its_duration_and_a_restart_restarts_
             launch.inject("controller_restart", "controller")
             after = answer(50)
     assert min(after) < before  # the restarted program counts its IPOC from the start again
+
+
+def test_the_commented_examples_in_the_default_cell_are_valid(tmp_path):
+    """Uncommented, default.yaml's examples of natnet:, protocols:, controller: and faults: load."""
+    import re
+
+    text = DEFAULT_CONFIG_PATH.read_text(encoding="utf-8").replace(
+        "robot: ../robots/kuka_iiwa14_r820.yaml", f"robot: {ROBOT}")
+    text = re.sub(r"(?m)^(\s*)# (natnet|protocols|controller|faults)(:.*)$", r"\1\2\3", text)
+    text = re.sub(r"(?m)^#(   - \{.*)$", r"\1", text)
+    path = tmp_path / "examples.yaml"
+    path.write_text(text, encoding="utf-8")
+    config = load_sim_config(path)
+    mocap, tracker = config.sensors
+    assert (mocap.natnet.version, mocap.natnet.asset, tracker.protocols) == ("4.1", "skeleton", ["line", "emscon"])
+    assert config.controller.fri_version == "2.7"
+    assert [(f.at_s, f.fault, f.device) for f in config.faults] == [
+        (12, "beam_break", "tracker"), (30, "packet_loss", "controller"), (60, "controller_restart", None)]
