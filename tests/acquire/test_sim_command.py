@@ -237,3 +237,42 @@ def test_a_key_in_the_terminal_injects_a_fault_and_q_quits():
             proc.kill()
             proc.wait()
         os.close(master)
+
+
+def test_acquire_sim_plays_a_kr_c4_to_an_rsi_client_written_with_elementtree():
+    """The packaged KR C4 cell: RSI state packets read with the standard library's ElementTree
+    (as ROS-Industrial's RSI code reads them) and answered with hand-written ``<Sen>`` XML that
+    move A1; the robot follows, and a ``controller_restart`` typed on stdin restarts the IPOC."""
+    import xml.etree.ElementTree as ET
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as client:
+        client.bind(("127.0.0.1", 0))
+        client.settimeout(WAIT_S)
+        sim = Sim("--config", "kr6_rsi", "--rsi-port", str(client.getsockname()[1]), "--duration", "60",
+                  "--time-scale", "0.25")
+        try:
+            assert any("fake KR C4 (RSI)" in line for line in sim.seen)
+
+            def exchange(n: int, a1: float) -> list[ET.Element]:
+                got = []
+                for _ in range(n):
+                    data, peer = client.recvfrom(65536)
+                    rob = ET.fromstring(data)
+                    got.append(rob)
+                    ipoc = rob.find("IPOC").text
+                    sen = (f'<Sen Type="ImFree"><AK A1="{a1:.4f}" A2="0.0" A3="0.0" A4="0.0" A5="0.0" A6="0.0" />'
+                           f"<IPOC>{ipoc}</IPOC></Sen>")
+                    client.sendto(sen.encode(), peer)
+                return got
+
+            first = exchange(5, 0.0)
+            assert first[0].tag == "Rob"
+            start = float(first[0].find("AIPos").get("A1"))
+            moved = exchange(150, 2.0)  # an absolute correction of +2° on A1
+            assert float(moved[-1].find("AIPos").get("A1")) == pytest.approx(start + 2.0, abs=0.1)
+            before = int(moved[-1].find("IPOC").text)
+            assert sim.fault("controller_restart controller") == "fault controller_restart on controller"
+            after = [int(r.find("IPOC").text) for r in exchange(50, 0.0)]
+            assert min(after) < before
+        finally:
+            sim.close()
