@@ -62,3 +62,31 @@ def test_natnetsdk_reads_the_simulated_cells_motive(version, asset):
             positions = [lm.pos for lm in mocap.labeled_marker_data.labeled_marker_list]
         assert len(positions) == 1  # the bar sees the infrared marker only
         np.testing.assert_allclose(np.asarray(positions[0]) * 1000.0, truth_mm, atol=0.3)  # noise 0.03 mm
+
+
+def test_natnetsdk_joins_the_multicast_stream_a_cell_file_asks_for(tmp_path):
+    """``natnet: {version: 4.0, multicast: true}`` in the cell file: Motive's default transmission
+    (group 239.255.42.99, announced in SERVERINFO), received by natnetsdk in multicast mode."""
+    from natnet_helpers import need_loopback_multicast
+
+    from drivers.sim.config import SimConfig, load_sim_config
+
+    need_loopback_multicast()
+    data = load_sim_config(DEFAULT_CONFIG_PATH).model_dump()
+    data["sensors"][0]["natnet"] = {"version": "4.0", "multicast": True}
+    cell = SimCell(SimConfig.model_validate(data))
+    with SimLaunch(cell, controller=False) as launch:
+        assert "multicast 239.255.42.99" in launch.addresses["mocap"].note
+        motive = launch.motives["mocap"]
+        motive.stall()
+        client, decoded = natnetsdk_client(motive, multicast=True)
+        assert client.run()
+        try:
+            assert wait_until(lambda: client.connected() and client.get_major() == 4, timeout=10.0)
+            motive.resume()
+            assert wait_until(lambda: len(decoded) >= 5, timeout=10.0), f"natnetsdk decoded {len(decoded)} frames"
+        finally:
+            stop_natnetsdk(client, motive)
+    for raw, offset, mocap, got_version in decoded[:5]:
+        assert got_version == (4, 0) and offset == len(raw) - 4 - END_OF_DATA
+        assert_same_frame(codec.decode_packet(raw, codec.version_tuple("4.0")), mocap)
