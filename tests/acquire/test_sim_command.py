@@ -276,3 +276,20 @@ def test_acquire_sim_plays_a_kr_c4_to_an_rsi_client_written_with_elementtree():
             assert min(after) < before
         finally:
             sim.close()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--natnet-version", "5.0"], "given '5.0'; allowed: 3.0, 3.1, 4.0, 4.1"),
+    (["--mocap-asset", "glove"], "allowed: rigid_body, skeleton, trained_markerset"),
+    (["--tracker-protocols", "line,leica"], "allowed: line, emscon or line,emscon"),
+    (["--mocap-asset", "trained_markerset", "--natnet-version", "4.0"], "trained_markerset asset needs NatNet 4.1"),
+])
+def test_acquire_sim_refuses_what_no_fake_speaks_and_starts_nothing(args, message):
+    from typer.testing import CliRunner
+
+    from acquire.cli import app
+
+    result = CliRunner().invoke(app, ["sim", "--duration", "0.2", "--fri-port", "1", *args])
+    assert result.exit_code == 2, result.output
+    assert message in " ".join(result.output.replace("│", " ").split()), result.output
+    assert "running for up to" not in result.output
