@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import threading
@@ -168,3 +169,23 @@ def test_ctrl_c_does_not_reach_the_exchange_and_sigterm_ends_commanding(limits):
         fake.wait_state(SessionState.MONITORING_WAIT, 5.0)
         assert fake.stats.session_drops == 1 and fake.stats.violations == []
         np.testing.assert_allclose(fake.stats.commands[-1][1], target, atol=1e-9)
+
+
+def test_a_healthy_session_start_is_not_a_warning_but_a_long_wait_is(limits, caplog):
+    """The robot application starts its overlay a moment after MONITORING_READY: a move made
+    then waits a little, and says so at INFO; only a wait past QUIET_SESSION_WAIT_S warns."""
+    caplog.set_level(logging.INFO, logger="remaster.device")
+    with fri_pair(limits, commanding=False, initial_position_rad=Q0, application=True,
+                  application_start_cycles=100) as (c, fake):
+        c.wait_session(SessionState.MONITORING_READY, 10.0)
+        c.move_to(Q0 + 0.01, 0.5, timeout=20.0)
+    waits = [r for r in caplog.records if "waiting up to" in r.getMessage()]
+    assert waits and all(r.levelno == logging.INFO for r in waits)
+    caplog.clear()
+    with fri_pair(limits, commanding=False, initial_position_rad=Q0,
+                  url_query="rt_priority=0&session_wait_s=3.5") as (c, fake):
+        c.wait_session(SessionState.MONITORING_READY, 10.0)
+        with pytest.raises(DeviceFaultError, match="not COMMANDING_ACTIVE"):
+            c.move_to(Q0 + 0.01, 0.5, timeout=20.0)
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING and "still MONITORING_READY" in r.getMessage()]
+    assert len(warned) == 1
