@@ -283,6 +283,7 @@ class FakeSunrise:
         self._window_first_seq = 0
         self._idle_first_seq = 0  # first counter sent since the session went IDLE
         self._idle_to_send = 0  # IDLE messages still to send after the session was closed
+        self._brakes_held = False  # hold_brakes(): the joints do not follow the set-point
         self._ended = False  # the robot application ended (stop, max_runtime_s): no re-opening
         self._window_count = 0
         self._window_answered = False
@@ -497,6 +498,21 @@ class FakeSunrise:
                 raise ValueError(f"kind must be drives_off, safety_stop or session_drop, got {kind!r}")
             self._qd[:] = 0.0
 
+    def drives_off(self) -> None:
+        """Drives off (brakes hold); the monitoring messages say so. Same as ``inject_fault``."""
+        self.inject_fault("drives_off")
+
+    def drop_session(self) -> None:
+        """The session falls back to MONITORING_WAIT (as after a connection-quality drop)."""
+        self.inject_fault("session_drop")
+
+    def hold_brakes(self, held: bool = True) -> None:
+        """The joints stay where they are (a brake that does not release, a seized gear) while
+        the controller reports everything normal and keeps taking the client's set-points."""
+        with self._lock:
+            self._brakes_held = bool(held)
+            self._qd[:] = 0.0
+
     def clear_fault(self) -> None:
         with self._lock:
             self._drives = DriveState.ACTIVE
@@ -642,7 +658,8 @@ class FakeSunrise:
         self.stats.commands.append((self._sim_time, cmd.copy()))
 
     def _step_servo(self, dt: float) -> None:
-        if self._drives != DriveState.ACTIVE or self._safety != SafetyState.NORMAL_OPERATION:
+        if (self._brakes_held or self._drives != DriveState.ACTIVE
+                or self._safety != SafetyState.NORMAL_OPERATION):
             self._qd[:] = 0.0
             return
         n_sub = max(1, int(math.ceil(dt / 0.0005)))
