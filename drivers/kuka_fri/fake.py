@@ -391,6 +391,8 @@ class FakeSunrise:
                 self._ended = True
                 if self._state != SessionState.IDLE:
                     self._close("robot application ended")
+                if not self._sending:  # stop_sending(): a quiet controller says nothing more
+                    self._idle_to_send = 0
                 pending = self._idle_to_send
             wall = self._wall(self.send_period_ms / 1000.0) * (pending + 2) + 1.0
             with self._state_changed:
