@@ -102,6 +102,8 @@ log = logging.getLogger("remaster.fake.sunrise")
 N_JOINTS = 7
 _LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 FRI_VERSIONS = ("1.15", "2.5", "2.7")
+#: Wall seconds between tries to take the FRI port, until a client holds its port (``_claim_fri_port``).
+_CLAIM_EVERY_S = 0.5
 MALFORMED_KINDS = ("garbage", "truncated", "wrong_id", "bad_crc")
 
 #: Nominal LBR iiwa 14 R820, standard DH (d mm, alpha rad; a = 0): the controller's own model.
@@ -147,8 +149,9 @@ class FakeSunrise:
 
     client_address: (host, port) of the FRI client, loopback only.
     controller_host: loopback address the fake sends from, on the client's port (the FRI port,
-        as Sunrise does); if that cannot be bound (a client holding the port on every address,
-        as the KUKA SDK binds it) the fake sends from an ephemeral port on 127.0.0.1 and says so.
+        as Sunrise does), taken once a client holds its port; until then, and if it cannot be
+        bound (a client holding the port on every address, as KUKA's SDK binds it), the fake
+        sends from an ephemeral port on 127.0.0.1 (``_claim_fri_port``).
     idle_cycles: silent cycles before the session opens by itself (``auto_open``) at start and
         after a ``restart``.
     closing_idle_messages: IDLE messages sent when the application closes the session.
@@ -298,6 +301,8 @@ class FakeSunrise:
         self._drives = DriveState.ACTIVE
         self._sim_time = 0.0
         self._sock: Optional[socket.socket] = None
+        self._on_fri_port = False  # sending from controller_host:client port (``_claim_fri_port``)
+        self._warned_port = False
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
 
@@ -358,28 +363,52 @@ class FakeSunrise:
         """Bind the FRI port on ``controller_host`` (see the class docstring) and start."""
         if self._thread is not None:
             raise RuntimeError("FakeSunrise already started")
-        self._sock = self._bind()
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind(("127.0.0.1", 0))
         self._sock.setblocking(False)
+        self._claim_fri_port()
         self._thread = threading.Thread(target=self._run, name="fake-sunrise", daemon=True)
         self._thread.start()
         return self
 
-    def _bind(self) -> socket.socket:
-        port = self.client_address[1]
+    def _claim_fri_port(self) -> None:
+        """Send from the FRI port (``controller_host``:client port) once a client holds its
+        port, as Sunrise does. Not before: a client that binds the port on every address (KUKA's
+        SDK does, without ``SO_REUSEADDR``) could not start while we held it. If the client holds
+        it on every address we cannot bind it either: we keep sending from an ephemeral port
+        (such a client answers whoever sent; given a controller host it would need its own
+        network namespace). Called at start and every ``_CLAIM_EVERY_S`` from the send thread."""
+        if self._on_fri_port:
+            return
+        host, port = self.client_address
+        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            probe.bind((host, port))  # succeeds only while no client holds the port
+        except OSError:
+            pass
+        else:
+            return
+        finally:
+            probe.close()
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.bind((self.controller_host, port))
-            return sock
         except OSError as exc:
             sock.close()
-            log.warning(
-                "fake Sunrise: cannot send from the FRI port %s:%d (%s): the FRI client holds that port on "
-                "every address, as KUKA's SDK binds it; sending from an ephemeral port on 127.0.0.1 instead. "
-                "An SDK example given a controller host only accepts datagrams from host:%d; start it without "
-                "one, or run it in its own network namespace", self.controller_host, port, exc, port)
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", 0))
-        return sock
+            if not self._warned_port:
+                self._warned_port = True
+                log.warning(
+                    "fake Sunrise: cannot send from the FRI port %s:%d (%s): the FRI client holds that port on "
+                    "every address, as KUKA's SDK binds it; sending from %s:%d instead. An SDK example given a "
+                    "controller host only takes datagrams from host:%d: start it without one, or in its own "
+                    "network namespace", self.controller_host, port, exc, *self._sock.getsockname(), port)
+            return
+        sock.setblocking(False)
+        old, self._sock = self._sock, sock
+        self._on_fri_port = True
+        self._drain(old)  # answers already sent to the old port
+        old.close()
+        log.info("fake Sunrise: sending from the FRI port %s:%d", self.controller_host, port)
 
     def stop(self, close_session: bool = True) -> None:
         """The robot application ends (idempotent): with ``close_session`` it closes the FRI
@@ -818,13 +847,17 @@ class FakeSunrise:
 
     def _run(self) -> None:
         self._set_realtime()
-        sock = self._sock
-        assert sock is not None
+        assert self._sock is not None
         period = self._wall(self.send_period_ms / 1000.0)
         t_end = time.monotonic() + self.max_runtime_s
         next_t = time.monotonic()
+        next_claim = next_t + _CLAIM_EVERY_S
         ending = False
         while not self._stop.is_set():
+            if not self._on_fri_port and time.monotonic() >= next_claim:
+                next_claim = time.monotonic() + _CLAIM_EVERY_S
+                self._claim_fri_port()
+            sock = self._sock
             if not ending and time.monotonic() >= t_end:
                 ending = True
                 with self._lock:  # the robot application ends: it closes the session first
