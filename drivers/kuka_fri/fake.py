@@ -376,8 +376,10 @@ class FakeSunrise:
         port, as Sunrise does. Not before: a client that binds the port on every address (KUKA's
         SDK does, without ``SO_REUSEADDR``) could not start while we held it. If the client holds
         it on every address we cannot bind it either: we keep sending from an ephemeral port
-        (such a client answers whoever sent; given a controller host it would need its own
-        network namespace). Called at start and every ``_CLAIM_EVERY_S`` from the send thread."""
+        (such a client answers whoever sent). KUKA's SDK given a controller host ``connect()``s,
+        which on Linux narrows its socket to one local address (127.0.0.1 for 127.0.0.2), so the
+        port on ``controller_host`` is then free. Called at start and every ``_CLAIM_EVERY_S``
+        from the send thread."""
         if self._on_fri_port:
             return
         host, port = self.client_address
@@ -397,11 +399,10 @@ class FakeSunrise:
             sock.close()
             if not self._warned_port:
                 self._warned_port = True
-                log.warning(
-                    "fake Sunrise: cannot send from the FRI port %s:%d (%s): the FRI client holds that port on "
-                    "every address, as KUKA's SDK binds it; sending from %s:%d instead. An SDK example given a "
-                    "controller host only takes datagrams from host:%d: start it without one, or in its own "
-                    "network namespace", self.controller_host, port, exc, *self._sock.getsockname(), port)
+                log.info(  # such a client answers whoever sends: it works, it is only not a cabinet's port
+                    "fake Sunrise: sending from %s:%d, not the FRI port %s:%d (%s): the FRI client holds its "
+                    "port on every address (KUKA's SDK example started without a controller host)",
+                    *self._sock.getsockname(), self.controller_host, port, exc)
             return
         sock.setblocking(False)
         old, self._sock = self._sock, sock
