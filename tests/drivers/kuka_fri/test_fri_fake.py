@@ -249,3 +249,25 @@ def test_malformed_hook_sends_bytes_our_decoder_rejects(client):
             except ProtocolError:
                 bad += 1
         assert bad == 5
+
+
+def test_a_client_started_after_the_fake_can_still_bind_its_port_on_every_address():
+    """KUKA's SDK binds INADDR_ANY:port without SO_REUSEADDR: the fake must not hold the port
+    before a client does. Such a client then hears the fake from an ephemeral port."""
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    with FakeSunrise(("127.0.0.1", port), initial_position_rad=Q0):
+        time.sleep(0.7)  # past a port claim attempt with no client
+        sdk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sdk.bind(("0.0.0.0", port))
+            sdk.settimeout(2.0)
+            data, sender = sdk.recvfrom(4096)
+            time.sleep(0.7)  # another claim attempt: the port is held on every address
+            data, sender = sdk.recvfrom(4096)
+        finally:
+            sdk.close()
+    assert decode_monitoring(data).connection_info.session_state == SessionState.MONITORING_WAIT
+    assert sender[0] == "127.0.0.1" and sender[1] != port
