@@ -38,7 +38,10 @@ def controller():
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
-    fake = FakeKrc4(("127.0.0.1", port), initial_deg=HOME, rt_priority=40, max_runtime_s=30)
+    # late_limit: on a cell the PC listens before the RSI program starts; here the fake starts
+    # first, and the command's start-up (imports, the exchange process) on a loaded machine can
+    # take more than RSI's 100 unanswered cycles (0.4 s), which would end the RSI session early
+    fake = FakeKrc4(("127.0.0.1", port), initial_deg=HOME, rt_priority=40, max_runtime_s=30, late_limit=5000)
     fake.start()
     yield port, fake
     fake.close()
