@@ -4,7 +4,11 @@ It is the sender, as the real controller is: every ``send_period_ms`` (simulated
 ``SimClock`` is given) it sends an ``FRIMonitoringMessage`` to the client address and collects
 the ``FRICommandMessage`` answers that arrive before the next one. It walks the session state
 machine, runs the commanded positions through a second-order servo, checks the client's
-counters, timing, echo and step sizes, and exposes fault hooks for the failure paths.
+counters, timing, echo and step sizes, and exposes fault hooks for the failure paths:
+``drop_next``, ``send_malformed`` (garbage, truncated, wrong_id, bad_crc), ``restart``,
+``stop_sending`` / ``resume_sending``, ``drives_off``, ``drop_session``, ``hold_brakes``,
+``inject_fault`` / ``clear_fault``; the robot application's own steps: ``open_session``,
+``close_session``, ``start_commanding``, ``stop_commanding``, ``stop``.
 
 Message layouts (``fri_version``), from the generated tables of KUKA's FRI client SDK:
 ``"1.15"`` (Sunrise.OS 1.x: monitor data carries ``commandedJointPosition``, field 3),
