@@ -74,6 +74,8 @@ def test_the_wheel_holds_models_plans_and_the_simulated_cell(installed):
         assert f"calib/data/plans/{plan.name}" in names
     assert "calib/data/sim/default.yaml" in names
     assert "calib/data/foxglove/remaster-layout.json" in names
+    for shipped in ROOT.glob("drivers/kuka_rsi/controller/*"):  # what a KR C4 needs, RSI context included
+        assert f"drivers/kuka_rsi/controller/{shipped.name}" in names
     assert not any(n.startswith("fixtures/") for n in names)  # no stray top-level package
 
 
