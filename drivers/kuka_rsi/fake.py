@@ -361,7 +361,7 @@ class FakeKrc4:
                 # any read a starved thread of that process began (seen: a read retried for 60 s)
                 time.sleep(LOCKSTEP_REST_S)
                 next_t = time.monotonic()
-            elif not answered:
+            elif not answered and expect_answer:  # the answer window ran to its end
                 next_t = max(next_t, now)
             elif next_t > now:
                 time.sleep(next_t - now)

@@ -139,3 +139,22 @@ def test_drives_off_halts_the_robot_program_and_rsi_with_it(client):
         reason = f.stats().stopped_reason
     assert reason == "drives off: the robot program halted"
     assert len(client.states) < 30  # it stopped sending
+
+
+def test_a_silent_controller_keeps_its_clock_and_sends_again_on_resume(client):
+    """``stop_sending`` silences the controller for a while; its cycle clock keeps real time
+    (IPOC advances by about the silent time, not by a spin's worth of cycles) and packets come
+    again at once after ``resume_sending`` (a spinning loop once pushed its schedule minutes ahead)."""
+    answer = lambda i, s: ([0.0] * 6, s.ipoc)  # noqa: E731
+    with fake_for(client, late_limit=10_000) as f:
+        client.run(answer, 20)
+        ipoc_before = client.states[-1][1].ipoc
+        f.stop_sending()
+        time.sleep(0.5)
+        f.resume_sending()
+        n = len(client.states)
+        client.run(answer, 20)
+        assert len(client.states) - n == 20, "no packets after resume_sending"
+        gap_ms = client.states[n][1].ipoc - ipoc_before
+        # 0.5 s silent on a 4 ms cycle is ~125 cycles = ~500 ms of IPOC; a spin made it 100x more
+        assert gap_ms < 20 * 500, f"IPOC jumped {gap_ms} ms over 0.5 s of silence"
