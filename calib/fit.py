@@ -866,7 +866,10 @@ def error_budget(data: Dataset, sigma: dict[str, tuple[float, float]]) -> dict[s
         std, n = data.std_mm[rows], data.count[rows]
         ok = np.isfinite(std) & (n > 0)
         noise = float(np.sqrt(np.mean((std[ok] / np.sqrt(n[ok])) ** 2))) if ok.any() else None
-        entry: dict = {"sigma_mm": sig, "noise_mm": noise}
+        spread = float(np.sqrt(np.mean(std[ok] ** 2))) if ok.any() else None
+        # sample_spread_mm: the rms per-axis spread of one sample (std_mm): the floor a model's
+        # held-out error is judged against (the arm's own settling and vibration are in it).
+        entry: dict = {"sigma_mm": sig, "noise_mm": noise, "sample_spread_mm": spread, "n_rows": int(rows.sum())}
         if noise is not None:
             unmodelled = math.sqrt(max(sig**2 - noise**2, 0.0))
             entry["unmodelled_mm"] = unmodelled
