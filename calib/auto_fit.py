@@ -36,17 +36,20 @@ class AutoFit:
 
 def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOptions = FitOptions(), *,
              force: str | None = None, link_tolerance: tuple[float, float] | None = None, n_random: int = 1000,
-             n_starts: int = 6, ident_exclusions: tuple[tuple[str, str], ...] = (), k: int = 5) -> AutoFit:
+             n_starts: int = 6, ident_exclusions: tuple[tuple[str, str], ...] = (), k: int = 5,
+             include_full: bool = True) -> AutoFit:
     """Choose the model by cross-validation (``force``: a candidate's name, ``--model``), fit it on
     all of ``cal``, score ``val`` and apply the guards. ``base``: the user's options (joints,
     registration, error model, tool prior, seed, draws); ``link_tolerance``: a fixed link scale
-    instead of the empirical Bayes one."""
+    instead of the empirical Bayes one; ``include_full``: False leaves full identification out of
+    the candidates (the run's end-of-run fit, whose summary is the offsets')."""
     from calib.kinematics import Chain
     from calib.metrics import accuracy_metrics
     from calib.result import result_dict
 
     base = replace(base, method="laplace", compliance=False)
-    choice = choose_model(model, cal, base, force=force, k=k, link_tolerance=link_tolerance)
+    choice = choose_model(model, cal, base, force=force, k=k, link_tolerance=link_tolerance,
+                          include_full=include_full)
     candidate = parse_candidate(choice.chosen, model)
     if candidate.kind == "full":
         from calib.identification import IdentOptions, ident_result_dict, identify
