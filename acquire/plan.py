@@ -72,7 +72,7 @@ commented example)::
     output:
       folder: runs                   # where RUN.mcap, result.json and report.html go [runs]
     fit:
-      method: fast                   # fast | paper [fast]
+      method: auto                   # auto | fast | paper [auto: the data choose the model]
       joints: null                   # axis numbers to fit, e.g. [2, 3, 4] [null: all]
       error: gaussian                # gaussian | student [gaussian]
       fix_registration: false        # [false]

@@ -256,7 +256,7 @@ def test_defaults_are_the_documented_ones(tmp_path):
     assert (s.speed, s.settle_window_s, s.settle_tolerance_deg, s.sensor_stable_mm, s.samples, s.retries,
             s.on_lost_target) == (0.3, 0.5, 0.01, 0.05, 20, 2, "reacquire")
     assert lp.plan.selection is None and lp.plan.fake is None
-    assert (lp.plan.fit.method, lp.plan.fit.error, lp.plan.fit.joints) == ("fast", "gaussian", None)
+    assert (lp.plan.fit.method, lp.plan.fit.error, lp.plan.fit.joints) == ("auto", "gaussian", None)
     assert lp.output_dir == tmp_path / "runs"
     assert lp.sim_config_path.name == "default.yaml"
 
