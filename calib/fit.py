@@ -452,7 +452,7 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
                                       seed=options.seed)
     info["fallback"] = None
     if chains is None:
-        chains = ensemble(target, start, cov, n_draws=options.n_draws, seed=options.seed)
+        chains = ensemble(target, start, cov, n_draws=options.n_draws, burn_in=500, seed=options.seed)
         info["fallback"] = "emcee"
     if options.error == "gaussian":
         rng = np.random.default_rng(options.seed + 7919)

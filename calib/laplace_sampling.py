@@ -60,7 +60,7 @@ def laplace_importance(log_target: LogTarget, mode: np.ndarray, cov: np.ndarray,
 
 
 def ensemble(log_target: LogTarget, mode: np.ndarray, cov: np.ndarray, *, n_draws: int = 1000, burn_in: int = 1000,
-             seed: int = 0, max_steps: int = 20000) -> Chains:
+             seed: int = 0, max_steps: int = 3000) -> Chains:
     """emcee's affine-invariant ensemble sampler: 2·d + 2 walkers (at least 32) started from the
     Laplace Gaussian; ``burn_in`` steps dropped, then at least ``n_draws`` steps, extended (up to
     ``max_steps`` in all) until the run is 50 integrated autocorrelation times τ long (emcee's
