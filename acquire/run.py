@@ -1152,7 +1152,8 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
 
 def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> tuple[dict, Path, Path | None]:
     """The plan's ``fit.method: auto``: ``calib.auto_fit`` (the data choose among the offsets models;
-    a link scale set in the plan is used instead of the empirical Bayes one)."""
+    a link scale set in the plan is used instead of the empirical Bayes one; ``fit.compliance``:
+    only the candidates with compliance)."""
     from dataclasses import replace
 
     from calib.auto_fit import auto_fit
@@ -1160,7 +1161,8 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
 
     given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
     done = auto_fit(model, cal, val, replace(options, method="laplace", compliance=False),
-                    link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random, include_full=False)
+                    link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random, include_full=False,
+                    compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics)
     result_path = base.with_name("result.json")
     write_result(result_path, done.doc)
     report_path = None

@@ -37,7 +37,7 @@ class AutoFit:
 def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOptions = FitOptions(), *,
              force: str | None = None, link_tolerance: tuple[float, float] | None = None, n_random: int = 1000,
              n_starts: int = 6, ident_exclusions: tuple[tuple[str, str], ...] = (), k: int = 5,
-             include_full: bool = True) -> AutoFit:
+             include_full: bool = True, compliance_only: bool = False) -> AutoFit:
     """Choose the model by cross-validation (``force``: a candidate's name, ``--model``), fit it on
     all of ``cal``, score ``val`` and apply the guards. ``base``: the user's options (joints,
     registration, error model, tool prior, seed, draws); ``link_tolerance``: a fixed link scale
@@ -49,7 +49,7 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
 
     base = replace(base, method="laplace", compliance=False)
     choice = choose_model(model, cal, base, force=force, k=k, link_tolerance=link_tolerance,
-                          include_full=include_full)
+                          include_full=include_full, compliance_only=compliance_only)
     candidate = parse_candidate(choice.chosen, model)
     if candidate.kind == "full":
         from calib.identification import IdentOptions, ident_result_dict, identify

@@ -66,12 +66,15 @@ class Candidate:
         return KINDS.index(self.kind) + (0.5 if self.compliance else 0.0)
 
 
-def candidates(model: RobotModel, *, include_full: bool = True) -> list[Candidate]:
-    """Every candidate for ``model``: the compliance variants only with link masses."""
+def candidates(model: RobotModel, *, include_full: bool = True, compliance_only: bool = False) -> list[Candidate]:
+    """Every candidate for ``model``: the compliance variants only with link masses
+    (``compliance_only``: only those — ``--compliance``)."""
     kinds = KINDS if include_full else KINDS[:-1]
-    out = [Candidate(k) for k in kinds]
+    out = [] if compliance_only else [Candidate(k) for k in kinds]
     if model.has_dynamics:
         out += [Candidate(k, True) for k in kinds if k != "full"]
+    if not out:
+        raise ValueError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model")
     return sorted(out, key=lambda c: c.rank)
 
 
@@ -194,6 +197,9 @@ class ModelChoice:
         lines = [f"model choice: {self.folds}-fold cross-validation by {self.grouping} (fit on the other folds, "
                  "held-out configurations scored with that fit's registration)",
                  f"  {'model':<32}{'free':>6}{'CV rms (mm)':>13}{'CV mean ± se (mm)':>22}"]
+        if all(s.failed for s in self.scores):
+            lines.append("  no model could be fitted on the training folds (too few configurations): the simplest "
+                         f"({self.chosen}) is fitted unvalidated, and nothing is marked \"enter\"")
         for s in [self.nominal] + self.scores:
             if s.failed:
                 lines.append(f"  {s.name:<32}{'—' if s.n_params is None else s.n_params:>6}  failed: {s.failed}")
@@ -299,10 +305,11 @@ def one_se_choice(scores: list[Score]) -> str:
 
 
 def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions(), *, force: str | None = None,
-                 k: int = 5, include_full: bool = True, link_tolerance: tuple[float, float] | None = None) -> ModelChoice:
+                 k: int = 5, include_full: bool = True, link_tolerance: tuple[float, float] | None = None,
+                 compliance_only: bool = False) -> ModelChoice:
     """Score every candidate (``--model NAME`` in ``force``: still scored and shown, but chosen);
     ``link_tolerance`` given: that link scale instead of the empirical Bayes one."""
-    cands = candidates(model, include_full=include_full)
+    cands = candidates(model, include_full=include_full, compliance_only=compliance_only)
     if force is not None:
         forced = parse_candidate(force, model)
         if forced not in cands:
@@ -314,5 +321,8 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
     elif link_tolerance is not None:
         scale = {"length_mm": link_tolerance[0], "angle_deg": link_tolerance[1], "given": True}
     scores, nominal, n_folds, grouping = cross_validate(model, data, cands, base, link_tolerance, k=k, seed=base.seed)
-    chosen = force if force is not None else one_se_choice(scores)
+    try:
+        chosen = force if force is not None else one_se_choice(scores)
+    except ValueError:  # too few configurations to fit any model on four folds: the simplest, unvalidated
+        chosen = min(cands, key=lambda c: c.rank).name
     return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale)

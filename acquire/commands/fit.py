@@ -251,7 +251,8 @@ def fit(
     ),
     compliance: bool = typer.Option(
         False, "--compliance",
-        help="fast: also fit one joint compliance per axis (gravity sag; the robot model needs link masses).",
+        help="also fit one joint compliance per axis (gravity sag; the robot model needs link masses); auto: "
+        "compare only the candidates with compliance.",
     ),
     socket_distance: Optional[float] = typer.Option(
         None, "--socket-distance",
@@ -265,7 +266,7 @@ def fit(
     refuse_options(method, {"--link-tolerance": link_tolerance is not None, "--draws": draws is not None,
                             "--paper-samples": paper_samples is not None, "--random-configs": n_random is not None,
                             "--error": error != "gaussian", "--starts": starts is not None,
-                            "--model": model_name is not None, "--compliance": compliance})
+                            "--model": model_name is not None})
     fixed_link_tolerance = link_tolerance
     link_tolerance = "0.2,0.02" if link_tolerance is None else link_tolerance
     draws = 1000 if draws is None else draws
@@ -347,7 +348,7 @@ def fit(
                                               error=error, seed=seed, n_draws=draws, tool_prior_mm=tool_prior_mm),
                   model_name, None if fixed_link_tolerance is None else _link_tolerance(fixed_link_tolerance),
                   n_random, starts or 6, _full_exclusions(model, cal, _joints(joints, model.n_joints), fix_registration),
-                  output, model_out, report)
+                  output, model_out, report, compliance)
         return
     if method == "full":
         from calib.identification import IdentOptions  # the identification loads only for --method full
@@ -411,8 +412,6 @@ METHOD_OPTIONS = {
                                "their offsets with -o; `acquire model export MODEL --result RESULT.json` applies them to a URDF"),
     "--starts": (("full", "auto"), "the fast and paper fits start from their least-squares mode: --starts applies to --method full"),
     "--model": (("auto",), "--model chooses among the default's candidate models: drop --method, or drop --model"),
-    "--compliance": (("fast", "full", "paper"), "the default compares every model with and without compliance itself; "
-                                                "force one with --model NAME+compliance"),
 }
 
 
@@ -509,7 +508,7 @@ def register(app: typer.Typer) -> None:
 
 def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force: str | None,
               link_tolerance: tuple[float, float] | None, n_random: int, n_starts: int, exclusions, output: Path | None,
-              model_out: Path | None, report: Path | None) -> None:
+              model_out: Path | None, report: Path | None, compliance_only: bool = False) -> None:
     """The default: the data choose the model (``calib.auto_fit``); the table, the fit, and "enter"
     only where earned (``calib.controller.earned_reasons``)."""
     from calib.auto_fit import auto_fit
@@ -524,7 +523,7 @@ def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force:
             raise typer.BadParameter(str(exc), param_hint="--model") from exc
     try:
         done = auto_fit(model, cal, val, base, force=force, link_tolerance=link_tolerance, n_random=n_random,
-                        n_starts=n_starts, ident_exclusions=exclusions)
+                        n_starts=n_starts, ident_exclusions=exclusions, compliance_only=compliance_only)
     except ValueError as exc:  # DatasetError, or data a registration cannot use (e.g. collinear points)
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
     if done.result is None:

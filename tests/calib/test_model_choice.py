@@ -181,3 +181,12 @@ def test_a_posterior_the_laplace_gaussian_misses_goes_to_the_ensemble_sampler():
     draws = ensemble(target, np.zeros(2), np.eye(2), n_draws=1000, burn_in=500, seed=0)
     np.testing.assert_allclose(np.cov(draws.flat.T), cov, rtol=0.25, atol=0.15)
     assert split_rhat(draws.samples).max() < 1.1
+
+
+def test_too_few_configurations_to_cross_validate_fit_the_simplest_model_and_enter_nothing():
+    model, truth, cal = cell(6, k=3)
+    done = auto_fit(model, cal, None, FitOptions(n_draws=200), n_random=20, include_full=False)
+    assert done.choice.chosen == "offsets" and all(s.failed for s in done.choice.scores)
+    assert "too few configurations" in done.choice.format()
+    assert any("could not be fitted in every cross-validation fold" in r for r in done.refused)
+    assert all(a["action"] != "enter" for a in done.doc["controller"]["axes"])
