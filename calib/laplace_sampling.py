@@ -32,16 +32,17 @@ def _evaluate(log_target: LogTarget, x: np.ndarray, batch: int = 1024) -> np.nda
 
 
 def laplace_importance(log_target: LogTarget, mode: np.ndarray, cov: np.ndarray, *, n_chains: int = 4,
-                       n_draws: int = 1000, seed: int = 0, oversample: int = 2) -> tuple[Chains | None, dict]:
+                       n_draws: int = 1000, seed: int = 0, oversample: int = 2,
+                       min_proposals: int = 16000) -> tuple[Chains | None, dict]:
     """Importance sampling of ``log_target`` with the Gaussian proposal N(mode (d,), cov (d, d)).
 
     Returns (draws or None, diagnostics): draws as ``Chains`` (n_chains, n_draws, d) resampled by
     the PSIS weights when k̂ < 0.7, else None. Diagnostics: ``k_hat``, ``ess`` (of the weights),
-    ``n_proposals``, ``seconds``."""
+    ``n_proposals``, ``seconds``. At least ``min_proposals`` draws: the tail fit needs them."""
     t0 = time.perf_counter()
     mode = np.asarray(mode, dtype=float)
     rng = np.random.default_rng(seed)
-    n = oversample * n_chains * n_draws
+    n = max(oversample * n_chains * n_draws, min_proposals)  # k̂ of a few thousand weights is noisy
     chol = np.linalg.cholesky(cov + 1e-300 * np.eye(mode.size))
     z = rng.standard_normal((n, mode.size))
     x = mode + z @ chol.T
@@ -60,7 +61,7 @@ def laplace_importance(log_target: LogTarget, mode: np.ndarray, cov: np.ndarray,
 
 
 def ensemble(log_target: LogTarget, mode: np.ndarray, cov: np.ndarray, *, n_draws: int = 1000, burn_in: int = 1000,
-             seed: int = 0, max_steps: int = 3000) -> Chains:
+             seed: int = 0, max_steps: int = 2000) -> Chains:
     """emcee's affine-invariant ensemble sampler: 2·d + 2 walkers (at least 32) started from the
     Laplace Gaussian; ``burn_in`` steps dropped, then at least ``n_draws`` steps, extended (up to
     ``max_steps`` in all) until the run is 50 integrated autocorrelation times τ long (emcee's
