@@ -148,7 +148,8 @@ def format_summary(doc: dict, controller_text: str, choice_text: str | None = No
     ess = d.get("ess_min")
     imp = d.get("importance")
     if imp and not imp.get("fallback"):
-        lines.append(f"posterior: Laplace (the least-squares solution's Gaussian) checked by importance sampling: Pareto k̂ "
+        lines.append(f"posterior: Laplace (the least-squares solution and its covariance, as a Student t) checked by "
+                     f"importance sampling: Pareto k̂ "
                      f"{imp['k_hat']:.2f} (< {imp['k_hat_max']}: used), effective draws {imp['ess']:.0f} of "
                      f"{imp['n_proposals']}, {d['seconds_total']:.2f} s")
     else:
