@@ -64,7 +64,7 @@ def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
     # The default: the data choose the model (the table, the choice), and the Laplace posterior checked by PSIS.
     assert re.search(r"^model choice: 5-fold cross-validation by pose group", text, flags=re.M)
     assert re.search(r"^  offsets\s+\d+\s+\d\.\d{4}\s+\d\.\d{4} ± \d\.\d{4}", text, flags=re.M)
-    assert re.search(r"Pareto k̂ 0\.\d\d \(< 0\.7: used\), effective draws \d+", text)
+    assert re.search(r"Pareto k̂ -?\d\.\d\d \(< 0\.7: used\), effective draws \d+", text)
     assert "validation_absolute" in text and "theoretical_workspace_offsets_only" in text
     assert "values to enter (sunrise):" in text and "leave unchanged" in text
     # The fitted offsets are close to the simulated truth (link errors and sag bias them a little).
