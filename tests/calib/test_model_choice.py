@@ -8,19 +8,23 @@ with known zero-offsets, and optionally link errors and a tool that is not where
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from calib.auto_fit import auto_fit
 from calib.controller import earned_reasons
+from calib.dataset import from_arrays
 from calib.fit import FitOptions
 from calib.kinematics import Chain
+from calib.model import load_robot_model
 from calib.model_choice import Score, choose_model, fold_labels, one_se_choice
 from calib.psis import psis
 from calib.transforms import pose_to_matrix
 from tests.calib.tracker_sim import CAL_NESTS, TRACKER2BASE_POSE, configurations, link_errors, observe, plate_model
 
+ROOT = Path(__file__).resolve().parents[2]
 SAMPLES = 20  # samples averaged per configuration: std_mm is the spread of one, the noise of the mean is /√20
 
 
@@ -190,3 +194,44 @@ def test_too_few_configurations_to_cross_validate_fit_the_simplest_model_and_ent
     assert "too few configurations" in done.choice.format()
     assert any("could not be fitted in every cross-validation fold" in r for r in done.refused)
     assert all(a["action"] != "enter" for a in done.doc["controller"]["axes"])
+
+
+# --- real data: a UR10 measured by a Leica laser tracker (../shared/fixtures/ur10-ipa-tracker-6dof/) ---------
+UR10_SERIES_B = (Path(__file__).resolve().parents[3] / "shared" / "fixtures" / "ur10-ipa-tracker-6dof" / "Series_B"
+                 / "measurements_joint_configurations.csv")
+
+
+def _ur10_series(path: Path, rows: slice, split: str):
+    """Rows of an IPA series as a dataset: ';' separated, decimal comma, joints in radians, the
+    T-Mac position in mm, its per-axis standard deviation as the per-sample spread."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    head = lines[0].split(";")
+    a = np.array([[float(v.replace(",", ".")) for v in line.split(";")] for line in lines[1:] if line.strip()])[rows]
+    col = {h: i for i, h in enumerate(head)}
+    q = a[:, [col[k] for k in ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint",
+                               "wrist_2_joint", "wrist_3_joint")]]
+    xyz = a[:, [col[f"measurement_{c}"] for c in "xyz"]]
+    std = np.sqrt(np.mean(a[:, [col[f"measurement_std_{c}"] for c in "xyz"]] ** 2, axis=1))
+    return from_arrays(q, xyz, marker="tmac", sensor="tracker", config=np.array([f"c{i}" for i in range(len(a))]),
+                       std_mm=std, count=np.ones(len(a)), split=split)
+
+
+@pytest.mark.skipif(not UR10_SERIES_B.is_file(), reason="the shared UR10 tracker data is not next to the repository")
+def test_real_ur10_tracker_data_get_an_answer_and_enter_only_where_earned():
+    """Calibrate on 120 configurations of series B, score 300 others: the default answers (the
+    Laplace check passes), chooses a model that predicts held-out configurations far better than
+    the uncalibrated robot, and withholds "enter" while the held-out error is many times the
+    tracker's spread (robot error no candidate describes)."""
+    model = load_robot_model(ROOT / "fixtures" / "robots" / "ur10.yaml")
+    cal = _ur10_series(UR10_SERIES_B, slice(0, 120), "cal")
+    val = _ur10_series(UR10_SERIES_B, slice(120, 420), "val")
+    done = auto_fit(model, cal, val, FitOptions(n_draws=300), n_random=50, include_full=False)
+    chosen = done.choice.score(done.choice.chosen)
+    assert done.choice.chosen != "offsets" and chosen.mean_mm < done.choice.nominal.mean_mm / 5, done.choice.format()
+    assert done.doc["diagnostics"]["importance"]["k_hat"] < 0.7
+    v = done.doc["metrics"]["validation_absolute"]
+    assert v["after"]["mean"] < v["before"]["mean"]  # the fitted offsets (and tool) help the held-out points
+    spread = float(np.sqrt(np.mean(cal.std_mm**2)))
+    if chosen.rms_mm / np.sqrt(3) > 3 * spread:
+        assert any("the measured spread of one sample" in r for r in done.refused)
+        assert all(a["action"] != "enter" for a in done.doc["controller"]["axes"])
