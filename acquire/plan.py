@@ -72,7 +72,7 @@ commented example)::
     output:
       folder: runs                   # where RUN.mcap, result.json and report.html go [runs]
     fit:
-      method: fast                   # fast | paper [fast]
+      method: auto                   # auto | fast | paper [auto: the data choose the model]
       joints: null                   # axis numbers to fit, e.g. [2, 3, 4] [null: all]
       error: gaussian                # gaussian | student [gaussian]
       fix_registration: false        # [false]
@@ -339,7 +339,9 @@ class OutputSpec(_Strict):
 class FitSpec(_Strict):
     """Options of the fit that runs on the log at the end (as ``acquire fit``)."""
 
-    method: Literal["fast", "paper"] = "fast"
+    method: Literal["auto", "fast", "paper"] = Field(
+        "auto", description="auto: the data choose the model by cross-validation (calib.model_choice); fast: the "
+        "link-prior model with the independence sampler; paper: the paper's Metropolis.")
     joints: list[int] | None = Field(None, min_length=1, description="Axis numbers (1-based) to fit; default all.")
     error: Literal["gaussian", "student"] = "gaussian"
     fix_registration: bool = False

@@ -1134,6 +1134,9 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
         compliance=bool(getattr(fit, "compliance", False)),
         tool_prior_mm=float(getattr(fit, "tool_prior_mm", 10.0)),
     )
+    base = Path(log_path)
+    if options.method == "auto":
+        return _fit_run_auto(base, model, cal, val, options, fit, n_random)
     result = fit_offsets(model, cal, options)
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
                                result.applied_sigma_mm, validation=val, n_random=n_random, seed=0,
@@ -1142,7 +1145,6 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     apply_guards(doc)
     values = controller_values(model, doc["joint_offsets"])
     doc["controller"] = values.to_dict()
-    base = Path(log_path)
     result_path = base.with_name("result.json")
     write_result(result_path, doc)
     report_path = None
@@ -1155,6 +1157,33 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
         log.warning("report not written (use `acquire fit %s`): %s", log_path, exc)
         report_path = None
     return doc, result_path, report_path
+
+
+def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> tuple[dict, Path, Path | None]:
+    """The plan's ``fit.method: auto``: ``calib.auto_fit`` (the data choose among the offsets models;
+    a link scale set in the plan is used instead of the empirical Bayes one; ``fit.compliance``:
+    only the candidates with compliance)."""
+    from dataclasses import replace
+
+    from calib.auto_fit import auto_fit
+    from calib.result import write_result
+
+    given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
+    done = auto_fit(model, cal, val, replace(options, method="laplace", compliance=False),
+                    link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random, include_full=False,
+                    compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics)
+    result_path = base.with_name("result.json")
+    write_result(result_path, done.doc)
+    report_path = None
+    try:
+        from calib.report import write_report
+
+        report_path = base.with_name("report.html")
+        write_report(report_path, done.result, cal, done.doc, done.controller_text)
+    except (ImportError, ValueError, RuntimeError, OSError) as exc:
+        log.warning("report not written (use `acquire fit %s`): %s", base, exc)
+        report_path = None
+    return done.doc, result_path, report_path
 
 
 def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:

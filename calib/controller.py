@@ -22,7 +22,10 @@ and no number.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
+
+import numpy as np
 
 from calib.canonical import wrap_deg
 from calib.model import RobotModel
@@ -122,9 +125,84 @@ def do_not_enter_reasons(doc: dict) -> list[str]:
     return reasons
 
 
+#: "Enter" is earned (``earned_reasons``): the chosen model's held-out error per axis must stay
+#: within this many times the measured spread of one sample, ...
+MAX_HELDOUT_OVER_SPREAD = 3.0
+#: ... no fitted marker may lie more than this many prior standard deviations from the model's place,
+MAX_TOOL_PRIOR_SIGMAS = 3.0
+#: ... and the posterior needs at least this many effective draws.
+MIN_ESS = 100.0
+
+
+def _spread_mm(doc: dict) -> float | None:
+    """The rms per-axis spread of one sample over all sensors (``error_budget``), or None."""
+    budget = [b for b in doc.get("diagnostics", {}).get("error_budget", {}).values() if b.get("sample_spread_mm")]
+    if not budget:
+        return None
+    rows = np.array([b.get("n_rows", 1) for b in budget], dtype=float)
+    return float(np.sqrt(np.sum(rows * np.array([b["sample_spread_mm"] for b in budget]) ** 2) / rows.sum()))
+
+
+def earned_reasons(doc: dict) -> list[str]:
+    """Why "enter" is not earned, one line each ([] when it is): the model choice
+    (``doc["model_choice"]``, ``calib.model_choice``) found no model, or the chosen one does not
+    predict held-out configurations better than the uncalibrated robot; the chosen model's held-out
+    error (per axis) is more than ``MAX_HELDOUT_OVER_SPREAD`` × the measured spread of one sample,
+    or above ``MIN_SIGMA_GUARD_MM``; validation points (``--validate``, scored with the offsets
+    alone, as the controller will have them) that do not improve or stay above ``MIN_SIGMA_GUARD_MM``
+    per axis; a fitted marker more than
+    ``MAX_TOOL_PRIOR_SIGMAS`` prior standard deviations from the model's place (the tool drawing is
+    wrong: something else may have absorbed it); the Laplace check failed and the fallback sampler
+    has fewer than ``MIN_ESS`` effective draws."""
+    reasons = []
+    spread = _spread_mm(doc)
+    mc = doc.get("model_choice")
+    if mc:
+        chosen = next((c for c in mc["candidates"] if c["model"] == mc["chosen"]), None)
+        nominal = mc["nominal"]
+        if chosen is None or chosen.get("failed") or chosen.get("cv_mean_mm") is None:
+            reasons.append(f"the chosen model {mc['chosen']} could not be fitted in every cross-validation fold")
+        else:
+            if nominal.get("cv_mean_mm") is not None and chosen["cv_mean_mm"] >= nominal["cv_mean_mm"]:
+                reasons.append(f"the chosen model ({mc['chosen']}) predicts held-out configurations no better than the "
+                               f"uncalibrated robot ({chosen['cv_mean_mm']:.3f} mm against {nominal['cv_mean_mm']:.3f} mm)")
+            per_axis = chosen["cv_rms_mm"] / math.sqrt(3.0)
+            if spread and per_axis > MAX_HELDOUT_OVER_SPREAD * spread:
+                reasons.append(f"held-out error {per_axis:.3f} mm per axis is {per_axis / spread:.0f}× the measured spread of "
+                               f"one sample ({spread:.3g} mm): the model does not describe this robot (tool, links, sag?) — "
+                               "see the model-choice table")
+            elif per_axis > MIN_SIGMA_GUARD_MM:
+                reasons.append(f"held-out error {per_axis:.2f} mm per axis (above {MIN_SIGMA_GUARD_MM:g} mm)")
+    val = doc.get("metrics", {}).get("validation_absolute")
+    if isinstance(val, dict) and isinstance(val.get("after"), dict):
+        # The controller is told the offsets only: the validation points carry what the offsets
+        # alone do (link errors of a richer model stay). They must improve, and stay below the guard.
+        before, after = val["before"]["mean"], val["after"]["mean"]
+        if after >= before:
+            reasons.append(f"the validation points get no better with these offsets ({before:.3f} → {after:.3f} mm mean)")
+        elif after / math.sqrt(3.0) > MIN_SIGMA_GUARD_MM:
+            reasons.append(f"validation error after the correction {after:.3f} mm (mean), above {MIN_SIGMA_GUARD_MM:g} mm per "
+                           "axis: the model does not describe the validation points (tool, markers, robot model?)")
+    tool = doc.get("tool") or {}
+    for t in tool.get("markers") or []:
+        off = np.abs(np.subtract(t["value_mm"], t["nominal_mm"]))
+        if t.get("prior_mm") and off.max() > MAX_TOOL_PRIOR_SIGMAS * t["prior_mm"]:
+            reasons.append(f"marker {t['marker']} fitted {np.linalg.norm(np.subtract(t['value_mm'], t['nominal_mm'])):.1f} mm "
+                           f"from the model's place, outside its prior (±{t['prior_mm']:g} mm): the tool drawing is wrong — "
+                           "measure the markers on the flange, correct the model and fit again")
+    d = doc.get("diagnostics", {})
+    imp = d.get("importance")
+    ess = d.get("ess_min")
+    if imp and imp.get("fallback") and ess is not None and ess < MIN_ESS:
+        reasons.append(f"the Laplace approximation failed its check (Pareto k̂ {imp['k_hat']:.2f} ≥ {imp['k_hat_max']}) and the "
+                       f"fallback sampler has only {ess:.0f} effective draws (< {MIN_ESS:g})")
+    return reasons
+
+
 def apply_guards(doc: dict) -> list[str]:
     """Mark every offset of ``doc`` "do not enter" (with the reason) when a guard fires; returns the reasons."""
     reasons = do_not_enter_reasons(doc)
+    reasons += [r for r in earned_reasons(doc) if r not in reasons]
     if reasons:
         for j in doc.get("joint_offsets", []):
             if j.get("identifiable"):

@@ -144,6 +144,10 @@ class FitResult:
         return float(np.sqrt(np.sum(counts * sig**2) / np.sum(counts)))
 
 
+#: Posterior methods of ``fit_offsets``: the independence sampler, the paper's Metropolis, and the
+#: Laplace approximation checked by Pareto-smoothed importance sampling (``_sample_laplace``).
+METHODS = ("fast", "paper", "laplace")
+
 #: Fewest measurements a sensor's registration needs (three points that are not collinear).
 MIN_ROWS_PER_SENSOR = 3
 
@@ -339,8 +343,8 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, *, tol: float = 1e-12, max_it
     return x
 
 
-def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.ndarray]:
-    """Posterior mode: θ (dim,) and log σ (S,)."""
+def _mode(post: OffsetPosterior, error: str, nu: float, tol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior mode: θ (dim,) and log σ (S,); ``tol``: relative step/cost change that ends a solve."""
     s_idx = post.sensor_index
     n_s = post.rows_per_sensor
     theta = np.zeros(post.dim)
@@ -363,7 +367,7 @@ def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.
             j = -(post.jacobian(t).reshape(post.n_rows, 3, -1) * w[:, :, None]).reshape(post.n_rows * 3, -1)
             return np.concatenate([j, prior_rows])
 
-        theta = _levenberg_marquardt(fun, jac, theta)
+        theta = _levenberg_marquardt(fun, jac, theta, tol=tol)
         r2 = np.sum(post.residuals(theta) ** 2, axis=-1)
         if error == "gaussian":
             # Mode of σ in (θ, log σ) coordinates: ∂/∂logσ [−(3n+1) log σ − E/2σ²] = 0.
@@ -371,7 +375,7 @@ def _mode(post: OffsetPosterior, error: str, nu: float) -> tuple[np.ndarray, np.
         else:
             weights = (nu + 3) / (nu + r2 / sigma[s_idx] ** 2)
             sigma = np.sqrt(np.bincount(s_idx, weights * r2, minlength=post.S) / (3 * n_s + 1))
-        if np.all(np.abs(np.log(sigma / previous)) < 1e-6):
+        if np.all(np.abs(np.log(sigma / previous)) < max(1e-6, math.sqrt(tol))):
             break
     return theta, np.log(sigma)
 
@@ -419,6 +423,46 @@ def _sample_sigma_marginalised(post: OffsetPosterior, theta: np.ndarray, log_sig
     return Chains(samples, draws.acceptance, draws.seconds, "independence-mh (σ marginalised)", draws.proposal_index)
 
 
+def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray,
+                    options: FitOptions) -> tuple[Chains, dict]:
+    """Draws of (θ, log σ) by the Laplace Gaussian checked with PSIS, or emcee where k̂ ≥ 0.7
+    (``calib.laplace_sampling``). Gaussian errors: the target is θ's marginal with σ integrated
+    out (as ``_sample_sigma_marginalised``), each draw's σ drawn from its conditional; Student-t:
+    the joint (θ, log σ) posterior. Returns (chains, importance diagnostics)."""
+    from calib.laplace_sampling import ensemble, laplace_importance
+
+    link_pos, link_sd = post.link_free()
+    cov_full = _laplace_covariance(post, theta, log_sigma)
+    if options.error == "gaussian":
+        half_dof = 0.5 * (3 * post.rows_per_sensor + 1)
+
+        def target(t: np.ndarray) -> np.ndarray:
+            out = -(half_dof * np.log(post.sse(t))).sum(axis=-1)
+            if link_pos.size:
+                out = out - 0.5 * np.sum((t[..., link_pos] / link_sd) ** 2, axis=-1)
+            return out
+
+        start, cov = theta, cov_full[: post.dim, : post.dim]
+    else:
+        def target(x: np.ndarray) -> np.ndarray:
+            return post.log_posterior(x[..., : post.dim], x[..., post.dim:])
+
+        start, cov = np.concatenate([theta, log_sigma]), cov_full
+    chains, info = laplace_importance(target, start, cov, n_chains=options.n_chains, n_draws=options.n_draws,
+                                      seed=options.seed)
+    info["fallback"] = None
+    if chains is None:
+        chains = ensemble(target, start, cov, n_draws=options.n_draws, burn_in=500, seed=options.seed)
+        info["fallback"] = "emcee"
+    if options.error == "gaussian":
+        rng = np.random.default_rng(options.seed + 7919)
+        e = np.concatenate([post.sse(b) for b in np.array_split(chains.flat, max(1, chains.flat.shape[0] // 1024))])
+        u = rng.gamma(half_dof, 2.0 / e)  # 1/σ² draws, (N, S)
+        flat = np.concatenate([chains.flat, -0.5 * np.log(u)], axis=-1)
+        chains = Chains(flat.reshape(*chains.samples.shape[:2], -1), chains.acceptance, chains.seconds, chains.method)
+    return chains, info
+
+
 def _prior_precision(post: OffsetPosterior) -> np.ndarray:
     """(dim, dim) precision of the Gaussian link priors (zero elsewhere)."""
     pos, sd = post.link_free()
@@ -449,22 +493,50 @@ def sandwich_std(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray
     return np.sqrt(np.clip(np.diag(cov), 0.0, None))
 
 
-def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptions()) -> FitResult:
-    """Fit joint zero-offsets (and registration corrections and σ) to ``data``."""
-    t_start = time.perf_counter()
+@dataclass
+class ModeFit:
+    """The posterior set up for ``data`` and its mode (no sampling): what cross-validation and the
+    evidence need. ``theta``: (dim,) free parameters; ``log_sigma``: (S,); ``link_prior``: chain
+    index → prior sd (mm or rad) of the link parameters and tool coordinates in the posterior."""
+
+    post: OffsetPosterior
+    mask: ParamMask
+    theta: np.ndarray
+    log_sigma: np.ndarray
+    b2s0: dict[str, np.ndarray]
+    link_prior: dict[int, float]
+    identifiability_start: Identifiability
+    lever_mm: float
+
+    def predict_residuals(self, data: Dataset) -> np.ndarray:
+        """measured − predicted (k, 3) mm for other rows ``data`` with this fit's parameters and its
+        own registration (the same sensors; markers the fit did not measure keep the model's place)."""
+        other = OffsetPosterior(self.post.chain, data, self.b2s0, self.mask, error=self.post.error, nu=self.post.nu,
+                                link_prior=self.link_prior, compliance=bool(self.post.C))
+        return other.residuals(self.theta)
+
+
+def _check_data(model: RobotModel, data: Dataset, options: FitOptions) -> None:
     if data.n_joints != model.n_joints:
         raise DatasetError(f"the dataset has {data.n_joints} joints, the model '{model.name}' has {model.n_joints}")
     if len(data) == 0:
         raise DatasetError("the dataset is empty")
     if not (np.all(np.isfinite(data.q_rad)) and np.all(np.isfinite(data.xyz_mm))):
         raise DatasetError("the dataset contains NaN or infinite values")
-    if options.method not in ("fast", "paper"):
-        raise ValueError(f"method {options.method!r} unknown; use 'fast' or 'paper'")
-    if options.compliance and options.method != "fast":
-        raise ValueError("the compliance model is fitted by the fast method only (the paper's model has none)")
+    if options.method not in METHODS:
+        raise ValueError(f"method {options.method!r} unknown; use one of {', '.join(METHODS)}")
+    if options.compliance and options.method == "paper":
+        raise ValueError("the compliance model is fitted by the fast and laplace methods only (the paper's model has none)")
     if options.compliance and not model.has_dynamics:
         raise ValueError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model "
                          "(joints[].mass_kg, com_mm)")
+
+
+def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(), *, tol: float = 1e-12) -> ModeFit:
+    """The posterior mode of ``fit_offsets``'s model (same parameters, priors and fixed
+    combinations), without sampling: the cheap fit for cross-validation folds. ``tol``: relative
+    change that ends the Levenberg–Marquardt solves (1e-8 is ample for prediction)."""
+    _check_data(model, data, options)
     chain = Chain(model)
     b2s0 = initial_registrations(chain, data, options.initial_registration, options.seed)
     if options.registration:
@@ -488,7 +560,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         for s in sensors:
             for r in REG_NAMES:
                 reasons[f"{s}.{r}"] = "registration fixed by the options"
-    link_prior = _link_prior(chain, options) if options.method == "fast" else {}
+    link_prior = _link_prior(chain, options) if options.method != "paper" else {}
     link_prior.update(_tool_prior(chain, data, options))
     fit_compliance = np.ones(n if options.compliance else 0, bool)
     if options.compliance:
@@ -523,18 +595,30 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
     mask, ident0 = _resolve_null_space(factory, mask, lever)
     mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
-    theta, log_sigma = _mode(post, options.error, options.nu)
+    theta, log_sigma = _mode(post, options.error, options.nu, tol)
+    return ModeFit(post, mask, theta, log_sigma, b2s0, link_prior, ident0, lever)
+
+
+def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptions()) -> FitResult:
+    """Fit joint zero-offsets (and registration corrections and σ) to ``data``."""
+    t_start = time.perf_counter()
+    mf = fit_mode(model, data, options)
+    post, mask, theta, log_sigma = mf.post, mf.mask, mf.theta, mf.log_sigma
+    ident0, lever, n, chain = mf.identifiability_start, mf.lever_mm, model.n_joints, mf.post.chain
     mode = np.concatenate([theta, log_sigma])
     t_mode = time.perf_counter()
 
     def log_density(x: np.ndarray) -> np.ndarray:
         return post.log_posterior(x[..., : post.dim], x[..., post.dim :])
 
-    if options.method == "fast" and options.linearise_links:
+    if options.method in ("fast", "laplace") and options.linearise_links:
         post.expand(theta)
     elif options.method == "paper" and post.L:
         post.linearise_links(theta)  # paper: only the tool is in it, which the linear form carries exactly
-    if options.method == "fast" and options.error == "gaussian":
+    importance = None
+    if options.method == "laplace":
+        chains, importance = _sample_laplace(post, theta, log_sigma, options)
+    elif options.method == "fast" and options.error == "gaussian":
         chains = _sample_sigma_marginalised(post, theta, log_sigma, options)
     elif options.method == "fast":
         cov = _laplace_covariance(post, theta, log_sigma)
@@ -563,7 +647,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         s[..., post.dim :] = np.log(s[..., post.dim :])
         chains = Chains(s, raw.acceptance, raw.seconds, raw.method)
     t_sample = time.perf_counter()
-    expansion_check = dict(post.expansion_check) if options.method == "fast" and options.linearise_links else None
+    expansion_check = dict(post.expansion_check) if options.method in ("fast", "laplace") and options.linearise_links else None
     post.expand(None)  # diagnostics below are exact
 
     full = post.full_vector(chains.flat[:, : post.dim])
@@ -609,6 +693,8 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         "seconds_mode": t_mode - t_start,
         "seconds_sampling": t_sample - t_mode,
         "seconds_total": time.perf_counter() - t_start,
+        # method "laplace": the Pareto k̂ of the Laplace Gaussian as an importance proposal (calib.psis).
+        "importance": importance,
         # The sampler's predictor against the chain walk at the proposals farthest from the mode (mm).
         "expansion_check": expansion_check,
         "n_measurements": len(data),
@@ -623,7 +709,10 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         "gravity_sag": None if options.compliance else _sag_summary(post, theta, sigma),
         "compliance": _compliance_summary(post, full, mask) if options.compliance else None,
     }
-    if chains.samples.shape[1] >= 4:
+    if importance is not None and importance.get("fallback") is None:
+        # Weighted draws, resampled: no chains to compare; the effective sample size is the weights'.
+        diag["ess"] = [float(importance["ess"])] * chains.samples.shape[-1]
+    elif chains.samples.shape[1] >= 4:
         # Split-R-hat also works on one chain (its two halves): it flags a drifting chain.
         diag["rhat"] = [float(v) for v in split_rhat(chains.samples)]
         diag["ess"] = [float(v) for v in effective_sample_size(chains.samples)]
@@ -741,7 +830,7 @@ def _tool_degeneracies(post: OffsetPosterior, theta: np.ndarray, lever_mm: float
         how = "exactly" if combo.exact else "almost exactly"
         out.append(f"{combo.describe()}: moves the markers {how} alike — decided by the priors (tool ±{options.tool_prior_mm:g} mm"
                    + (f", links ±{options.link_tolerance[0]:g} mm / ±{options.link_tolerance[1]:g}°"
-                      if options.link_tolerance and options.method == "fast" else "") + ")")
+                      if options.link_tolerance and options.method != "paper" else "") + ")")
     return out
 
 
@@ -777,7 +866,10 @@ def error_budget(data: Dataset, sigma: dict[str, tuple[float, float]]) -> dict[s
         std, n = data.std_mm[rows], data.count[rows]
         ok = np.isfinite(std) & (n > 0)
         noise = float(np.sqrt(np.mean((std[ok] / np.sqrt(n[ok])) ** 2))) if ok.any() else None
-        entry: dict = {"sigma_mm": sig, "noise_mm": noise}
+        spread = float(np.sqrt(np.mean(std[ok] ** 2))) if ok.any() else None
+        # sample_spread_mm: the rms per-axis spread of one sample (std_mm): the floor a model's
+        # held-out error is judged against (the arm's own settling and vibration are in it).
+        entry: dict = {"sigma_mm": sig, "noise_mm": noise, "sample_spread_mm": spread, "n_rows": int(rows.sum())}
         if noise is not None:
             unmodelled = math.sqrt(max(sig**2 - noise**2, 0.0))
             entry["unmodelled_mm"] = unmodelled

@@ -104,6 +104,22 @@ def accuracy_table(doc: dict) -> Html | None:
     return table(["accuracy (mm): mean [97.5 %]", "before", "after"], rows)
 
 
+def model_choice_table(doc: dict) -> Html | None:
+    """The cross-validation table of ``doc["model_choice"]`` (``calib.model_choice``), or None."""
+    mc = doc.get("model_choice")
+    if not mc:
+        return None
+    rows = []
+    for c in [mc["nominal"]] + mc["candidates"]:
+        name = c["model"] + (" ← chosen" + (" (--model)" if mc.get("forced") else "") if c["model"] == mc["chosen"] else "")
+        if c.get("failed"):
+            rows.append([name, "—" if c["free_parameters"] is None else c["free_parameters"], "—", f"failed: {c['failed']}"])
+        else:
+            rows.append([Html(f"<b>{esc(name)}</b>") if c["model"] == mc["chosen"] else name, c["free_parameters"],
+                         Html(fixed(c["cv_rms_mm"], 4)), Html(f"{fixed(c['cv_mean_mm'], 4)} ± {fixed(c['cv_se_mm'], 4)}")])
+    return table([f"model ({mc['folds']}-fold CV by {mc['grouped_by']})", "free", "held-out rms (mm)", "mean ± se (mm)"], rows)
+
+
 def summary_html(doc: dict) -> str:
     """The summary box: verdict, offsets to enter, accuracy before/after, warnings."""
     refused = refusal_reasons(doc)
@@ -129,6 +145,11 @@ def summary_html(doc: dict) -> str:
     acc = accuracy_table(doc)
     if acc:
         parts.append(acc)
+    choice = model_choice_table(doc)
+    if choice:
+        parts.append(choice)
+        parts.append(f"<p class=small>model: {esc(doc['model_choice']['chosen'])} — {esc(doc['model_choice']['rule'])}; each "
+                     "model fitted on the other folds, held-out configurations scored with that fit's registration.</p>")
     sig = ", ".join(f"{esc(s)} σ = {num(v['value'], 3)} mm" for s, v in doc.get("sigma_mm", {}).items())
     if sig:
         parts.append(f"<p class=small>fit: {sig}; {doc['data']['n_measurements']} measurements at "

@@ -101,9 +101,11 @@ def metric_notes(result: FitResult) -> list[str]:
     return notes
 
 
-def format_summary(doc: dict, controller_text: str) -> str:
-    """The terminal summary of a fit."""
+def format_summary(doc: dict, controller_text: str, choice_text: str | None = None) -> str:
+    """The terminal summary of a fit (``choice_text``: the model-choice table, ``ModelChoice.format``)."""
     lines = [f"robot: {doc['robot']['name']}", f"data: {doc['data']['source']} ({doc['data']['n_measurements']} measurements)", ""]
+    if choice_text:
+        lines += [choice_text, ""]
     lines.append(f"{'joint':<6} {'offset (deg)':>12} {'± std':>8} {'95 % interval':>22}  status")
     for j in doc["joint_offsets"]:
         if j["identifiable"]:
@@ -144,11 +146,21 @@ def format_summary(doc: dict, controller_text: str) -> str:
             )
     rhat = d.get("rhat_max")
     ess = d.get("ess_min")
-    lines.append(
-        f"sampler: {d['sampler']} ({d['method']}), {d['n_chains']} chain(s) × {d['n_draws']} draws, "
-        f"R-hat max {'—' if rhat is None else f'{rhat:.3f}'}, ESS min {'—' if ess is None else f'{ess:.0f}'}, "
-        f"acceptance {min(d['acceptance']):.2f}–{max(d['acceptance']):.2f}, {d['seconds_total']:.2f} s"
-    )
+    imp = d.get("importance")
+    if imp and not imp.get("fallback"):
+        lines.append(f"posterior: Laplace (the least-squares solution and its covariance, as a Student t) checked by "
+                     f"importance sampling: Pareto k̂ "
+                     f"{imp['k_hat']:.2f} (< {imp['k_hat_max']}: used), effective draws {imp['ess']:.0f} of "
+                     f"{imp['n_proposals']}, {d['seconds_total']:.2f} s")
+    else:
+        if imp:
+            lines.append(f"posterior: the Laplace approximation failed its importance-sampling check (Pareto k̂ "
+                         f"{imp['k_hat']:.2f} ≥ {imp['k_hat_max']}): sampled by {d['sampler']}")
+        lines.append(
+            f"sampler: {d['sampler']} ({d['method']}), {d['n_chains']} chain(s) × {d['n_draws']} draws, "
+            f"R-hat max {'—' if rhat is None else f'{rhat:.3f}'}, ESS min {'—' if ess is None else f'{ess:.0f}'}, "
+            f"acceptance {min(d['acceptance']):.2f}–{max(d['acceptance']):.2f}, {d['seconds_total']:.2f} s"
+        )
     if rhat is not None and rhat > 1.05:
         lines.append(f"WARNING: R-hat {rhat:.3f} > 1.05 — the sampler has not converged; do not enter these values")
     ratios = {j["joint"]: j["sandwich_std_ratio"] for j in doc["joint_offsets"] if j.get("sandwich_std_ratio")}
@@ -197,8 +209,16 @@ def fit(
     robot: Path = typer.Option(..., "--robot", help="Robot model YAML file (fixtures/robots/...)."),
     validate: Optional[Path] = typer.Option(None, "--validate", help="Validation measurements (Table VIII)."),
     method: str = typer.Option(
-        "fast", "--method",
-        help="fast (exact independence sampler), paper (the paper's Metropolis), or full (identify every identifiable kinematic parameter by Levenberg–Marquardt).",
+        "auto", "--method",
+        help="auto (default: candidate models compared by cross-validated held-out error, the simplest within one "
+        "standard error of the best fitted; Laplace posterior checked by Pareto-smoothed importance sampling), "
+        "fast (exact independence sampler), paper (the paper's Metropolis), or full (identify every identifiable "
+        "kinematic parameter by Levenberg–Marquardt).",
+    ),
+    model_name: Optional[str] = typer.Option(
+        None, "--model",
+        help="auto: force this candidate (offsets, offsets+tool, offsets+tool+links, full; +compliance with link "
+        "masses) — the table is still printed.",
     ),
     joints: Optional[str] = typer.Option(None, "--joints", help="Axes to fit, e.g. 2,3,4,5,6,7 (default: all)."),
     fix_registration: bool = typer.Option(False, "--fix-registration", help="Keep the initial registration (no T* correction)."),
@@ -232,7 +252,8 @@ def fit(
     ),
     compliance: bool = typer.Option(
         False, "--compliance",
-        help="fast: also fit one joint compliance per axis (gravity sag; the robot model needs link masses).",
+        help="also fit one joint compliance per axis (gravity sag; the robot model needs link masses); auto: "
+        "compare only the candidates with compliance.",
     ),
     socket_distance: Optional[float] = typer.Option(
         None, "--socket-distance",
@@ -241,11 +262,13 @@ def fit(
     ),
 ) -> None:
     """Fit the joint zero-offsets (and the sensor registration and σ) to measured marker positions."""
-    if method not in ("fast", "paper", "full"):
-        raise typer.BadParameter(f"expected fast, paper or full, given {method!r}", param_hint="--method")
+    if method not in ("auto", "fast", "paper", "full"):
+        raise typer.BadParameter(f"expected auto, fast, paper or full, given {method!r}", param_hint="--method")
     refuse_options(method, {"--link-tolerance": link_tolerance is not None, "--draws": draws is not None,
                             "--paper-samples": paper_samples is not None, "--random-configs": n_random is not None,
-                            "--error": error != "gaussian", "--starts": starts is not None})
+                            "--error": error != "gaussian", "--starts": starts is not None,
+                            "--model": model_name is not None})
+    fixed_link_tolerance = link_tolerance
     link_tolerance = "0.2,0.02" if link_tolerance is None else link_tolerance
     draws = 1000 if draws is None else draws
     paper_samples = 200_000 if paper_samples is None else paper_samples
@@ -295,7 +318,7 @@ def fit(
         if refused:
             raise typer.BadParameter(f"{', '.join(refused)} do not apply to socket data (no sensor, no registration; "
                                      "held-out placements are scored automatically)", param_hint="DATA")
-        fit_socket_file(data, model, method=method, distance_mm=socket_distance,
+        fit_socket_file(data, model, method="fast" if method == "auto" else method, distance_mm=socket_distance,
                         link_tolerance=_link_tolerance(link_tolerance),
                         output=output, model_out=model_out, compliance=compliance, dataset=socket_run)
         return
@@ -321,6 +344,13 @@ def fit(
     if not (math.isfinite(tool_prior_mm) and 0 <= tool_prior_mm <= 100):
         raise typer.BadParameter(f"expected 0 ≤ MM ≤ 100 (0: the markers' positions are exact), given {tool_prior_mm}",
                                  param_hint="--tool-prior-mm")
+    if method == "auto":
+        _fit_auto(model, cal, val, FitOptions(joints=_joints(joints, model.n_joints), fix_registration=fix_registration,
+                                              error=error, seed=seed, n_draws=draws, tool_prior_mm=tool_prior_mm),
+                  model_name, None if fixed_link_tolerance is None else _link_tolerance(fixed_link_tolerance),
+                  n_random, starts or 6, _full_exclusions(model, cal, _joints(joints, model.n_joints), fix_registration),
+                  output, model_out, report, compliance)
+        return
     if method == "full":
         from calib.identification import IdentOptions  # the identification loads only for --method full
 
@@ -373,15 +403,16 @@ def fit(
 
 #: Options that only some methods use, with what to use instead elsewhere.
 METHOD_OPTIONS = {
-    "--link-tolerance": (("fast", "paper"), "--method full identifies the link parameters themselves: drop --link-tolerance"),
-    "--draws": (("fast",), "only the fast sampler takes draws (--method paper: --paper-samples; full samples nothing)"),
+    "--link-tolerance": (("fast", "paper", "auto"), "--method full identifies the link parameters themselves: drop --link-tolerance"),
+    "--draws": (("fast", "auto"), "only the fast sampler takes draws (--method paper: --paper-samples; full samples nothing)"),
     "--paper-samples": (("paper",), "only the paper's Metropolis takes samples (--method fast: --draws)"),
-    "--random-configs": (("fast", "paper"), "--method full scores the measured configurations and --validate data only"),
-    "--error": (("fast", "paper"), "--method full is least squares (Gaussian errors): use --method fast or paper for "
+    "--random-configs": (("fast", "paper", "auto"), "--method full scores the measured configurations and --validate data only"),
+    "--error": (("fast", "paper", "auto"), "--method full is least squares (Gaussian errors): use --method fast or paper for "
                                    "the Student-t error model, or drop --error"),
-    "--model-out": (("full",), "only --method full (and a socket fit) changes the robot model; the fast and paper fits write "
+    "--model-out": (("full", "auto"), "only --method full (and a socket fit) changes the robot model; the fast and paper fits write "
                                "their offsets with -o; `acquire model export MODEL --result RESULT.json` applies them to a URDF"),
-    "--starts": (("full",), "the fast and paper fits start from their least-squares mode: --starts applies to --method full"),
+    "--starts": (("full", "auto"), "the fast and paper fits start from their least-squares mode: --starts applies to --method full"),
+    "--model": (("auto",), "--model chooses among the default's candidate models: drop --method, or drop --model"),
 }
 
 
@@ -411,18 +442,22 @@ def _full_exclusions(model: RobotModel, cal: Dataset, joints: tuple[int, ...] | 
 
 
 def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None,
-              report: Path | None, options) -> None:
+              report: Path | None, options, *, done=None) -> None:
     """``--method full``: Levenberg–Marquardt identification (``options``: ``calib.identification.IdentOptions``),
-    corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report_ident``)."""
+    corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report_ident``).
+    ``done``: a ``calib.auto_fit.AutoFit`` that chose and identified the full model already."""
     from calib.identification import corrected_model, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
     from calib.result import write_result
 
-    try:
-        result = identify(model, cal, options)
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc), param_hint="DATA") from exc
-    doc = ident_result_dict(result, cal, val)
-    lines = [f"full identification of {model.name}: {len(result.free_names)} parameters from {len(cal)} measurements",
+    if done is not None:
+        result, doc = done.ident, done.doc
+    else:
+        try:
+            result = identify(model, cal, options)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="DATA") from exc
+        doc = ident_result_dict(result, cal, val)
+    lines = ([done.choice.format(), ""] if done is not None else []) + [f"full identification of {model.name}: {len(result.free_names)} parameters from {len(cal)} measurements",
              f"rms residual {doc['rms_mm']:.4f} mm, scaled condition number {doc['condition_number']:.3g}"]
     lines += [f"warning: {w}" for w in result.warnings]
     lines.append("starts (best first): " + "; ".join(
@@ -470,3 +505,46 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
 def register(app: typer.Typer) -> None:
     """Add the ``fit`` sub-command to ``app``."""
     app.command("fit")(fit)
+
+
+def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force: str | None,
+              link_tolerance: tuple[float, float] | None, n_random: int, n_starts: int, exclusions, output: Path | None,
+              model_out: Path | None, report: Path | None, compliance_only: bool = False) -> None:
+    """The default: the data choose the model (``calib.auto_fit``); the table, the fit, and "enter"
+    only where earned (``calib.controller.earned_reasons``)."""
+    from calib.auto_fit import auto_fit
+    from calib.result import write_result
+
+    if force is not None:
+        from calib.model_choice import parse_candidate
+
+        try:
+            parse_candidate(force, model)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--model") from exc
+    try:
+        done = auto_fit(model, cal, val, base, force=force, link_tolerance=link_tolerance, n_random=n_random,
+                        n_starts=n_starts, ident_exclusions=exclusions, compliance_only=compliance_only)
+    except ValueError as exc:  # DatasetError, or data a registration cannot use (e.g. collinear points)
+        raise typer.BadParameter(str(exc), param_hint="DATA") from exc
+    if done.result is None:
+        _fit_full(model, cal, val, output, model_out, report, None, done=done)
+        return
+    if model_out is not None:
+        raise typer.BadParameter(f"the chosen model ({done.choice.chosen}) changes only the offsets and the tool: "
+                                 "--model-out applies when full identification is chosen", param_hint="--model-out")
+    doc = done.doc
+    doc["metrics"]["notes"] = metric_notes(done.result) + doc["metrics"].get("notes", [])
+    typer.echo(format_summary(doc, done.controller_text, done.choice.format()))
+    if output is not None:
+        write_result(output, doc)
+        typer.echo(f"\nwrote {output}")
+    if report is not None:
+        from calib.report import write_report  # the report's modules only when one is asked for
+
+        write_report(report, done.result, cal, doc, done.controller_text)
+        typer.echo(f"wrote {report}")
+    if done.refused:
+        typer.echo("DO NOT ENTER these offsets: " + "; ".join(done.refused), err=True)
+    if done.refused or not math.isfinite(done.result.pooled_sigma_mm):
+        raise typer.Exit(1)

@@ -223,6 +223,14 @@ def format_run_summary(summary, lp) -> str:
             if not j.get("identifiable", True):
                 row += f"  {j.get('status', '')}"
             lines.append(row)
+        choice = summary.fit.get("model_choice")
+        if choice:
+            chosen = next(c for c in choice["candidates"] if c["model"] == choice["chosen"])
+            lines.append(f"model: {choice['chosen']} (chosen by {choice['folds']}-fold cross-validation: held-out "
+                         f"{chosen['cv_mean_mm']:.3f} ± {chosen['cv_se_mm']:.3f} mm, uncalibrated "
+                         f"{choice['nominal']['cv_mean_mm']:.3f} mm; the table is in result.json)")
+        for reason in summary.fit.get("do_not_enter") or []:
+            lines.append(f"DO NOT ENTER: {reason}")
         diag = summary.fit.get("diagnostics", {})
         fitted_compliance = diag.get("compliance") or summary.fit.get("compliance") or []
         for c in fitted_compliance:

@@ -61,7 +61,10 @@ def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
         value = re.escape(f"{j['value_deg']:+.4f}")
         assert re.search(rf"^{j['joint']}\s+{value}\s+{j['std_deg']:.4f}\s+\[.*\]\s+fitted$", text, flags=re.M)
     assert re.search(r"sensor mocap: σ = 0\.\d{3} ± 0\.\d{3} mm", text)
-    assert re.search(r"R-hat max 1\.0\d\d, ESS min \d+", text)
+    # The default: the data choose the model (the table, the choice), and the Laplace posterior checked by PSIS.
+    assert re.search(r"^model choice: 5-fold cross-validation by pose group", text, flags=re.M)
+    assert re.search(r"^  offsets\s+\d+\s+\d\.\d{4}\s+\d\.\d{4} ± \d\.\d{4}", text, flags=re.M)
+    assert re.search(r"Pareto k̂ -?\d\.\d\d \(< 0\.7: used\), effective draws \d+", text)
     assert "validation_absolute" in text and "theoretical_workspace_offsets_only" in text
     assert "values to enter (sunrise):" in text and "leave unchanged" in text
     # The fitted offsets are close to the simulated truth (link errors and sag bias them a little).
@@ -78,7 +81,11 @@ def test_fit_prints_summary_writes_result_and_report(app, tmp_path):
     for key in ("relative", "absolute", "theoretical_workspace", "validation_relative", "validation_absolute"):
         assert m[key]["after"]["mean"] < m[key]["before"]["mean"] / 2, key
     assert m["settings"]["n_random_configurations"] == 100
-    assert doc["diagnostics"]["method"] == "fast" and doc["diagnostics"]["rhat_max"] < 1.05
+    assert doc["diagnostics"]["method"] == "laplace" and doc["diagnostics"]["importance"]["k_hat"] < 0.7
+    choice = doc["model_choice"]
+    assert choice["chosen"] in {c["model"] for c in choice["candidates"]} and choice["grouped_by"] == "pose group"
+    chosen = next(c for c in choice["candidates"] if c["model"] == choice["chosen"])
+    assert chosen["cv_mean_mm"] < choice["nominal"]["cv_mean_mm"] / 10
     assert [a["action"] for a in doc["controller"]["axes"]] == ["leave unchanged"] + ["enter"] * 5 + ["leave unchanged"]
     # report.html: self-contained (inline SVG figures, nothing fetched).
     html = rep.read_text()

@@ -99,5 +99,5 @@ def test_model_out_is_refused_where_the_model_is_not_changed(method, tmp_path):
 
 
 def test_starts_is_refused_for_the_fast_method():
-    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--starts", "4"])
+    res = CliRunner().invoke(app, ["fit", str(CAL), "--robot", str(ROBOT), "--method", "fast", "--starts", "4"])
     assert res.exit_code == 2 and "--starts applies to" in " ".join(res.output.replace("│", " ").split())

@@ -256,7 +256,7 @@ def test_defaults_are_the_documented_ones(tmp_path):
     assert (s.speed, s.settle_window_s, s.settle_tolerance_deg, s.sensor_stable_mm, s.samples, s.retries,
             s.on_lost_target) == (0.3, 0.5, 0.01, 0.05, 20, 2, "reacquire")
     assert lp.plan.selection is None and lp.plan.fake is None
-    assert (lp.plan.fit.method, lp.plan.fit.error, lp.plan.fit.joints) == ("fast", "gaussian", None)
+    assert (lp.plan.fit.method, lp.plan.fit.error, lp.plan.fit.joints) == ("auto", "gaussian", None)
     assert lp.output_dir == tmp_path / "runs"
     assert lp.sim_config_path.name == "default.yaml"
 
@@ -297,7 +297,7 @@ def test_relative_paths_are_taken_from_the_plan_folder_not_the_cwd(tmp_path, mon
         ({"sequencing": {"settle_window_s": 5, "move_timeout_s": 2}}, "sequencing.settle_window_s", "move_timeout_s = 2 s"),
         ({"sequencing": {"retries": -1}}, "sequencing.retries", "allowed [0, 10]"),
         ({"output": {"folder": ""}}, "output.folder", "at least 1 characters"),
-        ({"fit": {"method": "mcmc"}}, "fit.method", "allowed 'fast' or 'paper'"),
+        ({"fit": {"method": "mcmc"}}, "fit.method", "allowed 'auto', 'fast' or 'paper'"),
         ({"fit": {"joints": [2, 2]}}, "fit.joints.1", "listed twice"),
         ({"fit": {"validate_fraction": 0.8}}, "fit.validate_fraction", "allowed (0, 0.5]"),
         ({"fake": {"time_scale": 0}}, "fake.time_scale", "allowed (0, 100]"),

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.timeout(150)
 
 
 def test_complete_fake_run_logs_every_configuration_and_fits_near_the_truth(tmp_path):
-    plan = small_plan(tmp_path, n=10)
+    plan = small_plan(tmp_path, n=10, fit={"method": "fast"})  # 10 configurations: too few to cross-validate a model choice
     lp = load_plan(plan)
     configs = resolve_configurations(lp)
     statuses = []
