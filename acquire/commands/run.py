@@ -20,8 +20,10 @@ plan with fewer configurations than the fit needs (``--dry-run`` warns) or an ou
 that cannot be written, before anything connects or moves; 130 Ctrl-C
 (SIGINT) or SIGTERM: the robot stops safely (the commander decelerates) and the log is closed
 complete and resumable; 1 a failed run — including one that visited every configuration but
-produced no result (too few measured for the fit, or the fit failed). Under ``--fake`` the
-summary puts the fitted offsets next to the simulated cell's true ones.
+produced no result (too few measured for the fit, or the fit failed). ``--fake`` starts the
+simulated cell of the plan's ``fake`` section (``acquire.commands.fake``) and runs against its
+description, as against any cell; the summary then puts the fitted offsets next to the
+simulated cell's true ones (asked of the cell after the run).
 """
 
 from __future__ import annotations
@@ -79,11 +81,17 @@ def plan_argument(plan: Path) -> tuple[Path, bool]:
     raise typer.Exit(2)
 
 
-def _load(plan: Path):
+def _load(plan: Path, fake: bool = False):
+    """The plan and its configurations, resolved once for the whole command (exit 2 on a bad
+    plan; with ``fake`` its ``fake`` section is checked too)."""
     from acquire.plan import load_plan, resolve_configurations
 
     try:
         lp = load_plan(plan)
+        if fake:
+            from acquire.commands.fake import check_fake_section
+
+            check_fake_section(lp)
         configs = resolve_configurations(lp)
     except (ValueError, OSError) as exc:  # ConfigError is a ValueError
         typer.echo(f"error: {exc}", err=True)
@@ -280,7 +288,7 @@ def run(
     plan, is_example = plan_argument(plan)
     if out is None and is_example:
         out = Path.cwd() / "runs"
-    lp, configs = _load(plan)
+    lp, configs = _load(plan, fake)
     too_few = None if no_fit else too_few_for_the_fit(lp, configs)
     if dry_run:
         typer.echo(dry_run_text(lp, configs))
@@ -297,7 +305,7 @@ def run(
     from acquire.progress import make_progress
     from acquire.run import RunController, RunError
 
-    controller = RunController(lp, fake=fake, resume=resume, bus=None, out_dir=out, fit=not no_fit,
+    controller = RunController(lp, configs=configs, resume=resume, bus=None, out_dir=out, fit=not no_fit,
                                skip_failed=skip_failed)
     try:
         controller.check_output()  # first: before the bus, the fakes or any device
@@ -362,7 +370,10 @@ def run(
         threading.Thread(target=controller.abort, args=(f"interrupted ({name})",), daemon=True).start()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    sim = None
     try:
+        if fake:  # "start the simulated cell, then run": the run gets its description, as of any cell
+            sim = _start_simulated_cell(lp, controller)
         controller.start()
         while True:
             try:
@@ -370,10 +381,15 @@ def run(
                 break
             except TimeoutError:
                 continue
+        if sim is not None:  # the cell's truth beside the fit: a property of the simulated cell
+            summary.truth_offsets_deg = sim.truth_offsets_deg()
+            summary.truth_mean_sag_deg = sim.mean_sag_deg(np.stack([c.q_rad for c in configs]))
     finally:
         for s, h in old.items():
             signal.signal(s, h)
         progress.close()
+        if sim is not None:
+            sim.close()
         if bus is not None:
             bus.close()
         logfile.close(console.level)
@@ -390,6 +406,25 @@ def run(
             typer.echo(f"every configuration was visited; measure more (a larger plan) or fit the log yourself: "
                        f"acquire fit {display_path(summary.log_path)} --robot {lp.model_path}")
         raise typer.Exit(summary.exit_code)
+
+
+def _start_simulated_cell(lp, controller):
+    """Start the plan's simulated cell and hand its description to ``controller``; exit 2 when
+    it cannot start (its robot is not the plan's, a port is taken)."""
+    from acquire.commands.fake import describe_for, simulated_cell
+
+    try:
+        sim = simulated_cell(lp).start()
+    except (ValueError, OSError) as exc:
+        typer.echo(f"error: --fake: cannot start the simulated cell: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    try:
+        controller.use_cell(describe_for(sim, lp))
+    except ValueError as exc:
+        sim.close()
+        typer.echo(f"error: --fake: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    return sim
 
 
 def register(app: typer.Typer) -> None:

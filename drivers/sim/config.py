@@ -17,6 +17,7 @@ defaults this module applies (see ``fixtures/sim/default.yaml`` for a documented
     cones_deg: {retroreflector: 30, infrared: 60, other: 90}
     sensors: [{name, kind, origin_mm + look_at_mm | frame, noise_mm, noise_mm_per_m,
                field_of_view_deg, markers}]
+    allowances: {silence_ms: 300, state_age_ms: 300}   # the commander's timing allowances, wall ms
 
 Lists whose length depends on the robot (n joints) are checked against the model when the
 cell is built, with an error naming the field, the length given and the length needed.
@@ -182,6 +183,17 @@ class Sockets(_Strict):
     points: list[SocketTruth] = Field(min_length=1)
 
 
+class Allowances(_Strict):
+    """What a commander must allow this cell's controller, in wall milliseconds: the cell's
+    timing, as an integrator writes it into the commander URL for a slow controller. The fake
+    controller is a thread a busy host can stall for longer than a real controller's 100 ms, so
+    the default is looser; a simulated run carries these (times its time scale, in simulated
+    ms) in the commander URL (``drivers.sim.running``)."""
+
+    silence_ms: float = Field(300.0, gt=0, le=60000, description="Longest silence between controller packets, wall ms.")
+    state_age_ms: float = Field(300.0, gt=0, le=60000, description="Oldest measured state a command may be based on, wall ms.")
+
+
 class SimConfig(_Strict):
     """The whole simulated cell. Build a cell with ``SimCell(config)``."""
 
@@ -201,6 +213,7 @@ class SimConfig(_Strict):
     cones_deg: Cones = Cones()
     sensors: list[SensorConfig] = Field(default_factory=list)
     sockets: Sockets | None = None
+    allowances: Allowances = Field(default_factory=Allowances, description="The commander's timing allowances for this cell.")
 
     @model_validator(mode="after")
     def _something_measures(self) -> "SimConfig":
