@@ -10,8 +10,6 @@ imports ``drivers.sim``: the run itself never knows its cell is simulated.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from calib.model import load_robot_model
 from calib.yamlfile import ConfigError, error_line, locate
 from drivers.cell import CellDescription
@@ -81,6 +79,13 @@ def describe_for(sim: SimulatedCell, lp) -> CellDescription:
     return sim.describe(lp.plan.commander.driver, [(s.name, s.driver, s.url) for s in lp.plan.sensors])
 
 
-def default_cell_file() -> Path:
-    """The packaged default simulated cell."""
-    return DEFAULT_CONFIG_PATH
+#: Wall seconds the fake controller of a daemon's simulated cell keeps sending (a month).
+DAEMON_CELL_RUNTIME_S = 30 * 24 * 3600.0
+
+
+def daemon_cell(fake_cfg) -> SimulatedCell:
+    """The (not yet started) simulated cell of a daemon configuration's ``fake`` section
+    (``acquire.daemon_config.FakeCell``): it lives as long as the daemon, and every run the
+    daemon starts is described by it (``acquire.daemon_devices.cell_for_plan``)."""
+    return SimulatedCell(fake_cfg.sim_config or DEFAULT_CONFIG_PATH, seed=fake_cfg.seed,
+                         time_scale=fake_cfg.time_scale, max_runtime_s=DAEMON_CELL_RUNTIME_S)

@@ -187,13 +187,23 @@ class SimulatedCell:
             notes=tuple(self.launch.describe()),
         )
 
+    @property
+    def model(self):
+        """The cell's robot model (``calib.model.RobotModel``)."""
+        return self.cell.model
+
     def devices(self) -> list[tuple[str, str, str]]:
-        """Every position sensor of the cell as (name, driver, url) — for a daemon that serves
-        the cell before any plan names its sensors."""
+        """Every position sensor of the cell, once, as (name, driver, url) — for a daemon that
+        serves the cell before any plan names its sensors."""
         if self.launch is None:
             raise RuntimeError("start the simulated cell first")
-        driver_of = {"natnet": "natnet", "tracker": "tracker", "emscon": "emscon"}
-        return [(a.name, driver_of[a.kind], a.url) for a in self.launch.addresses.values() if a.kind in driver_of]
+        addrs = self.launch.addresses
+        out = []
+        for name in self.cell.config.sensor_names:
+            a = addrs.get(name) or addrs.get(f"{name}-emscon")
+            if a is not None:
+                out.append((name, a.kind, a.url))
+        return out
 
     # --- what only a simulation knows ----------------------------------------------------------
     def truth_offsets_deg(self) -> list[float]:
