@@ -200,7 +200,9 @@ def socket_summary_lines(doc: dict) -> list[str]:
     return lines
 
 
-def format_run_summary(summary, lp) -> str:
+def format_run_summary(summary, lp, truth: list | None = None, sag: list | None = None) -> str:
+    """The summary a person reads. ``truth`` / ``sag``: a simulated cell's hidden zero-offsets
+    and mean gravity sag per joint (deg), shown beside the fit when given."""
     lines = [
         f"run {summary.run_id}: {summary.state}" + (f" ({summary.reason})" if summary.reason else ""),
         f"configurations: {summary.total} total, {summary.measured} measured, {summary.skipped} skipped, "
@@ -211,8 +213,6 @@ def format_run_summary(summary, lp) -> str:
         lines.append(f"  not measured {cid}: {reason}")
     if summary.fit is not None:
         names = lp.model.axis_names
-        truth = summary.truth_offsets_deg
-        sag = summary.truth_mean_sag_deg
         head = f"{'joint':<6} {'fitted (deg)':>13} {'± std':>8}"
         if truth is not None:
             head += f" {'truth (deg)':>12} {'error':>8}"
@@ -370,7 +370,7 @@ def run(
         threading.Thread(target=controller.abort, args=(f"interrupted ({name})",), daemon=True).start()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    sim = None
+    sim = truth = sag = None
     try:
         if fake:  # "start the simulated cell, then run": the run gets its description, as of any cell
             sim = _start_simulated_cell(lp, controller)
@@ -382,8 +382,8 @@ def run(
             except TimeoutError:
                 continue
         if sim is not None:  # the cell's truth beside the fit: a property of the simulated cell
-            summary.truth_offsets_deg = sim.truth_offsets_deg()
-            summary.truth_mean_sag_deg = sim.mean_sag_deg(np.stack([c.q_rad for c in configs]))
+            truth = sim.truth_offsets_deg()
+            sag = sim.mean_sag_deg(np.stack([c.q_rad for c in configs]))
     finally:
         for s, h in old.items():
             signal.signal(s, h)
@@ -395,7 +395,7 @@ def run(
         logfile.close(console.level)
         if server is not None:
             server.close()
-    typer.echo(format_run_summary(summary, lp))
+    typer.echo(format_run_summary(summary, lp, truth, sag))
     if logfile.path is not None:
         typer.echo(f"text log: {display_path(logfile.path)}")
     if summary.state != "finished":

@@ -18,10 +18,8 @@ class RunError(RuntimeError):
 
 @dataclass
 class RunSummary:
-    """How a run ended. Times in wall seconds; ``cell_seconds`` in the cell's clock (simulated
-    seconds on a simulated cell). ``truth_offsets_deg`` / ``truth_mean_sag_deg`` are filled by
-    whoever knows the cell's truth (``acquire run --fake`` asks its simulated cell), never by
-    the run."""
+    """How a run ended. Times in wall seconds; ``cell_seconds`` in the cell's clock (its
+    description's ``clock``)."""
 
     run_id: str
     state: str
@@ -37,8 +35,6 @@ class RunSummary:
     result_path: Optional[Path] = None
     report_path: Optional[Path] = None
     fit: Optional[dict] = None
-    truth_offsets_deg: Optional[list] = None
-    truth_mean_sag_deg: Optional[list] = None
     skipped_reasons: dict = field(default_factory=dict)
 
     @property

@@ -59,3 +59,25 @@ def simulated_run(lp, **kwargs):
         yield RunController(lp, cell=describe_for(sim, lp), **kwargs), sim
     finally:
         sim.close()
+
+
+def fake_controller(lp, **kwargs):
+    """A RunController handed the description of the plan's simulated cell, started as ``acquire
+    run --fake`` starts it; the cell is ``.sim`` and closes once the run has ended."""
+    import threading
+
+    from acquire.commands.fake import describe_for, simulated_cell
+    from acquire.run import RunController
+
+    sim = simulated_cell(lp).start()
+    rc = RunController(lp, cell=describe_for(sim, lp), **kwargs)
+    rc.sim = sim
+
+    def close_after_the_run() -> None:
+        try:
+            rc.wait()
+        finally:
+            sim.close()
+
+    threading.Thread(target=close_after_the_run, name="sim-closer", daemon=True).start()
+    return rc
