@@ -118,9 +118,7 @@ class SimulatedCell:
         self.launch = SimLaunch(
             self.cell, fri_port=self.port, rsi_port=self.port, fri_send_period_ms=self.fri_send_period_ms(),
             tracker_protocols=self._tracker_protocols(), max_runtime_s=self.max_runtime_s,
-        ).start()
-        for line in self.launch.describe():
-            log.info("simulated cell: %s", line)
+        ).start()  # (``describe()`` carries ``launch.describe()`` lines as notes: whoever opens the devices logs them)
         return self
 
     def close(self) -> None:
