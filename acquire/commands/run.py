@@ -37,7 +37,6 @@ from typing import Optional
 import numpy as np
 import typer
 
-from acquire.commands.run_summary import format_run_summary
 from acquire.console import display_path
 
 log = logging.getLogger(__name__)
@@ -315,6 +314,8 @@ def run(
         logfile.close(console.level)
         if server is not None:
             server.close()
+    from acquire.commands.run_summary import format_run_summary
+
     typer.echo(format_run_summary(summary, lp, truth, sag))
     if logfile.path is not None:
         typer.echo(f"text log: {display_path(logfile.path)}")
