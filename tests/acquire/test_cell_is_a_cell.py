@@ -151,3 +151,28 @@ def test_the_class_length_check_counts_lines(tmp_path, monkeypatch):
     (tmp_path / "pkg").mkdir()
     (tmp_path / "pkg" / "big.py").write_text("class Big:\n" + "    x = 1\n" * 401)
     assert _long_classes("pkg", 400) == {"pkg/big.py:1 Big": 402}
+
+
+def test_the_simulated_cell_carries_its_cell_files_allowances_in_the_commander_url(tmp_path):
+    """The timing a simulated controller needs is a property of its cell file (wall ms), carried
+    in the commander URL in the commander's clock (simulated ms = wall ms × time scale)."""
+    from drivers.kuka_fri.commander import FriCommander
+    from drivers.protocols import JointLimits
+    from drivers.sim.running import SimulatedCell
+
+    doc = yaml.safe_load((ROOT / "fixtures" / "sim" / "default.yaml").read_text())
+    doc["robot"] = str(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
+    doc["allowances"] = {"silence_ms": 250, "state_age_ms": 400}
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    with SimulatedCell(path, time_scale=2.0, sensors=[("mocap", "natnet")]) as sim:
+        cell = sim.describe("fri", [("mocap", "natnet", "natnet://192.0.2.1:1510")])
+        assert cell.commander_url == f"fri://127.0.0.1:{sim.port}?timeout_ms=500&max_state_age_ms=800"
+        assert cell.sensor_urls["mocap"] == sim.launch.addresses["mocap"].url != "natnet://192.0.2.1:1510"
+        assert cell.time_scale == 2.0 and cell.clock == sim.clock.now
+        cmd = FriCommander.from_url(cell.commander_url, limits=JointLimits.from_model(sim.model))
+        assert (cmd.receive_timeout_s, cmd.max_state_age_s) == (0.5, 0.8)
+        with pytest.raises(ValueError, match="speaks fri"):
+            sim.describe("rsi", [])
+        with pytest.raises(ValueError, match="no such device"):
+            sim.describe("fri", [("x", "emscon", "emscon://192.0.2.1:700")])
