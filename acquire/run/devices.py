@@ -13,6 +13,7 @@ import inspect
 import logging
 
 from acquire.plan import JOINT_SENSOR_DRIVERS
+from acquire.run.summary import RunError
 from acquire.sequencer import SensorSpec
 from drivers.cell import CellDescription
 from drivers.errors import DriverError
@@ -111,8 +112,6 @@ class RunDevices:
             try:
                 url = cell.sensor_url(s.name)
             except KeyError as exc:
-                from acquire.run.summary import RunError
-
                 raise RunError(f"sensor {s.name!r}: {exc.args[0]}") from None
             self.sensors.append(SensorSpec(open_sensor(s, url=url, commander=cmd, **kw), list(s.markers),
                                            float(s.noise_mm)))
