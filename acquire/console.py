@@ -89,6 +89,32 @@ class _Held(logging.Handler):
             self.dropped += 1
 
 
+class TextLogHandler(logging.FileHandler):
+    """The run's text log file. When a write fails with an ``OSError`` (disk full, I/O error) the
+    file stops there without a word: no "--- Logging error ---" traceback per record from
+    ``logging``. The run reports a storage problem itself, in one line (``acquire.logstorage``);
+    ``failed`` keeps the error."""
+
+    failed: OSError | None = None
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.failed is None:
+            super().emit(record)
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        exc = sys.exc_info()[1]
+        if isinstance(exc, OSError):
+            self.failed = exc
+        else:
+            super().handleError(record)
+
+    def close(self) -> None:
+        try:
+            super().close()  # flushes what the stream still holds: may fail the same way
+        except OSError as exc:
+            self.failed = self.failed or exc
+
+
 class RunLogFile:
     """The run's text log: attach at start, :meth:`open` once the MCAP path is known, :meth:`close`.
 
@@ -98,7 +124,7 @@ class RunLogFile:
     def __init__(self, level: int = logging.INFO) -> None:
         self.path: Path | None = None
         self._buffer = _Held(_BUFFER_RECORDS, level)
-        self._file: logging.FileHandler | None = None
+        self._file: TextLogHandler | None = None
         logging.getLogger().addHandler(self._buffer)
 
     def open(self, mcap_path: str | os.PathLike) -> Path:
@@ -107,7 +133,7 @@ class RunLogFile:
         if self._file is not None:
             return self.path  # type: ignore[return-value]
         path = Path(mcap_path).with_suffix(".log")
-        handler = logging.FileHandler(path, mode="a", encoding="utf-8")
+        handler = TextLogHandler(path, mode="a", encoding="utf-8")
         handler.setLevel(self._buffer.level)
         handler.setFormatter(logging.Formatter(FILE_FORMAT))
         root = logging.getLogger()

@@ -22,25 +22,27 @@ confirm    motion      socket calibration: the ball sits in the socket, record n
 Two lines of defence. First, Zenoh itself: loopback-only listeners by default; remote
 listeners need mTLS or an access-control block (see ``daemon_config``), so the router drops a
 query from a subject the ACL does not allow before it reaches us. Second, this module checks
-every query in its handler: the query's attachment carries a proof that the sender knows the
-token of the client it names (``acquire.control_auth``: the token itself never travels, so a
-rogue queryable that also matches the key learns nothing usable), a fresh nonce and a time
-stamp (a captured request cannot be replayed). The daemon checks it against the SHA-256 the
-configuration holds for that client; a client configured with ``cert_common_names`` must
-moreover come over a TLS link whose certificate common name is one of them (the link of the
-query's source Zenoh id, as the session sees it). Without a valid proof the query holds only
-``auth.anonymous`` (default: observe). Every refusal is logged as a warning naming the
-operation, the claimed client and the reason.
+every query in its handler. An authenticated operation is one SCRAM-SHA-256 exchange
+(``acquire.control_auth``) over two queries on the operation's key: the first's attachment is a
+client-first, answered with a server-first carrying a fresh nonce of this daemon instance; the
+second carries the client-final (with the payload), and only once its proof verifies does the
+daemon act. The token never travels; the operation and payload are bound to the proof; an
+exchange is single-use, expires after seconds and is unknown to any other or restarted daemon.
+A client configured with ``cert_common_names`` must moreover come over a TLS link whose
+certificate common name is one of them (the link of the query's source Zenoh id, as the session
+sees it). Without a valid proof the query holds only ``auth.anonymous`` (default: observe).
+Every refusal and bad request is logged as one warning line naming the operation, the claimed
+client and the reason, rate-limited per source (``acquire.logthrottle``), never a traceback.
 
 Replies are JSON objects. A success is ``{"ok": true, …}``; a failure is an error reply
 ``{"ok": false, "error": KIND, "message": …}`` with KIND one of ``refused``, ``bad-request``,
-``conflict``, ``failed``. A reply to an authenticated request carries ``mac``, an HMAC bound to
-that request, and the client believes no reply without a valid one (``Unverified``).
+``conflict``, ``failed``. A reply to an authenticated request carries ``scram`` (the SCRAM
+server-final, ``v=ServerSignature``) and ``mac`` (over the body, keyed from that exchange), and
+the client believes no reply without both valid (``Unverified``).
 """
 
 from __future__ import annotations
 
-import hmac
 import json
 import logging
 import threading
@@ -49,6 +51,8 @@ from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 from acquire import control_auth
 from acquire.bus import control_key
+from acquire.logthrottle import Throttle, clip
+from acquire.tokens import check_token
 
 if TYPE_CHECKING:  # pydantic and YAML stay out of the thin clients' start-up (acquire status)
     from acquire.daemon_config import AuthSection
@@ -133,63 +137,81 @@ class Authorizer:
     """Decides what a query may do from its attachment and (when known) its TLS subject.
 
     link_subject: source Zenoh id (hex str) → TLS certificate CN of that peer's link, or None.
+    exchanges: the pending SCRAM exchanges (default: a new table, i.e. a new daemon instance).
+    throttle: limits the warnings about what clients send (``acquire.logthrottle``).
     """
 
-    def __init__(self, auth: AuthSection, link_subject: Callable[[str], str | None] | None = None) -> None:
+    def __init__(self, auth: AuthSection, link_subject: Callable[[str], str | None] | None = None, *,
+                 exchanges: control_auth.ExchangeTable | None = None, throttle: Throttle | None = None) -> None:
         self.auth = auth
         self._link_subject = link_subject or (lambda zid: None)
         self.refusals = 0
         self._lock = threading.Lock()
-        self._replays = control_auth.ReplayGuard()
+        decoy = next((c.scram.iterations for c in auth.clients), control_auth.DEFAULT_ITERATIONS)
+        self.exchanges = exchanges or control_auth.ExchangeTable(self._credentials, decoy_iterations=decoy)
+        self.throttle = throttle or Throttle()
+
+    def _credentials(self, name: str) -> control_auth.Credentials | None:
+        client = next((c for c in self.auth.clients if c.name == name), None)
+        return client.scram.credentials() if client else None
+
+    def warn(self, source: str | None, fmt: str, *args: object) -> None:
+        """One warning line about what ``source`` sent, unless its rate is exceeded (then counted;
+        the next line admitted for it says how many were suppressed)."""
+        source = source or "unknown source"
+        with self._lock:
+            self.refusals += 1
+        dropped = self.throttle.admit(source)
+        if dropped is None:
+            return
+        line = clip(fmt % args if args else fmt, 600)
+        suffix = f" [{dropped} similar lines from {source} suppressed]" if dropped else ""
+        log.warning("%s%s", line, suffix)
+
+    def open_exchange(self, message: str) -> str:
+        """The server-first answering a SCRAM client-first (ProofError if malformed)."""
+        server_first, _ = self.exchanges.first(message)
+        return server_first
 
     def identify(self, attachment: bytes | None, source_zid: str | None, *, cell: str = "", op: str = "",
-                 payload: bytes | None = None) -> tuple[Identity, str | None, tuple[bytes, bytes] | None]:
+                 payload: bytes | None = None) -> tuple[Identity, str | None, tuple[bytes, str] | None]:
         """The sender's identity; if its credentials were rejected, why; and, when they were
-        accepted, the (key, auth message) its reply must be signed with."""
+        accepted, the (reply key, server-final) its reply must carry."""
         cert_cn = self._link_subject(source_zid) if source_zid else None
         anonymous = frozenset(self.auth.anonymous)
         if not attachment:
             return Identity(None, None, cert_cn, anonymous), None, None
         try:
-            req = control_auth.parse_attachment(attachment)
+            stage, message = control_auth.parse_attachment(attachment)
+            if stage != "client-final":
+                raise control_auth.ProofError("a SCRAM client-first cannot carry an operation")
+            verified = self.exchanges.final(message, cell=cell, op=op, payload=payload)
         except control_auth.ProofError as exc:
-            return Identity(None, None, cert_cn, anonymous), str(exc), None
-        name = req.client
-        client = next((c for c in self.auth.clients if c.name == name), None)
-        # Check against a dummy key for unknown names too: the answer takes the same time.
-        stored = bytes.fromhex(client.token_sha256) if client else b"\0" * 32
-        message = control_auth.auth_message(cell, op, name, req.nonce, req.ts, payload)
-        if not control_auth.verify_proof(req, stored, message) or client is None:
-            return Identity(None, name, cert_cn, anonymous), f"wrong token for client {name!r}", None
-        try:
-            # Every request's time stamp must be fresh; nonces are remembered (for the skew
-            # window) for requests with an effect. Replaying a status query gains nothing: its
-            # signed reply is bound to the original request, whose client already has it.
-            if OPERATIONS.get(op) == "observe":
-                self._replays.check_time(req)
-            else:
-                self._replays.check(req)
-        except control_auth.ProofError as exc:
-            return Identity(None, name, cert_cn, anonymous), f"client {name!r}: {exc}", None
+            return Identity(None, exc.client, cert_cn, anonymous), clip(exc, 300), None
+        name = verified.client
+        client = next(c for c in self.auth.clients if c.name == name)
+        key = (verified.reply_key, verified.server_final)
         if client.cert_common_names and cert_cn not in client.cert_common_names:
             # The proof holds (the reply is signed), but the token came over the wrong link.
             return Identity(None, name, cert_cn, anonymous), (
                 f"client {name!r} must connect over TLS with a certificate CN in "
                 f"{client.cert_common_names}; the link's CN is {cert_cn!r}"
-            ), (stored, message)
-        return Identity(name, name, cert_cn, frozenset(client.allow) | anonymous), None, (stored, message)
+            ), key
+        return Identity(name, name, cert_cn, frozenset(client.allow) | anonymous), None, key
 
-    def check(self, operation: str, identity: Identity, credential_problem: str | None) -> None:
-        """Raise Refused (and log it) unless ``identity`` may perform ``operation``."""
+    def check(self, operation: str, identity: Identity, credential_problem: str | None,
+              source: str | None = None) -> None:
+        """Raise Refused (and log it, rate-limited per source) unless ``identity`` may perform ``operation``."""
         need = OPERATIONS[operation]
         if need in identity.permissions:
+            if credential_problem:  # e.g. a wrong proof for status: answered, unsigned, as anonymous
+                self.warn(source, "control/%s answered as %s: credentials refused (%s)", operation,
+                          identity.describe(), credential_problem)
             return
         reason = f"needs permission {need!r}; {identity.describe()} holds {sorted(identity.permissions)}"
         if credential_problem:
             reason += f" ({credential_problem})"
-        with self._lock:
-            self.refusals += 1
-        log.warning("refused control/%s: %s", operation, reason)
+        self.warn(source, "refused control/%s: %s", operation, reason)
         raise Refused(f"{operation} refused: {reason}")
 
 
@@ -254,40 +276,61 @@ class ControlServer:
         return handler
 
     def _handle(self, op: str, query) -> None:
-        """Answer one query, signed when its sender was authenticated; never raises into Zenoh's thread."""
+        """Answer one query (signed when its sender was authenticated); never raises into
+        Zenoh's thread, and what a client sent costs at most one rate-limited log line."""
         self.handled += 1
         key = None
+        source = _zid_hex(query.source_info)
         try:
             payload = _payload_bytes(query.payload)
-            reply, key = self.dispatch(op, payload, _payload_bytes(query.attachment), _zid_hex(query.source_info))
+            reply, key = self.dispatch(op, payload, _payload_bytes(query.attachment), source)
             query.reply(query.key_expr, _signed({"ok": True, **reply}, key))
         except ControlError as exc:
             key = getattr(exc, "reply_key", None)
+            if isinstance(exc, BadRequest):
+                self.authorizer.warn(source, "bad control/%s request from %s: %s", op, source or "unknown source",
+                                     clip(exc))
             query.reply_err(_signed({"ok": False, "error": exc.kind, "message": str(exc)}, key))
         except Exception as exc:  # noqa: BLE001 - a bug must become an error reply, never a hang
-            log.exception("control/%s failed", op)
-            query.reply_err(_signed({"ok": False, "error": "failed", "message": f"{type(exc).__name__}: {exc}"}, key))
+            # One line (rate-limited); the traceback only at debug level: a client must not be
+            # able to fill the log with them.
+            self.authorizer.warn(source, "control/%s from %s failed: %s: %s (traceback at debug level)", op,
+                                 source or "unknown source", type(exc).__name__, clip(exc))
+            log.debug("control/%s failed", op, exc_info=True)
+            try:
+                query.reply_err(_signed({"ok": False, "error": "failed",
+                                         "message": f"{type(exc).__name__}: {clip(exc)}"}, key))
+            except Exception:  # noqa: BLE001 - the query may be gone; nothing more to say
+                log.debug("control/%s: could not reply", op, exc_info=True)
 
     def dispatch(self, op: str, payload: bytes | None, attachment: bytes | None,
-                 source_zid: str | None) -> tuple[dict, tuple[bytes, bytes] | None]:
-        """Authorise and perform ``op``; returns the reply body and the key to sign it with (None
-        for an unauthenticated sender), or raises ControlError (``exc.reply_key`` set likewise)."""
+                 source_zid: str | None) -> tuple[dict, tuple[bytes, str] | None]:
+        """Authorise and perform ``op``; returns the reply body and the (key, server-final) to
+        sign it with (None for an unauthenticated sender), or raises ControlError
+        (``exc.reply_key`` set likewise). A SCRAM client-first is answered with a server-first
+        (``{"server_first": …}``) and performs nothing."""
         if op not in OPERATIONS:
-            raise BadRequest(f"unknown operation {op!r}; allowed: {', '.join(OPERATIONS)}")
+            raise BadRequest(f"unknown operation {clip(op, 40)!r}; allowed: {', '.join(OPERATIONS)}")
         for what, data in (("payload", payload), ("attachment", attachment)):
             if data is not None and len(data) > MAX_REQUEST_BYTES:
-                log.warning("refused control/%s: %s of %d bytes (limit %d)", op, what, len(data), MAX_REQUEST_BYTES)
                 raise BadRequest(f"{what} of {len(data)} bytes is too large (limit {MAX_REQUEST_BYTES})")
+        first = _client_first(attachment)
+        if first is not None:
+            try:
+                return {"v": control_auth.VERSION, "server_first": self.authorizer.open_exchange(first)}, None
+            except control_auth.ProofError as exc:
+                raise BadRequest(str(exc)) from None
         identity, problem, key = self.authorizer.identify(attachment, source_zid, cell=self.cell, op=op,
                                                           payload=payload)
         try:
-            return self._perform(op, identity, problem, payload), key
+            return self._perform(op, identity, problem, payload, source_zid), key
         except ControlError as exc:
             exc.reply_key = key
             raise
 
-    def _perform(self, op: str, identity: Identity, problem: str | None, payload: bytes | None) -> dict:
-        self.authorizer.check(op, identity, problem)
+    def _perform(self, op: str, identity: Identity, problem: str | None, payload: bytes | None,
+                 source: str | None = None) -> dict:
+        self.authorizer.check(op, identity, problem, source)
         request = _request(payload)
         log.log(logging.DEBUG if op in ("status", "runs") else logging.INFO, "control/%s from %s", op,
                 identity.describe())
@@ -309,10 +352,24 @@ class ControlServer:
         return b.abort(_opt_str(request, "reason") or f"aborted by {identity.describe()}")
 
 
-def _signed(body: dict, key: tuple[bytes, bytes] | None) -> str:
-    """``body`` as JSON, with its MAC when the request was authenticated."""
+def _client_first(attachment: bytes | None) -> str | None:
+    """The SCRAM client-first message an attachment carries, else None (also when malformed:
+    ``Authorizer.identify`` then says what is wrong)."""
+    if not attachment:
+        return None
+    try:
+        stage, message = control_auth.parse_attachment(attachment)
+    except control_auth.ProofError:
+        return None
+    return message if stage == "client-first" else None
+
+
+def _signed(body: dict, key: tuple[bytes, str] | None) -> str:
+    """``body`` as JSON; when the request was authenticated, with the exchange's server-final
+    (``scram``) and a MAC of both under the exchange's reply key (``mac``)."""
     if key is not None:
-        body = {**body, "mac": control_auth.reply_mac(key[0], key[1], body)}
+        body = {**body, "scram": key[1]}
+        body["mac"] = control_auth.reply_mac(key[0], body)
     return json.dumps(body, default=str)
 
 
@@ -328,8 +385,8 @@ def _request(payload: bytes | None) -> dict:
         return {}
     try:
         req = json.loads(payload.decode())
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise BadRequest(f"request payload is not JSON: {exc}") from exc
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise BadRequest(f"request payload is not JSON: {clip(exc, 120)}") from None
     if not isinstance(req, dict):
         raise BadRequest(f"request payload must be a JSON object, given {type(req).__name__}")
     return req
@@ -338,22 +395,25 @@ def _request(payload: bytes | None) -> dict:
 def _opt_str(req: dict, name: str) -> str | None:
     value = req.get(name)
     if value is not None and not isinstance(value, str):
-        raise BadRequest(f"{name} must be a string, given {value!r}")
+        raise BadRequest(f"{name} must be a string, given {clip(repr(value), 80)}")
     return value
 
 
 class ControlClient:
     """A thin client of the control queries over an open Zenoh session.
 
-    client / token: the credentials to prove (None: anonymous). The token never leaves this
-    object: each request carries a one-time proof of it (``acquire.control_auth``), and only a
-    reply signed for that request is believed. An anonymous client cannot authenticate replies;
+    client / token: the credentials to prove (None: anonymous); a weak token is refused
+    (``acquire.tokens.WeakToken``). The token never leaves this object: each operation is one
+    SCRAM-SHA-256 exchange (``acquire.control_auth``) and only a reply carrying that exchange's
+    ServerSignature and MAC is believed. An anonymous client cannot authenticate replies;
     ``last_reply_verified`` says whether the last reply was.
     """
 
     def __init__(self, session, cell: str, *, client: str | None = None, token: str | None = None) -> None:
         if (client is None) != (token is None):
             raise ValueError("give both client and token, or neither")
+        if token is not None:
+            check_token(token)
         self.session = session
         self.cell = cell
         self._client = client
@@ -365,25 +425,77 @@ class ControlClient:
     def call(self, op: str, request: dict[str, Any] | None = None, *, timeout: float = 10.0) -> dict:
         """Send ``op`` and return the daemon's reply body; raise the matching ControlError on an
         error reply, Unverified when no reply can be attributed to the daemon, and NoReply when
-        nothing answers within ``timeout`` seconds."""
-        import zenoh  # a thin client needs nothing else of the daemon
-
+        nothing answers within ``timeout`` seconds (per round trip; an authenticated operation
+        takes two)."""
         if op not in OPERATIONS:
             raise ValueError(f"unknown operation {op!r}; allowed: {', '.join(OPERATIONS)}")
         payload = json.dumps(request).encode() if request else None
+        self.last_reply_verified = False
+        if self._token is None:
+            return self._anonymous(op, payload, timeout)
+        exchange = control_auth.ClientExchange(self._token, self._client, self.cell, op, payload)
+        unverified: list[dict] = []
+        firsts: list[str] = []
+        for body in self._get(op, None, exchange.first_attachment(), timeout):
+            first = body.get("server_first") if body.get("ok") else None
+            if isinstance(first, str):
+                if first not in firsts:
+                    firsts.append(first)
+            else:
+                unverified.append(body)
+        # Every responder gets its own client-final; only the daemon that issued a server-first
+        # can prove itself in its reply. (A stand-in learns a proof over its own nonce: useless.)
+        for first in firsts[:control_auth.MAX_RESPONDERS]:
+            try:
+                responder = exchange.answer(first)
+            except control_auth.ProofError as exc:
+                unverified.append({"ok": False, "error": "failed", "message": str(exc)})
+                continue
+            for body in self._get(op, payload, responder.final_attachment(), timeout):
+                if responder.verify(body):
+                    self.last_reply_verified = True
+                    return _outcome(body)
+                unverified.append(body)
+        if unverified:
+            self.rejected_replies += len(unverified)
+            first = unverified[0]
+            raise Unverified(
+                f"no reply to control/{op} could be attributed to the daemon of cell {self.cell!r} "
+                f"({len(unverified)} unauthenticated; is the token right? is another process answering "
+                f"on remaster/{self.cell}/control/**?); the first said: {first.get('message', first)}")
+        raise NoReply(
+            f"no reply to control/{op} for cell {self.cell!r} within {timeout:g} s "
+            f"(is the daemon running, and are you allowed by its access control?)"
+        )
+
+    def _anonymous(self, op: str, payload: bytes | None, timeout: float) -> dict:
+        bodies = self._get(op, payload, None, timeout)
+        if not bodies:
+            raise NoReply(
+                f"no reply to control/{op} for cell {self.cell!r} within {timeout:g} s "
+                f"(is the daemon running, and are you allowed by its access control?)"
+            )
+        distinct = {control_auth.canonical(b) for b in bodies}
+        if len(distinct) == 1:
+            return _outcome(bodies[0])
+        self.rejected_replies += len(bodies)
+        raise Unverified(f"{len(bodies)} different replies to control/{op} from more than one responder on "
+                         f"cell {self.cell!r}; without credentials none can be attributed to the daemon — give "
+                         "--client and a token")
+
+    def _get(self, op: str, payload: bytes | None, attachment: bytes | None, timeout: float) -> list[dict]:
+        """Every responder's reply body to one query (unconsolidated: a rogue answering first must
+        not hide the daemon's); a reply that is not a JSON object becomes an error body."""
+        import zenoh  # a thin client needs nothing else of the daemon
+
         kwargs: dict[str, Any] = {}
         if payload:
             kwargs["payload"] = payload
-        key = None
-        if self._token is not None:
-            creds, message = control_auth.make_request(self._token, self._client, self.cell, op, payload)
-            kwargs["attachment"] = creds.attachment()
-            key = (control_auth.stored_key(self._token), message)
-        self.last_reply_verified = False
-        # Every responder's reply, unconsolidated: a rogue answering first must not hide the daemon's.
+        if attachment:
+            kwargs["attachment"] = attachment
         querier = self.session.declare_querier(control_key(self.cell, op), target=zenoh.QueryTarget.ALL,
                                                consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
-        unverified: list[dict] = []
+        bodies: list[dict] = []
         try:
             # A querier has an entity id; sending it as source info lets the daemon find our link
             # (and its TLS subject). The daemon never trusts it alone: the proof decides.
@@ -391,32 +503,11 @@ class ControlClient:
             for reply in querier.get(**kwargs):
                 sample = reply.ok if reply.ok is not None else reply.err
                 body = _reply_body(sample.payload.to_bytes())
-                if key is not None and body is not None and _mac_ok(body, key):
-                    self.last_reply_verified = True
-                    return _outcome(body)
-                unverified.append(body if body is not None else {"ok": False, "error": "failed",
-                                                                 "message": "reply is not a JSON object"})
+                bodies.append(body if body is not None else {"ok": False, "error": "failed",
+                                                             "message": "reply is not a JSON object"})
         finally:
             querier.undeclare()
-        if key is None and unverified:
-            distinct = {control_auth.canonical(b) for b in unverified}
-            if len(distinct) == 1:
-                return _outcome(unverified[0])
-            self.rejected_replies += len(unverified)
-            raise Unverified(f"{len(unverified)} different replies to control/{op} from more than one responder on "
-                             f"cell {self.cell!r}; without credentials none can be attributed to the daemon — give "
-                             "--client and a token")
-        if unverified:
-            self.rejected_replies += len(unverified)
-            first = unverified[0]
-            raise Unverified(
-                f"no reply to control/{op} could be attributed to the daemon of cell {self.cell!r} "
-                f"({len(unverified)} unsigned or wrongly signed; is the token right? is another process answering "
-                f"on remaster/{self.cell}/control/**?); the first said: {first.get('message', first)}")
-        raise NoReply(
-            f"no reply to control/{op} for cell {self.cell!r} within {timeout:g} s "
-            f"(is the daemon running, and are you allowed by its access control?)"
-        )
+        return bodies
 
 
 def _reply_body(data: bytes) -> dict | None:
@@ -427,14 +518,9 @@ def _reply_body(data: bytes) -> dict | None:
     return body if isinstance(body, dict) else None
 
 
-def _mac_ok(body: dict, key: tuple[bytes, bytes]) -> bool:
-    mac = body.get("mac")
-    return isinstance(mac, str) and hmac.compare_digest(mac, control_auth.reply_mac(key[0], key[1], body))
-
-
 def _outcome(body: dict) -> dict:
     """The reply body of a success (without its MAC); raise the matching ControlError otherwise."""
-    body = {k: v for k, v in body.items() if k != "mac"}
+    body = {k: v for k, v in body.items() if k not in ("mac", "scram")}
     if body.get("ok"):
         return body
     cls = _KINDS.get(body.get("error"), ControlError)

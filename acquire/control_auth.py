@@ -1,31 +1,68 @@
-"""Proofs for control queries: the token never leaves the client, and replies are attributable.
+"""Authentication of control queries: SCRAM-SHA-256 (RFC 5802, RFC 7677) with ``scramp``.
 
-Why this design (and not the token in the attachment, nor mutual TLS alone): Zenoh delivers a
-query to *every* queryable whose key expression matches, so any process on the bus that declares
-``remaster/<cell>/control/**`` receives what a client sends and may answer first. mTLS with a
-pinned daemon certificate would fix that only where TLS is configured (not on loopback, the
-default). A proof in the style of SCRAM (RFC 5802), over one round trip, works on every
-transport with nothing to install:
+Why SCRAM, and not Zenoh's mutual TLS alone: Zenoh delivers a query to *every* queryable whose
+key expression matches, so any process on the bus that declares ``remaster/<cell>/control/**``
+receives what a client sends and may answer. mTLS with a pinned daemon certificate and Zenoh's
+access control fix that where TLS is configured — and stay recommended for a network listener
+(``daemon_config``; a client with ``cert_common_names`` must come over such a link) — but not
+on loopback, the default, where every local account can reach the router. SCRAM is a reviewed
+standard (the SASL mechanism of PostgreSQL, MongoDB, XMPP, Kafka), runs over any transport with
+nothing to install, never sends the token, and makes *both* sides prove themselves. We use the
+``scramp`` implementation unchanged; nothing here is a cipher or a proof of our own.
 
-- The daemon's configuration keeps only ``stored = SHA-256(token)`` per client (as before).
-- The client sends ``proof = token XOR mask``, where ``mask`` is expanded from
-  ``HMAC(stored, "client" ‖ auth_message)`` and ``auth_message`` binds the protocol version, the
-  cell, the operation, the client name, a fresh random nonce, a time stamp and the SHA-256 of
-  the request payload. Who does not know ``stored`` learns nothing from the proof; the daemon
-  computes the mask, recovers the token and checks its SHA-256 against ``stored`` (constant time).
-  A stolen daemon configuration is still not a client credential.
-- The daemon refuses a time stamp more than ``MAX_SKEW_S`` from its clock and a nonce it has
-  already seen (a rogue queryable that captured a request cannot replay it).
-- Every reply carries ``mac = HMAC(stored, "daemon" ‖ auth_message ‖ body)``. A client believes
-  only a reply whose MAC it can check: a rogue that does not know ``stored`` cannot forge one,
-  and a reply to another request cannot be passed off for this one.
+One operation is one exchange of two query round trips on ``remaster/<cell>/control/<op>``:
 
-An anonymous client (no token) has no shared secret: its replies cannot be authenticated, which
-the client reports (``ControlClient.last_reply_verified``) and the CLI prints.
+1. client-first (attachment) → server-first. The client nonce is 24 random characters plus
+   ``.`` and the SHA-256 of (protocol version, cell, operation, payload): the operation and its
+   payload are part of the SCRAM AuthMessage, so the ClientProof covers them. The daemon
+   answers with the client's salt and iteration count and a server nonce of its own: this
+   daemon instance's random id (drawn at start-up) between ``@`` and ``.``, and 24 random characters. It keeps
+   the exchange pending for ``EXCHANGE_TTL_S`` seconds (at most ``MAX_PENDING`` at once).
+2. client-final (attachment, with the payload) → the reply. The daemon takes the pending
+   exchange out of its table (single use: a second client-final with the same nonce finds
+   nothing), checks that the operation and payload hash to what the client nonce says, and
+   verifies the ClientProof with ``scramp``. Only then does it act. Its reply carries the
+   server-final (``v=ServerSignature``) and ``mac``: HMAC-SHA-256 of the canonical reply body
+   under ``HMAC(ServerKey, "remaster-control reply" ‖ AuthMessage)``. The client believes a
+   reply only after ``scramp`` verified the ServerSignature and the MAC checks: the daemon has
+   proved itself before the client acts on anything.
+
+Hence nothing captured can be used again: a client-final names a server nonce that only the
+daemon instance that issued it holds pending, for a few seconds, once (a restarted daemon has a
+new id and an empty table; another daemon never issued it). A stand-in answering while the
+daemon is down gets a ClientProof over *its* nonce, worthless to the real daemon; its reply
+cannot carry a valid ServerSignature, so the client reports it (exit 3) and does nothing.
+
+What the daemon's configuration holds per client is what an RFC 5802 server stores: salt,
+iteration count (≥ ``MIN_ITERATIONS``), StoredKey = H(ClientKey) and ServerKey. Guessing the
+token offline from a captured exchange costs one PBKDF2 of ``iterations`` rounds per candidate,
+and tokens are 256 random bits (``acquire.tokens``). Per RFC 5802 §9, whoever reads
+StoredKey and ServerKey can impersonate the *daemon* to clients (compute ServerSignature and
+reply MACs) but cannot log in as a client — unless they also see one client-final message
+(any local process can, by declaring the control keys) or get a client to talk to them, which
+reveals ClientKey. **So the daemon's configuration must be readable by root and the daemon
+only**; ``daemon_config.load_daemon_config`` refuses a file other users may read.
+
+Anonymous queries (no attachment) keep observe-only access; their replies cannot be
+authenticated and the client says so.
+
+Limits, by design: an exchange lives ``EXCHANGE_TTL_S`` = 10 s because the client computes
+PBKDF2 (twice on its first exchange in a process: once inside ``scramp``, once for the reply
+key's ServerKey) between the two round trips — ~0.7 s each at 600 000 iterations on an idle
+cell PC, several seconds on a loaded one. Whoever can reach the control keys can still deny
+service: flood client-firsts (the oldest of ``MAX_PENDING`` pending exchanges is dropped), or
+answer as a stand-in with server-firsts the client then spends up to ``MAX_RESPONDERS`` PBKDF2s
+of at most ``MAX_CLIENT_ITERATIONS`` on. Neither makes anything happen that the operator did
+not ask for, nor lets the client report a success the daemon did not sign. A client-final is
+delivered to every matching queryable, so a local process may race it to the daemon: the daemon
+then performs the operation the client asked for, once, and the client's own copy is refused
+as used (the client reports that it could not attribute a reply, exit 3).
 """
 
 from __future__ import annotations
 
+import base64
+import copy
 import hashlib
 import hmac
 import json
@@ -33,41 +70,92 @@ import secrets
 import threading
 import time
 from dataclasses import dataclass
+from typing import Callable
+
+from scramp import ScramClient, ScramException, ScramMechanism
+
+from acquire.tokens import check_token
 
 #: Protocol tag; bumping it makes old and new peers refuse each other with a clear message.
-VERSION = 2
+VERSION = 3
 
-#: Largest difference (s) between a request's time stamp and the daemon's clock.
-MAX_SKEW_S = 60.0
+MECHANISM = "SCRAM-SHA-256"
 
-#: Longest accepted token (bytes).
-MAX_TOKEN_BYTES = 4096
+#: Fewest PBKDF2 iterations a configuration may hold (RFC 7677's minimum).
+MIN_ITERATIONS = 4096
 
+#: What ``acquire token new`` uses (OWASP 2023 for PBKDF2-HMAC-SHA256): ~0.7 s per PBKDF2 here.
+DEFAULT_ITERATIONS = 600_000
 
-def stored_key(token: str) -> bytes:
-    """``SHA-256(token)``: the 32 bytes the daemon's configuration holds (as hex) per client."""
-    return hashlib.sha256(token.encode()).digest()
+#: Most iterations a client computes for a server-first (a stand-in cannot make it spin longer).
+MAX_CLIENT_ITERATIONS = 2_000_000
 
+#: Seconds an exchange stays pending after its server-first.
+EXCHANGE_TTL_S = 10.0
 
-def auth_message(cell: str, op: str, client: str, nonce: str, ts: str, payload: bytes | None) -> bytes:
-    """The bytes a proof and a reply MAC are bound to."""
-    digest = hashlib.sha256(payload or b"").hexdigest()
-    return "\n".join(("remaster-control", str(VERSION), cell, op, client, nonce, ts, digest)).encode()
+#: Most exchanges pending at once (the oldest is dropped beyond).
+MAX_PENDING = 256
 
+#: Most responders a client completes an exchange with, per operation.
+MAX_RESPONDERS = 4
 
-def _mask(stored: bytes, message: bytes, n: int) -> bytes:
-    """``n`` bytes expanded from ``HMAC(stored, "client" ‖ message)`` (HKDF-expand style)."""
-    prk = hmac.new(stored, b"client\n" + message, hashlib.sha256).digest()
-    out, block, counter = b"", b"", 1
-    while len(out) < n:
-        block = hmac.new(prk, block + bytes([counter & 0xFF]), hashlib.sha256).digest()
-        out += block
-        counter += 1
-    return out[:n]
+_REPLY_LABEL = b"remaster-control reply\n"
 
 
-def _xor(a: bytes, b: bytes) -> bytes:
-    return bytes(x ^ y for x, y in zip(a, b))
+class ProofError(ValueError):
+    """A request whose credentials do not prove the claimed client (text says why; ``client``:
+    the name it claimed, when known)."""
+
+    def __init__(self, message: str, client: str | None = None) -> None:
+        super().__init__(message)
+        self.client = client
+
+
+def _b64(data: bytes) -> str:
+    return base64.b64encode(data).decode()
+
+
+@dataclass(frozen=True)
+class Credentials:
+    """What the daemon stores per client (RFC 5802 §3): salt (≥ 12 bytes), PBKDF2 iterations,
+    StoredKey and ServerKey (32 bytes each)."""
+
+    salt: bytes
+    iterations: int
+    stored_key: bytes
+    server_key: bytes
+
+    def config(self) -> dict:
+        """The ``scram`` mapping of a client in the daemon configuration (base64 fields)."""
+        return {"salt": _b64(self.salt), "iterations": self.iterations, "stored_key": _b64(self.stored_key),
+                "server_key": _b64(self.server_key)}
+
+
+def derive_credentials(token: str, iterations: int = DEFAULT_ITERATIONS, salt: bytes | None = None) -> Credentials:
+    """The daemon-side credentials of ``token`` with a fresh 16-byte salt (or ``salt``)."""
+    check_token(token)
+    if iterations < MIN_ITERATIONS:
+        raise ValueError(f"iterations must be ≥ {MIN_ITERATIONS}, given {iterations}")
+    salt = secrets.token_bytes(16) if salt is None else salt
+    s, stored, server, i = ScramMechanism(MECHANISM).make_auth_info(token, iteration_count=iterations, salt=salt)
+    return Credentials(s, i, stored, server)
+
+
+def request_digest(cell: str, op: str, payload: bytes | None) -> str:
+    """Hex SHA-256 of what one operation asks: protocol version, cell, operation and payload."""
+    head = f"remaster-control\n{VERSION}\n{cell}\n{op}\n".encode()
+    return hashlib.sha256(head + (payload or b"")).hexdigest()
+
+
+def auth_message(client_first_bare: str, server_first: str, client_final: str) -> bytes:
+    """RFC 5802's AuthMessage: client-first-bare, server-first, client-final-without-proof."""
+    without_proof = client_final.rsplit(",p=", 1)[0]
+    return ",".join((client_first_bare, server_first, without_proof)).encode()
+
+
+def reply_key(server_key: bytes, message: bytes) -> bytes:
+    """The key of one exchange's reply MAC: ``HMAC(ServerKey, label ‖ AuthMessage)``."""
+    return hmac.new(server_key, _REPLY_LABEL + message, hashlib.sha256).digest()
 
 
 def canonical(body: dict) -> bytes:
@@ -77,101 +165,222 @@ def canonical(body: dict) -> bytes:
     return json.dumps(parsed, sort_keys=True, separators=(",", ":")).encode()
 
 
-def reply_mac(stored: bytes, message: bytes, body: dict) -> str:
-    """Hex ``HMAC(stored, "daemon" ‖ message ‖ canonical(body))``."""
-    return hmac.new(stored, b"daemon\n" + message + b"\n" + canonical(body), hashlib.sha256).hexdigest()
+def reply_mac(key: bytes, body: dict) -> str:
+    """Hex HMAC-SHA-256 of ``canonical(body)`` under ``key``."""
+    return hmac.new(key, canonical(body), hashlib.sha256).hexdigest()
 
 
-@dataclass(frozen=True)
-class Request:
-    """One request's credentials as sent in the query attachment."""
-
-    client: str
-    nonce: str
-    ts: str
-    proof: str
-
-    def attachment(self) -> bytes:
-        return json.dumps({"v": VERSION, "client": self.client, "nonce": self.nonce, "ts": self.ts,
-                           "proof": self.proof}).encode()
+def attachment(stage: str, message: str) -> bytes:
+    """A query attachment carrying one SCRAM message (``stage``: client-first or client-final)."""
+    return json.dumps({"v": VERSION, "scram": stage, "msg": message}).encode()
 
 
-def make_request(token: str, client: str, cell: str, op: str, payload: bytes | None) -> tuple[Request, bytes]:
-    """The client's credentials for one request, and the auth message its reply must be bound to."""
-    secret = token.encode()
-    if not secret or len(secret) > MAX_TOKEN_BYTES:
-        raise ValueError(f"a token must be 1–{MAX_TOKEN_BYTES} bytes, given {len(secret)}")
-    nonce = secrets.token_hex(16)
-    ts = f"{time.time():.3f}"
-    message = auth_message(cell, op, client, nonce, ts, payload)
-    proof = _xor(secret, _mask(stored_key(token), message, len(secret))).hex()
-    return Request(client, nonce, ts, proof), message
-
-
-class ProofError(ValueError):
-    """A request whose credentials do not prove the claimed client (text says why)."""
-
-
-def parse_attachment(attachment: bytes) -> Request:
-    """The credentials in a query attachment; ProofError when it is not a version-2 proof."""
+def parse_attachment(data: bytes) -> tuple[str, str]:
+    """(stage, SCRAM message) of a query attachment; ProofError when it is not one of ours."""
     try:
-        cred = json.loads(bytes(attachment).decode())
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise ProofError(f"attachment is not JSON ({exc})") from exc
+        cred = json.loads(bytes(data).decode())
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise ProofError(f"attachment is not JSON ({str(exc)[:80]})") from None
     if not isinstance(cred, dict):
         raise ProofError("attachment is not a JSON object")
     if "token" in cred:
         raise ProofError("the client sent its token in clear (a client older than control protocol "
                          f"v{VERSION}); upgrade it — the token should now be considered exposed")
     if cred.get("v") != VERSION:
-        raise ProofError(f"control protocol v{cred.get('v')!r}; this daemon speaks v{VERSION}")
-    fields = {k: cred.get(k) for k in ("client", "nonce", "ts", "proof")}
-    bad = [k for k, v in fields.items() if not isinstance(v, str) or not v]
-    if bad:
-        raise ProofError(f"attachment lacks {', '.join(bad)}")
-    return Request(**fields)
+        raise ProofError(f"control protocol v{str(cred.get('v'))[:20]}; this daemon speaks v{VERSION} "
+                         "(SCRAM-SHA-256): upgrade the client")
+    stage, msg = cred.get("scram"), cred.get("msg")
+    if stage not in ("client-first", "client-final") or not isinstance(msg, str) or not 0 < len(msg) <= 4096:
+        raise ProofError("attachment lacks a SCRAM client-first or client-final message")
+    return stage, msg
 
 
-class ReplayGuard:
-    """Remembers the nonces seen within the skew window (thread-safe)."""
+# ------------------------------------------------------------------------------------ client
+_server_keys: dict[tuple[bytes, bytes, int], bytes] = {}
+_server_keys_lock = threading.Lock()
 
-    def __init__(self, max_skew_s: float = MAX_SKEW_S, clock=time.time) -> None:
-        self.max_skew_s = max_skew_s
-        self._clock = clock
-        self._seen: dict[str, float] = {}
-        self._lock = threading.Lock()
 
-    def check_time(self, req: Request) -> float:
-        """Raise ProofError for a time stamp outside the skew window; returns the clock's now."""
-        now = self._clock()
+def _server_key(token: str, salt: bytes, iterations: int) -> bytes:
+    """ServerKey of ``token`` for (salt, iterations), computed once per process."""
+    tag = (hashlib.sha256(token.encode()).digest(), salt, iterations)
+    with _server_keys_lock:
+        key = _server_keys.get(tag)
+    if key is None:
+        key = ScramMechanism(MECHANISM).make_auth_info(token, iteration_count=iterations, salt=salt)[2]
+        with _server_keys_lock:
+            _server_keys[tag] = key
+    return key
+
+
+class ClientExchange:
+    """The client's side of one operation's exchange (with one or more responders)."""
+
+    def __init__(self, token: str, client: str, cell: str, op: str, payload: bytes | None) -> None:
+        self._token = check_token(token)
+        self._client = client
+        self.nonce = f"{secrets.token_urlsafe(18)}.{request_digest(cell, op, payload)}"
+        self._first = ScramClient([MECHANISM], client, token, c_nonce=self.nonce).get_client_first()
+
+    def first_attachment(self) -> bytes:
+        return attachment("client-first", self._first)
+
+    def answer(self, server_first: str) -> "ClientResponder":
+        """The exchange with the responder that sent ``server_first``; ProofError if it is not
+        a server-first for our nonce with an iteration count we accept."""
+        scram = ScramClient([MECHANISM], self._client, self._token, c_nonce=self.nonce)
+        bare_first = scram.get_client_first()
         try:
-            ts = float(req.ts)
-        except ValueError as exc:
-            raise ProofError(f"time stamp {req.ts!r} is not a number") from exc
-        if not abs(now - ts) <= self.max_skew_s:
-            raise ProofError(f"time stamp is {now - ts:+.0f} s from the daemon's clock (allowed ±{self.max_skew_s:g} s; "
-                             "synchronise the clocks)")
-        return now
+            scram.set_server_first(server_first)
+        except ScramException as exc:
+            raise ProofError(f"not a server-first for this exchange ({exc})") from None
+        iterations = int(scram.iterations)
+        if iterations > MAX_CLIENT_ITERATIONS:
+            raise ProofError(f"server-first asks {iterations} iterations (this client computes at most "
+                             f"{MAX_CLIENT_ITERATIONS})")
+        final = scram.get_client_final()
+        message = auth_message(bare_first.split(",", 2)[2], server_first, final)
+        return ClientResponder(scram, final, reply_key(_server_key(self._token, bytes(scram.salt), iterations),
+                                                       message))
 
-    def check(self, req: Request) -> None:
-        """Raise ProofError for a stale time stamp or a nonce seen before; else remember it."""
-        now = self.check_time(req)
+
+class ClientResponder:
+    """One responder's exchange after our client-final: builds it, then judges its reply."""
+
+    def __init__(self, scram: ScramClient, client_final: str, key: bytes) -> None:
+        self._scram = scram
+        self.client_final = client_final
+        self._key = key
+
+    def final_attachment(self) -> bytes:
+        return attachment("client-final", self.client_final)
+
+    def verify(self, body: dict) -> bool:
+        """True when ``body`` carries this exchange's ServerSignature (checked by ``scramp``)
+        and a MAC of its content under the exchange's reply key."""
+        final, mac = body.get("scram"), body.get("mac")
+        if not isinstance(final, str) or not isinstance(mac, str):
+            return False
+        try:
+            # A copy: scramp's client takes one server-final; other responders' replies to the
+            # same client-final come first in any order.
+            copy.copy(self._scram).set_server_final(final)
+        except ScramException:
+            return False
+        return hmac.compare_digest(mac, reply_mac(self._key, body))
+
+
+# ------------------------------------------------------------------------------------ daemon
+@dataclass
+class _Pending:
+    scram: object          # scramp.ScramServer after get_server_first
+    client: str
+    client_nonce: str
+    known: bool            # a configured client (False: decoy credentials, the proof fails)
+    deadline: float
+
+
+@dataclass(frozen=True)
+class Verified:
+    """A client-final the daemon verified: who, and the key its reply must be signed with."""
+
+    client: str
+    server_final: str
+    reply_key: bytes
+
+
+class ExchangeTable:
+    """The daemon's side: pending exchanges of this daemon instance (thread-safe).
+
+    lookup: client name → its Credentials, or None for an unknown name (which then gets decoy
+    credentials: a salt stable per name and ``decoy_iterations``, so the server-first does not
+    tell which names exist; give the configured clients' count).
+    """
+
+    def __init__(self, lookup: Callable[[str], Credentials | None], *, ttl_s: float = EXCHANGE_TTL_S,
+                 max_pending: int = MAX_PENDING, clock: Callable[[], float] = time.monotonic,
+                 decoy_iterations: int = DEFAULT_ITERATIONS) -> None:
+        self._lookup = lookup
+        self.decoy_iterations = decoy_iterations
+        self.ttl_s = ttl_s
+        self.max_pending = max_pending
+        self._clock = clock
+        #: This daemon instance's id: the head of every server nonce it issues.
+        self.instance = secrets.token_hex(8)
+        self._decoy_secret = secrets.token_bytes(32)
+        self._pending: dict[str, _Pending] = {}
+        self._lock = threading.Lock()
+        self._mech = ScramMechanism(MECHANISM)
+
+    def _credentials(self, name: str) -> tuple[tuple, bool]:
+        creds = self._lookup(name)
+        if creds is not None:
+            return (creds.salt, creds.stored_key, creds.server_key, creds.iterations), True
+        salt = hmac.new(self._decoy_secret, name.encode(), hashlib.sha256).digest()[:16]
+        return (salt, secrets.token_bytes(32), secrets.token_bytes(32), self.decoy_iterations), False
+
+    def first(self, client_first: str) -> tuple[str, str]:
+        """(server-first, client name) for a client-first; the exchange is then pending."""
+        found: dict = {}
+
+        def auth_fn(name: str):
+            found["name"] = name
+            found["info"], found["known"] = self._credentials(name)
+            return found["info"]
+
+        scram = self._mech.make_server(auth_fn, s_nonce=f"@{self.instance}.{secrets.token_urlsafe(18)}")
+        try:
+            scram.set_client_first(client_first)
+            server_first = scram.get_server_first()
+        except ScramException as exc:
+            raise ProofError(f"malformed SCRAM client-first ({str(exc)[:120]})") from None
+        nonce = str(scram.nonce)
+        c_nonce = nonce[: -len(str(scram.s_nonce))]
+        now = self._clock()
         with self._lock:
-            for nonce, t in list(self._seen.items()):
-                if now - t > 2 * self.max_skew_s:
-                    del self._seen[nonce]
-            if req.nonce in self._seen:
-                raise ProofError("replayed request (its nonce was used before)")
-            self._seen[req.nonce] = now
+            self._expire(now)
+            while len(self._pending) >= self.max_pending:
+                self._pending.pop(next(iter(self._pending)))
+            self._pending[nonce] = _Pending(scram, found["name"], c_nonce, found["known"], now + self.ttl_s)
+        return server_first, found["name"]
 
+    def _expire(self, now: float) -> None:
+        for nonce in [n for n, p in self._pending.items() if p.deadline < now]:
+            del self._pending[nonce]
 
-def verify_proof(req: Request, stored: bytes, message: bytes) -> bool:
-    """True when ``req.proof`` unmasks to a token whose SHA-256 is ``stored`` (constant time)."""
-    try:
-        proof = bytes.fromhex(req.proof)
-    except ValueError:
-        return False
-    if not 0 < len(proof) <= MAX_TOKEN_BYTES:
-        return False
-    token = _xor(proof, _mask(stored, message, len(proof)))
-    return hmac.compare_digest(hashlib.sha256(token).digest(), stored)
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._pending)
+
+    def final(self, client_final: str, *, cell: str, op: str, payload: bytes | None) -> Verified:
+        """Verify a client-final for ``op`` with ``payload``; the exchange is used up either way.
+
+        Raises ProofError naming the client (when known) and why.
+        """
+        nonce = next((part[2:] for part in client_final.split(",") if part.startswith("r=")), None)
+        if not nonce:
+            raise ProofError("malformed SCRAM client-final (no nonce)")
+        now = self._clock()
+        with self._lock:
+            pending = self._pending.pop(nonce, None)
+            self._expire(now)
+        if pending is None:
+            mine = f"@{self.instance}." in nonce
+            raise ProofError("SCRAM exchange unknown to this daemon: " + (
+                "used before, or expired (replayed?)" if mine else
+                "not issued by this daemon instance (captured before a restart, sent to another responder, or "
+                "replayed)"))
+        if pending.deadline < now:
+            raise ProofError(f"client {pending.client!r}: SCRAM exchange expired (older than {self.ttl_s:g} s)",
+                             pending.client)
+        if not pending.client_nonce.endswith("." + request_digest(cell, op, payload)):
+            raise ProofError(f"client {pending.client!r}: the exchange was opened for another operation or payload",
+                             pending.client)
+        try:
+            pending.scram.set_client_final(client_final)
+            server_final = pending.scram.get_server_final()
+        except ScramException as exc:
+            raise ProofError(f"wrong token for client {pending.client!r} ({str(exc)[:80]})", pending.client) from None
+        if not pending.known:
+            raise ProofError(f"wrong token for client {pending.client!r}", pending.client)
+        message = auth_message(pending.scram.client_first_bare, pending.scram.server_first, client_final)
+        return Verified(pending.client, server_final, reply_key(pending.scram.server_key, message))

@@ -446,7 +446,8 @@ class Daemon:
             try:
                 lp = load_plan(path)
             except ConfigError as exc:
-                raise BadRequest(f"plan not valid:\n{exc}") from exc
+                sep = "\n" if "\n" in str(exc) else " "  # one problem, one line
+                raise BadRequest(f"plan not valid:{sep}{exc}") from exc
             plan_cell = getattr(lp.plan.cell, "id", lp.plan.cell)
             if plan_cell != self.cfg.cell:
                 raise BadRequest(f"the plan is for cell {plan_cell!r}; this daemon serves {self.cfg.cell!r}")

@@ -23,10 +23,13 @@ Sections:
   ``cert_common_names`` or ``usernames``, policies) passed through unchanged. Listening on
   anything but loopback is refused unless every remote endpoint is ``tls/``/``quic/`` with
   mTLS, or access control is enabled with ``default_permission: deny``.
-- ``auth``: the clients allowed to act, by name: the SHA-256 of their token (never the token),
-  optional TLS common names, and the permissions they hold: ``observe`` (status, runs),
+- ``auth``: the clients allowed to act, by name: their SCRAM-SHA-256 keys (``scram``: salt,
+  iterations ≥ 4096, StoredKey, ServerKey — never the token; ``acquire token new`` prints
+  them), optional TLS common names, and the permissions they hold: ``observe`` (status, runs),
   ``read`` (plan texts), ``control`` (pause, abort), ``motion`` (start, resume). A query with no
-  or a wrong token holds only ``anonymous`` (default: observe).
+  or a wrong token holds only ``anonymous`` (default: observe). A file with clients must not be
+  readable by other users (``check_config_mode``): its ServerKeys let a reader impersonate the
+  daemon to clients (RFC 5802 §9; ``acquire.control_auth``).
 - ``health``: the watchdog's limits. ``shutdown``: what SIGTERM does to a running run.
 - ``live``: ``{enabled, host, port, allow_remote}`` — serve every run live to the Foxglove app
   (``acquire.live.LiveServer``, Foxglove WebSocket protocol; off by default). The server
@@ -36,13 +39,21 @@ Sections:
 
 from __future__ import annotations
 
+import base64
+import binascii
 import ipaddress
+import logging
+import os
+import stat
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from acquire.control_auth import MIN_ITERATIONS, Credentials
 from calib.yamlfile import ConfigError, CrossFieldChecked, load_validated
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "PERMISSIONS",
@@ -185,16 +196,59 @@ class ZenohSection(_Strict):
         return cfg
 
 
+class ScramCredentials(_Strict):
+    """What an RFC 5802 server stores for one client (printed by ``acquire token new``)."""
+
+    salt: str = Field(description="base64 of the random salt (≥ 12 bytes)")
+    iterations: int = Field(description=f"PBKDF2-HMAC-SHA256 iterations, ≥ {MIN_ITERATIONS}")
+    stored_key: str = Field(description="base64 of StoredKey = SHA-256(ClientKey), 32 bytes")
+    server_key: str = Field(description="base64 of ServerKey, 32 bytes")
+
+    @field_validator("iterations")
+    @classmethod
+    def _enough_iterations(cls, value: int) -> int:
+        if value < MIN_ITERATIONS:
+            raise ValueError(f"must be ≥ {MIN_ITERATIONS} (RFC 7677), given {value}; make the client's lines "
+                             "again with `acquire token new`")
+        return value
+
+    @field_validator("salt", "stored_key", "server_key")
+    @classmethod
+    def _base64(cls, value: str, info) -> str:
+        try:
+            raw = base64.b64decode(value, validate=True)
+        except (binascii.Error, ValueError):
+            raise ValueError("must be base64 (as printed by `acquire token new`)") from None
+        if info.field_name == "salt" and len(raw) < 12:
+            raise ValueError(f"must hold at least 12 bytes, holds {len(raw)}")
+        if info.field_name != "salt" and len(raw) != 32:
+            raise ValueError(f"must hold 32 bytes (SCRAM-SHA-256), holds {len(raw)}")
+        return value
+
+    def credentials(self) -> Credentials:
+        return Credentials(base64.b64decode(self.salt), self.iterations, base64.b64decode(self.stored_key),
+                           base64.b64decode(self.server_key))
+
+
 class Client(_Strict):
     """One named client and what it may do."""
 
     name: str = Field(pattern=_ID)
-    token_sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 hex digest of the client's token")
+    scram: ScramCredentials = Field(description="the client's SCRAM-SHA-256 keys (never its token)")
     allow: list[Permission] = Field(min_length=1)
     cert_common_names: list[str] = Field(
         default_factory=list,
         description="if given, the query must also come over a TLS link whose certificate CN is one of these",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_token_hash(cls, data: Any) -> Any:
+        if isinstance(data, dict) and "token_sha256" in data:
+            raise ValueError(
+                "token_sha256 is no longer accepted (control protocol v3 authenticates with SCRAM-SHA-256): "
+                "make a new token with `acquire token new --client NAME` and paste the `scram:` lines it prints")
+        return data
 
 
 class AuthSection(_Strict):
@@ -340,8 +394,24 @@ class DaemonConfig(_Strict, CrossFieldChecked):
 def load_daemon_config(path: str | Path) -> DaemonConfig:
     """Read and validate the daemon configuration; relative paths resolved from its folder.
 
-    Raises ConfigError (a ValueError) with ``file:line:col: field: message`` lines.
+    Raises ConfigError (a ValueError) with ``file:line:col: field: message`` lines, and when
+    the file holds client keys but other users may read it, or anyone but its owner and group
+    may write it (see ``check_config_mode``).
     """
     path = Path(path)
     cfg = load_validated(path, DaemonConfig)
+    if cfg.auth.clients:
+        check_config_mode(path)
     return cfg.resolved(path.resolve().parent)
+
+
+def check_config_mode(path: Path) -> None:
+    """ConfigError unless ``path`` is unreadable to others and unwritable to group and others
+    (its ServerKey lets a reader impersonate the daemon to clients; see acquire.control_auth).
+    Group read is allowed: ``root:remaster 0640`` is the documented installation."""
+    mode = stat.S_IMODE(os.stat(path).st_mode)
+    if mode & (stat.S_IRWXO | stat.S_IWGRP):
+        raise ConfigError(
+            f"{path}: UNPROTECTED CONFIGURATION: mode {mode:04o}, but it holds client keys (auth.clients), with "
+            "which a reader can impersonate this daemon to its clients. Allowed: readable by its owner and group "
+            f"only, writable by its owner only. Run: chmod 0640 {path} (owner root, group of the daemon's user)")

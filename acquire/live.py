@@ -8,7 +8,7 @@ message it writes — the same topic, schema name, JSON schema and JSON bytes as
 so what Foxglove shows live is exactly what the log holds (``/tf``, ``/markers``,
 ``/joint_state``, ``/log``, ``/run/sample``, ``/run/event``, ``/<sensor>/markers``; see
 :mod:`acquire.foxglove_view`). Open it in Foxglove with *Open connection → Foxglove WebSocket →
-ws://HOST:PORT* and load ``fixtures/foxglove/remaster-layout.json``.
+ws://HOST:PORT* and load the layout ``calib/data/foxglove/remaster-layout.json`` (``acquire examples`` prints its installed path).
 
 The server binds to loopback unless told otherwise: anyone who can connect sees the run.
 Channels outlive a run (the daemon keeps one server for all its runs); a topic whose schema

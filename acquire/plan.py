@@ -137,7 +137,8 @@ from pydantic.fields import FieldInfo
 
 from calib.model import Frame, RobotModel, load_robot_model
 from calib.resources import default_sim_config
-from calib.yamlfile import ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate
+from calib.yamlfile import (ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate,
+                            parse_yaml_text, read_yaml_text)
 from acquire.plan_guards import (
     commander_margin_rad,
     confirm_input_errors,
@@ -949,8 +950,8 @@ def load_plan(path: str | Path) -> LoadedPlan:
     ``file:line:col: field: message (given …; allowed …)``. Connects to nothing.
     """
     path = Path(path)
-    data, marks = load_yaml_with_marks(path)
-    text = path.read_text(encoding="utf-8")
+    text = read_yaml_text(path)  # read once: the text recorded is the text validated
+    data, marks = parse_yaml_text(text, path)
     if not isinstance(data, dict):
         raise ConfigError(f"{path}:1:1: (top level): a plan is a mapping of sections "
                           f"(given {type(data).__name__}; allowed keys {', '.join(Plan.model_fields)})")

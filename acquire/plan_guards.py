@@ -19,7 +19,8 @@ physically implausible, and therefore refused:
 - joint targets that all lie within ±π "degrees" (±3.15°, and not all zero) although the
   model's axes move through tens or hundreds of degrees, and that read as radians fall
   within the limits: a calibration plan that never moves any axis more than 3° is useless,
-  and this is exactly what a list of radians looks like;
+  and this is exactly what a list of radians looks like (``calib.units.radians_problem``, the
+  same check measurement CSVs get);
 - an angle range or angle whose bounds are ±π/4 multiples in radians (0.785, 1.571, 3.142,
   6.283 within 0.002), e.g. ``angle_deg: [0, 6.283]`` or ``zyx_deg: [0, 1.571, 0]``.
 
@@ -39,6 +40,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from calib.model import RobotModel
+from calib.units import radians_problem  # noqa: F401  (re-exported: plan.py uses it from here)
 from calib.yamlfile import Marks, error_line
 
 #: |x|, |y|, |z| all at most this (mm): ``sensor_origin_mm`` looks like metres.
@@ -51,12 +53,8 @@ MARKER_METRES_MM = 5.0
 RANGE_METRES_MM = 5.0
 #: A sensor noise below this (mm) looks like metres.
 NOISE_METRES_MM = 1e-3
-#: Joint targets all within this (deg) look like radians (π plus rounding).
-RADIANS_MAX_DEG = math.pi + 0.005
 #: An angle within this of a nonzero multiple of π/4 (and within ±2π) looks like radians.
 RADIANS_PI_TOLERANCE = 0.002
-#: Axes whose limits span at least this (deg) take part in the radians check of joint targets.
-MOVING_AXIS_SPAN_DEG = 90.0
 
 Problem = tuple[tuple, str]
 
@@ -154,28 +152,7 @@ def margin_problem(q_deg: Sequence[float], model: RobotModel, margin_rad: float,
     return out
 
 
-# --- units -----------------------------------------------------------------------------------
-def radians_problem(rows_deg: Sequence[Sequence[float]], model: RobotModel) -> str | None:
-    """Why joint targets (rows of degrees) look like radians, or None. See the module docstring."""
-    q = np.asarray(rows_deg, dtype=float)
-    if q.ndim != 2 or q.shape[1] != model.n_joints or q.size == 0:
-        return None
-    span = np.array([hi - lo for lo, hi in (j.limits for j in model.joints)])
-    moving = span >= MOVING_AXIS_SPAN_DEG
-    if not moving.any() or np.max(np.abs(q)) > RADIANS_MAX_DEG or np.max(np.abs(q)) < 0.05:
-        return None
-    as_deg = np.degrees(q)
-    if not np.all(model.within_limits(np.radians(as_deg))):
-        return None  # read as radians they would leave the limits: not a units mix-up
-    widest = int(np.argmax(span))
-    lo, hi = model.joints[widest].limits
-    first = next(i for i, r in enumerate(q) if np.max(np.abs(r)) >= 0.05)
-    return (f"every joint angle of the {len(q)} configuration(s) lies within ±{math.pi:.2f}°, while "
-            f"{model.name}'s axes move through up to {hi - lo:g}° ({model.joints[widest].axis}: [{lo:g}, {hi:g}]°): "
-            f"these look like radians (given {_fmt(q[first])}; allowed degrees, e.g. {_fmt(np.round(as_deg[first], 2))} "
-            "— multiply radians by 180/π)")
-
-
+# --- units ---------------------------------------------------------------------------------------
 def plan_units_errors(plan, model: RobotModel) -> list[Problem]:
     """Plan fields that look like metres or radians (see the module docstring)."""
     errors: list[Problem] = []

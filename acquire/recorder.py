@@ -42,8 +42,8 @@ returns the union.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
-import io
 import json
 import logging
 import math
@@ -59,6 +59,7 @@ import numpy as np
 
 from acquire import foxglove_view as fv
 from acquire.foxglove_view import SCENE_UPDATE_SCHEMA, scene_update  # noqa: F401 - re-exported
+from acquire.logstorage import LogFile, StorageError, summary_bytes
 from acquire.mcapfile import ChunkedWriter, McapFileError, ScanResult, finish_truncated, scan
 from acquire.jsonpayload import PayloadError, decode_json, encode_json
 
@@ -247,6 +248,16 @@ def _json_text(value: Any) -> str:
     return json.dumps(json.loads(encode_json({"v": value}))["v"], separators=(",", ":"))
 
 
+@contextlib.contextmanager
+def _closed_on_error(fh: LogFile):
+    """Close ``fh`` if the block raises (a log that could not be started, e.g. on a full disk)."""
+    try:
+        yield
+    except BaseException:
+        fh.close()
+        raise
+
+
 def _fsync_dir(path: Path) -> None:
     try:
         fd = os.open(str(path), os.O_RDONLY)
@@ -270,7 +281,7 @@ class RunLog:
     ``recovered`` holds what earlier segments contain (``append_to``) or an empty record set.
     """
 
-    def __init__(self, path: Path, fh: io.BufferedWriter, run_id: str, segment: int, *, flush_interval_s: float, fsync: bool,
+    def __init__(self, path: Path, fh: LogFile, run_id: str, segment: int, *, flush_interval_s: float, fsync: bool,
                  scene_rate_hz: float = 30.0, chunk_bytes: int = 256 * 1024, live: Any = None):
         self.path = path
         self.run_id = run_id
@@ -310,6 +321,8 @@ class RunLog:
                 if self._writer.pending_messages and time.monotonic() - self._last_flush >= self._flush_interval_s:
                     try:
                         self._flush_chunk()
+                    except StorageError:
+                        return  # the log is sealed; the next sample or event raises it
                     except (OSError, ValueError) as exc:
                         log.error("run %s: cannot write the log %s: %s", self.run_id, self.path, exc)
                         return
@@ -365,7 +378,7 @@ class RunLog:
             raise RunLogError(f"{path}: metadata is not JSON-able: {exc}") from exc
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            fh = open(path, "xb")
+            fh = LogFile(path)
         except FileExistsError:
             raise RunLogError(f"{path}: exists already; a run log is never overwritten (resume it with append_to)") from None
         except OSError as exc:
@@ -373,7 +386,7 @@ class RunLog:
         self = cls(path, fh, run_id, segment, flush_interval_s=flush_interval_s, fsync=fsync, scene_rate_hz=scene_rate_hz,
                    chunk_bytes=chunk_bytes, live=live)
         now_ns = time.time_ns()
-        with self._lock:
+        with self._lock, _closed_on_error(fh):
             self._writer.start(profile="", library="remaster")
             run_meta = {
                 "format": FORMAT,
@@ -412,6 +425,7 @@ class RunLog:
         if not contents.run_id:
             raise RunLogError(f"{contents.files[0]}: holds no run metadata (killed while being created); nothing to resume — start a new run")
         for seg in contents.segments:
+            LogFile.release_stale_reserve(seg.path)
             if not seg.complete:
                 _close_truncated(seg)
         base = contents.files[0]
@@ -431,14 +445,13 @@ class RunLog:
             live=live,
         )
         self.recovered = contents
-        self.event(
-            "log_resumed",
-            segment=self.segment,
-            previous_files=[p.name for p in contents.files],
-            recovered_samples=len(contents.samples),
-            recovered_events=len(contents.events),
-            dropped_bytes=contents.dropped_bytes,
-        )
+        try:
+            self.event("log_resumed", segment=self.segment, previous_files=[p.name for p in contents.files],
+                       recovered_samples=len(contents.samples), recovered_events=len(contents.events),
+                       dropped_bytes=contents.dropped_bytes)
+        except StorageError:
+            self.close()
+            raise
         return self
 
     # -- writing ------------------------------------------------------------------------------
@@ -475,16 +488,23 @@ class RunLog:
             return channel_id
 
     def write(self, topic: str, message: dict, *, log_time_ns: int | None = None) -> None:
-        """Append one JSON message to a registered channel (reaches the OS within flush_interval_s)."""
+        """Append one JSON message to a registered channel (reaches the OS within flush_interval_s);
+        dropped without a word once the log is sealed (the next sample or event raises StorageError)."""
         data = encode_json(message)
         t = time.time_ns() if log_time_ns is None else int(log_time_ns)
         with self._lock:
-            self._append(topic, data, t)
-            if time.monotonic() - self._last_flush >= self._flush_interval_s:
-                self._flush_chunk()
+            if self._fh.error is not None:
+                return
+            try:
+                self._append(topic, data, t)
+                if time.monotonic() - self._last_flush >= self._flush_interval_s:
+                    self._flush_chunk()
+            except StorageError:
+                return
 
     def sample(self, record: dict) -> None:
-        """Record one measured configuration (see SAMPLE_SCHEMA); returns once it is on disk."""
+        """Record one measured configuration (see SAMPLE_SCHEMA); returns once it is on disk, or
+        raises ``acquire.logstorage.StorageError`` (the sample is not in the log, which is sealed)."""
         if not isinstance(record, dict):
             raise RunLogError(f"{self.path}: a sample must be a dict, given {type(record).__name__}")
         missing = [k for k in SAMPLE_SCHEMA["required"] if k not in record]
@@ -501,7 +521,8 @@ class RunLog:
             self.samples_written += 1
 
     def event(self, kind: str, **fields: Any) -> None:
-        """Record an event ``{"kind": kind, "t": unix s, **fields}``; returns once it is on disk."""
+        """Record an event ``{"kind": kind, "t": unix s, **fields}``; returns once it is on disk
+        (or raises ``StorageError``, as ``sample``)."""
         if not isinstance(kind, str) or not _EVENT_KIND_RE.match(kind):
             raise RunLogError(f"{self.path}: event kind must match [a-z][a-z0-9_-]*, given {kind!r}")
         if "kind" in fields or "t" in fields:
@@ -598,15 +619,16 @@ class RunLog:
                 log.debug("live publish of %s failed: %s", topic, exc)
 
     def _flush_chunk(self) -> None:
-        """Write the open chunk and hand it to the OS (no fsync)."""
+        """Write the open chunk and hand it to the OS (no fsync); keep room to finish the file."""
         self._writer.close_chunk()
-        self._fh.flush()
+        self._fh.ensure_reserve(summary_bytes(self._writer.index))
         self._last_flush = time.monotonic()
 
     def _durable(self) -> None:
+        """Everything written so far to the disk; ``StorageError`` (log sealed) if it cannot be."""
         self._flush_chunk()
         if self._fsync:
-            os.fsync(self._fh.fileno())
+            self._fh.fsync()
 
     def _check_open(self) -> None:
         if self._closed:
@@ -631,9 +653,12 @@ class RunLog:
             self._closed = True
             self._halt.set()
             try:
-                self._writer.finish()
-                self._fh.flush()
-                os.fsync(self._fh.fileno())
+                if self._fh.error is None:
+                    self._fh.release_reserve()  # its space is for this summary
+                    self._writer.finish()
+                    self._fh.fsync()
+            except StorageError as exc:  # sealed readable by LogFile; one line, no traceback
+                log.error("run %s: %s", self.run_id, exc)
             finally:
                 self._fh.close()
         if self._flusher is not None and self._flusher is not threading.current_thread():

@@ -134,6 +134,7 @@ class LostTargetSuspender:
         self.search_timeout_s = float(search_timeout_s)
         self.settle_after_s = float(settle_after_s)
         self.ask = ask
+        self._retried = False  # the last wait ended in a re-acquisition
 
     @staticmethod
     def can_reacquire(sensor) -> bool:
@@ -145,13 +146,18 @@ class LostTargetSuspender:
         self.event("suspended", config_id=config_id, sensor=sensor.name, marker=marker, reason=reason,
                    policy=self.policy)
         log.warning("suspended at %s: %s (policy %s)", config_id, reason, self.policy)
+        retry = None
         if self.can_reacquire(sensor) and self.policy != "skip":
             radius = self.search_radius_mm * (2.0 if self.policy == "reacquire" else 1.0)
             if self._reacquire(sensor, marker, config_id, q_rad, radius):
                 return self._resumed(config_id, sensor, "re-acquired", t0)
+            if self.policy == "reacquire":  # a tracker never re-locks by itself: aim again while waiting
+                def retry() -> bool:  # an aim is quick; a spiral search only without a prediction
+                    return self._reacquire(sensor, marker, config_id, q_rad, radius, search=False)
         if self.policy in ("wait", "reacquire"):
-            if self._wait_visible(sensor, marker, config_id):
-                return self._resumed(config_id, sensor, "target visible again", t0)
+            if self._wait_visible(sensor, marker, config_id, retry):
+                how = "re-acquired" if retry is not None and self._retried else "target visible again"
+                return self._resumed(config_id, sensor, how, t0)
             return self._give_up("skip", config_id, sensor,
                                  f"{reason}; not back within {self.wait_s:g} s ({self.policy})", t0)
         if self.policy == "ask":
@@ -167,7 +173,8 @@ class LostTargetSuspender:
         return self._give_up("skip", config_id, sensor, f"{reason} (policy skip)", t0)
 
     # ------------------------------------------------------------------ steps
-    def _reacquire(self, sensor, marker: str, config_id: str, q_rad, radius: float) -> bool:
+    def _reacquire(self, sensor, marker: str, config_id: str, q_rad, radius: float, search: bool = True) -> bool:
+        """Aim at the predicted reflector, then (``search``, or without a prediction) spiral-search."""
         aim_at, source = (None, "no predictor") if self.predictor is None else \
             self.predictor.predict(sensor.name, marker, q_rad)
         try:
@@ -180,6 +187,8 @@ class LostTargetSuspender:
                 except TargetLostError as exc:
                     self.event("aimed", config_id=config_id, sensor=sensor.name, locked=False,
                                aim_mm=np.round(aim_at, 3).tolist(), source=source, detail=str(exc))
+                    if not search:
+                        return False
             reply = sensor.search(radius, self.search_timeout_s)
             self.event("searched", config_id=config_id, sensor=sensor.name, found=True, radius_mm=radius,
                        elapsed_s=float(getattr(reply, "elapsed_s", math.nan)))
@@ -192,8 +201,14 @@ class LostTargetSuspender:
                        detail=f"timeout: {exc}")
         return False
 
-    def _wait_visible(self, sensor, marker: str, config_id: str) -> bool:
+    def _wait_visible(self, sensor, marker: str, config_id: str, retry=None) -> bool:
+        """Poll until ``marker`` is visible again, up to ``wait_s``; ``retry()`` (an aim at the
+        prediction, True when it locked) is tried every ``wait_s / 5`` (at most 2 s) meanwhile: a
+        beam that was blocked when the first aim went out stays lost until aimed again."""
         deadline = self.clock() + self.wait_s
+        period = min(2.0, self.wait_s / 5)
+        next_retry = self.clock() + period
+        self._retried = False
         while self.clock() < deadline:
             try:
                 for s in sensor.read(min(1.0, max(deadline - self.clock(), 1e-3))):
@@ -201,6 +216,11 @@ class LostTargetSuspender:
                         return True
             except DeviceTimeoutError:
                 pass
+            if retry is not None and self.clock() >= next_retry:
+                next_retry = self.clock() + period
+                if retry():
+                    self._retried = True
+                    return True
             self.sleep(min(0.05, self.wait_s / 10))
         return False
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from calib.canonical import wrap_deg
 from calib.model import RobotModel
 
 CONVENTION = "δ = fitted zero-offset: true axis angle = reported axis angle + δ (degrees, controller's axis sense)"
@@ -141,7 +142,7 @@ def controller_values(model: RobotModel, joint_offsets: list[dict]) -> Controlle
     axes = []
     for entry in joint_offsets:
         if entry["identifiable"] and entry["value_deg"] is not None:
-            d = float(entry["value_deg"])
+            d = wrap_deg(float(entry["value_deg"]))  # a whole turn is no correction: (−180°, 180°]
             axes.append(AxisValue(entry["joint"], int(entry["index"]), d, float(entry["std_deg"]), -d, "enter"))
         else:
             reason = entry.get("status", "") or "not identifiable"

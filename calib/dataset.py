@@ -4,7 +4,8 @@ One row per measurement of one marker by one sensor in one robot configuration:
 
 ``config``   configuration id (text); rows of one configuration share their joint angles
 ``pose``     pose group (configurations that target the same Cartesian pose); may be empty
-``q1``…``qN`` joint angles as the controller measured them, **degrees**
+``q1``…``qN`` joint angles as the controller measured them, **degrees** (a file whose angles look
+             like radians is refused: ``calib.units``)
 ``x,y,z``    marker position in the sensor frame, **mm** (the mean of the samples)
 ``marker``   optional, marker name on the tool (default: the model's first marker)
 ``sensor``   optional, sensor name (default ``sensor``)
@@ -31,6 +32,7 @@ import numpy as np
 
 from calib import csvdialect
 from calib.model import RobotModel
+from calib.units import radians_row
 
 
 class DatasetError(ValueError):
@@ -219,6 +221,10 @@ def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset
         if sp not in ("cal", "val"):
             raise DatasetError(f"{source}:{lineno}: column 'split': {sp!r} is not 'cal' or 'val'")
         cols["split"].append(sp)
+    radians = radians_row(cols["q"], model)
+    if radians is not None:  # before the fit: radians barely move the model, so check_units passes them
+        row, why = radians
+        raise DatasetError(f"{source}:{data[row][0]}: columns 'q1'…'q{n}': {why}; this file needs degrees")
     ds = Dataset(
         config=np.array(cols["config"], dtype=str),
         pose=np.array(cols["pose"], dtype=str),

@@ -23,7 +23,15 @@ stages from nominal (registration, marker positions and joint offsets first, the
 parameter), also in one stage from nominal and from seeded random starts about it
 (``IdentOptions.n_starts``; ``calib.multistart``), all on one objective, keeps the best and says
 when starts end in minima of materially different cost, and when markers end far outside their
-prior (a tool traded against a joint turned far from its zero).
+prior (a tool traded against a joint turned far from its zero). A model file with a joint zero
+off by 180° (a convention slip) leaves every start about nominal far away: the ±180° flips of
+each fitted zero are screened by their cheap first stage and the ones the data prefer are
+solved too (``_flip_screen``).
+
+**Canonical answers.** The best solution is written on the nominal model's branch
+(``calib.canonical``): joint offsets in (−180°, 180°], mirrored links (θ + 180°, −a, −α …) mapped
+back, the forward kinematics of every measured marker checked unchanged; ``IdentResult.canonical``
+says what was mapped.
 
 Residuals: positions (mm). Where orientation is measured (``rotation`` given), the fused
 objective of the seed's eq. 19 is used: Σ L·(|Δn|² + |Δo|² + |Δa|²) + |Δp|² with L = 100 by
@@ -46,7 +54,7 @@ from calib.identifiability import exact_tolerance
 from calib.kinematics import KINDS, Chain
 from calib.model import RobotModel
 from calib.multistart import StartOutcome, disagreement, solve_from
-from calib.transforms import apply, euler_zyx_to_matrix
+from calib.transforms import apply, euler_zyx_to_matrix, matrix_to_euler_zyx
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +81,8 @@ class IdentOptions:
     initial_registration: str = "least-squares"
     tool_prior_mm: float = 10.0
     #: Starts of the solve (``identify``): 1 = the staged solve from nominal only; 2 adds the plain
-    #: one-stage solve from nominal; more add random starts (seeded by ``seed``).
+    #: one-stage solve from nominal and the ±180° joint-zero flips that pass a screen
+    #: (``_flip_screen``); more add random starts (seeded by ``seed``).
     n_starts: int = 6
     seed: int = 0
     #: Spread of the random starts about nominal: lengths (mm) and angles (degrees), per parameter;
@@ -106,6 +115,8 @@ class IdentResult:
     starts: list[dict] = field(default_factory=list)
     #: Why the identified model must not be used (the guards of ``calib.controller``); [] if none.
     do_not_use: list[str] = field(default_factory=list)
+    #: How the solution was mapped onto the nominal model's branch (``calib.canonical``); [] if not.
+    canonical: list[str] = field(default_factory=list)
 
     @property
     def chain_names(self) -> list[str]:
@@ -387,6 +398,7 @@ def identify(
         log.warning(w)
     x = x0.copy()
     x[free] = x0[free] + sol.z / scale[free]
+    x, sol, canonical = _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options, tool_pos.size)
     r = sol.fun[: sol.fun.size - tool_pos.size]
     n_pos = 3 * len(data)
     rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
@@ -435,7 +447,40 @@ def identify(
         starts=[{"label": o.label, "cost": o.cost, "rms_mm": _rms(o.fun[:n_pos]), "evaluations": o.nfev,
                  "same_minimum": id(o) not in worse} for o in starts],
         do_not_use=do_not_use,
+        canonical=canonical,
     )
+
+
+def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options, n_prior):
+    """The best solution on the nominal model's branch (``calib.canonical``): offsets wrapped to
+    (−180°, 180°], mirrored links mapped back with the same forward kinematics. The mapped point
+    must give the same residuals (else, e.g. measured orientations that see a turned flange, only
+    the wrapping is kept). A mirror moves markers toward their prior, so the mapped point is
+    polished (a few LM steps; same minimum) and its Jacobian gives the stds. ``n_prior``: the
+    prior rows at the end of the residuals. Returns (x, outcome, lines saying what was mapped)."""
+    from calib.canonical import FK_TOLERANCE_MM, canonical_params, wrapped_only
+
+    names = {problem.names[c] for c in free}
+    measured = sorted(set(data.marker.tolist()))
+    original = x[: problem.P].copy()
+    mapping = canonical_params(chain, original, names, problem.uq, measured)
+    x = x.copy()
+    x[: problem.P] = mapping.params
+    if not mapping.changes:
+        return x, sol, []
+    z = (x[free] - x0[free]) * scale[free]
+    n_res = sol.fun.size - n_prior
+    if np.abs(fun_p(z)[:n_res] - sol.fun[:n_res]).max() > FK_TOLERANCE_MM * math.sqrt(max(options.orientation_weight, 1.0)):
+        x[: problem.P] = wrapped_only(chain, original)
+        return x, sol, []
+    polished = solve_from(sol.label, fun_p, jac_p, z, [None], options.max_nfev)
+    polished.nfev += sol.nfev
+    x[free] = x0[free] + polished.z / scale[free]
+    x[: problem.P] = wrapped_only(chain, x[: problem.P])
+    lines = [f"reported on the nominal model's branch (same forward kinematics, largest change of a measured "
+             f"marker {mapping.fk_change_mm:.1g} mm): " + "; ".join(mapping.changes)]
+    log.info(lines[0])
+    return x, polished, lines
 
 
 def _ratio(cost: float, best: float) -> str:
@@ -484,20 +529,96 @@ def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_w
     staged = [first, None] if 0 < first.size < len(free) else [None]
     z0 = np.zeros(len(free))
     pre_nfev = 0
+    screened, flips = _flip_screen(problem, free, scale, options, fun_p, jac_p, first if len(staged) == 2 else None)
     if tool_pos.size:
-        pre = solve_from("without the tool prior", fun_p, jac_p, z0, staged, options.max_nfev)
+        label, lowest = min(screened, key=lambda t: t[1].cost)
+        pre = solve_from(f"without the tool prior ({label})", fun_p, jac_p, lowest.z, [None], options.max_nfev)
         prior_weight[0] = max(_rms(pre.fun[: 3 * n_rows]), 1e-9) / options.tool_prior_mm
-        pre_nfev = pre.nfev
+        pre_nfev = pre.nfev + sum(o.nfev for _, o in screened)
     outcomes = [solve_from("staged from nominal", fun_p, jac_p, z0, staged, options.max_nfev)]
     outcomes[0].nfev += pre_nfev
     if options.n_starts >= 2:
         outcomes.append(solve_from("plain from nominal", fun_p, jac_p, z0, [None], options.max_nfev))
+    for label, o in flips:  # continued with the tool prior from the first stage of the screen
+        outcomes.append(solve_from(label, fun_p, jac_p, o.z, [None], options.max_nfev))
+        outcomes[-1].nfev += o.nfev
     rng = np.random.default_rng(options.seed)
     for i in range(2, options.n_starts):
         z = _random_start(problem, free, scale, options, rng)
         outcomes.append(solve_from(f"random start {i - 1}", fun_p, jac_p, z, staged, options.max_nfev))
     outcomes.sort(key=lambda o: o.cost)
     return outcomes, outcomes[0]
+
+
+#: At most this many ±180° zero flips are continued past the screen (the ones whose first stage
+#: ends lowest); a model with more than this many zeros off by 180° is not what this is for.
+MAX_FLIP_STARTS = 2
+#: The flips are screened only when nominal's first stage (registration, markers, offsets) leaves
+#: more than this rms (mm per coordinate): with a right model it leaves the link errors (tenths of
+#: a mm, about 1 mm on a poor arm); a zero half a turn off moves the markers by twice their
+#: distance from that axis (tens to hundreds of mm), which the first stage cannot absorb. Below
+#: it the screen would cost n small solves (half a normal fit's time) for nothing.
+FLIP_SCREEN_RMS_MM = 2.0
+#: Evaluations of a flip's first stage in the screen: a right flip converges in a few (5–15 seen
+#: on the tracker cell), a wrong one needs a hundred and more to reach a poor minimum anyway.
+SCREEN_NFEV = 30
+
+
+def _registered_start(problem: _Problem, free: list[int], scale: np.ndarray, change: dict[int, float]) -> np.ndarray:
+    """A start (scaled, like z) with the chain parameters ``change`` (column → change, rad or mm)
+    applied to nominal and each free registration least-squares registered for that model (a
+    joint turned by 180° turns the whole arm: the nominal model's registration is far off)."""
+    from calib.registration import register_least_squares
+
+    z = np.zeros(len(free))
+    pos = {c: k for k, c in enumerate(free)}
+    params = problem.chain.nominal.copy()
+    for c, v in change.items():
+        params[c] += v
+        z[pos[c]] = v * scale[c]
+    pred = _marker_rows(problem.chain, problem.data, params)
+    for s, rows in enumerate(problem.rows_of):
+        cols = [problem.P + 6 * s + r for r in range(6)]
+        if not all(c in pos for c in cols):
+            continue
+        try:
+            t = register_least_squares(pred[rows], problem.data.xyz_mm[rows]).base2sensor
+        except ValueError:
+            continue
+        rel = t @ np.linalg.inv(problem.b2s0[s])
+        values = np.concatenate([rel[:3, 3], matrix_to_euler_zyx(rel[:3, :3])])
+        for c, v in zip(cols, values):
+            z[pos[c]] = v * scale[c]
+    return z
+
+
+def _flip_screen(problem, free, scale, options, fun_p, jac_p, first):
+    """Screen the ±180° flips of the fitted joint zeros (a nominal model with a zero off by 180°,
+    a convention slip, leaves Levenberg–Marquardt from nominal in a mirrored or worse minimum).
+
+    A flip is worth a full solve only when the data prefer it at first order: each flip (one
+    joint at a time) and nominal get the cheap first stage (registration, markers and offsets,
+    nearly linear); flips whose first stage ends materially lower (``disagree_rel``) than
+    nominal's are kept, best first, at most ``MAX_FLIP_STARTS``. The screen runs only when
+    nominal's first stage leaves more than ``FLIP_SCREEN_RMS_MM``: on a right nominal model it
+    costs nothing. Run without the tool prior (it is not set yet).
+
+    Returns (every screened start as (label, outcome), the kept flips as (label, outcome))."""
+    z0 = np.zeros(len(free))
+    cols = first if first is not None else None
+    screened = [("nominal", solve_from("first stage from nominal", fun_p, jac_p, z0, [cols], options.max_nfev))]
+    if options.n_starts < 2 or _rms(screened[0][1].fun[: 3 * len(problem.data)]) <= FLIP_SCREEN_RMS_MM:
+        return screened, []  # n_starts 1: the staged solve only; a first stage this close needs no flip
+    for k, c in enumerate(free):
+        name = problem.names[c]
+        if c >= problem.P or not name.endswith(".offset"):
+            continue
+        z = _registered_start(problem, free, scale, {c: math.pi})
+        label = f"{name.split('.')[0]} zero +180°"
+        screened.append((label, solve_from(f"first stage from {label}", fun_p, jac_p, z, [cols], SCREEN_NFEV)))
+    c0 = screened[0][1].cost
+    better = sorted((t for t in screened[1:] if c0 - t[1].cost > options.disagree_rel * c0), key=lambda t: t[1].cost)
+    return screened, [(f"staged from {label}", o) for label, o in better[:MAX_FLIP_STARTS]]
 
 
 #: Residual rms (mm) below which two minima's costs count as equal whatever their ratio.
@@ -671,6 +792,11 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
     and its registration. Validation points are scored with those calibration registrations
     (``calib.metrics.validation_scores``); ``validation.reregistered`` is the optimistic figure with
     a registration fitted to the validation points, named as such. ``metric_notes``: how, and caveats.
+
+    ``validation`` holds only the validation points of markers the calibration measured (their
+    positions were fitted): the headline. Points of markers it never measured are scored apart in
+    ``validation_unseen_markers``, with each marker's estimated placement and its uncertainty
+    (``unseen_marker_placement``) — an estimate, never mixed into the headline.
     """
     from calib.metrics import absolute_errors, validation_scores
 
@@ -700,22 +826,36 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
              "model with the identified registration; validation points are scored with these calibration "
              "registrations (never one fitted to the points being scored)"]
 
-    def scored(data: Dataset, is_cal: bool) -> dict:
-        if is_cal:
-            before = absolute_errors(data, cal_before)
-            after = pose_errors(result.model, result.params, data, result.base2sensor)
-            return {"before": comprehensive_errors(before), "after": comprehensive_errors(after)}
-        val_params, located = locate_unseen_markers(result, sorted(set(data.marker.tolist()) - set(cal.marker.tolist())))
+    def scored(data: Dataset, after_params: np.ndarray, located: dict[str, str] | None = None) -> dict:
         b, a, rb, ra, caveats = validation_scores(cal, data, (cal_before, _marker_rows(chain, data, nominal)),
-                                                  (cal_after, _marker_rows(chain, data, val_params)),
+                                                  (cal_after, _marker_rows(chain, data, after_params)),
                                                   registration_after=result.base2sensor, located=located)
         notes.extend(caveats)
         return {"before": comprehensive_errors(b), "after": comprehensive_errors(a),
-                "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)}}
+                "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)},
+                "n_points": int(len(data)), "markers": sorted(set(data.marker.tolist()))}
 
-    metrics = {"calibration": scored(cal, True)}
+    metrics = {"calibration": {"before": comprehensive_errors(absolute_errors(cal, cal_before)),
+                               "after": comprehensive_errors(pose_errors(result.model, result.params, cal, result.base2sensor))}}
     if val is not None and len(val):
-        metrics["validation"] = scored(val, False)
+        # Headline: only markers the calibration measured (their positions are fitted). Markers it
+        # never measured are placed by an estimate: scored apart, labelled, never in the headline.
+        seen = np.isin(val.marker, cal.marker)
+        if seen.any():
+            metrics["validation"] = scored(val.subset(seen), result.params)
+        if not seen.all():
+            unseen = val.subset(~seen)
+            names = sorted(set(unseen.marker.tolist()))
+            placed, located, sd = unseen_marker_placement(result, names)
+            block = scored(unseen, placed, located)
+            block["placement"] = {m: {"how": located.get(m, "the model's position (not fitted, not located)"),
+                                      "uncertainty_mm": sd.get(m)} for m in names}
+            block["label"] = ("held-out points of markers the calibration never measured: their position on the flange "
+                              "is estimated (see placement), not measured, so this figure is not the validation headline")
+            metrics["validation_unseen_markers"] = block
+            if not seen.any():
+                notes.append("no validation point is of a marker the calibration measured: there is no validation "
+                             "headline; validation_unseen_markers scores them with estimated marker positions")
     if result.compliance is not None:
         notes.append("after: the identified kinematics without the fitted sag (a corrected model file carries "
                      "kinematics only); the sag the compliances explain is left in these errors")
@@ -732,6 +872,7 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
         "starts": result.starts,
         "warnings": result.warnings,
         "do_not_use": result.do_not_use,
+        "canonical": result.canonical,
         "metrics": metrics,
         "metric_notes": notes,
         "compliance": None if result.compliance is None else [
@@ -740,6 +881,43 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
              "reason": "" if math.isfinite(sd) else result.excluded.get(f"{ax}.compliance", "")}
             for ax, v, sd in zip(result.model.axis_names, result.compliance, result.compliance_std)],
     }
+
+
+#: Draws of the fitted markers (within their std) for the located marker's placement uncertainty.
+PLACEMENT_DRAWS = 200
+
+
+def unseen_marker_placement(result: IdentResult, unseen: list[str], seed: int = 0
+                            ) -> tuple[np.ndarray, dict[str, str], dict[str, float]]:
+    """``locate_unseen_markers`` with the uncertainty of each located marker (mm, rms of the 3-D
+    error): the fitted markers' std carried through the rigid transform (``PLACEMENT_DRAWS``
+    seeded draws) combined with the layout's misfit rms (how far the drawing's layout is from the
+    fitted markers: the unseen marker's own drawing error is of that order). An estimate: the
+    unseen marker's real position was never measured."""
+    from calib.registration import register_least_squares
+
+    params, located = locate_unseen_markers(result, unseen)
+    if not located:
+        return params, located, {}
+    chain = Chain(result.model)
+    ms = chain.marker_slice()
+    fitted = [m for m in chain.marker_names if all(f"{m}.{c}" in result.free_names for c in "xyz")]
+    idx = [chain.marker_names.index(m) for m in fitted]
+    nominal = chain.nominal[ms].reshape(-1, 3)
+    now = result.params[ms].reshape(-1, 3)[idx]
+    sd = np.nan_to_num(result.std[ms].reshape(-1, 3)[idx])
+    plate = register_least_squares(nominal[idx], now).base2sensor
+    misfit = float(np.sqrt(np.mean(np.sum((apply(plate, nominal[idx]) - now) ** 2, axis=1))))
+    rng = np.random.default_rng(seed)
+    out = {}
+    draws = [register_least_squares(nominal[idx], now + rng.normal(0.0, 1.0, now.shape) * sd).base2sensor
+             for _ in range(PLACEMENT_DRAWS)]
+    for m in located:
+        k = chain.marker_names.index(m)
+        pts = np.array([apply(t, nominal[k]) for t in draws])
+        spread = float(np.sqrt(np.sum(np.var(pts, axis=0))))
+        out[m] = float(math.hypot(spread, misfit))
+    return params, located, out
 
 
 def locate_unseen_markers(result: IdentResult, unseen: list[str]) -> tuple[np.ndarray, dict[str, str]]:

@@ -18,6 +18,7 @@ from pathlib import Path
 from calib.dataset import Dataset
 from calib.fit import FitResult
 from calib.identifiability import WEAK_NOISE_FACTOR
+from calib.report_compliance import compliance_section
 from calib.report_format import CSS, Html, esc, fixed, num, table
 from calib.report_summary import summary_html
 
@@ -31,6 +32,8 @@ METRIC_TITLES = {
     "validation_relative": "Validation set, relative (Table VIII)",
     "validation_absolute": "Validation set, absolute with the calibration registration (Table VIII)",
     "validation_absolute_reregistered": "Validation set, absolute re-registered on the validation points (optimistic)",
+    "validation_absolute_unseen_markers": "Validation points of markers the calibration never measured (model's "
+                                          "marker position; not the headline)",
 }
 
 VERDICT_CLASS = {"determined": "good", "weakly determined": "warn", "not determined": "bad"}
@@ -271,6 +274,7 @@ def render_report(result: FitResult, data: Dataset, doc: dict, controller_text: 
     parts += _tool_section(doc)
     parts += _registration_section(doc)
     parts += _metrics_section(doc)
+    parts += compliance_section(doc.get("diagnostics", {}).get("compliance"))
     parts += _identifiability_section(doc)
     parts += _diagnostics_section(doc)
     parts += _figures_section(result, data)

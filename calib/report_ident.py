@@ -16,6 +16,7 @@ import numpy as np
 
 from calib.dataset import Dataset
 from calib.identification import IdentResult, pose_errors
+from calib.report_compliance import compliance_section
 from calib.report_format import CSS, Html, esc, num, table
 
 
@@ -27,6 +28,7 @@ def _outcome(doc: dict) -> list[str]:
            *(f"<p class='banner bad'>Do not use this model: {esc(r)}</p>" for r in stop),
            f"<p class=banner>{sum(p['identified'] for p in doc['parameters'])} parameters identified; rms residual "
            f"{num(doc['rms_mm'])} mm; scaled condition number {num(doc['condition_number'], 3)}</p>"]
+    out += [f"<p class=small>{esc(c)}</p>" for c in doc.get("canonical") or []]
     if warn:
         out.append("<ul>" + "".join(f"<li class=warn>{esc(w)}</li>" for w in warn) + "</ul>")
     else:
@@ -46,7 +48,9 @@ def _starts(doc: dict) -> list[str]:
             table(["start", "cost (mm²)", "÷ best", "rms (mm)", "evaluations", "best minimum"], rows),
             "<p class=small>staged: registration, marker positions and joint offsets first, then every identifiable "
             "parameter; plain: every parameter at once from the nominal model; random: staged from a start drawn about "
-            "nominal (seeded). Cost: ½·Σ r² over the residuals and the tool prior's rows.</p>"]
+            "nominal (seeded); \"J<i> zero +180°\": nominal with that joint's zero turned half a turn and the registration "
+            "re-fitted, solved only when its first stage beat nominal's. Cost: ½·Σ r² over the residuals and the tool "
+            "prior's rows.</p>"]
 
 
 def _parameters(doc: dict) -> list[str]:
@@ -59,11 +63,18 @@ def _parameters(doc: dict) -> list[str]:
 
 def _accuracy(doc: dict) -> list[str]:
     rows, groups = [], []
-    titles = {"calibration": "Calibration set", "validation": "Validation set, with the calibration registration"}
+    titles = {"calibration": "Calibration set", "validation": "Validation set, with the calibration registration",
+              "validation_unseen_markers": "Validation points of markers the calibration never measured (placement "
+                                           "estimated, not the headline), with the calibration registration"}
     for part, m in doc["metrics"].items():
         blocks = [(titles.get(part, part), m)]
         if "reregistered" in m:
             blocks.append((f"{titles.get(part, part).split(',')[0]}, re-registered on its own points (optimistic)", m["reregistered"]))
+        if m.get("placement"):
+            groups_note = "; ".join(f"{k}: ±{num(v['uncertainty_mm'], 2)} mm" for k, v in m["placement"].items()
+                                    if v.get("uncertainty_mm") is not None)
+            if groups_note:
+                blocks[0] = (f"{blocks[0][0]} — estimated placement uncertainty {groups_note}", m)
         for title, b in blocks:
             for when in ("before", "after"):
                 rows.append([when, Html(num(b[when]["EACPE"])), Html(num(b[when]["EMCPE"]))])
@@ -101,7 +112,8 @@ def render_ident_report(result: IdentResult, cal: Dataset, doc: dict) -> str:
              f"<h1>Full identification: {name}</h1>",
              f"<p class=small>{len(cal)} calibration measurements; tool prior ±{num(doc['tool_prior_mm'], 3)} mm per "
              f"coordinate; {doc['evaluations']} evaluations</p>"]
-    parts += _outcome(doc) + _starts(doc) + _parameters(doc) + _accuracy(doc) + _error_figure(result, cal)
+    parts += _outcome(doc) + _starts(doc) + _parameters(doc) + compliance_section(doc.get("compliance"))
+    parts += _accuracy(doc) + _error_figure(result, cal)
     parts.append("</body></html>")
     return "\n".join(parts)
 

@@ -1,7 +1,9 @@
-"""The robot models, example plans and simulated cells that ship inside the package.
+"""The robot models, example plans, simulated cells and the Foxglove layout that ship inside
+the package.
 
-In a checkout they live in ``fixtures/{robots,plans,sim}``; the package holds the same folders
-as ``calib/data/{robots,plans,sim}`` (symbolic links in the checkout, copies in a built wheel),
+In a checkout they live in ``fixtures/{robots,plans,sim,foxglove}``; the package holds the same
+folders as ``calib/data/{robots,plans,sim,foxglove}`` (symbolic links in the checkout, copies in
+a built wheel),
 so an installed ``remaster`` finds them with ``importlib.resources`` and needs no checkout.
 The three folders keep their layout, so the relative paths inside the files
 (``robot: ../robots/kuka_iiwa14_r820.yaml``) hold in both places.
@@ -9,7 +11,8 @@ The three folders keep their layout, so the relative paths inside the files
 ``packaged("plans")`` lists the example plans, ``find("plans", "example")`` finds one by name
 (``acquire run example --fake``), ``default_sim_config()`` is the simulated cell ``--fake``
 and ``acquire sim`` use by default, ``is_packaged(path)`` tells whether a file is an
-installed copy (a run never writes its results next to it).
+installed copy (a run never writes its results next to it), ``foxglove_layout()`` is the
+Foxglove layout for a run log or the live view (import it in Foxglove: *Layouts → Import*).
 """
 
 from __future__ import annotations
@@ -59,6 +62,15 @@ def find(kind: str, name: str) -> Path | None:
 def default_sim_config() -> Path:
     """The simulated cell ``--fake`` runs against unless a plan names another (absolute path)."""
     return (folder("sim") / "default.yaml").resolve()
+
+
+#: The Foxglove layout's file name (``calib/data/foxglove/``; ``fixtures/foxglove/`` in a checkout).
+FOXGLOVE_LAYOUT = "remaster-layout.json"
+
+
+def foxglove_layout() -> Path:
+    """The packaged Foxglove layout for a run's channels (absolute path; JSON)."""
+    return (data_dir() / "foxglove" / FOXGLOVE_LAYOUT).resolve()
 
 
 def is_packaged(path: str | Path) -> bool:

@@ -80,18 +80,22 @@ def split_status(status: str) -> tuple[str, str]:
 
 
 def joint_offsets(result: FitResult) -> list[dict]:
-    """Per-joint entries of ``joint_offsets`` (degrees)."""
+    """Per-joint entries of ``joint_offsets`` (degrees; values in (−180°, 180°])."""
+    from calib.canonical import wrap_angle
+
     out = []
     ratios = dict(zip(result.posterior.free_names, result.diagnostics.get("sandwich_std_ratio", [])))
     for i, (axis, status) in enumerate(zip(result.model.axis_names, result.offset_status)):
         kind, reason = split_status(status)
         fitted = kind == "fitted"
+        # Reported in (−180°, 180°]; the interval moves with the value (whole turns only).
+        turn = wrap_angle(result.offsets_rad[i]) - result.offsets_rad[i] if fitted else 0.0
         entry = {
             "joint": axis,
             "index": i + 1,
-            "value_deg": math.degrees(result.offsets_rad[i]) if fitted else (0.0 if kind == "fixed" else None),
+            "value_deg": math.degrees(result.offsets_rad[i] + turn) if fitted else (0.0 if kind == "fixed" else None),
             "std_deg": math.degrees(result.offsets_std_rad[i]) if fitted else None,
-            "ci95_deg": [math.degrees(v) for v in result.offsets_ci95_rad[i]] if fitted else None,
+            "ci95_deg": [math.degrees(v + turn) for v in result.offsets_ci95_rad[i]] if fitted else None,
             "identifiable": fitted,
             "sandwich_std_ratio": ratios.get(f"{axis}.offset") if fitted else None,
             "status": kind,

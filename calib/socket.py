@@ -197,6 +197,27 @@ class SocketFit:
     warnings: list[str] = field(default_factory=list)
     compliance: np.ndarray | None = None  # (n,) rad/(N·m) with the compliance model; 0 where not fitted
     compliance_std: np.ndarray | None = None  # (n,) NaN where not fitted
+    #: The link prior the fit ran with, (mm, deg) sd of d, a / α, β; None: no prior.
+    tolerance: tuple[float, float] | None = None
+    #: The parameter kinds the fit was allowed to fit (``fit_socket``'s ``kinds``).
+    kinds: tuple[str, ...] = ("offset", "d", "a", "alpha", "beta")
+
+    def model_description(self) -> str:
+        """Which model of the arm this fit is, in one line (for the summary, result.json, report)."""
+        kinds = [k for k in self.kinds if k != "offset"]
+        fitted = {n.rsplit(".", 1)[1] for n in self.free_names}
+        if not kinds:
+            text = "joint zero-offsets and the ball (link parameters at the data sheet's values)"
+        elif self.tolerance is None:
+            text = ("joint zero-offsets, the ball and every link parameter the data determine "
+                    f"({', '.join(k for k in kinds if k in fitted) or 'none'}), without a prior")
+        else:
+            mm, deg = self.tolerance
+            text = (f"joint zero-offsets, the ball and the link parameters ({', '.join(k for k in kinds if k in fitted) or 'none'}) "
+                    f"under a fixed prior of ±{mm:g} mm / ±{deg:g}° (sd) about the data sheet")
+        if self.compliance is not None:
+            text += ", with joint compliance (gravity sag)"
+        return text
 
     def ball(self, chain: Chain) -> tuple[np.ndarray, np.ndarray]:
         s = chain.marker_slice()
@@ -442,7 +463,8 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     return SocketFit(params=p, std=std, points=pts, points_std=sd[len(free):].reshape(-1, 3), free_names=[names[c] for c in free],
                      excluded=excluded, weak=weak, sigma_point_mm=sigma, condition_number=cond,
                      rms_mm=float(np.sqrt(np.mean(np.sum(dev ** 2, axis=1)))), iterations=int(nfev),
-                     groups=list(ds.groups), warnings=warnings, compliance=comp, compliance_std=comp_std)
+                     groups=list(ds.groups), warnings=warnings, compliance=comp, compliance_std=comp_std,
+                     tolerance=None if tolerance is None else tuple(tolerance), kinds=tuple(kinds))
 
 
 # -------------------------------------------------------------------------------- metrics

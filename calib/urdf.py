@@ -69,6 +69,31 @@ def _yourdfpy():
     return yourdfpy
 
 
+def check_well_formed(path: Path) -> None:
+    """Parse ``path`` strictly as XML; ``UrdfError`` naming ``file:line:column`` and the parser's
+    message if it is not well-formed, or if it has a DOCTYPE (entities could read local files or
+    expand without bound; URDF needs none).
+
+    yourdfpy, given a malformed file, logs the error and re-parses with ``recover=True``: an
+    unclosed tag then silently drops the rest of the robot (a 2-joint file imported as 1 joint).
+    """
+    from lxml import etree  # noqa: PLC0415
+
+    parser = etree.XMLParser(recover=False, resolve_entities=False, load_dtd=False, no_network=True,
+                             huge_tree=False)
+    try:
+        tree = etree.parse(str(path), parser=parser)
+    except etree.XMLSyntaxError as exc:
+        line, col = exc.position if exc.position else (exc.lineno, 0)
+        raise UrdfError(f"{path}:{line}:{col}: not well-formed XML: {exc.msg}; nothing was read from this file "
+                        "— fix the XML (an unclosed or mismatched tag, a stray '&' or '<')") from None
+    except OSError as exc:
+        raise UrdfError(f"{path}: cannot read: {exc}") from None
+    if tree.docinfo.doctype:
+        raise UrdfError(f"{path}:1:1: a DOCTYPE is not allowed in a URDF (given {tree.docinfo.doctype[:80]!r}); "
+                        "remove it (run xacro first for macros)")
+
+
 def load_urdf(path: str | Path, fk: bool = True):
     """A ``yourdfpy.URDF`` without meshes, with its scene graph when ``fk`` (needed by
     ``urdf_fk``; it evaluates every joint, so leave it off for a file not yet checked);
@@ -76,6 +101,7 @@ def load_urdf(path: str | Path, fk: bool = True):
     path = Path(path)
     if not path.is_file():
         raise UrdfError(f"{path}: no such URDF file")
+    check_well_formed(path)
     ydf = _yourdfpy()
     from lxml import etree  # noqa: PLC0415  (yourdfpy's XML library)
 

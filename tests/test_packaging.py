@@ -73,6 +73,9 @@ def test_the_wheel_holds_models_plans_and_the_simulated_cell(installed):
     for plan in ROOT.glob("fixtures/plans/*.yaml"):
         assert f"calib/data/plans/{plan.name}" in names
     assert "calib/data/sim/default.yaml" in names
+    assert "calib/data/foxglove/remaster-layout.json" in names
+    for shipped in ROOT.glob("drivers/kuka_rsi/controller/*"):  # what a KR C4 needs, RSI context included
+        assert f"drivers/kuka_rsi/controller/{shipped.name}" in names
     assert not any(n.startswith("fixtures/") for n in names)  # no stray top-level package
 
 
@@ -95,6 +98,8 @@ def test_the_installed_package_finds_its_data_outside_a_checkout(installed):
     assert out["plans"] == sorted(p.name for p in ROOT.glob("fixtures/plans/*.yaml"))
     listing = run([installed["acquire"], "examples"], installed["work"], 60).stdout
     assert f"{venv}/" in listing and "example" in listing and "kuka_iiwa14_r820" in listing
+    layout = next(line.strip() for line in listing.splitlines() if line.strip().endswith("remaster-layout.json"))
+    assert layout.startswith(venv) and Path(layout).is_file(), listing  # the installed copy, not a checkout's
 
 
 def test_acquire_run_example_fake_from_any_folder_writes_its_result_there(installed):

@@ -12,7 +12,10 @@ Examples::
 The clients connect to the daemon's Zenoh router (``--connect``, default
 ``tcp/127.0.0.1:7447``); a remote daemon needs ``tls/host:7447`` with ``--tls-ca``,
 ``--tls-cert`` and ``--tls-key`` (mTLS). Credentials: ``--client NAME`` and the token from
-``--token-file`` or the environment (``REMASTER_CLIENT``, ``REMASTER_TOKEN``). Replies are printed
+``--token-file`` (made by ``acquire token new``; refused when the group or others may read it, as
+ssh refuses an unprotected key) or the environment (``REMASTER_CLIENT``, ``REMASTER_TOKEN``); a
+weak token is refused. Each operation is a SCRAM-SHA-256 exchange (``acquire.control_auth``) in
+which the daemon proves itself before its reply is believed. Replies are printed
 as JSON with ``--json``, otherwise as a few readable lines. Exit status: 0 done, 2 bad usage or
 bad request, 3 refused, 4 no daemon answered, 1 other failures.
 """
@@ -98,7 +101,7 @@ _TOKEN_FILE = typer.Option(None, "--token-file", help="File holding the client's
 _CA = typer.Option(None, "--tls-ca", help="CA certificate (PEM) that signed the daemon's certificate.")
 _CERT = typer.Option(None, "--tls-cert", help="This client's certificate (PEM), for mTLS.")
 _KEY = typer.Option(None, "--tls-key", help="This client's private key (PEM), for mTLS.")
-_TIMEOUT = typer.Option(10.0, "--timeout", help="Seconds to wait for the daemon's reply.")
+_TIMEOUT = typer.Option(10.0, "--timeout", help="Seconds to wait for the daemon's reply (per round trip; two with credentials).")
 _JSON = typer.Option(False, "--json", help="Print the reply as JSON.")
 
 
@@ -117,16 +120,24 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], c
     if not cell:
         _fail("give --cell (or set REMASTER_CELL)", 2)
     client = client or os.environ.get("REMASTER_CLIENT")
+    from acquire.tokens import TokenFileError, WeakToken, check_token, read_token_file
+
     token = None
     if token_file is not None:
         try:
-            token = token_file.read_text(encoding="utf-8").strip()
-        except OSError as exc:
-            _fail(f"cannot read --token-file {token_file}: {exc.strerror or exc}", 2)
+            token = read_token_file(token_file)
+        except TokenFileError as exc:
+            _fail(f"--token-file: {exc}", 2)
     else:
         token = os.environ.get("REMASTER_TOKEN")
+        if token:
+            try:
+                check_token(token)
+            except WeakToken as exc:
+                _fail(f"REMASTER_TOKEN: {exc}", 2)
     if client and not token:
-        _fail(f"client {client!r} needs a token (--token-file or REMASTER_TOKEN)", 2)
+        _fail(f"client {client!r} needs a token (--token-file or REMASTER_TOKEN; make one with "
+              "`acquire token new`)", 2)
     if token and not client:
         _fail("a token needs --client (or REMASTER_CLIENT)", 2)
     tls = {}

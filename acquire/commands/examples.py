@@ -1,4 +1,5 @@
-"""``acquire examples``: the example plans, robot models and simulated cells shipped in the package.
+"""``acquire examples``: the example plans, robot models, simulated cells and the Foxglove layout
+shipped in the package.
 
 Examples::
 
@@ -33,7 +34,18 @@ def listing() -> str:
             if text:
                 lines.append(f"  {'':<20} {text}")
         lines.append("")
+    lines.append(f"Foxglove layout (Foxglove: Layouts → Import; for a run log or acquire run --live):\n  {layout_hint()}")
     return "\n".join(lines).rstrip()
+
+
+def layout_hint() -> str:
+    """The packaged Foxglove layout's path (``calib.resources.foxglove_layout``), or why not."""
+    from calib.resources import foxglove_layout
+
+    try:
+        return str(foxglove_layout())
+    except RuntimeError as exc:
+        return f"(not found: {exc})"
 
 
 def copy_plan(name: str, dest: Path) -> Path:
@@ -70,7 +82,7 @@ def examples(
     copy: Optional[str] = typer.Option(None, "--copy", help="Copy this packaged plan (by name) to adapt it."),
     to: Path = typer.Option(Path("."), "--to", help="Folder or file name for --copy."),
 ) -> None:
-    """List the packaged example plans, robot models and simulated cells (or copy a plan)."""
+    """List the packaged example plans, robot models, simulated cells and Foxglove layout (or copy a plan)."""
     if copy is None:
         typer.echo(listing())
         return

@@ -8,9 +8,12 @@ Example::
 Connects (waits for the controller's packets), shows the link's state and timing (cycle,
 jitter, answer latency, measured position), checks the target against the model's limits,
 asks for confirmation unless ``--yes``, moves along a jerk-limited synchronised trajectory,
-waits until the measured position has settled, prints it, and (by default) ends the RSI
-session with the Stop flag. Angles on the command line are degrees in the controller's
-convention.
+waits until the measured position has settled, prints it and the residual per axis, and (by
+default) ends the RSI session with the Stop flag. Settled is not on target: a robot that stopped
+short (brakes held, a drive that does not follow) exits 3 with the residual of every axis outside
+``--target-tolerance``. Angles on the command line are degrees in the controller's convention.
+
+Exit codes: 0 on target; 1 not confirmed; 2 usage or device error; 3 settled off target.
 """
 
 from __future__ import annotations
@@ -29,6 +32,11 @@ from drivers.errors import DriverError
 from drivers.protocols import JointLimits
 from drivers.registry import load_driver
 from drivers.trajectory import motion_time, scaled_limits
+
+#: Default of ``--target-tolerance``: degrees per axis between the settled position and the target.
+DEFAULT_TARGET_TOLERANCE_DEG = 0.05
+#: Exit code of a move that settled, but not on its target.
+EXIT_OFF_TARGET = 3
 
 
 def _target(text: str, n: int) -> np.ndarray:
@@ -49,6 +57,12 @@ def _fmt(values_rad, names) -> str:
     return "  ".join(f"{a}={v:9.4f}" for a, v in zip(names, np.degrees(values_rad)))
 
 
+def _off_target(residual_rad, names, tolerance_deg: float) -> str:
+    """The axes whose residual (settled − target) exceeds ``tolerance_deg``, as text; '' if none."""
+    err = np.degrees(np.asarray(residual_rad, dtype=float))
+    return ", ".join(f"{a} {e:+.4f}°" for a, e in zip(names, err) if not abs(e) <= tolerance_deg)
+
+
 def _link_report(cmd, names) -> str:
     """The commander's link figures (``LinkStats.report``) and the measured position."""
     lines = cmd.link_stats().report()
@@ -66,6 +80,10 @@ def move(
     yes: bool = typer.Option(False, "--yes", "-y", help="Do not ask for confirmation."),
     tolerance: float = typer.Option(0.01, "--tolerance", help="Settled when every axis stays within this many degrees."),
     window: float = typer.Option(0.2, "--window", help="… for this many seconds."),
+    target_tolerance: float = typer.Option(
+        DEFAULT_TARGET_TOLERANCE_DEG, "--target-tolerance",
+        help="On target when every settled axis is within this many degrees of the target (else exit 3).",
+    ),
     timeout: float = typer.Option(120.0, "--timeout", help="Give up on the move (and on settling) after this many seconds."),
     end_session: bool = typer.Option(
         True, "--end-session/--keep-session",
@@ -86,6 +104,8 @@ def move(
         raise typer.BadParameter(
             f"need tolerance > 0, window > 0 and timeout > window; given {tolerance}, {window}, {timeout}"
         )
+    if not target_tolerance > 0:
+        raise typer.BadParameter(f"must be > 0 degrees, given {target_tolerance}", param_hint="--target-tolerance")
     scheme = urlsplit(commander).scheme
     try:
         cls = load_driver(scheme)
@@ -110,12 +130,20 @@ def move(
         cmd.move_to(checked, speed, timeout)
         final = cmd.wait_settled(math.radians(tolerance), window, timeout)
         typer.echo(f"settled  (deg): {_fmt(final.position_rad, names)}")
-        typer.echo(f"error    (deg): {_fmt(final.position_rad - checked, names)}")
+        residual = final.position_rad - checked
+        typer.echo(f"error    (deg): {_fmt(residual, names)}")
         st = cmd.link_stats()
         typer.echo(f"link after the move: late answers {st.late_answers}, missing cycles {st.gaps}"
                    + ("" if st.delay is None else f", Delay {st.delay}"))
         if end_session:
             cmd.stop()
+        off = _off_target(residual, names, target_tolerance)
+        if off:
+            typer.echo(f"error: settled off target: {off} (allowed ±{target_tolerance:g}° per axis, "
+                       "--target-tolerance); the robot stopped short: check drives, brakes and the "
+                       "controller's messages before moving again", err=True)
+            raise typer.Exit(EXIT_OFF_TARGET)
+        typer.echo(f"on target: every axis within ±{target_tolerance:g}°")
     except DriverError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from exc

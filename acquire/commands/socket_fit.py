@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from calib.canonical import wrap_deg
 from calib.csvdialect import is_socket_csv  # noqa: F401 - the format test, here with the socket fit it chooses
 from calib.kinematics import Chain
 from calib.model import RobotModel
@@ -58,9 +59,9 @@ def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, fol
             status, reason = "fitted", ""
         offsets.append({
             "joint": ax, "index": i + 1, "identifiable": status == "fitted",
-            "value_deg": math.degrees(fit.params[i]) if ok else None,
+            "value_deg": wrap_deg(math.degrees(fit.params[i])) if ok else None,
             "std_deg": math.degrees(fit.std[i]) if ok else None,
-            "ci95_deg": [math.degrees(fit.params[i]) - half, math.degrees(fit.params[i]) + half] if ok else None,
+            "ci95_deg": [wrap_deg(math.degrees(fit.params[i])) - half, wrap_deg(math.degrees(fit.params[i])) + half] if ok else None,
             "status": status, "reason": reason,
         })
     params = []
@@ -76,7 +77,10 @@ def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, fol
     return {
         "kind": "socket",
         "method": method,
-        "robot": {"name": model.name},
+        "fit_model": {"method": method, "description": fit.model_description(),
+                      "link_prior": None if fit.tolerance is None else {"mm": fit.tolerance[0], "deg": fit.tolerance[1]},
+                      "compliance": fit.compliance is not None},
+        "robot": {"name": model.name, "source": model.source},
         "data": {"source": ds.source, "n_configurations": int(len(ds.q_rad)),
                  "groups": [{"placement": p, "socket": s, "n": int(np.sum(ds.group == g))} for g, (p, s) in enumerate(ds.groups)],
                  "distances_mm": [{"a": "/".join(ds.groups[a]), "b": "/".join(ds.groups[b]), "mm": d} for a, b, d in ds.distances]},
@@ -118,7 +122,11 @@ def trust(fit: SocketFit) -> tuple[bool, str]:
 
 def format_socket_summary(doc: dict) -> str:
     lines = [f"robot: {doc['robot']['name']}", f"socket data: {doc['data']['source']} "
-             f"({doc['data']['n_configurations']} configurations, {len(doc['data']['groups'])} placement/socket groups)", ""]
+             f"({doc['data']['n_configurations']} configurations, {len(doc['data']['groups'])} placement/socket groups)"]
+    fm = doc.get("fit_model")
+    if fm:
+        lines.append(f"method: {fm['method']} — fitted model: {fm['description']}")
+    lines.append("")
     lines.append(f"{'joint':<6} {'offset (deg)':>12} {'± std':>8}  status")
     for j in doc["joint_offsets"]:
         if j["value_deg"] is not None:
@@ -155,10 +163,9 @@ def read_socket_run(path: Path, n_joints: int, *, distance_mm: float | None = No
     """The socket dataset of an ``acquire run`` log (MCAP) whose samples are socket records:
     measured joint angles with their placement and socket; the distance between sockets from
     ``distance_mm`` or else the run's plan (``socket.distance_mm``). None for any other log."""
-    import yaml
-
     from acquire.recorder import read_run
     from calib.socket import with_distance
+    from calib.yamlfile import ConfigError, parse_yaml_text
 
     rc = read_run(path)
     recs = [r for r in rc.samples if isinstance(r.get("socket"), dict)]
@@ -177,9 +184,11 @@ def read_socket_run(path: Path, n_joints: int, *, distance_mm: float | None = No
         ids.append(str(rec["config_id"]))
     if distance_mm is None:
         try:
-            distance_mm = (yaml.safe_load(rc.plan_text or "") or {}).get("socket", {}).get("distance_mm")
-        except yaml.YAMLError:
-            distance_mm = None
+            plan = parse_yaml_text(rc.plan_text or "", f"{path} (recorded plan)")[0]
+        except ConfigError:
+            plan = None
+        socket = plan.get("socket") if isinstance(plan, dict) else None
+        distance_mm = socket.get("distance_mm") if isinstance(socket, dict) else None
     groups = sorted(set(keys))
     gidx = np.array([groups.index(k) for k in keys], dtype=int)
     return SocketDataset(np.radians(np.array(q, dtype=float)), gidx, groups, with_distance(groups, distance_mm), ids, str(path))

@@ -36,6 +36,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from acquire.logstorage import StorageError
 from acquire.run import prepare
 from acquire.run.devices import RunDevices, plan_cell
 from acquire.run.ending import finish
@@ -193,6 +194,12 @@ class RunController:
         summary = None
         try:
             summary = self._run()
+        except StorageError as exc:  # disk full / I/O error: the log is sealed; stop here, the robot holds
+            log.error("run %s stopped: %s", self.run_id, exc)
+            runlog, self.pub.runlog = self.pub.runlog, None  # nothing more can be written to it
+            if runlog is not None:
+                runlog.close()
+            self.state.fail(str(exc))
         except BaseException as exc:  # noqa: BLE001 - the thread must always report how it ended
             log.exception("run %s failed", self.run_id)
             self.state.fail(f"{type(exc).__name__}: {exc}")

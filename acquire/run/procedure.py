@@ -177,24 +177,12 @@ class ConfigurationRunner:
     def _record(self, cfg, record: dict) -> Optional[str]:
         """Write the sample record; None when written.
 
-        RECORDING ERRORS (issue 24 / ``inputs``: a ``StorageError`` from ``acquire.recorder``,
-        e.g. the disk is full) are caught here: the robot holds where it is (it has settled),
-        the run suspends with one clear line, and the operator frees space and resumes (the
-        sample is written again) or aborts (the configuration is measured again on resume).
+        RECORDING ERRORS: a ``acquire.logstorage.StorageError`` (disk full, I/O error; the log is
+        sealed at its last complete record) is not caught here: it ends the loop with the robot
+        held where it settled, and ``RunController`` fails the run with its one line.
         """
-        while True:
-            try:
-                self.pub.sample(record)
-                return None
-            except OSError as exc:  # StorageError (acquire.recorder) is meant to be one
-                reason = f"{cfg.config_id}: the sample was not recorded ({exc}); free space, then resume or abort"
-                log.error("run %s suspended: %s", self.state.run_id, reason)
-                self.state.unpaused.clear()
-                self.state.set("suspended", reason)
-                self.state.unpaused.wait()
-                if self.aborting:
-                    return "abort"
-                self.state.set("running")
+        self.pub.sample(record)
+        return None
 
     # ------------------------------------------------------------------ helpers
     def show_registration(self) -> None:

@@ -65,6 +65,8 @@ from drivers.protocols import JointLimits, JointState, LinkStats
 __all__ = ["FriCommander", "MotionStoppedError"]
 
 DEFAULT_PORT = 30200
+#: Seconds a move waits for COMMANDING_ACTIVE before the wait is worth a warning.
+QUIET_SESSION_WAIT_S = 3.0
 _URL_OPTIONS = ("controller", "rt_priority", "timeout_ms", "max_speed", "start_tolerance_deg",
                 "max_state_age_ms", "fri_version", "session_wait_s", "name")
 #: FRI versions whose message tables the session knows (1.11–1.16 share 1.x's layout).
@@ -412,10 +414,20 @@ class FriCommander(CommanderBase):
         state = self.session.session_state
         if state == SessionState.COMMANDING_ACTIVE or state is None:
             return
-        self.log.warning("%s: session is %s; waiting up to %.0f s for COMMANDING_ACTIVE",
-                         self.name, state.name, self.session_wait_s)
+        # A healthy start passes through MONITORING_READY and COMMANDING_WAIT within a second or
+        # two: that is news, not a warning. Only a wait that runs long is.
+        self.log.info("%s: session is %s; waiting up to %.0f s for COMMANDING_ACTIVE",
+                      self.name, state.name, self.session_wait_s)
+        quiet = min(QUIET_SESSION_WAIT_S, self.session_wait_s)
         try:
-            self.wait_session(SessionState.COMMANDING_ACTIVE, self.session_wait_s)
+            self.wait_session(SessionState.COMMANDING_ACTIVE, quiet)
+        except DeviceTimeoutError:
+            now = self.session.session_state
+            self.log.warning("%s: session still %s after %.0f s; waiting up to %.0f s more for COMMANDING_ACTIVE "
+                             "(is the robot application's FRI overlay motion running?)",
+                             self.name, getattr(now, "name", None), quiet, self.session_wait_s - quiet)
+        try:
+            self.wait_session(SessionState.COMMANDING_ACTIVE, self.session_wait_s - quiet)
         except DeviceTimeoutError as exc:
             raise DeviceFaultError(
                 f"{exc}; start the FRI joint-position overlay in the robot application "

@@ -4,13 +4,28 @@ It is the sender, as the real controller is: every ``send_period_ms`` (simulated
 ``SimClock`` is given) it sends an ``FRIMonitoringMessage`` to the client address and collects
 the ``FRICommandMessage`` answers that arrive before the next one. It walks the session state
 machine, runs the commanded positions through a second-order servo, checks the client's
-counters, timing, echo and step sizes, and exposes fault hooks for the failure paths.
+counters, timing, echo and step sizes, and exposes fault hooks for the failure paths:
+``drop_next``, ``send_malformed`` (garbage, truncated, wrong_id, bad_crc), ``restart``,
+``stop_sending`` / ``resume_sending``, ``drives_off``, ``drop_session``, ``hold_brakes``,
+``inject_fault`` / ``clear_fault``; the robot application's own steps: ``open_session``,
+``close_session``, ``start_commanding``, ``stop_commanding``, ``stop``.
 
 Message layouts (``fri_version``), from the generated tables of KUKA's FRI client SDK:
 ``"1.15"`` (Sunrise.OS 1.x: monitor data carries ``commandedJointPosition``, field 3),
 ``"2.5"`` (no field 3; measured and ipo Cartesian pose in mm and quaternion, E1 redundancy)
-and ``"2.7"`` (as 2.5 without ``endOfMessageData``). The Cartesian pose is the flange of the
-nominal LBR iiwa 14 R820 kinematics, as the controller's own model would compute it.
+and ``"2.7"`` (as 2.5 without ``endOfMessageData``, and every datagram, both ways, framed with a
+length and a CRC-32: ``framing``; an answer in the other framing is malformed, as it is to the
+SDK). The Cartesian pose is the flange of the nominal LBR iiwa 14 R820 kinematics, as the
+controller's own model would compute it.
+
+Like a cabinet: nothing is sent until the robot application opens the FRI session (the first
+message already says MONITORING_WAIT; an SDK example reading IDLE would quit); when the
+application closes it (``close_session``, ``stop`` — Ctrl-C or the end of ``acquire sim`` —,
+``max_runtime_s``) the controller sends ``closing_idle_messages`` IDLE messages, so a client
+that blocks on receive (the SDK examples) sees IDLE and leaves; a ``restart`` goes silent.
+Messages leave from the FRI port (the client's port, on ``controller_host``): the 1.15 SDK
+example given a controller host ``connect()``s to host:port and takes nothing else. The
+monitoring time stamp is the controller's clock: time of day, seconds and nanoseconds.
 
 ``ipoData.jointPosition`` is the interpolator's position, as the SDK documents it: the robot
 application's motion (a position hold) under the FRI joint overlay, fixed when the overlay
@@ -24,14 +39,14 @@ after a drop. Any FRI client (ours, KUKA's SDK examples) can then be tried witho
 
 Session state machine (see ``PROTOCOL.md``)::
 
-    IDLE --(open_session / auto after idle_cycles)--> MONITORING_WAIT
+    IDLE (silent) --(open_session / auto after idle_cycles)--> MONITORING_WAIT
     MONITORING_WAIT --(ready_after consecutive answered windows, quality >= GOOD)--> MONITORING_READY
     MONITORING_READY --(start_commanding(): the robot application's FRI overlay motion)--> COMMANDING_WAIT
     COMMANDING_WAIT --(commanding_wait_cycles answers echoing the ipo position)--> COMMANDING_ACTIVE
     MONITORING_READY --(application mode: after application_start_cycles)--> COMMANDING_WAIT
     COMMANDING_* --(stop_commanding / violation / fault)--> MONITORING_READY
     any non-IDLE --(max_missed consecutive unanswered windows)--> MONITORING_WAIT
-    any --(close_session / restart)--> IDLE
+    any --(close_session / stop: closing_idle_messages IDLE messages; restart: silent)--> IDLE
 
 An answer *window* is ``receive_multiplier`` consecutive monitoring messages; the client must
 answer one message of each window before the window's last message is followed by the next.
@@ -56,6 +71,7 @@ from typing import Optional
 import numpy as np
 
 from drivers.errors import ProtocolError
+from drivers.kuka_fri.framing import frame, unframe
 from drivers.kuka_fri.messages import (
     COMMAND_MESSAGE_ID,
     MONITORING_MESSAGE_ID,
@@ -90,6 +106,9 @@ log = logging.getLogger("remaster.fake.sunrise")
 N_JOINTS = 7
 _LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 FRI_VERSIONS = ("1.15", "2.5", "2.7")
+#: Wall seconds between tries to take the FRI port, until a client holds its port (``_claim_fri_port``).
+_CLAIM_EVERY_S = 0.5
+MALFORMED_KINDS = ("garbage", "truncated", "wrong_id", "bad_crc")
 
 #: Nominal LBR iiwa 14 R820, standard DH (d mm, alpha rad; a = 0): the controller's own model.
 _IIWA14_D = np.array([360.0, 0.0, 420.0, 0.0, 400.0, 0.0, 126.0])
@@ -133,7 +152,13 @@ class FakeSunrise:
     """A fake Sunrise FRI controller.
 
     client_address: (host, port) of the FRI client, loopback only.
-    idle_cycles: IDLE messages sent before the session opens by itself (``auto_open``).
+    controller_host: loopback address the fake sends from, on the client's port (the FRI port,
+        as Sunrise does), taken once a client holds its port; until then, and if it cannot be
+        bound (a client holding the port on every address, as KUKA's SDK binds it), the fake
+        sends from an ephemeral port on 127.0.0.1 (``_claim_fri_port``).
+    idle_cycles: silent cycles before the session opens by itself (``auto_open``) at start and
+        after a ``restart``.
+    closing_idle_messages: IDLE messages sent when the application closes the session.
     ready_after / commanding_wait_cycles: consecutive answered windows needed to leave
         MONITORING_WAIT / COMMANDING_WAIT.
     limits: used to check what the client commands (per-cycle speed, position range) and,
@@ -168,7 +193,9 @@ class FakeSunrise:
         noise_rad: float = 0.0,
         seed: int = 0,
         auto_open: bool = True,
-        idle_cycles: int = 3,
+        idle_cycles: int = 0,
+        closing_idle_messages: int = 5,
+        controller_host: str = "127.0.0.2",
         ready_after: int = 10,
         commanding_wait_cycles: int = 10,
         max_missed: int = 20,
@@ -210,6 +237,10 @@ class FakeSunrise:
         self.noise_rad = float(noise_rad)
         self.auto_open = auto_open
         self.idle_cycles = idle_cycles
+        self.closing_idle_messages = int(closing_idle_messages)
+        if controller_host not in _LOOPBACK and not controller_host.startswith("127."):
+            raise ValueError(f"the fake Sunrise only sends from loopback, got controller_host {controller_host!r}")
+        self.controller_host = controller_host
         self.ready_after = ready_after
         self.commanding_wait_cycles = commanding_wait_cycles
         self.max_missed = max_missed
@@ -258,6 +289,9 @@ class FakeSunrise:
         self._cycles_in_state = 0
         self._window_first_seq = 0
         self._idle_first_seq = 0  # first counter sent since the session went IDLE
+        self._idle_to_send = 0  # IDLE messages still to send after the session was closed
+        self._brakes_held = False  # hold_brakes(): the joints do not follow the set-point
+        self._ended = False  # the robot application ended (stop, max_runtime_s): no re-opening
         self._window_count = 0
         self._window_answered = False
         self._windows: deque[bool] = deque(maxlen=quality_window)
@@ -271,6 +305,8 @@ class FakeSunrise:
         self._drives = DriveState.ACTIVE
         self._sim_time = 0.0
         self._sock: Optional[socket.socket] = None
+        self._on_fri_port = False  # sending from controller_host:client port (``_claim_fri_port``)
+        self._warned_port = False
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
 
@@ -328,18 +364,73 @@ class FakeSunrise:
             self._inputs[name] = bool(value)
 
     def start(self) -> "FakeSunrise":
-        """Bind 127.0.0.1:0 and start sending."""
+        """Bind the FRI port on ``controller_host`` (see the class docstring) and start."""
         if self._thread is not None:
             raise RuntimeError("FakeSunrise already started")
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._sock.bind(("127.0.0.1", 0))
         self._sock.setblocking(False)
+        self._claim_fri_port()
         self._thread = threading.Thread(target=self._run, name="fake-sunrise", daemon=True)
         self._thread.start()
         return self
 
-    def stop(self) -> None:
-        """Stop sending and close the socket (idempotent)."""
+    def _claim_fri_port(self) -> None:
+        """Send from the FRI port (``controller_host``:client port) once a client holds its
+        port, as Sunrise does. Not before: a client that binds the port on every address (KUKA's
+        SDK does, without ``SO_REUSEADDR``) could not start while we held it. If the client holds
+        it on every address we cannot bind it either: we keep sending from an ephemeral port
+        (such a client answers whoever sent). KUKA's SDK given a controller host ``connect()``s,
+        which on Linux narrows its socket to one local address (127.0.0.1 for 127.0.0.2), so the
+        port on ``controller_host`` is then free. Called at start and every ``_CLAIM_EVERY_S``
+        from the send thread."""
+        if self._on_fri_port:
+            return
+        host, port = self.client_address
+        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            probe.bind((host, port))  # succeeds only while no client holds the port
+        except OSError:
+            pass
+        else:
+            return
+        finally:
+            probe.close()
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((self.controller_host, port))
+        except OSError as exc:
+            sock.close()
+            if not self._warned_port:
+                self._warned_port = True
+                log.info(  # such a client answers whoever sends: it works, it is only not a cabinet's port
+                    "fake Sunrise: sending from %s:%d, not the FRI port %s:%d (%s): the FRI client holds its "
+                    "port on every address (KUKA's SDK example started without a controller host)",
+                    *self._sock.getsockname(), self.controller_host, port, exc)
+            return
+        sock.setblocking(False)
+        old, self._sock = self._sock, sock
+        self._on_fri_port = True
+        self._drain(old)  # answers already sent to the old port
+        old.close()
+        log.info("fake Sunrise: sending from the FRI port %s:%d", self.controller_host, port)
+
+    def stop(self, close_session: bool = True) -> None:
+        """The robot application ends (idempotent): with ``close_session`` it closes the FRI
+        session first, so the client reads IDLE (``closing_idle_messages`` of them), then the
+        sending stops and the socket closes. ``close_session=False``: the controller just goes
+        quiet (power cut, cable pulled)."""
+        if self._thread is not None and self._thread.is_alive() and close_session:
+            with self._lock:
+                self._ended = True
+                if self._state != SessionState.IDLE:
+                    self._close("robot application ended")
+                if not self._sending:  # stop_sending(): a quiet controller says nothing more
+                    self._idle_to_send = 0
+                pending = self._idle_to_send
+            wall = self._wall(self.send_period_ms / 1000.0) * (pending + 2) + 1.0
+            with self._state_changed:
+                self._state_changed.wait_for(lambda: self._idle_to_send == 0, wall)
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
@@ -364,11 +455,19 @@ class FakeSunrise:
         """The robot application opens its FRI session: IDLE → MONITORING_WAIT."""
         with self._lock:
             if self._state == SessionState.IDLE:
+                self._idle_to_send = 0
                 self._set_state(SessionState.MONITORING_WAIT, "session opened")
 
     def close_session(self) -> None:
+        """The robot application closes its FRI session: ``closing_idle_messages`` IDLE
+        messages, then silence until the session opens again (``open_session``)."""
         with self._lock:
-            self._set_state(SessionState.IDLE, "session closed")
+            self._close("session closed")
+
+    def _close(self, why: str) -> None:
+        if self._state != SessionState.IDLE:
+            self._set_state(SessionState.IDLE, why)
+            self._idle_to_send = self.closing_idle_messages
 
     def start_commanding(self) -> None:
         """The robot application starts a motion with a joint-position FRI overlay."""
@@ -394,21 +493,24 @@ class FakeSunrise:
 
     def send_malformed(self, n: int = 1, kind: str = "garbage") -> None:
         """Replace the next ``n`` monitoring messages by bad bytes: ``garbage`` (random bytes),
-        ``truncated`` (a valid message cut short) or ``wrong_id`` (a command identifier)."""
-        if kind not in ("garbage", "truncated", "wrong_id"):
-            raise ValueError(f"kind must be garbage, truncated or wrong_id, got {kind!r}")
+        ``truncated`` (a valid message cut short), ``wrong_id`` (a command identifier) or
+        ``bad_crc`` (an FRI 2.7 frame whose CRC-32 does not match the message)."""
+        if kind not in MALFORMED_KINDS:
+            raise ValueError(f"kind must be one of {', '.join(MALFORMED_KINDS)}, got {kind!r}")
         with self._lock:
             self._malformed_next.extend([kind] * n)
 
     def restart(self) -> None:
-        """Controller restart: counters back to zero, session IDLE (re-opens after idle_cycles
-        when ``auto_open``)."""
+        """Controller restart: it goes silent (no IDLE message: the application is gone) for
+        ``idle_cycles`` cycles, then the application opens the session again (``auto_open``)
+        with the counters back at zero."""
         with self._lock:
             self._seq = 0
             self._client_seq = 0
             self._windows.clear()
             self._consecutive_good = self._consecutive_missed = 0
             self._set_state(SessionState.IDLE, "controller restart")
+            self._idle_to_send = 0
 
     def stop_sending(self) -> None:
         with self._lock:
@@ -430,6 +532,21 @@ class FakeSunrise:
                 self._drop_session("injected session drop")
             else:
                 raise ValueError(f"kind must be drives_off, safety_stop or session_drop, got {kind!r}")
+            self._qd[:] = 0.0
+
+    def drives_off(self) -> None:
+        """Drives off (brakes hold); the monitoring messages say so. Same as ``inject_fault``."""
+        self.inject_fault("drives_off")
+
+    def drop_session(self) -> None:
+        """The session falls back to MONITORING_WAIT (as after a connection-quality drop)."""
+        self.inject_fault("session_drop")
+
+    def hold_brakes(self, held: bool = True) -> None:
+        """The joints stay where they are (a brake that does not release, a seized gear) while
+        the controller reports everything normal and keeps taking the client's set-points."""
+        with self._lock:
+            self._brakes_held = bool(held)
             self._qd[:] = 0.0
 
     def clear_fault(self) -> None:
@@ -489,7 +606,13 @@ class FakeSunrise:
         if self._rng.random() < self.loss_in:
             return
         try:
-            msg = decode_command(data)
+            body, framed = unframe(data)
+            if framed != (self.fri_version == "2.7"):
+                raise ProtocolError(
+                    "a 2.7-framed answer to an FRI {0} controller, which sends and reads bare messages".format(
+                        self.fri_version) if framed else
+                    "a bare answer to an FRI 2.7 controller: SDK 2.7 frames every datagram (length, message, CRC-32)")
+            msg = decode_command(body)
         except ProtocolError as exc:
             self.stats.malformed_answers += 1
             log.warning("fake Sunrise: malformed answer (%d bytes): %s", len(data), exc)
@@ -571,7 +694,8 @@ class FakeSunrise:
         self.stats.commands.append((self._sim_time, cmd.copy()))
 
     def _step_servo(self, dt: float) -> None:
-        if self._drives != DriveState.ACTIVE or self._safety != SafetyState.NORMAL_OPERATION:
+        if (self._brakes_held or self._drives != DriveState.ACTIVE
+                or self._safety != SafetyState.NORMAL_OPERATION):
             self._qd[:] = 0.0
             return
         n_sub = max(1, int(math.ceil(dt / 0.0005)))
@@ -614,9 +738,8 @@ class FakeSunrise:
     def _build(self) -> bytes:
         q = self._q + (self._rng.normal(0.0, self.noise_rad, N_JOINTS) if self.noise_rad else 0.0)
         commanding = self._state in (SessionState.COMMANDING_WAIT, SessionState.COMMANDING_ACTIVE)
-        t = self.clock.now() if self.clock is not None else time.time()
         v1 = self.fri_version.startswith("1.")
-        stamp = TimeStamp.from_seconds(t)
+        stamp = TimeStamp.from_seconds(time.time())  # the controller's clock: time of day, not simulated time
         pose = red = ipo_pose = ipo_red = None
         if not v1:
             pose = QuaternionTransformation("flange", nominal_flange_pose(q), stamp)
@@ -655,7 +778,7 @@ class FakeSunrise:
         )
         body = msg.encode()
         if self.fri_version == "2.7":
-            return body
+            return frame(body)  # no endOfMessageData; length and CRC-32 around the message
         # 1.x and 2.5 close with endOfMessageData; the SDK's decoder does not read it. We state
         # the length of what precedes it (unverified against a real controller).
         return FRIMonitoringMessage.encode(
@@ -664,13 +787,17 @@ class FakeSunrise:
         )
 
     def _malformed_bytes(self, kind: str, good: bytes) -> bytes:
+        if kind == "bad_crc":  # an FRI 2.7 frame whose CRC-32 does not match its message
+            body = unframe(good)[0]
+            bad = frame(body)
+            return bad[:-4] + bytes(b ^ 0xFF for b in bad[-4:])
         if kind == "garbage":
             return self._rng.integers(0, 256, size=int(self._rng.integers(1, 64)), dtype=np.uint8).tobytes()
         if kind == "truncated":
             return good[: max(1, len(good) // 2)]
         # wrong_id: a well-formed message of the other type
         msg = FRIMonitoringMessage(header=MessageHeader(COMMAND_MESSAGE_ID, self._seq, self._client_seq))
-        return msg.encode()
+        return frame(msg.encode()) if self.fri_version == "2.7" else msg.encode()
 
     def _cycle(self) -> Optional[bytes]:
         """One controller cycle (lock held): servo, window scoring, next message bytes."""
@@ -685,7 +812,8 @@ class FakeSunrise:
             self._close_window()
             self._window_first_seq = self._seq
         self._cycles_in_state += 1
-        if self._state == SessionState.IDLE and self.auto_open and self._cycles_in_state > self.idle_cycles:
+        if (self._state == SessionState.IDLE and self.auto_open and not self._ended and not self._idle_to_send
+                and self._cycles_in_state > self.idle_cycles):
             self._set_state(SessionState.MONITORING_WAIT, "session opened")
         if (self.application and self._state == SessionState.MONITORING_READY
                 and self._cycles_in_state > self.application_start_cycles
@@ -693,6 +821,12 @@ class FakeSunrise:
             self._set_state(SessionState.COMMANDING_WAIT, "robot application started its FRI overlay motion")
         if not self._sending:
             return None
+        if self._state == SessionState.IDLE:
+            if not self._idle_to_send:
+                return None  # no session: the controller sends nothing
+            self._idle_to_send -= 1
+            if not self._idle_to_send:
+                self._state_changed.notify_all()
         data = self._build()
         if self._malformed_next:
             data = self._malformed_bytes(self._malformed_next.pop(0), data)
@@ -718,12 +852,24 @@ class FakeSunrise:
 
     def _run(self) -> None:
         self._set_realtime()
-        sock = self._sock
-        assert sock is not None
+        assert self._sock is not None
         period = self._wall(self.send_period_ms / 1000.0)
         t_end = time.monotonic() + self.max_runtime_s
         next_t = time.monotonic()
-        while not self._stop.is_set() and time.monotonic() < t_end:
+        next_claim = next_t + _CLAIM_EVERY_S
+        ending = False
+        while not self._stop.is_set():
+            if not self._on_fri_port and time.monotonic() >= next_claim:
+                next_claim = time.monotonic() + _CLAIM_EVERY_S
+                self._claim_fri_port()
+            sock = self._sock
+            if not ending and time.monotonic() >= t_end:
+                ending = True
+                with self._lock:  # the robot application ends: it closes the session first
+                    self._ended = True
+                    self._close(f"robot application ended after max_runtime_s={self.max_runtime_s:g} s")
+            if ending and self._idle_to_send == 0:
+                break
             # collect answers until the next send time
             while True:
                 remaining = next_t - time.monotonic()

@@ -28,6 +28,7 @@ from typing import Optional
 
 from drivers.errors import ProtocolError
 from drivers.kuka_fri import wire
+from drivers.kuka_fri.framing import unframe
 from drivers.kuka_fri.wire import I64, LEN, VARINT
 
 MONITORING_MESSAGE_ID = 0x245142
@@ -744,9 +745,11 @@ def _check_id(header: MessageHeader, expected: int, what: str) -> None:
 
 
 def decode_monitoring(data: bytes) -> FRIMonitoringMessage:
-    """Parse a monitoring message; ``ProtocolError`` for anything malformed or of another type."""
+    """Parse a monitoring message, bare (FRI 1.x, 2.5) or in an FRI 2.7 frame (``framing``);
+    ``ProtocolError`` for anything malformed, of another type, or a frame whose CRC-32 differs."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise ProtocolError(f"expected bytes, got {type(data).__name__}")
+    data, _framed = unframe(data)
     parts = _collect(data, {1, 2, 3, 4, 5, 15}, "FRIMonitoringMessage")
     raw = _merged(parts.get(1, []))
     if raw is None:
@@ -769,9 +772,11 @@ def decode_monitoring(data: bytes) -> FRIMonitoringMessage:
 
 
 def decode_command(data: bytes) -> FRICommandMessage:
-    """Parse a command message; ``ProtocolError`` for anything malformed or of another type."""
+    """Parse a command message, bare or in an FRI 2.7 frame (``framing``); ``ProtocolError`` for
+    anything malformed, of another type, or a frame whose CRC-32 differs."""
     if not isinstance(data, (bytes, bytearray, memoryview)):
         raise ProtocolError(f"expected bytes, got {type(data).__name__}")
+    data, _framed = unframe(data)
     parts = _collect(data, {1, 2, 15}, "FRICommandMessage")
     raw = _merged(parts.get(1, []))
     if raw is None:

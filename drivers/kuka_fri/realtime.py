@@ -52,6 +52,7 @@ from drivers.kuka_fri.messages import (
 )
 from drivers.kuka_fri.session import FriClientSession, Motion, SessionCounters, SessionSnapshot
 from drivers.protocols import JointLimits
+from drivers.kuka_fri.framing import frame, unframe
 from drivers.udp import enable_rx_timestamps, recv_stamped
 
 #: Most joint values a snapshot field carries (a controller may send a wrong count: kept to refuse).
@@ -201,14 +202,14 @@ class FriLoop:
         dry = FriClientSession(lim, expect_major=None, logger=quiet)
         q = (np.asarray(lim.lower_rad) + np.asarray(lim.upper_rad)) / 2
         for seq in range(12):
-            data = encode_monitoring(_warm_up_message(seq, q))
-            reply = dry.on_monitoring(decode_monitoring(data), seq * 0.005)
+            data = frame(encode_monitoring(_warm_up_message(seq, q)))
+            reply = dry.on_monitoring(decode_monitoring(unframe(data)[0]), seq * 0.005)
             if seq == 2:
                 dry.begin_move(q + 0.01, 1.0, "warm-up")
             if seq == 6:
                 dry.request_stop()
             if reply is not None:
-                encode_command(reply)
+                frame(encode_command(reply))
                 q = np.asarray(reply.command_data.joint_position)
         dry.check_silence(1.0, 0.1)
         self._publish()
@@ -303,7 +304,8 @@ class FriLoop:
             session.check_silence(now, self.receive_timeout_s)
             return
         try:
-            msg = decode_monitoring(data)
+            body, framed = unframe(data)  # FRI 2.7 frames every datagram; 1.x and 2.5 do not
+            msg = decode_monitoring(body)
         except ProtocolError as exc:
             self._link_counts["malformed"] += 1
             self._warn(f"malformed monitoring message ({len(data)} bytes) from {addr[0]}:{addr[1]}: {exc}")
@@ -318,7 +320,8 @@ class FriLoop:
             return
         if reply is not None:
             try:
-                sock.sendto(encode_command(reply), addr)
+                out = encode_command(reply)
+                sock.sendto(frame(out) if framed else out, addr)  # answer as the controller speaks
             except OSError as exc:
                 self._warn(f"send to {addr[0]}:{addr[1]} failed: {exc}")
             self._count_answer(arrived)

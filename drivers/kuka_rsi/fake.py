@@ -16,7 +16,8 @@ other packets), ``<Stop>`` honoured only when the configuration maps it to a cha
 
 Fault hooks: ``drop_outgoing`` / ``drop_answers`` (packet loss either way), ``send_malformed``,
 ``restart`` (new RSI session: new start position and IPOC sequence), ``stop_sending`` /
-``resume_sending``, ``jitter_s`` (random send delay).
+``resume_sending``, ``jitter_s`` (random send delay), ``hold_brakes`` (the axes stay put while
+the exchange goes on normally), ``drives_off`` (the robot stops and the RSI program with it).
 
 Units: degrees on the wire and in the fake's state; radians to the ``RobotScene``.
 """
@@ -176,6 +177,8 @@ class FakeKrc4:
         self._malformed_n = 0
         self._silent = False
         self._restart_req: int | None = None
+        self._brakes_held = False
+        self._drives_off = False
         self._stop = threading.Event()
         self._stopped = threading.Event()
         self._thread: threading.Thread | None = None
@@ -259,6 +262,19 @@ class FakeKrc4:
     def stop_sending(self) -> None:
         with self._lock:
             self._silent = True
+
+    def hold_brakes(self, held: bool = True) -> None:
+        """The axes stay where they are (brakes not released, a seized gear) while the RSI
+        exchange goes on as if nothing were wrong: the corrections are read, nothing moves."""
+        with self._lock:
+            self._brakes_held = bool(held)
+            self._xd = np.zeros(self.n)
+
+    def drives_off(self) -> None:
+        """The drives switch off (enabling switch released, an E-stop): the brakes hold, the
+        robot program halts and RSI with it (the controller stops sending)."""
+        with self._lock:
+            self._drives_off = True
 
     def resume_sending(self) -> None:
         with self._lock:
@@ -367,14 +383,21 @@ class FakeKrc4:
                 # servo over one cycle, set-point = start position + correction (zero-order hold)
                 r = self._aspos + self._ak
                 x, xd = self._x, self._xd
-                self._x = self._Ad[0, 0] * x + self._Ad[0, 1] * xd + self._Bd[0] * r
-                self._xd = self._Ad[1, 0] * x + self._Ad[1, 1] * xd + self._Bd[1] * r
+                if self._brakes_held or self._drives_off:
+                    self._xd = np.zeros(self.n)
+                else:
+                    self._x = self._Ad[0, 0] * x + self._Ad[0, 1] * xd + self._Bd[0] * r
+                    self._xd = self._Ad[1, 0] * x + self._Ad[1, 1] * xd + self._Bd[1] * r
+                drives_off = self._drives_off
                 self._ipoc += self.cycle_ms
                 q_now = self._x.copy()
                 count = st.late_consecutive if self.late_consecutive_rule else st.late
                 stop_flag = bool(self._received) and self._received[-1].stop and self._received[-1].on_time
             if self.scene is not None:
                 self.scene.set_joint_positions(np.radians(q_now))
+            if drives_off:
+                self._end("drives off: the robot program halted")
+                return
             if count >= self.late_limit:
                 self._end(f"RSI timeout: {count} late answers (limit {self.late_limit})")
                 return

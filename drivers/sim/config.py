@@ -16,8 +16,13 @@ defaults this module applies (see ``fixtures/sim/default.yaml`` for a documented
     occlusion: {link_radii_mm, obstacles: [{a_mm, b_mm, radius_mm}]}
     cones_deg: {retroreflector: 30, infrared: 60, other: 90}
     sensors: [{name, kind, origin_mm + look_at_mm | frame, noise_mm, noise_mm_per_m,
-               field_of_view_deg, markers}]
+               field_of_view_deg, markers,
+               natnet: {version: "3.0", asset: rigid_body, asset_name: tool, multicast: false},  # mocap
+               protocols: [line]}]                  # tracker: line and/or emscon
     allowances: {silence_ms: 300, state_age_ms: 300}   # the commander's timing allowances, wall ms
+    controller: {fri_version: "1.15"}  # the fake Sunrise's FRI layout: 1.15, 2.5 or 2.7
+    faults:                       # scripted faults (drivers/sim/faults.py), wall s after the cell starts
+      - {at_s: 12, fault: beam_break, device: tracker, duration_s: 3}
 
 Lists whose length depends on the robot (n joints) are checked against the model when the
 cell is built, with an error naming the field, the length given and the length needed.
@@ -32,7 +37,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from calib.model import Frame
 from calib.resources import default_sim_config
-from calib.yamlfile import load_validated
+from calib.yamlfile import CrossFieldChecked, load_validated
+from drivers.sim.faults import FAULTS, INSTANT
 
 Vec3 = tuple[float, float, float]
 
@@ -129,6 +135,33 @@ class Cones(_Strict):
     other: float = Field(90.0, gt=0, le=180)
 
 
+def _version_text(v):
+    """YAML reads ``4.1`` / ``2.5`` as numbers: keep them as the text the user wrote."""
+    return str(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+
+
+class NatNetServe(_Strict):
+    """How the cell's fake Motive serves a motion-capture sensor (``drivers.natnet.fake``).
+
+    ``asset``: the tool's markers as a rigid body, a skeleton with one bone ``plate`` (select
+    ``sk:<asset_name>:plate``), or a NatNet 4.1 trained markerset (asset) with that bone. The body
+    / bone origin is the centroid of the markers the sensor sees; Motive tracks it with ≥ 3 of them.
+    """
+
+    version: Literal["3.0", "3.1", "4.0", "4.1"] = Field("3.0", description="NatNet version of the fake Motive.")
+    asset: Literal["rigid_body", "skeleton", "trained_markerset"] = "rigid_body"
+    asset_name: str = Field("tool", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
+    multicast: bool = Field(False, description="Stream to 239.255.42.99 (Motive's default) instead of unicast.")
+
+    _text = field_validator("version", mode="before")(lambda cls, v: _version_text(v))
+
+    @model_validator(mode="after")
+    def _markerset_needs_41(self) -> "NatNetServe":
+        if self.asset == "trained_markerset" and self.version != "4.1":
+            raise ValueError(f"a trained_markerset needs NatNet version 4.1 (given {self.version})")
+        return self
+
+
 class SensorConfig(_Strict):
     """One reference sensor: where it is, how noisy, which markers it measures.
 
@@ -148,6 +181,17 @@ class SensorConfig(_Strict):
     markers: list[str] | None = Field(
         None, description="Tool markers this sensor measures; None → infrared/other for mocap, retroreflector for a tracker."
     )
+    natnet: NatNetServe | None = Field(None, description="mocap only: how the fake Motive serves it (default NatNet 3.0, rigid body).")
+    protocols: list[Literal["line", "emscon"]] | None = Field(
+        None, min_length=1, description="tracker only: the fake's protocols, line and/or emscon (default [line]).")
+
+    @model_validator(mode="after")
+    def _kind_fields(self) -> "SensorConfig":
+        if self.natnet is not None and self.kind != "mocap":
+            raise ValueError(f"sensor {self.name!r}: natnet is for a mocap sensor, this one is a {self.kind}")
+        if self.protocols is not None and self.kind != "tracker":
+            raise ValueError(f"sensor {self.name!r}: protocols is for a tracker sensor, this one is a {self.kind}")
+        return self
 
     @model_validator(mode="after")
     def _one_pose(self) -> "SensorConfig":
@@ -194,7 +238,33 @@ class Allowances(_Strict):
     state_age_ms: float = Field(300.0, gt=0, le=60000, description="Oldest measured state a command may be based on, wall ms.")
 
 
-class SimConfig(_Strict):
+class ControllerServe(_Strict):
+    """How the cell's fake controller speaks (the controller kind comes from the robot model)."""
+
+    fri_version: Literal["1.15", "2.5", "2.7"] = Field("1.15", description="FRI layout of a fake Sunrise.")
+
+    _text = field_validator("fri_version", mode="before")(lambda cls, v: _version_text(v))
+
+
+class FaultStep(_Strict):
+    """One scripted fault (``drivers.sim.faults``): ``fault`` on ``device`` (a sensor's name or
+    ``controller``; omitted: every device it applies to) ``at_s`` wall seconds after the cell
+    started, for ``duration_s`` (default 3 s; none for controller_restart)."""
+
+    at_s: float = Field(ge=0, le=86400)
+    fault: Literal[tuple(FAULTS)]  # type: ignore[valid-type]
+    device: str | None = Field(None, min_length=1)
+    duration_s: float | None = Field(None, gt=0, le=3600)
+    probability: float = Field(0.2, gt=0, le=1, description="packet_loss: chance of losing each datagram.")
+
+    @model_validator(mode="after")
+    def _duration_fits(self) -> "FaultStep":
+        if self.fault in INSTANT and self.duration_s is not None:
+            raise ValueError(f"{self.fault} is an event and takes no duration_s (given {self.duration_s})")
+        return self
+
+
+class SimConfig(_Strict, CrossFieldChecked):
     """The whole simulated cell. Build a cell with ``SimCell(config)``."""
 
     seed: int = Field(0, ge=0)
@@ -214,6 +284,27 @@ class SimConfig(_Strict):
     sensors: list[SensorConfig] = Field(default_factory=list)
     sockets: Sockets | None = None
     allowances: Allowances = Field(default_factory=Allowances, description="The commander's timing allowances for this cell.")
+    controller: ControllerServe = ControllerServe()
+    faults: list[FaultStep] = Field(default_factory=list, description="Scripted faults, fired by SimLaunch.")
+
+    def deferred_errors(self) -> list[tuple[tuple, str]]:
+        """A fault's device must be in the cell and of a kind the fault applies to."""
+        kinds = {s.name: ({"mocap": ("natnet",)}.get(s.kind) or tuple(
+            {"line": "tracker", "emscon": "emscon"}[p] for p in (s.protocols or ["line"]))) for s in self.sensors}
+        kinds["controller"] = ("fri", "rsi")
+        errors = []
+        for i, f in enumerate(self.faults):
+            allowed = FAULTS[f.fault]
+            if f.device is None:
+                continue
+            if f.device not in kinds:
+                errors.append((("faults", i, "device"), f"no device {f.device!r} in this cell (given {f.device!r}; "
+                                                        f"allowed: {', '.join(kinds)})"))
+            elif not set(kinds[f.device]) & set(allowed):
+                fits = [n for n, k in kinds.items() if set(k) & set(allowed)]
+                errors.append((("faults", i, "device"), f"{f.fault} does not apply to {f.device!r} (given {f.device!r}; "
+                                                        f"allowed: {', '.join(fits) or 'no device of this cell'})"))
+        return errors
 
     @model_validator(mode="after")
     def _something_measures(self) -> "SimConfig":

@@ -11,6 +11,11 @@
   KR C4 (RSI) for ``kss``. Both are UDP *senders*, as the real controllers are: they send to
   the commander's port on 127.0.0.1 (``fri_port`` / ``rsi_port``), and the commander answers.
 
+What each fake speaks comes from the cell file (a mocap sensor's ``natnet:`` version and asset,
+a tracker's ``protocols:``, ``controller.fri_version``) unless the constructor says otherwise.
+Faults on demand: ``inject(fault, device, duration_s)`` (``drivers.sim.faults``) through the
+fakes' own hooks; the cell file's ``faults:`` timeline fires by itself once started.
+
 Every fake reads from or writes to the same cell, so a commander that moves the fake
 controller moves the markers the fake sensors see. ``addresses`` says where each one is;
 ``close()`` (or leaving the ``with`` block) stops them all. Controllers stop by themselves
@@ -58,31 +63,53 @@ class DeviceAddress:
 
 class _SensorView:
     """A ``MarkerScene`` that answers every ``observe`` with one named sensor of the cell (the
-    fake tracker always asks for ``"tracker"``)."""
+    fake tracker always asks for ``"tracker"``). ``blocked`` hides every marker (a beam break:
+    someone in the line of sight)."""
 
     def __init__(self, cell: SimCell, sensor: str) -> None:
         self.cell = cell
         self.sensor = sensor
+        self.blocked = False
 
     def observe(self, sensor: str) -> list[MarkerObservation]:
-        return self.cell.observe(self.sensor)
+        obs = self.cell.observe(self.sensor)
+        if self.blocked:
+            return [MarkerObservation(o.name, np.full(3, np.nan), False) for o in obs]
+        return obs
+
+
+def _natnet_version(v) -> tuple[int, int]:
+    """(major, minor) of a NatNet version given as ``"4.1"``, ``(4, 1)`` or ``(4, 1, 0, 0)``."""
+    from drivers.natnet.codec import version_tuple
+
+    return tuple(version_tuple(v)[:2])
+
+
+def _bone_name() -> str:
+    from drivers.natnet.fake import BONE_NAME
+
+    return BONE_NAME
 
 
 class SimLaunch:
     """The fakes of one cell. Parameters:
 
     fri_port / rsi_port: the commander's UDP port the fake controller sends to (127.0.0.1).
-    mocap_rate_hz: NatNet frame rate (120–360). natnet_version: the fake Motive's version.
+    mocap_rate_hz: NatNet frame rate (120–360). natnet_version: every fake Motive's version
+    (None: each mocap sensor's ``natnet.version`` in the cell file, else 3.0). mocap_asset: what
+    the tool is in Motive (``drivers.natnet.fake.ASSET_KINDS``; None: the cell file's, else a rigid body).
     max_runtime_s: wall seconds after which the fake controllers stop sending by themselves.
     controller: False starts no controller (sensors only).
     operator: run the simulated operator who restarts a KR C4 RSI program that stopped.
-    fri_version: the fake Sunrise's FRI message layout (``drivers.kuka_fri.fake.FRI_VERSIONS``).
+    fri_version: the fake Sunrise's FRI message layout (``drivers.kuka_fri.fake.FRI_VERSIONS``;
+    None: the cell file's ``controller.fri_version``).
     fri_send_period_ms: the fake Sunrise's send period (simulated ms, FRI allows 1–100); None
     keeps the fake's default. A faster-than-real-time cell wants a longer simulated period so one
     cycle still lasts a few wall milliseconds.
     tracker_protocols: per tracker sensor name, the protocols its fake speaks: any of ``"line"``
     and ``"emscon"`` (default ``("line",)``). A sensor served by both has its emScon address
-    under ``"<name>-emscon"``.
+    under ``"<name>-emscon"``. None (or a sensor not named): the cell file's ``protocols``.
+    fault_timeline: fire the cell file's ``faults:`` (wall s after ``start()``).
     """
 
     def __init__(
@@ -92,13 +119,15 @@ class SimLaunch:
         fri_port: int = FRI_CLIENT_PORT,
         rsi_port: int = RSI_CLIENT_PORT,
         mocap_rate_hz: float = 120.0,
-        natnet_version: tuple[int, int] = (3, 0),
+        natnet_version: tuple[int, int] | str | None = None,
         max_runtime_s: float = 3600.0,
         controller: bool = True,
         fri_send_period_ms: int | None = None,
         operator: bool = True,
-        fri_version: str = "1.15",
+        fri_version: str | None = None,
         tracker_protocols: dict[str, tuple[str, ...]] | None = None,
+        mocap_asset: str | None = None,
+        fault_timeline: bool = True,
     ) -> None:
         for name, port in (("fri_port", fri_port), ("rsi_port", rsi_port)):
             if not (isinstance(port, int) and 1 <= port <= 65535):
@@ -109,16 +138,18 @@ class SimLaunch:
         self.fri_port = fri_port
         self.rsi_port = rsi_port
         self.mocap_rate_hz = mocap_rate_hz
-        self.natnet_version = natnet_version
+        self.natnet_version = None if natnet_version is None else _natnet_version(natnet_version)
+        self.mocap_asset = mocap_asset
         self.max_runtime_s = float(max_runtime_s)
         self.want_controller = controller
         if fri_send_period_ms is not None and not (isinstance(fri_send_period_ms, int) and 1 <= fri_send_period_ms <= 100):
             raise ValueError(f"fri_send_period_ms must be 1..100 ms (FRI's range), got {fri_send_period_ms!r}")
         self.fri_send_period_ms = fri_send_period_ms
         self.want_operator = operator
-        self.fri_version = fri_version
+        self.fri_version = fri_version if fri_version is not None else cell.config.controller.fri_version
         self.operator_restarts = 0
-        self.tracker_protocols = {k: tuple(v) for k, v in (tracker_protocols or {}).items()}
+        self.tracker_protocols = {s.name: tuple(s.protocols) for s in cell.config.sensors if s.protocols}
+        self.tracker_protocols.update({k: tuple(v) for k, v in (tracker_protocols or {}).items()})
         for name, protos in self.tracker_protocols.items():
             bad = [p for p in protos if p not in ("line", "emscon")] or ([] if protos else ["(none)"])
             if bad:
@@ -129,6 +160,10 @@ class SimLaunch:
         self.emscon: dict[str, tuple[object, object]] = {}  # name → (FakeEmscon, EmsconServer)
         self.controller: object | None = None
         self.socket_operator = None
+        self.views: dict[str, _SensorView] = {}  # sensor name → what its fake sees (beam_break blocks it)
+        self.want_fault_timeline = fault_timeline
+        self.faults = None  # drivers.sim.faults.FaultInjector once started
+        self.timeline = None  # drivers.sim.faults.FaultTimeline of the cell file's faults
         self._closers: list = []
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -148,10 +183,39 @@ class SimLaunch:
                     self._start_operator()
                     if self.cell.config.sockets is not None:
                         self._start_socket_operator()
+            self._start_faults()
         except BaseException:
             self.close()
             raise
         return self
+
+    def _start_faults(self) -> None:
+        from drivers.sim.faults import Fault, FaultError, FaultInjector, FaultTimeline
+
+        self.faults = FaultInjector(self, seed=self.cell.config.seed)
+        self._closers.append(("faults", self.faults.close))
+        steps = []
+        for i, f in enumerate(self.cell.config.faults if self.want_fault_timeline else []):
+            fault = Fault(f.fault, f.device, f.duration_s, f.probability)
+            try:
+                self.faults.targets(fault.fault, fault.device)
+            except FaultError as exc:
+                raise ValueError(f"the cell file's faults[{i}]: {exc}") from None
+            steps.append((f.at_s, fault))
+        if steps:
+            self.timeline = FaultTimeline(self.faults, steps).start()
+            self._closers.append(("fault timeline", self.timeline.close))
+
+    def inject(self, fault: str, device: str | None = None, duration_s: float | None = None,
+               probability: float | None = None) -> list[str]:
+        """Apply a fault now (``drivers.sim.faults.FAULTS``) to ``device`` (a sensor name or
+        ``"controller"``; None: every device it applies to) for ``duration_s`` wall s; returns the
+        devices hit. Raises ``drivers.sim.faults.FaultError`` (a ValueError) saying what is allowed."""
+        from drivers.sim.faults import DEFAULT_LOSS, Fault
+
+        if self.faults is None:
+            raise RuntimeError("SimLaunch is not started")
+        return self.faults.inject(Fault(fault, device, duration_s, DEFAULT_LOSS if probability is None else probability))
 
     def close(self) -> None:
         """Stop every fake (in reverse order of starting); idempotent."""
@@ -173,8 +237,13 @@ class SimLaunch:
     def _start_motive(self, sensor: str) -> None:
         from drivers.natnet.fake import FakeMotive
 
+        serve = next(s for s in self.cell.config.sensors if s.name == sensor).natnet
+        version = self.natnet_version or _natnet_version(serve.version if serve else "3.0")
+        asset = self.mocap_asset or (serve.asset if serve else "rigid_body")
+        view = self.views[sensor] = _SensorView(self.cell, sensor)
         motive = FakeMotive(
-            self.cell, sensor=sensor, rate_hz=self.mocap_rate_hz, natnet_version=self.natnet_version,
+            view, sensor=sensor, rate_hz=self.mocap_rate_hz, natnet_version=version, asset=asset,
+            rigid_body_name=serve.asset_name if serve else "tool", multicast=bool(serve and serve.multicast),
             seed=self.cell.config.seed,
         )
         motive.start()
@@ -182,16 +251,20 @@ class SimLaunch:
         self.motives[sensor] = motive
         self.addresses[sensor] = DeviceAddress(
             sensor, "natnet", "127.0.0.1", motive.command_port, f"natnet://127.0.0.1:{motive.command_port}",
-            f"fake Motive NatNet {self.natnet_version[0]}.{self.natnet_version[1]}, unicast: command port "
+            f"fake Motive NatNet {version[0]}.{version[1]}, "
+            f"{'multicast ' + motive.multicast_group if motive.multicast else 'unicast'}: command port "
             f"{motive.command_port}, data port {motive.data_port}, {self.mocap_rate_hz:.0f} Hz, "
+            f"{asset.replace('_', ' ')} {motive.rigid_body_name!r}"
+            f"{' (bone ' + repr(_bone_name()) + ')' if asset != 'rigid_body' else ''}, "
             f"markers {self.cell.sensor_markers(sensor)}",
         )
 
     def _start_tracker(self, sensor: str) -> None:
         from drivers.tracker.fake import FakeTracker, TcpTrackerServer
 
+        view = self.views[sensor] = _SensorView(self.cell, sensor)
         device = FakeTracker(
-            _SensorView(self.cell, sensor), clock=self.cell.clock, reflector=self.cell.sensor_markers(sensor)[0],
+            view, clock=self.cell.clock, reflector=self.cell.sensor_markers(sensor)[0],
             noise_um=0.0, noise_um_per_m=0.0, seed=self.cell.config.seed,
         )
         protocols = self.tracker_protocols.get(sensor, ("line",))
@@ -315,5 +388,5 @@ class SimLaunch:
         q = np.degrees(self.cell.joint_positions())
         lines = [f"cell: {self.cell.model.name}, seed {self.cell.config.seed}, "
                  f"time scale {self.cell.clock.time_scale:g}, joints (deg) {np.round(q, 2).tolist()}"]
-        lines += [f"{a.name:<10} {a.url:<28} {a.note}" for a in self.addresses.values()]
+        lines += [f"{a.name:<14} {a.url:<28} {a.note}" for a in self.addresses.values()]
         return lines

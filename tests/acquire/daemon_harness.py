@@ -8,7 +8,6 @@ arrival time, as systemd would receive them.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import signal
 import socket
@@ -26,12 +25,19 @@ import yaml
 REPO = Path(__file__).resolve().parents[2]
 PLANS = REPO / "fixtures" / "plans"
 CELL = "example"  # the cell id of fixtures/plans/example.yaml
-OPERATOR_TOKEN = "operator-secret-token"
-VIEWER_TOKEN = "viewer-secret-token"
+# Strong tokens (acquire.tokens refuses weak ones), fixed so a failing test can be re-run by hand.
+OPERATOR_TOKEN = "op-7Qm2vX9kLp4RtZ8wYc3NbF6hJd"
+VIEWER_TOKEN = "vw-Hs5gT1qWe8RuI3oPa6SdF9jKl2"
+
+#: PBKDF2 iterations of the test configurations: the least a configuration may hold (fast).
+TEST_ITERATIONS = 4096
 
 
-def sha256(text: str) -> str:
-    return hashlib.sha256(text.encode()).hexdigest()
+def scram(token: str, iterations: int = TEST_ITERATIONS) -> dict:
+    """The ``scram`` mapping of a daemon-configuration client with ``token`` (as `acquire token new` prints)."""
+    from acquire.control_auth import derive_credentials
+
+    return derive_credentials(token, iterations).config()
 
 
 def free_port() -> int:
@@ -124,9 +130,9 @@ def write_config(tmp_path: Path, port: int, **extra) -> Path:
         "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
         "auth": {
             "clients": [
-                {"name": "operator", "token_sha256": sha256(OPERATOR_TOKEN),
+                {"name": "operator", "scram": scram(OPERATOR_TOKEN),
                  "allow": ["observe", "read", "control", "motion"]},
-                {"name": "viewer", "token_sha256": sha256(VIEWER_TOKEN), "allow": ["observe", "control"]},
+                {"name": "viewer", "scram": scram(VIEWER_TOKEN), "allow": ["observe", "control"]},
             ],
         },
         "shutdown": {"on_sigterm": "pause", "timeout_s": 30},
@@ -135,6 +141,7 @@ def write_config(tmp_path: Path, port: int, **extra) -> Path:
         cfg[k] = v
     path = tmp_path / "daemon.yaml"
     path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    path.chmod(0o600)  # it holds client keys: the daemon refuses a file other users may read
     return path
 
 

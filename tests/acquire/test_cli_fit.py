@@ -194,3 +194,14 @@ def test_fit_is_a_subcommand_of_acquire():
     assert res.returncode == 0, res.stderr
     for option in ("--robot", "--validate", "--method", "--joints", "--fix-registration", "--error", "--seed", "--report"):
         assert option in res.stdout
+
+
+def test_fit_refuses_a_csv_in_radians_before_fitting(app, tmp_path):
+    ds = read_csv(CAL, load_robot_model(IIWA))
+    rad = tmp_path / "radians.csv"
+    write_csv(from_arrays(np.radians(ds.q_rad), ds.xyz_mm, marker=ds.marker, sensor=ds.sensor, config=ds.config), rad)
+    res = run(app, rad, "--robot", IIWA, "-o", tmp_path / "result.json", *QUICK)
+    assert res.exit_code == 2, res.output
+    assert f"{rad}:2:columns'q1'…'q7':everyjointangle" in flat(res.output), res.output
+    assert "theselooklikeradians" in flat(res.output) and "Traceback" not in res.output
+    assert not (tmp_path / "result.json").exists()

@@ -63,6 +63,13 @@ def test_full_method_identifies_without_the_prior_and_agrees_with_fast(tmp_path,
         r = CliRunner().invoke(app, ["fit", str(socket_csv), "--robot", str(IIWA), "--method", method, "-o", str(out)])
         assert r.exit_code == 0, r.output
         docs[method] = json.loads(out.read_text())
+        # The summary and result.json say which method and which model of the arm ran.
+        fm = docs[method]["fit_model"]
+        assert fm["method"] == method and f"method: {method} — fitted model: {fm['description']}" in r.output
+        if method == "fast":
+            assert fm["link_prior"] == {"mm": 0.2, "deg": 0.02} and "fixed prior of ±0.2 mm / ±0.02°" in fm["description"]
+        else:
+            assert fm["link_prior"] is None and "without a prior" in fm["description"]
     fast, full = (docs[m]["joint_offsets"] for m in ("fast", "full"))
     for a, b in zip(fast[1:5], full[1:5]):  # A2–A5 agree within their intervals
         assert abs(a["value_deg"] - b["value_deg"]) < 2 * max(a["std_deg"], b["std_deg"])

@@ -136,3 +136,16 @@ def test_the_model_commands_do_not_load_yourdfpy_until_used():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
                          env={"PYTHONPATH": str(ROOT), "PATH": ""}, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_import_of_a_malformed_urdf_exits_non_zero_and_writes_nothing(tmp_path):
+    """A 2-joint URDF with an unclosed <link> (recovered by yourdfpy, it has 1 joint)."""
+    urdf = tmp_path / "two.urdf"
+    urdf.write_text((URDFS / "unclosed_link.urdf").read_text())
+    out = tmp_path / "two.yaml"
+    res = subprocess.run([sys.executable, "-m", "acquire", "model", "import", str(urdf), "-o", str(out)], cwd=ROOT,
+                         capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert res.stderr.startswith(f"error: {urdf}:10:") and "Opening and ending tag mismatch" in res.stderr
+    assert "Traceback" not in res.stderr and "Using different parsing approach" not in res.stderr
+    assert not out.exists()

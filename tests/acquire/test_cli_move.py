@@ -38,7 +38,10 @@ def controller():
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
-    fake = FakeKrc4(("127.0.0.1", port), initial_deg=HOME, rt_priority=40, max_runtime_s=30)
+    # late_limit: on a cell the PC listens before the RSI program starts; here the fake starts
+    # first, and the command's start-up (imports, the exchange process) on a loaded machine can
+    # take more than RSI's 100 unanswered cycles (0.4 s), which would end the RSI session early
+    fake = FakeKrc4(("127.0.0.1", port), initial_deg=HOME, rt_priority=40, max_runtime_s=30, late_limit=5000)
     fake.start()
     yield port, fake
     fake.close()
@@ -61,6 +64,7 @@ def test_move_with_yes_reports_the_link_moves_settles_and_ends_the_session(app, 
     settled = [line for line in out.splitlines() if line.startswith("settled")][0]
     values = [float(v) for v in re.findall(r"A\d=\s*(-?[\d.]+)", settled)]
     np.testing.assert_allclose(values, [10, -80, 80, 5, 50, -20], atol=2e-3)
+    assert "on target: every axis within ±0.05°" in out
     assert fake.wait_stopped(1.0)
     stats = fake.stats()
     assert stats.stopped_reason == "Stop flag from the sensor"
@@ -144,3 +148,46 @@ def test_move_over_fri_reports_the_link_and_ends_on_target(app, version):
     np.testing.assert_allclose([float(v) for v in re.findall(r"A\d=\s*(-?[\d.]+)", settled)], target, atol=2e-3)
     np.testing.assert_allclose(actual, target, atol=2e-3)
     assert violations == []
+
+
+def test_a_kr_c4_that_does_not_move_is_not_on_target(app, controller):
+    """Settled is not on target: the fake KR C4's brakes hold, the RSI exchange goes on."""
+    port, fake = controller
+    fake.hold_brakes()
+    result = run(app, port, "--to", "1,-89,89,1,46,1", "--speed", "0.5", "--yes")
+    assert result.exit_code != 0, result.output
+    assert "on target" not in result.output.replace("off target", "")
+    np.testing.assert_allclose(fake.actual_deg(), HOME, atol=1e-9)
+    if result.exit_code == move_command.EXIT_OFF_TARGET:  # settled where it stood
+        line = [x for x in result.output.splitlines() if "settled off target" in x][0]
+        for axis, err in zip(("A1", "A2", "A3", "A4", "A5", "A6"), (-1.0, -1.0, 1.0, -1.0, -1.0, -1.0)):
+            assert f"{axis} {err:+.4f}°" in line
+        assert "allowed ±0.05° per axis" in line
+    else:  # or the commander saw the robot lag its commands and stopped the move: a device error
+        assert result.exit_code == 2 and "error:" in result.output
+
+
+@pytest.mark.parametrize("version", ["1.15", "2.7"])
+def test_an_iiwa_that_does_not_move_exits_non_zero_with_the_residual_per_axis(app, version):
+    from calib.model import load_robot_model
+    from drivers.kuka_fri.fake import FakeSunrise
+    from drivers.protocols import JointLimits
+
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    limits = JointLimits.from_model(load_robot_model(IIWA))
+    target = [1.0, 21.0, 0.0, -61.0, 0.0, 30.0, 0.0]
+    with FakeSunrise(("127.0.0.1", port), limits=limits, initial_position_rad=np.radians(IIWA_HOME),
+                     application=True, fri_version=version) as fake:
+        fake.hold_brakes()
+        result = CliRunner().invoke(app, [
+            "move", "--robot", str(IIWA), "--commander", f"fri://127.0.0.1:{port}?rt_priority=0",
+            "--to", ",".join(map(str, target)), "--speed", "0.5", "--yes", "--target-tolerance", "0.1"])
+        actual = np.degrees(fake.actual_position())
+    np.testing.assert_allclose(actual, IIWA_HOME, atol=1e-9)
+    assert result.exit_code == move_command.EXIT_OFF_TARGET, result.output
+    line = [x for x in result.output.splitlines() if "settled off target" in x][0]
+    assert "A1 -1.0000°" in line and "A2 -1.0000°" in line and "A4 +1.0000°" in line
+    assert "A3" not in line and "allowed ±0.1° per axis" in line

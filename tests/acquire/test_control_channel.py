@@ -19,7 +19,8 @@ from acquire.control import Authorizer, ControlClient, ControlServer, Refused, U
 from acquire.daemon_config import AuthSection
 
 CELL = "lab1"
-TOKEN = "s3cret-operator-token-4f1b"
+TOKEN = "s3cret-Operator-token-4f1b-Xq9"
+CREDS = auth.derive_credentials(TOKEN, auth.MIN_ITERATIONS)
 
 
 class Backend:
@@ -105,7 +106,7 @@ def cell():
 def _server(bus: Bus, backend: Backend) -> ControlServer:
     section = AuthSection.model_validate({
         "anonymous": ["observe"],
-        "clients": [{"name": "operator", "token_sha256": hashlib.sha256(TOKEN.encode()).hexdigest(),
+        "clients": [{"name": "operator", "scram": CREDS.config(),
                      "allow": ["observe", "read", "control", "motion"]}],
     })
     return ControlServer(bus.session, CELL, backend, Authorizer(section))
@@ -144,29 +145,35 @@ def test_rogue_queryable_learns_nothing_usable_and_its_reply_is_refused(cell):
         assert op.call("pause") == {"ok": True, "state": "paused"}
         assert backend.paused == 1
 
-        # What the rogue captured: no token, no hash of it, in any form. (The client returned on
-        # the daemon's reply; the rogue's copy of the last query may still be on its way.)
-        assert rogue.wait_for(5, timeout=20), rogue.seen
+        # What the rogue captured: no token, no hash or key derived from it, in any form. (The
+        # client returned on the daemon's reply; the rogue's copy of the last query may still be
+        # on its way.) Each operation is two queries: client-first, then client-final.
+        assert rogue.wait_for(10, timeout=20), rogue.seen
         captured = [(k, p, a) for k, p, a in rogue.seen if a is not None]
         secret_forms = [TOKEN.encode(), TOKEN.encode().hex().encode(), hashlib.sha256(TOKEN.encode()).hexdigest().encode(),
                         hashlib.sha256(TOKEN.encode()).digest()]
+        for key_bytes in (CREDS.stored_key, CREDS.server_key):
+            secret_forms += [key_bytes, key_bytes.hex().encode(), auth._b64(key_bytes).encode()]
         for _, _, attachment in captured:
             assert not any(form in attachment for form in secret_forms)
             assert "token" not in json.loads(attachment)
 
-        # Replaying a captured request to the daemon: refused (the nonce was used), nothing moves.
-        key, payload, attachment = next(c for c in captured if c[0].endswith("/pause"))
+        # Replaying a captured client-final to the daemon: refused (its exchange is used up), nothing moves.
+        finals = [c for c in captured if c[0].endswith("/pause") and json.loads(c[2])["scram"] == "client-final"]
+        key, payload, attachment = finals[0]
         replay = server.authorizer.identify(attachment, None, cell=CELL, op="pause", payload=payload)
-        assert replay[0].client is None and "replayed" in replay[1]
-        with pytest.raises(Refused, match="replayed"):
+        assert replay[0].client is None and "used before, or expired" in replay[1]
+        with pytest.raises(Refused, match="used before, or expired"):
             server.dispatch("pause", payload, attachment, None)
-        # The same proof for another operation (or another cell) proves nothing.
-        for other_op, other_cell in (("start", CELL), ("pause", "other-cell")):
-            ident, problem, _ = server.authorizer.identify(attachment, None, cell=other_cell, op=other_op,
-                                                           payload=payload)
-            assert ident.client is None and "wrong token" in problem
+        # Replaying the captured client-first gets a new server-first, with a new server nonce:
+        # the captured client-final does not match it.
+        first = next(a for k, _, a in captured if k.endswith("/pause") and json.loads(a)["scram"] == "client-first")
+        fresh = server.dispatch("pause", None, first, None)[0]["server_first"]
+        assert fresh not in [json.loads(a)["msg"] for _, _, a in captured]
+        with pytest.raises(Refused, match="used before, or expired"):
+            server.dispatch("pause", payload, attachment, None)
         assert backend.paused == 1
-        assert server.authorizer.refusals >= 1
+        assert server.authorizer.refusals >= 2
     finally:
         rogue.close()
         server.close()
@@ -225,26 +232,56 @@ def test_anonymous_client_refuses_conflicting_responders(cell):
         server.close()
 
 
-def test_proofs_bind_the_request_and_old_clients_are_refused():
-    req, message = auth.make_request(TOKEN, "operator", CELL, "pause", b'{"x":1}')
-    stored = auth.stored_key(TOKEN)
-    assert auth.verify_proof(req, stored, message)
-    assert not auth.verify_proof(req, auth.stored_key("another"), message)
-    assert not auth.verify_proof(req, stored, auth.auth_message(CELL, "pause", "operator", req.nonce, req.ts, b'{"x":2}'))
-    tampered = auth.Request(req.client, req.nonce, req.ts, ("00" if req.proof[:2] != "00" else "11") + req.proof[2:])
-    assert not auth.verify_proof(tampered, stored, message)
-    guard = auth.ReplayGuard(clock=lambda: float(req.ts))
-    guard.check(req)
-    with pytest.raises(auth.ProofError, match="replayed"):
-        guard.check(req)
-    late = auth.ReplayGuard(clock=lambda: float(req.ts) + 120)
-    with pytest.raises(auth.ProofError, match="synchronise the clocks"):
-        late.check(req)
-    with pytest.raises(auth.ProofError, match="sent its token in clear"):
-        auth.parse_attachment(json.dumps({"client": "operator", "token": TOKEN}).encode())
-    with pytest.raises(auth.ProofError, match="v1"):
-        auth.parse_attachment(json.dumps({"v": 1, "client": "operator"}).encode())
-    body = {"ok": True, "n": 3, "nested": {"b": 1, "a": [1.5, "x"]}}
-    mac = auth.reply_mac(stored, message, body)
-    assert auth.reply_mac(stored, message, json.loads(json.dumps({**body, "mac": mac}))) == mac
-    assert auth.reply_mac(stored, message, {**body, "n": 4}) != mac
+class StandIn(Rogue):
+    """A rogue that plays the daemon's part of SCRAM with keys of its own (it knows none)."""
+
+    def __init__(self, bus: Bus) -> None:
+        from scramp import ScramMechanism
+
+        mech = ScramMechanism("SCRAM-SHA-256")
+
+        def answer(key: str, att: bytes | None) -> dict:
+            cred = json.loads(att) if att else {}
+            if cred.get("scram") == "client-first":
+                server = mech.make_server(lambda name: (b"s" * 16, b"k" * 32, b"k" * 32, 4096))
+                server.set_client_first(cred["msg"])
+                return {"ok": True, "server_first": server.get_server_first()}
+            return {"ok": True, "state": "paused", "who": "stand-in", "scram": "v=" + "A" * 43 + "=", "mac": "0" * 64}
+
+        super().__init__(bus, {})
+        self._q.undeclare()
+
+        def handler(query) -> None:
+            att = _bytes(query.attachment)
+            with self._lock:
+                self.seen.append((str(query.key_expr), _bytes(query.payload), att))
+            query.reply(query.key_expr, json.dumps(answer(str(query.key_expr), att)))
+
+        self._q = bus.session.declare_queryable(f"remaster/{CELL}/control/**", handler)
+
+
+def test_with_a_stand_in_answering_too_the_client_completes_with_the_daemon_only(cell):
+    daemon_bus, rogue_bus, client_bus = cell
+    backend = Backend()
+    server = _server(daemon_bus, backend)
+    stand_in = StandIn(rogue_bus)
+    try:
+        _wait_routes(client_bus, 2)
+        op = ControlClient(client_bus.session, CELL, client="operator", token=TOKEN)
+        assert op.call("pause") == {"ok": True, "state": "paused"} and op.last_reply_verified
+        assert backend.paused == 1  # performed once, by the daemon
+        assert op.call("status")["who"] == "daemon"
+        # What the stand-in collected: client-finals over the daemon's nonces (used up) and, when
+        # the client tried the stand-in's server-first before the daemon's, over its own; none
+        # gets anything done by the daemon.
+        assert stand_in.wait_for(4, timeout=20), stand_in.seen
+        finals = [(k, p, a) for k, p, a in stand_in.seen if a and json.loads(a)["scram"] == "client-final"]
+        assert len(finals) >= 2
+        for key, payload, attachment in finals:
+            op_name = key.rsplit("/", 1)[1]
+            with pytest.raises(Refused, match="exchange unknown to this daemon"):
+                server.dispatch(op_name if op_name != "status" else "pause", payload, attachment, None)
+        assert backend.paused == 1
+    finally:
+        stand_in.close()
+        server.close()

@@ -89,8 +89,15 @@ def test_config_needs_devices_or_fake(tmp_path):
         load_daemon_config(path)
 
 
-def test_shipped_example_configuration_is_valid_and_loopback_only():
-    cfg = load_daemon_config(Path(__file__).parents[2] / "systemd" / "daemon.yaml.example")
+def test_shipped_example_configuration_is_valid_and_loopback_only(tmp_path):
+    shipped = Path(__file__).parents[2] / "systemd" / "daemon.yaml.example"
+    installed = tmp_path / "daemon.yaml"
+    installed.write_text(shipped.read_text())
+    installed.chmod(0o644)  # as a plain copy would leave it: it holds client keys, so refused
+    with pytest.raises(ConfigError, match="UNPROTECTED CONFIGURATION: mode 0644.*chmod 0640"):
+        load_daemon_config(installed)
+    installed.chmod(0o640)  # as systemd/README.md installs it
+    cfg = load_daemon_config(installed)
     assert cfg.zenoh.mode == "router" and cfg.zenoh.remote_endpoints == []
     assert cfg.auth.anonymous == ["observe"] and cfg.fake_cell is None and cfg.commander.driver == "fri"
 

@@ -8,7 +8,13 @@ presented over another subject's TLS link. Certificates are made with ``openssl`
 
 from __future__ import annotations
 
+import json
+import os
+import re
 import shutil
+import subprocess
+import sys
+import threading
 
 import pytest
 
@@ -18,6 +24,7 @@ from acquire.control import BadRequest, Conflict, NoReply, Refused, Unverified
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
     OPERATOR_TOKEN,
+    REPO,
     VIEWER_TOKEN,
     DaemonProcess,
     NotifySocket,
@@ -25,7 +32,7 @@ from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under 
     free_port,
     make_certs,
     open_client,
-    sha256,
+    scram,
     wait_until,
     write_config,
 )
@@ -45,7 +52,7 @@ def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tm
         proc.wait_ready()
         with open_client(port) as bus:
             anon = control(bus)
-            thief = control(bus, "operator", "guessed-token")
+            thief = control(bus, "operator", "Guessed-token-but-long-enough-9")
             viewer = control(bus, "viewer", VIEWER_TOKEN)
             inline = (tmp_path / "plans" / "example.yaml").read_text()
             attempts = [
@@ -129,9 +136,9 @@ def test_mtls_and_access_control_refuse_strangers_and_viewers(tmp_path, notify):
                        "listen_private_key": str(pki["localhost"][1]), "enable_mtls": True},
                "access_control": _acl(CELL)},
         auth={"clients": [
-            {"name": "operator", "token_sha256": sha256(OPERATOR_TOKEN), "allow": ["observe", "read", "control", "motion"],
+            {"name": "operator", "scram": scram(OPERATOR_TOKEN), "allow": ["observe", "read", "control", "motion"],
              "cert_common_names": ["operator"]},
-            {"name": "viewer", "token_sha256": sha256(VIEWER_TOKEN), "allow": ["observe"]},
+            {"name": "viewer", "scram": scram(VIEWER_TOKEN), "allow": ["observe"]},
         ]},
     )
     # Zenoh logs its ACL decisions at trace level (see the drop-in example): the refusals the
@@ -181,3 +188,213 @@ def test_mtls_and_access_control_refuse_strangers_and_viewers(tmp_path, notify):
     denied = [line for line in log.splitlines() if "is unauthorized to Query" in line]
     assert any("CertCommonName(viewer)" in d and "remaster/example/control/start" in d for d in denied)  # …it was logged
     assert not any("CertCommonName(operator)" in d for d in denied)
+
+
+# ------------------------------------------------------------------ attacks of issue 21
+class Recorder:
+    """A local process that declared the control keys: keeps every query it sees (key, payload,
+    attachment) and, with ``answer``, answers it as a stand-in daemon would."""
+
+    def __init__(self, bus, answer=None) -> None:
+        self.seen: list[tuple[str, bytes | None, bytes | None]] = []
+        self._lock = threading.Lock()
+        self._answer = answer
+
+        def handler(query) -> None:
+            item = (str(query.key_expr), _bytes(query.payload), _bytes(query.attachment))
+            with self._lock:
+                self.seen.append(item)
+            if self._answer is not None:
+                query.reply(query.key_expr, json.dumps(self._answer(*item)))
+
+        self._q = bus.session.declare_queryable(f"remaster/{CELL}/control/**", handler)
+
+    def stages(self, op: str) -> dict[str, tuple[bytes | None, bytes]]:
+        """The last (payload, attachment) seen for ``op`` per SCRAM stage."""
+        with self._lock:
+            out = {}
+            for key, payload, att in self.seen:
+                if key.endswith("/" + op) and att:
+                    out[json.loads(att)["scram"]] = (payload, att)
+            return out
+
+    def close(self) -> None:
+        self._q.undeclare()
+
+
+def _bytes(z) -> bytes | None:
+    return None if z is None else (z.to_bytes() or None)
+
+
+def raw_query(bus, op: str, payload: bytes | None, attachment: bytes | None, timeout: float = 10.0) -> list[dict]:
+    """Every reply body to one hand-made query (what an attacker replaying bytes gets)."""
+    import zenoh
+
+    kwargs = {k: v for k, v in (("payload", payload), ("attachment", attachment)) if v}
+    out = []
+    for reply in bus.session.get(f"remaster/{CELL}/control/{op}", target=zenoh.QueryTarget.ALL,
+                                 consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout, **kwargs):
+        sample = reply.ok if reply.ok is not None else reply.err
+        out.append(json.loads(sample.payload.to_bytes()))
+    return out
+
+
+def _run_dirs(tmp_path) -> list[str]:
+    """The run folders the daemon made in its state folder."""
+    runs = tmp_path / "state" / "runs"
+    return sorted(p.name for p in runs.iterdir() if p.is_dir()) if runs.is_dir() else []
+
+
+def _replay(bus, op: str, captured: dict) -> list[dict]:
+    """Send a captured exchange again: its client-first, then its client-final with its payload."""
+    replies = raw_query(bus, op, None, captured["client-first"][1])
+    assert any("server_first" in r for r in replies), replies  # a new exchange, with a new nonce…
+    return raw_query(bus, op, *captured["client-final"])  # …which the captured proof is not for
+
+
+def test_a_captured_start_is_refused_after_a_restart_and_by_the_same_daemon(tmp_path, notify):
+    port = free_port()
+    config = write_config(tmp_path, port)
+    proc = DaemonProcess(config, notify)
+    second = NotifySocket()
+    proc2 = None
+    try:
+        proc.wait_ready()
+        with open_client(port) as bus, open_client(port) as spy_bus:
+            spy = Recorder(spy_bus)
+            op = control(bus, "operator", OPERATOR_TOKEN)
+            run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
+            captured = wait_until(lambda: len(spy.stages("start")) == 2 and spy.stages("start"), 20, "capture")
+            op.call("abort", {"reason": "test"})
+            wait_until(lambda: op.call("status")["run"] is None, 30, "run aborted")
+            runs_before = _run_dirs(tmp_path)
+            # The same daemon: the exchange was used.
+            replies = raw_query(bus, "start", *captured["client-final"])
+            assert [r["error"] for r in replies] == ["refused"] and "used before" in replies[0]["message"]
+            assert all("scram" not in r for r in _replay(bus, "start", captured))
+            spy.close()
+        proc.kill()  # as a watchdog restart does (kill -9)
+        first_log = proc.log()
+        proc2 = DaemonProcess(config, second)
+        proc2.wait_ready()
+        with open_client(port) as bus:
+            for replies in (raw_query(bus, "start", *captured["client-final"]), _replay(bus, "start", captured)):
+                assert [r["error"] for r in replies] == ["refused"], replies
+                assert "not issued by this daemon instance" in replies[0]["message"]
+            anon = control(bus)
+            assert anon.call("status")["run"] is None
+            assert _run_dirs(tmp_path) == runs_before  # no second run
+        assert proc2.stop() == 0
+    finally:
+        proc.kill()
+        if proc2 is not None:
+            proc2.kill()
+        second.close()
+    assert f"run {run_id} started by operator" in first_log
+    log = proc2.log()
+    assert "refused control/start" in log and " started by " not in log and "Traceback" not in log
+
+
+def _stand_in_answer(key: str, payload: bytes | None, att: bytes | None) -> dict:
+    """What a stand-in daemon answers: a server-first with its own nonce (it knows no keys),
+    then success."""
+    from scramp import ScramMechanism
+
+    stage, msg = (json.loads(att)["scram"], json.loads(att)["msg"]) if att else (None, None)
+    if stage == "client-first":
+        mech = ScramMechanism("SCRAM-SHA-256")
+        server = mech.make_server(lambda name: (b"s" * 16, b"k" * 32, b"k" * 32, 4096))
+        server.set_client_first(msg)
+        return {"ok": True, "server_first": server.get_server_first()}
+    return {"ok": True, "run_id": "FAKE", "state": "running", "cell": CELL, "daemon": "ready", "run": None}
+
+
+def test_a_stand_in_daemon_gets_nothing_the_real_one_accepts_and_the_client_does_not_believe_it(tmp_path, notify):
+    from acquire.bus import Bus
+
+    port = free_port()
+    config = write_config(tmp_path, port)
+    token_file = tmp_path / "token"
+    token_file.write_text(OPERATOR_TOKEN + "\n")
+    token_file.chmod(0o600)
+    # The daemon is down; a local process listens on the cell's router port and answers.
+    stand_in = Bus(CELL, config={"listen": [f"tcp/127.0.0.1:{port}"]})
+    proc = None
+    try:
+        stand_in.liveliness_token(stand_in.key("daemon"))
+        rec = Recorder(stand_in, answer=_stand_in_answer)
+        with open_client(port) as bus:
+            op = control(bus, "operator", OPERATOR_TOKEN)
+            with pytest.raises(Unverified, match="no reply to control/start could be attributed to the daemon"):
+                op.call("start", {"plan": "example.yaml"}, timeout=5)
+            assert not op.last_reply_verified
+        captured = rec.stages("start")
+        assert set(captured) == {"client-first", "client-final"}
+        # The CLI: exit 3, no success printed.
+        cli = subprocess.run([sys.executable, "-m", "acquire", "start", "example.yaml", "--cell", CELL, "--client",
+                              "operator", "--token-file", str(token_file), "--connect", f"tcp/127.0.0.1:{port}",
+                              "--timeout", "5"], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                             env=dict(os.environ, PYTHONPATH=str(REPO)))
+        assert cli.returncode == 3, cli.stderr
+        assert "FAKE" not in cli.stdout and "could not be attributed" not in cli.stdout
+        rec.close()
+        stand_in.close()
+
+        proc = DaemonProcess(config, notify)
+        proc.wait_ready()
+        with open_client(port) as bus:
+            for replies in (raw_query(bus, "start", *captured["client-final"]), _replay(bus, "start", captured)):
+                assert [r["error"] for r in replies] == ["refused"], replies
+                assert "not issued by this daemon instance" in replies[0]["message"]
+            anon = control(bus)
+            assert anon.call("status")["run"] is None and " started by " not in proc.log()
+            # The operator retries once: exactly one run.
+            run_id = control(bus, "operator", OPERATOR_TOKEN).call("start", {"plan": "example.yaml"})["run_id"]
+            control(bus, "operator", OPERATOR_TOKEN).call("abort", {"reason": "test"})
+            wait_until(lambda: anon.call("status")["run"] is None, 30, "run aborted")
+        assert proc.stop() == 0
+    finally:
+        stand_in.close()
+        if proc is not None:
+            proc.kill()
+    assert re.findall(r"run (\S+) started by", proc.log()) == [run_id]  # exactly the retry's run
+
+
+def test_a_flood_of_malformed_queries_makes_a_bounded_log_without_tracebacks(tmp_path, notify):
+    port = free_port()
+    proc = DaemonProcess(write_config(tmp_path, port), notify)
+    bad = [
+        ("status", b"[" * 50_000, None),                                   # nested past the recursion limit
+        ("start", b"not json", b"\xff\xfe garbage"),                        # attachment not UTF-8
+        ("pause", None, b"[1, 2]"),                                         # not an object
+        ("start", None, json.dumps({"v": 2, "client": "operator", "nonce": "n", "ts": "1", "proof": "00"}).encode()),
+        ("start", None, json.dumps({"v": 3, "scram": "client-first", "msg": "n,,garbage"}).encode()),
+        ("start", None, json.dumps({"v": 3, "scram": "client-final", "msg": "c=biws,r=x@dead.beef,p=AAAA"}).encode()),
+        ("abort", b'{"reason": ' + b"1" * 5000 + b"}", None),
+        ("plan", b'{"run_id": {"a": [1, 2, 3]}}', None),
+    ]
+    try:
+        proc.wait_ready()
+        with open_client(port) as bus:
+            for i in range(2000):
+                op, payload, att = bad[i % len(bad)]
+                assert raw_query(bus, op, payload, att), f"no reply to malformed query {i}"
+            assert control(bus).call("status")["daemon"]  # still answering
+
+            def counted():
+                raw_query(bus, "pause", None, b"[1, 2]")
+                return "similar lines from" in proc.log()
+
+            wait_until(counted, 60, "a line with the count of suppressed lines", poll=0.5)
+        assert proc.stop() == 0
+    finally:
+        proc.kill()
+    log = proc.log()
+    ours = [line for line in log.splitlines() if "acquire.control" in line]
+    assert "Traceback" not in log
+    assert 10 <= len(ours) <= 80, f"{len(ours)} lines:\n" + "\n".join(ours[:100])
+    assert len(log.encode()) < 100_000
+    suppressed = max(int(m) for m in re.findall(r"\[(\d+) similar lines from", log))
+    print(f"2000 malformed queries: {len(ours)} acquire.control log lines, {len(log.encode())} bytes of log, "
+          f"{suppressed} lines suppressed (counted)")
+    assert suppressed >= 1500

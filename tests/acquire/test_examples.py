@@ -77,10 +77,24 @@ def test_robot_models_load_by_packaged_name_when_no_such_file_exists(tmp_path, m
     monkeypatch.chdir(tmp_path)
     assert load_robot_model("kuka_iiwa14_r820").name == "KUKA LBR iiwa 14 R820"
     assert load_robot_model("kuka_kr6_r900_2.yaml").n_joints == 6
-    with pytest.raises(ConfigError, match="no such robot model file .*packaged model: kuka_iiwa14_r820"):
+    assert load_robot_model("franka_panda").tool.markers[0].name == "ball"
+    with pytest.raises(ConfigError, match="no such robot model file .*packaged model: .*kuka_iiwa14_r820"):
         load_robot_model("kuka_iiwa99")
     with pytest.raises(ConfigError, match="no such robot model file"):
         load_robot_model(tmp_path / "models" / "kuka_iiwa14_r820.yaml")  # a path is never swapped for a name
     local = tmp_path / "kuka_iiwa14_r820.yaml"  # a file of that name in the current folder wins
     local.write_text((ROOT / "fixtures" / "robots" / "kuka_iiwa7_r800.yaml").read_text())
     assert load_robot_model("kuka_iiwa14_r820.yaml").name == "KUKA LBR iiwa 7 R800"
+
+
+def test_examples_lists_the_packaged_foxglove_layout_and_run_help_points_at_it():
+    layout = resources.foxglove_layout()
+    assert layout.is_file() and layout.read_bytes() == (ROOT / "fixtures" / "foxglove" / "remaster-layout.json").read_bytes()
+    result = CliRunner().invoke(app, ["examples"])
+    assert result.exit_code == 0, result.output
+    assert f"  {layout}" in result.output.splitlines()
+    from acquire.commands import run as run_command
+    import inspect
+
+    live = inspect.signature(run_command.run).parameters["live"].default
+    assert str(layout) in live.help and "fixtures/" not in live.help.replace(str(layout), "")

@@ -342,3 +342,36 @@ def test_suspender_rejects_unknown_policies():
     with pytest.raises(ValueError, match="wait, reacquire, ask, skip"):
         LostTargetSuspender("pray", wait_s=1.0, predictor=None, clock=lambda: 0.0, sleep=lambda s: None,
                             event=lambda *a, **k: None)
+
+
+def test_reacquire_policy_aims_again_while_it_waits_for_a_beam_blocked_at_the_first_try():
+    """Someone still stands in the beam when the first aim goes out: a tracker never re-locks by
+    itself, so the policy ``reacquire`` aims again while it waits, and resumes once clear."""
+    clock, events = ManualClock(), []
+    q = random_configs(1, seed=9)[0].q_rad
+    pred = make_predictor({"tracker": base2tracker()})
+    truth, _ = pred.predict("tracker", "smr", q)
+
+    class BlockedForAWhile(BeamTracker):
+        def aim(self, xyz, timeout: float = 10.0) -> None:
+            if clock.now() < 0.5:
+                self.aims.append(np.asarray(xyz, float))
+                raise TargetLostError("tracker: beam blocked")
+            super().aim(xyz, timeout)
+
+        def search(self, radius_mm: float, timeout: float):
+            if clock.now() < 0.5:
+                self.searches.append(radius_mm)
+                raise TargetLostError("tracker: beam blocked")
+            return super().search(radius_mm, timeout)
+
+    tracker = BlockedForAWhile(truth)
+    rec = suspender("reacquire", pred, clock, events).recover(tracker, "smr", "c1", q, "beam lost")
+    assert rec.action == "resume" and rec.reason == "re-acquired", rec
+    assert len(tracker.aims) >= 2 and tracker.locked
+    assert 0.5 <= clock.now() < 1.0  # within wait_s
+    # "wait" only waits: the same blocked beam is skipped
+    events.clear()
+    clock.t = 0.0
+    tracker = BlockedForAWhile(truth)
+    assert suspender("wait", pred, clock, events).recover(tracker, "smr", "c2", q, "beam lost").action == "skip"

@@ -230,6 +230,7 @@ def test_watch_against_the_daemon_finds_its_cell_follows_its_run_and_never_claim
                                    stdin=subprocess.DEVNULL)
             token = tmp_path / "token"
             token.write_text(OPERATOR_TOKEN)
+            token.chmod(0o600)  # the CLI refuses a token file others may read
             plan = small_plan(tmp_path, n=4, name="small.yaml")
             started = subprocess.run(acquire_cmd("start", "--inline", str(plan), "--cell", CELL, "--connect", endpoint,
                                                  "--client", "operator", "--token-file", str(token)),

@@ -146,3 +146,33 @@ def test_error_messages_say_what_is_allowed(tmp_path):
     with pytest.raises(DatasetError) as info:
         read_csv(path, IIWA)
     assert re.search(r"q1…qN without gaps", str(info.value))
+
+
+def _in_radians(tmp_path: Path) -> tuple[Path, int]:
+    """The simulated iiwa calibration CSV with its joint angles written in radians (positions in
+    mm as measured); the line of its first measurement."""
+    ds = read_csv(ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv", IIWA)
+    path = tmp_path / "radians.csv"
+    write_csv(from_arrays(np.radians(ds.q_rad), ds.xyz_mm, marker=ds.marker, sensor=ds.sensor, pose=ds.pose,
+                          config=ds.config), path, comment="angles in radians by mistake")
+    return path, 3  # one comment line, the header, then the first row
+
+
+def test_a_csv_in_radians_is_refused_up_front_naming_line_and_columns(tmp_path):
+    """It used to pass check_units (radians barely move the model) and run the fit to σ = 288 mm."""
+    path, first = _in_radians(tmp_path)
+    with pytest.raises(DatasetError) as exc:
+        read_csv(path, IIWA)
+    msg = str(exc.value)
+    assert msg.startswith(f"{path}:{first}: columns 'q1'…'q7': every joint angle of the ")
+    assert "these look like radians (given [" in msg and "allowed degrees, e.g. [" in msg
+    assert msg.endswith("this file needs degrees")
+    # The same angles in degrees are read.
+    assert len(read_csv(ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv", IIWA)) > 10
+
+
+def test_the_plan_and_the_csv_share_one_radians_check():
+    from acquire import plan_guards
+    from calib import units
+
+    assert plan_guards.radians_problem is units.radians_problem

@@ -85,11 +85,25 @@ TX60_URDF = [
 ]
 TX60_FLANGE = ((0, 0, 0), (0, 0, 0))
 
+# Source: frankaemika/franka_ros, franka_description/robots/panda_arm.xacro (panda_joint1..7,
+# then the fixed panda_joint8 to panda_link8, the flange: xyz 0 0 0.107).
+PANDA_URDF = [
+    ((0, 0, 0.333), (0, 0, 0), (0, 0, 1)),
+    ((0, 0, 0), (-PI / 2, 0, 0), (0, 0, 1)),
+    ((0, -0.316, 0), (PI / 2, 0, 0), (0, 0, 1)),
+    ((0.0825, 0, 0), (PI / 2, 0, 0), (0, 0, 1)),
+    ((-0.0825, 0.384, 0), (-PI / 2, 0, 0), (0, 0, 1)),
+    ((0, 0, 0), (PI / 2, 0, 0), (0, 0, 1)),
+    ((0.088, 0, 0), (PI / 2, 0, 0), (0, 0, 1)),
+]
+PANDA_FLANGE = ((0, 0, 0.107), (0, 0, 0))
+
 REFERENCES = {
     "kuka_iiwa14_r820.yaml": (IIWA14_URDF, IIWA_FLANGE),
     "kuka_iiwa7_r800.yaml": (IIWA7_URDF, IIWA_FLANGE),
     "kuka_kr6_r900_2.yaml": (KR6_URDF, KR6_FLANGE),
     "staubli_tx60.yaml": (TX60_URDF, TX60_FLANGE),
+    "franka_panda.yaml": (PANDA_URDF, PANDA_FLANGE),
 }
 
 # Flange position (mm) at the controller's zero, from the data-sheet link lengths.
@@ -98,6 +112,7 @@ ZERO_FLANGE_MM = {
     "kuka_iiwa7_r800.yaml": (0.0, 0.0, 340 + 400 + 400 + 126),
     "kuka_kr6_r900_2.yaml": (25 + 455 + 420 + 90, 0.0, 400 + 25),  # arm stretched forward
     "staubli_tx60.yaml": (0.0, 20.0, 375 + 290 + 310 + 70),  # arm straight up, 20 mm shoulder step
+    "franka_panda.yaml": (82.5 - 82.5 + 88, 0.0, 333 + 316 + 384 - 107),  # the flange pointing down
 }
 
 SHIPPED = sorted(p.name for p in ROBOTS.glob("*.yaml"))

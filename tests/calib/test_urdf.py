@@ -275,3 +275,31 @@ def test_any_serial_geometry_converts_exactly(tmp_path, seed, convention):
     assert pos < tol and rot < 1e-9, (pos, rot)
     if convention != "dh":
         assert abs(imp.model.joints[3].beta) > 0.01 and all(abs(j.d) < 1e4 for j in imp.model.joints)
+
+
+# unclosed_link.urdf: links and joints interleaved as ROS writes them, with <link name="l1"> left open (line 6): yourdfpy
+# alone logs the error, re-parses with recover=True, finds j2 and l2 inside link l1 and returns a
+# 1-joint robot (base → l1), which used to be imported without a word.
+UNCLOSED = Path(__file__).parent / "urdf" / "unclosed_link.urdf"
+
+
+def test_a_malformed_urdf_is_refused_naming_line_and_parser_message_not_recovered(tmp_path):
+    path = tmp_path / "two.urdf"
+    path.write_text(UNCLOSED.read_text())
+    with pytest.raises(UrdfError) as err:
+        import_urdf(path)
+    msg = str(err.value)
+    assert msg.startswith(f"{path}:10:") and "not well-formed XML" in msg, msg
+    assert "Opening and ending tag mismatch: link line 6 and robot" in msg, msg
+    with pytest.raises(UrdfError, match="not well-formed XML"):
+        load_urdf(path)
+    # Closed, the same file is the 2-joint arm.
+    path.write_text(UNCLOSED.read_text().replace('<link name="l1">', '<link name="l1"/>'))
+    assert import_urdf(path).joints == ["j1", "j2"]
+
+def test_a_urdf_with_entities_is_refused(tmp_path):
+    path = tmp_path / "xxe.urdf"
+    path.write_text('<?xml version="1.0"?>\n<!DOCTYPE robot [<!ENTITY x SYSTEM "file:///etc/hostname">]>\n'
+                    + ARM.format(t1="revolute", axis="0 0 1", limit=LIMIT, mimic="", extra="<!-- &x; -->"))
+    with pytest.raises(UrdfError, match=rf"^{path}:1:1: a DOCTYPE is not allowed in a URDF"):
+        import_urdf(path)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -140,7 +142,7 @@ def test_sim_clock_runs_the_exchange_faster_than_real_time(limits):
         c.move_to(target, 1.0, timeout=10.0)
         state = c.wait_settled(1e-5, 0.05, 5.0)
         np.testing.assert_allclose(state.position_rad, target, atol=1e-4)
-        assert state.device_time == pytest.approx(clock.now(), abs=0.1)
+        assert state.device_time == pytest.approx(time.time(), abs=60.0)  # the controller's clock: time of day
         assert clock.now() - t0 > 0.5  # simulated seconds, half as many on the wall
         assert fake.stats.violations == []
 
@@ -167,3 +169,23 @@ def test_ctrl_c_does_not_reach_the_exchange_and_sigterm_ends_commanding(limits):
         fake.wait_state(SessionState.MONITORING_WAIT, 5.0)
         assert fake.stats.session_drops == 1 and fake.stats.violations == []
         np.testing.assert_allclose(fake.stats.commands[-1][1], target, atol=1e-9)
+
+
+def test_a_healthy_session_start_is_not_a_warning_but_a_long_wait_is(limits, caplog):
+    """The robot application starts its overlay a moment after MONITORING_READY: a move made
+    then waits a little, and says so at INFO; only a wait past QUIET_SESSION_WAIT_S warns."""
+    caplog.set_level(logging.INFO, logger="remaster.device")
+    with fri_pair(limits, commanding=False, initial_position_rad=Q0, application=True,
+                  application_start_cycles=100) as (c, fake):
+        c.wait_session(SessionState.MONITORING_READY, 10.0)
+        c.move_to(Q0 + 0.01, 0.5, timeout=20.0)
+    waits = [r for r in caplog.records if "waiting up to" in r.getMessage()]
+    assert waits and all(r.levelno == logging.INFO for r in waits)
+    caplog.clear()
+    with fri_pair(limits, commanding=False, initial_position_rad=Q0,
+                  url_query="rt_priority=0&session_wait_s=3.5") as (c, fake):
+        c.wait_session(SessionState.MONITORING_READY, 10.0)
+        with pytest.raises(DeviceFaultError, match="not COMMANDING_ACTIVE"):
+            c.move_to(Q0 + 0.01, 0.5, timeout=20.0)
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING and "still MONITORING_READY" in r.getMessage()]
+    assert len(warned) == 1

@@ -4,6 +4,7 @@ grades answers (late, missing, bad counter, malformed), its state machine and it
 from __future__ import annotations
 
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -87,9 +88,12 @@ def make_fake(client, **kw) -> FakeSunrise:
 def test_monitoring_messages_carry_what_a_client_needs(client):
     with make_fake(client, send_period_ms=4, receive_multiplier=2, idle_cycles=2):
         msgs = [client.receive() for _ in range(6)]
+    # the application opens the session: no IDLE message before it (an SDK example would quit)
     states = [m.connection_info.session_state for m in msgs]
-    assert states == [SessionState.IDLE] * 2 + [SessionState.MONITORING_WAIT] * 4
+    assert states == [SessionState.MONITORING_WAIT] * 6
     assert [m.header.sequence_counter for m in msgs] == list(range(6))
+    # sent from the FRI port (the client's), as Sunrise does
+    assert client.controller == ("127.0.0.2", client.address[1])
     m = msgs[-1]
     assert (m.connection_info.send_period, m.connection_info.receive_multiplier) == (4, 2)
     assert m.connection_info.quality == ConnectionQuality.POOR  # nobody answered yet
@@ -100,6 +104,22 @@ def test_monitoring_messages_carry_what_a_client_needs(client):
     np.testing.assert_allclose(m.monitor_data.commanded_joint_position, Q0)
     stamps = [x.monitor_data.timestamp.seconds for x in msgs]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert abs(stamps[-1] - time.time()) < 60.0  # the controller's clock: time of day
+
+
+def test_stopping_the_application_closes_the_session_with_idle_messages(client):
+    fake = make_fake(client, closing_idle_messages=3).start()
+    try:
+        assert client.receive().connection_info.session_state == SessionState.MONITORING_WAIT
+    finally:
+        fake.stop()
+    states = []
+    client.sock.settimeout(0.5)
+    with pytest.raises(socket.timeout):
+        while True:
+            states.append(client.receive().connection_info.session_state)
+    assert states[-3:] == [SessionState.IDLE] * 3
+    assert SessionState.IDLE not in states[:-3]
 
 
 def test_the_session_gets_ready_only_when_answers_come(client):
@@ -145,12 +165,12 @@ def test_bad_counters_and_malformed_answers_are_counted_not_applied(client):
         assert fake.stats.malformed_answers == 2
 
 
-def test_answers_in_idle_are_violations_but_answers_in_flight_at_a_restart_are_late(client):
-    with make_fake(client, idle_cycles=50) as fake:
+def test_answers_in_idle_are_violations_but_answers_in_flight_at_a_close_are_late(client):
+    with make_fake(client, idle_cycles=50, closing_idle_messages=5) as fake:
         client.echo_until(fake, SessionState.MONITORING_READY)
         before = client.receive()
-        fake.restart()
-        # an answer to a message sent before the restart: in flight, not an IDLE violation
+        fake.close_session()
+        # an answer to a message sent before the close: in flight, not an IDLE violation
         client.answer(before.header.sequence_counter, Q0)
         m = client.receive()
         while m.connection_info.session_state != SessionState.IDLE:
@@ -229,3 +249,25 @@ def test_malformed_hook_sends_bytes_our_decoder_rejects(client):
             except ProtocolError:
                 bad += 1
         assert bad == 5
+
+
+def test_a_client_started_after_the_fake_can_still_bind_its_port_on_every_address():
+    """KUKA's SDK binds INADDR_ANY:port without SO_REUSEADDR: the fake must not hold the port
+    before a client does. Such a client then hears the fake from an ephemeral port."""
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    with FakeSunrise(("127.0.0.1", port), initial_position_rad=Q0):
+        time.sleep(0.7)  # past a port claim attempt with no client
+        sdk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sdk.bind(("0.0.0.0", port))
+            sdk.settimeout(2.0)
+            data, sender = sdk.recvfrom(4096)
+            time.sleep(0.7)  # another claim attempt: the port is held on every address
+            data, sender = sdk.recvfrom(4096)
+        finally:
+            sdk.close()
+    assert decode_monitoring(data).connection_info.session_state == SessionState.MONITORING_WAIT
+    assert sender[0] == "127.0.0.1" and sender[1] != port

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import math
 import socket
+import struct
+import zlib
 
 import numpy as np
 import pytest
@@ -143,8 +145,14 @@ def test_the_fake_speaks_each_layout_as_the_vendor_table_reads_it(version):
                 data, _addr = sock.recvfrom(4096)
     finally:
         sock.close()
+    if version == "2.7":  # SDK 2.7: fixed32 LE length, the message, fixed32 LE CRC-32 of it
+        (n,) = struct.unpack_from("<I", data, 0)
+        assert len(data) == n + 8 and struct.unpack_from("<I", data, 4 + n)[0] == zlib.crc32(data[4:4 + n])
+        body = data[4:4 + n]
+    else:
+        body = data
     theirs = Monitoring()
-    theirs.ParseFromString(data)
+    theirs.ParseFromString(body)
     assert theirs.IsInitialized()
     np.testing.assert_allclose(theirs.monitorData.measuredJointPosition.value, Q0)
     ours = decode_monitoring(data)

@@ -112,3 +112,60 @@ def test_a_broken_configuration_is_refused_with_its_file_and_element(tmp_path):
         RsiEthernetConfig.load(bad)
     with pytest.raises(ValueError, match="reads 6 AK corrections; the robot has 5 axes"):
         FakeKrc4(("127.0.0.1", 9), n_axes=5, ethernet_config=RsiEthernetConfig.load())
+
+
+RSIX = CONTROLLER / "remaster_rsi.rsix"
+
+
+def _rsix_objects():
+    root = ET.parse(RSIX).getroot()
+    assert root.tag == "RsiContext"
+    return {o.get("ObjId"): o for o in root.find("RsiObjects")}, root
+
+
+def test_the_rsi_context_reads_the_shipped_ethernet_configuration():
+    objects, _ = _rsix_objects()
+    eth = [o for o in objects.values() if o.get("ObjType") == "Ethernet"]
+    assert len(eth) == 1
+    params = {p.get("Name"): p.get("ParamValue") for p in eth[0].iter("Parameter")}
+    assert params["ConfigFile"] == SHIPPED.name  # the file RSI_CREATE's context loads
+    src = (CONTROLLER / "remaster_rsi.src").read_text()
+    assert f'RSI_CREATE("{RSIX.name}"' in src
+
+
+def test_every_axis_correction_the_codec_sends_reaches_axiscorr_on_its_own_axis():
+    """The codec sends AK.A1..A6; the ethernet configuration maps each to channel INDX n, which
+    the Ethernet object outputs as Out<n> (input index n-1): the context must route Out<n> of
+    AK.An to AxisCorr's CorrAn, in both the object list and the editor's links."""
+    cfg = RsiEthernetConfig.load()
+    sen = ET.fromstring(SenFormatter(6, 0, cfg.sen_type).format([0.5] * 6, True, 1))
+    sent_axes = [f"AK.{k}" for k in sen.find("AK").attrib]
+    objects, root = _rsix_objects()
+    eth_id = next(k for k, o in objects.items() if o.get("ObjType") == "Ethernet")
+    corr = next(o for o in objects.values() if o.get("ObjType") == "AxisCorr")
+    inputs = {int(i.get("InIdx")): (i.get("OutObjId"), int(i.get("OutIdx"))) for i in corr.iter("Input")}
+    links = {(ln.get("From"), ln.get("FromPort")): (ln.get("To"), ln.get("ToPort")) for ln in root.iter("Link")}
+    for tag in sent_axes:
+        axis = int(tag[-1])
+        channel = cfg.receive[tag]
+        assert inputs[axis - 1] == (eth_id, channel - 1), tag
+        assert links[(eth_id, f"Out{channel}")] == (corr.get("ObjId"), f"CorrA{axis}"), tag
+    limits = {p.get("Name"): float(p.get("ParamValue")) for p in corr.iter("Parameter")}
+    for a in range(1, 7):
+        assert -20 <= limits[f"LowerLimA{a}"] < 0 < limits[f"UpperLimA{a}"] <= 20
+    # Stop (channel 7) goes to the STOP object the README has the integrator add
+    notes = (CONTROLLER / "README.md").read_text()
+    assert f"Out{cfg.receive['Stop']}" in notes and "STOP" in notes
+    assert (eth_id, f"Out{cfg.receive['Stop']}") not in links or links[(eth_id, "Out7")][0].startswith("Stop")
+
+
+def test_the_krl_program_is_written_as_a_kuka_integrator_writes_it():
+    src = (CONTROLLER / "remaster_rsi.src").read_text()
+    lines = [ln.strip() for ln in src.splitlines()]
+    assert "INI" not in lines  # INI is a fold, not a statement
+    assert lines.index(";FOLD INI") < lines.index(";ENDFOLD (INI)")
+    assert re.search(r"INTERRUPT DECL \d+ WHEN \$STOPMESS==TRUE DO IR_STOPM", src)
+    assert re.search(r"BAS \(#INITMOV,0 \)", src)
+    for call in ("RSI_CREATE", "RSI_ON", "RSI_MOVECORR", "RSI_OFF", "RSI_DELETE"):
+        i = next(k for k, ln in enumerate(lines) if ln.startswith(f"ret = {call}("))
+        assert lines[i + 1] == "IF (ret <> RSIOK) THEN" and lines[i + 2].startswith("HALT"), call

@@ -115,3 +115,27 @@ def test_fake_refuses_non_loopback_targets_and_odd_cycles():
         FakeKrc4(("192.168.1.10", 49152))
     with pytest.raises(ValueError, match="4 \\(#IPO_FAST\\) or 12"):
         FakeKrc4(("127.0.0.1", 49152), cycle_ms=8)
+
+
+def test_held_brakes_keep_the_axes_still_while_the_exchange_goes_on(client):
+    with fake_for(client, lockstep=True) as f:
+        f.hold_brakes()
+        client.run(lambda i, s: ([1.0, 0, 0, 0, 0, 0], s.ipoc), 50)
+        stats = f.stats()
+        f.hold_brakes(False)
+        client.run(lambda i, s: ([1.0, 0, 0, 0, 0, 0], s.ipoc), 100)
+    a1 = [s.axis_actual_deg[0] for _, s in client.states]
+    assert stats.stopped_reason is None and stats.answers_on_time >= 45
+    assert max(abs(v) for v in a1[:50]) == 0.0  # corrections read, nothing moved
+    assert a1[-1] == pytest.approx(1.0, abs=1e-3)  # released: it follows again
+
+
+def test_drives_off_halts_the_robot_program_and_rsi_with_it(client):
+    with fake_for(client, lockstep=True) as f:
+        client.run(lambda i, s: ([0.5, 0, 0, 0, 0, 0], s.ipoc), 10)
+        f.drives_off()
+        client.run(lambda i, s: ([0.5, 0, 0, 0, 0, 0], s.ipoc), 20)
+        assert f.wait_stopped(1.0)
+        reason = f.stats().stopped_reason
+    assert reason == "drives off: the robot program halted"
+    assert len(client.states) < 30  # it stopped sending

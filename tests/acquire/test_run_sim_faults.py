@@ -1,0 +1,47 @@
+"""A ``--fake`` run rehearses the faults scripted in its cell file: beam breaks fire from the
+cell's ``faults:`` timeline (nothing in the run knows) and the run sees them as a lost
+reflector: it suspends, tries to re-acquire, and ends with every configuration measured or
+skipped with the reason."""
+
+from __future__ import annotations
+
+import pytest
+import yaml
+
+from acquire.plan import load_plan
+from acquire.recorder import read_run
+
+from run_helpers import fake_controller, ROOT, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+
+pytestmark = pytest.mark.timeout(150)
+
+CONFIGS = [[5, 20, 0, -90, 0, -30, 0], [0, 25, 0, -85, 0, -30, 10], [-5, 20, 5, -90, 0, -35, 0]]
+
+
+def test_scripted_beam_breaks_in_the_cell_file_are_seen_by_a_fake_run(tmp_path):
+    cell = yaml.safe_load((ROOT / "fixtures" / "sim" / "default.yaml").read_text())
+    cell["robot"] = str((ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml").resolve())
+    cell["faults"] = [{"at_s": 1.0 + 1.5 * i, "fault": "beam_break", "device": "tracker", "duration_s": 0.3}
+                      for i in range(40)]
+    cell_path = tmp_path / "cell.yaml"
+    cell_path.write_text(yaml.safe_dump(cell, sort_keys=False))
+    plan = small_plan(tmp_path, "tracker.yaml",
+                      sequencing={"samples": 5, "settle_window_s": 0.2, "lost_target_wait_s": 3},
+                      fake={"sim_config": str(cell_path), "time_scale": 3.0})
+    doc = yaml.safe_load(plan.read_text())
+    doc["poses"] = {"joints": CONFIGS}
+    plan.write_text(yaml.safe_dump(doc, sort_keys=False))
+    rc = fake_controller(load_plan(plan), fit=False)
+    rc.start()
+    summary = rc.wait(140)
+    assert summary.state == "finished", summary.reason
+    contents = read_run(summary.log_path)
+    events = contents.events
+    suspended = [e for e in events if e["kind"] == "suspended"]
+    assert suspended, f"no beam break seen by the run; events: {[e['kind'] for e in events]}"
+    assert all(e["sensor"] == "tracker" and "not visible" in e["reason"] for e in suspended)
+    assert any(e["kind"] in ("aimed", "searched") for e in events)  # it tried to re-acquire
+    measured = {s["config_id"] for s in contents.samples}
+    skipped = {e["config_id"]: e["reason"] for e in events if e["kind"] == "skipped"}
+    assert len(measured) + len(skipped) == len(CONFIGS) and measured
+    assert all("tracker" in reason for reason in skipped.values())
