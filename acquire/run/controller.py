@@ -49,7 +49,7 @@ from acquire.sequencer import estimate_measure_s, estimate_settle_s, move_times,
 from drivers.cell import CellDescription
 from drivers.errors import DriverError
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("acquire.run")  # the run's own lines under the package name (journald, tests)
 
 #: Configurations failing in a row after which the run stops as failed (the cell is not usable).
 MAX_CONSECUTIVE_FAILURES = 3
