@@ -7,8 +7,8 @@ Start-up (``Daemon.run``):
    with ``live.enabled``, start the Foxglove live view (``acquire.live.LiveServer``), which then
    serves every run's log channels as they are written;
 2. bring up the cell's devices (``DeviceHost``): the configured commander and sensors, or with
-   ``fake`` the simulated cell (``drivers.sim.launch.SimLaunch``) with a commander exchanging
-   real-time packets with its fake controller; announce each with a liveliness token
+   ``fake`` the simulated cell ``acquire daemon`` started and handed over (a ``CellSource``),
+   with a commander exchanging real-time packets with its controller; announce each with a liveliness token
    ``remaster/<cell>/device/<name>`` (and the daemon itself as ``remaster/<cell>/daemon``);
 3. serve the control queries (``acquire.control``) and tell systemd ``READY=1``.
 
@@ -19,7 +19,7 @@ sends ``WATCHDOG=1``; while not, it stops pinging (systemd then restarts it) and
 ``STATUS=``.
 
 A run (``start`` query) gets the devices: the daemon closes its own connections (the run opens
-the plan's drivers at the same ports), watches the run's commander instead, and takes the
+the plan's drivers at the same ports, through the cell's description: ``cell_for_plan``), watches the run's commander instead, and takes the
 devices back once the run ends.
 
 SIGTERM/SIGINT: ``STOPPING=1``; a running run is paused (it finishes the configuration it is
@@ -38,13 +38,13 @@ import threading
 import time
 import tracemalloc
 from dataclasses import dataclass
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
 from acquire.control import Authorizer, BadRequest, Conflict, ControlServer, Identity
 from acquire.daemon_config import DaemonConfig
-from acquire.recorder import base_path
+from acquire.daemon_devices import CellSource, DeviceHost, cell_for_plan  # noqa: F401 (DeviceHost: acquire.daemon's API)
+from acquire.daemon_runs import list_runs, plan_path, run_log
 from acquire.sdnotify import SdNotifier
 from drivers.errors import DeviceTimeoutError, DriverError
 
@@ -52,10 +52,6 @@ log = logging.getLogger(__name__)
 
 #: Run states in which the run holds the devices.
 ACTIVE_STATES = ("starting", "running", "paused", "suspended", "stopping")
-#: Wall seconds the fake controller of the idle simulated cell keeps sending (a month).
-IDLE_FAKE_RUNTIME_S = 30 * 24 * 3600.0
-#: Wall seconds to wait for the idle devices to come up.
-DEVICE_START_TIMEOUT_S = 20.0
 
 
 @dataclass(frozen=True)
@@ -138,119 +134,13 @@ class HealthMonitor:
         return []
 
 
-class DeviceHost:
-    """The cell's devices while no run holds them.
-
-    Real devices: the configured commander (``connect`` binds its port and starts its exchange
-    thread) and sensors. ``fake``: the simulated cell's fake devices on loopback, and a commander
-    of the cell's controller kind exchanging real-time packets with the fake controller.
-    """
-
-    def __init__(self, cfg: DaemonConfig) -> None:
-        self.cfg = cfg
-        self.commander = None
-        self.sensors: list = []
-        self.launch = None
-        self.expect_stream = False
-        self.names: list[str] = []
-
-    def open(self) -> list[str]:
-        """Bring every device up; returns their names. On failure everything is closed again."""
-        try:
-            if self.cfg.fake_cell is not None:
-                self._open_fake()
-            else:
-                self._open_real()
-        except BaseException:
-            self.close()
-            raise
-        return list(self.names)
-
-    def _open_real(self) -> None:
-        from acquire.run import open_commander, open_sensor
-        from calib.model import load_robot_model
-        from drivers.protocols import JointLimits
-
-        names = []
-        if self.cfg.commander is not None:
-            model = load_robot_model(self.cfg.robot)
-            cmd = open_commander(self.cfg.commander, JointLimits.from_model(model))
-            cmd.name = self.cfg.commander.name
-            self.commander = cmd
-            cmd.connect()
-            names.append(self.cfg.commander.name)
-        for spec in self.cfg.sensors:
-            self.sensors.append(open_sensor(spec))
-            names.append(spec.name)
-        # A real controller streams only while its robot program runs: no stream expected idle.
-        self.expect_stream = False
-        self.names = names
-
-    def _open_fake(self) -> None:
-        from drivers.protocols import JointLimits
-        from drivers.registry import load_driver
-        from drivers.sim.cell import SimCell
-        from drivers.sim.clock import SimClock
-        from drivers.sim.config import DEFAULT_CONFIG_PATH
-        from drivers.sim.launch import SimLaunch
-
-        fc = self.cfg.fake_cell
-        clock = SimClock(fc.time_scale)
-        cell = SimCell.from_yaml(fc.sim_config or DEFAULT_CONFIG_PATH, seed=fc.seed, clock=clock)
-        driver = {"sunrise": "fri", "kss": "rsi"}.get(cell.model.controller)
-        if driver is None:
-            raise ValueError(f"the simulated cell's controller {cell.model.controller!r} has no commander; "
-                             "allowed: sunrise (fri), kss (rsi)")
-        cls = load_driver(driver)
-        cmd = cls.from_url(f"{driver}://127.0.0.1:0", limits=JointLimits.from_model(cell.model), clock=clock.now)
-        cmd.name = "controller"
-        self.commander = cmd
-        port = cmd.bind()[1] if callable(getattr(cmd, "bind", None)) else (cmd.connect() or cmd.address[1])
-        self.launch = SimLaunch(cell, fri_port=port, rsi_port=port, max_runtime_s=IDLE_FAKE_RUNTIME_S).start()
-        for line in self.launch.describe():
-            log.info("fake: %s", line)
-        cmd.connect()
-        if driver == "fri":
-            from drivers.kuka_fri.messages import SessionState
-
-            self.launch.controller.wait_state(SessionState.MONITORING_READY, DEVICE_START_TIMEOUT_S)
-        deadline = time.monotonic() + DEVICE_START_TIMEOUT_S
-        while True:  # up = the first measured state has arrived
-            try:
-                cmd.joint_state()
-                break
-            except DeviceTimeoutError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.01)
-        self.expect_stream = True
-        self.names = ["controller"] + [a for a in self.launch.addresses if a != "controller"]
-
-    def close(self) -> None:
-        """Stop and close every device (idempotent)."""
-        cmd, self.commander = self.commander, None
-        if cmd is not None:
-            try:
-                cmd.close()
-            except (OSError, DriverError) as exc:
-                log.warning("closing %s: %s", getattr(cmd, "name", "commander"), exc)
-        for s in self.sensors:
-            try:
-                s.close()
-            except (OSError, DriverError) as exc:
-                log.warning("closing %s: %s", getattr(s, "name", "sensor"), exc)
-        self.sensors = []
-        if self.launch is not None:
-            self.launch.close()
-            self.launch = None
-        self.expect_stream = False
-
-
 class Daemon:
     """The service (see the module docstring). ``run()`` blocks until ``request_stop()``.
 
     controller_factory: builds a run controller, ``(lp, **kwargs) -> RunController``
-    (``acquire.run.RunController`` by default).
+    (``acquire.run.RunController`` by default). cell: the cell when it describes itself (a
+    ``CellSource``, e.g. the simulated cell ``acquire daemon`` starts for ``fake``); None: the
+    configured devices, and each plan's own device URLs.
     """
 
     def __init__(
@@ -259,12 +149,14 @@ class Daemon:
         *,
         notifier: SdNotifier | None = None,
         controller_factory: Callable[..., Any] | None = None,
+        cell: CellSource | None = None,
     ) -> None:
         self.cfg = cfg
+        self.cell = cell
         self.notifier = notifier or SdNotifier()
         self._factory = controller_factory
         self.health = HealthMonitor(cfg.health)
-        self.devices = DeviceHost(cfg)
+        self.devices = DeviceHost(cfg, cell)
         self.bus = None
         self.live = None  # acquire.live.LiveServer when cfg.live.enabled
         self.control: ControlServer | None = None
@@ -517,22 +409,7 @@ class Daemon:
     def runs(self) -> dict:
         with self._lock:
             current = self.controller.run_id if self.controller is not None else None
-        out = []
-        for p in sorted(self.runs_dir.glob("*/*.mcap")):
-            if base_path(p) != p:
-                continue  # a resume segment (RUN.resume1.mcap) belongs to the run of RUN.mcap
-            segments = [p, *sorted(p.parent.glob(p.stem + ".resume*.mcap"))]
-            st = p.stat()
-            out.append({
-                "run_id": p.parent.name,
-                "file": p.name,
-                "segments": len(segments),
-                "bytes": sum(s.stat().st_size for s in segments),
-                "modified": datetime.fromtimestamp(st.st_mtime, timezone.utc).isoformat(timespec="seconds"),
-                "current": p.parent.name == current,
-                "result": (p.parent / "result.json").exists() or any(p.parent.glob("*result.json")),
-            })
-        return {"runs": out}
+        return {"runs": list_runs(self.runs_dir, current)}
 
     def plan(self, run_id: str | None) -> dict:
         with self._lock:
@@ -547,41 +424,10 @@ class Daemon:
         return {"run_id": run_id, "plan_text": read_run(path).plan_text}
 
     def _run_log(self, run_id: str) -> Path:
-        if "/" in run_id or run_id in ("", ".", ".."):
-            raise BadRequest(f"run_id {run_id!r} is not a run id")
-        path = self.runs_dir / run_id / f"{run_id}.mcap"
-        if not path.is_file():
-            known = sorted(p.name for p in self.runs_dir.iterdir() if p.is_dir())
-            raise BadRequest(f"no run {run_id!r} in {self.runs_dir}; known: {known}")
-        return path
+        return run_log(self.runs_dir, run_id)
 
     def _plan_path(self, request: dict) -> Path:
-        plan, text = request.get("plan"), request.get("plan_text")
-        if (plan is None) == (text is None):
-            raise BadRequest("start needs exactly one of 'plan' (a path on the cell PC) or 'plan_text' (YAML)")
-        if text is not None:
-            if not self.cfg.allow_inline_plans:
-                raise BadRequest("inline plans are disabled (allow_inline_plans: false); give 'plan'")
-            if not isinstance(text, str):
-                raise BadRequest(f"plan_text must be a string, given {type(text).__name__}")
-            folder = self.cfg.state_dir / "plans"
-            folder.mkdir(parents=True, exist_ok=True)
-            stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%f")
-            path = folder / f"inline-{stamp}.yaml"
-            path.write_text(text, encoding="utf-8")
-            return path
-        if not isinstance(plan, str) or not plan:
-            raise BadRequest(f"plan must be a path string, given {plan!r}")
-        dirs = [d.resolve() for d in self.cfg.plan_dirs]
-        if not dirs:
-            raise BadRequest("no plan_dirs configured: plans can only be sent inline ('plan_text')")
-        p = Path(plan)
-        p = (p if p.is_absolute() else dirs[0] / p).resolve()
-        if not any(p.is_relative_to(d) for d in dirs):
-            raise BadRequest(f"plan {plan!r} is not inside the allowed plan folders {[str(d) for d in dirs]}")
-        if not p.is_file():
-            raise BadRequest(f"plan {str(p)!r} does not exist")
-        return p
+        return plan_path(self.cfg, request)
 
     def start(self, request: dict, identity: Identity) -> dict:
         from acquire.plan import load_plan
@@ -609,6 +455,10 @@ class Daemon:
             if resume is not None and not isinstance(resume, str):
                 raise BadRequest(f"resume must be a run id string, given {resume!r}")
             resume_path = self._run_log(resume) if resume else None
+            try:
+                cell = cell_for_plan(self.cell, lp)
+            except ValueError as exc:
+                raise BadRequest(f"the plan cannot run in this cell: {exc}") from exc
             factory = self._factory
             if factory is None:
                 from acquire.run import RunController as factory
@@ -617,7 +467,7 @@ class Daemon:
             self.devices.close()
             try:
                 extra = {"live": self.live} if self.live is not None else {}
-                ctl = factory(lp, fake=self.cfg.fake_cell is not None, resume=resume_path, bus=self.bus,
+                ctl = factory(lp, cell=cell, resume=resume_path, bus=self.bus,
                               out_dir=self.runs_dir, **extra)
                 run_id = ctl.start()
             except (OSError, ValueError, RuntimeError, DriverError) as exc:
@@ -676,10 +526,11 @@ def init_zenoh_log() -> None:
     zenoh.try_init_log_from_env()
 
 
-def run_daemon(cfg: DaemonConfig) -> int:
-    """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status."""
+def run_daemon(cfg: DaemonConfig, cell: CellSource | None = None) -> int:
+    """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status. ``cell``:
+    see ``Daemon``."""
     init_zenoh_log()
-    d = Daemon(cfg)
+    d = Daemon(cfg, cell=cell)
     d.install_signal_handlers()
     log.info("acquire daemon pid %d, cell %s, state %s", os.getpid(), cfg.cell, cfg.state_dir)
     return d.run()

@@ -10,8 +10,9 @@ Sections:
 - ``state_dir``: where runs are written (one folder per run; the systemd unit's StateDirectory).
 - ``plan_dirs``: folders a ``start`` query may name a plan from (anything else is refused);
   inline plans are written to ``<state_dir>/plans/``.
-- ``fake``: ``true`` or ``{sim_config, seed, time_scale}`` — bring up the simulated cell
-  (drivers/sim/launch.py) instead of real devices, and run every plan with ``fake=True``.
+- ``fake``: ``true`` or ``{sim_config, seed, time_scale}`` — ``acquire daemon`` starts the
+  simulated cell (``acquire.commands.fake.daemon_cell``) instead of real devices and hands it to
+  the daemon as its cell: every plan runs against its devices, described as any cell's.
 - ``robot``, ``commander``, ``sensors``: the cell's real devices ({name, driver, url, markers,
   options}, as in a plan). The daemon holds them while idle (READY only once they are up; the
   watchdog watches the commander's real-time exchange) and hands them over to a run, which

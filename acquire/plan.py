@@ -28,6 +28,7 @@ commented example)::
         # laser trackers (drivers tracker, emscon) only:
         # environment: {temperature_c: 20.5, pressure_hpa: 1008, humidity_pct: 45}  # or {source: station}
         # reflector: {type: RRR15, offset_mm: 19.05}   # offset optional, checked where the tracker knows it
+        # placement: {xyz: [2000, 0, 900], zyx: [180, -80, 0]}  # rough sensor pose, base frame (mm, deg) [null]
     poses:                           # exactly ONE of generated / cartesian / joints
       generated:                     # the remastering paper's plan (calib.poses.plan_poses)
         n: 60                        # Latin-hypercube candidate poses
@@ -77,7 +78,7 @@ commented example)::
       error: gaussian                # gaussian | student [gaussian]
       fix_registration: false        # [false]
       validate_fraction: null        # share of configurations held out for validation, (0, 0.5] [null]
-    fake:                            # optional: what --fake runs against
+    fake:                            # optional: what --fake runs against (checked by --fake)
       sim_config: ../sim/default.yaml   # [null: fixtures/sim/default.yaml]
       seed: null                     # overrides the cell's seed [null]
       time_scale: 1.0                # simulated seconds per wall second [1.0]
@@ -134,7 +135,8 @@ from pydantic import (
 )
 from pydantic.fields import FieldInfo
 
-from calib.model import RobotModel, load_robot_model
+from calib.model import Frame, RobotModel, load_robot_model
+from calib.resources import default_sim_config
 from calib.yamlfile import (ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate,
                             parse_yaml_text, read_yaml_text)
 from acquire.plan_guards import (
@@ -237,6 +239,10 @@ class SensorSpec(_Strict):
     environment: EnvironmentSpec | None = Field(
         None, description="Laser trackers: air for the refraction correction (values or source: station).")
     reflector: ReflectorSpec | None = Field(None, description="Laser trackers: reflector type and surface offset.")
+    placement: Frame | None = Field(
+        None, description="Where the sensor roughly is: its pose in the robot base frame (xyz mm, zyx deg; a tape "
+                          "measure will do). Aims a tracker back at its reflector before three configurations are "
+                          "measured; null: a lost beam is searched for until then.")
 
 
 class GeneratedPoses(_Strict):
@@ -535,9 +541,7 @@ class LoadedPlan:
         """The simulated cell's YAML for ``--fake`` (the bundled default without a ``fake`` section)."""
         if self.plan.fake is not None and self.plan.fake.sim_config:
             return _resolve(self.folder, self.plan.fake.sim_config)
-        from drivers.sim.config import DEFAULT_CONFIG_PATH
-
-        return DEFAULT_CONFIG_PATH
+        return default_sim_config()
 
     @property
     def commander_margin_rad(self) -> float:
@@ -893,8 +897,6 @@ def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
     if out.exists() and not out.is_dir():
         errors.append((("output", "folder"), f"exists and is not a folder (given {plan.output.folder!r} → {out}; "
                                              "allowed: a folder, created if missing)"))
-    if plan.fake is not None:
-        errors += _fake_errors(plan, model, folder)
     return errors
 
 
@@ -940,38 +942,6 @@ def _joints_file_errors(spec: JointsFile, model: RobotModel, folder: Path, selec
     if selection is not None and selection.m > len(numbers):
         errors.append((("selection", "m"), f"cannot select more configurations than {path.name} has "
                                            f"(given {selection.m}; allowed 1…{len(numbers)})"))
-    return errors
-
-
-def _fake_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tuple, str]]:
-    from drivers.sim.config import DEFAULT_CONFIG_PATH, load_sim_config
-
-    fake = plan.fake
-    assert fake is not None
-    loc = ("fake", "sim_config")
-    path = _resolve(folder, fake.sim_config) if fake.sim_config else DEFAULT_CONFIG_PATH
-    if not path.is_file():
-        return [(loc, f"file not found (given {fake.sim_config!r} → {path}; allowed: a simulated cell YAML, "
-                      f"relative to the plan's folder {folder})")]
-    try:
-        cfg = load_sim_config(path)
-        sim_model = load_robot_model(cfg.robot)
-    except ConfigError as exc:
-        return [(loc, f"the simulated cell is not usable: {exc}")]
-    errors: list[tuple[tuple, str]] = []
-    if sim_model.name != model.name:
-        errors.append((loc, f"the simulated cell has another robot (given a cell with {sim_model.name!r}; "
-                            f"allowed: a cell with {model.name!r})"))
-    for i, s in enumerate(plan.sensors):
-        if s.driver in JOINT_SENSOR_DRIVERS:
-            if cfg.sockets is None:
-                errors.append((("sensors", i, "driver"), f"the simulated cell {path.name} has no sockets for a "
-                                                         f"{s.driver} sensor (given {s.driver!r}; allowed: a cell with "
-                                                         "a sockets section, e.g. ../sim/socket.yaml)"))
-            continue
-        if s.name not in cfg.sensor_names:
-            errors.append((("sensors", i, "name"), f"no sensor of that name in the simulated cell {path.name} "
-                                                   f"(given {s.name!r}; allowed {', '.join(cfg.sensor_names)})"))
     return errors
 
 

@@ -7,7 +7,7 @@ tries to get the target back and says what the run does next:
 1. a tracker-like sensor (one with ``aim`` and ``search``) is aimed at where the model predicts
    the reflector is (``ReflectorPredictor``: nominal kinematics at the measured joints through
    the current least-squares registration of the samples so far; before three samples the
-   plan's / simulated cell's initial guess; without one, no aim), then spiral-searched around
+   plan's rough sensor placement; without one, no aim), then spiral-searched around
    the aim direction;
 2. if that fails (or the sensor cannot re-acquire), the plan's policy decides:
    ``wait`` — wait up to ``lost_target_wait_s`` for the target to come back by itself;

@@ -76,7 +76,21 @@ def daemon(
     except ConfigError as exc:
         log.error("configuration not valid:\n%s", exc)
         raise typer.Exit(2) from None
-    raise typer.Exit(run_daemon(cfg))
+    sim = None
+    if cfg.fake_cell is not None:  # the simulated cell, started here and handed over as any cell
+        from acquire.commands.fake import daemon_cell
+
+        try:
+            sim = daemon_cell(cfg.fake_cell).start()
+        except (ConfigError, ValueError, OSError) as exc:
+            log.error("the simulated cell did not start: %s", exc)
+            raise typer.Exit(1) from None
+    try:
+        status = run_daemon(cfg, cell=sim)
+    finally:
+        if sim is not None:
+            sim.close()
+    raise typer.Exit(status)
 
 
 # ---------------------------------------------------------------------------------- clients

@@ -20,14 +20,15 @@ plan with fewer configurations than the fit needs (``--dry-run`` warns) or an ou
 that cannot be written, before anything connects or moves; 130 Ctrl-C
 (SIGINT) or SIGTERM: the robot stops safely (the commander decelerates) and the log is closed
 complete and resumable; 1 a failed run — including one that visited every configuration but
-produced no result (too few measured for the fit, or the fit failed). Under ``--fake`` the
-summary puts the fitted offsets next to the simulated cell's true ones.
+produced no result (too few measured for the fit, or the fit failed). ``--fake`` starts the
+simulated cell of the plan's ``fake`` section (``acquire.commands.fake``) and runs against its
+description, as against any cell; the summary then puts the fitted offsets next to the
+simulated cell's true ones (asked of the cell after the run).
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import signal
 import threading
 from pathlib import Path
@@ -80,11 +81,17 @@ def plan_argument(plan: Path) -> tuple[Path, bool]:
     raise typer.Exit(2)
 
 
-def _load(plan: Path):
+def _load(plan: Path, fake: bool = False):
+    """The plan and its configurations, resolved once for the whole command (exit 2 on a bad
+    plan; with ``fake`` its ``fake`` section is checked too)."""
     from acquire.plan import load_plan, resolve_configurations
 
     try:
         lp = load_plan(plan)
+        if fake:
+            from acquire.commands.fake import check_fake_section
+
+            check_fake_section(lp)
         configs = resolve_configurations(lp)
     except (ValueError, OSError) as exc:  # ConfigError is a ValueError
         typer.echo(f"error: {exc}", err=True)
@@ -169,94 +176,6 @@ def _initial_q(lp, fake) -> np.ndarray:
     return 0.5 * (lp.model.lower_limits_rad + lp.model.upper_limits_rad)
 
 
-def socket_summary_lines(doc: dict) -> list[str]:
-    """What a socket run's summary adds: the ball, its play, every placement's scores (spread of
-    the predicted ball centre, socket-distance error) with the placement held out of the fit."""
-    b = doc["ball_mm"]
-    lines = ["ball on the flange: " + ", ".join(f"{v:.3f} ± {s:.3f}" for v, s in zip(b["value"], b["std"])) + " mm; "
-             f"ball's play in the sockets σ = {doc['sigma_point_mm']:.3f} mm"]
-    held = doc["scores"]["held_out"]
-    if held:
-        lines.append("held-out placements (fitted on the others, scored on this one), before → after:")
-        for h in held:
-            lines.append(f"  {h['placement']:<12} spread {h['before']['spread_mm']:.3f} → {h['after']['spread_mm']:.3f} mm, "
-                         f"distance error {h['before']['distance_error_mm']:.3f} → {h['after']['distance_error_mm']:.3f} mm")
-        mean = sum(h["after"]["spread_mm"] for h in held) / len(held)
-        lines.append(f"  mean held-out spread {mean:.3f} mm")
-    else:
-        lines.append("held-out placements: none (needs three or more placements)")
-    lines += [f"warning: {w}" for w in doc.get("warnings", [])]
-    if not doc.get("trusted", True):
-        lines.append(f"DO NOT ENTER these offsets: {doc.get('do_not_enter_reason', '')}")
-    if doc.get("model_file"):
-        lines.append(f"corrected model (tool: the fitted ball): {display_path(Path(doc['model_file']))}")
-    return lines
-
-
-def format_run_summary(summary, lp) -> str:
-    lines = [
-        f"run {summary.run_id}: {summary.state}" + (f" ({summary.reason})" if summary.reason else ""),
-        f"configurations: {summary.total} total, {summary.measured} measured, {summary.skipped} skipped, "
-        f"{summary.failed} failed; {summary.wall_seconds:.1f} s wall, {summary.cell_seconds:.1f} s cell time",
-        f"log: {display_path(summary.log_path)}",
-    ]
-    for cid, reason in list(summary.skipped_reasons.items())[:20]:
-        lines.append(f"  not measured {cid}: {reason}")
-    if summary.fit is not None:
-        names = lp.model.axis_names
-        truth = summary.truth_offsets_deg
-        sag = summary.truth_mean_sag_deg
-        head = f"{'joint':<6} {'fitted (deg)':>13} {'± std':>8}"
-        if truth is not None:
-            head += f" {'truth (deg)':>12} {'error':>8}"
-        if sag is not None:
-            head += f" {'mean sag':>9}"
-        lines += ["", head]
-        for i, j in enumerate(summary.fit["joint_offsets"]):
-            v, sd = j.get("value_deg"), j.get("std_deg")
-            row = f"{names[i]:<6} " + (f"{v:+13.4f}" if v is not None else f"{'—':>13}") + " " + (
-                f"{sd:8.4f}" if sd is not None else f"{'—':>8}")
-            if truth is not None:
-                row += f" {truth[i]:+12.4f}" + (f" {v - truth[i]:+8.4f}" if v is not None else f" {'—':>8}")
-            if sag is not None:
-                row += f" {sag[i]:+9.4f}"
-            if not j.get("identifiable", True):
-                row += f"  {j.get('status', '')}"
-            lines.append(row)
-        choice = summary.fit.get("model_choice")
-        if choice:
-            chosen = next(c for c in choice["candidates"] if c["model"] == choice["chosen"])
-            lines.append(f"model: {choice['chosen']} (chosen by {choice['folds']}-fold cross-validation: held-out "
-                         f"{chosen['cv_mean_mm']:.3f} ± {chosen['cv_se_mm']:.3f} mm, uncalibrated "
-                         f"{choice['nominal']['cv_mean_mm']:.3f} mm; the table is in result.json)")
-        for reason in summary.fit.get("do_not_enter") or []:
-            lines.append(f"DO NOT ENTER: {reason}")
-        diag = summary.fit.get("diagnostics", {})
-        fitted_compliance = diag.get("compliance") or summary.fit.get("compliance") or []
-        for c in fitted_compliance:
-            if c["status"] == "fitted":
-                lines.append(f"compliance {c['joint']}: {c['value'] * 1e6:.2f} ± {c['std'] * 1e6:.2f} µrad/(N·m)")
-            else:
-                lines.append(f"compliance {c['joint']}: undetermined — {c['reason']}")
-        if sag is not None:
-            lines.append("mean sag: the simulated cell's gravity deflection of each joint, averaged over the plan —")
-            if fitted_compliance:
-                lines.append("the fit models it (joint compliances), so 'error' should stay within about 2 std")
-            else:
-                lines.append("a zero-offset fit cannot tell it from an offset, so expect 'error' to carry part of it")
-        gsag = diag.get("gravity_sag")
-        if gsag and gsag.get("significant"):
-            lines.append(f"warning: the residuals follow the joints' gravity torques (p = {gsag['p_value']:.1g}): "
-                         "the arm sags and the fit does not model it — set fit.compliance: true in the plan")
-        if summary.fit.get("kind") == "socket":
-            lines += socket_summary_lines(summary.fit)
-        lines.append("")
-        lines.append(f"result: {display_path(summary.result_path)}")
-        if summary.report_path is not None:
-            lines.append(f"report: {display_path(summary.report_path)}")
-    return "\n".join(lines)
-
-
 def run(
     plan: Path = typer.Argument(..., help="The plan YAML file, or a packaged example's name (acquire examples)."),
     fake: bool = typer.Option(False, "--fake", help="Run against the simulated cell's fakes on loopback."),
@@ -289,7 +208,7 @@ def run(
     plan, is_example = plan_argument(plan)
     if out is None and is_example:
         out = Path.cwd() / "runs"
-    lp, configs = _load(plan)
+    lp, configs = _load(plan, fake)
     too_few = None if no_fit else too_few_for_the_fit(lp, configs)
     if dry_run:
         typer.echo(dry_run_text(lp, configs))
@@ -306,7 +225,7 @@ def run(
     from acquire.progress import make_progress
     from acquire.run import RunController, RunError
 
-    controller = RunController(lp, fake=fake, resume=resume, bus=None, out_dir=out, fit=not no_fit,
+    controller = RunController(lp, configs=configs, resume=resume, bus=None, out_dir=out, fit=not no_fit,
                                skip_failed=skip_failed)
     try:
         controller.check_output()  # first: before the bus, the fakes or any device
@@ -371,7 +290,10 @@ def run(
         threading.Thread(target=controller.abort, args=(f"interrupted ({name})",), daemon=True).start()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    sim = truth = sag = None
     try:
+        if fake:  # "start the simulated cell, then run": the run gets its description, as of any cell
+            sim = _start_simulated_cell(lp, controller)
         controller.start()
         while True:
             try:
@@ -379,16 +301,23 @@ def run(
                 break
             except TimeoutError:
                 continue
+        if sim is not None:  # the cell's truth beside the fit: a property of the simulated cell
+            truth = sim.truth_offsets_deg()
+            sag = sim.mean_sag_deg(np.stack([c.q_rad for c in configs]))
     finally:
         for s, h in old.items():
             signal.signal(s, h)
         progress.close()
+        if sim is not None:
+            sim.close()
         if bus is not None:
             bus.close()
         logfile.close(console.level)
         if server is not None:
             server.close()
-    typer.echo(format_run_summary(summary, lp))
+    from acquire.commands.run_summary import format_run_summary
+
+    typer.echo(format_run_summary(summary, lp, truth, sag))
     if logfile.path is not None:
         typer.echo(f"text log: {display_path(logfile.path)}")
     if summary.state != "finished":
@@ -399,6 +328,25 @@ def run(
             typer.echo(f"every configuration was visited; measure more (a larger plan) or fit the log yourself: "
                        f"acquire fit {display_path(summary.log_path)} --robot {lp.model_path}")
         raise typer.Exit(summary.exit_code)
+
+
+def _start_simulated_cell(lp, controller):
+    """Start the plan's simulated cell and hand its description to ``controller``; exit 2 when
+    it cannot start (its robot is not the plan's, a port is taken)."""
+    from acquire.commands.fake import describe_for, simulated_cell
+
+    try:
+        sim = simulated_cell(lp).start()
+    except (ValueError, OSError) as exc:
+        typer.echo(f"error: --fake: cannot start the simulated cell: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    try:
+        controller.use_cell(describe_for(sim, lp))
+    except ValueError as exc:
+        sim.close()
+        typer.echo(f"error: --fake: {exc}", err=True)
+        raise typer.Exit(2) from exc
+    return sim
 
 
 def register(app: typer.Typer) -> None:

@@ -19,6 +19,7 @@ defaults this module applies (see ``fixtures/sim/default.yaml`` for a documented
                field_of_view_deg, markers,
                natnet: {version: "3.0", asset: rigid_body, asset_name: tool, multicast: false},  # mocap
                protocols: [line]}]                  # tracker: line and/or emscon
+    allowances: {silence_ms: 300, state_age_ms: 300}   # the commander's timing allowances, wall ms
     controller: {fri_version: "1.15"}  # the fake Sunrise's FRI layout: 1.15, 2.5 or 2.7
     faults:                       # scripted faults (drivers/sim/faults.py), wall s after the cell starts
       - {at_s: 12, fault: beam_break, device: tracker, duration_s: 3}
@@ -226,6 +227,17 @@ class Sockets(_Strict):
     points: list[SocketTruth] = Field(min_length=1)
 
 
+class Allowances(_Strict):
+    """What a commander must allow this cell's controller, in wall milliseconds: the cell's
+    timing, as an integrator writes it into the commander URL for a slow controller. The fake
+    controller is a thread a busy host can stall for longer than a real controller's 100 ms, so
+    the default is looser; a simulated run carries these (times its time scale, in simulated
+    ms) in the commander URL (``drivers.sim.running``)."""
+
+    silence_ms: float = Field(300.0, gt=0, le=60000, description="Longest silence between controller packets, wall ms.")
+    state_age_ms: float = Field(300.0, gt=0, le=60000, description="Oldest measured state a command may be based on, wall ms.")
+
+
 class ControllerServe(_Strict):
     """How the cell's fake controller speaks (the controller kind comes from the robot model)."""
 
@@ -271,6 +283,7 @@ class SimConfig(_Strict, CrossFieldChecked):
     cones_deg: Cones = Cones()
     sensors: list[SensorConfig] = Field(default_factory=list)
     sockets: Sockets | None = None
+    allowances: Allowances = Field(default_factory=Allowances, description="The commander's timing allowances for this cell.")
     controller: ControllerServe = ControllerServe()
     faults: list[FaultStep] = Field(default_factory=list, description="Scripted faults, fired by SimLaunch.")
 

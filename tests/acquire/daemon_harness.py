@@ -126,7 +126,7 @@ def write_config(tmp_path: Path, port: int, **extra) -> Path:
         "cell": CELL,
         "state_dir": str(tmp_path / "state"),
         "plan_dirs": [str(tmp_path / "plans")],
-        "fake": True,
+        "fake": {"time_scale": 3.0},  # the daemon's cell runs every plan: as fast as the example's fake section
         "zenoh": {"listen": [f"tcp/127.0.0.1:{port}"]},
         "auth": {
             "clients": [

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import yaml
@@ -43,3 +44,40 @@ def popen(*args: str) -> subprocess.Popen:
 def run_logs(folder: Path) -> list[Path]:
     """The first segment of every run log under ``folder``."""
     return sorted(p for p in folder.rglob("*.mcap") if ".resume" not in p.name)
+
+
+@contextmanager
+def simulated_run(lp, **kwargs):
+    """``(RunController, SimulatedCell)``: the plan's simulated cell started as ``acquire run
+    --fake`` starts it, and a run handed its description (``kwargs`` go to the controller).
+    The cell is closed on leaving."""
+    from acquire.commands.fake import describe_for, simulated_cell
+    from acquire.run import RunController
+
+    sim = simulated_cell(lp).start()
+    try:
+        yield RunController(lp, cell=describe_for(sim, lp), **kwargs), sim
+    finally:
+        sim.close()
+
+
+def fake_controller(lp, **kwargs):
+    """A RunController handed the description of the plan's simulated cell, started as ``acquire
+    run --fake`` starts it; the cell is ``.sim`` and closes once the run has ended."""
+    import threading
+
+    from acquire.commands.fake import describe_for, simulated_cell
+    from acquire.run import RunController
+
+    sim = simulated_cell(lp).start()
+    rc = RunController(lp, cell=describe_for(sim, lp), **kwargs)
+    rc.sim = sim
+
+    def close_after_the_run() -> None:
+        try:
+            rc.wait()
+        finally:
+            sim.close()
+
+    threading.Thread(target=close_after_the_run, name="sim-closer", daemon=True).start()
+    return rc

@@ -193,13 +193,16 @@ def test_watchdog_pings_stop_when_the_controller_stops_sending(tmp_path):
     notify = NotifySocket()
     port = free_port()
     cfg = load_daemon_config(write_config(tmp_path, port))
-    d = Daemon(cfg, notifier=SdNotifier(env={"NOTIFY_SOCKET": notify.name, "WATCHDOG_USEC": "400000"}))
+    from acquire.commands.fake import daemon_cell
+
+    sim = daemon_cell(cfg.fake_cell).start()  # as `acquire daemon` starts it for `fake`
+    d = Daemon(cfg, notifier=SdNotifier(env={"NOTIFY_SOCKET": notify.name, "WATCHDOG_USEC": "400000"}), cell=sim)
     t = threading.Thread(target=d.run, name="daemon-under-test")
     t.start()
     try:
         notify.wait_for(lambda f: f.get("READY") == "1", 30)
         wait_until(lambda: notify.count("WATCHDOG", "1") >= 3, 10, "three watchdog pings")
-        d.devices.launch.controller.stop()  # the controller falls silent
+        sim.launch.controller.stop()  # the controller falls silent
         # (a loaded machine may add a late-answer complaint first; the silence must follow)
         unhealthy = notify.wait_for(lambda f: "UNHEALTHY" in f.get("STATUS", "") and (
             "old" in f["STATUS"] or "no monitoring" in f["STATUS"]), 10)
@@ -212,6 +215,7 @@ def test_watchdog_pings_stop_when_the_controller_stops_sending(tmp_path):
         d.request_stop()
         t.join(30)
         notify.close()
+        sim.close()
     assert not t.is_alive()
     assert notify.all_fields()[-2].get("STOPPING") == "1"
 

@@ -55,8 +55,12 @@ def write(tmp_path: Path, data: dict, name: str = "plan.yaml") -> Path:
 
 
 def error_of(path: Path) -> str:
+    """The plan's errors as ``acquire run --fake`` reports them: the plan, then its fake section
+    against the simulated cell it names (``acquire.commands.fake.check_fake_section``)."""
+    from acquire.commands.fake import check_fake_section
+
     with pytest.raises(ConfigError) as info:
-        load_plan(path)
+        check_fake_section(load_plan(path))
     return str(info.value)
 
 

@@ -14,10 +14,9 @@ from typer.testing import CliRunner
 from acquire.cli import app
 from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import read_run
-from acquire.run import RunController
 from drivers.tracker.codec import Aim
 
-from run_helpers import popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import popen, run_logs, simulated_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -27,9 +26,10 @@ def test_complete_fake_run_logs_every_configuration_and_fits_near_the_truth(tmp_
     lp = load_plan(plan)
     configs = resolve_configurations(lp)
     statuses = []
-    rc = RunController(lp, fake=True, on_progress=statuses.append)
-    rc.start()
-    summary = rc.wait(140)
+    with simulated_run(lp, on_progress=statuses.append) as (rc, sim):
+        rc.start()
+        summary = rc.wait(140)
+        truth = np.array(sim.truth_offsets_deg())
     assert summary.state == "finished", summary.reason
     assert summary.exit_code == 0
     contents = read_run(summary.log_path)
@@ -67,7 +67,6 @@ def test_complete_fake_run_logs_every_configuration_and_fits_near_the_truth(tmp_
     assert summary.result_path == summary.log_path.parent / "result.json"
     assert summary.report_path is not None and summary.report_path.stat().st_size > 1000
     doc = json.loads(summary.result_path.read_text())
-    truth = np.array(summary.truth_offsets_deg)
     fitted = [(i, j["value_deg"]) for i, j in enumerate(doc["joint_offsets"]) if j["identifiable"]]
     assert len(fitted) >= 5
     for i, value in fitted:
@@ -136,17 +135,18 @@ def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     lp = load_plan(plan)
     configs = resolve_configurations(lp)
     broken = []
+    assert lp.plan.sensors[0].placement is not None  # the plan's rough tracker position aims the first re-acquisition
 
     def break_beam(status):
         # Someone walks through the beam after the 2nd and 5th configurations: aim it away.
-        if status["done"] in (2, 5) and status["done"] not in broken and rc._fake_cell is not None:
+        if status["done"] in (2, 5) and status["done"] not in broken:
             broken.append(status["done"])
-            device = rc._fake_cell.launch.trackers["tracker"][0]
+            device = sim.launch.trackers["tracker"][0]
             device.handle(device.codec.encode_request(1, Aim(0.0, 3000.0, 0.0)))
 
-    rc = RunController(lp, fake=True, on_progress=break_beam, fit=False)
-    rc.start()
-    summary = rc.wait(140)
+    with simulated_run(lp, on_progress=break_beam, fit=False) as (rc, sim):
+        rc.start()
+        summary = rc.wait(140)
     assert summary.state == "finished", summary.reason
     contents = read_run(summary.log_path)
     events = contents.events
@@ -157,6 +157,7 @@ def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     assert all(e["reason"] and e["sensor"] == "tracker" for e in suspended)
     aims = [e for e in events if e["kind"] == "aimed"]
     assert aims and any("registration" in e["source"] for e in aims)
+    assert {e["source"] for e in aims if e["config_id"] == suspended[0]["config_id"]} == {"initial guess"}
     # the suspended configurations were measured again after re-acquisition, once each
     ids = [s["config_id"] for s in contents.samples]
     assert len(ids) == len(set(ids))
@@ -174,9 +175,10 @@ def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compli
     are fitted."""
     lp = load_plan(Path(__file__).resolve().parents[2] / "fixtures" / "plans" / "example.yaml")
     assert lp.plan.fit.compliance
-    rc = RunController(lp, fake=True, out_dir=tmp_path)
-    rc.start()
-    summary = rc.wait(380)
+    with simulated_run(lp, out_dir=tmp_path) as (rc, sim):
+        rc.start()
+        summary = rc.wait(380)
+        truth = sim.truth_offsets_deg()
     assert summary.state == "finished", summary.reason
     fitted = [j for j in summary.fit["joint_offsets"] if j["identifiable"]]
     # The tool is fitted (fit.tool_prior_mm, default ±10 mm): the last axis's offset cannot be told
@@ -185,7 +187,7 @@ def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compli
     last = summary.fit["joint_offsets"][-1]
     assert not last["identifiable"] and "not separable from the tool" in last["reason"]
     for j in fitted:
-        err = j["value_deg"] - summary.truth_offsets_deg[j["index"] - 1]
+        err = j["value_deg"] - truth[j["index"] - 1]
         assert abs(err) <= 3 * j["std_deg"], (j["joint"], err, j["std_deg"])
     comp = {c["joint"]: c for c in summary.fit["diagnostics"]["compliance"]}
     assert comp["A2"]["status"] == "fitted" and comp["A1"]["status"] == "undetermined"
@@ -203,19 +205,18 @@ def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     seen = {}
 
     def break_beam(status):
-        if rc._fake_cell is not None and "launch" not in seen:
-            seen["launch"] = rc._fake_cell.launch
         # Someone walks through the beam after the 2nd and 5th configurations: a GoPosition
         # packet sent straight to the fake emScon server turns the beam away from the reflector.
-        if status["done"] in (2, 5) and status["done"] not in broken and rc._fake_cell is not None:
+        if status["done"] in (2, 5) and status["done"] not in broken:
             broken.append(status["done"])
-            server = rc._fake_cell.launch.emscon["tracker"][0]
+            server = sim.launch.emscon["tracker"][0]
             away = es.Request(es.Cmd.GoPosition, {"dVal1": 0.0, "dVal2": 3000.0, "dVal3": 0.0, "bUseADM": 1})
             assert es.decode(server.handle(es.encode(away))[:16]).status == es.Status.AllOK
 
-    rc = RunController(lp, fake=True, on_progress=break_beam, fit=False)
-    rc.start()
-    summary = rc.wait(280)  # time_scale 3: slower than the line-protocol test, kinder to a loaded machine
+    with simulated_run(lp, on_progress=break_beam, fit=False) as (rc, sim):
+        seen["launch"] = sim.launch
+        rc.start()
+        summary = rc.wait(280)  # time_scale 3: slower than the line-protocol test, kinder to a loaded machine
     assert summary.state == "finished", summary.reason
     # the plan's air and reflector reached the simulated tracker through emScon packets
     tracker, server = seen["launch"].trackers["tracker"]

@@ -15,7 +15,7 @@ from acquire.cli import app
 from acquire.plan import load_plan, resolve_configurations
 from acquire.run import RunController, RunError
 
-from run_helpers import ROOT, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import ROOT, fake_controller, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -26,7 +26,8 @@ def no_devices(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("a device or the bus was opened before the output folder was checked")
 
-    monkeypatch.setattr(RunController, "_open_devices", refuse)
+    monkeypatch.setattr("acquire.run.devices.RunDevices.open", refuse)
+    monkeypatch.setattr("drivers.sim.running.SimulatedCell.start", refuse)
     monkeypatch.setattr("acquire.bus.Bus.__init__", refuse)
 
 
@@ -67,7 +68,7 @@ def test_the_controller_refuses_to_start_with_an_unwritable_folder(tmp_path, no_
     blocker = tmp_path / "file"
     blocker.write_text("")
     lp = load_plan(small_plan(tmp_path, n=4))
-    ctl = RunController(lp, fake=True, out_dir=blocker / "runs")
+    ctl = RunController(lp, out_dir=blocker / "runs")  # refused before any cell is needed
     with pytest.raises(RunError, match="cannot create it"):
         ctl.start()  # the daemon's path: raises before its thread opens anything
     assert ctl.status()["state"] == "idle"
@@ -132,7 +133,7 @@ def test_the_controller_reports_a_run_too_small_for_the_fit_as_failed(tmp_path):
     """RunController (the daemon's path) fits what it measured; two configurations cannot give a
     result, so the run ends failed with the fit's reason."""
     lp = load_plan(two_configuration_plan(tmp_path))
-    ctl = RunController(lp, fake=True)
+    ctl = fake_controller(lp)
     ctl.start()
     summary = ctl.wait(140)
     assert summary.state == "failed" and summary.exit_code == 1

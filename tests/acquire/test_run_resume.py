@@ -11,9 +11,8 @@ import pytest
 
 from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import RunLogError, read_run
-from acquire.run import RunController
 
-from run_helpers import popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import fake_controller, popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = pytest.mark.timeout(170)
 
@@ -97,7 +96,7 @@ def test_resume_after_an_abort_continues_and_refuses_another_plan(tmp_path):
         if status["measured"] >= 3 and status["state"] == "running":
             rc.abort("test abort")
 
-    rc = RunController(lp, fake=True, on_progress=abort_after_three, fit=False)
+    rc = fake_controller(lp, on_progress=abort_after_three, fit=False)
     rc.start()
     first = rc.wait(120)
     assert first.state == "aborted" and first.exit_code != 0
@@ -106,12 +105,12 @@ def test_resume_after_an_abort_continues_and_refuses_another_plan(tmp_path):
     assert len(done_before) >= 3
 
     other = small_plan(tmp_path, n=5, name="other.yaml")
-    rc_other = RunController(load_plan(other), fake=True, resume=first.log_path, fit=False)
+    rc_other = fake_controller(load_plan(other), resume=first.log_path, fit=False)
     rc_other.start()
     refused = rc_other.wait(60)
     assert refused.state == "failed" and "different plan" in refused.reason
 
-    rc2 = RunController(lp, fake=True, resume=first.log_path, fit=False)
+    rc2 = fake_controller(lp, resume=first.log_path, fit=False)
     rc2.start()
     second = rc2.wait(120)
     assert second.state == "finished", second.reason
@@ -135,8 +134,8 @@ def test_an_fri_drop_is_waited_out_and_failed_configurations_are_measured_again_
     injected = []
 
     def faults(status):
-        cell = rc._fake_cell
-        if cell is None or cell.launch is None:
+        cell = rc.sim
+        if cell.launch is None:
             return  # before the devices are up, or after they closed
         ctl = cell.launch.controller
         if status["measured"] >= 2 and "drop" not in injected:
@@ -146,7 +145,7 @@ def test_an_fri_drop_is_waited_out_and_failed_configurations_are_measured_again_
             injected.append("drives")
             ctl.inject_fault("drives_off")
 
-    rc = RunController(lp, fake=True, on_progress=faults, fit=False)
+    rc = fake_controller(lp, on_progress=faults, fit=False)
     rc.start()
     first = rc.wait(150)
     assert first.state == "failed" and "fix it and resume the run" in first.reason, first.reason
@@ -161,7 +160,7 @@ def test_an_fri_drop_is_waited_out_and_failed_configurations_are_measured_again_
     assert any(e["kind"] == "state" and e.get("state") == "suspended" for e in contents.events) or \
         "suspended" in str(contents.events)
 
-    rc2 = RunController(lp, fake=True, resume=first.log_path, fit=False)
+    rc2 = fake_controller(lp, resume=first.log_path, fit=False)
     rc2.start()
     second = rc2.wait(150)
     assert second.state == "finished", second.reason

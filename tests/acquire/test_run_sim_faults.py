@@ -10,9 +10,8 @@ import yaml
 
 from acquire.plan import load_plan
 from acquire.recorder import read_run
-from acquire.run import RunController
 
-from run_helpers import ROOT, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import fake_controller, ROOT, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -32,7 +31,7 @@ def test_scripted_beam_breaks_in_the_cell_file_are_seen_by_a_fake_run(tmp_path):
     doc = yaml.safe_load(plan.read_text())
     doc["poses"] = {"joints": CONFIGS}
     plan.write_text(yaml.safe_dump(doc, sort_keys=False))
-    rc = RunController(load_plan(plan), fake=True, fit=False)
+    rc = fake_controller(load_plan(plan), fit=False)
     rc.start()
     summary = rc.wait(140)
     assert summary.state == "finished", summary.reason

@@ -12,10 +12,9 @@ import yaml
 
 from acquire.plan import load_plan
 from acquire.recorder import read_run
-from acquire.run import RunController
 from drivers.sim.cell import SimCell
 
-from run_helpers import ROOT, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import fake_controller, ROOT, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -58,7 +57,7 @@ def test_a_skeleton_bone_plan_runs_under_fake(tmp_path, version, asset):
     doc["sensors"][0]["markers"] = {"plate": "sk:tool:plate"}
     plan.write_text(yaml.safe_dump(doc, sort_keys=False))
     lp = load_plan(plan)
-    rc = RunController(lp, fake=True, fit=False)
+    rc = fake_controller(lp, fit=False)
     rc.start()
     summary = rc.wait(140)
     assert summary.state == "finished", summary.reason

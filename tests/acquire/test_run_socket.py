@@ -16,8 +16,9 @@ import yaml
 
 from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import read_run
-from acquire.run import RunController
 from drivers.sim.cell import SimCell
+
+from run_helpers import fake_controller  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -42,7 +43,7 @@ def test_socket_run_interrupted_resumed_and_fitted_recovers_the_hidden_offsets(t
     assert len(configs) == 36 and all(c.socket is not None for c in configs)
 
     # first part: stop after some configurations, as an operator's Ctrl-C would
-    first = RunController(lp, fake=True, fit=False)
+    first = fake_controller(lp, fit=False)
     first.start()
     deadline = time.monotonic() + 300
     while first.status()["measured"] < 8 and time.monotonic() < deadline and first.status()["state"] not in ("finished", "failed"):
@@ -53,7 +54,7 @@ def test_socket_run_interrupted_resumed_and_fitted_recovers_the_hidden_offsets(t
     done_before = {s["config_id"] for s in read_run(part.log_path).samples}
     assert 8 <= len(done_before) < len(configs)
 
-    rc = RunController(lp, fake=True, resume=part.log_path)
+    rc = fake_controller(lp, resume=part.log_path)
     rc.start()
     summary = rc.wait(360)
     assert summary.state == "finished", summary.reason
@@ -131,7 +132,7 @@ def test_socket_run_confirmed_by_the_button_on_the_flange(tmp_path):
     lp = load_plan(path)
     configs = resolve_configurations(lp)
     assert len(configs) == 8
-    rc = RunController(lp, fake=True, fit=False)
+    rc = fake_controller(lp, fit=False)
     rc.start()
     summary = rc.wait(240)
     assert summary.state == "finished", summary.reason

@@ -1,0 +1,96 @@
+"""What ``acquire run`` prints when a run has ended: counts, the log, the fitted offsets (beside a
+simulated cell's truth when the command has it), compliances, a socket fit's placements."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from acquire.console import display_path
+
+
+def socket_summary_lines(doc: dict) -> list[str]:
+    """What a socket run's summary adds: the ball, its play, every placement's scores (spread of
+    the predicted ball centre, socket-distance error) with the placement held out of the fit."""
+    b = doc["ball_mm"]
+    lines = ["ball on the flange: " + ", ".join(f"{v:.3f} ± {s:.3f}" for v, s in zip(b["value"], b["std"])) + " mm; "
+             f"ball's play in the sockets σ = {doc['sigma_point_mm']:.3f} mm"]
+    held = doc["scores"]["held_out"]
+    if held:
+        lines.append("held-out placements (fitted on the others, scored on this one), before → after:")
+        for h in held:
+            lines.append(f"  {h['placement']:<12} spread {h['before']['spread_mm']:.3f} → {h['after']['spread_mm']:.3f} mm, "
+                         f"distance error {h['before']['distance_error_mm']:.3f} → {h['after']['distance_error_mm']:.3f} mm")
+        mean = sum(h["after"]["spread_mm"] for h in held) / len(held)
+        lines.append(f"  mean held-out spread {mean:.3f} mm")
+    else:
+        lines.append("held-out placements: none (needs three or more placements)")
+    lines += [f"warning: {w}" for w in doc.get("warnings", [])]
+    if not doc.get("trusted", True):
+        lines.append(f"DO NOT ENTER these offsets: {doc.get('do_not_enter_reason', '')}")
+    if doc.get("model_file"):
+        lines.append(f"corrected model (tool: the fitted ball): {display_path(Path(doc['model_file']))}")
+    return lines
+
+
+def format_run_summary(summary, lp, truth: list | None = None, sag: list | None = None) -> str:
+    """The summary a person reads. ``truth`` / ``sag``: a simulated cell's hidden zero-offsets
+    and mean gravity sag per joint (deg), shown beside the fit when given."""
+    lines = [
+        f"run {summary.run_id}: {summary.state}" + (f" ({summary.reason})" if summary.reason else ""),
+        f"configurations: {summary.total} total, {summary.measured} measured, {summary.skipped} skipped, "
+        f"{summary.failed} failed; {summary.wall_seconds:.1f} s wall, {summary.cell_seconds:.1f} s cell time",
+        f"log: {display_path(summary.log_path)}",
+    ]
+    for cid, reason in list(summary.skipped_reasons.items())[:20]:
+        lines.append(f"  not measured {cid}: {reason}")
+    if summary.fit is not None:
+        names = lp.model.axis_names
+        head = f"{'joint':<6} {'fitted (deg)':>13} {'± std':>8}"
+        if truth is not None:
+            head += f" {'truth (deg)':>12} {'error':>8}"
+        if sag is not None:
+            head += f" {'mean sag':>9}"
+        lines += ["", head]
+        for i, j in enumerate(summary.fit["joint_offsets"]):
+            v, sd = j.get("value_deg"), j.get("std_deg")
+            row = f"{names[i]:<6} " + (f"{v:+13.4f}" if v is not None else f"{'—':>13}") + " " + (
+                f"{sd:8.4f}" if sd is not None else f"{'—':>8}")
+            if truth is not None:
+                row += f" {truth[i]:+12.4f}" + (f" {v - truth[i]:+8.4f}" if v is not None else f" {'—':>8}")
+            if sag is not None:
+                row += f" {sag[i]:+9.4f}"
+            if not j.get("identifiable", True):
+                row += f"  {j.get('status', '')}"
+            lines.append(row)
+        choice = summary.fit.get("model_choice")
+        if choice:
+            chosen = next(c for c in choice["candidates"] if c["model"] == choice["chosen"])
+            lines.append(f"model: {choice['chosen']} (chosen by {choice['folds']}-fold cross-validation: held-out "
+                         f"{chosen['cv_mean_mm']:.3f} ± {chosen['cv_se_mm']:.3f} mm, uncalibrated "
+                         f"{choice['nominal']['cv_mean_mm']:.3f} mm; the table is in result.json)")
+        for reason in summary.fit.get("do_not_enter") or []:
+            lines.append(f"DO NOT ENTER: {reason}")
+        diag = summary.fit.get("diagnostics", {})
+        fitted_compliance = diag.get("compliance") or summary.fit.get("compliance") or []
+        for c in fitted_compliance:
+            if c["status"] == "fitted":
+                lines.append(f"compliance {c['joint']}: {c['value'] * 1e6:.2f} ± {c['std'] * 1e6:.2f} µrad/(N·m)")
+            else:
+                lines.append(f"compliance {c['joint']}: undetermined — {c['reason']}")
+        if sag is not None:
+            lines.append("mean sag: the simulated cell's gravity deflection of each joint, averaged over the plan —")
+            if fitted_compliance:
+                lines.append("the fit models it (joint compliances), so 'error' should stay within about 2 std")
+            else:
+                lines.append("a zero-offset fit cannot tell it from an offset, so expect 'error' to carry part of it")
+        gsag = diag.get("gravity_sag")
+        if gsag and gsag.get("significant"):
+            lines.append(f"warning: the residuals follow the joints' gravity torques (p = {gsag['p_value']:.1g}): "
+                         "the arm sags and the fit does not model it — set fit.compliance: true in the plan")
+        if summary.fit.get("kind") == "socket":
+            lines += socket_summary_lines(summary.fit)
+        lines.append("")
+        lines.append(f"result: {display_path(summary.result_path)}")
+        if summary.report_path is not None:
+            lines.append(f"report: {display_path(summary.report_path)}")
+    return "\n".join(lines)

@@ -1,0 +1,83 @@
+"""The end of a run: stop the robot on an abort, the link's figures and the last event into the
+log, close the devices and the log, then hand the log to the fitter (``fitting.fit_run_log``).
+
+A run asked for a result that has none (nothing measured, the fit failed) ends ``failed`` with
+the reason, not ``finished``: the operator must not read "finished" as "calibrated".
+"""
+
+from __future__ import annotations
+
+import logging
+
+from drivers.errors import DriverError
+
+log = logging.getLogger(__name__)
+
+
+def log_link(commander, event) -> None:
+    """The real-time link over the run into the log (event ``link``): cycles, late answers,
+    answer latency p50/p99/max (µs, over the last ``window`` cycles), missing and malformed
+    packets, the exchange's scheduling — how the exchange kept its deadline on this PC."""
+    stats = getattr(commander, "link_stats", None)
+    if not callable(stats):
+        return
+    try:
+        st = stats()
+    except DriverError as exc:
+        log.warning("link figures: %s", exc)
+        return
+    event(
+        "link", packets=st.packets, window=st.window, late_answers=st.late_answers,
+        latency_p50_us=round(st.latency_p50_s * 1e6, 1), latency_p99_us=round(st.latency_p99_s * 1e6, 1),
+        latency_max_us=round(st.latency_max_s * 1e6, 1), gaps=st.gaps, malformed=st.malformed,
+        restarts=st.restarts, realtime=st.realtime, notes=list(st.notes),
+    )
+    if st.late_answers:
+        log.warning("%s: %d late real-time answer(s) in this run (%s)", getattr(commander, "name", "commander"),
+                    st.late_answers, "; ".join(st.report()[:2]))
+
+
+def finish(ctl, cell_seconds: float):
+    """End the run of ``ctl`` (a ``RunController`` whose loop has stopped); returns its
+    ``RunSummary`` with the fit when one was asked for and made."""
+    from acquire.run.fitting import fit_run_log
+
+    state, pub = ctl.state, ctl.pub
+    aborted = state.aborting.is_set()
+    commander = ctl.devices.commander if ctl.devices is not None else None
+    if aborted:
+        state.set("stopping")
+        if commander is not None:
+            try:
+                commander.stop()
+            except DriverError as exc:
+                log.warning("stop: %s", exc)
+        log_link(commander, pub.event)
+        pub.event("aborted", reason=state.reason)
+    else:
+        log_link(commander, pub.event)
+        pub.event("run_finished", measured=state.measured, skipped=state.skipped, failed=state.failed)
+    ctl.teardown()
+    end = "aborted" if aborted else "finished"
+    summary = state.summary()
+    summary.cell_seconds = cell_seconds
+    reason = state.reason if aborted else ""
+    if not aborted and ctl.fit_enabled and state.log_path is not None:
+        if state.measured == 0:
+            reason = (f"no result: none of the {state.total} configurations was measured "
+                      f"({state.skipped} skipped, {state.failed} failed)")
+        else:
+            try:
+                summary.fit, summary.result_path, summary.report_path = fit_run_log(state.log_path, ctl.lp)
+            except (ValueError, RuntimeError, ArithmeticError) as exc:
+                reason = f"no result: the fit of {state.measured} measured configuration(s) failed: {exc}"
+        if summary.fit is None:
+            log.error("run %s: %s", state.run_id, reason)
+            end = "failed"
+    with state.lock:
+        state.reason = reason if end == "failed" else state.reason
+    state.set(end, reason)
+    summary.state = end
+    summary.reason = reason
+    pub.release_bus()  # after the final state went out on the bus
+    return summary

@@ -1,0 +1,134 @@
+"""Handing a closed run log to the fitter: ``result.json`` (and ``report.html`` or the socket
+fit's corrected ``model.yaml``) beside the log."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _link_tolerance(fit) -> tuple[float, float] | None:
+    """The plan's link-parameter prior (mm, deg), or None for the paper's model."""
+    mm, deg = getattr(fit, "link_tolerance_mm", 0.2), getattr(fit, "link_tolerance_deg", 0.02)
+    return None if mm is None or deg is None else (float(mm), float(deg))
+
+
+def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path, Path | None]:
+    """Fit the zero-offsets from a run log; write ``result.json`` and ``report.html`` beside it.
+
+    Returns (result document, result path, report path). The plan's ``fit`` section chooses
+    the method, joints, error model, registration handling and validation fraction.
+    """
+    if getattr(lp.plan, "socket", None) is not None:
+        return fit_socket_run_log(log_path, lp)
+    from acquire.recorder import dataset_from_run
+    from calib.controller import apply_guards, controller_values
+    from calib.fit import FitOptions, fit_offsets
+    from calib.kinematics import Chain
+    from calib.metrics import accuracy_metrics
+    from calib.result import result_dict, write_result
+
+    model = lp.model
+    ds = dataset_from_run(Path(log_path), model)
+    fit = lp.plan.fit
+    frac = getattr(fit, "validate_fraction", None) or 0.0
+    if frac > 0:
+        configs = np.unique(ds.config)
+        rng = np.random.default_rng(0)
+        n_val = int(round(frac * len(configs)))
+        val_ids = set(rng.choice(configs, size=n_val, replace=False).tolist()) if n_val else set()
+        is_val = np.array([c in val_ids for c in ds.config])
+        ds = ds.with_split("cal")
+        ds.split[is_val] = "val"
+    cal = ds.calibration()
+    val = ds.validation() if np.any(ds.split == "val") else None
+    joints = getattr(fit, "joints", None)
+    options = FitOptions(
+        method=getattr(fit, "method", "fast") or "fast",
+        joints=tuple(joints) if joints else None,
+        fix_registration=bool(getattr(fit, "fix_registration", False)),
+        error=getattr(fit, "error", "gaussian") or "gaussian",
+        link_tolerance=_link_tolerance(fit),
+        compliance=bool(getattr(fit, "compliance", False)),
+        tool_prior_mm=float(getattr(fit, "tool_prior_mm", 10.0)),
+    )
+    base = Path(log_path)
+    if options.method == "auto":
+        return _fit_run_auto(base, model, cal, val, options, fit, n_random)
+    result = fit_offsets(model, cal, options)
+    metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
+                               result.applied_sigma_mm, validation=val, n_random=n_random, seed=0,
+                               markers_mm=result.fitted_markers_mm)
+    doc = result_dict(result, cal, metrics=metrics)
+    apply_guards(doc)
+    values = controller_values(model, doc["joint_offsets"])
+    doc["controller"] = values.to_dict()
+    result_path = base.with_name("result.json")
+    write_result(result_path, doc)
+    report_path = None
+    try:
+        from calib.report import write_report
+
+        report_path = base.with_name("report.html")
+        write_report(report_path, result, cal, doc, values.format())
+    except (ImportError, ValueError, RuntimeError, OSError) as exc:
+        log.warning("report not written (use `acquire fit %s`): %s", log_path, exc)
+        report_path = None
+    return doc, result_path, report_path
+
+
+def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> tuple[dict, Path, Path | None]:
+    """The plan's ``fit.method: auto``: ``calib.auto_fit`` (the data choose among the offsets models;
+    a link scale set in the plan is used instead of the empirical Bayes one; ``fit.compliance``:
+    only the candidates with compliance)."""
+    from dataclasses import replace
+
+    from calib.auto_fit import auto_fit
+    from calib.result import write_result
+
+    given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
+    done = auto_fit(model, cal, val, replace(options, method="laplace", compliance=False),
+                    link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random, include_full=False,
+                    compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics)
+    result_path = base.with_name("result.json")
+    write_result(result_path, done.doc)
+    report_path = None
+    try:
+        from calib.report import write_report
+
+        report_path = base.with_name("report.html")
+        write_report(report_path, done.result, cal, done.doc, done.controller_text)
+    except (ImportError, ValueError, RuntimeError, OSError) as exc:
+        log.warning("report not written (use `acquire fit %s`): %s", base, exc)
+        report_path = None
+    return done.doc, result_path, report_path
+
+
+def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
+    """Fit a socket run (``calib.socket.fit_socket``; held-out placements with three or more):
+    ``result.json`` and the corrected model ``model.yaml`` beside the log. The plan's
+    ``fit.method`` fast uses the link prior (``link_tolerance_*``), paper identifies without it."""
+    from acquire.commands.socket_fit import read_socket_run, socket_result_dict, write_socket_model
+    from calib.result import write_result
+    from calib.socket import fit_socket, leave_one_placement_out
+
+    model, fit = lp.model, lp.plan.fit
+    ds = read_socket_run(Path(log_path), model.n_joints, distance_mm=lp.plan.socket.distance_mm)
+    if ds is None:
+        raise ValueError(f"{log_path}: no socket records to fit")
+    method = "fast" if getattr(fit, "method", "fast") == "fast" else "full"
+    tolerance = _link_tolerance(fit) if method == "fast" else None
+    compliance = bool(getattr(fit, "compliance", False))
+    result = fit_socket(model, ds, tolerance=tolerance, compliance=compliance)
+    folds = leave_one_placement_out(model, ds, tolerance=tolerance, compliance=compliance) \
+        if len(ds.placements) >= 3 else []
+    doc = socket_result_dict(model, ds, result, folds, method)
+    base = Path(log_path)
+    doc["model_file"] = str(write_socket_model(model, result, base.with_name("model.yaml")))
+    result_path = base.with_name("result.json")
+    write_result(result_path, doc)
+    return doc, result_path, None
