@@ -73,6 +73,14 @@ def foxglove_layout() -> Path:
     return (data_dir() / "foxglove" / FOXGLOVE_LAYOUT).resolve()
 
 
+def foxglove_layout_hint() -> str:
+    """The packaged Foxglove layout's path as text for help and listings, or why it is missing."""
+    try:
+        return str(foxglove_layout())
+    except RuntimeError as exc:
+        return f"(not found: {exc})"
+
+
 def is_packaged(path: str | Path) -> bool:
     """True for a file of an installed package (under the installed ``calib`` package, links
     resolved) — not for the checkout's ``fixtures/`` the links point at."""

@@ -21,7 +21,7 @@ import typer
 
 def listing() -> str:
     """Every packaged file by kind: name, path, and its first comment line."""
-    from calib.resources import KINDS, packaged, summary
+    from calib.resources import KINDS, foxglove_layout_hint, packaged, summary
 
     how = {"plans": "acquire run NAME --fake", "robots": "--robot NAME", "sim": "acquire sim --config NAME"}
     lines = []
@@ -34,18 +34,8 @@ def listing() -> str:
             if text:
                 lines.append(f"  {'':<20} {text}")
         lines.append("")
-    lines.append(f"Foxglove layout (Foxglove: Layouts → Import; for a run log or acquire run --live):\n  {layout_hint()}")
+    lines.append(f"Foxglove layout (Foxglove: Layouts → Import; for a run log or acquire run --live):\n  {foxglove_layout_hint()}")
     return "\n".join(lines).rstrip()
-
-
-def layout_hint() -> str:
-    """The packaged Foxglove layout's path (``calib.resources.foxglove_layout``), or why not."""
-    from calib.resources import foxglove_layout
-
-    try:
-        return str(foxglove_layout())
-    except RuntimeError as exc:
-        return f"(not found: {exc})"
 
 
 def copy_plan(name: str, dest: Path) -> Path:

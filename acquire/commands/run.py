@@ -37,7 +37,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from acquire.commands.examples import layout_hint
+from calib.resources import foxglove_layout_hint
 from acquire.console import display_path
 
 log = logging.getLogger(__name__)
@@ -192,7 +192,7 @@ def run(
     verbose: int = typer.Option(0, "--verbose", "-v", count=True,
                                 help="Console shows INFO (-v) or DEBUG (-vv) logs too; the run's .log file has them anyway."),
     live: bool = typer.Option(False, "--live", help="Serve the run live to Foxglove (WebSocket; layout: "
-                              f"{layout_hint()}, also listed by `acquire examples`)."),
+                              f"{foxglove_layout_hint()}, also listed by `acquire examples`)."),
     live_host: str = typer.Option("127.0.0.1", "--live-host", help="Interface of the live view (0.0.0.0: every network)."),
     live_port: int = typer.Option(8765, "--live-port", min=0, max=65535, help="TCP port of the live view."),
 ) -> None:
