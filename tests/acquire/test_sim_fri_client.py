@@ -38,6 +38,7 @@ def _realtime() -> None:
         pass
 
 
+@pytest.mark.slow  # a 30 s soak of an SDK-style client
 @pytest.mark.parametrize("version", ["2.7"])
 def test_an_sdk_style_sine_overlay_client_runs_30_s_against_acquire_sim(version):
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
