@@ -38,7 +38,10 @@ def controller():
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
-    fake = FakeKrc4(("127.0.0.1", port), initial_deg=HOME, rt_priority=40, max_runtime_s=30)
+    # (late_limit: the controller sends before the command's exchange process is up — ~0.3 s
+    # quiet, over a second beside CPU hogs, tests/bench/bench_exchange_start.py — and the default
+    # 100 late cycles, 0.4 s, would end its RSI session first; a real cell starts the PC side first)
+    fake = FakeKrc4(("127.0.0.1", port), initial_deg=HOME, rt_priority=40, max_runtime_s=30, late_limit=5000)
     fake.start()
     yield port, fake
     fake.close()
@@ -47,7 +50,7 @@ def controller():
 def run(app, port, *args, input=None):
     return CliRunner().invoke(
         app,
-        ["move", "--robot", str(KR6), "--commander", f"rsi://127.0.0.1:{port}?connect_timeout=3", *args],
+        ["move", "--robot", str(KR6), "--commander", f"rsi://127.0.0.1:{port}?connect_timeout=30", *args],
         input=input,
     )
 
