@@ -289,6 +289,7 @@ def stop_tracing() -> None:
 def run_child(requests, events, parent_pid: int, name: str, state_name: str, layout, sock, loop_cls, options,
               priority) -> None:
     """Entry point of the exchange process (spawned; see the module docstring)."""
+    entered = time.monotonic()  # (CLOCK_MONOTONIC: one clock for every process of the machine)
     link = ChildLink(requests, events, parent_pid, name)
     # Ctrl-C in a terminal reaches the whole process group: the parent decides how to stop the
     # robot and needs this process for it. SIGTERM ends the exchange in order (stop, hold, end).
@@ -304,7 +305,7 @@ def run_child(requests, events, parent_pid: int, name: str, state_name: str, lay
         gc.collect()
         gc.freeze()  # everything alive now is never scanned again
         gc.disable()  # the loop allocates little and keeps no cycles: no collector pauses
-        link.send("ready", os.getpid(), link.realtime)
+        link.send("ready", os.getpid(), link.realtime, entered, time.monotonic())
         loop.run()
     except BaseException as exc:  # noqa: BLE001 - report why the exchange ended, then exit
         link.send("crashed", f"{type(exc).__name__}: {exc}")
@@ -351,12 +352,18 @@ class ExchangeProcess:
         self.pid: int | None = None
         self.realtime = "not started"
         self.crash: str | None = None
+        # seconds from ``start()`` to the child's entry point (a fresh interpreter, its imports:
+        # the loop's module and, for a script, the parent's main script) and from there to
+        # ready (real-time setup, the loop's warm-up); None until ready
+        self.startup: dict[str, float] | None = None
+        self._t_start = 0.0
 
     def start(self, sock, ready_timeout: float = 60.0) -> None:
         """Spawn the child with ``sock`` and wait until it is ready for the first packet.
 
         The parent's copy of ``sock`` is closed once the child has its own.
         """
+        self._t_start = time.monotonic()
         ctx = multiprocessing.get_context("spawn")
         requests, child_requests = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         events, child_events = ctx.Pipe(duplex=False)
@@ -410,6 +417,12 @@ class ExchangeProcess:
                 continue
             if kind == "ready":
                 self.pid, self.realtime = event[1], event[2]
+                entered, ready = event[3], event[4]
+                self.startup = {"interpreter_and_imports_s": entered - self._t_start,
+                                "warm_up_s": ready - entered, "total_s": ready - self._t_start}
+                self.log.info("%s: exchange process ready %.0f ms after spawn (interpreter and imports %.0f ms, "
+                              "warm-up %.0f ms)", self.name, 1000 * self.startup["total_s"],
+                              1000 * self.startup["interpreter_and_imports_s"], 1000 * self.startup["warm_up_s"])
                 self._ready.set()
                 continue
             if kind == "crashed":

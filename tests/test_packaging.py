@@ -3,9 +3,11 @@ editable) into a fresh virtual environment, `acquire run example --fake` works f
 
 Builds the wheel from a copy of the source tree (the checkout is left untouched) without
 build isolation when setuptools and wheel are importable (fast, no index needed), else as
-`pip` would for an integrator. The venv sees the system site-packages for the dependencies
-(numpy, scipy, zenoh, …); the test checks that `acquire`, `calib` and `drivers` are imported
-from the venv's own copy, not from a checkout or an editable install.
+`pip` would for an integrator. The venv sees the dependencies (numpy, scipy, zenoh, …) of the
+interpreter that runs pytest, wherever the README's install put them — the system Python, a
+venv, or a ``--user`` install: a ``.pth`` file in the new venv lists that interpreter's site
+folders (``dependency_paths``), never the checkout or an editable install. The test checks that
+`acquire`, `calib` and `drivers` are imported from the venv's own copy.
 """
 
 from __future__ import annotations
@@ -42,6 +44,31 @@ def run(cmd: list, cwd: Path, timeout: float, env: dict | None = None) -> subpro
     return proc
 
 
+def dependency_paths() -> list[str]:
+    """The folders the running interpreter imports its dependencies from: its site folders
+    (``site.getsitepackages()``, the user site) and any other ``sys.path`` folder that is not
+    the standard library, not in this checkout and holds no copy of this project (another
+    checkout, an editable install's source folder). Non-folders (an editable install's path hook, zip files) are left out."""
+    import site
+    import sysconfig
+
+    stdlib = {Path(sysconfig.get_path(k)).resolve() for k in ("stdlib", "platstdlib")}
+    candidates = list(site.getsitepackages())
+    if site.ENABLE_USER_SITE or os.path.isdir(site.getusersitepackages()):
+        candidates.append(site.getusersitepackages())
+    candidates += sys.path
+    out: list[str] = []
+    for entry in candidates:
+        path = Path(entry or ".").resolve()
+        if not path.is_dir() or path in stdlib or path.name == "lib-dynload" or path.is_relative_to(ROOT):
+            continue  # (the checkout and its test folders, which pytest puts on sys.path)
+        if any((path / pkg / "__init__.py").is_file() for pkg in ("acquire", "calib", "drivers")):
+            continue  # a checkout of this project: the venv must use its own installed copy
+        if str(path) not in out:
+            out.append(str(path))
+    return out
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory) -> dict:
     """Build the wheel, make a venv, pip install the wheel into it; return their paths."""
@@ -56,10 +83,15 @@ def installed(tmp_path_factory) -> dict:
     run(build, base, 240)
     (wheel,) = dist.glob("remaster-*.whl")
     venv = base / "venv"
-    run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", venv], base, 120)
+    run([sys.executable, "-m", "venv", "--without-pip", venv], base, 120)
     python = venv / "bin" / "python"
-    # pip comes from the system site-packages; --ignore-installed: an editable remaster there
-    # must not make pip skip the install.
+    # The running interpreter's dependencies, after the venv's own site-packages (a .pth line
+    # appends a folder to sys.path; .pth files inside it, e.g. an editable install's finder,
+    # are not run).
+    purelib = run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], base, 60).stdout.strip()
+    Path(purelib, "remaster-test-deps.pth").write_text("".join(f"{p}\n" for p in dependency_paths()))
+    # pip comes from those folders too; --ignore-installed: an editable remaster there must not
+    # make pip skip the install.
     run([python, "-m", "pip", "install", "--no-deps", "--ignore-installed", "--no-index", "-q", wheel], base, 180)
     work = base / "elsewhere"  # any folder: no checkout, no plan, nothing beside it
     work.mkdir()

@@ -38,9 +38,9 @@ def controller():
     probe.bind(("127.0.0.1", 0))
     port = probe.getsockname()[1]
     probe.close()
-    # late_limit: on a cell the PC listens before the RSI program starts; here the fake starts
-    # first, and the command's start-up (imports, the exchange process) on a loaded machine can
-    # take more than RSI's 100 unanswered cycles (0.4 s), which would end the RSI session early
+    # (late_limit: the controller sends before the command's exchange process is up — ~0.3 s
+    # quiet, over a second beside CPU hogs, tests/bench/bench_exchange_start.py — and the default
+    # 100 late cycles, 0.4 s, would end its RSI session first; a real cell starts the PC side first)
     fake = FakeKrc4(("127.0.0.1", port), initial_deg=HOME, rt_priority=40, max_runtime_s=30, late_limit=5000)
     fake.start()
     yield port, fake
@@ -50,7 +50,7 @@ def controller():
 def run(app, port, *args, input=None):
     return CliRunner().invoke(
         app,
-        ["move", "--robot", str(KR6), "--commander", f"rsi://127.0.0.1:{port}?connect_timeout=3", *args],
+        ["move", "--robot", str(KR6), "--commander", f"rsi://127.0.0.1:{port}?connect_timeout=30", *args],
         input=input,
     )
 

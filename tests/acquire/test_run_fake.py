@@ -193,6 +193,7 @@ def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compli
     assert comp["A2"]["status"] == "fitted" and comp["A1"]["status"] == "undetermined"
 
 
+@pytest.mark.slow  # long run; the run loop's suspend/re-acquire path is the tracker run's above, emScon's re-acquisition is covered in tests/drivers/emscon
 @pytest.mark.timeout(300)
 def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     from drivers.emscon import codec as es

@@ -37,6 +37,7 @@ def socket_plan(tmp_path: Path, **overrides) -> Path:
     return path
 
 
+@pytest.mark.slow  # a recovery study over a whole socket run; resume is covered by test_run_resume.py, the socket run by the button test below
 def test_socket_run_interrupted_resumed_and_fitted_recovers_the_hidden_offsets(tmp_path):
     lp = load_plan(socket_plan(tmp_path))
     configs = resolve_configurations(lp)

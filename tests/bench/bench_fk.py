@@ -15,7 +15,9 @@ Figures, each best of a few repeats:
 - 173 configurations (the paper's plan) × {1, 100} parameter sets: evaluations per second, ours
   batched vs pybotics in a loop (it has no batched FK);
 - the parameter Jacobian of the marker positions: ours analytic and batched vs forward
-  differences through pybotics' FK, which is how pybotics' own calibration example gets its
+  differences through pybotics' FK, one ``Robot`` updated in place per column as pybotics'
+  optimiser does (``OptimizationHandler.apply_optimization_vector``), every configuration on
+  both sides — which is how pybotics' own calibration example gets its
   Jacobian (``scipy.optimize.least_squares`` with a 2-point Jacobian over the chain vector).
 """
 
@@ -36,23 +38,36 @@ from calib.kinematics import Chain  # noqa: E402
 from calib.model import load_robot_model  # noqa: E402
 
 
-def pybotics_robot(chain: Chain, params: np.ndarray):
-    """A pybotics ``Robot`` with the kinematics of ``chain`` at parameter vector ``params``."""
-    from pybotics.kinematic_chain import MDHKinematicChain
-    from pybotics.link import RevoluteMDHLink
-    from pybotics.robot import Robot
-    from pybotics.tool import Tool
-
+def pybotics_parameters(chain: Chain, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``chain``'s kinematics at parameter vector ``params`` as pybotics holds them: the MDH
+    chain's vector (n links × [α, a, θ, d], rad and mm) and the tool matrix (4×4, mm)."""
     n = chain.n
     if chain.model.convention != "dh" or np.any(params[4 * n:5 * n] != 0):
         raise ValueError(f"{chain.model.name}: only standard-DH models without a Hayati β map onto pybotics' links")
     d, a, alpha = params[n:2 * n], params[2 * n:3 * n], params[3 * n:4 * n]
     theta = chain.theta0 + chain.sign * params[:n]
-    links = [RevoluteMDHLink(alpha=0.0 if i == 0 else alpha[i - 1], a=0.0 if i == 0 else a[i - 1],
-                             theta=theta[i], d=d[i]) for i in range(n)]
+    links = np.column_stack([np.r_[0.0, alpha[:-1]], np.r_[0.0, a[:-1]], theta, d])
     ca, sa = math.cos(alpha[-1]), math.sin(alpha[-1])
     last = np.array([[1, 0, 0, a[-1]], [0, ca, -sa, 0], [0, sa, ca, 0], [0, 0, 0, 1.0]])
-    return Robot(MDHKinematicChain(links), tool=Tool(matrix=last @ chain.flange), world_frame=chain.base.copy())
+    return links.ravel(), last @ chain.flange
+
+
+def pybotics_robot(chain: Chain, params: np.ndarray):
+    """A pybotics ``Robot`` with the kinematics of ``chain`` at parameter vector ``params``."""
+    from pybotics.kinematic_chain import MDHKinematicChain
+    from pybotics.robot import Robot
+    from pybotics.tool import Tool
+
+    links, tool = pybotics_parameters(chain, params)
+    return Robot(MDHKinematicChain(links), tool=Tool(matrix=tool), world_frame=chain.base.copy())
+
+
+def pybotics_update(robot, chain: Chain, params: np.ndarray) -> None:
+    """Set ``robot``'s parameters to ``params`` in place, as pybotics' own optimiser does
+    (``OptimizationHandler.apply_optimization_vector``: the chain's ``vector``, the tool)."""
+    links, tool = pybotics_parameters(chain, params)
+    robot.kinematic_chain.vector = links
+    robot.tool.matrix = tool
 
 
 def best_time(fn, repeats: int = 3) -> float:
@@ -114,20 +129,25 @@ def main() -> None:
         print(f"{f'FK batched, {k} parameter set(s) (evals/s)':<44} {ours_rate:>14.3e} {peer_rate:>14.3e} "
               f"{ours_rate / peer_rate:>7.1f}x")
 
-    # Parameter Jacobian of one marker: analytic vs 2-point differences through pybotics' FK.
-    sub_j = q[:10]
+    # Parameter Jacobian of one marker: analytic vs 2-point differences through pybotics' FK,
+    # one robot updated in place per column as pybotics' optimiser does; both sides get every
+    # configuration.
+    sub_j = q
+    peer = pybotics_robot(chain, chain.nominal)
     mk = chain.nominal[chain.marker_slice()].reshape(chain.m, 3)[0]
     h = 1e-7
 
     def peer_jacobian() -> np.ndarray:
         out = np.zeros((len(sub_j), 3, 4 * chain.n))
         for j, v in enumerate(sub_j * chain.sign):
-            base = robots[0].fk(v)
+            pybotics_update(peer, chain, chain.nominal)
+            base = peer.fk(v)
             p0 = base[:3, :3] @ mk + base[:3, 3]
             for kk in range(4 * chain.n):  # offset, d, a, α of every joint
                 pp = chain.nominal.copy()
                 pp[kk] += h
-                t = pybotics_robot(chain, pp).fk(v)
+                pybotics_update(peer, chain, pp)
+                t = peer.fk(v)
                 out[j, :, kk] = (t[:3, :3] @ mk + t[:3, 3] - p0) / h
         return out
 

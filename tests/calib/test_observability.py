@@ -71,6 +71,7 @@ def test_ioops_rejects_bad_arguments(tx60_candidates):
         ioops(blocks, 10, index="O9")
 
 
+@pytest.mark.slow  # a study: IOOPS against random selection over seeds
 def test_ioops_beats_random_selection_on_held_out_error(tx60_candidates, capsys):
     """Seeded study: 25 of 200 configurations chosen by IOOPS (O6) or at random, full
     identification on the chosen, mean position error on the 175 held out."""

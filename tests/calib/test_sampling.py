@@ -89,6 +89,7 @@ def test_effective_sample_size_of_iid_and_ar1_draws():
     assert 0.75 * expected < effective_sample_size(x[..., None])[0] < 1.25 * expected
 
 
+@pytest.mark.slow  # a statistical study: two samplers' posteriors compared
 def test_fast_method_agrees_with_the_papers_sampler():
     """A small problem the reference can run long enough: two offsets and σ, registration known."""
     rng = np.random.default_rng(7)

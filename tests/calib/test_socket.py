@@ -70,6 +70,7 @@ def test_what_socket_data_cannot_determine_is_reported_not_sampled(iiwa, real):
     assert "scale" in no_distance.excluded
 
 
+@pytest.mark.slow  # a coverage study over repeated simulated cells
 def test_fit_recovers_a_hidden_cell_and_its_intervals_cover_the_truth():
     """40 simulated cells with offsets, link errors, an unknown ball and the ball's play: the
     95 % intervals of every fitted parameter cover the truth 93–97 % of the time."""
