@@ -155,11 +155,13 @@ def test_text_log_handler_stops_quietly_on_a_full_disk(tmp_path, capsys):
     handler.stream = Full()
     log = logging.getLogger("test-text-log-full")
     log.addHandler(handler)
+    log.propagate = False  # only this handler: a console handler another test left on the root would echo
     try:
         for i in range(5):
             log.error("record %d", i)
     finally:
         log.removeHandler(handler)
+        log.propagate = True
     handler.close()
     assert isinstance(handler.failed, OSError) and handler.failed.errno == errno.ENOSPC
     assert capsys.readouterr().err == ""  # no "--- Logging error ---" per record

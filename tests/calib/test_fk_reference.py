@@ -98,12 +98,26 @@ PANDA_URDF = [
 ]
 PANDA_FLANGE = ((0, 0, 0.107), (0, 0, 0))
 
+# Source: ros-industrial/universal_robot, ur_description/urdf/ur10.urdf.xacro (shoulder_pan_joint
+# .. wrist_3_joint, then tool0: xyz 0 0.0922 0, rpy -π/2 0 0). ROS's base_link faces the other way
+# from UR's DH base frame (the controller's "base"): a yaw of π before the first joint.
+UR10_URDF = [
+    ((0, 0, 0.1273), (0, 0, PI), (0, 0, 1)),
+    ((0, 0.220941, 0), (0, PI / 2, 0), (0, 1, 0)),
+    ((0, -0.1719, 0.612), (0, 0, 0), (0, 1, 0)),
+    ((0, 0, 0.5723), (0, PI / 2, 0), (0, 1, 0)),
+    ((0, 0.1149, 0), (0, 0, 0), (0, 0, 1)),
+    ((0, 0, 0.1157), (0, 0, 0), (0, 1, 0)),
+]
+UR10_FLANGE = ((0, 0.0922, 0), (-PI / 2, 0, 0))
+
 REFERENCES = {
     "kuka_iiwa14_r820.yaml": (IIWA14_URDF, IIWA_FLANGE),
     "kuka_iiwa7_r800.yaml": (IIWA7_URDF, IIWA_FLANGE),
     "kuka_kr6_r900_2.yaml": (KR6_URDF, KR6_FLANGE),
     "staubli_tx60.yaml": (TX60_URDF, TX60_FLANGE),
     "franka_panda.yaml": (PANDA_URDF, PANDA_FLANGE),
+    "ur10.yaml": (UR10_URDF, UR10_FLANGE),
 }
 
 # Flange position (mm) at the controller's zero, from the data-sheet link lengths.
@@ -113,6 +127,7 @@ ZERO_FLANGE_MM = {
     "kuka_kr6_r900_2.yaml": (25 + 455 + 420 + 90, 0.0, 400 + 25),  # arm stretched forward
     "staubli_tx60.yaml": (0.0, 20.0, 375 + 290 + 310 + 70),  # arm straight up, 20 mm shoulder step
     "franka_panda.yaml": (82.5 - 82.5 + 88, 0.0, 333 + 316 + 384 - 107),  # the flange pointing down
+    "ur10.yaml": (-(612 + 572.3), -(163.941 + 92.2), 127.3 - 115.7),  # arm stretched along the base's -x
 }
 
 SHIPPED = sorted(p.name for p in ROBOTS.glob("*.yaml"))
