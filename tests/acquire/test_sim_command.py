@@ -24,7 +24,7 @@ from drivers.tracker.client import TrackerSensor
 
 from run_helpers import ROOT, acquire_cmd  # noqa: E402 - tests/acquire is on sys.path under pytest
 
-for sub in ("natnet", "kuka_fri"):
+for sub in ("natnet", "kuka_fri", "emscon"):
     sys.path.insert(0, str(ROOT / "tests" / "drivers" / sub))
 from fri_proto import messages  # noqa: E402
 from natnet_helpers import natnetsdk_client, stop_natnetsdk, wait_until  # noqa: E402
@@ -33,6 +33,7 @@ pytest.importorskip("natnetsdk.NatNetClient", reason="natnetsdk (OptiTrack's cli
 pytest.importorskip("CESAPI.connection", reason="CESAPI 1.1.3 is the emScon peer")
 from CESAPI import packet as P  # noqa: E402
 from CESAPI.connection import Connection  # noqa: E402
+from cesapi_helpers import execute as cesapi_execute  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
 WAIT_S = 30.0
@@ -98,24 +99,6 @@ def port(url: str) -> tuple[str, int]:
     return host, int(p)
 
 
-def cesapi_execute(stream, packet, *, result: bool = False):
-    """Send with CESAPI; the command's answer (or the measurement result with ``result``)."""
-    stream.write(packet)
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        if stream.unreadCount() == 0:
-            time.sleep(0.01)
-            continue
-        got = stream.read()
-        kind = P.packetType(got)
-        if kind in (P.ES_DT_SingleMeasResult, P.ES_DT_SingleMeasResult2) and result:
-            return got
-        if kind == P.ES_DT_Error:
-            return got
-        if kind == P.ES_DT_Command and got.packetInfo.command == packet.packetInfo.command:
-            if not result or got.packetInfo.status != P.ES_RS_AllOK:
-                return got
-    raise AssertionError(f"no answer to command {packet.packetInfo.command} within {WAIT_S} s")
 
 
 def test_acquire_sim_serves_every_device_to_independent_clients(tmp_path):

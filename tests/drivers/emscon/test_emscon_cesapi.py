@@ -19,29 +19,11 @@ from drivers.emscon.client import EmsconSensor
 pytest.importorskip("CESAPI.connection", reason="CESAPI 1.1.3 (the test extra) is the independent peer")
 from CESAPI import packet as P  # noqa: E402
 from CESAPI.connection import Connection  # noqa: E402
+from cesapi_helpers import execute  # noqa: E402
 
 WAIT_S = 20.0
 
 
-def execute(stream, packet, *, result: bool = False):
-    """Send ``packet`` with CESAPI and return its answer (the measurement result with
-    ``result``) the way CESAPI's CommandSync reads them, skipping notifications."""
-    stream.write(packet)
-    deadline = time.monotonic() + WAIT_S
-    while time.monotonic() < deadline:
-        if stream.unreadCount() == 0:
-            time.sleep(0.01)
-            continue
-        got = stream.read()
-        kind = P.packetType(got)
-        if kind in (P.ES_DT_SingleMeasResult, P.ES_DT_SingleMeasResult2) and result:
-            return got
-        if kind == P.ES_DT_Error:
-            return got
-        if kind == P.ES_DT_Command and got.packetInfo.command == packet.packetInfo.command:
-            if not result or got.packetInfo.status != P.ES_RS_AllOK:
-                return got
-    raise AssertionError(f"no answer to command {packet.packetInfo.command} within {WAIT_S} s")
 
 
 @pytest.fixture
