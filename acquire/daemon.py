@@ -431,7 +431,7 @@ class Daemon:
 
     def start(self, request: dict, identity: Identity) -> dict:
         from acquire.plan import load_plan
-        from calib.yamlfile import ConfigError
+        from calib.io.yamlfile import ConfigError
 
         with self._lock:
             if self._state != "ready":

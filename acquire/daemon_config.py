@@ -1,6 +1,6 @@
 """The daemon's configuration file (``/etc/remaster/daemon.yaml``), validated by pydantic.
 
-``load_daemon_config(path)`` returns a ``DaemonConfig`` or raises ``calib.yamlfile.ConfigError``
+``load_daemon_config(path)`` returns a ``DaemonConfig`` or raises ``calib.io.yamlfile.ConfigError``
 whose lines read ``file:line:col: field: message (given: …)``. Relative paths in the file are
 taken from the file's folder. See ``systemd/daemon.yaml.example`` for a documented example.
 
@@ -51,7 +51,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from acquire.control_auth import MIN_ITERATIONS, Credentials
-from calib.yamlfile import ConfigError, CrossFieldChecked, load_validated
+from calib.io.yamlfile import ConfigError, CrossFieldChecked, load_validated
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,7 @@ class _Strict(BaseModel):
 class FakeCell(_Strict):
     """The simulated cell the daemon brings up instead of hardware."""
 
-    sim_config: Path | None = Field(None, description="drivers/sim YAML; None: the packaged default cell (calib.resources)")
+    sim_config: Path | None = Field(None, description="drivers/sim YAML; None: the packaged default cell (calib.io.resources)")
     seed: int = Field(0, ge=0)
     time_scale: float = Field(1.0, gt=0, description="simulated seconds per wall second")
 

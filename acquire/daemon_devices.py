@@ -25,7 +25,7 @@ DEVICE_START_TIMEOUT_S = 20.0
 class CellSource(Protocol):
     """A cell that describes itself (``drivers.sim.running.SimulatedCell`` is one).
 
-    model: its robot model (``calib.model.RobotModel``: joint limits of the idle commander).
+    model: its robot model (``calib.robot.model.RobotModel``: joint limits of the idle commander).
     commander_driver: the driver its controller speaks (fri, rsi). devices(): its position
     sensors as (name, driver, url). describe(commander_driver, sensors): the
     ``CellDescription`` for a plan's commander driver and (name, driver, url) sensors
@@ -88,7 +88,7 @@ class DeviceHost:
 
     def _open_configured(self) -> None:
         from acquire.run import open_commander, open_sensor
-        from calib.model import load_robot_model
+        from calib.robot.model import load_robot_model
         from drivers.protocols import JointLimits
 
         if self.cfg.commander is None and not self.cfg.sensors:

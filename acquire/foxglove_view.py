@@ -4,7 +4,7 @@ Channels (the same in the recorded MCAP and on the live WebSocket server; fixed 
 layout, ``fixtures/foxglove/remaster-layout.json``, fits every cell):
 
 - ``/tf`` — ``foxglove.FrameTransforms``: ``base → link1 → … → linkN → flange`` from the measured
-  joints through the robot model's kinematics (``calib.kinematics.joint_frames``), and
+  joints through the robot model's kinematics (``calib.robot.kinematics.joint_frames``), and
   ``base → <sensor>`` for every sensor with a registration (the run's current estimate).
 - ``/markers`` — ``foxglove.SceneUpdate``: each measured marker as a green sphere in its sensor's
   frame, and the model's nominal markers as grey spheres locked to ``flange`` — where the markers
@@ -281,7 +281,7 @@ def joint_state(device: str, names: list[str], q_rad: np.ndarray, t_ns: int, dev
 class RobotView:
     """Frame transforms of one robot model: ``base → link1 … linkN → flange`` and ``base → sensor``.
 
-    chain: ``calib.kinematics.Chain`` (nominal model). Registrations are (4, 4) ``base2sensor``
+    chain: ``calib.robot.kinematics.Chain`` (nominal model). Registrations are (4, 4) ``base2sensor``
     matrices, mm (p_sensor = base2sensor · p_base), as the run estimates them; set them with
     :meth:`set_registration`. Registrations may be set while another thread calls :meth:`transforms`.
     """
@@ -309,7 +309,7 @@ class RobotView:
         Numbers are rounded to 1e-7 m (0.1 µm) and 1e-10 per quaternion component (< 1e-6 mm
         at 2 m): far below any sensor's resolution, and half the bytes of full float reprs.
         """
-        from calib.kinematics import joint_frames
+        from calib.robot.kinematics import joint_frames
 
         q = np.asarray(q_rad, dtype=float).reshape(-1)
         if q.size != self.chain.n or not np.all(np.isfinite(q)):

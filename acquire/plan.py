@@ -13,7 +13,7 @@ Plan format (every section; defaults in brackets; ``fixtures/plans/example.yaml`
 commented example)::
 
     cell: lab1                       # cell id: [a-z0-9_-], the Zenoh key prefix remaster/<cell>/…
-    robot: ../robots/kuka_iiwa14_r820.yaml   # robot model YAML (calib.model)
+    robot: ../robots/kuka_iiwa14_r820.yaml   # robot model YAML (calib.robot.model)
     commander:                       # the robot controller's JointCommander
       driver: fri                    # a name from drivers.registry (built-in: fri, rsi)
       url: fri://127.0.0.1:30200     # the driver's URL (scheme fri:// for fri, rsi:// for rsi)
@@ -30,7 +30,7 @@ commented example)::
         # reflector: {type: RRR15, offset_mm: 19.05}   # offset optional, checked where the tracker knows it
         # placement: {xyz: [2000, 0, 900], zyx: [180, -80, 0]}  # rough sensor pose, base frame (mm, deg) [null]
     poses:                           # exactly ONE of generated / cartesian / joints
-      generated:                     # the remastering paper's plan (calib.poses.plan_poses)
+      generated:                     # the remastering paper's plan (calib.plan.poses.plan_poses)
         n: 60                        # Latin-hypercube candidate poses
         seed: 1
         sensor_origin_mm: [2000, 0, 900]   # where the flange z-axis aims (robot base frame)
@@ -45,7 +45,7 @@ commented example)::
       # cartesian:                   # explicit flange poses, every IK solution within limits
       #   - {xyz_mm: [500, 0, 600], zyx_deg: [0, 90, 0], group: front, arm_angle_deg: 30}
       # joints: [[0, 30, 0, -60, 0, 45, 0], ...]     # explicit configurations, degrees
-      # joints: {file: configs.csv}  # or a configurations file (calib.poses format)
+      # joints: {file: configs.csv}  # or a configurations file (calib.plan.poses format)
     # socket:                        # INSTEAD of poses: socket (sensorless) calibration, with one
     #   ball_mm: [0, 0, 60]          # sensor {driver: socket, url: operator://terminal}; nominal ball
     #   distance_mm: 50              # on the flange, mm; sockets' distance (caliper) [null: no scale]
@@ -106,7 +106,7 @@ Configuration ids (``PlannedConfig.config_id``; a resumed run matches on them):
 - joints list: ``j000``, ``j001``, … (pose and branch empty);
 - joints file: ``c<config>`` from the file's config column; pose group ``p<pose>``;
 - socket: ``<placement>-s<socket>-k<kk>`` — the kk-th approach to that socket
-  (``calib.socket_poses``); pose group ``<placement>/<socket>``; ``PlannedConfig.socket`` set.
+  (``calib.plan.socket_poses``); pose group ``<placement>/<socket>``; ``PlannedConfig.socket`` set.
 
 A selection keeps the ids of the configurations it keeps.
 """
@@ -135,9 +135,9 @@ from pydantic import (
 )
 from pydantic.fields import FieldInfo
 
-from calib.model import Frame, RobotModel, load_robot_model
-from calib.resources import default_sim_config
-from calib.yamlfile import (ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate,
+from calib.robot.model import Frame, RobotModel, load_robot_model
+from calib.io.resources import default_sim_config
+from calib.io.yamlfile import (ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate,
                             parse_yaml_text, read_yaml_text)
 from acquire.plan_guards import (
     commander_margin_rad,
@@ -247,7 +247,7 @@ class SensorSpec(_Strict):
 
 class GeneratedPoses(_Strict):
     """The paper's plan: seeded Latin-hypercube poses aimed at ``sensor_origin_mm``, every IK
-    solution of each (``calib.poses.plan_poses``)."""
+    solution of each (``calib.plan.poses.plan_poses``)."""
 
     n: int = Field(ge=1, le=10000, description="Number of candidate poses.")
     seed: int = Field(ge=0, description="Seed of the Latin hypercube.")
@@ -276,7 +276,7 @@ class CartesianPose(_Strict):
 
 
 class JointsFile(_Strict):
-    """Explicit configurations from a configurations file (``calib.poses`` format, degrees)."""
+    """Explicit configurations from a configurations file (``calib.plan.poses`` format, degrees)."""
 
     file: str = Field(min_length=1, description="Path of the CSV file, relative to the plan's folder.")
 
@@ -346,7 +346,7 @@ class FitSpec(_Strict):
     """Options of the fit that runs on the log at the end (as ``acquire fit``)."""
 
     method: Literal["auto", "fast", "paper"] = Field(
-        "auto", description="auto: the data choose the model by cross-validation (calib.model_choice); fast: the "
+        "auto", description="auto: the data choose the model by cross-validation (calib.fit.model_choice); fast: the "
         "link-prior model with the independence sampler; paper: the paper's Metropolis.")
     joints: list[int] | None = Field(None, min_length=1, description="Axis numbers (1-based) to fit; default all.")
     error: Literal["gaussian", "student"] = "gaussian"
@@ -384,8 +384,8 @@ class SocketPlacement(_Strict):
 
 
 class SocketSpec(_Strict):
-    """Sensorless socket calibration (``calib.socket``): the robot approaches each socket of each
-    placement in ``configurations`` orientations (``calib.socket_poses``), the operator guides
+    """Sensorless socket calibration (``calib.fit.socket``): the robot approaches each socket of each
+    placement in ``configurations`` orientations (``calib.plan.socket_poses``), the operator guides
     the ball in, and the socket sensor records the joint angles."""
 
     ball_mm: Vec3 = Field(description="Nominal ball centre in the flange frame, mm (from the drawing).")
@@ -586,7 +586,7 @@ class ResolvedPlan:
     source: "generated" | "cartesian" | "joints" | "file"; candidates: poses tried (or rows
     read); pose_groups: the kept pose groups in order; dropped: (pose group, reason);
     before_selection: configuration count before ``selection``; selection: the IOOPS result
-    (``calib.observability.Selection``) or None.
+    (``calib.plan.observability.Selection``) or None.
     """
 
     configs: list[PlannedConfig]
@@ -914,7 +914,7 @@ def _joint_list_errors(rows: list[list[float]], model: RobotModel, margin_rad: f
 
 def _joints_file_errors(spec: JointsFile, model: RobotModel, folder: Path, selection: SelectionSpec | None,
                         margin_rad: float = 0.0, driver: str = ""):
-    from calib.poses import read_configurations
+    from calib.plan.poses import read_configurations
 
     loc = ("poses", "joints", "file")
     path = _resolve(folder, spec.file)
@@ -1003,7 +1003,7 @@ def _frozen(q: np.ndarray) -> np.ndarray:
 
 
 def _generated(lp: LoadedPlan) -> ResolvedPlan:
-    from calib.poses import PoseRanges, plan_poses
+    from calib.plan.poses import PoseRanges, plan_poses
 
     g = lp.plan.poses.generated
     assert g is not None
@@ -1040,8 +1040,8 @@ def _generated(lp: LoadedPlan) -> ResolvedPlan:
 
 
 def _cartesian(lp: LoadedPlan) -> ResolvedPlan:
-    from calib import ik
-    from calib.transforms import pose_to_matrix
+    from calib.ik import ik
+    from calib.robot.transforms import pose_to_matrix
 
     poses = lp.plan.poses.cartesian or []
     configs: list[PlannedConfig] = []
@@ -1082,7 +1082,7 @@ def _cartesian(lp: LoadedPlan) -> ResolvedPlan:
 
 
 def _joints(lp: LoadedPlan) -> ResolvedPlan:
-    from calib.poses import read_configurations
+    from calib.plan.poses import read_configurations
 
     spec = lp.plan.poses.joints
     if isinstance(spec, JointsFile):
@@ -1099,9 +1099,9 @@ def _joints(lp: LoadedPlan) -> ResolvedPlan:
 
 
 def _socket(lp: LoadedPlan) -> ResolvedPlan:
-    """Approach configurations for every socket of every placement (``calib.socket_poses``).
+    """Approach configurations for every socket of every placement (``calib.plan.socket_poses``).
     Ids ``<placement>-s<socket>-k<kk>``; pose group ``<placement>/<socket>``; ``socket`` set."""
-    from calib.socket_poses import socket_approaches
+    from calib.plan.socket_poses import socket_approaches
 
     sp = lp.plan.socket
     assert sp is not None
@@ -1127,8 +1127,8 @@ def _socket(lp: LoadedPlan) -> ResolvedPlan:
 
 
 def _select(lp: LoadedPlan, resolved: ResolvedPlan) -> ResolvedPlan:
-    from calib.identification import information_blocks
-    from calib.observability import ioops
+    from calib.fit.identification import information_blocks
+    from calib.plan.observability import ioops
 
     sel = lp.plan.selection
     assert sel is not None

@@ -19,7 +19,7 @@ physically implausible, and therefore refused:
 - joint targets that all lie within ±π "degrees" (±3.15°, and not all zero) although the
   model's axes move through tens or hundreds of degrees, and that read as radians fall
   within the limits: a calibration plan that never moves any axis more than 3° is useless,
-  and this is exactly what a list of radians looks like (``calib.units.radians_problem``, the
+  and this is exactly what a list of radians looks like (``calib.measure.units.radians_problem``, the
   same check measurement CSVs get);
 - an angle range or angle whose bounds are ±π/4 multiples in radians (0.785, 1.571, 3.142,
   6.283 within 0.002), e.g. ``angle_deg: [0, 6.283]`` or ``zyx_deg: [0, 1.571, 0]``.
@@ -39,9 +39,9 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from calib.model import RobotModel
-from calib.units import radians_problem  # noqa: F401  (re-exported: plan.py uses it from here)
-from calib.yamlfile import Marks, error_line
+from calib.robot.model import RobotModel
+from calib.measure.units import radians_problem  # noqa: F401  (re-exported: plan.py uses it from here)
+from calib.io.yamlfile import Marks, error_line
 
 #: |x|, |y|, |z| all at most this (mm): ``sensor_origin_mm`` looks like metres.
 SENSOR_ORIGIN_METRES_MM = 10.0

@@ -835,14 +835,14 @@ def _close_truncated(seg: SegmentContents) -> None:
 # To the fitter
 # --------------------------------------------------------------------------------------------
 def dataset_from_run(path: str | Path, model: Any):
-    """The run's samples as a ``calib.dataset.Dataset`` (one row per marker measurement).
+    """The run's samples as a ``calib.measure.dataset.Dataset`` (one row per marker measurement).
 
     q from ``q_measured_deg`` (degrees → radians); xyz from ``mean_mm``; std_mm is the RMS of
     the per-axis ``std_mm`` (NaN when missing); count from ``count``; config and pose ids kept.
     Markers without a mean (not seen) give no row. Raises DatasetError naming the file and the
     configuration for joint counts or markers that do not match ``model``.
     """
-    from calib.dataset import DatasetError, check_units, from_arrays
+    from calib.measure.dataset import DatasetError, check_units, from_arrays
 
     path = Path(path)
     try:

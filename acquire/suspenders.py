@@ -30,7 +30,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from calib.registration import register_least_squares
+from calib.fit.registration import register_least_squares
 from drivers.errors import DeviceTimeoutError, TargetLostError
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,7 @@ class Recovery:
 class ReflectorPredictor:
     """Predicts where a sensor sees a marker at joint angles q, from the samples so far.
 
-    chain: ``calib.kinematics.Chain`` of the nominal model; marker_index: plan marker name →
+    chain: ``calib.robot.kinematics.Chain`` of the nominal model; marker_index: plan marker name →
     index into the chain's markers. initial: sensor name → (4, 4) base2sensor guess (or absent).
     ``add`` one measured (q (n,) rad, xyz (3,) mm sensor frame) per sample; from three
     non-collinear points on a least-squares registration replaces the guess.

@@ -6,6 +6,10 @@ Pure numpy/scipy (plus pydantic and PyYAML for model files): ``calib`` never imp
 Units, stated once for the whole package: lengths in **millimetres**, angles in **radians**,
 joint angles in the **controller's axis convention** (the numbers the robot's pendant shows,
 converted to radians). Files and the command line use millimetres and degrees.
+
+One sub-package (wing) per pipeline stage, each importing only the ones before it:
+``io`` → ``robot`` → ``measure`` → ``ik`` → ``plan`` → ``fit`` → ``report`` (README, "Layout";
+checked by ``tests/test_layers.py``).
 """
 
 import os as _os

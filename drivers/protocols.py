@@ -1,7 +1,7 @@
 """The two capability protocols every device driver implements, and the records they return.
 
 Units: positions in millimetres in the *sensor* frame, joint angles in radians in the
-*controller's* axis convention (see ``calib.model``), times in seconds.
+*controller's* axis convention (see ``calib.robot.model``), times in seconds.
 
 Every record carries two stamps: ``device_time`` from the device's own clock (seconds, its
 epoch is the device's), and ``host_time`` from ``time.monotonic()`` when the host received it.
@@ -79,7 +79,7 @@ class JointLimits:
 
     @classmethod
     def from_model(cls, model) -> "JointLimits":
-        """Limits of a ``calib.model.RobotModel`` (duck-typed to keep layers one-way)."""
+        """Limits of a ``calib.robot.model.RobotModel`` (duck-typed to keep layers one-way)."""
         return cls(
             lower_rad=np.asarray(model.lower_limits_rad, dtype=float),
             upper_rad=np.asarray(model.upper_limits_rad, dtype=float),

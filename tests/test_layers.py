@@ -46,3 +46,59 @@ def test_checker_sees_a_forbidden_import(tmp_path: Path) -> None:
     bad = tmp_path / "bad.py"
     bad.write_text("from acquire.cli import app\nREG = 'drivers.natnet.client:NatNetSensor'\n")
     assert imported_top_levels(bad) >= {"acquire", "drivers"}
+
+
+# calib's wings, lowest first: a wing may import only the wings before it (and itself).
+# The README's "Layout" section states the same order.
+CALIB_WINGS = ("io", "robot", "measure", "ik", "plan", "fit", "report")
+
+
+def calib_wings_imported(path: Path) -> set[str]:
+    """The calib wings that the module at ``path`` imports (absolute imports and registry strings)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    mods: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            mods.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            assert node.level == 0, f"{path}: relative import (use calib.<wing>.<module>)"
+            if node.module == "calib":
+                mods.update(f"calib.{a.name}" for a in node.names)
+            elif node.module:
+                mods.add(node.module)
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and ":" in node.value:
+            mods.add(node.value.split(":")[0])
+    return {m.split(".")[1] for m in mods if m.startswith("calib.") and m.count(".") >= 1}
+
+
+def wing_violations(root: Path, order: tuple[str, ...]) -> dict[str, list[str]]:
+    rank = {w: i for i, w in enumerate(order)}
+    bad: dict[str, list[str]] = {}
+    for f in sorted(root.rglob("*.py")):
+        rel = f.relative_to(root)
+        if len(rel.parts) < 2:  # calib/__init__.py sits above the wings
+            continue
+        wing = rel.parts[0]
+        if wing not in rank:
+            bad[str(rel)] = [f"not in a known wing ({wing})"]
+            continue
+        wrong = sorted(
+            w for w in calib_wings_imported(f) if w not in rank or rank[w] > rank[wing]
+        )
+        if wrong:
+            bad[str(rel)] = wrong
+    return bad
+
+
+def test_calib_wings_import_one_way() -> None:
+    calib = ROOT / "calib"
+    assert {p.name for p in calib.iterdir() if (p / "__init__.py").is_file()} == set(CALIB_WINGS)
+    assert not [p.name for p in calib.glob("*.py") if p.name != "__init__.py"], (
+        "calib/ holds only wings (and __init__.py)"
+    )
+    bad = wing_violations(calib, CALIB_WINGS)
+    assert not bad, f"calib wing imports a wing above it (order {CALIB_WINGS}): {bad}"
+
+
+def test_wing_checker_sees_a_reversed_order() -> None:
+    assert wing_violations(ROOT / "calib", tuple(reversed(CALIB_WINGS)))

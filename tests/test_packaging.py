@@ -114,7 +114,7 @@ def test_the_wheel_holds_models_plans_and_the_simulated_cell(installed):
 def test_the_installed_package_finds_its_data_outside_a_checkout(installed):
     probe = (
         "import json, acquire, calib, drivers\n"
-        "from calib import resources\n"
+        "from calib.io import resources\n"
         "from drivers.sim.config import DEFAULT_CONFIG_PATH, load_sim_config\n"
         "cfg = load_sim_config(DEFAULT_CONFIG_PATH)\n"
         "print(json.dumps({'modules': [acquire.__file__, calib.__file__, drivers.__file__],\n"

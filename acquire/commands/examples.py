@@ -21,7 +21,7 @@ import typer
 
 def listing() -> str:
     """Every packaged file by kind: name, path, and its first comment line."""
-    from calib.resources import KINDS, foxglove_layout_hint, packaged, summary
+    from calib.io.resources import KINDS, foxglove_layout_hint, packaged, summary
 
     how = {"plans": "acquire run NAME --fake", "robots": "--robot NAME", "sim": "acquire sim --config NAME"}
     lines = []
@@ -45,7 +45,7 @@ def copy_plan(name: str, dest: Path) -> Path:
     overwrite, ValueError for an unknown name."""
     import re
 
-    from calib.resources import find, packaged
+    from calib.io.resources import find, packaged
 
     src = find("plans", name)
     if src is None:

@@ -10,8 +10,8 @@ imports ``drivers.sim``: the run itself never knows its cell is simulated.
 
 from __future__ import annotations
 
-from calib.model import load_robot_model
-from calib.yamlfile import ConfigError, error_line, locate
+from calib.robot.model import load_robot_model
+from calib.io.yamlfile import ConfigError, error_line, locate
 from drivers.cell import CellDescription
 from drivers.sim.config import DEFAULT_CONFIG_PATH, load_sim_config
 from drivers.sim.running import DEFAULT_TIME_SCALE, OPERATOR_DRIVERS, SimulatedCell

@@ -7,7 +7,7 @@ Example::
 
 Prints the offsets ± std with their status, σ, sampler diagnostics, the accuracy metrics before
 and after, and the values to enter on the controller. Input files are read by a loader chosen by
-suffix (``LOADERS``); ``.csv`` is the format of ``calib.dataset``. A run's MCAP log plugs in by
+suffix (``LOADERS``); ``.csv`` is the format of ``calib.measure.dataset``. A run's MCAP log plugs in by
 adding its loader here. Bad input exits non-zero with the file, line and column.
 """
 
@@ -21,9 +21,9 @@ from typing import TYPE_CHECKING, Callable, Optional
 import typer
 
 if TYPE_CHECKING:  # the fit's modules load when it runs, not for `acquire fit --help`
-    from calib.dataset import Dataset
-    from calib.fit import FitResult
-    from calib.model import RobotModel
+    from calib.measure.dataset import Dataset
+    from calib.fit.offsets import FitResult
+    from calib.robot.model import RobotModel
 
 log = logging.getLogger(__name__)
 
@@ -31,8 +31,8 @@ Loader = Callable[[Path, "RobotModel"], "Dataset"]
 
 
 def dataset_from_csv(path: Path, model: RobotModel) -> Dataset:
-    """A CSV of ``calib.dataset``'s format as a dataset."""
-    from calib.dataset import read_csv
+    """A CSV of ``calib.measure.dataset``'s format as a dataset."""
+    from calib.measure.dataset import read_csv
 
     return read_csv(path, model)
 
@@ -50,7 +50,7 @@ LOADERS: dict[str, Loader] = {".csv": dataset_from_csv, ".mcap": dataset_from_ru
 
 def load_dataset(path: Path, model: RobotModel) -> Dataset:
     """Read ``path`` with the loader for its suffix; DatasetError on unknown suffixes."""
-    from calib.dataset import DatasetError
+    from calib.measure.dataset import DatasetError
 
     loader = LOADERS.get(path.suffix.lower())
     if loader is None:
@@ -205,7 +205,7 @@ def format_summary(doc: dict, controller_text: str, choice_text: str | None = No
 
 
 def fit(
-    data: Path = typer.Argument(..., help="Measurements: CSV (calib.dataset format)."),
+    data: Path = typer.Argument(..., help="Measurements: CSV (calib.measure.dataset format)."),
     robot: Path = typer.Option(..., "--robot", help="Robot model YAML file (fixtures/robots/...)."),
     validate: Optional[Path] = typer.Option(None, "--validate", help="Validation measurements (Table VIII)."),
     method: str = typer.Option(
@@ -284,15 +284,15 @@ def fit(
     # no numpy and no fitter.
     import numpy as np
 
-    from calib.controller import apply_guards, controller_values
-    from calib.csvdialect import is_socket_csv
-    from calib.dataset import DatasetError
-    from calib.fit import FitOptions, fit_offsets
-    from calib.kinematics import Chain
-    from calib.metrics import accuracy_metrics
-    from calib.model import load_robot_model
-    from calib.result import result_dict, write_result
-    from calib.yamlfile import ConfigError
+    from calib.robot.controller import apply_guards, controller_values
+    from calib.io.csvdialect import is_socket_csv
+    from calib.measure.dataset import DatasetError
+    from calib.fit.offsets import FitOptions, fit_offsets
+    from calib.robot.kinematics import Chain
+    from calib.fit.metrics import accuracy_metrics
+    from calib.robot.model import load_robot_model
+    from calib.fit.result import result_dict, write_result
+    from calib.io.yamlfile import ConfigError
 
     try:
         model = load_robot_model(robot)
@@ -352,7 +352,7 @@ def fit(
                   output, model_out, report, compliance)
         return
     if method == "full":
-        from calib.identification import IdentOptions  # the identification loads only for --method full
+        from calib.fit.identification import IdentOptions  # the identification loads only for --method full
 
         options = IdentOptions(compliance=compliance, tool_prior_mm=tool_prior_mm, seed=seed, n_starts=starts or 6,
                                exclude_reasons=_full_exclusions(model, cal, _joints(joints, model.n_joints), fix_registration))
@@ -391,7 +391,7 @@ def fit(
         write_result(output, doc)
         typer.echo(f"\nwrote {output}")
     if report is not None:
-        from calib.report import write_report  # the report's modules only when one is asked for
+        from calib.report.html import write_report  # the report's modules only when one is asked for
 
         write_report(report, result, cal, doc, text)
         typer.echo(f"wrote {report}")
@@ -434,7 +434,7 @@ def _full_exclusions(model: RobotModel, cal: Dataset, joints: tuple[int, ...] | 
         out += [(f"{ax}.offset", "zero-offset kept nominal: the axis is not in --joints")
                 for i, ax in enumerate(model.axis_names) if i + 1 not in joints]
     if fix_registration:
-        from calib.identification import REG
+        from calib.fit.identification import REG
 
         out += [(f"{s}.{r}", "registration kept at the nominal model's least-squares one (--fix-registration)")
                 for s in cal.sensors for r in REG]
@@ -443,11 +443,11 @@ def _full_exclusions(model: RobotModel, cal: Dataset, joints: tuple[int, ...] | 
 
 def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None,
               report: Path | None, options, *, done=None) -> None:
-    """``--method full``: Levenberg–Marquardt identification (``options``: ``calib.identification.IdentOptions``),
-    corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report_ident``).
-    ``done``: a ``calib.auto_fit.AutoFit`` that chose and identified the full model already."""
-    from calib.identification import corrected_model, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
-    from calib.result import write_result
+    """``--method full``: Levenberg–Marquardt identification (``options``: ``calib.fit.identification.IdentOptions``),
+    corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report.report_ident``).
+    ``done``: a ``calib.fit.auto_fit.AutoFit`` that chose and identified the full model already."""
+    from calib.fit.identification import corrected_model, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
+    from calib.fit.result import write_result
 
     if done is not None:
         result, doc = done.ident, done.doc
@@ -493,7 +493,7 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
         write_result(output, doc)
         typer.echo(f"wrote {output}")
     if report is not None:
-        from calib.report_ident import write_ident_report  # the report's modules only when one is asked for
+        from calib.report.report_ident import write_ident_report  # the report's modules only when one is asked for
 
         write_ident_report(report, result, cal, doc)
         typer.echo(f"wrote {report}")
@@ -510,13 +510,13 @@ def register(app: typer.Typer) -> None:
 def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force: str | None,
               link_tolerance: tuple[float, float] | None, n_random: int, n_starts: int, exclusions, output: Path | None,
               model_out: Path | None, report: Path | None, compliance_only: bool = False) -> None:
-    """The default: the data choose the model (``calib.auto_fit``); the table, the fit, and "enter"
-    only where earned (``calib.controller.earned_reasons``)."""
-    from calib.auto_fit import auto_fit
-    from calib.result import write_result
+    """The default: the data choose the model (``calib.fit.auto_fit``); the table, the fit, and "enter"
+    only where earned (``calib.robot.controller.earned_reasons``)."""
+    from calib.fit.auto_fit import auto_fit
+    from calib.fit.result import write_result
 
     if force is not None:
-        from calib.model_choice import parse_candidate
+        from calib.fit.model_choice import parse_candidate
 
         try:
             parse_candidate(force, model)
@@ -540,7 +540,7 @@ def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force:
         write_result(output, doc)
         typer.echo(f"\nwrote {output}")
     if report is not None:
-        from calib.report import write_report  # the report's modules only when one is asked for
+        from calib.report.html import write_report  # the report's modules only when one is asked for
 
         write_report(report, done.result, cal, doc, done.controller_text)
         typer.echo(f"wrote {report}")

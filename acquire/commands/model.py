@@ -63,10 +63,10 @@ def import_model(
     checks: int = typer.Option(200, "--check", help="Random configurations for the FK check against the URDF."),
 ) -> None:
     """Import a URDF's serial chain as a robot model YAML, checked against the URDF's own FK."""
-    from calib.kinematics import Chain  # noqa: PLC0415
-    from calib.model import load_robot_model, model_yaml, robot_model_from_dict  # noqa: PLC0415
-    from calib.urdf import UrdfError, fk_difference, import_urdf, load_urdf, random_configurations, urdf_fk  # noqa: PLC0415
-    from calib.yamlfile import ConfigError  # noqa: PLC0415
+    from calib.robot.kinematics import Chain  # noqa: PLC0415
+    from calib.robot.model import load_robot_model, model_yaml, robot_model_from_dict  # noqa: PLC0415
+    from calib.robot.urdf import UrdfError, fk_difference, import_urdf, load_urdf, random_configurations, urdf_fk  # noqa: PLC0415
+    from calib.io.yamlfile import ConfigError  # noqa: PLC0415
 
     if convention not in ("dh", "mdh", "auto"):
         raise typer.BadParameter(f"expected dh, mdh or auto, given {convention!r}", param_hint="--convention")
@@ -113,11 +113,11 @@ def export_model(
     checks: int = typer.Option(200, "--check", help="Random configurations for the read-back FK checks."),
 ) -> None:
     """Export a robot model (calibrated with --result) as URDF, checked by reading it back."""
-    from calib.calibrated import ResultError, apply_result, read_result  # noqa: PLC0415
-    from calib.kinematics import Chain  # noqa: PLC0415
-    from calib.model import load_robot_model  # noqa: PLC0415
-    from calib.urdf import UrdfError, export_urdf, fk_difference, import_urdf, load_urdf, random_configurations, urdf_fk  # noqa: PLC0415
-    from calib.yamlfile import ConfigError  # noqa: PLC0415
+    from calib.robot.calibrated import ResultError, apply_result, read_result  # noqa: PLC0415
+    from calib.robot.kinematics import Chain  # noqa: PLC0415
+    from calib.robot.model import load_robot_model  # noqa: PLC0415
+    from calib.robot.urdf import UrdfError, export_urdf, fk_difference, import_urdf, load_urdf, random_configurations, urdf_fk  # noqa: PLC0415
+    from calib.io.yamlfile import ConfigError  # noqa: PLC0415
 
     if checks < 1:
         raise typer.BadParameter(f"must be at least 1, given {checks}", param_hint="--check")

@@ -26,8 +26,8 @@ from urllib.parse import urlsplit
 import numpy as np
 import typer
 
-from calib.model import load_robot_model
-from calib.yamlfile import ConfigError
+from calib.robot.model import load_robot_model
+from calib.io.yamlfile import ConfigError
 from drivers.errors import DriverError
 from drivers.protocols import JointLimits
 from drivers.registry import load_driver

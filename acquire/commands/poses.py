@@ -7,7 +7,7 @@ Example::
 
 Prints the candidate count, the valid poses (flange xyz in mm, ZYX Euler A, B, C in degrees),
 the configurations (degrees, controller convention) and the dropped poses with their reasons;
-with ``-o`` writes the configurations file described in ``calib.poses``.
+with ``-o`` writes the configurations file described in ``calib.plan.poses``.
 """
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 import typer
 
-from calib.yamlfile import ConfigError
+from calib.io.yamlfile import ConfigError
 
 if TYPE_CHECKING:
-    from calib.poses import PosePlan
+    from calib.plan.poses import PosePlan
 
 
 def _numbers(text: str, count: int, option: str, what: str) -> list[float]:
@@ -100,8 +100,8 @@ def poses(
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="Write the configurations file (CSV) here."),
 ) -> None:
     """Plan the paper's poses: Latin hypercube aimed at the sensor, every IK solution of each."""
-    from calib.model import load_robot_model  # scipy.stats (the Latin hypercube) loads only when planning
-    from calib.poses import PoseRanges, plan_poses, write_configurations
+    from calib.robot.model import load_robot_model  # scipy.stats (the Latin hypercube) loads only when planning
+    from calib.plan.poses import PoseRanges, plan_poses, write_configurations
 
     try:
         model = load_robot_model(robot)

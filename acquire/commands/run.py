@@ -37,7 +37,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from calib.resources import foxglove_layout_hint
+from calib.io.resources import foxglove_layout_hint
 from acquire.console import display_path
 
 log = logging.getLogger(__name__)
@@ -68,7 +68,7 @@ def plan_argument(plan: Path) -> tuple[Path, bool]:
     results go to ``./runs`` (the current folder), never into the installed package. Exits 2
     naming the packaged examples when neither exists.
     """
-    from calib.resources import find, is_packaged, packaged
+    from calib.io.resources import find, is_packaged, packaged
 
     if plan.is_file():
         return plan, is_packaged(plan)
@@ -104,12 +104,12 @@ def _load(plan: Path, fake: bool = False):
 
 def too_few_for_the_fit(lp, configs) -> str | None:
     """Why the plan's configurations cannot give a fitted result even if every one is measured
-    (``calib.fit.min_configurations``), as a ``file:line:col: field: …`` line; None if they can."""
-    from calib.fit import min_configurations
+    (``calib.fit.offsets.min_configurations``), as a ``file:line:col: field: …`` line; None if they can."""
+    from calib.fit.offsets import min_configurations
 
     fit = lp.plan.fit
     if getattr(lp.plan, "socket", None) is not None:
-        # every socket gets ≥ 4 configurations (the plan's schema); calib.socket needs no more
+        # every socket gets ≥ 4 configurations (the plan's schema); calib.fit.socket needs no more
         return None
     n_fit = len(fit.joints) if fit.joints else lp.model.n_joints
     need = min_configurations(n_fit, [len(s.markers) for s in lp.plan.sensors], fix_registration=fit.fix_registration)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from calib.observability import INDICES
-from calib.yamlfile import ConfigError
+from calib.plan.observability import INDICES
+from calib.io.yamlfile import ConfigError
 
 
 def select(
@@ -23,10 +23,10 @@ def select(
     output: Path | None = typer.Option(None, "-o", "--output", help="Write the chosen configurations here."),
 ) -> None:
     """Choose m configurations from a candidate set with the IOOPS exchange algorithm."""
-    from calib.identification import information_blocks  # the fitters load only when selecting
-    from calib.model import load_robot_model
-    from calib.observability import indices_from_eigenvalues, ioops
-    from calib.poses import FILE_MAGIC, read_configurations
+    from calib.fit.identification import information_blocks  # the fitters load only when selecting
+    from calib.robot.model import load_robot_model
+    from calib.plan.observability import indices_from_eigenvalues, ioops
+    from calib.plan.poses import FILE_MAGIC, read_configurations
 
     if index not in INDICES:
         raise typer.BadParameter(f"{index!r} is not an index; choose one of {', '.join(INDICES)}", param_hint="--index")

@@ -39,7 +39,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from calib.yamlfile import ConfigError
+from calib.io.yamlfile import ConfigError
 from drivers.sim.cell import SimCell
 from drivers.sim.clock import SimClock
 from drivers.sim.config import DEFAULT_CONFIG_PATH
@@ -99,7 +99,7 @@ def sim(
     protos = _protocols(tracker_protocols)
     try:
         if not config.exists():
-            from calib.resources import find
+            from calib.io.resources import find
 
             config = find("sim", str(config)) or config  # a packaged cell by name, e.g. "default"
         cell = SimCell.from_yaml(config, seed=seed, clock=SimClock(time_scale))

@@ -1,6 +1,6 @@
-"""``acquire fit`` on socket data: the sensorless calibration (``calib.socket``).
+"""``acquire fit`` on socket data: the sensorless calibration (``calib.fit.socket``).
 
-Chosen by the file: a CSV whose header ends in ``placement,socket`` (``calib.socket`` format).
+Chosen by the file: a CSV whose header ends in ``placement,socket`` (``calib.fit.socket`` format).
 Writes result.json (offsets, ball, socket points, identifiability, held-out scores) and, with
 ``--model-out`` (or beside ``-o``), the corrected robot model whose tool is the fitted ball.
 """
@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from calib.canonical import wrap_deg
-from calib.csvdialect import is_socket_csv  # noqa: F401 - the format test, here with the socket fit it chooses
-from calib.kinematics import Chain
-from calib.model import RobotModel
-from calib.socket import (
+from calib.robot.canonical import wrap_deg
+from calib.io.csvdialect import is_socket_csv  # noqa: F401 - the format test, here with the socket fit it chooses
+from calib.robot.kinematics import Chain
+from calib.robot.model import RobotModel
+from calib.fit.socket import (
     SocketDataError,
     SocketDataset,
     SocketFit,
@@ -164,8 +164,8 @@ def read_socket_run(path: Path, n_joints: int, *, distance_mm: float | None = No
     measured joint angles with their placement and socket; the distance between sockets from
     ``distance_mm`` or else the run's plan (``socket.distance_mm``). None for any other log."""
     from acquire.recorder import read_run
-    from calib.socket import with_distance
-    from calib.yamlfile import ConfigError, parse_yaml_text
+    from calib.fit.socket import with_distance
+    from calib.io.yamlfile import ConfigError, parse_yaml_text
 
     rc = read_run(path)
     recs = [r for r in rc.samples if isinstance(r.get("socket"), dict)]
@@ -196,7 +196,7 @@ def read_socket_run(path: Path, n_joints: int, *, distance_mm: float | None = No
 
 def write_socket_model(model: RobotModel, fit: SocketFit, path: Path) -> Path:
     """The corrected robot model whose tool is the fitted ball (marker ``ball``), as YAML."""
-    from calib.identification import corrected_model, write_model_yaml
+    from calib.fit.identification import corrected_model, write_model_yaml
 
     chain = Chain(model)
     ms = chain.marker_slice()
@@ -212,7 +212,7 @@ def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: 
                     compliance: bool = False, dataset: SocketDataset | None = None) -> dict:
     """Fit a socket CSV (or ``dataset``, e.g. a socket run's, ``read_socket_run``); print the
     summary; write the result and the corrected model. Exits 1 when the values must not be entered."""
-    from calib.result import write_result
+    from calib.fit.result import write_result
 
     try:
         ds = dataset if dataset is not None else read_socket_csv(path, model.n_joints, distance_mm=distance_mm)

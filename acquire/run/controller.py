@@ -273,7 +273,7 @@ class RunController:
     def _runner(self, cmd, sensors) -> ConfigurationRunner:
         """The per-configuration procedure, its registration estimate and the robot's view."""
         from acquire.foxglove_view import RobotView
-        from calib.kinematics import Chain
+        from calib.robot.kinematics import Chain
 
         chain = Chain(self.lp.model)
         view = RobotView(chain)

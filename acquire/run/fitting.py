@@ -26,11 +26,11 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     if getattr(lp.plan, "socket", None) is not None:
         return fit_socket_run_log(log_path, lp)
     from acquire.recorder import dataset_from_run
-    from calib.controller import apply_guards, controller_values
-    from calib.fit import FitOptions, fit_offsets
-    from calib.kinematics import Chain
-    from calib.metrics import accuracy_metrics
-    from calib.result import result_dict, write_result
+    from calib.robot.controller import apply_guards, controller_values
+    from calib.fit.offsets import FitOptions, fit_offsets
+    from calib.robot.kinematics import Chain
+    from calib.fit.metrics import accuracy_metrics
+    from calib.fit.result import result_dict, write_result
 
     model = lp.model
     ds = dataset_from_run(Path(log_path), model)
@@ -71,7 +71,7 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     write_result(result_path, doc)
     report_path = None
     try:
-        from calib.report import write_report
+        from calib.report.html import write_report
 
         report_path = base.with_name("report.html")
         write_report(report_path, result, cal, doc, values.format())
@@ -82,13 +82,13 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
 
 
 def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> tuple[dict, Path, Path | None]:
-    """The plan's ``fit.method: auto``: ``calib.auto_fit`` (the data choose among the offsets models;
+    """The plan's ``fit.method: auto``: ``calib.fit.auto_fit`` (the data choose among the offsets models;
     a link scale set in the plan is used instead of the empirical Bayes one; ``fit.compliance``:
     only the candidates with compliance)."""
     from dataclasses import replace
 
-    from calib.auto_fit import auto_fit
-    from calib.result import write_result
+    from calib.fit.auto_fit import auto_fit
+    from calib.fit.result import write_result
 
     given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
     done = auto_fit(model, cal, val, replace(options, method="laplace", compliance=False),
@@ -98,7 +98,7 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
     write_result(result_path, done.doc)
     report_path = None
     try:
-        from calib.report import write_report
+        from calib.report.html import write_report
 
         report_path = base.with_name("report.html")
         write_report(report_path, done.result, cal, done.doc, done.controller_text)
@@ -109,12 +109,12 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
 
 
 def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
-    """Fit a socket run (``calib.socket.fit_socket``; held-out placements with three or more):
+    """Fit a socket run (``calib.fit.socket.fit_socket``; held-out placements with three or more):
     ``result.json`` and the corrected model ``model.yaml`` beside the log. The plan's
     ``fit.method`` fast uses the link prior (``link_tolerance_*``), paper identifies without it."""
     from acquire.commands.socket_fit import read_socket_run, socket_result_dict, write_socket_model
-    from calib.result import write_result
-    from calib.socket import fit_socket, leave_one_placement_out
+    from calib.fit.result import write_result
+    from calib.fit.socket import fit_socket, leave_one_placement_out
 
     model, fit = lp.model, lp.plan.fit
     ds = read_socket_run(Path(log_path), model.n_joints, distance_mm=lp.plan.socket.distance_mm)

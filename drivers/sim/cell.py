@@ -1,7 +1,7 @@
 """The simulated cell: one truth model that every fake device reads from or writes to.
 
 ``SimCell`` holds a robot that is *not* the nominal model — hidden zero-offsets and link
-errors applied through ``calib.kinematics.Chain``'s parameter vector, plus a gravity sag the
+errors applied through ``calib.robot.kinematics.Chain``'s parameter vector, plus a gravity sag the
 kinematic model cannot express — together with reference sensors at their true poses, their
 noise, and the geometry that hides a marker from a sensor. Fake controllers write the joint
 positions (``RobotScene``); fake sensors read noisy marker positions (``MarkerScene``).
@@ -38,10 +38,10 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.kinematics import Chain, joint_frames
-from calib.model import RobotModel, load_robot_model
-from calib.transforms import apply, invert
-from calib.yamlfile import ConfigError
+from calib.robot.kinematics import Chain, joint_frames
+from calib.robot.model import RobotModel, load_robot_model
+from calib.robot.transforms import apply, invert
+from calib.io.yamlfile import ConfigError
 from drivers.errors import LimitError
 from drivers.sim import geometry
 from drivers.sim.clock import SimClock

@@ -35,9 +35,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from calib.model import Frame
-from calib.resources import default_sim_config
-from calib.yamlfile import CrossFieldChecked, load_validated
+from calib.robot.model import Frame
+from calib.io.resources import default_sim_config
+from calib.io.yamlfile import CrossFieldChecked, load_validated
 from drivers.sim.faults import FAULTS, INSTANT
 
 Vec3 = tuple[float, float, float]
@@ -327,14 +327,14 @@ class SimConfig(_Strict, CrossFieldChecked):
 
 
 #: The documented default cell: an iiwa 14, a motion-capture bar and a tracker. Shipped in the
-#: package (``calib.resources``): it exists in an installed wheel as in a checkout.
+#: package (``calib.io.resources``): it exists in an installed wheel as in a checkout.
 DEFAULT_CONFIG_PATH = default_sim_config()
 
 
 def load_sim_config(path: str | Path) -> SimConfig:
     """Read and validate a cell YAML file; the robot path becomes absolute (from the file's folder).
 
-    Raises ``calib.yamlfile.ConfigError`` naming file, line, column and field on any problem.
+    Raises ``calib.io.yamlfile.ConfigError`` naming file, line, column and field on any problem.
     """
     path = Path(path)
     config = load_validated(path, SimConfig)

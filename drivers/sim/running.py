@@ -187,7 +187,7 @@ class SimulatedCell:
 
     @property
     def model(self):
-        """The cell's robot model (``calib.model.RobotModel``)."""
+        """The cell's robot model (``calib.robot.model.RobotModel``)."""
         return self.cell.model
 
     def devices(self) -> list[tuple[str, str, str]]:

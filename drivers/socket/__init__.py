@@ -1,5 +1,5 @@
 """The ``socket`` joint sensor: records joint angles with the ball held in a socket
-(sensorless calibration, ``calib.socket``). See ``drivers.socket.sensor``."""
+(sensorless calibration, ``calib.fit.socket``). See ``drivers.socket.sensor``."""
 
 from drivers.socket.sensor import SocketSensor
 

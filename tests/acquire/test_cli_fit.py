@@ -14,10 +14,10 @@ import typer
 from typer.testing import CliRunner
 
 from acquire.commands import fit as fit_command
-from calib.dataset import from_arrays, read_csv, write_csv
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.transforms import apply, pose_to_matrix
+from calib.measure.dataset import from_arrays, read_csv, write_csv
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.robot.transforms import apply, pose_to_matrix
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"

@@ -8,8 +8,8 @@ from pathlib import Path
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from calib.kinematics import Chain
-from calib.model import load_robot_model
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
 
 ROOT = Path(__file__).resolve().parents[2]
 ROBOT = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"

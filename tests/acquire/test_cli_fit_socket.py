@@ -10,8 +10,8 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from calib.model import load_robot_model
-from calib.socket import read_hole_folder
+from calib.robot.model import load_robot_model
+from calib.fit.socket import read_hole_folder
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"

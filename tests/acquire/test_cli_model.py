@@ -12,9 +12,9 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.urdf import fk_difference, load_urdf, random_configurations, urdf_fk
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.robot.urdf import fk_difference, load_urdf, random_configurations, urdf_fk
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"

@@ -122,7 +122,7 @@ IIWA_HOME = [0.0, 20.0, 0.0, -60.0, 0.0, 30.0, 0.0]
 def test_move_over_fri_reports_the_link_and_ends_on_target(app, version):
     """An LBR iiwa whose (fake) Sunrise runs the shipped robot application: the move waits for
     the joint overlay, reports the FRI link and ends on target."""
-    from calib.model import load_robot_model
+    from calib.robot.model import load_robot_model
     from drivers.kuka_fri.fake import FakeSunrise
     from drivers.protocols import JointLimits
 
@@ -171,7 +171,7 @@ def test_a_kr_c4_that_does_not_move_is_not_on_target(app, controller):
 
 @pytest.mark.parametrize("version", ["1.15", "2.7"])
 def test_an_iiwa_that_does_not_move_exits_non_zero_with_the_residual_per_axis(app, version):
-    from calib.model import load_robot_model
+    from calib.robot.model import load_robot_model
     from drivers.kuka_fri.fake import FakeSunrise
     from drivers.protocols import JointLimits
 

@@ -14,8 +14,8 @@ import typer
 from typer.testing import CliRunner
 
 from acquire.commands import poses as poses_command
-from calib.model import load_robot_model
-from calib.poses import read_configurations
+from calib.robot.model import load_robot_model
+from calib.plan.poses import read_configurations
 
 ROOT = Path(__file__).resolve().parents[2]
 KR6 = ROOT / "fixtures" / "robots" / "kuka_kr6_r900_2.yaml"

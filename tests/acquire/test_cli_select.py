@@ -6,8 +6,8 @@ import numpy as np
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from calib.model import load_robot_model
-from calib.poses import FILE_MAGIC, read_configurations
+from calib.robot.model import load_robot_model
+from calib.plan.poses import FILE_MAGIC, read_configurations
 
 ROBOT = Path(__file__).resolve().parents[2] / "fixtures" / "robots" / "staubli_tx60.yaml"
 

@@ -38,8 +38,8 @@ with open(os.environ["PROBE_OUT"], "w") as f:
 
 #: Never needed to print help or ask the daemon for its status. (pydantic is not listed: typer
 #: itself uses it to convert option values.)
-HEAVY_FOR_ANY = ["scipy", "scipy.stats", "matplotlib", "matplotlib.pyplot", "calib.fit", "calib.identification",
-                 "calib.posterior", "acquire.daemon_config", "yaml", "mcap"]
+HEAVY_FOR_ANY = ["scipy", "scipy.stats", "matplotlib", "matplotlib.pyplot", "calib.fit.offsets", "calib.fit.identification",
+                 "calib.fit.posterior", "acquire.daemon_config", "yaml", "mcap"]
 
 
 def _probe(tmp_path: Path, *args: str) -> tuple[dict, subprocess.CompletedProcess]:
@@ -76,8 +76,8 @@ def test_status_client_imports_no_fitter_no_plotting_no_config_parser(tmp_path):
 
 
 #: Never needed for a sub-command's own --help.
-HEAVY_FOR_HELP = ["scipy", "scipy.stats", "matplotlib", "matplotlib.pyplot", "calib.fit", "calib.identification",
-                  "calib.posterior", "calib.poses", "zenoh", "mcap"]
+HEAVY_FOR_HELP = ["scipy", "scipy.stats", "matplotlib", "matplotlib.pyplot", "calib.fit.offsets", "calib.fit.identification",
+                  "calib.fit.posterior", "calib.plan.poses", "zenoh", "mcap"]
 
 
 @pytest.mark.parametrize("name, shows", [("watch", "--raw"), ("run", "--listen"), ("poses", "--sensor-origin"),
@@ -94,7 +94,7 @@ def test_a_sub_command_help_loads_only_its_own_module_and_nothing_heavy(tmp_path
 def test_a_fast_zero_offset_fit_with_its_report_runs_without_scipy_or_matplotlib(tmp_path):
     """``acquire fit --method fast`` on sensor data — read, fit, metrics, report — needs numpy,
     not scipy (its optimize package alone was a large share of the command's start-up) nor a
-    plotting library (the report's figures are SVG written by ``calib.svg``), nor the socket fit
+    plotting library (the report's figures are SVG written by ``calib.report.svg``), nor the socket fit
     (a one-line header test tells the two CSV formats apart). The default (``auto``) compares
     models by cross-validation and checks its posterior with a generalized-Pareto tail fit: that
     one needs scipy."""
@@ -103,9 +103,9 @@ def test_a_fast_zero_offset_fit_with_its_report_runs_without_scipy_or_matplotlib
                        str(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"), "--validate",
                        str(data / "iiwa14_sim_val.csv"), "--method", "fast", "--report", str(tmp_path / "r.html"))
     assert res["code"] == 0, proc.stderr
-    assert (tmp_path / "r.html").stat().st_size > 0 and "calib.fit" in res["modules"]
+    assert (tmp_path / "r.html").stat().st_size > 0 and "calib.fit.offsets" in res["modules"]
     heavy = [m for m in res["modules"] if m.split(".")[0] in ("scipy", "matplotlib", "PIL")
-             or m in ("calib.socket", "acquire.commands.socket_fit")]
+             or m in ("calib.fit.socket", "acquire.commands.socket_fit")]
     assert not heavy, heavy
 
 

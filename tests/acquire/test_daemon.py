@@ -268,7 +268,7 @@ def test_health_monitor_flags_new_late_real_time_answers_and_a_silent_recorder(t
     time; unhealthy in the check after it answered late; healthy again once it keeps up."""
     from acquire.daemon import HealthMonitor
     from acquire.daemon_config import HealthSection
-    from calib.model import load_robot_model
+    from calib.robot.model import load_robot_model
     from drivers.kuka_rsi.commander import RsiCommander
     from drivers.kuka_rsi.fake import FakeKrc4
     from drivers.protocols import JointLimits

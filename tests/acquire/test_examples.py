@@ -11,7 +11,7 @@ from acquire.cli import app
 from acquire.commands.examples import copy_plan
 from acquire.commands.run import plan_argument
 from acquire.plan import load_plan, resolve_plan
-from calib import resources
+from calib.io import resources
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -71,8 +71,8 @@ def test_a_copied_example_loads_from_another_folder_and_writes_beside_itself(tmp
 
 
 def test_robot_models_load_by_packaged_name_when_no_such_file_exists(tmp_path, monkeypatch):
-    from calib.model import load_robot_model
-    from calib.yamlfile import ConfigError
+    from calib.robot.model import load_robot_model
+    from calib.io.yamlfile import ConfigError
 
     monkeypatch.chdir(tmp_path)
     assert load_robot_model("kuka_iiwa14_r820").name == "KUKA LBR iiwa 14 R820"

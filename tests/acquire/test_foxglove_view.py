@@ -13,9 +13,9 @@ from mcap.reader import make_reader
 
 from acquire import foxglove_view as fv
 from acquire.recorder import EVENT_TOPIC, SAMPLE_TOPIC, RunLog
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.transforms import euler_zyx_to_matrix, homogeneous
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.robot.transforms import euler_zyx_to_matrix, homogeneous
 
 ROOT = Path(__file__).resolve().parents[2]
 MODELS = sorted((ROOT / "fixtures" / "robots").glob("*.yaml"))

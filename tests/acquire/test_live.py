@@ -28,8 +28,8 @@ import websockets.exceptions  # noqa: E402
 from acquire import foxglove_view as fv  # noqa: E402
 from acquire.live import LiveServer  # noqa: E402
 from acquire.recorder import RunLog  # noqa: E402
-from calib.kinematics import Chain  # noqa: E402
-from calib.model import load_robot_model  # noqa: E402
+from calib.robot.kinematics import Chain  # noqa: E402
+from calib.robot.model import load_robot_model  # noqa: E402
 
 from run_helpers import popen, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 

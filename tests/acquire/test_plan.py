@@ -20,11 +20,11 @@ from acquire.plan import (
     resolve_configurations,
     resolve_plan,
 )
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.poses import PoseRanges, plan_poses, write_configurations
-from calib.transforms import pose_to_matrix
-from calib.yamlfile import ConfigError
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.plan.poses import PoseRanges, plan_poses, write_configurations
+from calib.robot.transforms import pose_to_matrix
+from calib.io.yamlfile import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 PLANS = ROOT / "fixtures" / "plans"
@@ -192,7 +192,7 @@ def test_cartesian_poses_give_every_solution_within_limits_one_group_each(tmp_pa
 
 
 def test_cartesian_arm_angle_is_used_on_a_seven_axis_arm(tmp_path):
-    from calib.ik import arm_angle_of
+    from calib.ik.ik import arm_angle_of
 
     poses = [{"xyz_mm": [500, 100, 600], "zyx_deg": [0, 90, 0], "arm_angle_deg": 20}]
     lp = load_plan(write(tmp_path, minimal(poses={"cartesian": poses})))

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from acquire.plan import load_plan, resolve_plan
-from calib.yamlfile import ConfigError
+from calib.io.yamlfile import ConfigError
 from drivers.errors import LimitError
 from drivers.kuka_fri.commander import FriCommander
 from drivers.kuka_rsi.commander import RsiCommander
@@ -47,7 +47,7 @@ def refused(path: Path) -> str:
 
 # --- the commander's margin, asked of the driver -------------------------------------------------
 def test_drivers_report_the_margin_their_check_target_keeps():
-    from calib.model import load_robot_model
+    from calib.robot.model import load_robot_model
 
     iiwa = JointLimits.from_model(load_robot_model(IIWA))
     for cls in (FriCommander, RsiCommander):
@@ -63,7 +63,7 @@ def test_drivers_report_the_margin_their_check_target_keeps():
 @pytest.mark.parametrize("a2", [119.3, 119.5, 119.50001, 119.6, 119.8, 120.0, -119.5, -119.7])
 def test_the_plan_check_and_the_fri_commander_agree_at_the_margin(tmp_path, a2):
     """Whatever the plan accepts the commander accepts, and the other way round."""
-    from calib.model import load_robot_model
+    from calib.robot.model import load_robot_model
 
     row = [0, a2, 0, -60, 0, 45, 0]
     cmd = FriCommander(JointLimits.from_model(load_robot_model(IIWA)))
@@ -96,7 +96,7 @@ def test_the_rsi_commanders_margin_is_checked_too(tmp_path):
     rsi = {"driver": "rsi", "url": "rsi://0.0.0.0:49152"}
     row = [0, -90, 90, 0, 0, 0]
     load_plan(plan_file(tmp_path, {"joints": [row]}, robot=KR6, commander=rsi))
-    from calib.model import load_robot_model
+    from calib.robot.model import load_robot_model
 
     lo, hi = load_robot_model(KR6).joints[0].limits
     row = [hi - 0.2, -90, 90, 0, 0, 0]

@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from acquire.plan import load_plan, resolve_configurations, resolve_plan
-from calib.kinematics import Chain
-from calib.yamlfile import ConfigError
+from calib.robot.kinematics import Chain
+from calib.io.yamlfile import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -52,9 +52,9 @@ def test_socket_plan_resolves_to_approaches_that_put_the_nominal_ball_at_each_so
 def test_approaches_spread_the_gravity_load(tmp_path):
     """The configurations kept load the joints more differently than the same number of
     candidates taken at random (what lets a fit tell sag from an offset)."""
-    from calib.gravity import gravity_torques
-    from calib.model import load_robot_model
-    from calib.socket_poses import socket_approaches
+    from calib.robot.gravity import gravity_torques
+    from calib.robot.model import load_robot_model
+    from calib.plan.socket_poses import socket_approaches
 
     model = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
     chain = Chain(model)

@@ -26,9 +26,9 @@ from acquire.recorder import (
     scene_update,
     segment_paths,
 )
-from calib.dataset import DatasetError
-from calib.kinematics import Chain
-from calib.model import load_robot_model
+from calib.measure.dataset import DatasetError
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
@@ -435,7 +435,7 @@ def test_acquire_fit_reads_a_run_log_like_the_same_measurements_in_csv(tmp_path,
     import typer
 
     from acquire.commands import fit as fit_command
-    from calib.dataset import read_csv
+    from calib.measure.dataset import read_csv
 
     model = load_robot_model(IIWA)
     csv_path = ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv"

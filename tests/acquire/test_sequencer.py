@@ -22,8 +22,8 @@ from acquire.sequencer import (
 )
 from acquire.settle import StabilityWindow, wait_settled
 from acquire.suspenders import LostTargetSuspender, ReflectorPredictor
-from calib.kinematics import Chain
-from calib.model import load_robot_model
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
 from drivers.errors import DeviceTimeoutError, TargetLostError
 from drivers.protocols import JointLimits, JointState, MarkerMeasurement, MarkerSample
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from acquire.plan import load_plan
-from calib.yamlfile import ConfigError
+from calib.io.yamlfile import ConfigError
 
 from daemon_harness import CELL, OPERATOR_TOKEN, DaemonProcess, NotifySocket, control, free_port, open_client, write_config  # noqa: E402
 from run_helpers import ROOT, small_plan  # noqa: E402

@@ -45,7 +45,7 @@ import json, time
 def measure(robot):
     # (imported here: a spawned child re-runs the script's top level, as it re-runs pip's
     # console script, which holds nothing but the entry point's import)
-    from calib.model import load_robot_model
+    from calib.robot.model import load_robot_model
     from drivers.base import JointLimits
     from drivers.kuka_rsi.commander import RsiCommander
 

@@ -37,12 +37,12 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-from calib.dataset import from_arrays  # noqa: E402
-from calib.fit import FitOptions, fit_offsets  # noqa: E402
-from calib.kinematics import Chain  # noqa: E402
-from calib.model import load_robot_model  # noqa: E402
-from calib.sampling import effective_sample_size  # noqa: E402
-from calib.transforms import apply, pose_to_matrix  # noqa: E402
+from calib.measure.dataset import from_arrays  # noqa: E402
+from calib.fit.offsets import FitOptions, fit_offsets  # noqa: E402
+from calib.robot.kinematics import Chain  # noqa: E402
+from calib.robot.model import load_robot_model  # noqa: E402
+from calib.fit.sampling import effective_sample_size  # noqa: E402
+from calib.robot.transforms import apply, pose_to_matrix  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 MODEL = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")

@@ -6,7 +6,7 @@
 
 Whole process: a fresh ``python -m acquire fit DATA --robot MODEL --validate VAL -o result.json
 --report report.html`` (interpreter start-up, imports, reading, fit, metrics, report with its
-figures, writing) — wall time. The fit itself: ``calib.fit.fit_offsets`` with the command's
+figures, writing) — wall time. The fit itself: ``calib.fit.offsets.fit_offsets`` with the command's
 default options on the same calibration rows, in this process after a warm-up — wall time.
 Both are medians of ``--repeat`` runs, interleaved (process, fit, process, …) so a load change
 hits both alike. Prints both, their ratio (issue 16's target: ≤ 2×), and where the rest of the
@@ -34,8 +34,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 #: What the command imports before it reads anything: the CLI, the command and the modules the
 #: command imports when it runs (the report's own modules are counted with the report).
-COMMAND_IMPORTS = ["acquire.cli", "acquire.commands.fit", "calib.controller", "calib.dataset", "calib.fit",
-                   "calib.metrics", "calib.model", "calib.result"]
+COMMAND_IMPORTS = ["acquire.cli", "acquire.commands.fit", "calib.robot.controller", "calib.measure.dataset", "calib.fit.offsets",
+                   "calib.fit.metrics", "calib.robot.model", "calib.fit.result"]
 
 
 def main() -> None:
@@ -50,11 +50,11 @@ def main() -> None:
     env = dict(os.environ, PYTHONPATH=str(root))
 
     from acquire.commands.fit import _link_tolerance, load_dataset
-    from calib.fit import FitOptions, fit_offsets
-    from calib.kinematics import Chain
-    from calib.metrics import accuracy_metrics
-    from calib.model import load_robot_model
-    from calib.result import result_dict
+    from calib.fit.offsets import FitOptions, fit_offsets
+    from calib.robot.kinematics import Chain
+    from calib.fit.metrics import accuracy_metrics
+    from calib.robot.model import load_robot_model
+    from calib.fit.result import result_dict
 
     model = load_robot_model(robot)
     cal = load_dataset(data, model).calibration()
@@ -88,7 +88,7 @@ def main() -> None:
         metrics = accuracy_metrics(Chain(model), cal, res.applied_offsets_rad, res.offset_samples_rad, res.applied_sigma_mm,
                                    validation=val, n_random=1000, seed=0)
         t_metrics = time.perf_counter() - t0
-        from calib.report import write_report
+        from calib.report.html import write_report
 
         doc = result_dict(res, cal, metrics=metrics)
         t0 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""Forward kinematics of ``calib.kinematics.Chain`` against pybotics, the published peer.
+"""Forward kinematics of ``calib.robot.kinematics.Chain`` against pybotics, the published peer.
 
 Run: ``python tests/bench/bench_fk.py [--robot fixtures/robots/kuka_iiwa14_r820.yaml]``
 (needs the bench extra: ``pip install -e ".[bench]"``; pybotics 3.1.2 pins numpy<2 but runs on
@@ -34,8 +34,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from calib.kinematics import Chain  # noqa: E402
-from calib.model import load_robot_model  # noqa: E402
+from calib.robot.kinematics import Chain  # noqa: E402
+from calib.robot.model import load_robot_model  # noqa: E402
 
 
 def pybotics_parameters(chain: Chain, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -35,11 +35,11 @@ from scipy.optimize import least_squares
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from calib.fit import initial_registrations  # noqa: E402
-from calib.identification import IdentOptions, identify, information_blocks, pose_errors  # noqa: E402
-from calib.kinematics import Chain  # noqa: E402
-from calib.model import load_robot_model  # noqa: E402
-from calib.observability import ioops  # noqa: E402
+from calib.fit.offsets import initial_registrations  # noqa: E402
+from calib.fit.identification import IdentOptions, identify, information_blocks, pose_errors  # noqa: E402
+from calib.robot.kinematics import Chain  # noqa: E402
+from calib.robot.model import load_robot_model  # noqa: E402
+from calib.plan.observability import ioops  # noqa: E402
 from tests.calib.test_identification import measure, perturbed_truth  # noqa: E402
 
 

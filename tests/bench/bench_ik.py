@@ -1,4 +1,4 @@
-"""IK of ``calib.ik`` for every shipped robot, against roboticstoolbox-python's compiled ``ik_LM``.
+"""IK of ``calib.ik.ik`` for every shipped robot, against roboticstoolbox-python's compiled ``ik_LM``.
 
 Run: ``python tests/bench/bench_ik.py [--poses 2000] [--peer-poses 300] [--check-poses 3] [--starts 1000]``
 
@@ -21,7 +21,7 @@ the best of 3 runs (the ψ-picked and interval loops: 1 run), each after ``gc.co
 peer and the ``solve_all`` loop, compared head to head, alternate over 5 runs each.
 
 Rates are poses/s and solutions/s (rows returned: every branch and ±360° equivalent within
-limits). A correctness check, not a peer: ``calib.ik_numeric.solve_numeric`` (our own
+limits). A correctness check, not a peer: ``calib.ik.ik_numeric.solve_numeric`` (our own
 random-start LM with ``--starts`` starts, clustered) on ``--check-poses`` poses must find as
 many solutions as the analytic solver.
 """
@@ -40,10 +40,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from calib import ik  # noqa: E402
-from calib.ik_numeric import solve_numeric  # noqa: E402
-from calib.kinematics import Chain  # noqa: E402
-from calib.model import load_robot_model  # noqa: E402
+from calib.ik import ik  # noqa: E402
+from calib.ik.ik_numeric import solve_numeric  # noqa: E402
+from calib.robot.kinematics import Chain  # noqa: E402
+from calib.robot.model import load_robot_model  # noqa: E402
 
 ROBOTS = ["kuka_kr6_r900_2", "staubli_tx60", "kuka_iiwa14_r820", "kuka_iiwa7_r800"]
 

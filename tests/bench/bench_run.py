@@ -46,7 +46,7 @@ from acquire.sequencer import (  # noqa: E402
     order_configurations,
 )
 from acquire.suspenders import ReflectorPredictor  # noqa: E402
-from calib.kinematics import Chain  # noqa: E402
+from calib.robot.kinematics import Chain  # noqa: E402
 from drivers.protocols import JointLimits  # noqa: E402
 from drivers.sim.cell import SimCell  # noqa: E402
 from drivers.trajectory import JointTrajectory, scaled_limits  # noqa: E402

@@ -1,4 +1,4 @@
-"""Study: do socket approaches chosen for spread gravity torques (``calib.socket_poses``) fit
+"""Study: do socket approaches chosen for spread gravity torques (``calib.plan.socket_poses``) fit
 the sag better than approaches picked at random from the same IK candidates?
 
 For each seed, the plan of ``fixtures/plans/example-socket.yaml`` (3 placements × 2 sockets, 6
@@ -24,8 +24,8 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from calib.socket import SocketDataset, fit_socket, with_distance  # noqa: E402
-from calib.socket_poses import socket_approaches  # noqa: E402
+from calib.fit.socket import SocketDataset, fit_socket, with_distance  # noqa: E402
+from calib.plan.socket_poses import socket_approaches  # noqa: E402
 from drivers.sim.cell import SimCell  # noqa: E402
 from drivers.sim.socket_operator import SocketOperator  # noqa: E402
 

@@ -49,9 +49,9 @@ class FitLoop:
     """Fits the shipped iiwa calibration dataset in a loop in a daemon thread; counts fits."""
 
     def __init__(self) -> None:
-        from calib.dataset import read_csv
-        from calib.fit import FitOptions
-        from calib.model import load_robot_model
+        from calib.measure.dataset import read_csv
+        from calib.fit.offsets import FitOptions
+        from calib.robot.model import load_robot_model
 
         self.model = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
         self.data = read_csv(ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv", self.model)
@@ -61,7 +61,7 @@ class FitLoop:
         self._thread = threading.Thread(target=self._loop, daemon=True)
 
     def _loop(self) -> None:
-        from calib.fit import fit_offsets
+        from calib.fit.offsets import fit_offsets
 
         while not self._stop.is_set():
             fit_offsets(self.model, self.data, self.options)

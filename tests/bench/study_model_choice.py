@@ -1,4 +1,4 @@
-"""Study: which model the default fit (``calib.auto_fit``) picks on simulated tracker cells with
+"""Study: which model the default fit (``calib.fit.auto_fit``) picks on simulated tracker cells with
 real-world nuisances, its held-out error against the best candidate's, and how often "enter" is
 given beside an offset whose 95 % interval misses the truth.
 
@@ -20,10 +20,10 @@ import time
 
 import numpy as np
 
-from calib.auto_fit import auto_fit
-from calib.fit import FitOptions
-from calib.kinematics import Chain
-from calib.transforms import pose_to_matrix
+from calib.fit.auto_fit import auto_fit
+from calib.fit.offsets import FitOptions
+from calib.robot.kinematics import Chain
+from calib.robot.transforms import pose_to_matrix
 from tests.calib.test_model_choice import SAMPLES, cell
 from tests.calib.tracker_sim import CAL_NESTS, TRACKER2BASE_POSE, configurations, observe
 

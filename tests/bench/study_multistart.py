@@ -22,8 +22,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from calib.identification import IdentOptions, identify  # noqa: E402
-from calib.kinematics import Chain  # noqa: E402
+from calib.fit.identification import IdentOptions, identify  # noqa: E402
+from calib.robot.kinematics import Chain  # noqa: E402
 from tests.calib.tracker_sim import CAL_NESTS, observe, tracker_cell  # noqa: E402
 
 

@@ -24,9 +24,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from calib.canonical import wrap_angle  # noqa: E402
-from calib.identification import IdentOptions, identify  # noqa: E402
-from calib.kinematics import Chain  # noqa: E402
+from calib.robot.canonical import wrap_angle  # noqa: E402
+from calib.fit.identification import IdentOptions, identify  # noqa: E402
+from calib.robot.kinematics import Chain  # noqa: E402
 from tests.calib.tracker_sim import CAL_NESTS, observe, tracker_cell  # noqa: E402
 
 

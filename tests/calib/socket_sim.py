@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from calib.kinematics import Chain
-from calib.model import RobotModel
-from calib.socket import SocketDataset, with_distance
+from calib.robot.kinematics import Chain
+from calib.robot.model import RobotModel
+from calib.fit.socket import SocketDataset, with_distance
 
 
 def true_params(chain: Chain, rng: np.random.Generator, *, offset_deg: float = 0.05, link_mm: float = 0.2,
@@ -30,7 +30,7 @@ def true_params(chain: Chain, rng: np.random.Generator, *, offset_deg: float = 0
 def equivalent_ball(chain: Chain, truth: np.ndarray) -> np.ndarray:
     """The true ball expressed through the nominal last link: what a socket fit can recover,
     since the last link's offset, d, a and α only move the ball within the flange frame."""
-    from calib.transforms import rot_x, rot_z
+    from calib.robot.transforms import rot_x, rot_z
 
     n = chain.n
     j = n - 1

@@ -1,4 +1,4 @@
-"""Read the report's inline SVG figures back into numbers, independently of ``calib.svg``.
+"""Read the report's inline SVG figures back into numbers, independently of ``calib.report.svg``.
 
 Each ``<g class="axes">`` states its pixel box and data limits; a scatter's dots are the
 ``M x y h0`` moves of its paths, a line the points of its polyline. ``points`` maps them back to

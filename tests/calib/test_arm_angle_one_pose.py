@@ -1,4 +1,4 @@
-"""7R ``solve_all(arm_angle=None)`` on one pose (plain floats, ``calib.ik_arm_angle_scalar``)
+"""7R ``solve_all(arm_angle=None)`` on one pose (plain floats, ``calib.ik.ik_arm_angle_scalar``)
 against the vectorised path (``arm_angle_intervals_many``, ``solve_many``).
 
 The float path must find the same feasible arm-angle intervals (same count, ends to 1e-9 rad),
@@ -23,10 +23,10 @@ import pytest
 import yaml
 from scipy.optimize import minimize_scalar
 
-from calib import ik
-from calib.ik_scalar import FALLBACK_MARGIN
-from calib.kinematics import Chain
-from calib.model import load_robot_model, robot_model_from_dict
+from calib.ik import ik
+from calib.ik.ik_scalar import FALLBACK_MARGIN
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model, robot_model_from_dict
 from test_ik_one_pose import assert_same  # tests/calib is on sys.path under pytest
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"

@@ -1,4 +1,4 @@
-"""``calib.calibrated``: a fit's result.json applied to the nominal model it was fitted to."""
+"""``calib.robot.calibrated``: a fit's result.json applied to the nominal model it was fitted to."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.calibrated import ResultError, apply_result, read_result
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.urdf import random_configurations
+from calib.robot.calibrated import ResultError, apply_result, read_result
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.robot.urdf import random_configurations
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 KR6 = load_robot_model(ROBOTS / "kuka_kr6_r900_2.yaml")

@@ -6,10 +6,10 @@ import math
 
 import numpy as np
 
-from calib.canonical import canonical_params, wrap_angle, wrap_deg
-from calib.controller import controller_values
-from calib.identification import IdentOptions, ident_result_dict, identify
-from calib.kinematics import Chain
+from calib.robot.canonical import canonical_params, wrap_angle, wrap_deg
+from calib.robot.controller import controller_values
+from calib.fit.identification import IdentOptions, ident_result_dict, identify
+from calib.robot.kinematics import Chain
 from tests.calib.tracker_sim import CAL_NESTS, observe, tracker_cell
 
 
@@ -159,9 +159,9 @@ def test_acquire_fit_full_reports_the_half_turned_zero_wrapped(tmp_path):
     from typer.testing import CliRunner
 
     from acquire.cli import app
-    from calib.dataset import write_csv
-    from calib.identification import write_model_yaml
-    from calib.model import load_robot_model
+    from calib.measure.dataset import write_csv
+    from calib.fit.identification import write_model_yaml
+    from calib.robot.model import load_robot_model
 
     cell, chain, truth, cal = _zero_off(3, 1)  # J4; before the flipped-zero starts: mirrored, tool turned
     write_model_yaml(cell.model, tmp_path / "robot.yaml")

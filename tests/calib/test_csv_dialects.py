@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from calib.dataset import DatasetError, read_csv
-from calib.model import load_robot_model
-from calib.socket import SocketDataError, read_socket_csv
+from calib.measure.dataset import DatasetError, read_csv
+from calib.robot.model import load_robot_model
+from calib.fit.socket import SocketDataError, read_socket_csv
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.dataset import DatasetError, from_arrays, parse_csv, read_csv, write_csv
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.transforms import apply, pose_to_matrix
+from calib.measure.dataset import DatasetError, from_arrays, parse_csv, read_csv, write_csv
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.robot.transforms import apply, pose_to_matrix
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
@@ -173,6 +173,6 @@ def test_a_csv_in_radians_is_refused_up_front_naming_line_and_columns(tmp_path):
 
 def test_the_plan_and_the_csv_share_one_radians_check():
     from acquire import plan_guards
-    from calib import units
+    from calib.measure import units
 
     assert plan_guards.radians_problem is units.radians_problem

@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.controller import controller_values
-from calib.dataset import DatasetError, from_arrays
-from calib.fit import FitOptions, fit_offsets
-from calib.kinematics import Chain
-from calib.model import load_robot_model, robot_model_from_dict
-from calib.result import result_dict, write_result
-from calib.transforms import apply, homogeneous, pose_to_matrix, rot_z
+from calib.robot.controller import controller_values
+from calib.measure.dataset import DatasetError, from_arrays
+from calib.fit.offsets import FitOptions, fit_offsets
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model, robot_model_from_dict
+from calib.fit.result import result_dict, write_result
+from calib.robot.transforms import apply, homogeneous, pose_to_matrix, rot_z
 
 log = logging.getLogger(__name__)
 
@@ -252,8 +252,8 @@ def test_sandwich_ratio_flags_anisotropic_errors_the_model_does_not_describe():
 
 @pytest.mark.parametrize("name", ["kuka_iiwa14_r820", "kuka_kr6_r900_2", "staubli_tx60"])
 def test_offsets_only_kinematics_equals_the_full_chain(name):
-    """The fitter's folded path (calib.kinematics.offset_kinematics) against Chain.marker_positions."""
-    from calib.kinematics import offset_kinematics
+    """The fitter's folded path (calib.robot.kinematics.offset_kinematics) against Chain.marker_positions."""
+    from calib.robot.kinematics import offset_kinematics
 
     model = load_robot_model(ROOT / "fixtures" / "robots" / f"{name}.yaml")
     chain = Chain(model)
@@ -279,8 +279,8 @@ def test_a_marker_far_from_where_the_model_puts_it_says_do_not_enter():
     """The issue's case with the tool taken as exact (--tool-prior-mm 0): the tool marker 30 mm away
     from the model's: σ explodes and every offset says "do not enter" with the reason, instead of
     "fitted / enter". (By default the tool is fitted: test_tool_unknowns.)"""
-    from calib.controller import apply_guards, controller_values
-    from calib.result import result_dict
+    from calib.robot.controller import apply_guards, controller_values
+    from calib.fit.result import result_dict
 
     ds, _, wrong = simulate(IIWA, seed=5, k=40)
     data = IIWA.model_dump()

@@ -4,7 +4,7 @@ parameters under a tolerance prior (the fast method's default) restores honest i
 import numpy as np
 import pytest
 
-from calib.fit import FitOptions, fit_offsets
+from calib.fit.offsets import FitOptions, fit_offsets
 from tests.calib.test_fit import IIWA, simulate
 
 

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.dataset import DatasetError, read_csv
-from calib.fit import FitOptions, fit_offsets, min_configurations
-from calib.model import load_robot_model
+from calib.measure.dataset import DatasetError, read_csv
+from calib.fit.offsets import FitOptions, fit_offsets, min_configurations
+from calib.robot.model import load_robot_model
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")

@@ -2,7 +2,7 @@
 
 * Product-of-exponentials (PoE) models built here from each robot's published URDF joint
   origins and axes (numbers copied below, sources named per robot). The PoE code shares
-  nothing with ``calib.kinematics``: screws from the zero-configuration frames, matrix
+  nothing with ``calib.robot.kinematics``: screws from the zero-configuration frames, matrix
   exponentials, one configuration at a time.
 * For the KUKA KR 6 R900-2 also the OPW closed form (Brandstötter, Angerer, Hofbaur 2014) as
   implemented in ROS-Industrial's opw_kinematics ``forward()``, with the kr6r900_2 parameters.
@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.transforms import euler_zyx_to_matrix, exp_so3, homogeneous, skew
-from calib.yamlfile import ConfigError
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.robot.transforms import euler_zyx_to_matrix, exp_so3, homogeneous, skew
+from calib.io.yamlfile import ConfigError
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 PI = math.pi

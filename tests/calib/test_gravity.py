@@ -8,15 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.dataset import Dataset
-from calib.fit import FitOptions, fit_offsets
-from calib.gravity import chi2_sf, gravity_torques, joint_frames
-from calib.kinematics import Chain
-from calib.model import load_robot_model, robot_model_from_dict
-from calib.report_summary import warnings
-from calib.result import result_dict
-from calib.transforms import exp_so3
-from calib.yamlfile import ConfigError
+from calib.measure.dataset import Dataset
+from calib.fit.offsets import FitOptions, fit_offsets
+from calib.robot.gravity import chi2_sf, gravity_torques, joint_frames
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model, robot_model_from_dict
+from calib.report.report_summary import warnings
+from calib.fit.result import result_dict
+from calib.robot.transforms import exp_so3
+from calib.io.yamlfile import ConfigError
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 
@@ -220,7 +220,7 @@ def test_the_compliance_model_needs_link_masses():
 def test_full_identification_fits_the_compliances_too():
     """--method full with the compliance model: the loaded axes' compliances come back within
     their intervals and the residual falls to the noise; unloaded axes are left out, said why."""
-    from calib.identification import IdentOptions, identify
+    from calib.fit.identification import IdentOptions, identify
 
     model = load_robot_model(ROBOTS / "kuka_iiwa14_r820.yaml")
     k_true = K_TRUE

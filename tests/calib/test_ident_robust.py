@@ -15,12 +15,12 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from calib.dataset import from_arrays, read_csv, write_csv
-from calib.identification import IdentOptions, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
-from calib.kinematics import Chain
-from calib.metrics import registered_errors
-from calib.model import load_robot_model
-from calib.transforms import apply
+from calib.measure.dataset import from_arrays, read_csv, write_csv
+from calib.fit.identification import IdentOptions, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
+from calib.robot.kinematics import Chain
+from calib.fit.metrics import registered_errors
+from calib.robot.model import load_robot_model
+from calib.robot.transforms import apply
 from tests.calib.tracker_sim import CAL_NESTS, observe, tracker_cell
 
 log = logging.getLogger(__name__)

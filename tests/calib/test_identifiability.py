@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calib.identifiability import analyse, describe_loadings, exact_tolerance, verdicts
+from calib.plan.identifiability import analyse, describe_loadings, exact_tolerance, verdicts
 
 NAMES = ["A1.offset", "A2.offset", "s.x", "s.gamma"]
 

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.dataset import DatasetError, from_arrays
-from calib.identification import (
+from calib.measure.dataset import DatasetError, from_arrays
+from calib.fit.identification import (
     IdentOptions,
     _Problem,
     comprehensive_errors,
@@ -16,9 +16,9 @@ from calib.identification import (
     pose_errors,
     write_model_yaml,
 )
-from calib.kinematics import Chain
-from calib.model import load_robot_model, robot_model_from_dict
-from calib.transforms import pose_to_matrix
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model, robot_model_from_dict
+from calib.robot.transforms import pose_to_matrix
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 BASE2SENSOR = pose_to_matrix(np.array([1500.0, 200.0, -300.0]), np.radians([170.0, 10.0, -5.0]))

@@ -1,10 +1,10 @@
-"""Inverse kinematics (calib.ik): every solution, checked against FK and a brute-force search.
+"""Inverse kinematics (calib.ik.ik): every solution, checked against FK and a brute-force search.
 
 * Round trips: FK of thousands of seeded random joint vectors → IK → every row reproduces the
   pose (checked here again with ``Chain.fk``), lies within limits, and the original vector is
   among the rows (7R: at its own arm angle).
 * Completeness: on a sample of poses the count of distinct solutions within limits equals what a
-  brute-force random-start Levenberg–Marquardt search finds (``calib.ik_numeric``), and every
+  brute-force random-start Levenberg–Marquardt search finds (``calib.ik.ik_numeric``), and every
   numeric solution is one of ours.
 * Branch labels against the KUKA meanings computed here from FK alone.
 * Out of reach, singular and limit cases give their status and a message; bad input raises.
@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 import yaml
 
-from calib import ik
-from calib.ik_numeric import solve_numeric
-from calib.kinematics import Chain
-from calib.model import load_robot_model, robot_model_from_dict
-from calib.transforms import homogeneous, rotation_angle
+from calib.ik import ik
+from calib.ik.ik_numeric import solve_numeric
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model, robot_model_from_dict
+from calib.robot.transforms import homogeneous, rotation_angle
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 SIX = ["kuka_kr6_r900_2", "staubli_tx60"]
@@ -96,7 +96,7 @@ def test_solve_all_matches_solve_many_row_for_row(name):
     for i in range(5):
         one = ik.solve_all(m, poses[i], **kw)
         assert one.branch == many[i].branch
-        # a 6R pose is solved in plain floats (calib.ik_scalar): equal to rounding, not bit for bit
+        # a 6R pose is solved in plain floats (calib.ik.ik_scalar): equal to rounding, not bit for bit
         np.testing.assert_allclose(one.q, many[i].q, rtol=0, atol=1e-12)
 
 

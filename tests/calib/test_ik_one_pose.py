@@ -1,4 +1,4 @@
-"""``solve_all`` on one pose (plain floats, ``calib.ik_scalar``) against the vectorised ``solve_many``.
+"""``solve_all`` on one pose (plain floats, ``calib.ik.ik_scalar``) against the vectorised ``solve_many``.
 
 The one-pose path (6R; 7R at a given arm angle) must return exactly ``solve_many``'s result:
 same status and message, same labels in the same order, rows equal to 1e-9 rad. Checked on
@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib import ik
-from calib.ik_scalar import FALLBACK_MARGIN
-from calib.kinematics import Chain
-from calib.model import load_robot_model
+from calib.ik import ik
+from calib.ik.ik_scalar import FALLBACK_MARGIN
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 SIX = ["kuka_kr6_r900_2", "staubli_tx60"]
@@ -222,9 +222,9 @@ def test_one_pose_path_rejects_closed_form_rows_that_miss_the_pose(name, monkeyp
 
 
 def test_rotations_written_out_per_coordinate_axis_equal_the_general_formulas():
-    """``calib.ik_scalar._axis_ops``: the per-axis rotation and subproblem 1 for ±x, ±y, ±z (to
+    """``calib.ik.ik_scalar._axis_ops``: the per-axis rotation and subproblem 1 for ±x, ±y, ±z (to
     1e-15, as DH axes are) agree with Rodrigues and the general subproblem; other axes use those."""
-    from calib.ik_scalar import _angle_about, _axis_ops, _rotate
+    from calib.ik.ik_scalar import _angle_about, _axis_ops, _rotate
 
     rng = np.random.default_rng(11)
     tilted = rng.normal(size=3)

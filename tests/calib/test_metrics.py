@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.dataset import from_arrays
-from calib.kinematics import Chain
-from calib.metrics import (
+from calib.measure.dataset import from_arrays
+from calib.robot.kinematics import Chain
+from calib.fit.metrics import (
     absolute_errors,
     accuracy_metrics,
     before_after,
@@ -20,8 +20,8 @@ from calib.metrics import (
     summarize,
     theoretical_errors,
 )
-from calib.model import load_robot_model
-from calib.transforms import apply, pose_to_matrix
+from calib.robot.model import load_robot_model
+from calib.robot.transforms import apply, pose_to_matrix
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")

@@ -1,5 +1,5 @@
-"""The data choose the model (``calib.model_choice``), "enter" is earned (``calib.controller``),
-and the default posterior is the Laplace Gaussian checked by PSIS (``calib.psis``).
+"""The data choose the model (``calib.fit.model_choice``), "enter" is earned (``calib.robot.controller``),
+and the default posterior is the Laplace Gaussian checked by PSIS (``calib.fit.psis``).
 
 Simulated tracker cells (``tests.calib.tracker_sim``: a Stäubli TX60 with a three-nest plate)
 with known zero-offsets, and optionally link errors and a tool that is not where the model says.
@@ -13,15 +13,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.auto_fit import auto_fit
-from calib.controller import earned_reasons
-from calib.dataset import from_arrays
-from calib.fit import FitOptions
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.model_choice import Score, choose_model, fold_labels, one_se_choice
-from calib.psis import psis
-from calib.transforms import pose_to_matrix
+from calib.fit.auto_fit import auto_fit
+from calib.robot.controller import earned_reasons
+from calib.measure.dataset import from_arrays
+from calib.fit.offsets import FitOptions
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.fit.model_choice import Score, choose_model, fold_labels, one_se_choice
+from calib.fit.psis import psis
+from calib.robot.transforms import pose_to_matrix
 from tests.calib.tracker_sim import CAL_NESTS, TRACKER2BASE_POSE, configurations, link_errors, observe, plate_model
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -171,8 +171,8 @@ def test_a_posterior_the_laplace_gaussian_misses_goes_to_the_ensemble_sampler():
     """A strongly correlated target (ρ = 0.99, scales 1 and 10) offered a proposal that ignores the
     correlation and is too narrow (identity): k̂ ≥ 0.7, and the affine-invariant ensemble, which
     does not care about linear correlations, recovers the covariance with R-hat near 1."""
-    from calib.laplace_sampling import ensemble, laplace_importance
-    from calib.sampling import split_rhat
+    from calib.fit.laplace_sampling import ensemble, laplace_importance
+    from calib.fit.sampling import split_rhat
 
     cov = np.array([[1.0, 0.99 * 10.0], [0.99 * 10.0, 100.0]])
     prec = np.linalg.inv(cov)

@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.identification import identify, information_blocks, pose_errors
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.observability import INDICES, indices_from_eigenvalues, ioops, observability
+from calib.fit.identification import identify, information_blocks, pose_errors
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.plan.observability import INDICES, indices_from_eigenvalues, ioops, observability
 from tests.calib.test_identification import measure, perturbed_truth
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"

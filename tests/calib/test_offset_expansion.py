@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.fit import FitOptions, fit_offsets
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.offset_expansion import expand_offsets
-from calib.posterior import EXPANSION_TOLERANCE_MM
+from calib.fit.offsets import FitOptions, fit_offsets
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.fit.offset_expansion import expand_offsets
+from calib.fit.posterior import EXPANSION_TOLERANCE_MM
 from tests.calib.test_fit import IIWA, KR6, simulate
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -5,9 +5,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.socket import fit_socket
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.fit.socket import fit_socket
 from socket_sim import equivalent_ball, simulate, true_params  # tests/calib is on sys.path under pytest
 
 PANDA = Path(__file__).resolve().parents[2] / "fixtures" / "robots" / "franka_panda.yaml"

@@ -1,4 +1,4 @@
-"""The paper's pose plan (calib.poses): Latin-hypercube sampling, aiming (eqs. 2–5), every IK
+"""The paper's pose plan (calib.plan.poses): Latin-hypercube sampling, aiming (eqs. 2–5), every IK
 solution per pose with limit and FK filtering, dropped poses with reasons, the configurations
 file."""
 
@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.poses import (
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.plan.poses import (
     PoseRanges,
     aim_rotations,
     candidate_poses,
@@ -24,8 +24,8 @@ from calib.poses import (
     read_configurations,
     write_configurations,
 )
-from calib.transforms import euler_zyx_to_matrix, rot_z
-from calib.yamlfile import ConfigError
+from calib.robot.transforms import euler_zyx_to_matrix, rot_z
+from calib.io.yamlfile import ConfigError
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 SENSOR = np.array([1500.0, 200.0, 600.0])
@@ -51,7 +51,7 @@ class _Solutions:
 
 @pytest.fixture(scope="module")
 def solver():
-    from calib import ik
+    from calib.ik import ik
 
     return ik
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from calib.registration import (
+from calib.fit.registration import (
     ClusteredRegistration,
     RegistrationResult,
     average_transforms,
@@ -24,7 +24,7 @@ from calib.registration import (
     translation_errors,
     triple_registrations,
 )
-from calib.transforms import apply, exp_so3, homogeneous, invert, log_so3, pose_to_matrix, rot_z
+from calib.robot.transforms import apply, exp_so3, homogeneous, invert, log_so3, pose_to_matrix, rot_z
 
 SIGMA_MM = 0.05  # per-axis measurement noise of the simulated sensor
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from calib.regstats import (
+from calib.fit.regstats import (
     brown_forsythe_levene,
     compare_registrations,
     correlation,

@@ -16,18 +16,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.controller import apply_guards, controller_values
-from calib.dataset import read_csv
-from calib.fit import FitOptions, _scale, fit_offsets
-from calib.kinematics import Chain
-from calib.metrics import accuracy_metrics
-from calib.model import load_robot_model
-from calib.observability import observability
-from calib.report import render_report, write_report
-from calib.metrics import absolute_errors, predicted_base
-from calib.report_figures import tcp_clouds
-from calib.report_format import num
-from calib.result import result_dict
+from calib.robot.controller import apply_guards, controller_values
+from calib.measure.dataset import read_csv
+from calib.fit.offsets import FitOptions, _scale, fit_offsets
+from calib.robot.kinematics import Chain
+from calib.fit.metrics import accuracy_metrics
+from calib.robot.model import load_robot_model
+from calib.plan.observability import observability
+from calib.report.html import render_report, write_report
+from calib.fit.metrics import absolute_errors, predicted_base
+from calib.report.report_figures import tcp_clouds
+from calib.report.report_format import num
+from calib.fit.result import result_dict
 from svgread import axes, svgs, texts  # tests/calib is on sys.path under pytest
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -274,7 +274,7 @@ def test_report_is_written_as_html_whose_elements_all_close(fitted, tmp_path):
 
 def test_tcp_legend_goes_to_the_corner_with_the_fewest_points():
     """The TCP figure's legend goes where it hides the fewest points."""
-    from calib.report_figures import _emptiest_corner
+    from calib.report.report_figures import _emptiest_corner
 
     rng = np.random.default_rng(0)
     cloud = rng.normal([0.6, 0.6], 0.1, (500, 2))  # upper right of a unit box

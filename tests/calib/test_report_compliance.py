@@ -8,13 +8,13 @@ from html.parser import HTMLParser
 
 import numpy as np
 
-from calib.controller import apply_guards
-from calib.fit import FitOptions, fit_offsets
-from calib.identification import IdentOptions, ident_result_dict, identify
-from calib.model import load_robot_model
-from calib.report import render_report
-from calib.report_ident import render_ident_report
-from calib.result import result_dict
+from calib.robot.controller import apply_guards
+from calib.fit.offsets import FitOptions, fit_offsets
+from calib.fit.identification import IdentOptions, ident_result_dict, identify
+from calib.robot.model import load_robot_model
+from calib.report.html import render_report
+from calib.report.report_ident import render_ident_report
+from calib.fit.result import result_dict
 from tests.calib.test_gravity import K_TRUE, ROBOTS, _dataset, _real_cell
 
 

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.dataset import from_arrays
-from calib.fit import FitOptions, fit_offsets
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.sampling import effective_sample_size, independence_mh, paper_metropolis, split_rhat
-from calib.transforms import apply, pose_to_matrix
+from calib.measure.dataset import from_arrays
+from calib.fit.offsets import FitOptions, fit_offsets
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.fit.sampling import effective_sample_size, independence_mh, paper_metropolis, split_rhat
+from calib.robot.transforms import apply, pose_to_matrix
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")

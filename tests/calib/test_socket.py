@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.kinematics import Chain
-from calib.model import load_robot_model
-from calib.socket import (
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from calib.fit.socket import (
     SocketDataError,
     fit_socket,
     leave_one_placement_out,

@@ -1,4 +1,4 @@
-"""``calib.svg``: ticks at round values, labels with the decimals their spacing needs, data mapped
+"""``calib.report.svg``: ticks at round values, labels with the decimals their spacing needs, data mapped
 to pixels and back, scatters that draw what lies within the limits, well-formed SVG."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from calib.svg import Figure, data_limits, log_ticks, nice_ticks, tick_labels
+from calib.report.svg import Figure, data_limits, log_ticks, nice_ticks, tick_labels
 from svgread import axes, texts  # tests/calib is on sys.path under pytest
 
 

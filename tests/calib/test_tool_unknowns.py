@@ -13,16 +13,16 @@ import math
 import numpy as np
 import pytest
 
-from calib.calibrated import apply_result
-from calib.controller import apply_guards, controller_values
-from calib.dataset import from_arrays
-from calib.fit import FitOptions, fit_offsets
-from calib.identification import IdentOptions, ident_result_dict, identify
-from calib.kinematics import Chain
-from calib.metrics import absolute_errors, accuracy_metrics, predicted_base, registered_errors, registrations
-from calib.model import robot_model_from_dict
-from calib.result import result_dict
-from calib.transforms import apply, rot_z
+from calib.robot.calibrated import apply_result
+from calib.robot.controller import apply_guards, controller_values
+from calib.measure.dataset import from_arrays
+from calib.fit.offsets import FitOptions, fit_offsets
+from calib.fit.identification import IdentOptions, ident_result_dict, identify
+from calib.robot.kinematics import Chain
+from calib.fit.metrics import absolute_errors, accuracy_metrics, predicted_base, registered_errors, registrations
+from calib.robot.model import robot_model_from_dict
+from calib.fit.result import result_dict
+from calib.robot.transforms import apply, rot_z
 from tests.calib.test_fit import BASE2SENSOR, IIWA, simulate
 
 log = logging.getLogger(__name__)
@@ -74,7 +74,7 @@ def test_a_marker_30_mm_off_is_recovered_and_the_offsets_cover_the_truth(method=
     if method == "fast":
         doc = result_dict(res, ds)
         # The offsets cover the truth, but the drawing is 30 mm off (3× the prior): "enter" is not
-        # earned while that tool warning is open (calib.controller.earned_reasons).
+        # earned while that tool warning is open (calib.robot.controller.earned_reasons).
         (reason,) = apply_guards(doc)
         assert "marker smr fitted" in reason and "outside its prior (±10 mm)" in reason
         actions = [a.action for a in controller_values(shifted, doc["joint_offsets"]).axes]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from calib.transforms import (
+from calib.robot.transforms import (
     apply,
     euler_zyx_to_matrix,
     exp_so3,

@@ -1,4 +1,4 @@
-"""URDF in and out (``calib.urdf``, ``calib.dh_convert``), checked against yourdfpy's own FK.
+"""URDF in and out (``calib.robot.urdf``, ``calib.robot.dh_convert``), checked against yourdfpy's own FK.
 
 Fixture URDFs (tests/calib/urdf/, sources and licences in their headers): the KUKA KR 6 R900-2
 from ROS-Industrial's kuka_experimental and the LBR iiwa 14 R820 from iiwa_stack — the same
@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.kinematics import Chain
-from calib.model import load_robot_model, model_yaml, robot_model_from_dict
-from calib.urdf import (UrdfError, export_urdf, fk_difference, import_urdf, load_urdf, random_configurations,
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model, model_yaml, robot_model_from_dict
+from calib.robot.urdf import (UrdfError, export_urdf, fk_difference, import_urdf, load_urdf, random_configurations,
                         urdf_fk)
 
 HERE = Path(__file__).resolve().parent

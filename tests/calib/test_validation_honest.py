@@ -6,8 +6,8 @@ estimated placement's uncertainty."""
 import numpy as np
 import pytest
 
-from calib.identification import ident_result_dict, identify
-from calib.kinematics import Chain
+from calib.fit.identification import ident_result_dict, identify
+from calib.robot.kinematics import Chain
 from tests.calib.test_canonical import _dh_flange
 from tests.calib.tracker_sim import CAL_NESTS, configurations, observe, tracker_cell
 
@@ -24,7 +24,7 @@ def test_validation_headline_equals_an_independent_scorer_on_the_measured_marker
     seen = np.isin(val.marker, list(CAL_NESTS))
     assert head["n_points"] == int(seen.sum()) == 75 and head["markers"] == list(CAL_NESTS)
 
-    # Independent: an explicit product of the convention's link matrices (not calib.kinematics),
+    # Independent: an explicit product of the convention's link matrices (not calib.robot.kinematics),
     # the identified marker positions, the calibration's registration; |measured − predicted|.
     markers = dict(zip(chain.marker_names, result.params[chain.marker_slice()].reshape(-1, 3)))
     t = result.base2sensor["sensor"]
@@ -72,10 +72,10 @@ def _kabsch(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def test_fast_fit_validation_headline_is_the_measured_markers_scored_independently():
-    """The fast fit's validation_absolute (calib.metrics.accuracy_metrics): the validation points
+    """The fast fit's validation_absolute (calib.fit.metrics.accuracy_metrics): the validation points
     of measured markers only, with the calibration's least-squares registration — recomputed here
     with an explicit DH product and an SVD registration; n4's points are apart."""
-    from calib.metrics import accuracy_metrics
+    from calib.fit.metrics import accuracy_metrics
 
     cell = tracker_cell(seed=5)
     chain = Chain(cell.model)

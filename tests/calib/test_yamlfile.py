@@ -1,4 +1,4 @@
-"""The one safe YAML loader (calib/yamlfile.py): aliases, duplicate keys, size and depth refused
+"""The one safe YAML loader (calib/io/yamlfile.py): aliases, duplicate keys, size and depth refused
 with file:line:column, for files and inline text, and through every loader that uses it."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from calib.yamlfile import MAX_BYTES, MAX_DEPTH, ConfigError, load_yaml_with_marks, parse_yaml_text
+from calib.io.yamlfile import MAX_BYTES, MAX_DEPTH, ConfigError, load_yaml_with_marks, parse_yaml_text
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -97,7 +97,7 @@ def test_plain_files_still_load_with_their_marks():
 def test_every_loader_uses_it(tmp_path):
     """Robot models, simulated cells and daemon configs refuse duplicate keys with both lines."""
     from acquire.daemon_config import load_daemon_config
-    from calib.model import load_robot_model
+    from calib.robot.model import load_robot_model
     from drivers.sim.config import load_sim_config
 
     daemon = tmp_path / "daemon.yaml"

@@ -10,10 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.dataset import Dataset, from_arrays
-from calib.kinematics import Chain
-from calib.model import RobotModel, load_robot_model, robot_model_from_dict
-from calib.transforms import apply, pose_to_matrix
+from calib.measure.dataset import Dataset, from_arrays
+from calib.robot.kinematics import Chain
+from calib.robot.model import RobotModel, load_robot_model, robot_model_from_dict
+from calib.robot.transforms import apply, pose_to_matrix
 from tests.calib.test_identification import ROBOTS
 
 #: Nests on the plate, flange frame of the model (mm): three for the calibration, one for validation.

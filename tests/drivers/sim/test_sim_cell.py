@@ -5,7 +5,7 @@ import threading
 import numpy as np
 import pytest
 
-from calib.model import load_robot_model
+from calib.robot.model import load_robot_model
 from drivers.errors import LimitError
 from drivers.sim.cell import SimCell, joint_frames
 from drivers.sim.clock import SimClock

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from calib.yamlfile import ConfigError
+from calib.io.yamlfile import ConfigError
 from drivers.sim.cell import SimCell
 from drivers.sim.config import DEFAULT_CONFIG_PATH, SimConfig, load_sim_config
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calib.yamlfile import ConfigError
+from calib.io.yamlfile import ConfigError
 from drivers.kuka_fri.messages import DriveState, decode_monitoring
 from drivers.sim.cell import SimCell
 from drivers.sim.clock import SimClock

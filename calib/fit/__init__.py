@@ -1,0 +1,1 @@
+"""Fitting: registration, offset fits, posterior sampling, identification, model choice, metrics, results."""

@@ -1,0 +1,78 @@
+"""The default fit (``acquire fit``, and the run's end-of-run fit): the data choose the model
+(``calib.fit.model_choice``), the chosen model is fitted with uncertainty, and "enter" is earned
+(``calib.robot.controller.earned_reasons``).
+
+``auto_fit`` returns the ``result.json`` document with the cross-validation table under
+``model_choice``. A chosen ``offsets…`` model is fitted by ``calib.fit.offsets.fit_offsets`` with the
+Laplace + PSIS posterior (``method="laplace"``); a chosen ``full`` model by
+``calib.fit.identification.identify`` (its document is the identification's, with the guards'
+reasons in ``do_not_use``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from calib.robot.controller import apply_guards, controller_values, earned_reasons
+from calib.measure.dataset import Dataset
+from calib.fit.offsets import FitOptions, FitResult, fit_offsets
+from calib.robot.model import RobotModel
+from calib.fit.model_choice import ModelChoice, choose_model, options_for, parse_candidate
+
+
+@dataclass
+class AutoFit:
+    """``doc``: the result document; ``refused``: why not to enter (or use) it, [] if earned;
+    ``result`` (offsets models) or ``ident`` (full) is the fit itself; ``controller_text``: the
+    values to enter (offsets models)."""
+
+    choice: ModelChoice
+    doc: dict
+    refused: list[str]
+    result: FitResult | None = None
+    ident: object | None = None
+    controller_text: str | None = None
+
+
+def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOptions = FitOptions(), *,
+             force: str | None = None, link_tolerance: tuple[float, float] | None = None, n_random: int = 1000,
+             n_starts: int = 6, ident_exclusions: tuple[tuple[str, str], ...] = (), k: int = 5,
+             include_full: bool = True, compliance_only: bool = False) -> AutoFit:
+    """Choose the model by cross-validation (``force``: a candidate's name, ``--model``), fit it on
+    all of ``cal``, score ``val`` and apply the guards. ``base``: the user's options (joints,
+    registration, error model, tool prior, seed, draws); ``link_tolerance``: a fixed link scale
+    instead of the empirical Bayes one; ``include_full``: False leaves full identification out of
+    the candidates (the run's end-of-run fit, whose summary is the offsets')."""
+    from calib.robot.kinematics import Chain
+    from calib.fit.metrics import accuracy_metrics
+    from calib.fit.result import result_dict
+
+    base = replace(base, method="laplace", compliance=False)
+    choice = choose_model(model, cal, base, force=force, k=k, link_tolerance=link_tolerance,
+                          include_full=include_full, compliance_only=compliance_only)
+    candidate = parse_candidate(choice.chosen, model)
+    if candidate.kind == "full":
+        from calib.fit.identification import IdentOptions, ident_result_dict, identify
+
+        ident = identify(model, cal, IdentOptions(tool_prior_mm=base.tool_prior_mm, seed=base.seed, n_starts=n_starts,
+                                                  exclude_reasons=ident_exclusions))
+        doc = ident_result_dict(ident, cal, val)
+        doc["model_choice"] = choice.to_dict()
+        refused = [r for r in earned_reasons(doc) if r not in ident.do_not_use]
+        refused += [f"tool: {w}" for w in ident.warnings if w.startswith("markers fitted far outside their prior")]
+        ident.do_not_use.extend(refused)
+        doc["do_not_use"] = list(ident.do_not_use)
+        return AutoFit(choice, doc, list(ident.do_not_use), ident=ident)
+    scale = choice.link_scale
+    tolerance = (scale["length_mm"], scale["angle_deg"]) if scale else None
+    options = options_for(candidate, base, tolerance)
+    result = fit_offsets(model, cal, options)
+    metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
+                               result.applied_sigma_mm, validation=val, n_random=n_random, seed=base.seed,
+                               markers_mm=result.fitted_markers_mm)
+    doc = result_dict(result, cal, metrics=metrics)
+    doc["model_choice"] = choice.to_dict()
+    refused = apply_guards(doc)
+    values = controller_values(model, doc["joint_offsets"])
+    doc["controller"] = values.to_dict()
+    return AutoFit(choice, doc, refused, result=result, controller_text=values.format())

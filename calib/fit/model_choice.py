@@ -1,0 +1,328 @@
+"""The data choose the model: candidate calibration models scored by cross-validated prediction
+error on held-out configurations.
+
+Candidates (``candidates``), simplest first:
+
+``offsets``                 zero-offsets and the registration; the model's tool taken as exact;
+``offsets+tool``            … and the measured markers' positions on the flange (tool prior);
+``offsets+tool+links``      … and every link parameter under a Gaussian prior whose scale is
+                            estimated from the data (empirical Bayes: the scale that maximises the
+                            Laplace evidence, ``empirical_link_scale``);
+``full``                    full identification (``calib.fit.identification``, one staged start per fold);
+
+each model with link masses also ``+compliance`` (joint compliance under gravity, ``calib.robot.gravity``;
+not for ``full``, whose prediction here is geometric).
+
+Scoring (``choose_model``): the configurations (or pose groups, where the data has them) are split
+into K folds; each candidate is fitted (posterior mode, ``calib.fit.offsets.fit_mode``) on the other folds
+and predicts the held-out configurations through the registration of that fit — never re-fitted on
+the scored points. Only rows of markers the training folds measured are scored, the same rows for
+every candidate. Per held-out configuration the error is the rms distance |measured − predicted|
+(mm) over its rows; a candidate's score is the mean of those with its standard error, and their rms.
+The uncalibrated (nominal) model, registered on the training folds, is scored alike. The chosen
+model is the simplest whose mean is within one standard error of the best (the "one-standard-error
+rule", Hastie, Tibshirani & Friedman, *Elements of Statistical Learning*, §7.10).
+
+The link scale is chosen once on all calibration data (the evidence uses no held-out scoring);
+the folds then use it — a one-number hyperparameter, stated in the table.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from calib.measure.dataset import Dataset
+from calib.fit.offsets import FitOptions, ModeFit, _prior_precision, fit_mode
+from calib.robot.kinematics import Chain
+from calib.robot.model import RobotModel
+from calib.fit.registration import register_least_squares
+
+#: Candidate kinds, simplest first (their rank orders "simplest" in the one-standard-error rule).
+KINDS = ("offsets", "offsets+tool", "offsets+tool+links", "full")
+#: Link prior scales tried by the empirical Bayes step: length (mm); angles get 0.1°/mm of it
+#: (the ratio of the old fixed 0.2 mm / 0.02° prior).
+LINK_SCALES_MM = (0.03, 0.1, 0.3, 1.0, 3.0)
+DEG_PER_MM = 0.1
+#: Relative tolerance of the fold fits' solves: far below any held-out error that matters.
+CV_TOL = 1e-8
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A model to compare: ``kind`` of ``KINDS``, with joint ``compliance`` or not."""
+
+    kind: str
+    compliance: bool = False
+
+    @property
+    def name(self) -> str:
+        return self.kind + ("+compliance" if self.compliance else "")
+
+    @property
+    def rank(self) -> float:
+        return KINDS.index(self.kind) + (0.5 if self.compliance else 0.0)
+
+
+def candidates(model: RobotModel, *, include_full: bool = True, compliance_only: bool = False) -> list[Candidate]:
+    """Every candidate for ``model``: the compliance variants only with link masses
+    (``compliance_only``: only those — ``--compliance``)."""
+    kinds = KINDS if include_full else KINDS[:-1]
+    out = [] if compliance_only else [Candidate(k) for k in kinds]
+    if model.has_dynamics:
+        out += [Candidate(k, True) for k in kinds if k != "full"]
+    if not out:
+        raise ValueError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model")
+    return sorted(out, key=lambda c: c.rank)
+
+
+def parse_candidate(name: str, model: RobotModel) -> Candidate:
+    """``--model NAME`` as a candidate; ValueError naming the known ones."""
+    known = {c.name: c for c in candidates(model)}
+    if name not in known:
+        raise ValueError(f"model {name!r} unknown for {model.name}; known: {', '.join(known)}")
+    return known[name]
+
+
+def options_for(candidate: Candidate, base: FitOptions, link_tolerance: tuple[float, float] | None) -> FitOptions:
+    """The ``FitOptions`` of a non-full candidate, from the user's ``base`` (joints, registration,
+    error model, tool prior, seed)."""
+    tool = base.tool_prior_mm if candidate.kind != "offsets" else 0.0
+    links = link_tolerance if candidate.kind == "offsets+tool+links" else None
+    if candidate.kind == "offsets+tool+links" and links is None:
+        raise ValueError("the offsets+tool+links candidate needs a link scale")
+    return replace(base, tool_prior_mm=tool, link_tolerance=links, compliance=candidate.compliance)
+
+
+# --- empirical Bayes for the link prior's scale ----------------------------------------------------
+def log_evidence(mf: ModeFit) -> float:
+    """Laplace approximation of log p(data | priors) at the mode, σ at its mode, up to a constant
+    that does not depend on the link prior's scale (the flat-prior parameters' terms cancel
+    between scales with the same free parameters)."""
+    post, theta = mf.post, mf.theta
+    sigma = np.exp(mf.log_sigma)[post.sensor_index]  # (k,)
+    r = post.residuals(theta)
+    loglik = -0.5 * float(np.sum(r**2 / sigma[:, None] ** 2)) - 3.0 * float(np.sum(np.log(sigma)))
+    pos, sd = post.link_free()
+    logprior = -0.5 * float(np.sum((theta[pos] / sd) ** 2)) - float(np.sum(np.log(sd)))
+    j = post.jacobian(theta).reshape(post.n_rows, 3, -1)
+    h = np.einsum("kip,k,kiq->pq", j, sigma**-2, j) + _prior_precision(post)
+    sign, logdet = np.linalg.slogdet(h)
+    return loglik + logprior - 0.5 * logdet if sign > 0 else -math.inf
+
+
+def empirical_link_scale(model: RobotModel, data: Dataset, base: FitOptions,
+                         scales_mm: tuple[float, ...] = LINK_SCALES_MM) -> dict:
+    """The link prior's scale that maximises the Laplace evidence of the offsets+tool+links model
+    on ``data``: {"length_mm", "angle_deg", "log_evidence": {mm: value}}."""
+    table = {}
+    for mm in scales_mm:
+        opts = replace(base, tool_prior_mm=base.tool_prior_mm, link_tolerance=(mm, mm * DEG_PER_MM))
+        table[mm] = log_evidence(fit_mode(model, data, opts, tol=CV_TOL))
+    best = max(table, key=table.get)
+    return {"length_mm": best, "angle_deg": best * DEG_PER_MM, "log_evidence": {f"{k:g}": v for k, v in table.items()}}
+
+
+# --- cross-validation ------------------------------------------------------------------------------
+def fold_labels(data: Dataset, k: int = 5, seed: int = 0) -> tuple[np.ndarray, str]:
+    """(rows,) fold number per row, and what was grouped ("pose group" where every row has one,
+    else "configuration"): the groups are shuffled (seeded) and dealt round-robin into ``k`` folds."""
+    by_pose = bool(np.all(data.pose != ""))
+    groups = data.pose if by_pose else data.config
+    names = np.unique(groups)
+    if names.size < 2:
+        raise ValueError(f"cross-validation needs at least 2 {'pose groups' if by_pose else 'configurations'}")
+    k = min(k, names.size)
+    order = np.random.default_rng(seed).permutation(names.size)
+    fold_of = {names[i]: f % k for f, i in enumerate(order)}
+    return np.array([fold_of[g] for g in groups]), ("pose group" if by_pose else "configuration")
+
+
+@dataclass
+class Score:
+    """One candidate's cross-validated error: per held-out configuration the rms distance (mm)."""
+
+    name: str
+    rank: float
+    n_params: int | None
+    errors_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    failed: str | None = None
+
+    @property
+    def mean_mm(self) -> float:
+        return float(self.errors_mm.mean()) if self.errors_mm.size and not self.failed else math.inf
+
+    @property
+    def se_mm(self) -> float:
+        e = self.errors_mm
+        return float(e.std(ddof=1) / math.sqrt(e.size)) if e.size > 1 and not self.failed else math.inf
+
+    @property
+    def rms_mm(self) -> float:
+        return float(np.sqrt(np.mean(self.errors_mm**2))) if self.errors_mm.size and not self.failed else math.inf
+
+    def to_dict(self) -> dict:
+        return {"model": self.name, "free_parameters": self.n_params, "cv_rms_mm": _num(self.rms_mm),
+                "cv_mean_mm": _num(self.mean_mm), "cv_se_mm": _num(self.se_mm), "failed": self.failed}
+
+
+def _num(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+@dataclass
+class ModelChoice:
+    """The cross-validation table and the choice (``choose_model``)."""
+
+    scores: list[Score]
+    nominal: Score
+    chosen: str
+    forced: bool
+    folds: int
+    grouping: str
+    link_scale: dict | None
+
+    def score(self, name: str) -> Score:
+        return next(s for s in self.scores if s.name == name)
+
+    def to_dict(self) -> dict:
+        return {"chosen": self.chosen, "forced": self.forced, "folds": self.folds, "grouped_by": self.grouping,
+                "rule": "the simplest model within one standard error of the best cross-validated mean error",
+                "nominal": self.nominal.to_dict(), "candidates": [s.to_dict() for s in self.scores],
+                "link_scale": self.link_scale}
+
+    def format(self) -> str:
+        lines = [f"model choice: {self.folds}-fold cross-validation by {self.grouping} (fit on the other folds, "
+                 "held-out configurations scored with that fit's registration)",
+                 f"  {'model':<32}{'free':>6}{'CV rms (mm)':>13}{'CV mean ± se (mm)':>22}"]
+        if all(s.failed for s in self.scores):
+            lines.append("  no model could be fitted on the training folds (too few configurations): the simplest "
+                         f"({self.chosen}) is fitted unvalidated, and nothing is marked \"enter\"")
+        for s in [self.nominal] + self.scores:
+            if s.failed:
+                lines.append(f"  {s.name:<32}{'—' if s.n_params is None else s.n_params:>6}  failed: {s.failed}")
+                continue
+            mark = "  ← chosen" + (" (--model)" if self.forced else "") if s.name == self.chosen else ""
+            lines.append(f"  {s.name:<32}{'—' if s.n_params is None else s.n_params:>6}{s.rms_mm:>13.4f}"
+                         f"{s.mean_mm:>13.4f} ± {s.se_mm:.4f}{mark}")
+        if self.link_scale:
+            lines.append(f"  link prior scale (empirical Bayes, max evidence): {self.link_scale['length_mm']:g} mm, "
+                         f"{self.link_scale['angle_deg']:g}°")
+        return "\n".join(lines)
+
+
+def _config_errors(data: Dataset, dist: np.ndarray) -> np.ndarray:
+    """Per configuration of ``data``, the rms of ``dist`` (rows,) over its rows."""
+    _, inv = np.unique(data.config, return_inverse=True)
+    inv = inv.ravel()
+    return np.sqrt(np.bincount(inv, dist**2) / np.bincount(inv))
+
+
+def _nominal_distances(model: RobotModel, train: Dataset, test: Dataset) -> np.ndarray:
+    chain = Chain(model)
+    out = np.zeros(len(test))
+
+    def base(ds: Dataset) -> np.ndarray:
+        p = chain.marker_positions(ds.q_rad)
+        return p[np.arange(len(ds)), [chain.marker_names.index(m) for m in ds.marker]]
+
+    pb_train, pb_test = base(train), base(test)
+    for s in np.unique(test.sensor):
+        tr, te = train.sensor == s, test.sensor == s
+        reg = register_least_squares(pb_train[tr], train.xyz_mm[tr]).base2sensor
+        pred = pb_test[te] @ reg[:3, :3].T + reg[:3, 3]
+        out[te] = np.linalg.norm(test.xyz_mm[te] - pred, axis=1)
+    return out
+
+
+def _full_fit(model: RobotModel, train: Dataset, base: FitOptions):
+    from calib.fit.identification import IdentOptions, identify
+
+    exclude = tuple((f"{model.axis_names[i]}.offset", "not in --joints") for i in range(model.n_joints)
+                    if base.joints is not None and i + 1 not in base.joints)
+    return identify(model, train, IdentOptions(tool_prior_mm=base.tool_prior_mm, n_starts=1, seed=base.seed,
+                                               exclude_reasons=exclude))
+
+
+def _candidate_distances(candidate: Candidate, model: RobotModel, train: Dataset, test: Dataset, base: FitOptions,
+                         link_tolerance) -> tuple[np.ndarray, int]:
+    if candidate.kind == "full":
+        from calib.fit.identification import pose_errors
+
+        res = _full_fit(model, train, base)
+        return pose_errors(model, res.params, test, res.base2sensor), len(res.free_names)
+    mf = fit_mode(model, train, options_for(candidate, base, link_tolerance), tol=CV_TOL)
+    return np.linalg.norm(mf.predict_residuals(test), axis=1), mf.post.dim
+
+
+def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], base: FitOptions,
+                   link_tolerance: tuple[float, float] | None, *, k: int = 5,
+                   seed: int = 0) -> tuple[list[Score], Score, int, str]:
+    """K-fold scores of ``cands`` and of the nominal model on ``data`` (see the module's docstring)."""
+    labels, grouping = fold_labels(data, k, seed)
+    n_folds = int(labels.max()) + 1
+    scores = [Score(c.name, c.rank, None) for c in cands]
+    per = [[] for _ in cands]
+    nominal_parts = []
+    for f in range(n_folds):
+        train = data.subset(labels != f)
+        test = data.subset(labels == f)
+        ok = np.isin(test.marker, np.unique(train.marker)) & np.isin(test.sensor, np.unique(train.sensor))
+        if not ok.any():
+            continue
+        test = test.subset(ok)
+        nominal_parts.append(_config_errors(test, _nominal_distances(model, train, test)))
+        for i, c in enumerate(cands):
+            if scores[i].failed:
+                continue
+            try:
+                dist, n_params = _candidate_distances(c, model, train, test, base, link_tolerance)
+            except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+                scores[i].failed = f"fold {f + 1}: {exc}"
+                continue
+            if not np.all(np.isfinite(dist)):
+                scores[i].failed = f"fold {f + 1}: the fit did not converge (non-finite predictions)"
+                continue
+            scores[i].n_params = n_params if scores[i].n_params is None else max(scores[i].n_params, n_params)
+            per[i].append(_config_errors(test, dist))
+    for s, parts in zip(scores, per):
+        if parts and not s.failed:
+            s.errors_mm = np.concatenate(parts)
+    nominal = Score("nominal (uncalibrated)", -1.0, 0, np.concatenate(nominal_parts) if nominal_parts else np.zeros(0))
+    return scores, nominal, n_folds, grouping
+
+
+def one_se_choice(scores: list[Score]) -> str:
+    """The simplest (lowest rank) score whose mean is within one standard error of the best mean."""
+    ok = [s for s in scores if not s.failed and s.errors_mm.size]
+    if not ok:
+        raise ValueError("no candidate model could be fitted in every fold: "
+                         + "; ".join(f"{s.name}: {s.failed}" for s in scores))
+    best = min(ok, key=lambda s: s.mean_mm)
+    return min((s for s in ok if s.mean_mm <= best.mean_mm + best.se_mm), key=lambda s: s.rank).name
+
+
+def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions(), *, force: str | None = None,
+                 k: int = 5, include_full: bool = True, link_tolerance: tuple[float, float] | None = None,
+                 compliance_only: bool = False) -> ModelChoice:
+    """Score every candidate (``--model NAME`` in ``force``: still scored and shown, but chosen);
+    ``link_tolerance`` given: that link scale instead of the empirical Bayes one."""
+    cands = candidates(model, include_full=include_full, compliance_only=compliance_only)
+    if force is not None:
+        forced = parse_candidate(force, model)
+        if forced not in cands:
+            cands.append(forced)
+    scale = None
+    if link_tolerance is None and any(c.kind == "offsets+tool+links" for c in cands):
+        scale = empirical_link_scale(model, data, replace(base, compliance=False))
+        link_tolerance = (scale["length_mm"], scale["angle_deg"])
+    elif link_tolerance is not None:
+        scale = {"length_mm": link_tolerance[0], "angle_deg": link_tolerance[1], "given": True}
+    scores, nominal, n_folds, grouping = cross_validate(model, data, cands, base, link_tolerance, k=k, seed=base.seed)
+    try:
+        chosen = force if force is not None else one_se_choice(scores)
+    except ValueError:  # too few configurations to fit any model on four folds: the simplest, unvalidated
+        chosen = min(cands, key=lambda c: c.rank).name
+    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale)

@@ -1,0 +1,1 @@
+"""Inverse kinematics: closed-form (SRS, spherical wrist, subproblems) and numeric solvers."""

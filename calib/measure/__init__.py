@@ -1,0 +1,1 @@
+"""Measurements: the dataset file and joint-unit conversion."""

@@ -1,0 +1,1 @@
+"""Pose plans: pose generation, observability and identifiability of a plan, socket poses."""

@@ -1,0 +1,1 @@
+"""Reports: the self-contained report.html, its figures, summaries and formatting."""

@@ -1,0 +1,166 @@
+"""The calibrated model: a nominal robot model with a fit's ``result.json`` applied.
+
+Understood results (all written by ``acquire fit``):
+
+* ``format: remaster.fit/1`` (the zero-offset fit): ``joint_offsets[i].value_deg`` of every
+  offset whose status is ``fitted``, and the fitted marker positions of ``tool.markers``;
+* ``method: full`` (full identification): every ``parameters`` entry with ``identified: true``
+  (offsets, d, a, α, β, marker positions), absolute values;
+* ``kind: socket``: its ``parameters`` (free kinematic parameters) — offsets only where
+  ``joint_offsets`` says ``fitted``; the fitted ball is not a marker of the model's tool.
+
+A zero-offset δ folds into the DH angle offset, ``theta' = theta + sign·δ``: the result describes
+the robot as it is *before* the offsets are entered in the controller (after entering them, the
+nominal model holds again). Offsets that are undetermined or "do not enter" stay nominal and are
+listed in the notes. The model must be the one the result was fitted to: its name, axes and
+(where the result records them) nominal values are checked.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calib.robot.kinematics import Chain
+from calib.robot.model import RobotModel
+
+_ANGLE_KINDS = ("offset", "alpha", "beta")
+
+
+class ResultError(ValueError):
+    """A result file that cannot be applied to this model; the message says why and what to do."""
+
+
+@dataclass
+class Calibrated:
+    """``model`` with the result applied; ``params`` its full ``Chain`` vector (P,) relative to the
+    *nominal* model (offsets in rad); ``applied`` / ``kept`` parameter names, with reasons for the
+    kept ones in ``notes``."""
+
+    model: RobotModel
+    params: np.ndarray
+    applied: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+
+def read_result(path: str | Path) -> dict:
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ResultError(f"{path}: no such result file") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ResultError(f"{path}: not a JSON result file ({exc}); give the result.json that `acquire fit -o` wrote") from exc
+    if not isinstance(doc, dict):
+        raise ResultError(f"{path}: not a result file (top level is {type(doc).__name__}, expected an object)")
+    return doc
+
+
+def _check_robot(doc: dict, model: RobotModel, where: str) -> None:
+    robot = doc.get("robot")
+    name = robot.get("name") if isinstance(robot, dict) else robot
+    if name != model.name:
+        raise ResultError(f"{where}: fitted to robot {name!r}, the model is {model.name!r}: give the nominal model "
+                          "the fit used (not a corrected model, which already has the result in it)")
+    axes = robot.get("axes") if isinstance(robot, dict) else None
+    if axes is not None and list(axes) != model.axis_names:
+        raise ResultError(f"{where}: axes {axes} differ from the model's {model.axis_names}")
+
+
+def _to_internal(kind: str, value: float) -> float:
+    return math.radians(value) if kind in _ANGLE_KINDS else float(value)
+
+
+def apply_result(model: RobotModel, doc: dict, where: str = "result") -> Calibrated:
+    """The calibrated model (see the module text). Raises ``ResultError`` when the result does not
+    belong to ``model`` or has nothing that may be applied."""
+    chain = Chain(model)
+    names = chain.param_names
+    params = chain.nominal.copy()
+    applied: list[str] = []
+    notes: list[str] = []
+    _check_robot(doc, model, where)
+    offsets_ok: set[str] | None = None
+    if "joint_offsets" in doc:
+        offsets_ok = set()
+        for entry in doc["joint_offsets"]:
+            axis, status = entry.get("joint"), entry.get("status", "")
+            if axis not in model.axis_names:
+                raise ResultError(f"{where}: joint_offsets names axis {axis!r}; the model's axes are {model.axis_names}")
+            if status == "fitted" and entry.get("value_deg") is not None:
+                offsets_ok.add(f"{axis}.offset")
+            else:
+                why = "; ".join(x for x in (status or "not fitted", entry.get("reason") or "") if x)
+                notes.append(f"{axis}.offset kept nominal ({why.replace('; ', ': ', 1)})")
+    if doc.get("format") == "remaster.fit/1":
+        for entry in doc["joint_offsets"]:
+            name = f"{entry['joint']}.offset"
+            if name in offsets_ok:
+                params[names.index(name)] = math.radians(float(entry["value_deg"]))
+                applied.append(name)
+        for entry in (doc.get("tool") or {}).get("markers") or []:
+            marker = entry.get("marker")
+            if marker not in chain.marker_names:
+                raise ResultError(f"{where}: tool marker {marker!r} is not on this model's tool {chain.marker_names}")
+            i = names.index(f"{marker}.x")
+            if np.max(np.abs(np.subtract(entry["nominal_mm"], chain.nominal[i:i + 3]))) > 1e-6:
+                raise ResultError(f"{where}: marker {marker} was at {entry['nominal_mm']} mm in the model the fit used, this "
+                                  f"model has {chain.nominal[i:i + 3].tolist()}: give the nominal model the fit used")
+            params[i:i + 3] = entry["value_mm"]
+            applied += [f"{marker}.{c}" for c in "xyz"]
+    elif doc.get("method") == "full" or doc.get("kind") == "socket":
+        socket = doc.get("kind") == "socket"
+        for entry in doc.get("parameters", []):
+            name = entry.get("name")
+            if name not in names:
+                raise ResultError(f"{where}: parameter {name!r} is not one of this model's ({model.name})")
+            kind = name.rsplit(".", 1)[1]
+            i = names.index(name)
+            nominal = entry.get("nominal")
+            if nominal is not None and i < chain.marker_slice().start:
+                if abs(_to_internal(kind, nominal) - chain.nominal[i]) > 1e-6:
+                    raise ResultError(f"{where}: {name} was {nominal} {entry.get('unit', '')} in the model the fit used, "
+                                      f"this model has {math.degrees(chain.nominal[i]) if kind in _ANGLE_KINDS else chain.nominal[i]:.6g}: "
+                                      "give the nominal model the fit used")
+            if not socket and not entry.get("identified"):
+                continue
+            if kind == "offset" and offsets_ok is not None and name not in offsets_ok:
+                continue
+            if socket and i >= chain.marker_slice().start:
+                continue
+            params[i] = _to_internal(kind, entry["value"])
+            applied.append(name)
+        if socket:
+            notes.append("the socket fit's ball is not one of this tool's markers: markers kept")
+    else:
+        raise ResultError(f"{where}: not a result this version understands (expected format 'remaster.fit/1', "
+                          "method 'full' or kind 'socket', as `acquire fit -o` writes)")
+    if not applied:
+        raise ResultError(f"{where}: nothing in it may be applied (" + "; ".join(notes or ["no fitted parameters"]) + ")")
+    return Calibrated(corrected(model, params, doc_source=where), params, applied, notes)
+
+
+def corrected(model: RobotModel, params: np.ndarray, doc_source: str = "") -> RobotModel:
+    """``model`` with the ``Chain`` parameter vector ``params`` (P,) written in: offsets fold into
+    theta (``theta + sign·δ``), d, a, α, β and marker positions replace the nominal ones."""
+    chain = Chain(model)
+    n = model.n_joints
+    d = model.model_dump()
+    for i, j in enumerate(d["joints"]):
+        j["theta"] = float(j["theta"] + model.joints[i].sign * math.degrees(params[i]))
+        j["d"] = float(params[n + i])
+        j["a"] = float(params[2 * n + i])
+        j["alpha"] = float(math.degrees(params[3 * n + i]))
+        j["beta"] = float(math.degrees(params[4 * n + i]))
+    mk = params[chain.marker_slice()].reshape(-1, 3)
+    for i, m in enumerate(d["tool"]["markers"]):
+        m["xyz"] = tuple(float(v) for v in mk[i])
+    d["name"] = f"{model.name} (calibrated)"
+    d["source"] = f"{model.source}; calibrated by remaster with {doc_source}".strip("; ")
+    if model.convention == "dh" and np.any(np.abs(params[4 * n : 5 * n]) > 0):
+        d["convention"] = "mdh"
+    return RobotModel.model_validate(d)
