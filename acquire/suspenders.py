@@ -11,7 +11,7 @@ tries to get the target back and says what the run does next:
    the aim direction;
 2. if that fails (or the sensor cannot re-acquire), the plan's policy decides:
    ``wait`` — wait up to ``lost_target_wait_s`` for the target to come back by itself;
-   ``reacquire`` — as 1 with a wider search, then wait; ``ask`` — ask the operator on a TTY
+   ``reacquire`` — as 1 with a wider search, then wait, aiming and searching again; ``ask`` — ask the operator on a TTY
    (retry / skip / abort), without a TTY treated as ``skip`` with the reason logged;
    ``skip`` — skip the configuration with the reason.
 
@@ -151,9 +151,12 @@ class LostTargetSuspender:
             radius = self.search_radius_mm * (2.0 if self.policy == "reacquire" else 1.0)
             if self._reacquire(sensor, marker, config_id, q_rad, radius):
                 return self._resumed(config_id, sensor, "re-acquired", t0)
-            if self.policy == "reacquire":  # a tracker never re-locks by itself: aim again while waiting
-                def retry() -> bool:  # an aim is quick; a spiral search only without a prediction
-                    return self._reacquire(sensor, marker, config_id, q_rad, radius, search=False)
+            if self.policy == "reacquire":  # a tracker never re-locks by itself: aim (and search) again
+                deadline = self.clock() + self.wait_s  # while waiting, within the wait
+
+                def retry() -> bool:
+                    return self._reacquire(sensor, marker, config_id, q_rad, radius,
+                                           timeout=max(deadline - self.clock(), 0.1))
         if self.policy in ("wait", "reacquire"):
             if self._wait_visible(sensor, marker, config_id, retry):
                 how = "re-acquired" if retry is not None and self._retried else "target visible again"
@@ -173,23 +176,24 @@ class LostTargetSuspender:
         return self._give_up("skip", config_id, sensor, f"{reason} (policy skip)", t0)
 
     # ------------------------------------------------------------------ steps
-    def _reacquire(self, sensor, marker: str, config_id: str, q_rad, radius: float, search: bool = True) -> bool:
-        """Aim at the predicted reflector, then (``search``, or without a prediction) spiral-search."""
+    def _reacquire(self, sensor, marker: str, config_id: str, q_rad, radius: float,
+                   timeout: float | None = None) -> bool:
+        """Aim at the predicted reflector, then spiral-search (for at most ``timeout`` s, default
+        ``search_timeout_s``): a search that passed the reflector while the beam was blocked missed it."""
+        timeout = self.search_timeout_s if timeout is None else min(timeout, self.search_timeout_s)
         aim_at, source = (None, "no predictor") if self.predictor is None else \
             self.predictor.predict(sensor.name, marker, q_rad)
         try:
             if aim_at is not None:
                 try:
-                    sensor.aim(aim_at, timeout=self.search_timeout_s)
+                    sensor.aim(aim_at, timeout=timeout)
                     self.event("aimed", config_id=config_id, sensor=sensor.name, locked=True,
                                aim_mm=np.round(aim_at, 3).tolist(), source=source)
                     return True
                 except TargetLostError as exc:
                     self.event("aimed", config_id=config_id, sensor=sensor.name, locked=False,
                                aim_mm=np.round(aim_at, 3).tolist(), source=source, detail=str(exc))
-                    if not search:
-                        return False
-            reply = sensor.search(radius, self.search_timeout_s)
+            reply = sensor.search(radius, timeout)
             self.event("searched", config_id=config_id, sensor=sensor.name, found=True, radius_mm=radius,
                        elapsed_s=float(getattr(reply, "elapsed_s", math.nan)))
             return True
@@ -203,7 +207,7 @@ class LostTargetSuspender:
 
     def _wait_visible(self, sensor, marker: str, config_id: str, retry=None) -> bool:
         """Poll until ``marker`` is visible again, up to ``wait_s``; ``retry()`` (an aim at the
-        prediction, True when it locked) is tried every ``wait_s / 5`` (at most 2 s) meanwhile: a
+        prediction, then a search; True when it locked) is tried every ``wait_s / 5`` (at most 2 s) meanwhile: a
         beam that was blocked when the first aim went out stays lost until aimed again."""
         deadline = self.clock() + self.wait_s
         period = min(2.0, self.wait_s / 5)

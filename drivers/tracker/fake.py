@@ -430,9 +430,9 @@ class FakeTracker:
         def time_to(s: float) -> float:  # arc length of r = pitch·θ/2π from 0 to s, over speed
             return math.pi * s * s / pitch / speed
 
-        s_hit = math.inf
-        depth = float(pos @ u) if visible else -1.0
-        if visible and depth > 0:
+        s_hit = math.inf  # where the spiral passes the reflector; it is seen only if visible then
+        depth = float(pos @ u)
+        if depth > 0:
             rho = float(np.linalg.norm(pos * (d / depth) - d * u))  # offset in the aim-point plane
             s_hit = max(0.0, rho - self.capture_radius_mm * d / depth)
         t_hit = time_to(s_hit) if math.isfinite(s_hit) else math.inf

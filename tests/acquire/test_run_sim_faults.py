@@ -21,6 +21,8 @@ CONFIGS = [[5, 20, 0, -90, 0, -30, 0], [0, 25, 0, -85, 0, -30, 10], [-5, 20, 5, 
 def test_scripted_beam_breaks_in_the_cell_file_are_seen_by_a_fake_run(tmp_path):
     cell = yaml.safe_load((ROOT / "fixtures" / "sim" / "default.yaml").read_text())
     cell["robot"] = str((ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml").resolve())
+    # someone walks through the beam every 1.5 s for a minute: a short run of three configurations
+    # meets it, and a spiral search may pass the reflector while it is blocked (then it searches again)
     cell["faults"] = [{"at_s": 1.0 + 1.5 * i, "fault": "beam_break", "device": "tracker", "duration_s": 0.3}
                       for i in range(40)]
     cell_path = tmp_path / "cell.yaml"
