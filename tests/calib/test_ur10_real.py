@@ -246,3 +246,29 @@ def test_the_default_fit_predicts_real_ur10_data_at_least_as_well_as_an_exact_ge
         assert all(j["status"] != "enter" for j in done.doc["joint_offsets"])
     else:
         assert not any("the measured spread of one sample" in r for r in done.refused), summary
+
+
+# --- the reason the operator reads (fast) ------------------------------------------------------------
+def _doc(chosen: str, names: list[str], cv_rms_mm: float = 0.4) -> dict:
+    """A result document with a model-choice table and a tracker spread of 0.02 mm."""
+    row = {"cv_mean_mm": 0.3, "cv_rms_mm": cv_rms_mm, "failed": None}
+    return {"model_choice": {"chosen": chosen, "nominal": {"cv_mean_mm": 3.0},
+                             "candidates": [dict(row, model=n) for n in names]},
+            "diagnostics": {"error_budget": {"tracker": {"sample_spread_mm": 0.02, "n_rows": 100}}}}
+
+
+@pytest.mark.parametrize("chosen,names,says", [
+    ("offsets+tool+links", ["offsets", "offsets+tool+links", "offsets+tool+links+compliance"],
+     "the chosen model (offsets+tool+links) does not describe this robot (not in it: gravity sag)"),
+    ("offsets", ["offsets", "offsets+tool", "offsets+tool+links"],
+     "(not in it: tool, link errors, gravity sag (the robot model has no link masses))"),
+    ("offsets+tool+links+compliance", ["offsets", "offsets+tool+links+compliance"],
+     "even the chosen model (offsets+tool+links+compliance: tool, link errors and gravity sag) leaves robot error"),
+])
+def test_a_held_out_error_far_above_the_noise_says_what_the_chosen_model_leaves_out(chosen, names, says):
+    from calib.robot.controller import earned_reasons
+
+    reasons = earned_reasons(_doc(chosen, names))
+    assert len(reasons) == 1 and "12× the measured spread of one sample (0.02 mm)" in reasons[0], reasons
+    assert says in reasons[0], reasons
+    assert earned_reasons(_doc(chosen, names, cv_rms_mm=0.05)) == []  # 0.029 mm per axis: within 3× the spread
