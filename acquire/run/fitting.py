@@ -109,24 +109,24 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
 
 
 def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
-    """Fit a socket run (``calib.fit.socket.fit_socket``; held-out placements with three or more):
-    ``result.json`` and the corrected model ``model.yaml`` beside the log. The plan's
-    ``fit.method`` fast uses the link prior (``link_tolerance_*``), paper identifies without it."""
-    from acquire.commands.socket_fit import read_socket_run, socket_result_dict, write_socket_model
+    """Fit a socket run (``acquire.commands.socket_fit.run_socket_fit``; held-out placements with
+    three or more): ``result.json`` and the corrected model ``model.yaml`` beside the log. The
+    plan's ``fit.method`` auto (the default) lets the data choose the model (a link prior set in the
+    plan fixes its scale), fast uses the link prior (``link_tolerance_*``), paper/full identify
+    without it."""
+    from acquire.commands.socket_fit import read_socket_run, run_socket_fit, write_socket_model
     from calib.fit.result import write_result
-    from calib.fit.socket import fit_socket, leave_one_placement_out
 
     model, fit = lp.model, lp.plan.fit
     ds = read_socket_run(Path(log_path), model.n_joints, distance_mm=lp.plan.socket.distance_mm)
     if ds is None:
         raise ValueError(f"{log_path}: no socket records to fit")
-    method = "fast" if getattr(fit, "method", "fast") == "fast" else "full"
-    tolerance = _link_tolerance(fit) if method == "fast" else None
+    method = getattr(fit, "method", "auto") or "auto"
+    method = method if method in ("auto", "fast") else "full"
+    given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
+    tolerance = _link_tolerance(fit) if method == "fast" or given else None
     compliance = bool(getattr(fit, "compliance", False))
-    result = fit_socket(model, ds, tolerance=tolerance, compliance=compliance)
-    folds = leave_one_placement_out(model, ds, tolerance=tolerance, compliance=compliance) \
-        if len(ds.placements) >= 3 else []
-    doc = socket_result_dict(model, ds, result, folds, method)
+    doc, result = run_socket_fit(model, ds, method=method, link_tolerance=tolerance, compliance=compliance)
     base = Path(log_path)
     doc["model_file"] = str(write_socket_model(model, result, base.with_name("model.yaml")))
     result_path = base.with_name("result.json")

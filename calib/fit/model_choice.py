@@ -213,6 +213,24 @@ class ModelChoice:
         return "\n".join(lines)
 
 
+def format_table(mc: dict) -> str:
+    """The cross-validation table of a result document's ``model_choice`` (``ModelChoice.to_dict``,
+    tracker or socket) as text: for summaries printed from ``result.json``."""
+    lines = [f"model choice ({mc['folds']}-fold cross-validation by {mc['grouped_by']}; {mc['rule']}):",
+             f"  {'model':<50}{'free':>6}{'held-out rms (mm)':>19}{'mean ± se (mm)':>20}"]
+    for c in [mc["nominal"]] + mc["candidates"]:
+        free = "—" if c.get("free_parameters") is None else c["free_parameters"]
+        if c.get("failed") or c.get("cv_mean_mm") is None:
+            lines.append(f"  {c['model']:<50}{free:>6}  failed: {c.get('failed') or 'not scored'}")
+            continue
+        mark = "  ← chosen" + (" (--model)" if mc.get("forced") else "") if c["model"] == mc["chosen"] else ""
+        se = "—" if c.get("cv_se_mm") is None else f"{c['cv_se_mm']:.4f}"
+        lines.append(f"  {c['model']:<50}{free:>6}{c['cv_rms_mm']:>19.4f}{c['cv_mean_mm']:>12.4f} ± {se}{mark}")
+    if mc.get("excluded"):
+        lines.append(f"  not compared: {mc['excluded']}")
+    return "\n".join(lines)
+
+
 def _config_errors(data: Dataset, dist: np.ndarray) -> np.ndarray:
     """Per configuration of ``data``, the rms of ``dist`` (rows,) over its rows."""
     _, inv = np.unique(data.config, return_inverse=True)

@@ -207,8 +207,9 @@ class SocketFit:
     #: to a constant shared by fits with the same free parameters (``calib.fit.link_scale``).
     log_evidence: float = math.nan
 
-    def model_description(self) -> str:
-        """Which model of the arm this fit is, in one line (for the summary, result.json, report)."""
+    def model_description(self, prior: str = "a fixed prior") -> str:
+        """Which model of the arm this fit is, in one line (for the summary, result.json, report);
+        ``prior`` names the link prior (e.g. "an empirical-Bayes prior")."""
         kinds = [k for k in self.kinds if k != "offset"]
         fitted = {n.rsplit(".", 1)[1] for n in self.free_names}
         ball = "the ball" if self.fit_ball else "the model's declared ball (not fitted)"
@@ -220,7 +221,7 @@ class SocketFit:
         else:
             mm, deg = self.tolerance
             text = (f"joint zero-offsets, {ball} and the link parameters ({', '.join(k for k in kinds if k in fitted) or 'none'}) "
-                    f"under a fixed prior of ±{mm:g} mm / ±{deg:g}° (sd) about the data sheet")
+                    f"under {prior} of ±{mm:g} mm / ±{deg:g}° (sd) about the data sheet")
         if self.compliance is not None:
             text += ", with joint compliance (gravity sag)"
         return text
@@ -314,18 +315,18 @@ def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: 
     kept: list[int] = []
     dropped: dict[int, str] = {}
     basis = np.zeros((jac.shape[0], 0))
+    ortho = np.zeros((jac.shape[0], 0))  # orthonormal basis of the kept columns (Gram–Schmidt, twice)
     for pos, c in enumerate(order):
         col = jac[:, c]
         norm = np.linalg.norm(col)
         if norm == 0:
             dropped[c] = "moves no ball position in this data"
             continue
-        if basis.shape[1]:
-            coef, *_ = np.linalg.lstsq(basis, col, rcond=None)
-            rel = np.linalg.norm(col - basis @ coef) / norm
-        else:
-            coef, rel = np.zeros(0), 1.0
+        resid = col - ortho @ (ortho.T @ col)
+        resid = resid - ortho @ (ortho.T @ resid)
+        rel = float(np.linalg.norm(resid) / norm)
         if rel < rank_tol and pos >= n_fixed_first:
+            coef, *_ = np.linalg.lstsq(basis, col, rcond=None)
             big = np.argsort(-np.abs(coef))[:3]
             partners = [names[kept[i]] for i in big if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
             how = "indistinguishable from" if rel < RANK_TOL else f"nearly a combination (residual {rel:.1e}) of"
@@ -333,6 +334,8 @@ def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: 
             continue
         kept.append(c)
         basis = np.column_stack([basis, col])
+        if rel > 0:
+            ortho = np.column_stack([ortho, resid / np.linalg.norm(resid)])
     return kept, dropped
 
 

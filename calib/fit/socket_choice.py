@@ -83,17 +83,22 @@ def parse_socket_candidate(name: str, model: RobotModel) -> SocketCandidate:
     return known[name]
 
 
-def fit_candidate(model: RobotModel, ds: SocketDataset, cand: SocketCandidate,
-                  link_scale: tuple[float, float] | None = None) -> SocketFit:
-    """``cand`` fitted on ``ds`` (``link_scale``: (mm, deg), needed by ``offsets+ball+links``)."""
+def candidate_options(cand: SocketCandidate, link_scale: tuple[float, float] | None = None) -> dict:
+    """``fit_socket``'s keyword arguments for ``cand`` (``link_scale``: (mm, deg), needed by
+    ``offsets+ball+links``)."""
     if cand.kind == "offsets+ball+links":
         if link_scale is None:
             raise ValueError("the offsets+ball+links candidate needs a link scale")
-        return fit_socket(model, ds, tolerance=link_scale, compliance=cand.compliance)
+        return {"tolerance": tuple(link_scale), "compliance": cand.compliance}
     if cand.kind == "full":
-        return fit_socket(model, ds, tolerance=None, compliance=cand.compliance)
-    return fit_socket(model, ds, kinds=("offset",), tolerance=None, compliance=cand.compliance,
-                      fit_ball=cand.kind == "offsets+ball")
+        return {"tolerance": None, "compliance": cand.compliance}
+    return {"kinds": ("offset",), "tolerance": None, "compliance": cand.compliance, "fit_ball": cand.kind == "offsets+ball"}
+
+
+def fit_candidate(model: RobotModel, ds: SocketDataset, cand: SocketCandidate,
+                  link_scale: tuple[float, float] | None = None) -> SocketFit:
+    """``cand`` fitted on ``ds`` (``candidate_options``)."""
+    return fit_socket(model, ds, **candidate_options(cand, link_scale))
 
 
 def socket_link_scale(model: RobotModel, ds: SocketDataset, compliance: bool = False) -> dict:
@@ -264,8 +269,8 @@ def choose_socket_model(model: RobotModel, ds: SocketDataset, *, force: str | No
     return SocketChoice(scores, nominal, chosen, force is not None, n_folds, grouping, shown)
 
 
-def chosen_fit(model: RobotModel, ds: SocketDataset, choice: SocketChoice) -> tuple[SocketCandidate, SocketFit]:
-    """The chosen candidate fitted on all of ``ds`` with its link scale."""
+def chosen_options(model: RobotModel, choice: SocketChoice) -> dict:
+    """``fit_socket``'s keyword arguments for the chosen candidate, with its link scale."""
     cand = parse_socket_candidate(choice.chosen, model)
     sc = (choice.link_scale or {}).get(cand.name)
-    return cand, fit_candidate(model, ds, cand, None if sc is None else (sc["length_mm"], sc["angle_deg"]))
+    return candidate_options(cand, None if sc is None else (sc["length_mm"], sc["angle_deg"]))
