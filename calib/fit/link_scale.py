@@ -23,9 +23,9 @@ ANGLES_DEG = (0.003, 0.01, 0.03, 0.1, 0.3, 1.0)
 
 
 def maximise_evidence(evidence: Callable[[float, float], float], lengths_mm: tuple[float, ...] = LENGTHS_MM,
-                      angles_deg: tuple[float, ...] = ANGLES_DEG) -> dict:
+                      angles_deg: tuple[float, ...] = ANGLES_DEG, *, exhaustive: bool = False) -> dict:
     """The (length mm, angle deg) pair of the grids with the largest ``evidence(mm, deg)`` reached by
-    hill-climbing. Returns {"length_mm", "angle_deg", "log_evidence": {"mm/deg": value, …}
+    hill-climbing (``exhaustive``: every pair, for a cheap ``evidence``). Returns {"length_mm", "angle_deg", "log_evidence": {"mm/deg": value, …}
     (every pair evaluated), "at_grid_edge": [which scale sits at the end of its grid]}."""
     seen: dict[tuple[float, float], float] = {}
 
@@ -36,7 +36,10 @@ def maximise_evidence(evidence: Callable[[float, float], float], lengths_mm: tup
         return seen[(mm, deg)]
 
     i, j = len(lengths_mm) // 2, len(angles_deg) // 2
-    while True:
+    if exhaustive:
+        i, j = max(((a, b) for a in range(len(lengths_mm)) for b in range(len(angles_deg))),
+                   key=lambda ab: ev(lengths_mm[ab[0]], angles_deg[ab[1]]))
+    while not exhaustive:
         steps = [(a, b) for a, b in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1))
                  if 0 <= a < len(lengths_mm) and 0 <= b < len(angles_deg)]
         best = max(steps, key=lambda ab: ev(lengths_mm[ab[0]], angles_deg[ab[1]]))
