@@ -82,9 +82,11 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
 
 
 def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> tuple[dict, Path, Path | None]:
-    """The plan's ``fit.method: auto``: ``calib.fit.auto_fit`` (the data choose among the offsets models;
-    a link scale set in the plan is used instead of the empirical Bayes one; ``fit.compliance``:
-    only the candidates with compliance)."""
+    """The plan's ``fit.method: auto``: ``calib.fit.auto_fit`` (the data choose the model, full
+    identification among the candidates; a link scale set in the plan is used instead of the
+    empirical Bayes one; ``fit.compliance``: only the candidates with compliance, which leaves full
+    identification out — the table says so). When full identification is chosen, the corrected
+    model ``model.yaml`` is written beside the log and the report is the identification's."""
     from dataclasses import replace
 
     from calib.fit.auto_fit import auto_fit
@@ -92,16 +94,26 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
 
     given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
     done = auto_fit(model, cal, val, replace(options, method="laplace", compliance=False),
-                    link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random, include_full=False,
-                    compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics)
+                    link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random,
+                    force=getattr(fit, "model", None), compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics)
+    if done.ident is not None:
+        from calib.fit.identification import corrected_model, write_model_yaml
+
+        model_path = base.with_name("model.yaml")
+        write_model_yaml(corrected_model(model, done.ident.params), model_path)
+        done.doc["model_file"] = str(model_path)
     result_path = base.with_name("result.json")
     write_result(result_path, done.doc)
-    report_path = None
+    report_path = base.with_name("report.html")
     try:
-        from calib.report.html import write_report
+        if done.ident is not None:
+            from calib.report.report_ident import write_ident_report
 
-        report_path = base.with_name("report.html")
-        write_report(report_path, done.result, cal, done.doc, done.controller_text)
+            write_ident_report(report_path, done.ident, cal, done.doc)
+        else:
+            from calib.report.html import write_report
+
+            write_report(report_path, done.result, cal, done.doc, done.controller_text)
     except (ImportError, ValueError, RuntimeError, OSError) as exc:
         log.warning("report not written (use `acquire fit %s`): %s", base, exc)
         report_path = None
@@ -126,7 +138,8 @@ def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
     given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
     tolerance = _link_tolerance(fit) if method == "fast" or given else None
     compliance = bool(getattr(fit, "compliance", False))
-    doc, result = run_socket_fit(model, ds, method=method, link_tolerance=tolerance, compliance=compliance)
+    doc, result = run_socket_fit(model, ds, method=method, link_tolerance=tolerance, compliance=compliance,
+                                 force=getattr(fit, "model", None) if method == "auto" else None)
     base = Path(log_path)
     doc["model_file"] = str(write_socket_model(model, result, base.with_name("model.yaml")))
     result_path = base.with_name("result.json")

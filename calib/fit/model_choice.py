@@ -234,6 +234,8 @@ class ModelChoice:
     folds: int
     grouping: str
     link_scale: dict | None
+    #: Candidates left out of the comparison and why (one line), or None.
+    excluded: str | None = None
 
     def score(self, name: str) -> Score:
         return next(s for s in self.scores if s.name == name)
@@ -242,7 +244,7 @@ class ModelChoice:
         return {"chosen": self.chosen, "forced": self.forced, "folds": self.folds, "grouped_by": self.grouping,
                 "rule": "the simplest model within one standard error of the best cross-validated mean error",
                 "nominal": self.nominal.to_dict(), "candidates": [s.to_dict() for s in self.scores],
-                "link_scale": self.link_scale}
+                "link_scale": self.link_scale, "excluded": self.excluded}
 
     def format(self) -> str:
         lines = [f"model choice: {self.folds}-fold cross-validation by {self.grouping} (fit on the other folds, "
@@ -258,6 +260,8 @@ class ModelChoice:
             mark = "  ← chosen" + (" (--model)" if self.forced else "") if s.name == self.chosen else ""
             lines.append(f"  {s.name:<32}{'—' if s.n_params is None else s.n_params:>6}{s.rms_mm:>13.4f}"
                          f"{s.mean_mm:>13.4f} ± {s.se_mm:.4f}{mark}")
+        if self.excluded:
+            lines.append(f"  not compared: {self.excluded}")
         if self.link_scale:
             how = "given" if self.link_scale.get("given") else "empirical Bayes, max evidence"
             lines.append(f"  link prior of offsets+tool+links ({how}): lengths ±{self.link_scale['length_mm']:g} mm, "
@@ -395,4 +399,10 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
         chosen = force if force is not None else one_se_choice(scores)
     except ValueError:  # too few configurations to fit any model on four folds: the simplest, unvalidated
         chosen = min(cands, key=lambda c: c.rank).name
-    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale)
+    excluded = None
+    if not include_full:
+        excluded = "full: left out by the caller"
+    elif compliance_only:
+        excluded = ("full: full identification is compared without compliance, and only the compliance models "
+                    "were asked for (--compliance / fit.compliance)")
+    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale, excluded)
