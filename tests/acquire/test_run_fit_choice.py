@@ -51,3 +51,27 @@ def test_a_plan_forcing_full_writes_the_identified_model_and_its_report(tmp_path
                               fit=doc, result_path=result_path, report_path=report_path)
     text = format_run_summary(summary, SimpleNamespace(model=model))
     assert "full" in text and "← chosen (--model)" in text and "corrected model (full identification)" in text
+
+
+def test_a_socket_runs_default_fit_chooses_the_model_and_a_plan_can_fix_the_method(tmp_path, monkeypatch):
+    """The end of a socket run (``fit_socket_run_log``): the plan's default ``fit.method: auto`` lets
+    the data choose (table in result.json, the chosen model named); ``fast`` keeps the fixed prior."""
+    import acquire.commands.socket_fit as socket_fit
+    from acquire.run.fitting import fit_socket_run_log
+    from tests.calib.socket_sim import simulate, true_params
+    from calib.robot.kinematics import Chain
+
+    model = load_robot_model(Path(__file__).resolve().parents[2] / "fixtures" / "robots" / "franka_panda.yaml")
+    rng = np.random.default_rng(2)
+    ds, _ = simulate(model, true_params(Chain(model), rng, link_mm=0.5, twist_deg=0.3), rng, per_socket=10)
+    monkeypatch.setattr(socket_fit, "read_socket_run", lambda path, n, distance_mm=None: ds)
+    for spec, method in ((FitSpec(), "auto"), (FitSpec(method="fast"), "fast")):
+        lp = SimpleNamespace(model=model, plan=SimpleNamespace(fit=spec, socket=SimpleNamespace(distance_mm=50.0)))
+        doc, result_path, _ = fit_socket_run_log(tmp_path / "run.mcap", lp)
+        assert doc["fit_model"]["method"] == method and Path(doc["model_file"]).is_file()
+        if method == "auto":
+            mc = doc["model_choice"]
+            assert doc["fit_model"]["model"] == mc["chosen"] and len(mc["candidates"]) == 4  # no masses: no compliance
+            assert json.loads(result_path.read_text())["model_choice"]["chosen"] == mc["chosen"]
+        else:
+            assert "model_choice" not in doc and doc["fit_model"]["link_prior"] == {"mm": 0.2, "deg": 0.02}
