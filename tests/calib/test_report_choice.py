@@ -49,3 +49,14 @@ def test_socket_model_choice_renders_with_one_link_prior_per_links_candidate():
     assert any(r.startswith("offsets+ball+links ← chosen") and "0.2000" in r for r in rows)
     assert "link prior of offsets+ball+links (empirical Bayes" in html and "lengths ±0.3 mm, angles ±0.1°" in html
     assert model_choice_section({}) == []
+
+
+def test_the_offsets_report_summary_names_the_link_scales_the_evidence_chose():
+    from calib.report.report_summary import summary_html
+
+    model, _, cal = cell(6, k=24, link_mm=0.3, angle_deg=0.05)
+    done = auto_fit(model, cal, None, FitOptions(n_draws=200), force="offsets", include_full=False, n_random=20)
+    sc = done.doc["model_choice"]["link_scale"]
+    html = summary_html(done.doc)
+    assert f"lengths ±{sc['length_mm']:g} mm, angles ±{sc['angle_deg']:g}°" in html
+    assert any(r.startswith("offsets ← chosen (--model)") for r in _rows(html))

@@ -21,7 +21,7 @@ from calib.fit.socket_choice import (
 )
 from calib.robot.kinematics import Chain
 from calib.robot.model import load_robot_model
-from socket_sim import simulate, true_params  # tests/calib is on sys.path under pytest
+from tests.calib.socket_sim import simulate, true_params
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
