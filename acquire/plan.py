@@ -342,12 +342,20 @@ class OutputSpec(_Strict):
     folder: str = Field("runs", min_length=1, description="Folder of the run logs and results, relative to the plan.")
 
 
+#: Candidate model names of the default fit (``calib.fit.model_choice``, ``calib.fit.socket_choice``).
+FIT_MODELS = tuple(f"{k}{c}" for k in ("offsets", "offsets+tool", "offsets+tool+links", "offsets+ball",
+                                       "offsets+ball+links", "full") for c in ("", "+compliance"))
+
+
 class FitSpec(_Strict):
     """Options of the fit that runs on the log at the end (as ``acquire fit``)."""
 
     method: Literal["auto", "fast", "paper"] = Field(
-        "auto", description="auto: the data choose the model by cross-validation (calib.fit.model_choice); fast: the "
-        "link-prior model with the independence sampler; paper: the paper's Metropolis.")
+        "auto", description="auto: the data choose the model by cross-validation (calib.fit.model_choice; socket data: "
+        "calib.fit.socket_choice); fast: the link-prior model with the independence sampler; paper: the paper's "
+        "Metropolis (socket data: identification without a link prior).")
+    model: Literal[FIT_MODELS] | None = Field(  # type: ignore[valid-type]
+        None, description="auto: force this candidate model (as `acquire fit --model`); the comparison table is still written.")
     joints: list[int] | None = Field(None, min_length=1, description="Axis numbers (1-based) to fit; default all.")
     error: Literal["gaussian", "student"] = "gaussian"
     fix_registration: bool = False

@@ -64,10 +64,11 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
             lines.append(row)
         choice = summary.fit.get("model_choice")
         if choice:
-            chosen = next(c for c in choice["candidates"] if c["model"] == choice["chosen"])
-            lines.append(f"model: {choice['chosen']} (chosen by {choice['folds']}-fold cross-validation: held-out "
-                         f"{chosen['cv_mean_mm']:.3f} ± {chosen['cv_se_mm']:.3f} mm, uncalibrated "
-                         f"{choice['nominal']['cv_mean_mm']:.3f} mm; the table is in result.json)")
+            from calib.fit.model_choice import format_table
+
+            lines.append(format_table(choice))
+            if summary.fit.get("model_file"):
+                lines.append(f"corrected model (full identification): {display_path(Path(summary.fit['model_file']))}")
         for reason in summary.fit.get("do_not_enter") or []:
             lines.append(f"DO NOT ENTER: {reason}")
         diag = summary.fit.get("diagnostics", {})
