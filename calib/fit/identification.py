@@ -33,9 +33,19 @@ solved too (``_flip_screen``).
 back, the forward kinematics of every measured marker checked unchanged; ``IdentResult.canonical``
 says what was mapped.
 
-Residuals: positions (mm). Where orientation is measured (``rotation`` given), the fused
-objective of the seed's eq. 19 is used: Σ L·(|Δn|² + |Δo|² + |Δa|²) + |Δp|² with L = 100 by
-default (rotation columns are unitless, so L has units of mm²).
+Residuals: positions (mm). Where orientation is measured (pose rows: ``Dataset.rot``, a 6-DoF
+target's frame ``R_sensor←target``), each such row adds the attitude residual as a **rotation
+vector**, ``log(R_measured · R_predicted⁻¹)`` (rad, sensor frame; never Euler angles), with
+R_predicted = R_registration · R_flange(q) · R_target, weighted by σ_position / σ_attitude (the
+data's median ``std_mm`` over the row's ``att_std_rad``) so that both kinds count by their stated
+uncertainty; where the data state no spreads, by √L (``IdentOptions.orientation_weight``, L in
+mm², the role of the seed's eq. 19 factor). The target's frame on the flange, R_target, is
+fitted per marker (three ``{marker}.frame_r*`` columns, a rotation vector applied on the flange
+side): about the model's ``rpy_deg`` under a Gaussian prior (``tool_rotation_prior_deg``; 0:
+exact), or freely from a start the data give when the model has none. A turn of the target about
+the last axis cannot be told from that axis's offset: the frame takes it (like the markers'
+positions) unless it is known (prior 0), and then orientation identifies the last offset even
+from one marker on the last axis (``calib.fit.pose_identifiability``).
 """
 
 from __future__ import annotations
@@ -54,7 +64,8 @@ from calib.plan.identifiability import exact_tolerance
 from calib.robot.kinematics import KINDS, Chain
 from calib.robot.model import RobotModel
 from calib.fit.multistart import StartOutcome, disagreement, solve_from
-from calib.robot.transforms import apply, euler_zyx_to_matrix, matrix_to_euler_zyx
+from calib.robot.transforms import (apply, euler_zyx_to_matrix, exp_so3, log_so3, matrix_to_euler_zyx,
+                                    so3_left_jacobian, so3_left_jacobian_inv)
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +82,9 @@ class IdentOptions:
     ``n_starts``, ``seed``, ``start_spread``, ``disagree_rel``: the multi-start solve (``identify``)."""
 
     orientation_weight: float = 100.0
+    #: Prior std (degrees per axis) of a 6-DoF target's frame about the model's ``rpy_deg``; 0:
+    #: taken as exact. A marker without ``rpy_deg`` has its frame fitted without a prior.
+    tool_rotation_prior_deg: float = 2.0
     rank_tol: float = 1e-6
     exclude: tuple[str, ...] = ()
     exclude_reasons: tuple[tuple[str, str], ...] = ()
@@ -117,6 +131,12 @@ class IdentResult:
     do_not_use: list[str] = field(default_factory=list)
     #: How the solution was mapped onto the nominal model's branch (``calib.robot.canonical``); [] if not.
     canonical: list[str] = field(default_factory=list)
+    #: Pose rows: each measured marker's target frame in the flange frame, (3, 3) ``R_flange←target``,
+    #: and its std per axis (rad, (3,); NaN where not fitted). Empty without orientation data.
+    tool_frames: dict[str, np.ndarray] = field(default_factory=dict)
+    tool_frame_std_rad: dict[str, np.ndarray] = field(default_factory=dict)
+    #: Attitude rows' weight (mm per rad) and how it was chosen; None without orientation data.
+    attitude_weight: dict | None = None
 
     @property
     def chain_names(self) -> list[str]:
@@ -145,10 +165,13 @@ class _Problem:
         self.rows_of = [np.flatnonzero(self.sidx == s) for s in range(len(self.sensors))]
         self.uq, self.inv = np.unique(data.q_rad, axis=0, return_inverse=True)
         self.inv = self.inv.ravel()
+        if rotation is None and data.has_orientation:
+            rotation = data.rot
         self.rotation = rotation
-        self.sqrt_w = math.sqrt(weight)
         self.P = chain.n_params
         self.names = list(chain.param_names) + [f"{s}.{r}" for s in self.sensors for r in REG]
+        if rotation is not None:
+            self._init_orientation(np.asarray(rotation, dtype=float), weight)
         #: Joint-angle change per µrad/(N·m) of compliance per distinct configuration (u, n), or None.
         self.gain = None
         if compliance:
@@ -159,6 +182,50 @@ class _Problem:
             self.gain = chain.sign * gravity_torques(chain, self.uq) * 1e-6
             self.names += [f"{ax}.compliance" for ax in chain.model.axis_names]
         self.n_reg = 6 * len(self.sensors)
+        if self.rotation is not None:
+            self.frame_start = len(self.names)
+            self.names += [f"{m}.frame_{a}" for m in self.frame_markers for a in ("rx", "ry", "rz")]
+
+    def _init_orientation(self, rotation: np.ndarray, weight: float) -> None:
+        """Pose rows, their weights and the targets' nominal frames on the flange."""
+        data, chain = self.data, self.chain
+        ok = np.isfinite(rotation).all(axis=(1, 2))
+        self.orows = np.flatnonzero(ok)
+        self.r_meas = rotation[self.orows]
+        self.frame_markers = sorted(set(data.marker[self.orows].tolist()))
+        self.fidx = _lookup(data.marker[self.orows], self.frame_markers)
+        sp = float(np.nanmedian(data.std_mm)) if np.isfinite(data.std_mm).any() else math.nan
+        att = data.att_std_rad[self.orows] if data.att_std_rad is not None else np.full(self.orows.size, np.nan)
+        if math.isfinite(sp) and sp > 0 and np.isfinite(att).any():
+            att = np.where(np.isfinite(att) & (att > 0), att, np.nanmedian(att[att > 0]) if (att > 0).any() else np.nan)
+            self.att_w = sp / att
+            self.weight_info = {"how": "σ_position / σ_attitude of each row (the data's spreads)",
+                                "sigma_position_mm": sp, "median_mm_per_rad": float(np.median(self.att_w))}
+        else:
+            self.att_w = np.full(self.orows.size, math.sqrt(weight))
+            self.weight_info = {"how": f"√L with L = {weight:g} mm² (the data state no spreads)",
+                                "median_mm_per_rad": math.sqrt(weight)}
+        # Nominal target frames: the model's rpy_deg, else the mean of what the data say at nominal.
+        frames, known = [], []
+        f_rot, _ = chain.flange_pose(data.q_rad[self.orows])
+        sensor_r = self.b2s0[self.sidx[self.orows], :3, :3]
+        for m in self.frame_markers:
+            rpy = chain.model.tool.markers[chain.model.marker_index(m)].rpy_deg
+            known.append(rpy is not None)
+            if rpy is not None:
+                frames.append(euler_zyx_to_matrix(*np.radians([rpy[2], rpy[1], rpy[0]])))
+                continue
+            rows = self.fidx == self.frame_markers.index(m)
+            est = np.einsum("kji,kjl->kil", np.einsum("kij,kjl->kil", sensor_r[rows], f_rot[rows]), self.r_meas[rows]).sum(0)
+            u, _, vt = np.linalg.svd(est)  # chordal mean on SO(3)
+            frames.append(u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt)
+        self.frame0 = np.array(frames).reshape(-1, 3, 3)
+        self.frame_known = known
+
+    def target_frames(self, x: np.ndarray) -> np.ndarray:
+        """(F, 3, 3) ``R_flange←target`` of each frame marker at the vector x."""
+        phi = x[self.frame_start: self.frame_start + 3 * len(self.frame_markers)].reshape(-1, 3)
+        return exp_so3(phi) @ self.frame0
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return x[: self.P], x[self.P : self.P + 6 * len(self.sensors)].reshape(len(self.sensors), 6)
@@ -173,7 +240,7 @@ class _Problem:
         params, reg = self.split(x)
         k = len(self.data)
         rot = euler_zyx_to_matrix(reg[:, 3], reg[:, 4], reg[:, 5])  # (S,3,3) T* rotations
-        need_kin_jac = want_jac or self.rotation is not None or self.gain is not None
+        need_kin_jac = want_jac or self.gain is not None
         if need_kin_jac:
             fj = self.chain.flange_jacobian(self.uq, params)
             f_rot, f_pos = fj.rotation, fj.position  # (u,3,3), (u,3)
@@ -196,8 +263,11 @@ class _Problem:
             pred[rows] = rp + reg[s, :3]
         res = [(self.data.xyz_mm - pred).ravel()]
         if self.rotation is not None:
-            r_pred = sensor_r[self.sidx] @ f_rot[self.inv]
-            res.append(self.sqrt_w * (self.rotation - r_pred).reshape(k, 9).ravel())
+            o = self.orows
+            frames = self.target_frames(x)
+            r_pred = sensor_r[self.sidx[o]] @ f_rot[self.inv[o]] @ frames[self.fidx]  # (ko,3,3)
+            e = log_so3(self.r_meas @ np.swapaxes(r_pred, 1, 2))  # (ko,3) rad, sensor frame
+            res.append((self.att_w[:, None] * e).ravel())
         r = np.concatenate(res)
         if not want_jac:
             return r, None
@@ -230,17 +300,22 @@ class _Problem:
                 jp[rows, :, c + 3 + ax] = np.cross(axes[ax][s], rp)
         blocks = [-jp.reshape(3 * k, -1)]
         if self.rotation is not None:
-            # d(R_total R_f)/dξ column by column: ω × column (ω in the sensor frame).
-            jr = np.zeros((k, 3, 3, n_cols))
-            wk = np.einsum("kij,kjp->kip", sensor_r[self.sidx], fj.jw[self.inv])  # (k,3,P)
-            for col in range(3):
-                jr[:, :, col, : self.P] = np.cross(wk, r_pred[:, :, col][:, :, None], axis=1)
-            for s, rows in enumerate(self.rows_of):
-                c = self.P + 6 * s
-                for ax in range(3):
-                    for col in range(3):
-                        jr[rows, :, col, c + 3 + ax] = np.cross(axes[ax][s], r_pred[rows, :, col])
-            blocks.append(-self.sqrt_w * jr.reshape(9 * k, -1))
+            # R_pred → exp(ω·dξ) R_pred (ω in the sensor frame) moves e by −J_l(−e)⁻¹ ω dξ.
+            ko = o.size
+            w = np.zeros((ko, 3, n_cols))
+            so = sensor_r[self.sidx[o]]
+            w[:, :, : self.P] = np.einsum("kij,kjp->kip", so, fj.jw[self.inv[o]])
+            sid = self.sidx[o]
+            for ax in range(3):
+                for s in range(len(self.sensors)):
+                    w[sid == s, :, self.P + 6 * s + 3 + ax] = axes[ax][s]
+            phi = x[self.frame_start: self.frame_start + 3 * len(self.frame_markers)].reshape(-1, 3)
+            side = np.einsum("kij,kjl->kil", so @ f_rot[self.inv[o]], so3_left_jacobian(phi)[self.fidx])  # (ko,3,3)
+            for f in range(len(self.frame_markers)):
+                rows = self.fidx == f
+                w[rows, :, self.frame_start + 3 * f: self.frame_start + 3 * f + 3] = side[rows]
+            jr = -np.einsum("kij,kjp->kip", so3_left_jacobian_inv(-e), w) * self.att_w[:, None, None]
+            blocks.append(jr.reshape(3 * ko, -1))
         return r, np.concatenate(blocks)
 
     @staticmethod
@@ -277,6 +352,11 @@ def _excluded_by_choice(model: RobotModel, chain: Chain, names: list[str], optio
     elif options.tool_prior_mm == 0:
         for i in range(chain.marker_slice().start, chain.marker_slice().stop):
             excluded[names[i]] = "marker positions taken as exact (tool prior 0 mm)"
+    if options.tool_rotation_prior_deg == 0:
+        for name in names:
+            marker, _, kind = name.rpartition(".")
+            if kind.startswith("frame_") and model.tool.markers[model.marker_index(marker)].rpy_deg is not None:
+                excluded[name] = "the target's frame on the flange taken as exact (the model's rpy_deg, rotation prior 0°)"
     return excluded
 
 
@@ -285,10 +365,19 @@ def _preference(problem: _Problem, chain: Chain) -> list[int]:
     link parameters — so what the tool explains is taken by the tool, never by the last link."""
     order = list(range(problem.P, problem.P + 6 * len(problem.sensors)))  # registration first
     order += list(range(chain.marker_slice().start, chain.marker_slice().stop))
+    frames = _frame_columns(problem)
+    order += frames
     for kind in KINDS:
         order += list(chain.index(kind))
-    order += list(range(problem.P + 6 * len(problem.sensors), len(problem.names)))  # compliances last
+    order += [c for c in range(problem.P + 6 * len(problem.sensors), len(problem.names)) if c not in frames]  # compliances
     return order
+
+
+def _frame_columns(problem: _Problem) -> list[int]:
+    """Columns of the 6-DoF targets' frames on the flange ([] without orientation data)."""
+    if problem.rotation is None:
+        return []
+    return list(range(problem.frame_start, problem.frame_start + 3 * len(problem.frame_markers)))
 
 
 def select_identifiable(jac: np.ndarray, names: list[str], scale: np.ndarray, order: list[int], excluded: dict[str, str], rank_tol: float) -> list[int]:
@@ -359,10 +448,11 @@ def identify(
     _, j0 = problem.residuals_and_jacobian(x0)
     scale = problem.scale(lever)
     free = select_identifiable(j0, problem.names, scale, _preference(problem, chain), excluded, options.rank_tol)
-    if 3 * len(data) < 2 * len(free):
+    n_att = 3 * problem.orows.size if problem.rotation is not None else 0
+    if 3 * len(data) + n_att < 2 * len(free):
         raise DatasetError(
-            f"{len(data)} measurements give {3 * len(data)} coordinates for {len(free)} identifiable parameters; "
-            f"measure at least {math.ceil(2 * len(free) / 3)}"
+            f"{len(data)} measurements give {3 * len(data) + n_att} coordinates for {len(free)} identifiable parameters; "
+            f"measure at least {math.ceil(2 * len(free) / (6 if n_att else 3))}"
         )
 
     def fun(z):
@@ -380,15 +470,21 @@ def identify(
     if options.n_starts < 1:
         raise ValueError(f"n_starts must be at least 1 (the staged solve from nominal), given {options.n_starts}")
     ms = chain.marker_slice()
-    tool_pos = np.array([k for k, c in enumerate(free) if ms.start <= c < ms.stop], dtype=int)
-    prior_weight = [0.0]  # σ / sd, set after a first solve without the prior
+    # Prior rows (σ/sd)·z: marker positions about the model's (sd tool_prior_mm) and known target
+    # frames about the model's rpy_deg (sd tool_rotation_prior_deg × lever, in the scaled units of z).
+    frame_cols = set(_frame_columns(problem))
+    known = {problem.frame_start + 3 * f + a for f, k in enumerate(getattr(problem, "frame_known", [])) if k for a in range(3)}
+    tool_pos = np.array([k for k, c in enumerate(free) if ms.start <= c < ms.stop or (c in frame_cols and c in known)], dtype=int)
+    prior_sd = np.array([options.tool_prior_mm if free[k] < problem.P else
+                         math.radians(options.tool_rotation_prior_deg) * scale[free[k]] for k in tool_pos])
+    prior_weight = [0.0]  # σ, set after a first solve without the prior
 
     def fun_p(z):
-        return np.concatenate([fun(z), prior_weight[0] * z[tool_pos]])
+        return np.concatenate([fun(z), prior_weight[0] * z[tool_pos] / prior_sd])
 
     def jac_p(z):
         prior = np.zeros((tool_pos.size, len(free)))
-        prior[np.arange(tool_pos.size), tool_pos] = prior_weight[0]
+        prior[np.arange(tool_pos.size), tool_pos] = prior_weight[0] / prior_sd
         return np.concatenate([jac(z), prior])
 
     starts, sol = _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_weight, len(data))
@@ -423,6 +519,12 @@ def identify(
     comp = comp_std = None
     if options.compliance:
         comp, comp_std = x[-chain.n:] * 1e-6, std[-chain.n:] * 1e-6
+    tool_frames, frame_std = {}, {}
+    if problem.rotation is not None:
+        for f, (m, t) in enumerate(zip(problem.frame_markers, problem.target_frames(x))):
+            tool_frames[m] = t
+            cols = range(problem.frame_start + 3 * f, problem.frame_start + 3 * f + 3)
+            frame_std[m] = np.array([std[c] for c in cols])
     rot = euler_zyx_to_matrix(reg[:, 3], reg[:, 4], reg[:, 5])
     b2s = {}
     for k, s in enumerate(problem.sensors):
@@ -448,6 +550,9 @@ def identify(
                  "same_minimum": id(o) not in worse} for o in starts],
         do_not_use=do_not_use,
         canonical=canonical,
+        tool_frames=tool_frames,
+        tool_frame_std_rad=frame_std,
+        attitude_weight=problem.weight_info if problem.rotation is not None else None,
     )
 
 
@@ -496,7 +601,7 @@ def _rms(r: np.ndarray) -> float:
 def _stage_columns(problem: _Problem, free: list[int]) -> np.ndarray:
     """Positions in ``free`` of the first stage: registration, marker positions, joint offsets."""
     first = [k for k, c in enumerate(free) if c < problem.P and problem.names[c].rsplit(".", 1)[1] in ("offset", "x", "y", "z")]
-    first += [k for k, c in enumerate(free) if problem.P <= c < problem.P + problem.n_reg]
+    first += [k for k, c in enumerate(free) if problem.P <= c < problem.P + problem.n_reg or c in _frame_columns(problem)]
     return np.array(sorted(first), dtype=int)
 
 
@@ -533,7 +638,7 @@ def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_w
     if tool_pos.size:
         label, lowest = min(screened, key=lambda t: t[1].cost)
         pre = solve_from(f"without the tool prior ({label})", fun_p, jac_p, lowest.z, [None], options.max_nfev)
-        prior_weight[0] = max(_rms(pre.fun[: 3 * n_rows]), 1e-9) / options.tool_prior_mm
+        prior_weight[0] = max(_rms(pre.fun[: 3 * n_rows]), 1e-9)
         pre_nfev = pre.nfev + sum(o.nfev for _, o in screened)
     outcomes = [solve_from("staged from nominal", fun_p, jac_p, z0, staged, options.max_nfev)]
     outcomes[0].nfev += pre_nfev
