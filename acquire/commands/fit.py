@@ -473,7 +473,9 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
     lines += [f"  {k}: {v}" for k, v in result.excluded.items()]
     for part, m in doc["metrics"].items():
         b, a = m["before"], m["after"]
-        lines.append(f"{part}: EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → {a['EMCPE']:.3f} mm")
+        lines.append(f"{part}: EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → {a['EMCPE']:.3f} mm"
+                     + (f", EACAE {b['EACAE']:.4f} → {a['EACAE']:.4f}°, EMCAE {b['EMCAE']:.4f} → {a['EMCAE']:.4f}°"
+                        if b.get("EACAE") is not None and a.get("EACAE") is not None else ""))
         if "reregistered" in m:
             rb, ra = m["reregistered"]["before"], m["reregistered"]["after"]
             lines.append(f"{part}, re-registered on its own points (optimistic): EACPE {rb['EACPE']:.3f} → {ra['EACPE']:.3f} mm")

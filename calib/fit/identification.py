@@ -876,15 +876,57 @@ def pose_errors(model: RobotModel, params: np.ndarray, data: Dataset, base2senso
 
 
 def comprehensive_errors(position_err_mm: np.ndarray, attitude_err_rad: np.ndarray | None = None) -> dict[str, float | None]:
-    """The seed's EACPE / EMCPE (mean / max position error, mm) and EACAE / EMCAE (mean / max
-    attitude error, rad; None when orientation was not measured)."""
+    """The seed's EACPE / EMCPE (mean / max of √(Δx²+Δy²+Δz²), mm) and EACAE / EMCAE (mean / max of
+    √(Δφx²+Δφy²+Δφz²), the attitude error's rotation angle; given in rad, reported in **degrees**
+    as every file of the project; None when orientation was not measured)."""
     p = np.asarray(position_err_mm, dtype=float)
     out: dict[str, float | None] = {"EACPE": float(p.mean()), "EMCPE": float(p.max())}
-    if attitude_err_rad is None:
+    if attitude_err_rad is None or np.asarray(attitude_err_rad).size == 0:
         out.update(EACAE=None, EMCAE=None)
     else:
-        a = np.asarray(attitude_err_rad, dtype=float)
+        a = np.degrees(np.asarray(attitude_err_rad, dtype=float))
         out.update(EACAE=float(a.mean()), EMCAE=float(a.max()))
+    return out
+
+
+def attitude_errors(model: RobotModel, params: np.ndarray, data: Dataset, base2sensor: dict[str, np.ndarray],
+                    tool_frames: dict[str, np.ndarray]) -> np.ndarray:
+    """Attitude error per pose row |log(R_measured · R_predicted⁻¹)| (rad), (k_oriented,): the
+    rows of ``data`` with a measured orientation, predicted with ``params``, the registration per
+    sensor and each marker's target frame on the flange (``R_flange←target``)."""
+    rows = np.flatnonzero(data.oriented)
+    if rows.size == 0:
+        return np.zeros(0)
+    chain = Chain(model)
+    r_f, _ = chain.flange_pose(data.q_rad[rows], params)
+    s = np.stack([base2sensor[x][:3, :3] for x in data.sensor[rows]])
+    t = np.stack([tool_frames[m] for m in data.marker[rows]])
+    pred = s @ r_f @ t
+    from calib.robot.transforms import rotation_angle
+
+    return rotation_angle(data.rot[rows] @ np.swapaxes(pred, 1, 2))
+
+
+def estimated_tool_frames(model: RobotModel, params: np.ndarray, data: Dataset,
+                          base2sensor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each measured marker's target frame on the flange (3, 3) that the pose rows of ``data`` give
+    for the model ``params`` and registration: the chordal mean of (R_reg · R_flange)⁻¹ · R_measured
+    — how the "before" model places a target whose frame the model does not state; the model's
+    ``rpy_deg`` where it does."""
+    chain = Chain(model)
+    rows = np.flatnonzero(data.oriented)
+    out = {}
+    r_f, _ = chain.flange_pose(data.q_rad[rows], params)
+    s = np.stack([base2sensor[x][:3, :3] for x in data.sensor[rows]]) if rows.size else np.zeros((0, 3, 3))
+    for m in sorted(set(data.marker[rows].tolist())):
+        rpy = model.tool.markers[model.marker_index(m)].rpy_deg
+        if rpy is not None:
+            out[m] = euler_zyx_to_matrix(*np.radians([rpy[2], rpy[1], rpy[0]]))
+            continue
+        sel = data.marker[rows] == m
+        est = np.einsum("kji,kjl->il", s[sel] @ r_f[sel], data.rot[rows][sel])
+        u, _, vt = np.linalg.svd(est)
+        out[m] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     return out
 
 
@@ -931,17 +973,40 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
              "model with the identified registration; validation points are scored with these calibration "
              "registrations (never one fitted to the points being scored)"]
 
+    from calib.fit.metrics import registrations
+
+    reg_before = registrations(cal, cal_before)
+    oriented = cal.has_orientation
+    frames_before = estimated_tool_frames(result.model, nominal, cal, reg_before) if oriented else {}
+
+    def attitude(data: Dataset, which: str) -> np.ndarray | None:
+        """Attitude errors of ``data``'s pose rows whose marker the calibration's pose rows have."""
+        if not oriented or not data.has_orientation:
+            return None
+        keep = data.oriented & np.isin(data.marker, list(result.tool_frames)) & np.isin(data.sensor, list(reg_before))
+        d = data.subset(keep)
+        if which == "before":
+            return attitude_errors(result.model, nominal, d, reg_before, frames_before)
+        return attitude_errors(result.model, result.params, d, result.base2sensor, result.tool_frames)
+
     def scored(data: Dataset, after_params: np.ndarray, located: dict[str, str] | None = None) -> dict:
         b, a, rb, ra, caveats = validation_scores(cal, data, (cal_before, _marker_rows(chain, data, nominal)),
                                                   (cal_after, _marker_rows(chain, data, after_params)),
                                                   registration_after=result.base2sensor, located=located)
         notes.extend(caveats)
-        return {"before": comprehensive_errors(b), "after": comprehensive_errors(a),
+        return {"before": comprehensive_errors(b, attitude(data, "before")),
+                "after": comprehensive_errors(a, attitude(data, "after")),
                 "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)},
                 "n_points": int(len(data)), "markers": sorted(set(data.marker.tolist()))}
 
-    metrics = {"calibration": {"before": comprehensive_errors(absolute_errors(cal, cal_before)),
-                               "after": comprehensive_errors(pose_errors(result.model, result.params, cal, result.base2sensor))}}
+    metrics = {"calibration": {"before": comprehensive_errors(absolute_errors(cal, cal_before), attitude(cal, "before")),
+                               "after": comprehensive_errors(pose_errors(result.model, result.params, cal, result.base2sensor),
+                                                             attitude(cal, "after"))}}
+    if oriented:
+        notes.append("EACAE / EMCAE (degrees): mean / max attitude error of the pose rows, the angle of "
+                     "R_measured · R_predicted⁻¹; before: the nominal model with the calibration's least-squares "
+                     "registration and the targets' frames on the flange that the calibration's pose rows give for it "
+                     "(the model's rpy_deg where stated); after: the identified model, registration and frames")
     if val is not None and len(val):
         # Headline: only markers the calibration measured (their positions are fitted). Markers it
         # never measured are placed by an estimate: scored apart, labelled, never in the headline.
@@ -978,6 +1043,10 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
         "warnings": result.warnings,
         "do_not_use": result.do_not_use,
         "canonical": result.canonical,
+        "attitude_weight": result.attitude_weight,
+        "tool_frames": {m: {"rpy_deg": np.degrees(matrix_to_euler_zyx(t))[::-1].round(6).tolist(),
+                            "std_deg_rotation_vector": [None if not math.isfinite(v) else float(np.degrees(v)) for v in result.tool_frame_std_rad[m]]}
+                        for m, t in result.tool_frames.items()},
         "metrics": metrics,
         "metric_notes": notes,
         "compliance": None if result.compliance is None else [

@@ -180,7 +180,7 @@ def test_too_few_measurements_is_a_clear_error():
 def test_comprehensive_errors_on_a_hand_example():
     out = comprehensive_errors(np.array([3.0, 4.0, 5.0]), np.radians([1.0, 2.0, 3.0]))
     assert out["EACPE"] == pytest.approx(4.0) and out["EMCPE"] == 5.0
-    assert out["EACAE"] == pytest.approx(np.radians(2.0)) and out["EMCAE"] == pytest.approx(np.radians(3.0))
+    assert out["EACAE"] == pytest.approx(2.0) and out["EMCAE"] == pytest.approx(3.0)  # degrees, as files are
     assert comprehensive_errors(np.array([1.0]))["EACAE"] is None
 
 
