@@ -835,13 +835,17 @@ def write_model_yaml(model: RobotModel, path: str | Path) -> None:
     )
 
 
-def information_blocks(model: RobotModel, q_rad: np.ndarray, options: IdentOptions = IdentOptions()) -> tuple[np.ndarray, list[str], dict[str, str]]:
+def information_blocks(model: RobotModel, q_rad: np.ndarray, options: IdentOptions = IdentOptions(), *,
+                       attitude_mm_per_rad: float | None = None) -> tuple[np.ndarray, list[str], dict[str, str]]:
     """Per-configuration information blocks for observability and pose selection.
 
     q_rad: (N, n) candidate configurations. Every marker of the tool is assumed measured by one
-    sensor whose registration is free. Returns blocks (N, L, L) of the scaled identification
-    Jacobian over the L parameters identifiable from all candidates together, their names, and
-    the excluded parameters with reasons.
+    sensor whose registration is free. With ``attitude_mm_per_rad`` (σ_position / σ_attitude of
+    the sensor, mm/rad) the first marker is a 6-DoF target: its orientation rows join (weighted
+    so, like the fit; its frame on the flange free), so the selection sees what orientation adds.
+    Returns blocks (N, L, L) of the scaled identification Jacobian over the L parameters
+    identifiable from all candidates together, their names, and the excluded parameters with
+    reasons.
     """
     from calib.measure.dataset import from_arrays
 
@@ -852,16 +856,25 @@ def information_blocks(model: RobotModel, q_rad: np.ndarray, options: IdentOptio
     qq = np.repeat(q, m, axis=0)
     markers = np.tile(np.array(chain.marker_names), n_cfg)
     pos = chain.marker_positions(q).reshape(-1, 3)
-    data = from_arrays(qq, pos, marker=markers)
+    rot = None
+    if attitude_mm_per_rad is not None:
+        rot = np.full((n_cfg * m, 3, 3), np.nan)
+        rot[::m] = chain.flange_pose(q)[0]
+    data = from_arrays(qq, pos, marker=markers, rot=rot, std_mm=1.0,
+                       att_std_rad=None if attitude_mm_per_rad is None else 1.0 / attitude_mm_per_rad)
     problem = _Problem(chain, data, {"sensor": np.eye(4)}, None, options.orientation_weight)
-    x0 = np.concatenate([chain.nominal, np.zeros(6)])
+    x0 = np.zeros(len(problem.names))
+    x0[: problem.P] = chain.nominal
     excluded = _excluded_by_choice(model, chain, problem.names, options)
     _, j = problem.residuals_and_jacobian(x0)
     lever = float(np.sqrt(np.mean(np.sum(pos**2, axis=-1))))
     scale = problem.scale(lever)
     free = select_identifiable(j, problem.names, scale, _preference(problem, chain), excluded, options.rank_tol)
-    js = (j[:, free] / scale[free]).reshape(n_cfg, 3 * m, len(free))
-    return np.einsum("nri,nrj->nij", js, js), [problem.names[i] for i in free], excluded
+    js = j[:, free] / scale[free]
+    blocks = js[: 3 * n_cfg * m].reshape(n_cfg, 3 * m, len(free))
+    if rot is not None:  # attitude rows follow the position rows, one 3-row block per configuration
+        blocks = np.concatenate([blocks, js[3 * n_cfg * m:].reshape(n_cfg, 3, len(free))], axis=1)
+    return np.einsum("nri,nrj->nij", blocks, blocks), [problem.names[i] for i in free], excluded
 
 
 def pose_errors(model: RobotModel, params: np.ndarray, data: Dataset, base2sensor: dict[str, np.ndarray]) -> np.ndarray:

@@ -58,3 +58,25 @@ def perturb(chain: Chain, names: list[str], rng: np.random.Generator, length_mm:
         elif kind in ("d", "a"):
             truth[i] += rng.normal(0.0, length_mm)
     return truth
+
+
+#: The pose-selection paper's identified errors of its TX60 (Table 5): per joint θ (rad), d (mm),
+#: a (mm), α (rad), β (rad); None where the paper leaves the parameter out.
+TX60_TABLE5 = [
+    (-3.2792e-4, -0.2226, -0.2389, 5.3341e-5, None),
+    (7.8894e-4, None, 0.3223, -5.4318e-5, 3.8910e-5),
+    (2.3603e-4, 0.0826, 0.0484, 3.7122e-4, None),
+    (0.0014, 0.2044, -0.0812, 1.1155e-4, None),
+    (5.1444e-4, 7.4762e-5, 0.0205, 3.9926e-5, None),
+    (4.0758e-4, -0.0624, -0.1351, 0.0033, None),
+]
+
+
+def tx60_paper_truth(chain: Chain) -> np.ndarray:
+    """The TX60 model's parameters with the paper's Table 5 errors added (θ as zero-offsets)."""
+    truth = chain.nominal.copy()
+    for i, row in enumerate(TX60_TABLE5):
+        for kind, v in zip(("offset", "d", "a", "alpha", "beta"), row):
+            if v is not None:
+                truth[chain.param_names.index(f"{chain.model.axis_names[i]}.{kind}")] += v
+    return truth
