@@ -430,6 +430,12 @@ def identify(
     if data.n_joints != model.n_joints:
         raise DatasetError(f"the dataset has {data.n_joints} joints, the model '{model.name}' has {model.n_joints}")
     chain = Chain(model)
+    dropped = []
+    if options.compliance and rotation is None and data.has_orientation:
+        data = data.without_orientation()
+        dropped.append("measured orientations not used: the compliance model is not combined with attitude rows "
+                       "yet (fit without --compliance to use them)")
+        log.warning(dropped[-1])
     b2s0 = registration or initial_registrations(chain, data, options.initial_registration, 0)
     if options.compliance and not model.has_dynamics:
         raise ValueError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model")
@@ -489,7 +495,7 @@ def identify(
 
     starts, sol = _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_weight, len(data))
     nfev = sum(o.nfev for o in starts)
-    warnings = _start_warnings(starts, options, 3 * len(data))
+    warnings = dropped + _start_warnings(starts, options, 3 * len(data))
     for w in warnings:
         log.warning(w)
     x = x0.copy()
