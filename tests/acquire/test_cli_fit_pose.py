@@ -51,3 +51,18 @@ def pytest_approx(v, tol):
     import pytest
 
     return pytest.approx(v, abs=tol)
+
+
+def test_select_on_position_and_attitude_rows(tmp_path):
+    from tests.acquire.test_cli_select import ROBOT as TX60, write_candidates
+
+    cand = tmp_path / "cand.csv"
+    write_candidates(cand)
+    args = ["select", "--robot", str(TX60), "--candidates", str(cand), "-m", "20"]
+    pos = CliRunner().invoke(app, args)
+    pose = CliRunner().invoke(app, args + ["--orientation", "0.024,0.01"])
+    assert pos.exit_code == 0 and pose.exit_code == 0, pose.output
+    n = [int(r.output.split(" candidates, ")[1].split()[0]) for r in (pos, pose)]
+    assert n[1] > n[0] and "position + attitude rows" in pose.output  # the target's frame and more are seen
+    bad = CliRunner().invoke(app, args + ["--orientation", "0.024"])
+    assert bad.exit_code == 2 and "SIGMA_MM,SIGMA_DEG" in bad.output
