@@ -342,6 +342,9 @@ def fit(
     elif np.any(ds.split == "val"):
         val = ds.validation()
     cal = ds.calibration()
+    if cal.has_orientation and method != "full":
+        typer.echo(f"note: {int(cal.oriented.sum())} rows carry a measured orientation; the zero-offset posterior "
+                   f"(--method {method}) fits their positions only — --method full fits position and attitude together")
     if compliance and method == "paper":
         raise typer.BadParameter("the paper's model has no compliance: use --method fast or full", param_hint="--compliance")
     if not (math.isfinite(tool_prior_mm) and 0 <= tool_prior_mm <= 100):
@@ -476,7 +479,9 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
     lines += [f"  {k}: {v}" for k, v in result.excluded.items()]
     for part, m in doc["metrics"].items():
         b, a = m["before"], m["after"]
-        lines.append(f"{part}: EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → {a['EMCPE']:.3f} mm")
+        lines.append(f"{part}: EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → {a['EMCPE']:.3f} mm"
+                     + (f", EACAE {b['EACAE']:.4f} → {a['EACAE']:.4f}°, EMCAE {b['EMCAE']:.4f} → {a['EMCAE']:.4f}°"
+                        if b.get("EACAE") is not None and a.get("EACAE") is not None else ""))
         if "reregistered" in m:
             rb, ra = m["reregistered"]["before"], m["reregistered"]["after"]
             lines.append(f"{part}, re-registered on its own points (optimistic): EACPE {rb['EACPE']:.3f} → {ra['EACPE']:.3f} mm")

@@ -79,9 +79,13 @@ def _accuracy(doc: dict) -> list[str]:
                 blocks[0] = (f"{blocks[0][0]} — estimated placement uncertainty {groups_note}", m)
         for title, b in blocks:
             for when in ("before", "after"):
-                rows.append([when, Html(num(b[when]["EACPE"])), Html(num(b[when]["EMCPE"]))])
+                att = [Html(num(b[when].get(k), 4)) if b[when].get(k) is not None else "—" for k in ("EACAE", "EMCAE")]
+                rows.append([when, Html(num(b[when]["EACPE"])), Html(num(b[when]["EMCPE"])), *att])
                 groups.append(title if when == "before" else None)
-    out = ["<h2 id=accuracy>Accuracy before and after (mm)</h2>", table(["", "EACPE (mean)", "EMCPE (max)"], rows, groups=groups)]
+    heads = ["", "EACPE (mean, mm)", "EMCPE (max, mm)", "EACAE (mean, °)", "EMCAE (max, °)"]
+    if not any(r[3] != "—" for r in rows):  # positions only: no attitude columns
+        rows, heads = [r[:3] for r in rows], heads[:3]
+    out = ["<h2 id=accuracy>Accuracy before and after</h2>", table(heads, rows, groups=groups)]
     notes = doc.get("metric_notes") or []
     if notes:
         out.append("<ul class=small>" + "".join(f"<li>{esc(n)}</li>" for n in notes) + "</ul>")
