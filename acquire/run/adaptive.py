@@ -1,0 +1,206 @@
+"""An adaptive run's order (the plan's ``adaptive`` section, issue 27): after each measured
+configuration the next is chosen by ``calib.plan.adaptive.SequentialDesign`` — expected gain of
+the stated quantities per second of motion, settling and measuring from where the robot stands —
+and the run stops when the plan's stop rule holds.
+
+``AdaptiveOrder`` holds the design over the plan's configurations (``calib.fit.design``: the
+fit's own parameters and priors, linearised at the nominal robot), the σ it predicts with
+(the plan's ``noise_mm`` until the fast fit of the measured configurations gives one, then the
+larger of the two), and the history (predicted intervals and workspace error against the number
+of configurations) that the summary shows. Nothing here moves the robot: the run's
+``ConfigurationRunner`` does, with every check it always makes.
+
+A resumed run rebuilds the design from the log's samples (``mark``) and continues choosing among
+the configurations no sample has: nothing is measured twice.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from calib.plan.adaptive import SequentialDesign, StopRule, Status
+
+log = logging.getLogger(__name__)
+
+
+def stop_rule(lp, n_configs: int) -> StopRule:
+    """The plan's stop rule for ``n_configs`` configurations. Raises ConfigError (the plan's
+    file, line and field) when ``min_configurations`` exceeds the plan's configurations."""
+    from calib.fit.offsets import min_configurations
+
+    ad = lp.plan.adaptive
+    fit = lp.plan.fit
+    n_fit = len(fit.joints) if fit.joints else lp.model.n_joints
+    need = min_configurations(n_fit, [len(s.markers) for s in lp.plan.sensors], fix_registration=fit.fix_registration)
+    lo = ad.min_configurations if ad.min_configurations is not None else min(n_configs, max(12, 2 * need))
+    if lo > n_configs:
+        raise lp.error(("adaptive", "min_configurations"), f"more than the plan's {n_configs} configurations "
+                                                           f"(given {lo}; allowed 1…{n_configs})")
+    if lo < need:
+        raise lp.error(("adaptive", "min_configurations"), f"fewer than the fit needs (given {lo}; allowed "
+                                                           f"{need}…{n_configs})")
+    hi = ad.max_configurations
+    return StopRule(interval_deg=ad.stop_when.interval_deg, workspace_within_pct=ad.stop_when.workspace_within_pct,
+                    min_configurations=lo, max_configurations=None if hi is None else min(hi, n_configs))
+
+
+def fit_options(lp):
+    """The fit's options as the design linearises them (the Laplace fit's model: link and tool
+    priors, compliance when the plan fits it and the model has masses)."""
+    from calib.fit.offsets import FitOptions
+
+    fit = lp.plan.fit
+    mm, deg = getattr(fit, "link_tolerance_mm", 0.2), getattr(fit, "link_tolerance_deg", 0.02)
+    return FitOptions(method="laplace", joints=tuple(fit.joints) if fit.joints else None,
+                      fix_registration=bool(fit.fix_registration),
+                      link_tolerance=None if mm is None or deg is None else (float(mm), float(deg)),
+                      compliance=bool(fit.compliance) and lp.model.has_dynamics,
+                      tool_prior_mm=float(fit.tool_prior_mm))
+
+
+class AdaptiveOrder:
+    """The sequential design over ``configs`` (the plan's PlannedConfigs) for a run.
+
+    limits: the commander's ``JointLimits``; speed: the plan's speed override; per_config_s:
+    expected settle + measure seconds per configuration.
+    """
+
+    def __init__(self, lp, configs, limits, speed: float, per_config_s: float) -> None:
+        from calib.fit.design import design_model
+
+        self.lp, self.configs = lp, list(configs)
+        self.index = {c.config_id: i for i, c in enumerate(self.configs)}
+        self.limits, self.speed, self.per_config_s = limits, float(speed), float(per_config_s)
+        self.noise_mm = max(float(s.noise_mm) for s in lp.plan.sensors)
+        self.options = fit_options(lp)
+        q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
+        sensors = {s.name: list(s.markers) for s in lp.plan.sensors}
+        self.design = SequentialDesign(design_model(lp.model, q, sensors, self.options),
+                                       stop_rule(lp, len(self.configs)), self.noise_mm)
+        self.dropped: set[int] = set()  # skipped or failed: not chosen again in this run
+        self.records: list[dict] = []
+        self.history: list[dict] = []
+        self.fitted_sigma_mm: float | None = None
+
+    # ------------------------------------------------------------------ state
+    def mark(self, config_id: str, record: dict | None = None) -> None:
+        """``config_id`` was measured (its sample ``record`` updates σ when given)."""
+        i = self.index.get(config_id)
+        if i is None or i in self.design.measured:
+            return
+        self.design.add(i)
+        if record is not None:
+            self.records.append(record)
+
+    def drop(self, config_id: str) -> None:
+        """``config_id`` was skipped or failed: not chosen again in this run (a resume may)."""
+        i = self.index.get(config_id)
+        if i is not None:
+            self.dropped.add(i)
+
+    def update_sigma(self) -> None:
+        """σ for the design: the larger of the plan's noise and the fast fit's σ of the records so far."""
+        sigma = self.fast_fit_sigma()
+        if sigma is not None:
+            self.fitted_sigma_mm = sigma
+            self.design.set_sigma(max(self.noise_mm, sigma))
+
+    def fast_fit_sigma(self) -> float | None:
+        """The fitted σ (mm, largest over sensors) of the posterior mode on the records, or None
+        while there are too few of them for the fit."""
+        from calib.fit.offsets import fit_mode
+        from calib.measure.dataset import DatasetError, from_arrays
+
+        q, xyz, mk, sn, cid = [], [], [], [], []
+        for rec in self.records:
+            for m in rec.get("markers", []):
+                q.append(np.radians(rec["q_measured_deg"]))
+                xyz.append(m["mean_mm"])
+                mk.append(m["marker"])
+                sn.append(m["sensor"])
+                cid.append(rec["config_id"])
+        if len(set(cid)) < self.design.rule.min_configurations // 2 or not q:
+            return None
+        data = from_arrays(np.array(q), np.array(xyz, dtype=float), marker=np.array(mk), sensor=np.array(sn),
+                           config=np.array(cid))
+        try:
+            mf = fit_mode(self.lp.model, data, self.options, tol=1e-8)
+        except (DatasetError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            log.info("adaptive: no fast fit yet (%s)", exc)
+            return None
+        sigma = float(np.max(np.exp(mf.log_sigma)))
+        return sigma if math.isfinite(sigma) and sigma > 0 else None
+
+    def status(self) -> Status:
+        st = self.design.status()
+        if not st.stop and not self._choosable().size:
+            st = Status(st.n_measured, st.half_width_deg, st.workspace_mm, st.full_workspace_mm, True,
+                        f"plan exhausted: {st.n_measured} measured, the rest skipped or failed")
+        return st
+
+    def _choosable(self) -> np.ndarray:
+        left = self.design.remaining
+        return np.array([i for i in left if i not in self.dropped], dtype=int)
+
+    # ------------------------------------------------------------------ the choice
+    def seconds_from(self, here_q_rad: np.ndarray) -> np.ndarray:
+        """(N,) move + settle + measure seconds from ``here_q_rad`` to every configuration."""
+        from drivers.trajectory import motion_time, scaled_limits
+
+        v, a, j = scaled_limits(self.limits.max_velocity_rad_s, self.limits.max_acceleration_rad_s2, self.speed)
+        q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
+        here = np.asarray(here_q_rad, dtype=float)[None, :]
+        return np.asarray(motion_time(np.repeat(here, len(q), axis=0), q, v, a, j), dtype=float) + self.per_config_s
+
+    def choose(self, here_q_rad: np.ndarray):
+        """(PlannedConfig, event fields) of the next configuration from ``here_q_rad``; the
+        event fields say why (gain per stated quantity, seconds, score, runner-up)."""
+        secs = self.seconds_from(here_q_rad)
+        design = self.design
+        choice = design.choose(secs, exclude=sorted(self.dropped))
+        cfg = self.configs[choice.index]
+        fields = {"config_id": cfg.config_id, **choice.to_dict(), "sigma_mm": round(design.sigma_mm, 5)}
+        if choice.runner_up is not None:
+            fields["runner_up"] = self.configs[choice.runner_up].config_id
+        return cfg, fields
+
+    def record_status(self, st: Status) -> dict:
+        """One history row (also the ``adaptive_status`` event's fields)."""
+        row = {"n": st.n_measured, "max_half_width_deg": round(st.max_half_width_deg, 6),
+               "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
+               "sigma_mm": round(self.design.sigma_mm, 5)}
+        self.history.append(row)
+        return row
+
+    # ------------------------------------------------------------------ cell time
+    def full_plan_seconds(self, start_q_rad: np.ndarray) -> float:
+        """Estimated cell time of the whole plan in the run's usual order from ``start_q_rad``."""
+        from acquire.sequencer import move_times, order_configurations
+
+        order = order_configurations(self.configs, start_q_rad, self.limits, self.speed)
+        return float(move_times(order, start_q_rad, self.limits, self.speed).sum() + len(order) * self.per_config_s)
+
+    def visited_seconds(self, visited, start_q_rad: np.ndarray) -> float:
+        """Estimated cell time of the configurations ``visited`` (in that order) from ``start_q_rad``."""
+        from acquire.sequencer import move_times
+
+        return float(move_times(list(visited), start_q_rad, self.limits, self.speed).sum()
+                     + len(visited) * self.per_config_s)
+
+
+def simulate(order: AdaptiveOrder, start_q_rad: np.ndarray) -> tuple[list, Status]:
+    """The choices an adaptive run would make if every configuration is measured and the noise is
+    the plan's (σ = noise_mm): (configurations in order, final status). For ``--dry-run``."""
+    here = np.asarray(start_q_rad, dtype=float)
+    chosen = []
+    st = order.status()
+    while not st.stop:
+        cfg, _ = order.choose(here)
+        order.mark(cfg.config_id)
+        chosen.append(cfg)
+        here = np.asarray(cfg.q_rad, dtype=float)
+        st = order.status()
+    return chosen, st
