@@ -85,6 +85,16 @@ class AdaptiveOrder:
         self.history: list[dict] = []
         self.fitted_sigma_mm: float | None = None
 
+    def copy(self) -> "AdaptiveOrder":
+        """An independent copy of the design's state (for predictions: ``simulate``)."""
+        import copy
+
+        other = copy.copy(self)
+        d = self.design
+        other.design = SequentialDesign(d.model, d.rule, d.sigma_mm, measured=list(d.measured))
+        other.dropped, other.records, other.history = set(self.dropped), list(self.records), []
+        return other
+
     # ------------------------------------------------------------------ state
     def mark(self, config_id: str, record: dict | None = None) -> None:
         """``config_id`` was measured (its sample ``record`` updates σ when given)."""
@@ -194,6 +204,7 @@ class AdaptiveOrder:
 def simulate(order: AdaptiveOrder, start_q_rad: np.ndarray) -> tuple[list, Status]:
     """The choices an adaptive run would make if every configuration is measured and the noise is
     the plan's (σ = noise_mm): (configurations in order, final status). For ``--dry-run``."""
+    order = order.copy()
     here = np.asarray(start_q_rad, dtype=float)
     chosen = []
     st = order.status()
@@ -204,3 +215,90 @@ def simulate(order: AdaptiveOrder, start_q_rad: np.ndarray) -> tuple[list, Statu
         here = np.asarray(cfg.q_rad, dtype=float)
         st = order.status()
     return chosen, st
+
+
+class AdaptiveRun:
+    """An adaptive run's side of ``RunController._run``: the design over the plan's ``configs``,
+    rebuilt from a resumed log (its samples are measured, its ``ended`` ids are not chosen), the
+    choices as the run goes (``choices``: a generator of configurations, each with an
+    ``adaptive_choice`` event), each outcome (``outcome``), and the summary at the end.
+
+    cmd: the open commander (its limits; where the robot stands before each choice).
+    """
+
+    def __init__(self, lp, configs, cmd, speed: float, per_config_s: float, resumed, ended, start_q_rad) -> None:
+        self.cmd = cmd
+        self.order = AdaptiveOrder(lp, configs, cmd.limits, speed, per_config_s)
+        for rec in (resumed.samples if resumed is not None else []):
+            self.order.mark(rec["config_id"], rec)
+        for cid in ended:
+            if cid not in {rec["config_id"] for rec in self.order.records}:
+                self.order.drop(cid)
+        self.order.update_sigma()
+        self.start_q = np.asarray(start_q_rad, dtype=float)
+        self.resumed_n = len(self.order.design.measured)
+        self.visited: list = []  # configurations this segment moved to, in order
+        self.final: Status | None = None
+        self.predicted, self.predicted_status = simulate(self.order, self.start_q)
+
+    def started_fields(self) -> dict:
+        rule = self.order.design.rule
+        o = self.order
+        return {"stop_when": {"interval_deg": rule.interval_deg, "workspace_within_pct": rule.workspace_within_pct},
+                "min_configurations": rule.min_configurations, "max_configurations": rule.max_configurations,
+                "candidates": len(o.configs), "measured_before": self.resumed_n,
+                "determinable": list(o.design.model.offset_names), "noise_mm": o.noise_mm,
+                "predicted_configurations": len(self.predicted) + self.resumed_n,
+                "predicted_seconds": round(o.visited_seconds(self.predicted, self.start_q), 1),
+                "full_plan_seconds": round(o.full_plan_seconds(self.start_q), 1)}
+
+    def _here(self, last) -> np.ndarray:
+        from drivers.errors import DriverError
+
+        try:
+            return np.asarray(self.cmd.joint_state().position_rad, dtype=float)
+        except DriverError:
+            return np.asarray(last.q_rad, dtype=float) if last is not None else self.start_q
+
+    def choices(self, event):
+        """Configurations to measure, chosen one at a time; stops when the rule holds, the plan
+        is exhausted or ``max_configurations`` is reached (event ``adaptive_stop``)."""
+        last = None
+        while True:
+            st = self.order.status()
+            row = self.order.record_status(st)
+            if st.stop:
+                self.final = st
+                return
+            cfg, why = self.order.choose(self._here(last))
+            event("adaptive_choice", **why, status=row)
+            self.visited.append(cfg)
+            last = cfg
+            yield cfg
+
+    def outcome(self, cfg, outcome: str, record: dict | None) -> None:
+        """What became of ``cfg``: measured (its record updates the design and σ), skipped or failed."""
+        if outcome == "measured":
+            ok = record is not None and record.get("config_id") == cfg.config_id
+            self.order.mark(cfg.config_id, record if ok else None)
+            self.order.update_sigma()
+        elif outcome in ("skipped", "failed"):
+            self.order.drop(cfg.config_id)
+
+    def summary(self) -> dict:
+        """Why the run stopped, the predicted intervals against the number of configurations, and
+        the estimated cell time of what was visited against the full plan's."""
+        o = self.order
+        st = self.final if self.final is not None else o.status()
+        full = o.full_plan_seconds(self.start_q)
+        before = [o.configs[i] for i in o.design.measured[: self.resumed_n]]
+        spent = o.visited_seconds(before + self.visited, self.start_q)
+        return {"stopped": self.final is not None, "reason": st.reason if self.final is not None else
+                "the run ended before the stop rule was evaluated (aborted or failed)",
+                "measured": st.n_measured, "candidates": len(o.configs),
+                "half_width_deg": {k: round(v, 6) for k, v in st.half_width_deg.items()},
+                "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
+                "sigma_mm": round(o.design.sigma_mm, 5),
+                "fitted_sigma_mm": None if o.fitted_sigma_mm is None else round(o.fitted_sigma_mm, 5),
+                "history": o.history, "estimated_seconds": round(spent, 1), "full_plan_seconds": round(full, 1),
+                "saved_seconds": round(full - spent, 1), "saved_pct": round(100 * (1 - spent / full), 1) if full else None}
