@@ -5,9 +5,11 @@ and the run stops when the plan's stop rule holds.
 
 ``AdaptiveOrder`` holds the design over the plan's configurations (``calib.fit.design``: the
 fit's own parameters and priors, linearised at the nominal robot), the σ it predicts with
-(the plan's ``noise_mm`` until the fast fit of the measured configurations gives one, then the
-larger of the two), and the history (predicted intervals and workspace error against the number
-of configurations) that the summary shows. Nothing here moves the robot: the run's
+(the plan's ``noise_mm``, or the fast fit's σ of the configurations measured when that is
+larger — unbiased for the effective number of parameters it fitted, used once it has
+``MIN_SIGMA_DOF`` degrees of freedom),
+and the history (predicted intervals and workspace error against the number of
+configurations) that the summary shows. Nothing here moves the robot: the run's
 ``ConfigurationRunner`` does, with every check it always makes.
 
 A resumed run rebuilds the design from the log's samples (``mark``) and continues choosing among
@@ -24,6 +26,9 @@ import numpy as np
 from calib.plan.adaptive import SequentialDesign, StopRule, Status
 
 log = logging.getLogger(__name__)
+
+#: Degrees of freedom (coordinates less effective parameters) before the fast fit's σ is used.
+MIN_SIGMA_DOF = 10
 
 
 def stop_rule(lp, n_configs: int) -> StopRule:
@@ -112,7 +117,9 @@ class AdaptiveOrder:
             self.dropped.add(i)
 
     def update_sigma(self) -> None:
-        """σ for the design: the larger of the plan's noise and the fast fit's σ of the records so far."""
+        """σ for the design: the larger of the plan's ``noise_mm`` and the fast fit's σ of the
+        records so far (unbiased for the parameters it fitted) — the design never predicts a
+        better instrument than the plan states, and a worse one as soon as the data show it."""
         sigma = self.fast_fit_sigma()
         if sigma is not None:
             self.fitted_sigma_mm = sigma
@@ -141,7 +148,14 @@ class AdaptiveOrder:
         except (DatasetError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             log.info("adaptive: no fast fit yet (%s)", exc)
             return None
-        sigma = float(np.max(np.exp(mf.log_sigma)))
+        # The mode's σ is the maximum-likelihood one, low by the parameters the data fitted (the
+        # effective number: link and tool parameters count in part): unbias it, and trust it only
+        # with MIN_SIGMA_DOF degrees of freedom left.
+        n_coord = 3 * len(data)
+        p_eff = self.design.effective_parameters()
+        if n_coord - p_eff < MIN_SIGMA_DOF:
+            return None
+        sigma = float(np.max(np.exp(mf.log_sigma))) * math.sqrt(n_coord / (n_coord - p_eff))
         return sigma if math.isfinite(sigma) and sigma > 0 else None
 
     def status(self) -> Status:

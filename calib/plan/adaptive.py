@@ -183,6 +183,15 @@ class SequentialDesign:
         info = self.model.prior + (self._blocks[idx].sum(axis=0) if idx else 0.0) / self.sigma_mm**2
         return _inv_sym(info)
 
+    def effective_parameters(self) -> float:
+        """How many parameters the measured configurations fit, trace(I_data Σ): 1 per parameter
+        the data determine, less for one its prior still holds (for σ estimates' degrees of freedom)."""
+        idx = self.measured
+        if not idx:
+            return 0.0
+        data = self._blocks[idx].sum(axis=0) / self.sigma_mm**2
+        return float(np.sum(data * self.covariance()))
+
     # ------------------------------------------------------------------ quantities
     def half_widths_deg(self, cov: np.ndarray) -> dict[str, float]:
         k = self.model.offsets
