@@ -26,6 +26,7 @@ def adaptive_plan(tmp_path, stop_when, n=20, **adaptive):
                       adaptive={"stop_when": stop_when, **adaptive})
 
 
+@pytest.mark.slow  # ~20 s: a run of the simulated cell; the order's logic is tests/acquire/test_adaptive_order.py
 def test_the_run_stops_when_every_offsets_interval_is_as_narrow_as_the_plan_asks(tmp_path):
     from calib.fit.offsets import fit_offsets
     from acquire.run.adaptive import fit_options
@@ -58,6 +59,7 @@ def test_the_run_stops_when_every_offsets_interval_is_as_narrow_as_the_plan_asks
     assert choices[-1]["status"]["max_half_width_deg"] > limit or len(measured) == 10
 
 
+@pytest.mark.slow  # ~25 s: two runs; the resumed order's logic is tests/acquire/test_adaptive_order.py
 def test_a_resumed_adaptive_run_continues_its_choices_without_repeating_one(tmp_path):
     lp = load_plan(adaptive_plan(tmp_path, {"workspace_within_pct": 5}, min_configurations=10))
 
