@@ -63,6 +63,7 @@ commented example)::
       stop_when:                     # every criterion given must hold (acquire/run/adaptive.py)
         interval_deg: 0.01           # every determinable offset's 95 % half-width ≤ this, deg
         workspace_within_pct: 10     # predicted workspace error within this % of the full plan's
+        held_out_within_pct: 5       # predicted held-out error (model + sensor noise) within this %
       min_configurations: null       # never stop before [null: twice what the fit needs, ≥ 12]
       max_configurations: null       # stop here anyway [null: the plan's size]
     sequencing:
@@ -410,8 +411,10 @@ class StopWhenSpec(_Strict):
 
     interval_deg: float | None = Field(None, gt=0, le=1, description="Every determinable offset's 95 % interval "
                                        "half-width at most this, degrees (predicted from the configurations measured).")
-    workspace_within_pct: float | None = Field(None, ge=0, le=1000, description="Predicted workspace error within "
-                                               "this many % of what the full plan would reach.")
+    workspace_within_pct: float | None = Field(None, ge=0, le=1000, description="Predicted workspace error (the "
+                                               "model's uncertainty) within this many % of what the full plan would reach.")
+    held_out_within_pct: float | None = Field(None, ge=0, le=1000, description="Predicted held-out error (the model's "
+                                              "uncertainty and the sensor's noise) within this many % of the full plan's.")
 
 
 class AdaptiveSpec(_Strict):
@@ -419,7 +422,7 @@ class AdaptiveSpec(_Strict):
     the plan's remaining ones by expected gain per second of motion; the run stops when ``stop_when``
     holds (or at ``max_configurations``, or when the plan is exhausted)."""
 
-    stop_when: StopWhenSpec = Field(description="interval_deg and/or workspace_within_pct.")
+    stop_when: StopWhenSpec = Field(description="interval_deg, workspace_within_pct, held_out_within_pct (each given must hold).")
     min_configurations: int | None = Field(None, ge=1, le=10000, description="Never stop before this many "
                                            "configurations are measured [null: twice what the fit needs, at least 12].")
     max_configurations: int | None = Field(None, ge=1, le=10000, description="Stop at this many even if the rule "
@@ -428,9 +431,10 @@ class AdaptiveSpec(_Strict):
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         errors: list[tuple[tuple, str]] = []
         w = self.stop_when
-        if w.interval_deg is None and w.workspace_within_pct is None:
-            errors.append((("adaptive", "stop_when"), "a stop rule needs a criterion (given none; allowed "
-                                                      "interval_deg: (0, 1] and/or workspace_within_pct: [0, 1000])"))
+        if w.interval_deg is None and w.workspace_within_pct is None and w.held_out_within_pct is None:
+            errors.append((("adaptive", "stop_when"), "a stop rule needs a criterion (given none; allowed any of "
+                                                      "interval_deg: (0, 1], workspace_within_pct: [0, 1000], "
+                                                      "held_out_within_pct: [0, 1000])"))
         lo, hi = self.min_configurations, self.max_configurations
         if lo is not None and hi is not None and hi < lo:
             errors.append((("adaptive", "max_configurations"), f"fewer than min_configurations (given {hi}; "

@@ -40,11 +40,12 @@ def adaptive_summary_lines(ad: dict) -> list[str]:
     if hist:
         step = max(1, len(hist) // 8)
         rows = hist[::step] + ([hist[-1]] if (len(hist) - 1) % step else [])
-        lines.append("  configurations  largest 95 % half-width (deg)  predicted workspace error (mm)")
+        lines.append("  configurations  largest 95 % half-width (deg)  predicted workspace / held-out error (mm)")
         for h in rows:
-            lines.append(f"  {h['n']:>14}  {h['max_half_width_deg']:>29.4f}  {h['workspace_mm']:>30.4f}")
-        lines.append(f"  (the full plan would reach {hist[-1]['full_workspace_mm']:.4f} mm; σ used "
-                     f"{ad['sigma_mm']:.4f} mm)")
+            lines.append(f"  {h['n']:>14}  {h['max_half_width_deg']:>29.4f}  {h['workspace_mm']:>18.4f} / "
+                         f"{h.get('held_out_mm', float('nan')):.4f}")
+        lines.append(f"  (the full plan would reach {hist[-1]['full_workspace_mm']:.4f} / "
+                     f"{hist[-1].get('full_held_out_mm', float('nan')):.4f} mm; σ used {ad['sigma_mm']:.4f} mm)")
     saved = ad.get("saved_seconds")
     if saved is not None:
         lines.append(f"  estimated cell time {ad['estimated_seconds']:.0f} s against {ad['full_plan_seconds']:.0f} s for "

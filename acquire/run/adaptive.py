@@ -49,7 +49,7 @@ def stop_rule(lp, n_configs: int) -> StopRule:
                                                            f"{need}…{n_configs})")
     hi = ad.max_configurations
     return StopRule(interval_deg=ad.stop_when.interval_deg, workspace_within_pct=ad.stop_when.workspace_within_pct,
-                    min_configurations=lo, max_configurations=None if hi is None else min(hi, n_configs))
+                    held_out_within_pct=ad.stop_when.held_out_within_pct, min_configurations=lo, max_configurations=None if hi is None else min(hi, n_configs))
 
 
 def fit_options(lp):
@@ -195,6 +195,7 @@ class AdaptiveOrder:
         """One history row (also the ``adaptive_status`` event's fields)."""
         row = {"n": st.n_measured, "max_half_width_deg": round(st.max_half_width_deg, 6),
                "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
+               "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),
                "sigma_mm": round(self.design.sigma_mm, 5)}
         self.history.append(row)
         return row
@@ -215,10 +216,17 @@ class AdaptiveOrder:
                      + len(visited) * self.per_config_s)
 
 
-def simulate(order: AdaptiveOrder, start_q_rad: np.ndarray) -> tuple[list, Status]:
+def simulate(order: AdaptiveOrder, start_q_rad: np.ndarray, *, to_the_end: bool = False) -> tuple[list, Status]:
     """The choices an adaptive run would make if every configuration is measured and the noise is
-    the plan's (σ = noise_mm): (configurations in order, final status). For ``--dry-run``."""
+    the plan's (σ = noise_mm): (configurations in order, final status). For ``--dry-run``.
+    to_the_end: ignore the criteria, choose until ``max_configurations`` or the plan's end (the
+    longest the run can take)."""
     order = order.copy()
+    if to_the_end:
+        from dataclasses import replace
+
+        order.design.rule = replace(order.design.rule, interval_deg=1e-12, workspace_within_pct=None,
+                                    held_out_within_pct=None)
     here = np.asarray(start_q_rad, dtype=float)
     chosen = []
     st = order.status()
@@ -258,7 +266,8 @@ class AdaptiveRun:
     def started_fields(self) -> dict:
         rule = self.order.design.rule
         o = self.order
-        return {"stop_when": {"interval_deg": rule.interval_deg, "workspace_within_pct": rule.workspace_within_pct},
+        return {"stop_when": {"interval_deg": rule.interval_deg, "workspace_within_pct": rule.workspace_within_pct,
+                              "held_out_within_pct": rule.held_out_within_pct},
                 "min_configurations": rule.min_configurations, "max_configurations": rule.max_configurations,
                 "candidates": len(o.configs), "measured_before": self.resumed_n,
                 "determinable": list(o.design.model.offset_names), "noise_mm": o.noise_mm,
@@ -312,6 +321,7 @@ class AdaptiveRun:
                 "measured": st.n_measured, "candidates": len(o.configs),
                 "half_width_deg": {k: round(v, 6) for k, v in st.half_width_deg.items()},
                 "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
+                "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),
                 "sigma_mm": round(o.design.sigma_mm, 5),
                 "fitted_sigma_mm": None if o.fitted_sigma_mm is None else round(o.fitted_sigma_mm, 5),
                 "history": o.history, "estimated_seconds": round(spent, 1), "full_plan_seconds": round(full, 1),

@@ -1,7 +1,7 @@
 """The fit's linearised model over a plan's candidate configurations, for the sequential design
 (``calib.plan.adaptive``): the same free parameters, priors and fixed combinations as the fit
 (``calib.fit.offsets.fit_mode``), its Jacobian at the nominal robot per candidate, and the
-workspace matrix of the kinematic parameters.
+workspace matrix (the plan's configurations as the sensor sees them).
 
 The fit's parameter set is found by setting up ``fit_mode`` on the nominal marker positions of
 every candidate (with a small seeded noise, so the fit's σ is finite): what it fixes (the first
@@ -52,24 +52,22 @@ def design_model(model: RobotModel, q_rad: np.ndarray, sensors: dict[str, list[s
     theta0 = np.zeros(post.dim)
     rows = post.jacobian(theta0).reshape(n_cfg, 3 * len(pairs), post.dim)
     prior = _prior_precision(post)
-    kinematic = np.ones(post.dim, bool)
     offsets = []
     for k, name in enumerate(post.free_names):
         kind = name.rsplit(".", 1)[1]
         if k < post.n and post.free[k] < post.n:
             offsets.append(k)
         if name.split(".")[0] in post.sensors:
-            kinematic[k] = False
             sd = FLAT_PRIOR["translation"] if kind in ("x", "y", "z") else math.radians(FLAT_PRIOR["rotation"])
             prior[k, k] += 1.0 / sd**2
         elif kind == "offset":
             prior[k, k] += 1.0 / math.radians(FLAT_PRIOR["offset"]) ** 2
         elif kind == "compliance":
             prior[k, k] += 1.0 / FLAT_PRIOR["compliance"] ** 2
-    # Workspace: the calibrated model's marker positions over the plan's configurations
-    # (the registration is the sensor's, not the robot's: not counted).
-    jw = rows * kinematic[None, None, :]
-    workspace = np.einsum("nri,nrj->ij", jw, jw) / (n_cfg * len(pairs))
+    # Workspace: the calibrated model's marker positions over the plan's configurations as the
+    # sensor sees them — with the registration, so that what only moves the model's base frame
+    # (a link length along the first axis against the registration's shift) is not counted.
+    workspace = np.einsum("nri,nrj->ij", rows, rows) / (n_cfg * len(pairs))
     off = np.array(offsets, dtype=int)
     return DesignModel(rows=rows, prior=prior, offsets=off,
                        offset_names=tuple(post.free_names[k] for k in off), workspace=workspace,

@@ -18,9 +18,14 @@ Two quantities a metrologist states a stop rule in (``StopRule``):
   T = 2.228, the 97.5 % quantile of the Student t with 10 degrees of freedom that the Laplace
   fit draws from);
 * the predicted workspace error, ``sqrt(trace(A Σ))`` (mm): the rms over the plan's
-  configurations and markers of the calibrated model's position uncertainty (A = mean of
-  J_wᵀ J_w over those points, kinematic parameters only — the registration is not the robot's).
-  The rule compares it with what the full plan would reach (every candidate measured).
+  configurations and markers of the calibrated model's position uncertainty as the sensor sees
+  them (A = mean of J_wᵀ J_w over those points, registration included: what only redefines the
+  model's base frame is no error). The rule compares it with what the full plan would reach
+  (every candidate measured);
+* the predicted held-out error, ``sqrt(3σ² + trace(A Σ))`` (mm): what validation on further
+  configurations of the same workspace measures — the model's uncertainty and the sensor's
+  noise — again against the full plan's. Where the noise dominates, a fraction of the plan
+  predicts as well as all of it.
 
 ``SequentialDesign.choose`` picks among the remaining candidates the one with the largest
 expected relative reduction of the stated quantities (A-optimal: the traces above; a rule with
@@ -49,22 +54,25 @@ class StopRule:
 
     interval_deg: every determinable offset's 95 % interval half-width ≤ this (deg), or None.
     workspace_within_pct: predicted workspace error ≤ (1 + pct/100) × the full plan's, or None.
+    held_out_within_pct: predicted held-out error ≤ (1 + pct/100) × the full plan's, or None.
     min_configurations: never stop before this many measured configurations.
     max_configurations: stop at this many even if the criteria are not met (None: the plan's size).
     """
 
     interval_deg: float | None = None
     workspace_within_pct: float | None = None
+    held_out_within_pct: float | None = None
     min_configurations: int = 1
     max_configurations: int | None = None
 
     def __post_init__(self) -> None:
-        if self.interval_deg is None and self.workspace_within_pct is None:
-            raise ValueError("a stop rule needs interval_deg or workspace_within_pct (or both)")
+        if self.interval_deg is None and self.workspace_within_pct is None and self.held_out_within_pct is None:
+            raise ValueError("a stop rule needs interval_deg, workspace_within_pct or held_out_within_pct")
         if self.interval_deg is not None and not self.interval_deg > 0:
             raise ValueError(f"interval_deg must be > 0, given {self.interval_deg}")
-        if self.workspace_within_pct is not None and not self.workspace_within_pct >= 0:
-            raise ValueError(f"workspace_within_pct must be ≥ 0, given {self.workspace_within_pct}")
+        for name in ("workspace_within_pct", "held_out_within_pct"):
+            if getattr(self, name) is not None and not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be ≥ 0, given {getattr(self, name)}")
         if self.min_configurations < 1:
             raise ValueError(f"min_configurations must be ≥ 1, given {self.min_configurations}")
         if self.max_configurations is not None and self.max_configurations < self.min_configurations:
@@ -79,7 +87,7 @@ class DesignModel:
     rows: (N, r, L) Jacobian rows per candidate, mm per parameter unit.
     prior: (L, L) prior precision, 1 / unit².
     offsets: (K,) indices into L of the determinable offsets (rad); offset_names: their names.
-    workspace: (L, L) A, mm² per unit² (zero rows/columns for the registration).
+    workspace: (L, L) A, mm² per unit².
     names: (L,) parameter names.
     """
 
@@ -98,7 +106,7 @@ class DesignModel:
 @dataclass(frozen=True)
 class Status:
     """What the measured configurations predict: half-widths (deg) by offset name, the predicted
-    workspace error (mm) and the full plan's, and the stop decision with its reason."""
+    workspace and held-out errors (mm) and the full plan's, and the stop decision with its reason."""
 
     n_measured: int
     half_width_deg: dict[str, float]
@@ -106,6 +114,8 @@ class Status:
     full_workspace_mm: float
     stop: bool
     reason: str
+    held_out_mm: float = 0.0
+    full_held_out_mm: float = 0.0
 
     @property
     def max_half_width_deg(self) -> float:
@@ -115,6 +125,7 @@ class Status:
         return {"n_measured": self.n_measured, "max_half_width_deg": round(self.max_half_width_deg, 6),
                 "half_width_deg": {k: round(v, 6) for k, v in self.half_width_deg.items()},
                 "workspace_mm": round(self.workspace_mm, 6), "full_workspace_mm": round(self.full_workspace_mm, 6),
+                "held_out_mm": round(self.held_out_mm, 6), "full_held_out_mm": round(self.full_held_out_mm, 6),
                 "stop": self.stop, "reason": self.reason}
 
 
@@ -201,6 +212,10 @@ class SequentialDesign:
     def workspace_mm(self, cov: np.ndarray) -> float:
         return math.sqrt(max(float(np.sum(self.model.workspace * cov)), 0.0))
 
+    def held_out_mm(self, workspace_mm: float) -> float:
+        """Predicted rms 3-D error of a held-out measurement: the model's and the sensor's."""
+        return math.sqrt(3 * self.sigma_mm**2 + workspace_mm**2)
+
     def full_workspace_mm(self) -> float:
         """The predicted workspace error with every candidate measured."""
         if self._full_ws is None:
@@ -212,6 +227,7 @@ class SequentialDesign:
         cov = self.covariance()
         hw = self.half_widths_deg(cov)
         ws, full = self.workspace_mm(cov), self.full_workspace_mm()
+        held, full_held = self.held_out_mm(ws), self.held_out_mm(full)
         n, rule = len(self.measured), self.rule
         stop, reason = False, ""
         if not len(self.remaining):
@@ -231,9 +247,13 @@ class SequentialDesign:
                 ok &= ws <= limit
                 met.append(f"predicted workspace error {ws:.4g} mm within {rule.workspace_within_pct:g} % of the "
                            f"full plan's {full:.4g} mm")
+            if rule.held_out_within_pct is not None:
+                ok &= held <= full_held * (1 + rule.held_out_within_pct / 100)
+                met.append(f"predicted held-out error {held:.4g} mm within {rule.held_out_within_pct:g} % of the "
+                           f"full plan's {full_held:.4g} mm")
             if ok:
                 stop, reason = True, "stop rule met: " + "; ".join(met)
-        return Status(n, hw, ws, full, stop, reason)
+        return Status(n, hw, ws, full, stop, reason, held, full_held)
 
     # ------------------------------------------------------------------ the choice
     def gains(self, candidates: np.ndarray) -> dict[str, np.ndarray]:
@@ -248,10 +268,14 @@ class SequentialDesign:
             k = self.model.offsets
             now = float(np.trace(cov[np.ix_(k, k)])) or 1.0
             out["interval"] = np.einsum("clr,crl->c", m[:, k, :], w[:, :, k]) / now
-        if self.rule.workspace_within_pct is not None:
+        if self.rule.workspace_within_pct is not None or self.rule.held_out_within_pct is not None:
             a = self.model.workspace
-            now = float(np.sum(a * cov)) or 1.0
-            out["workspace"] = np.einsum("lk,ckr,crl->c", a, m, w) / now
+            trace = float(np.sum(a * cov))
+            drop = np.einsum("lk,ckr,crl->c", a, m, w)
+            if self.rule.workspace_within_pct is not None:
+                out["workspace"] = drop / (trace or 1.0)
+            if self.rule.held_out_within_pct is not None:
+                out["held_out"] = drop / (trace + 3 * self.sigma_mm**2)
         return out
 
     def choose(self, seconds: np.ndarray, exclude=()) -> Choice:

@@ -22,12 +22,12 @@ def test_a_valid_adaptive_section(tmp_path):
 
 
 @pytest.mark.parametrize("adaptive, field, allowed", [
-    ({"stop_when": {}}, "adaptive.stop_when", "interval_deg: (0, 1] and/or workspace_within_pct"),
+    ({"stop_when": {}}, "adaptive.stop_when", "interval_deg: (0, 1], workspace_within_pct"),
     ({"stop_when": {"interval_deg": -1}}, "adaptive.stop_when.interval_deg", "allowed (0, 1]"),
     ({"stop_when": {"interval_deg": 0.01}, "max_configurations": 0}, "adaptive.max_configurations", "allowed [1, 10000]"),
     ({"stop_when": {"interval_deg": 0.01}, "min_configurations": 20, "max_configurations": 10},
      "adaptive.max_configurations", "allowed ≥ 20"),
-    ({"stop_when": {"intervall_deg": 0.01}}, "adaptive.stop_when", "keys interval_deg, workspace_within_pct"),
+    ({"stop_when": {"intervall_deg": 0.01}}, "adaptive.stop_when", "keys interval_deg, workspace_within_pct, held_out_within_pct"),
     ({"max_configurations": 10}, "adaptive.stop_when", "Field required"),
 ])
 def test_bad_adaptive_sections_name_file_line_field_and_what_is_allowed(tmp_path, adaptive, field, allowed):
