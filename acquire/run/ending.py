@@ -94,3 +94,14 @@ def _add_adaptive(summary) -> None:
     summary.fit["adaptive"] = summary.adaptive
     if summary.result_path is not None:
         write_result(summary.result_path, summary.fit)
+    if summary.report_path is not None:  # the report was written by the fit: add the section before its end
+        from calib.report.report_adaptive import adaptive_section
+
+        try:
+            text = summary.report_path.read_text(encoding="utf-8")
+            end = text.rfind("</body>")
+            if end >= 0:
+                section = "\n".join(adaptive_section(summary.adaptive)) + "\n"
+                summary.report_path.write_text(text[:end] + section + text[end:], encoding="utf-8")
+        except OSError as exc:
+            log.warning("report: the adaptive run's section not added: %s", exc)

@@ -42,7 +42,7 @@ def record(lp, chain, cfg, rng):
 @pytest.fixture(scope="module")
 def plan(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("adaptive")
-    lp = load_plan(small_plan(tmp, n=20, adaptive={"stop_when": {"workspace_within_pct": 5}, "min_configurations": 12}))
+    lp = load_plan(small_plan(tmp, n=20, adaptive={"stop_when": {"held_out_within_pct": 10}, "min_configurations": 12}))
     return lp, resolve_configurations(lp)
 
 
@@ -91,3 +91,24 @@ def test_the_dry_run_gives_a_cell_time_range_and_the_first_choices(plan):
     low, high = [float(x) for x in text.split("estimated cell time range: ")[1].split(" s")[0].split("–")]
     assert 0 < low <= high
     assert "stops after" in text and "A1.offset" not in text.split("determinable offsets:")[1].splitlines()[0]
+
+
+def test_summary_and_report_say_why_it_stopped_intervals_against_configurations_and_time_saved(plan):
+    from acquire.commands.run_summary import adaptive_summary_lines
+    from calib.report.report_adaptive import adaptive_section
+
+    lp, configs = plan
+    ad, _, chosen = measure_some(lp, configs, len(configs), StandingRobot(lp.model, None))
+    summ = ad.summary()
+    assert summ["stopped"] and summ["measured"] == len(chosen) < len(configs)
+    assert summ["reason"].startswith("stop rule met: predicted held-out error")
+    assert [h["n"] for h in summ["history"]] == list(range(len(chosen) + 1))
+    widths = [h["max_half_width_deg"] for h in summ["history"]]
+    assert widths[-1] < widths[0]
+    assert summ["estimated_seconds"] > 0 and summ["saved_seconds"] == pytest.approx(
+        summ["full_plan_seconds"] - summ["estimated_seconds"], abs=0.11)
+    text = "\n".join(adaptive_summary_lines(summ))
+    assert f"stopped after {len(chosen)} of {len(configs)}" in text and "saved" in text
+    html = "\n".join(adaptive_section(summ))
+    assert "Adaptive run" in html and summ["reason"].split(":")[0] in html and html.count("<tr>") == len(chosen) + 2
+    assert adaptive_section(None) == []
