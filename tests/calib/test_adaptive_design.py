@@ -64,6 +64,27 @@ def test_gain_is_the_exact_reduction_of_the_linear_model():
     assert g["workspace"][0] == pytest.approx(want_ws, rel=1e-9)
 
 
+def test_held_out_criterion_counts_the_sensor_noise():
+    # held-out error² = 3σ² + workspace²: with the noise dominating, a few configurations predict
+    # nearly as well as all of them, so the held-out rule stops long before the workspace rule.
+    rows = np.tile(np.eye(2), (40, 1)).reshape(40, 2, 2)
+    model = DesignModel(rows=rows, prior=np.eye(2) * 1e-6, offsets=np.array([0]), offset_names=("a",),
+                        workspace=np.eye(2))
+
+    def stops(rule):
+        d = SequentialDesign(model, rule, sigma_mm=0.03)
+        while not (st := d.status()).stop:
+            d.add(d.choose(np.ones(40)).index)
+        return len(d.measured), st
+
+    n_held, st = stops(StopRule(held_out_within_pct=10, min_configurations=2))
+    n_ws, _ = stops(StopRule(workspace_within_pct=10, min_configurations=2))
+    assert st.held_out_mm == pytest.approx(math.sqrt(3 * 0.03**2 + st.workspace_mm**2))
+    assert st.held_out_mm <= 1.1 * st.full_held_out_mm and "held-out" in st.reason
+    # workspace² = 2σ²/n: within 10 % of all 40 needs n ≥ 40/1.21; held-out: 3σ² + 2σ²/n ≤ 1.21·(3σ² + 2σ²/40), n ≥ 3
+    assert n_ws == math.ceil(40 / 1.1**2) and n_held < n_ws / 3
+
+
 def test_stop_rule_half_width_and_minimum():
     # each candidate measures offset 0 and 1 with σ=0.001 rad-equivalent: sd after n = 0.001/√n rad
     rows = np.tile(np.eye(2), (20, 1)).reshape(20, 2, 2)
