@@ -51,3 +51,18 @@ def test_min_configurations_beyond_the_plan_is_refused_before_anything_moves(tmp
         stop_rule(lp, 30)
     rule = stop_rule(_load(tmp_path, {"stop_when": {"interval_deg": 0.01}, "max_configurations": 99}), 30)
     assert rule.max_configurations == 30 and rule.min_configurations >= 12
+
+
+def test_a_socket_plan_cannot_be_adaptive(tmp_path):
+    import yaml
+
+    from tests.acquire.test_plan import PLANS, ROOT
+
+    doc = yaml.safe_load((PLANS / "example-socket.yaml").read_text())
+    doc["robot"] = str(ROOT / "fixtures" / "robots" / doc["robot"].split("/")[-1])
+    doc.pop("fake", None)
+    doc["adaptive"] = {"stop_when": {"interval_deg": 0.01}}
+    path = tmp_path / "socket.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    with pytest.raises(ConfigError, match=r"socket.yaml:\d+:\d+: adaptive: an adaptive order applies to pose plans"):
+        load_plan(path)
