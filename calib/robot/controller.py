@@ -143,6 +143,22 @@ def _spread_mm(doc: dict) -> float | None:
     return float(np.sqrt(np.sum(rows * np.array([b["sample_spread_mm"] for b in budget]) ** 2) / rows.sum()))
 
 
+def _unexplained(mc: dict) -> str:
+    """What a held-out error far above the noise says to the operator: which of tool, link errors
+    and gravity sag the chosen model of ``mc`` (the model-choice document) leaves out, or that even
+    a model with all three does not describe the robot."""
+    name = mc["chosen"]
+    can_sag = any(c["model"].endswith("+compliance") for c in mc["candidates"])
+    missing = [what for what, inside in (("tool", "tool" in name or name == "full"),
+                                         ("link errors", "links" in name or name == "full"),
+                                         ("gravity sag" if can_sag else "gravity sag (the robot model has no link masses)",
+                                          "compliance" in name)) if not inside]
+    if missing:
+        return f"the chosen model ({name}) does not describe this robot (not in it: {', '.join(missing)})"
+    return (f"even the chosen model ({name}: tool, link errors and gravity sag) leaves robot error that none of the "
+            "candidates describes")
+
+
 def earned_reasons(doc: dict) -> list[str]:
     """Why "enter" is not earned, one line each ([] when it is): the model choice
     (``doc["model_choice"]``, ``calib.fit.model_choice``) found no model, or the chosen one does not
@@ -169,8 +185,7 @@ def earned_reasons(doc: dict) -> list[str]:
             per_axis = chosen["cv_rms_mm"] / math.sqrt(3.0)
             if spread and per_axis > MAX_HELDOUT_OVER_SPREAD * spread:
                 reasons.append(f"held-out error {per_axis:.3f} mm per axis is {per_axis / spread:.0f}× the measured spread of "
-                               f"one sample ({spread:.3g} mm): the model does not describe this robot (tool, links, sag?) — "
-                               "see the model-choice table")
+                               f"one sample ({spread:.3g} mm): {_unexplained(mc)} — see the model-choice table")
             elif per_axis > MIN_SIGMA_GUARD_MM:
                 reasons.append(f"held-out error {per_axis:.2f} mm per axis (above {MIN_SIGMA_GUARD_MM:g} mm)")
     val = doc.get("metrics", {}).get("validation_absolute")
