@@ -278,6 +278,33 @@ def _resolve_null_space(post_factory, mask: ParamMask, lever_mm: float) -> tuple
     raise RuntimeError("could not resolve the undetermined parameters")  # pragma: no cover
 
 
+def _resolve_base_links(post_factory, mask: ParamMask) -> ParamMask:
+    """Fix the link parameters that only move the whole arm rigidly — whose markers' motion the
+    registrations reproduce exactly (the first link's tilt β, α and shifts a, d ahead of joint 1
+    in mdh; d₁ in dh): the registration, with its flat prior, takes them, so marginalising them
+    changes no other parameter's posterior, while their prior alone would hold a curved ridge
+    (a 0.1° tilt is a 4 mm shift at a tracker 2 m away) that neither the Laplace approximation
+    nor a sampler can follow. Kept at their nominal values, with the reason."""
+    post = post_factory(mask)
+    if not mask.registration.any():
+        return mask
+    link_pos, _ = post.link_free()
+    start = post.n + 6 * post.S
+    link_pos = [k for k in link_pos if not post.is_tool[post.free[k] - start]]
+    if not link_pos:
+        return mask
+    j = post.jacobian(np.zeros(post.dim))
+    reg = [k for k, i in enumerate(post.free) if post.n <= i < start]
+    q, _ = np.linalg.qr(j[:, reg])
+    for k in link_pos:
+        col = j[:, k]
+        norm = np.linalg.norm(col)
+        if norm > 0 and np.linalg.norm(col - q @ (q.T @ col)) <= 1e-9 * norm:
+            mask = mask.fix(int(post.free[k]), "moves the whole arm rigidly, as the registration does: the registration takes "
+                            "it; kept at its nominal value", post.names)
+    return mask
+
+
 def _resolve_tool(post_factory, mask: ParamMask, lever_mm: float, prior_mm: float) -> ParamMask:
     """Fix the offsets that move the markers exactly like a move of the tool on the flange (the
     last axis's offset against a turn of the tool about that axis): the fitted tool takes that
@@ -448,11 +475,18 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
             return post.log_posterior(x[..., : post.dim], x[..., post.dim:])
 
         start, cov = np.concatenate([theta, log_sigma]), cov_full
+    exact_target = None
+    if post.expanded:
+        def exact_target(x: np.ndarray) -> np.ndarray:
+            with post.exact():
+                return target(x)
+
     chains, info = laplace_importance(target, start, cov, n_chains=options.n_chains, n_draws=options.n_draws,
-                                      seed=options.seed)
+                                      seed=options.seed, exact_target=exact_target)
     info["fallback"] = None
     if chains is None:
-        chains = ensemble(target, start, cov, n_draws=options.n_draws, burn_in=500, seed=options.seed)
+        use = exact_target if info["predictor"] == "exact" and exact_target is not None else target
+        chains = ensemble(use, start, cov, n_draws=options.n_draws, burn_in=500, seed=options.seed)
         info["fallback"] = "emcee"
     if options.error == "gaussian":
         rng = np.random.default_rng(options.seed + 7919)
@@ -593,6 +627,7 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
     mask, ident0 = _resolve_null_space(factory, mask, lever)
+    mask = _resolve_base_links(factory, mask)
     mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
     theta, log_sigma = _mode(post, options.error, options.nu, tol)

@@ -110,8 +110,8 @@ def test_enter_is_withheld_when_the_held_out_error_is_many_times_the_noise_or_no
     doc = {"model_choice": {"chosen": "offsets", "nominal": {"model": "nominal", "cv_mean_mm": 2.0, "cv_se_mm": 0.1},
                             "candidates": [{"model": "offsets", "cv_rms_mm": 1.0, "cv_mean_mm": 0.9, "cv_se_mm": 0.05,
                                             "failed": None}]},
-           "diagnostics": {"error_budget": {"t": {"sample_spread_mm": 0.02, "n_rows": 10}}}}
-    assert any("× the measured spread" in r for r in earned_reasons(doc))
+           "diagnostics": {"error_budget": {"t": {"sample_spread_mm": 0.02, "noise_mm": 0.02, "n_rows": 10}}}}
+    assert any("× the measured spread of one sample" in r for r in earned_reasons(doc))
     doc["model_choice"]["candidates"][0].update(cv_rms_mm=0.05, cv_mean_mm=0.045)
     assert earned_reasons(doc) == []
     doc["model_choice"]["nominal"]["cv_mean_mm"] = 0.04
