@@ -278,30 +278,39 @@ def _resolve_null_space(post_factory, mask: ParamMask, lever_mm: float) -> tuple
     raise RuntimeError("could not resolve the undetermined parameters")  # pragma: no cover
 
 
-def _resolve_base_links(post_factory, mask: ParamMask) -> ParamMask:
-    """Fix the link parameters that only move the whole arm rigidly — whose markers' motion the
-    registrations reproduce exactly (the first link's tilt β, α and shifts a, d ahead of joint 1
-    in mdh; d₁ in dh): the registration, with its flat prior, takes them, so marginalising them
-    changes no other parameter's posterior, while their prior alone would hold a curved ridge
-    (a 0.1° tilt is a 4 mm shift at a tracker 2 m away) that neither the Laplace approximation
-    nor a sampler can follow. Kept at their nominal values, with the reason."""
+def _resolve_rigid_links(post_factory, mask: ParamMask) -> ParamMask:
+    """Fix the link parameters that only move the whole arm rigidly, or only the tool on the
+    flange: whose markers' motion the registrations reproduce exactly (the first link's tilt and
+    shifts ahead of joint 1 — β₁, d₁ in mdh, d₁ in dh), or the fitted markers' coordinates do (the
+    last link's d in mdh; its d, a and α, which follow the last joint, in dh). The registration
+    (flat prior) or the tool (its prior 10× wider) takes them — exactly, to every order, since
+    a rigid move of the base or of the markers is another registration or another set of
+    marker positions — so marginalising them changes no offset's posterior, while their priors
+    alone would hold long ridges, curved where they are turns (a 0.1° tilt is a 4 mm shift at a
+    tracker 2 m away), that neither the Laplace approximation nor a sampler follows. Kept at
+    their nominal values, with the reason."""
     post = post_factory(mask)
-    if not mask.registration.any():
-        return mask
-    link_pos, _ = post.link_free()
     start = post.n + 6 * post.S
+    link_pos, _ = post.link_free()
     link_pos = [k for k in link_pos if not post.is_tool[post.free[k] - start]]
     if not link_pos:
         return mask
     j = post.jacobian(np.zeros(post.dim))
     reg = [k for k, i in enumerate(post.free) if post.n <= i < start]
-    q, _ = np.linalg.qr(j[:, reg])
-    for k in link_pos:
-        col = j[:, k]
-        norm = np.linalg.norm(col)
-        if norm > 0 and np.linalg.norm(col - q @ (q.T @ col)) <= 1e-9 * norm:
-            mask = mask.fix(int(post.free[k]), "moves the whole arm rigidly, as the registration does: the registration takes "
-                            "it; kept at its nominal value", post.names)
+    tool = [k for k, i in enumerate(post.free) if i >= start and i < start + post.L and post.is_tool[i - start]]
+    spans = [(cols, why) for cols, why in (
+        (reg, "moves the whole arm rigidly, as the registration does: the registration takes it"),
+        (tool, "moves the markers rigidly on the flange, as the fitted tool does: the tool takes it")) if cols]
+    for cols, why in spans:
+        q, _ = np.linalg.qr(j[:, cols])
+        for k in link_pos:
+            col = j[:, k]
+            norm = np.linalg.norm(col)
+            if mask.full[post.free[k]] and norm > 0 and np.linalg.norm(col - q @ (q.T @ col)) <= 1e-9 * norm:
+                coef = np.linalg.lstsq(j[:, cols], col, rcond=None)[0]
+                like = [post.free_names[cols[i]] for i in np.flatnonzero(np.abs(coef) > 0.05 * np.abs(coef).max())]
+                mask = mask.fix(int(post.free[k]), f"{why} (it moves the markers exactly like {', '.join(like)}); "
+                                "kept at its nominal value", post.names)
     return mask
 
 
@@ -627,7 +636,7 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
     mask, ident0 = _resolve_null_space(factory, mask, lever)
-    mask = _resolve_base_links(factory, mask)
+    mask = _resolve_rigid_links(factory, mask)
     mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
     theta, log_sigma = _mode(post, options.error, options.nu, tol)
@@ -866,6 +875,9 @@ def _tool_degeneracies(post: OffsetPosterior, theta: np.ndarray, lever_mm: float
         out.append(f"{combo.describe()}: moves the markers {how} alike — decided by the priors (tool ±{options.tool_prior_mm:g} mm"
                    + (f", links ±{options.link_tolerance[0]:g} mm / ±{options.link_tolerance[1]:g}°"
                       if options.link_tolerance and options.method != "paper" else "") + ")")
+    # The last link's parameters that only move the tool are kept nominal (``_resolve_rigid_links``):
+    # the fitted markers carry them.
+    out += [f"{name}: {why}" for name, why in post.mask.reasons.items() if "the tool takes it" in why]
     return out
 
 
