@@ -160,7 +160,7 @@ def _worst_text(chosen: dict, noise: float) -> str:
         out = [f"{c} ({e:.3g} mm)" for c, e in worst if e > 5 * max(median, noise * math.sqrt(3.0))]
         return (f"configuration{'s' if len(out) > 1 else ''} {', '.join(out)} held out lie{'' if len(out) > 1 else 's'} "
                 f"far off the others (median {median:.3g} mm): measure {'them' if len(out) > 1 else 'it'} again or "
-                "leave it out, and fit again")
+                f"leave {'them' if len(out) > 1 else 'it'} out, and fit again")
     return "the model does not describe this robot (tool, links, sag?) — see the model-choice table"
 
 

@@ -7,6 +7,7 @@ with known zero-offsets, and optionally link errors and a tool that is not where
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -120,6 +121,26 @@ def test_enter_is_withheld_when_the_held_out_error_is_many_times_the_noise_or_no
     doc["model_choice"]["nominal"]["cv_mean_mm"] = 2.0
     doc["metrics"] = {"validation_absolute": {"before": {"mean": 20.0}, "after": {"mean": 15.9}}}
     assert any("validation error after the correction 15.900 mm" in r for r in earned_reasons(doc))
+
+
+def test_the_held_out_error_is_judged_against_the_noise_of_the_averaged_rows_and_an_outlier_is_named():
+    """Rows averaging 20 samples of 0.02 mm spread carry 0.0045 mm of noise: a held-out error of
+    0.03 mm per axis is within 3× the spread of one sample but 7× the rows' noise — not earned.
+    Where one held-out configuration carries the error it is named."""
+    per_axis = 0.03
+    cand = {"model": "offsets", "cv_rms_mm": per_axis * math.sqrt(3.0), "cv_mean_mm": 0.04, "cv_se_mm": 0.01,
+            "cv_median_mm": 0.008, "worst_configurations": [["c7", 0.9], ["c2", 0.01]], "failed": None}
+    doc = {"model_choice": {"chosen": "offsets", "nominal": {"model": "nominal", "cv_mean_mm": 2.0}, "candidates": [cand]},
+           "diagnostics": {"error_budget": {"t": {"sample_spread_mm": 0.02, "noise_mm": 0.02 / math.sqrt(20),
+                                                  "n_rows": 108}}}}
+    (reason,) = earned_reasons(doc)
+    assert "7× the noise of the averaged measurement" in reason, reason
+    assert "configuration c7 (0.9 mm)" in reason and "c2" not in reason and "measure it again" in reason
+    cand.update(worst_configurations=[["c7", 0.06], ["c2", 0.05]], cv_median_mm=0.045)  # all off: the model
+    (reason,) = earned_reasons(doc)
+    assert "the model does not describe this robot" in reason
+    cand["cv_rms_mm"] = 0.012 * math.sqrt(3.0)  # 2.7× the rows' noise: consistent with it
+    assert earned_reasons(doc) == []
 
 
 # --- PSIS -------------------------------------------------------------------------------------------
