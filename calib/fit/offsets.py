@@ -461,11 +461,11 @@ def _sample_sigma_marginalised(post: OffsetPosterior, theta: np.ndarray, log_sig
 
 def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray,
                     options: FitOptions) -> tuple[Chains, dict]:
-    """Draws of (θ, log σ) by the Laplace Gaussian checked with PSIS, or emcee where k̂ ≥ 0.7
+    """Draws of (θ, log σ) by the Laplace Gaussian checked with PSIS, or a random walk in the Laplace-whitened coordinates where k̂ ≥ 0.7
     (``calib.fit.laplace_sampling``). Gaussian errors: the target is θ's marginal with σ integrated
     out (as ``_sample_sigma_marginalised``), each draw's σ drawn from its conditional; Student-t:
     the joint (θ, log σ) posterior. Returns (chains, importance diagnostics)."""
-    from calib.fit.laplace_sampling import ensemble, laplace_importance
+    from calib.fit.laplace_sampling import laplace_importance, random_walk
 
     link_pos, link_sd = post.link_free()
     cov_full = _laplace_covariance(post, theta, log_sigma)
@@ -495,8 +495,9 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
     info["fallback"] = None
     if chains is None:
         use = exact_target if info["predictor"] == "exact" and exact_target is not None else target
-        chains = ensemble(use, start, cov, n_draws=options.n_draws, burn_in=500, seed=options.seed)
-        info["fallback"] = "emcee"
+        chains = random_walk(use, start, cov, seed=options.seed)
+        info["fallback"] = "random-walk Metropolis"
+        info["walk"] = chains.diagnostics
     if options.error == "gaussian":
         rng = np.random.default_rng(options.seed + 7919)
         e = np.concatenate([post.sse(b) for b in np.array_split(chains.flat, max(1, chains.flat.shape[0] // 1024))])

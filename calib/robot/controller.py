@@ -214,6 +214,11 @@ def earned_reasons(doc: dict) -> list[str]:
     d = doc.get("diagnostics", {})
     imp = d.get("importance")
     ess = d.get("ess_min")
+    ens = (imp or {}).get("walk") or {}
+    if imp and imp.get("fallback") and ens.get("rhat_log_density") is not None and ens["rhat_log_density"] > MAX_RHAT:
+        reasons.append(f"the fallback sampler has not settled: R-hat of the log density {ens['rhat_log_density']:.2f} "
+                       f"(> {MAX_RHAT}) — its chains are still spreading out or drawing in, and its intervals are not yet "
+                       "the posterior's")
     if imp and imp.get("fallback") and ess is not None and ess < MIN_ESS:
         reasons.append(f"the Laplace approximation failed its check (Pareto k̂ {imp['k_hat']:.2f} ≥ {imp['k_hat_max']}) and the "
                        f"fallback sampler has only {ess:.0f} effective draws (< {MIN_ESS:g})")
