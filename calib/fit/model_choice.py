@@ -5,9 +5,9 @@ Candidates (``candidates``), simplest first:
 
 ``offsets``                 zero-offsets and the registration; the model's tool taken as exact;
 ``offsets+tool``            … and the measured markers' positions on the flange (tool prior);
-``offsets+tool+links``      … and every link parameter under a Gaussian prior whose scale is
-                            estimated from the data (empirical Bayes: the scale that maximises the
-                            Laplace evidence, ``empirical_link_scale``);
+``offsets+tool+links``      … and every link parameter under a Gaussian prior whose scales (lengths,
+                            then angles) are estimated from the data (empirical Bayes: the scales
+                            that maximise the Laplace evidence, ``empirical_link_scale``);
 ``full``                    full identification (``calib.fit.identification``, one staged start per fold);
 
 each model with link masses also ``+compliance`` (joint compliance under gravity, ``calib.robot.gravity``;
@@ -46,6 +46,9 @@ KINDS = ("offsets", "offsets+tool", "offsets+tool+links", "full")
 #: (the ratio of the old fixed 0.2 mm / 0.02° prior).
 LINK_SCALES_MM = (0.03, 0.1, 0.3, 1.0, 3.0)
 DEG_PER_MM = 0.1
+#: ... then, at the chosen length scale, the angle scales tried (degrees): an arm's twists need not
+#: be off by 0.1°/mm of its lengths (a Panda's published corrections: 0.2–0.9 mm but 0.1–0.66°).
+LINK_SCALES_DEG = (0.01, 0.03, 0.1, 0.3, 1.0)
 #: Relative tolerance of the fold fits' solves: far below any held-out error that matters.
 CV_TOL = 1e-8
 
@@ -114,15 +117,30 @@ def log_evidence(mf: ModeFit) -> float:
 
 
 def empirical_link_scale(model: RobotModel, data: Dataset, base: FitOptions,
-                         scales_mm: tuple[float, ...] = LINK_SCALES_MM) -> dict:
-    """The link prior's scale that maximises the Laplace evidence of the offsets+tool+links model
-    on ``data``: {"length_mm", "angle_deg", "log_evidence": {mm: value}}."""
-    table = {}
-    for mm in scales_mm:
-        opts = replace(base, tool_prior_mm=base.tool_prior_mm, link_tolerance=(mm, mm * DEG_PER_MM))
-        table[mm] = log_evidence(fit_mode(model, data, opts, tol=CV_TOL))
+                         scales_mm: tuple[float, ...] = LINK_SCALES_MM,
+                         scales_deg: tuple[float, ...] = LINK_SCALES_DEG) -> dict:
+    """The link prior's scales that maximise the Laplace evidence of the offsets+tool+links model
+    on ``data``, one coordinate at a time: the length scale (angles at ``DEG_PER_MM`` of it), the
+    angle scale at that length, the length scale at that angle scale. {"length_mm", "angle_deg",
+    "log_evidence": {mm: value}, "log_evidence_angle": {deg: value},
+    "log_evidence_length_at_angle": {mm: value}}."""
+    def evidence(mm: float, deg: float) -> float:
+        opts = replace(base, tool_prior_mm=base.tool_prior_mm, link_tolerance=(mm, deg))
+        return log_evidence(fit_mode(model, data, opts, tol=CV_TOL))
+
+    table = {mm: evidence(mm, mm * DEG_PER_MM) for mm in scales_mm}
     best = max(table, key=table.get)
-    return {"length_mm": best, "angle_deg": best * DEG_PER_MM, "log_evidence": {f"{k:g}": v for k, v in table.items()}}
+    angles = {round(best * DEG_PER_MM, 12): table[best]}
+    for deg in scales_deg:
+        if not any(math.isclose(deg, a) for a in angles):
+            angles[deg] = evidence(best, deg)
+    best_deg = max(angles, key=angles.get)
+    # The lengths again at that angle scale: the first pass tied the angles to them.
+    lengths = {mm: (angles[best_deg] if mm == best else evidence(mm, best_deg)) for mm in scales_mm}
+    best = max(lengths, key=lengths.get)
+    return {"length_mm": best, "angle_deg": best_deg, "log_evidence": {f"{k:g}": v for k, v in table.items()},
+            "log_evidence_angle": {f"{k:g}": v for k, v in sorted(angles.items())},
+            "log_evidence_length_at_angle": {f"{k:g}": v for k, v in lengths.items()}}
 
 
 # --- cross-validation ------------------------------------------------------------------------------
