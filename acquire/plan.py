@@ -59,6 +59,13 @@ commented example)::
       m: 40
       seed: 0                        # [0]
       k: null                        # weight of O3 in O6 [null: O1/O3 of the start set]
+    adaptive:                        # optional: measure until the answer is good enough (issue 27)
+      stop_when:                     # every criterion given must hold (acquire/run/adaptive.py)
+        interval_deg: 0.01           # every determinable offset's 95 % half-width ≤ this, deg
+        workspace_within_pct: 10     # predicted workspace error within this % of the full plan's
+        held_out_within_pct: 5       # predicted held-out error (model + sensor noise) within this %
+      min_configurations: null       # never stop before [null: twice what the fit needs, ≥ 12]
+      max_configurations: null       # stop here anyway [null: the plan's size]
     sequencing:
       speed: 0.3                     # fraction (0, 1] of the model's joint speeds [0.3]
       settle_window_s: 0.5           # robot still and sensor stable this long [0.5]
@@ -342,12 +349,20 @@ class OutputSpec(_Strict):
     folder: str = Field("runs", min_length=1, description="Folder of the run logs and results, relative to the plan.")
 
 
+#: Candidate model names of the default fit (``calib.fit.model_choice``, ``calib.fit.socket_choice``).
+FIT_MODELS = tuple(f"{k}{c}" for k in ("offsets", "offsets+tool", "offsets+tool+links", "offsets+ball",
+                                       "offsets+ball+links", "full") for c in ("", "+compliance"))
+
+
 class FitSpec(_Strict):
     """Options of the fit that runs on the log at the end (as ``acquire fit``)."""
 
     method: Literal["auto", "fast", "paper"] = Field(
-        "auto", description="auto: the data choose the model by cross-validation (calib.fit.model_choice); fast: the "
-        "link-prior model with the independence sampler; paper: the paper's Metropolis.")
+        "auto", description="auto: the data choose the model by cross-validation (calib.fit.model_choice; socket data: "
+        "calib.fit.socket_choice); fast: the link-prior model with the independence sampler; paper: the paper's "
+        "Metropolis (socket data: identification without a link prior).")
+    model: Literal[FIT_MODELS] | None = Field(  # type: ignore[valid-type]
+        None, description="auto: force this candidate model (as `acquire fit --model`); the comparison table is still written.")
     joints: list[int] | None = Field(None, min_length=1, description="Axis numbers (1-based) to fit; default all.")
     error: Literal["gaussian", "student"] = "gaussian"
     fix_registration: bool = False
@@ -397,6 +412,44 @@ class SocketSpec(_Strict):
     tilt_deg: Range = Field((0.0, 45.0), description="[low, high] tilt of the ball axis from the vertical, degrees.")
 
 
+
+# --- adaptive: measure until the answer is good enough (issue 27) -------------------------------
+class StopWhenSpec(_Strict):
+    """The stop rule of an adaptive run, as a metrologist states it; every given criterion must hold."""
+
+    interval_deg: float | None = Field(None, gt=0, le=1, description="Every determinable offset's 95 % interval "
+                                       "half-width at most this, degrees (predicted from the configurations measured).")
+    workspace_within_pct: float | None = Field(None, ge=0, le=1000, description="Predicted workspace error (the "
+                                               "model's uncertainty) within this many % of what the full plan would reach.")
+    held_out_within_pct: float | None = Field(None, ge=0, le=1000, description="Predicted held-out error (the model's "
+                                              "uncertainty and the sensor's noise) within this many % of the full plan's.")
+
+
+class AdaptiveSpec(_Strict):
+    """Sequential design (``calib.plan.adaptive``): after each configuration the next is chosen among
+    the plan's remaining ones by expected gain per second of motion; the run stops when ``stop_when``
+    holds (or at ``max_configurations``, or when the plan is exhausted)."""
+
+    stop_when: StopWhenSpec = Field(description="interval_deg, workspace_within_pct, held_out_within_pct (each given must hold).")
+    min_configurations: int | None = Field(None, ge=1, le=10000, description="Never stop before this many "
+                                           "configurations are measured [null: twice what the fit needs, at least 12].")
+    max_configurations: int | None = Field(None, ge=1, le=10000, description="Stop at this many even if the rule "
+                                           "is not met [null: the plan's size].")
+
+    def deferred_errors(self) -> list[tuple[tuple, str]]:
+        errors: list[tuple[tuple, str]] = []
+        w = self.stop_when
+        if w.interval_deg is None and w.workspace_within_pct is None and w.held_out_within_pct is None:
+            errors.append((("adaptive", "stop_when"), "a stop rule needs a criterion (given none; allowed any of "
+                                                      "interval_deg: (0, 1], workspace_within_pct: [0, 1000], "
+                                                      "held_out_within_pct: [0, 1000])"))
+        lo, hi = self.min_configurations, self.max_configurations
+        if lo is not None and hi is not None and hi < lo:
+            errors.append((("adaptive", "max_configurations"), f"fewer than min_configurations (given {hi}; "
+                                                               f"allowed ≥ {lo})"))
+        return errors
+
+
 class Plan(_Strict, CrossFieldChecked):
     """The ``plan.yaml`` schema; see the module docstring."""
 
@@ -411,11 +464,13 @@ class Plan(_Strict, CrossFieldChecked):
     output: OutputSpec = OutputSpec()
     fit: FitSpec = FitSpec()
     fake: FakeSpec | None = None
+    adaptive: AdaptiveSpec | None = None  # issue 27: sequential design and its stop rule
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         """Relations between fields that need no robot model, as (field path, message)."""
         errors: list[tuple[tuple, str]] = []
         errors += self._socket_errors()
+        errors += self._adaptive_errors()
         given = [k for k in ("generated", "cartesian", "joints") if getattr(self.poses, k, None) is not None]
         if self.poses is not None and len(given) != 1:
             errors.append((("poses",), f"give exactly one pose source (given: {', '.join(given) or 'none'}; "
@@ -464,6 +519,16 @@ class Plan(_Strict, CrossFieldChecked):
                 if self.fit.joints.index(j) != i:
                     errors.append((("fit", "joints", i), f"axis {j} is listed twice (given {self.fit.joints}; "
                                                          "allowed: each axis once)"))
+        return errors
+
+    def _adaptive_errors(self) -> list[tuple[tuple, str]]:
+        """The adaptive section's own relations, and that it applies to pose plans only."""
+        if self.adaptive is None:
+            return []
+        errors = self.adaptive.deferred_errors()
+        if self.socket is not None:
+            errors.append((("adaptive",), "an adaptive order applies to pose plans (given a socket plan; allowed: "
+                                          "leave adaptive out — the operator guides every socket)"))
         return errors
 
     def _socket_errors(self) -> list[tuple[tuple, str]]:

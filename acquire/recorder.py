@@ -114,6 +114,10 @@ SAMPLE_SCHEMA: dict = {
                     "count": {"type": "integer", "minimum": 0},
                     "device_time": _NUM_OR_NULL,
                     "host_time": _NUM_OR_NULL,
+                    "quat_wxyz": {"type": "array", "items": _NUM, "minItems": 4, "maxItems": 4,
+                                  "description": "6-DoF target only: mean orientation R_sensor←target, unit quaternion, "
+                                                 "scalar first (w, x, y, z)"},
+                    "std_deg": {**_NUM_OR_NULL, "description": "6-DoF target only: attitude spread per axis, degrees"},
                 },
                 "required": ["sensor", "marker", "mean_mm"],
             },
@@ -834,6 +838,19 @@ def _close_truncated(seg: SegmentContents) -> None:
 # --------------------------------------------------------------------------------------------
 # To the fitter
 # --------------------------------------------------------------------------------------------
+def _orientation_columns(rows: dict[str, list]) -> dict:
+    """``rot`` / ``att_std_rad`` for ``from_arrays`` when any row carries an orientation."""
+    quat = np.array(rows["quat"], dtype=float)
+    if not np.isfinite(quat).all(axis=1).any():
+        return {}
+    from calib.robot.transforms import quat_to_matrix
+
+    rot = np.full((len(quat), 3, 3), np.nan)
+    ok = np.isfinite(quat).all(axis=1)
+    rot[ok] = quat_to_matrix(quat[ok])
+    return {"rot": rot, "att_std_rad": np.array(rows["att"], dtype=float)}
+
+
 def dataset_from_run(path: str | Path, model: Any):
     """The run's samples as a ``calib.measure.dataset.Dataset`` (one row per marker measurement).
 
@@ -850,7 +867,7 @@ def dataset_from_run(path: str | Path, model: Any):
     except RunLogError as exc:
         raise DatasetError(str(exc)) from exc
     n = model.n_joints
-    rows: dict[str, list] = {k: [] for k in ("config", "pose", "q", "xyz", "marker", "sensor", "std", "count")}
+    rows: dict[str, list] = {k: [] for k in ("config", "pose", "q", "xyz", "marker", "sensor", "std", "count", "quat", "att")}
     for s in contents.samples:
         cid = s.get("config_id", "?")
         q = s.get("q_measured_deg")
@@ -875,6 +892,11 @@ def dataset_from_run(path: str | Path, model: Any):
             rows["sensor"].append(m.get("sensor") or "sensor")
             rows["std"].append(std_rms)
             rows["count"].append(int(m.get("count") or 0))
+            quat = m.get("quat_wxyz")  # a 6-DoF target (scalar first, R_sensor←target)
+            ok = isinstance(quat, list) and len(quat) == 4 and all(isinstance(v, (int, float)) for v in quat)
+            rows["quat"].append(quat if ok else [math.nan] * 4)
+            att = m.get("std_deg")
+            rows["att"].append(math.radians(att) if ok and isinstance(att, (int, float)) else math.nan)
     if not rows["q"]:
         raise DatasetError(f"{path}: no marker measurements in the run log ({len(contents.samples)} samples)")
     ds = from_arrays(
@@ -886,6 +908,7 @@ def dataset_from_run(path: str | Path, model: Any):
         config=np.array(rows["config"]),
         std_mm=np.array(rows["std"], dtype=float),
         count=np.array(rows["count"], dtype=int),
+        **_orientation_columns(rows),
     )
     ds = replace(ds, source=str(path))
     check_units(ds, model)

@@ -349,6 +349,7 @@ class ConfigProcedure:
                         "mean_mm": [float(x) for x in mm.mean_mm], "std_mm": [float(x) for x in mm.std_mm],
                         "count": int(mm.count), "device_time": _finite(mm.device_time),
                         "host_time": _finite(mm.host_time),
+                        **_orientation(mm),
                     })
         finally:
             q_mean, q_std, _ = sampler.stop()
@@ -379,3 +380,17 @@ def is_joint_sensor(sensor) -> bool:
 def _finite(x) -> float | None:
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+def _orientation(mm) -> dict:
+    """A 6-DoF target's record fields: ``quat_wxyz`` (unit quaternion, scalar first, the mean
+    R_sensor←target) and ``std_deg``; nothing for a point target."""
+    rotation = getattr(mm, "rotation", None)
+    if rotation is None:
+        return {}
+    from calib.robot.transforms import matrix_to_quat
+
+    out = {"quat_wxyz": [float(x) for x in matrix_to_quat(rotation)]}
+    if getattr(mm, "std_deg", None) is not None:
+        out["std_deg"] = float(mm.std_deg)
+    return out

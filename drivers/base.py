@@ -87,6 +87,7 @@ class SensorBase(DeviceBase):
                     raise TargetLostError(f"{self.name}: marker {marker!r} is not visible")
                 got.append(s)
         pos = np.stack([s.position_mm for s in got[:n]])
+        rotation, std_deg = mean_rotation([s.rotation for s in got[:n]])
         return MarkerMeasurement(
             marker=marker,
             mean_mm=pos.mean(axis=0),
@@ -94,7 +95,26 @@ class SensorBase(DeviceBase):
             count=n,
             device_time=got[n - 1].device_time,
             host_time=got[n - 1].host_time,
+            rotation=rotation,
+            std_deg=std_deg,
         )
+
+
+def mean_rotation(rotations: list) -> tuple[np.ndarray | None, float | None]:
+    """The chordal mean (3, 3) of sample orientations and their per-axis spread (degrees: the
+    RMS over axes of each sample's rotation vector against the mean, ddof 1); (None, None) unless
+    every sample has one (a point target, or a body that lost its orientation)."""
+    if not rotations or any(r is None for r in rotations):
+        return None, None
+    from calib.robot.transforms import log_so3
+
+    stack = np.stack([np.asarray(r, dtype=float) for r in rotations])
+    u, _, vt = np.linalg.svd(stack.sum(axis=0))
+    mean = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    if len(stack) < 2:
+        return mean, 0.0
+    w = log_so3(stack @ mean.T)
+    return mean, float(np.degrees(np.sqrt(np.sum(w ** 2) / (3 * (len(stack) - 1)))))
 
 
 #: What ``CommanderBase.check_target`` keeps clear of every joint limit unless told otherwise, rad.

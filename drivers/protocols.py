@@ -20,7 +20,9 @@ class MarkerSample:
     """One marker seen once.
 
     position_mm: shape (3,), sensor frame, mm. ``visible`` is False for an occluded marker
-    (its position is then the last known or NaN and must not be averaged).
+    (its position is then the last known or NaN and must not be averaged). ``rotation``: for a
+    6-DoF target (a rigid body), its frame's orientation (3, 3) ``R_sensor←target`` (rotates
+    target-frame vectors into the sensor frame); None for a point.
     """
 
     marker: str
@@ -30,6 +32,7 @@ class MarkerSample:
     visible: bool = True
     std_mm: float | None = None
     residual_mm: float | None = None
+    rotation: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -37,6 +40,9 @@ class MarkerMeasurement:
     """N samples of one marker averaged while the robot stood still.
 
     mean_mm, std_mm: shape (3,), sensor frame, mm (std is the per-axis sample spread).
+    rotation: for a 6-DoF target, the mean orientation (3, 3) ``R_sensor←target`` (chordal mean);
+    std_deg: its per-axis spread (rotation vector of each sample against the mean, RMS over the
+    axes, degrees); both None for a point.
     """
 
     marker: str
@@ -45,6 +51,8 @@ class MarkerMeasurement:
     count: int
     device_time: float
     host_time: float
+    rotation: np.ndarray | None = None
+    std_deg: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

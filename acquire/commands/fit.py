@@ -217,8 +217,8 @@ def fit(
     ),
     model_name: Optional[str] = typer.Option(
         None, "--model",
-        help="auto: force this candidate (offsets, offsets+tool, offsets+tool+links, full; +compliance with link "
-        "masses) — the table is still printed.",
+        help="auto: force this candidate (offsets, offsets+tool, offsets+tool+links, full; socket data: offsets, "
+        "offsets+ball, offsets+ball+links, full; +compliance with link masses) — the table is still printed.",
     ),
     joints: Optional[str] = typer.Option(None, "--joints", help="Axes to fit, e.g. 2,3,4,5,6,7 (default: all)."),
     fix_registration: bool = typer.Option(False, "--fix-registration", help="Keep the initial registration (no T* correction)."),
@@ -318,9 +318,12 @@ def fit(
         if refused:
             raise typer.BadParameter(f"{', '.join(refused)} do not apply to socket data (no sensor, no registration; "
                                      "held-out placements are scored automatically)", param_hint="DATA")
-        fit_socket_file(data, model, method="fast" if method == "auto" else method, distance_mm=socket_distance,
-                        link_tolerance=_link_tolerance(link_tolerance),
-                        output=output, model_out=model_out, compliance=compliance, dataset=socket_run)
+        # auto: the data choose the model (a --link-tolerance given fixes its link prior); fast: the
+        # link prior of --link-tolerance (default 0.2 mm / 0.02°); full: no link prior.
+        given = fixed_link_tolerance if method == "auto" else link_tolerance
+        fit_socket_file(data, model, method=method, distance_mm=socket_distance,
+                        link_tolerance=None if given is None else _link_tolerance(given),
+                        output=output, model_out=model_out, compliance=compliance, dataset=socket_run, force=model_name)
         return
     refuse_options(method, {"--model-out": model_out is not None})  # a socket fit writes its model (above)
     if socket_distance is not None:
@@ -339,6 +342,9 @@ def fit(
     elif np.any(ds.split == "val"):
         val = ds.validation()
     cal = ds.calibration()
+    if cal.has_orientation and method != "full":
+        typer.echo(f"note: {int(cal.oriented.sum())} rows carry a measured orientation; the zero-offset posterior "
+                   f"(--method {method}) fits their positions only — --method full fits position and attitude together")
     if compliance and method == "paper":
         raise typer.BadParameter("the paper's model has no compliance: use --method fast or full", param_hint="--compliance")
     if not (math.isfinite(tool_prior_mm) and 0 <= tool_prior_mm <= 100):
@@ -473,7 +479,9 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
     lines += [f"  {k}: {v}" for k, v in result.excluded.items()]
     for part, m in doc["metrics"].items():
         b, a = m["before"], m["after"]
-        lines.append(f"{part}: EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → {a['EMCPE']:.3f} mm")
+        lines.append(f"{part}: EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → {a['EMCPE']:.3f} mm"
+                     + (f", EACAE {b['EACAE']:.4f} → {a['EACAE']:.4f}°, EMCAE {b['EMCAE']:.4f} → {a['EMCAE']:.4f}°"
+                        if b.get("EACAE") is not None and a.get("EACAE") is not None else ""))
         if "reregistered" in m:
             rb, ra = m["reregistered"]["before"], m["reregistered"]["after"]
             lines.append(f"{part}, re-registered on its own points (optimistic): EACPE {rb['EACPE']:.3f} → {ra['EACPE']:.3f} mm")

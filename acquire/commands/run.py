@@ -155,7 +155,41 @@ def dry_run_text(lp, configs) -> str:
         f"settle {len(order) * settle:.0f} s ({settle:.2f} s each) + measure {len(order) * measure:.0f} s "
         f"({measure:.2f} s each)"
     )
+    if plan.adaptive is not None:
+        lines += adaptive_dry_run_lines(lp, configs, limits, s.speed, settle + measure, start)
     return "\n".join(lines)
+
+
+def adaptive_dry_run_lines(lp, configs, limits, speed: float, per_config_s: float, start) -> list[str]:
+    """An adaptive plan's estimated cell-time range: the choices it would make if the noise is
+    the plan's ``noise_mm`` (the earliest it can stop), and at most ``max_configurations`` or the
+    whole plan. Raises ConfigError when the stop rule cannot be followed (min_configurations)."""
+    from acquire.run.adaptive import AdaptiveOrder, simulate
+
+    order = AdaptiveOrder(lp, configs, limits, speed, per_config_s)
+    chosen, st = simulate(order, start)
+    rule = order.design.rule
+    low = order.visited_seconds(chosen, start)
+    full = order.full_plan_seconds(start)
+    most = rule.max_configurations or len(configs)
+    high = order.visited_seconds(simulate(order, start, to_the_end=True)[0], start)
+    lines = ["", f"adaptive: the order is chosen as the run goes; stop rule: " + ", ".join(
+        x for x in [f"every determinable offset's 95 % half-width ≤ {rule.interval_deg:g}°" if rule.interval_deg else "",
+                    f"predicted workspace error within {rule.workspace_within_pct:g} % of the full plan's"
+                    if rule.workspace_within_pct is not None else "",
+                    f"predicted held-out error within {rule.held_out_within_pct:g} % of the full plan's"
+                    if rule.held_out_within_pct is not None else ""] if x)
+             + f"; at least {rule.min_configurations}, at most {most} configurations",
+             f"  determinable offsets: {', '.join(order.design.model.offset_names)}",
+             f"  if the noise is the plan's ({order.noise_mm:g} mm): stops after {len(chosen)} configurations, "
+             f"{low:.0f} s ({st.reason})",
+             f"  the full plan would reach: largest half-width "
+             f"{max(order.design.half_widths_deg(order.design.covariance(range(len(configs)))).values()):.4f}°, "
+             f"workspace error {st.full_workspace_mm:.4f} mm, held-out error {st.full_held_out_mm:.4f} mm",
+             f"estimated cell time range: {low:.0f}–{high:.0f} s ({low / 60:.1f}–{high / 60:.1f} min; the full plan "
+             f"{full:.0f} s); more noise than the plan says means more configurations",
+             "  first choices: " + " ".join(c.config_id for c in chosen[:12]) + (" …" if len(chosen) > 12 else "")]
+    return lines
 
 
 def _initial_q(lp, fake) -> np.ndarray:

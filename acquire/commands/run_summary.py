@@ -32,6 +32,27 @@ def socket_summary_lines(doc: dict) -> list[str]:
     return lines
 
 
+def adaptive_summary_lines(ad: dict) -> list[str]:
+    """An adaptive run: why it stopped, the predicted intervals against the number of
+    configurations (a few rows), and the estimated cell time against the full plan's."""
+    lines = [f"adaptive: stopped after {ad['measured']} of {ad['candidates']} configurations — {ad['reason']}"]
+    hist = ad.get("history") or []
+    if hist:
+        step = max(1, len(hist) // 8)
+        rows = hist[::step] + ([hist[-1]] if (len(hist) - 1) % step else [])
+        lines.append("  configurations  largest 95 % half-width (deg)  predicted workspace / held-out error (mm)")
+        for h in rows:
+            lines.append(f"  {h['n']:>14}  {h['max_half_width_deg']:>29.4f}  {h['workspace_mm']:>18.4f} / "
+                         f"{h.get('held_out_mm', float('nan')):.4f}")
+        lines.append(f"  (the full plan would reach {hist[-1]['full_workspace_mm']:.4f} / "
+                     f"{hist[-1].get('full_held_out_mm', float('nan')):.4f} mm; σ used {ad['sigma_mm']:.4f} mm)")
+    saved = ad.get("saved_seconds")
+    if saved is not None:
+        lines.append(f"  estimated cell time {ad['estimated_seconds']:.0f} s against {ad['full_plan_seconds']:.0f} s for "
+                     f"the full plan: {saved:.0f} s ({ad.get('saved_pct') or 0:.0f} %) saved")
+    return lines
+
+
 def format_run_summary(summary, lp, truth: list | None = None, sag: list | None = None) -> str:
     """The summary a person reads. ``truth`` / ``sag``: a simulated cell's hidden zero-offsets
     and mean gravity sag per joint (deg), shown beside the fit when given."""
@@ -43,6 +64,8 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
     ]
     for cid, reason in list(summary.skipped_reasons.items())[:20]:
         lines.append(f"  not measured {cid}: {reason}")
+    if getattr(summary, "adaptive", None):
+        lines += adaptive_summary_lines(summary.adaptive)
     if summary.fit is not None:
         names = lp.model.axis_names
         head = f"{'joint':<6} {'fitted (deg)':>13} {'± std':>8}"
@@ -64,10 +87,11 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
             lines.append(row)
         choice = summary.fit.get("model_choice")
         if choice:
-            chosen = next(c for c in choice["candidates"] if c["model"] == choice["chosen"])
-            lines.append(f"model: {choice['chosen']} (chosen by {choice['folds']}-fold cross-validation: held-out "
-                         f"{chosen['cv_mean_mm']:.3f} ± {chosen['cv_se_mm']:.3f} mm, uncalibrated "
-                         f"{choice['nominal']['cv_mean_mm']:.3f} mm; the table is in result.json)")
+            from calib.fit.model_choice import format_table
+
+            lines.append(format_table(choice))
+            if summary.fit.get("model_file"):
+                lines.append(f"corrected model (full identification): {display_path(Path(summary.fit['model_file']))}")
         for reason in summary.fit.get("do_not_enter") or []:
             lines.append(f"DO NOT ENTER: {reason}")
         diag = summary.fit.get("diagnostics", {})

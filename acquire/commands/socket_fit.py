@@ -32,17 +32,29 @@ MAX_PLAUSIBLE_PLAY_MM = 1.0
 #: An offset whose 95 % interval is wider than ± this (degrees) is too weakly determined to
 #: enter: the correction could be worse than leaving the axis as it is.
 MAX_ENTER_CI95_DEG = 0.1
+#: "Enter" needs the chosen model's held-out rms distance within this many times the fitted play
+#: (3-D, √3 σ_point): a model that predicts new placements far worse than it fits its own data
+#: does not describe the arm.
+MAX_HELDOUT_OVER_PLAY = 3.0
 
 
 def _deg(kind: str) -> bool:
     return kind in ("offset", "alpha", "beta")
 
 
-def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, folds, method: str) -> dict:
-    """result.json for a socket fit (mm, degrees)."""
+def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, folds, method: str,
+                       choice=None) -> dict:
+    """result.json for a socket fit (mm, degrees); ``choice``: the model choice
+    (``calib.fit.socket_choice.SocketChoice``) of ``--method auto``, whose table goes under
+    ``model_choice`` and whose rules (``earned_reasons``) "enter" must meet."""
     chain = Chain(model)
     names = chain.param_names
     trusted, why = trust(fit)
+    mc = choice.to_dict() if choice is not None else None
+    if trusted and mc is not None:
+        reasons = earned_socket_reasons(mc, fit)
+        if reasons:
+            trusted, why = False, "; ".join(reasons)
     offsets = []
     for i, ax in enumerate(model.axis_names):
         name = f"{ax}.offset"
@@ -74,10 +86,10 @@ def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, fol
         params.append({"name": name, "nominal": f(chain.nominal[i]) if i < chain.marker_slice().start else None,
                        "value": f(fit.params[i]), "std": f(fit.std[i]), "unit": "deg" if _deg(kind) else "mm"})
     ball, ball_sd = fit.ball(chain)
-    return {
+    doc = {
         "kind": "socket",
         "method": method,
-        "fit_model": {"method": method, "description": fit.model_description(),
+        "fit_model": {"method": method, "model": mc["chosen"] if mc else None, "description": fit.model_description(_prior_words(mc)),
                       "link_prior": None if fit.tolerance is None else {"mm": fit.tolerance[0], "deg": fit.tolerance[1]},
                       "compliance": fit.compliance is not None},
         "robot": {"name": model.name, "source": model.source},
@@ -108,6 +120,34 @@ def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, fol
         "do_not_enter_reason": "" if trusted else why,
         "warnings": fit.warnings + fit.weak,
     }
+    if mc is not None:
+        doc["model_choice"] = mc
+    return doc
+
+
+def _prior_words(mc: dict | None) -> str:
+    """How the chosen model's link prior was set, for ``SocketFit.model_description``."""
+    scale = (mc or {}).get("link_scale") or {}
+    if mc is None or mc["chosen"] not in scale:
+        return "a fixed prior"
+    return "a given prior" if scale[mc["chosen"]].get("given") else "an empirical-Bayes prior (max evidence)"
+
+
+def earned_socket_reasons(mc: dict, fit: SocketFit) -> list[str]:
+    """Why "enter" is not earned by the model choice ``mc`` (``SocketChoice.to_dict``) and the chosen
+    fit: the tracker's rules (``calib.robot.controller.earned_reasons``: every fold fitted, better
+    than the data sheet on held-out placements, held-out error below the guard) and a held-out rms
+    within ``MAX_HELDOUT_OVER_PLAY`` × the fitted play."""
+    from calib.robot.controller import earned_reasons
+
+    reasons = earned_reasons({"model_choice": mc})
+    chosen = next((c for c in mc["candidates"] if c["model"] == mc["chosen"]), None)
+    play = math.sqrt(3.0) * fit.sigma_point_mm
+    if chosen and chosen.get("cv_rms_mm") is not None and chosen["cv_rms_mm"] > MAX_HELDOUT_OVER_PLAY * play:
+        reasons.append(f"held-out {mc['grouped_by']}s are predicted to {chosen['cv_rms_mm']:.3f} mm rms, more than "
+                       f"{MAX_HELDOUT_OVER_PLAY:g}× the ball's play in the fitted data ({play:.3f} mm): the model does "
+                       "not carry over to new placements (see the model-choice table)")
+    return reasons
 
 
 def trust(fit: SocketFit) -> tuple[bool, str]:
@@ -125,7 +165,15 @@ def format_socket_summary(doc: dict) -> str:
              f"({doc['data']['n_configurations']} configurations, {len(doc['data']['groups'])} placement/socket groups)"]
     fm = doc.get("fit_model")
     if fm:
-        lines.append(f"method: {fm['method']} — fitted model: {fm['description']}")
+        chosen = f" — model {fm['model']}" if fm.get("model") else ""
+        lines.append(f"method: {fm['method']}{chosen} — fitted model: {fm['description']}")
+    if doc.get("model_choice"):
+        from calib.fit.model_choice import format_table
+
+        lines += [format_table(doc["model_choice"])]
+        for name, sc in (doc["model_choice"].get("link_scale") or {}).items():
+            how = "given" if sc.get("given") else "empirical Bayes, max evidence"
+            lines.append(f"  link prior of {name} ({how}): lengths ±{sc['length_mm']:g} mm, angles ±{sc['angle_deg']:g}°")
     lines.append("")
     lines.append(f"{'joint':<6} {'offset (deg)':>12} {'± std':>8}  status")
     for j in doc["joint_offsets"]:
@@ -207,22 +255,42 @@ def write_socket_model(model: RobotModel, fit: SocketFit, path: Path) -> Path:
     return path
 
 
+def run_socket_fit(model: RobotModel, ds: SocketDataset, *, method: str, link_tolerance: tuple[float, float] | None,
+                   compliance: bool = False, force: str | None = None) -> tuple[dict, SocketFit]:
+    """The socket fit of ``method``: auto (the data choose the model, ``calib.fit.socket_choice``;
+    ``force``: ``--model``; ``link_tolerance`` given: that link prior instead of the empirical
+    Bayes one; ``compliance``: only the compliance candidates), fast (the link prior
+    ``link_tolerance``) or full (no link prior). Returns (result document, fit)."""
+    choice = None
+    if method == "auto":
+        from calib.fit.socket_choice import choose_socket_model, chosen_options
+
+        choice = choose_socket_model(model, ds, force=force, link_tolerance=link_tolerance,
+                                     compliance_only=compliance and model.has_dynamics)
+        options = chosen_options(model, choice)
+    else:
+        options = {"tolerance": None if method == "full" else link_tolerance, "compliance": compliance}
+    fit = fit_socket(model, ds, **options)
+    folds = leave_one_placement_out(model, ds, **options) if len(ds.placements) >= 3 else []
+    return socket_result_dict(model, ds, fit, folds, method, choice), fit
+
+
 def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: float | None,
                     link_tolerance: tuple[float, float] | None, output: Path | None, model_out: Path | None,
-                    compliance: bool = False, dataset: SocketDataset | None = None) -> dict:
-    """Fit a socket CSV (or ``dataset``, e.g. a socket run's, ``read_socket_run``); print the
-    summary; write the result and the corrected model. Exits 1 when the values must not be entered."""
+                    compliance: bool = False, dataset: SocketDataset | None = None, force: str | None = None) -> dict:
+    """Fit a socket CSV (or ``dataset``, e.g. a socket run's, ``read_socket_run``) by ``method``
+    (``run_socket_fit``); print the summary; write the result and the corrected model. Exits 1 when
+    the values must not be entered."""
     from calib.fit.result import write_result
 
     try:
         ds = dataset if dataset is not None else read_socket_csv(path, model.n_joints, distance_mm=distance_mm)
-        # fast: the link prior of the fast fit (--link-tolerance); full: identification without it.
-        tolerance = None if method == "full" else link_tolerance
-        fit = fit_socket(model, ds, tolerance=tolerance, compliance=compliance)
-        folds = leave_one_placement_out(model, ds, tolerance=tolerance, compliance=compliance) if len(ds.placements) >= 3 else []
+        doc, fit = run_socket_fit(model, ds, method=method, link_tolerance=link_tolerance, compliance=compliance,
+                                  force=force)
     except SocketDataError as exc:
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
-    doc = socket_result_dict(model, ds, fit, folds, method)
+    except ValueError as exc:  # an unknown --model
+        raise typer.BadParameter(str(exc), param_hint="--model") from exc
     typer.echo(format_socket_summary(doc))
     if model_out is None and output is not None:
         model_out = output.with_name(output.stem + ".model.yaml")

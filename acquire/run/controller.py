@@ -101,6 +101,7 @@ class RunController:
         self._thread: Optional[threading.Thread] = None
         self._done_evt = threading.Event()
         self._summary: Optional[RunSummary] = None
+        self.adaptive_summary: Optional[dict] = None  # an adaptive run's stop reason, history, time saved
 
     # ------------------------------------------------------------------ what callers read and set
     bus = property(lambda self: self.pub.bus, lambda self, v: setattr(self.pub, "bus", v))
@@ -238,9 +239,16 @@ class RunController:
         if st.aborting.is_set():
             return finish(self, 0.0)
         start_q = np.asarray(cmd.first_state(FIRST_STATE_TIMEOUT_S).position_rad, dtype=float)
-        order = order_configurations(todo, start_q, cmd.limits, s.speed)
         rates = [prepare.SENSOR_RATE_HZ.get(sp.driver, 100.0) for sp in self.plan.sensors]
         per_config = estimate_settle_s(s.settle_window_s) + estimate_measure_s(s.samples, rates)
+        adaptive = None
+        if self.plan.adaptive is not None:  # the order is chosen as the run goes (acquire.run.adaptive)
+            from acquire.run.adaptive import AdaptiveRun
+
+            adaptive = AdaptiveRun(lp, configs, cmd, s.speed, per_config, self._resumed, ended, start_q)
+            order = adaptive.predicted
+        else:
+            order = order_configurations(todo, start_q, cmd.limits, s.speed)
         with st.lock:
             st.remaining_est = list(move_times(order, start_q, cmd.limits, s.speed) + per_config)
         self.pub.runlog, path = prepare.open_run_log(
@@ -249,17 +257,21 @@ class RunController:
         with st.lock:
             st.log_path = path
         runner = self._runner(cmd, sensors)
-        self.pub.event("run_started", resumed=self._resumed is not None, todo=len(order), total=len(configs),
-                       order=[c.config_id for c in order])
+        self.pub.event("run_started", resumed=self._resumed is not None, todo=len(todo), total=len(configs),
+                       order=[c.config_id for c in order] if adaptive is None else [])
+        if adaptive is not None:
+            self.pub.event("adaptive_started", **adaptive.started_fields())
         st.set("running")
         t_cell0 = cell.clock()
         st.loop_wall0 = time.monotonic()
         streak = 0
-        for cfg in order:
+        for cfg in (order if adaptive is None else adaptive.choices(self.pub.event)):
             if not st.checkpoint():
                 break
             st.begin(cfg.config_id)
             outcome = runner.measure(cfg)
+            if adaptive is not None:
+                adaptive.outcome(cfg, outcome, runner.last_record)
             if outcome == "abort":  # the interrupted configuration is not done: a resume measures it
                 st.aborting.set()
                 break
@@ -268,6 +280,9 @@ class RunController:
             if streak >= MAX_CONSECUTIVE_FAILURES:
                 raise RunError(f"{streak} configurations failed in a row (last: {st.skip_reasons.get(cfg.config_id)}); "
                                "the cell is not usable — fix it and resume the run")
+        if adaptive is not None:
+            self.adaptive_summary = adaptive.summary()
+            self.pub.event("adaptive_stop", **self.adaptive_summary)
         return finish(self, cell.clock() - t_cell0)
 
     def _runner(self, cmd, sensors) -> ConfigurationRunner:

@@ -61,6 +61,7 @@ def finish(ctl, cell_seconds: float):
     end = "aborted" if aborted else "finished"
     summary = state.summary()
     summary.cell_seconds = cell_seconds
+    summary.adaptive = getattr(ctl, "adaptive_summary", None)
     reason = state.reason if aborted else ""
     if not aborted and ctl.fit_enabled and state.log_path is not None:
         if state.measured == 0:
@@ -71,6 +72,8 @@ def finish(ctl, cell_seconds: float):
                 summary.fit, summary.result_path, summary.report_path = fit_run_log(state.log_path, ctl.lp)
             except (ValueError, RuntimeError, ArithmeticError) as exc:
                 reason = f"no result: the fit of {state.measured} measured configuration(s) failed: {exc}"
+            if summary.fit is not None and summary.adaptive is not None:
+                _add_adaptive(summary)
         if summary.fit is None:
             log.error("run %s: %s", state.run_id, reason)
             end = "failed"
@@ -81,3 +84,24 @@ def finish(ctl, cell_seconds: float):
     summary.reason = reason
     pub.release_bus()  # after the final state went out on the bus
     return summary
+
+
+def _add_adaptive(summary) -> None:
+    """An adaptive run's summary into ``result.json`` (``adaptive``): why it stopped, the predicted
+    intervals against the number of configurations, the cell time saved against the full plan."""
+    from calib.fit.result import write_result
+
+    summary.fit["adaptive"] = summary.adaptive
+    if summary.result_path is not None:
+        write_result(summary.result_path, summary.fit)
+    if summary.report_path is not None:  # the report was written by the fit: add the section before its end
+        from calib.report.report_adaptive import adaptive_section
+
+        try:
+            text = summary.report_path.read_text(encoding="utf-8")
+            end = text.rfind("</body>")
+            if end >= 0:
+                section = "\n".join(adaptive_section(summary.adaptive)) + "\n"
+                summary.report_path.write_text(text[:end] + section + text[end:], encoding="utf-8")
+        except OSError as exc:
+            log.warning("report: the adaptive run's section not added: %s", exc)

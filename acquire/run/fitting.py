@@ -82,9 +82,11 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
 
 
 def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> tuple[dict, Path, Path | None]:
-    """The plan's ``fit.method: auto``: ``calib.fit.auto_fit`` (the data choose among the offsets models;
-    a link scale set in the plan is used instead of the empirical Bayes one; ``fit.compliance``:
-    only the candidates with compliance)."""
+    """The plan's ``fit.method: auto``: ``calib.fit.auto_fit`` (the data choose the model, full
+    identification among the candidates; a link scale set in the plan is used instead of the
+    empirical Bayes one; ``fit.compliance``: only the candidates with compliance, which leaves full
+    identification out — the table says so). When full identification is chosen, the corrected
+    model ``model.yaml`` is written beside the log and the report is the identification's."""
     from dataclasses import replace
 
     from calib.fit.auto_fit import auto_fit
@@ -92,16 +94,26 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
 
     given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
     done = auto_fit(model, cal, val, replace(options, method="laplace", compliance=False),
-                    link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random, include_full=False,
-                    compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics)
+                    link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random,
+                    force=getattr(fit, "model", None), compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics)
+    if done.ident is not None:
+        from calib.fit.identification import corrected_model, write_model_yaml
+
+        model_path = base.with_name("model.yaml")
+        write_model_yaml(corrected_model(model, done.ident.params), model_path)
+        done.doc["model_file"] = str(model_path)
     result_path = base.with_name("result.json")
     write_result(result_path, done.doc)
-    report_path = None
+    report_path = base.with_name("report.html")
     try:
-        from calib.report.html import write_report
+        if done.ident is not None:
+            from calib.report.report_ident import write_ident_report
 
-        report_path = base.with_name("report.html")
-        write_report(report_path, done.result, cal, done.doc, done.controller_text)
+            write_ident_report(report_path, done.ident, cal, done.doc)
+        else:
+            from calib.report.html import write_report
+
+            write_report(report_path, done.result, cal, done.doc, done.controller_text)
     except (ImportError, ValueError, RuntimeError, OSError) as exc:
         log.warning("report not written (use `acquire fit %s`): %s", base, exc)
         report_path = None
@@ -109,24 +121,25 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
 
 
 def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
-    """Fit a socket run (``calib.fit.socket.fit_socket``; held-out placements with three or more):
-    ``result.json`` and the corrected model ``model.yaml`` beside the log. The plan's
-    ``fit.method`` fast uses the link prior (``link_tolerance_*``), paper identifies without it."""
-    from acquire.commands.socket_fit import read_socket_run, socket_result_dict, write_socket_model
+    """Fit a socket run (``acquire.commands.socket_fit.run_socket_fit``; held-out placements with
+    three or more): ``result.json`` and the corrected model ``model.yaml`` beside the log. The
+    plan's ``fit.method`` auto (the default) lets the data choose the model (a link prior set in the
+    plan fixes its scale), fast uses the link prior (``link_tolerance_*``), paper/full identify
+    without it."""
+    from acquire.commands.socket_fit import read_socket_run, run_socket_fit, write_socket_model
     from calib.fit.result import write_result
-    from calib.fit.socket import fit_socket, leave_one_placement_out
 
     model, fit = lp.model, lp.plan.fit
     ds = read_socket_run(Path(log_path), model.n_joints, distance_mm=lp.plan.socket.distance_mm)
     if ds is None:
         raise ValueError(f"{log_path}: no socket records to fit")
-    method = "fast" if getattr(fit, "method", "fast") == "fast" else "full"
-    tolerance = _link_tolerance(fit) if method == "fast" else None
+    method = getattr(fit, "method", "auto") or "auto"
+    method = method if method in ("auto", "fast") else "full"
+    given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
+    tolerance = _link_tolerance(fit) if method == "fast" or given else None
     compliance = bool(getattr(fit, "compliance", False))
-    result = fit_socket(model, ds, tolerance=tolerance, compliance=compliance)
-    folds = leave_one_placement_out(model, ds, tolerance=tolerance, compliance=compliance) \
-        if len(ds.placements) >= 3 else []
-    doc = socket_result_dict(model, ds, result, folds, method)
+    doc, result = run_socket_fit(model, ds, method=method, link_tolerance=tolerance, compliance=compliance,
+                                 force=getattr(fit, "model", None) if method == "auto" else None)
     base = Path(log_path)
     doc["model_file"] = str(write_socket_model(model, result, base.with_name("model.yaml")))
     result_path = base.with_name("result.json")

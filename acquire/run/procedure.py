@@ -81,6 +81,7 @@ class ConfigurationRunner:
         )
         self.proc = ConfigProcedure(commander, sensors, settings, clock=clock, sleep=sleep, event=pub.event,
                                     on_reading=pub.reading)
+        self.last_record: Optional[dict] = None  # the last sample record written
 
     @property
     def aborting(self) -> bool:
@@ -182,6 +183,7 @@ class ConfigurationRunner:
         held where it settled, and ``RunController`` fails the run with its one line.
         """
         self.pub.sample(record)
+        self.last_record = record  # an adaptive run's design reads it (acquire.run.adaptive)
         return None
 
     # ------------------------------------------------------------------ helpers

@@ -36,6 +36,7 @@ class RunSummary:
     report_path: Optional[Path] = None
     fit: Optional[dict] = None
     skipped_reasons: dict = field(default_factory=dict)
+    adaptive: Optional[dict] = None  # an adaptive run: why it stopped, intervals vs configurations, time saved
 
     @property
     def exit_code(self) -> int:

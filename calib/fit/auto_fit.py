@@ -20,11 +20,35 @@ from calib.robot.model import RobotModel
 from calib.fit.model_choice import ModelChoice, choose_model, options_for, parse_candidate
 
 
+def ident_joint_offsets(doc: dict, model: RobotModel) -> list[dict]:
+    """The zero-offsets of a full identification's document (``ident_result_dict``) as the offsets
+    fits' ``joint_offsets`` entries (degrees, wrapped to (−180°, 180°], 95 % interval), so that the
+    run summary and the values to enter read them alike: "do not enter" with the reasons of
+    ``doc["do_not_use"]``, "undetermined" for an offset the data did not identify. The rest of the
+    identified model (link parameters, tool) is in the corrected model file, not on the controller."""
+    from calib.robot.canonical import wrap_deg
+
+    params = {p["name"]: p for p in doc["parameters"]}
+    refused = "; ".join(doc.get("do_not_use") or [])
+    out = []
+    for i, ax in enumerate(model.axis_names):
+        p = params.get(f"{ax}.offset")
+        ok = bool(p and p["identified"] and p["std"] is not None)
+        value = wrap_deg(p["value"]) if ok else None
+        half = 1.96 * p["std"] if ok else None
+        status = "undetermined" if not ok else ("do not enter" if refused else "fitted")
+        reason = (p or {}).get("reason", "not identified by this data") if not ok else refused
+        out.append({"joint": ax, "index": i + 1, "identifiable": status == "fitted", "value_deg": value,
+                    "std_deg": p["std"] if ok else None, "ci95_deg": [value - half, value + half] if ok else None,
+                    "status": status, "reason": reason})
+    return out
+
+
 @dataclass
 class AutoFit:
     """``doc``: the result document; ``refused``: why not to enter (or use) it, [] if earned;
     ``result`` (offsets models) or ``ident`` (full) is the fit itself; ``controller_text``: the
-    values to enter (offsets models)."""
+    values to enter (for full: its zero-offsets, ``ident_joint_offsets``)."""
 
     choice: ModelChoice
     doc: dict
@@ -62,7 +86,10 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
         refused += [f"tool: {w}" for w in ident.warnings if w.startswith("markers fitted far outside their prior")]
         ident.do_not_use.extend(refused)
         doc["do_not_use"] = list(ident.do_not_use)
-        return AutoFit(choice, doc, list(ident.do_not_use), ident=ident)
+        doc["joint_offsets"] = ident_joint_offsets(doc, model)
+        values = controller_values(model, doc["joint_offsets"])
+        doc["controller"] = values.to_dict()
+        return AutoFit(choice, doc, list(ident.do_not_use), ident=ident, controller_text=values.format())
     scale = choice.link_scale
     tolerance = (scale["length_mm"], scale["angle_deg"]) if scale else None
     options = options_for(candidate, base, tolerance)

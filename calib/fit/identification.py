@@ -33,9 +33,19 @@ solved too (``_flip_screen``).
 back, the forward kinematics of every measured marker checked unchanged; ``IdentResult.canonical``
 says what was mapped.
 
-Residuals: positions (mm). Where orientation is measured (``rotation`` given), the fused
-objective of the seed's eq. 19 is used: Σ L·(|Δn|² + |Δo|² + |Δa|²) + |Δp|² with L = 100 by
-default (rotation columns are unitless, so L has units of mm²).
+Residuals: positions (mm). Where orientation is measured (pose rows: ``Dataset.rot``, a 6-DoF
+target's frame ``R_sensor←target``), each such row adds the attitude residual as a **rotation
+vector**, ``log(R_measured · R_predicted⁻¹)`` (rad, sensor frame; never Euler angles), with
+R_predicted = R_registration · R_flange(q) · R_target, weighted by σ_position / σ_attitude (the
+data's median ``std_mm`` over the row's ``att_std_rad``) so that both kinds count by their stated
+uncertainty; where the data state no spreads, by √L (``IdentOptions.orientation_weight``, L in
+mm², the role of the seed's eq. 19 factor). The target's frame on the flange, R_target, is
+fitted per marker (three ``{marker}.frame_r*`` columns, a rotation vector applied on the flange
+side): about the model's ``rpy_deg`` under a Gaussian prior (``tool_rotation_prior_deg``; 0:
+exact), or freely from a start the data give when the model has none. A turn of the target about
+the last axis cannot be told from that axis's offset: the frame takes it (like the markers'
+positions) unless it is known (prior 0), and then orientation identifies the last offset even
+from one marker on the last axis (``calib.fit.pose_identifiability``).
 """
 
 from __future__ import annotations
@@ -54,7 +64,8 @@ from calib.plan.identifiability import exact_tolerance
 from calib.robot.kinematics import KINDS, Chain
 from calib.robot.model import RobotModel
 from calib.fit.multistart import StartOutcome, disagreement, solve_from
-from calib.robot.transforms import apply, euler_zyx_to_matrix, matrix_to_euler_zyx
+from calib.robot.transforms import (apply, euler_zyx_to_matrix, exp_so3, log_so3, matrix_to_euler_zyx,
+                                    so3_left_jacobian, so3_left_jacobian_inv)
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +82,9 @@ class IdentOptions:
     ``n_starts``, ``seed``, ``start_spread``, ``disagree_rel``: the multi-start solve (``identify``)."""
 
     orientation_weight: float = 100.0
+    #: Prior std (degrees per axis) of a 6-DoF target's frame about the model's ``rpy_deg``; 0:
+    #: taken as exact. A marker without ``rpy_deg`` has its frame fitted without a prior.
+    tool_rotation_prior_deg: float = 2.0
     rank_tol: float = 1e-6
     exclude: tuple[str, ...] = ()
     exclude_reasons: tuple[tuple[str, str], ...] = ()
@@ -117,6 +131,12 @@ class IdentResult:
     do_not_use: list[str] = field(default_factory=list)
     #: How the solution was mapped onto the nominal model's branch (``calib.robot.canonical``); [] if not.
     canonical: list[str] = field(default_factory=list)
+    #: Pose rows: each measured marker's target frame in the flange frame, (3, 3) ``R_flange←target``,
+    #: and its std per axis (rad, (3,); NaN where not fitted). Empty without orientation data.
+    tool_frames: dict[str, np.ndarray] = field(default_factory=dict)
+    tool_frame_std_rad: dict[str, np.ndarray] = field(default_factory=dict)
+    #: Attitude rows' weight (mm per rad) and how it was chosen; None without orientation data.
+    attitude_weight: dict | None = None
 
     @property
     def chain_names(self) -> list[str]:
@@ -145,10 +165,13 @@ class _Problem:
         self.rows_of = [np.flatnonzero(self.sidx == s) for s in range(len(self.sensors))]
         self.uq, self.inv = np.unique(data.q_rad, axis=0, return_inverse=True)
         self.inv = self.inv.ravel()
+        if rotation is None and data.has_orientation:
+            rotation = data.rot
         self.rotation = rotation
-        self.sqrt_w = math.sqrt(weight)
         self.P = chain.n_params
         self.names = list(chain.param_names) + [f"{s}.{r}" for s in self.sensors for r in REG]
+        if rotation is not None:
+            self._init_orientation(np.asarray(rotation, dtype=float), weight)
         #: Joint-angle change per µrad/(N·m) of compliance per distinct configuration (u, n), or None.
         self.gain = None
         if compliance:
@@ -159,6 +182,50 @@ class _Problem:
             self.gain = chain.sign * gravity_torques(chain, self.uq) * 1e-6
             self.names += [f"{ax}.compliance" for ax in chain.model.axis_names]
         self.n_reg = 6 * len(self.sensors)
+        if self.rotation is not None:
+            self.frame_start = len(self.names)
+            self.names += [f"{m}.frame_{a}" for m in self.frame_markers for a in ("rx", "ry", "rz")]
+
+    def _init_orientation(self, rotation: np.ndarray, weight: float) -> None:
+        """Pose rows, their weights and the targets' nominal frames on the flange."""
+        data, chain = self.data, self.chain
+        ok = np.isfinite(rotation).all(axis=(1, 2))
+        self.orows = np.flatnonzero(ok)
+        self.r_meas = rotation[self.orows]
+        self.frame_markers = sorted(set(data.marker[self.orows].tolist()))
+        self.fidx = _lookup(data.marker[self.orows], self.frame_markers)
+        sp = float(np.nanmedian(data.std_mm)) if np.isfinite(data.std_mm).any() else math.nan
+        att = data.att_std_rad[self.orows] if data.att_std_rad is not None else np.full(self.orows.size, np.nan)
+        if math.isfinite(sp) and sp > 0 and np.isfinite(att).any():
+            att = np.where(np.isfinite(att) & (att > 0), att, np.nanmedian(att[att > 0]) if (att > 0).any() else np.nan)
+            self.att_w = sp / att
+            self.weight_info = {"how": "σ_position / σ_attitude of each row (the data's spreads)",
+                                "sigma_position_mm": sp, "median_mm_per_rad": float(np.median(self.att_w))}
+        else:
+            self.att_w = np.full(self.orows.size, math.sqrt(weight))
+            self.weight_info = {"how": f"√L with L = {weight:g} mm² (the data state no spreads)",
+                                "median_mm_per_rad": math.sqrt(weight)}
+        # Nominal target frames: the model's rpy_deg, else the mean of what the data say at nominal.
+        frames, known = [], []
+        f_rot, _ = chain.flange_pose(data.q_rad[self.orows])
+        sensor_r = self.b2s0[self.sidx[self.orows], :3, :3]
+        for m in self.frame_markers:
+            rpy = chain.model.tool.markers[chain.model.marker_index(m)].rpy_deg
+            known.append(rpy is not None)
+            if rpy is not None:
+                frames.append(euler_zyx_to_matrix(*np.radians([rpy[2], rpy[1], rpy[0]])))
+                continue
+            rows = self.fidx == self.frame_markers.index(m)
+            est = np.einsum("kji,kjl->kil", np.einsum("kij,kjl->kil", sensor_r[rows], f_rot[rows]), self.r_meas[rows]).sum(0)
+            u, _, vt = np.linalg.svd(est)  # chordal mean on SO(3)
+            frames.append(u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt)
+        self.frame0 = np.array(frames).reshape(-1, 3, 3)
+        self.frame_known = known
+
+    def target_frames(self, x: np.ndarray) -> np.ndarray:
+        """(F, 3, 3) ``R_flange←target`` of each frame marker at the vector x."""
+        phi = x[self.frame_start: self.frame_start + 3 * len(self.frame_markers)].reshape(-1, 3)
+        return exp_so3(phi) @ self.frame0
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return x[: self.P], x[self.P : self.P + 6 * len(self.sensors)].reshape(len(self.sensors), 6)
@@ -173,7 +240,7 @@ class _Problem:
         params, reg = self.split(x)
         k = len(self.data)
         rot = euler_zyx_to_matrix(reg[:, 3], reg[:, 4], reg[:, 5])  # (S,3,3) T* rotations
-        need_kin_jac = want_jac or self.rotation is not None or self.gain is not None
+        need_kin_jac = want_jac or self.gain is not None
         if need_kin_jac:
             fj = self.chain.flange_jacobian(self.uq, params)
             f_rot, f_pos = fj.rotation, fj.position  # (u,3,3), (u,3)
@@ -196,8 +263,11 @@ class _Problem:
             pred[rows] = rp + reg[s, :3]
         res = [(self.data.xyz_mm - pred).ravel()]
         if self.rotation is not None:
-            r_pred = sensor_r[self.sidx] @ f_rot[self.inv]
-            res.append(self.sqrt_w * (self.rotation - r_pred).reshape(k, 9).ravel())
+            o = self.orows
+            frames = self.target_frames(x)
+            r_pred = sensor_r[self.sidx[o]] @ f_rot[self.inv[o]] @ frames[self.fidx]  # (ko,3,3)
+            e = log_so3(self.r_meas @ np.swapaxes(r_pred, 1, 2))  # (ko,3) rad, sensor frame
+            res.append((self.att_w[:, None] * e).ravel())
         r = np.concatenate(res)
         if not want_jac:
             return r, None
@@ -230,17 +300,22 @@ class _Problem:
                 jp[rows, :, c + 3 + ax] = np.cross(axes[ax][s], rp)
         blocks = [-jp.reshape(3 * k, -1)]
         if self.rotation is not None:
-            # d(R_total R_f)/dξ column by column: ω × column (ω in the sensor frame).
-            jr = np.zeros((k, 3, 3, n_cols))
-            wk = np.einsum("kij,kjp->kip", sensor_r[self.sidx], fj.jw[self.inv])  # (k,3,P)
-            for col in range(3):
-                jr[:, :, col, : self.P] = np.cross(wk, r_pred[:, :, col][:, :, None], axis=1)
-            for s, rows in enumerate(self.rows_of):
-                c = self.P + 6 * s
-                for ax in range(3):
-                    for col in range(3):
-                        jr[rows, :, col, c + 3 + ax] = np.cross(axes[ax][s], r_pred[rows, :, col])
-            blocks.append(-self.sqrt_w * jr.reshape(9 * k, -1))
+            # R_pred → exp(ω·dξ) R_pred (ω in the sensor frame) moves e by −J_l(−e)⁻¹ ω dξ.
+            ko = o.size
+            w = np.zeros((ko, 3, n_cols))
+            so = sensor_r[self.sidx[o]]
+            w[:, :, : self.P] = np.einsum("kij,kjp->kip", so, fj.jw[self.inv[o]])
+            sid = self.sidx[o]
+            for ax in range(3):
+                for s in range(len(self.sensors)):
+                    w[sid == s, :, self.P + 6 * s + 3 + ax] = axes[ax][s]
+            phi = x[self.frame_start: self.frame_start + 3 * len(self.frame_markers)].reshape(-1, 3)
+            side = np.einsum("kij,kjl->kil", so @ f_rot[self.inv[o]], so3_left_jacobian(phi)[self.fidx])  # (ko,3,3)
+            for f in range(len(self.frame_markers)):
+                rows = self.fidx == f
+                w[rows, :, self.frame_start + 3 * f: self.frame_start + 3 * f + 3] = side[rows]
+            jr = -np.einsum("kij,kjp->kip", so3_left_jacobian_inv(-e), w) * self.att_w[:, None, None]
+            blocks.append(jr.reshape(3 * ko, -1))
         return r, np.concatenate(blocks)
 
     @staticmethod
@@ -277,6 +352,11 @@ def _excluded_by_choice(model: RobotModel, chain: Chain, names: list[str], optio
     elif options.tool_prior_mm == 0:
         for i in range(chain.marker_slice().start, chain.marker_slice().stop):
             excluded[names[i]] = "marker positions taken as exact (tool prior 0 mm)"
+    if options.tool_rotation_prior_deg == 0:
+        for name in names:
+            marker, _, kind = name.rpartition(".")
+            if kind.startswith("frame_") and model.tool.markers[model.marker_index(marker)].rpy_deg is not None:
+                excluded[name] = "the target's frame on the flange taken as exact (the model's rpy_deg, rotation prior 0°)"
     return excluded
 
 
@@ -285,10 +365,19 @@ def _preference(problem: _Problem, chain: Chain) -> list[int]:
     link parameters — so what the tool explains is taken by the tool, never by the last link."""
     order = list(range(problem.P, problem.P + 6 * len(problem.sensors)))  # registration first
     order += list(range(chain.marker_slice().start, chain.marker_slice().stop))
+    frames = _frame_columns(problem)
+    order += frames
     for kind in KINDS:
         order += list(chain.index(kind))
-    order += list(range(problem.P + 6 * len(problem.sensors), len(problem.names)))  # compliances last
+    order += [c for c in range(problem.P + 6 * len(problem.sensors), len(problem.names)) if c not in frames]  # compliances
     return order
+
+
+def _frame_columns(problem: _Problem) -> list[int]:
+    """Columns of the 6-DoF targets' frames on the flange ([] without orientation data)."""
+    if problem.rotation is None:
+        return []
+    return list(range(problem.frame_start, problem.frame_start + 3 * len(problem.frame_markers)))
 
 
 def select_identifiable(jac: np.ndarray, names: list[str], scale: np.ndarray, order: list[int], excluded: dict[str, str], rank_tol: float) -> list[int]:
@@ -341,6 +430,12 @@ def identify(
     if data.n_joints != model.n_joints:
         raise DatasetError(f"the dataset has {data.n_joints} joints, the model '{model.name}' has {model.n_joints}")
     chain = Chain(model)
+    dropped = []
+    if options.compliance and rotation is None and data.has_orientation:
+        data = data.without_orientation()
+        dropped.append("measured orientations not used: the compliance model is not combined with attitude rows "
+                       "yet (fit without --compliance to use them)")
+        log.warning(dropped[-1])
     b2s0 = registration or initial_registrations(chain, data, options.initial_registration, 0)
     if options.compliance and not model.has_dynamics:
         raise ValueError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model")
@@ -359,10 +454,11 @@ def identify(
     _, j0 = problem.residuals_and_jacobian(x0)
     scale = problem.scale(lever)
     free = select_identifiable(j0, problem.names, scale, _preference(problem, chain), excluded, options.rank_tol)
-    if 3 * len(data) < 2 * len(free):
+    n_att = 3 * problem.orows.size if problem.rotation is not None else 0
+    if 3 * len(data) + n_att < 2 * len(free):
         raise DatasetError(
-            f"{len(data)} measurements give {3 * len(data)} coordinates for {len(free)} identifiable parameters; "
-            f"measure at least {math.ceil(2 * len(free) / 3)}"
+            f"{len(data)} measurements give {3 * len(data) + n_att} coordinates for {len(free)} identifiable parameters; "
+            f"measure at least {math.ceil(2 * len(free) / (6 if n_att else 3))}"
         )
 
     def fun(z):
@@ -380,20 +476,26 @@ def identify(
     if options.n_starts < 1:
         raise ValueError(f"n_starts must be at least 1 (the staged solve from nominal), given {options.n_starts}")
     ms = chain.marker_slice()
-    tool_pos = np.array([k for k, c in enumerate(free) if ms.start <= c < ms.stop], dtype=int)
-    prior_weight = [0.0]  # σ / sd, set after a first solve without the prior
+    # Prior rows (σ/sd)·z: marker positions about the model's (sd tool_prior_mm) and known target
+    # frames about the model's rpy_deg (sd tool_rotation_prior_deg × lever, in the scaled units of z).
+    frame_cols = set(_frame_columns(problem))
+    known = {problem.frame_start + 3 * f + a for f, k in enumerate(getattr(problem, "frame_known", [])) if k for a in range(3)}
+    tool_pos = np.array([k for k, c in enumerate(free) if ms.start <= c < ms.stop or (c in frame_cols and c in known)], dtype=int)
+    prior_sd = np.array([options.tool_prior_mm if free[k] < problem.P else
+                         math.radians(options.tool_rotation_prior_deg) * scale[free[k]] for k in tool_pos])
+    prior_weight = [0.0]  # σ, set after a first solve without the prior
 
     def fun_p(z):
-        return np.concatenate([fun(z), prior_weight[0] * z[tool_pos]])
+        return np.concatenate([fun(z), prior_weight[0] * z[tool_pos] / prior_sd])
 
     def jac_p(z):
         prior = np.zeros((tool_pos.size, len(free)))
-        prior[np.arange(tool_pos.size), tool_pos] = prior_weight[0]
+        prior[np.arange(tool_pos.size), tool_pos] = prior_weight[0] / prior_sd
         return np.concatenate([jac(z), prior])
 
     starts, sol = _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_weight, len(data))
     nfev = sum(o.nfev for o in starts)
-    warnings = _start_warnings(starts, options, 3 * len(data))
+    warnings = dropped + _start_warnings(starts, options, 3 * len(data))
     for w in warnings:
         log.warning(w)
     x = x0.copy()
@@ -423,6 +525,12 @@ def identify(
     comp = comp_std = None
     if options.compliance:
         comp, comp_std = x[-chain.n:] * 1e-6, std[-chain.n:] * 1e-6
+    tool_frames, frame_std = {}, {}
+    if problem.rotation is not None:
+        for f, (m, t) in enumerate(zip(problem.frame_markers, problem.target_frames(x))):
+            tool_frames[m] = t
+            cols = range(problem.frame_start + 3 * f, problem.frame_start + 3 * f + 3)
+            frame_std[m] = np.array([std[c] for c in cols])
     rot = euler_zyx_to_matrix(reg[:, 3], reg[:, 4], reg[:, 5])
     b2s = {}
     for k, s in enumerate(problem.sensors):
@@ -448,6 +556,9 @@ def identify(
                  "same_minimum": id(o) not in worse} for o in starts],
         do_not_use=do_not_use,
         canonical=canonical,
+        tool_frames=tool_frames,
+        tool_frame_std_rad=frame_std,
+        attitude_weight=problem.weight_info if problem.rotation is not None else None,
     )
 
 
@@ -496,7 +607,7 @@ def _rms(r: np.ndarray) -> float:
 def _stage_columns(problem: _Problem, free: list[int]) -> np.ndarray:
     """Positions in ``free`` of the first stage: registration, marker positions, joint offsets."""
     first = [k for k, c in enumerate(free) if c < problem.P and problem.names[c].rsplit(".", 1)[1] in ("offset", "x", "y", "z")]
-    first += [k for k, c in enumerate(free) if problem.P <= c < problem.P + problem.n_reg]
+    first += [k for k, c in enumerate(free) if problem.P <= c < problem.P + problem.n_reg or c in _frame_columns(problem)]
     return np.array(sorted(first), dtype=int)
 
 
@@ -533,7 +644,7 @@ def _solve_starts(problem, free, scale, options, fun_p, jac_p, tool_pos, prior_w
     if tool_pos.size:
         label, lowest = min(screened, key=lambda t: t[1].cost)
         pre = solve_from(f"without the tool prior ({label})", fun_p, jac_p, lowest.z, [None], options.max_nfev)
-        prior_weight[0] = max(_rms(pre.fun[: 3 * n_rows]), 1e-9) / options.tool_prior_mm
+        prior_weight[0] = max(_rms(pre.fun[: 3 * n_rows]), 1e-9)
         pre_nfev = pre.nfev + sum(o.nfev for _, o in screened)
     outcomes = [solve_from("staged from nominal", fun_p, jac_p, z0, staged, options.max_nfev)]
     outcomes[0].nfev += pre_nfev
@@ -730,13 +841,17 @@ def write_model_yaml(model: RobotModel, path: str | Path) -> None:
     )
 
 
-def information_blocks(model: RobotModel, q_rad: np.ndarray, options: IdentOptions = IdentOptions()) -> tuple[np.ndarray, list[str], dict[str, str]]:
+def information_blocks(model: RobotModel, q_rad: np.ndarray, options: IdentOptions = IdentOptions(), *,
+                       attitude_mm_per_rad: float | None = None) -> tuple[np.ndarray, list[str], dict[str, str]]:
     """Per-configuration information blocks for observability and pose selection.
 
     q_rad: (N, n) candidate configurations. Every marker of the tool is assumed measured by one
-    sensor whose registration is free. Returns blocks (N, L, L) of the scaled identification
-    Jacobian over the L parameters identifiable from all candidates together, their names, and
-    the excluded parameters with reasons.
+    sensor whose registration is free. With ``attitude_mm_per_rad`` (σ_position / σ_attitude of
+    the sensor, mm/rad) the first marker is a 6-DoF target: its orientation rows join (weighted
+    so, like the fit; its frame on the flange free), so the selection sees what orientation adds.
+    Returns blocks (N, L, L) of the scaled identification Jacobian over the L parameters
+    identifiable from all candidates together, their names, and the excluded parameters with
+    reasons.
     """
     from calib.measure.dataset import from_arrays
 
@@ -747,16 +862,25 @@ def information_blocks(model: RobotModel, q_rad: np.ndarray, options: IdentOptio
     qq = np.repeat(q, m, axis=0)
     markers = np.tile(np.array(chain.marker_names), n_cfg)
     pos = chain.marker_positions(q).reshape(-1, 3)
-    data = from_arrays(qq, pos, marker=markers)
+    rot = None
+    if attitude_mm_per_rad is not None:
+        rot = np.full((n_cfg * m, 3, 3), np.nan)
+        rot[::m] = chain.flange_pose(q)[0]
+    data = from_arrays(qq, pos, marker=markers, rot=rot, std_mm=1.0,
+                       att_std_rad=None if attitude_mm_per_rad is None else 1.0 / attitude_mm_per_rad)
     problem = _Problem(chain, data, {"sensor": np.eye(4)}, None, options.orientation_weight)
-    x0 = np.concatenate([chain.nominal, np.zeros(6)])
+    x0 = np.zeros(len(problem.names))
+    x0[: problem.P] = chain.nominal
     excluded = _excluded_by_choice(model, chain, problem.names, options)
     _, j = problem.residuals_and_jacobian(x0)
     lever = float(np.sqrt(np.mean(np.sum(pos**2, axis=-1))))
     scale = problem.scale(lever)
     free = select_identifiable(j, problem.names, scale, _preference(problem, chain), excluded, options.rank_tol)
-    js = (j[:, free] / scale[free]).reshape(n_cfg, 3 * m, len(free))
-    return np.einsum("nri,nrj->nij", js, js), [problem.names[i] for i in free], excluded
+    js = j[:, free] / scale[free]
+    blocks = js[: 3 * n_cfg * m].reshape(n_cfg, 3 * m, len(free))
+    if rot is not None:  # attitude rows follow the position rows, one 3-row block per configuration
+        blocks = np.concatenate([blocks, js[3 * n_cfg * m:].reshape(n_cfg, 3, len(free))], axis=1)
+    return np.einsum("nri,nrj->nij", blocks, blocks), [problem.names[i] for i in free], excluded
 
 
 def pose_errors(model: RobotModel, params: np.ndarray, data: Dataset, base2sensor: dict[str, np.ndarray]) -> np.ndarray:
@@ -771,15 +895,57 @@ def pose_errors(model: RobotModel, params: np.ndarray, data: Dataset, base2senso
 
 
 def comprehensive_errors(position_err_mm: np.ndarray, attitude_err_rad: np.ndarray | None = None) -> dict[str, float | None]:
-    """The seed's EACPE / EMCPE (mean / max position error, mm) and EACAE / EMCAE (mean / max
-    attitude error, rad; None when orientation was not measured)."""
+    """The seed's EACPE / EMCPE (mean / max of √(Δx²+Δy²+Δz²), mm) and EACAE / EMCAE (mean / max of
+    √(Δφx²+Δφy²+Δφz²), the attitude error's rotation angle; given in rad, reported in **degrees**
+    as every file of the project; None when orientation was not measured)."""
     p = np.asarray(position_err_mm, dtype=float)
     out: dict[str, float | None] = {"EACPE": float(p.mean()), "EMCPE": float(p.max())}
-    if attitude_err_rad is None:
+    if attitude_err_rad is None or np.asarray(attitude_err_rad).size == 0:
         out.update(EACAE=None, EMCAE=None)
     else:
-        a = np.asarray(attitude_err_rad, dtype=float)
+        a = np.degrees(np.asarray(attitude_err_rad, dtype=float))
         out.update(EACAE=float(a.mean()), EMCAE=float(a.max()))
+    return out
+
+
+def attitude_errors(model: RobotModel, params: np.ndarray, data: Dataset, base2sensor: dict[str, np.ndarray],
+                    tool_frames: dict[str, np.ndarray]) -> np.ndarray:
+    """Attitude error per pose row |log(R_measured · R_predicted⁻¹)| (rad), (k_oriented,): the
+    rows of ``data`` with a measured orientation, predicted with ``params``, the registration per
+    sensor and each marker's target frame on the flange (``R_flange←target``)."""
+    rows = np.flatnonzero(data.oriented)
+    if rows.size == 0:
+        return np.zeros(0)
+    chain = Chain(model)
+    r_f, _ = chain.flange_pose(data.q_rad[rows], params)
+    s = np.stack([base2sensor[x][:3, :3] for x in data.sensor[rows]])
+    t = np.stack([tool_frames[m] for m in data.marker[rows]])
+    pred = s @ r_f @ t
+    from calib.robot.transforms import rotation_angle
+
+    return rotation_angle(data.rot[rows] @ np.swapaxes(pred, 1, 2))
+
+
+def estimated_tool_frames(model: RobotModel, params: np.ndarray, data: Dataset,
+                          base2sensor: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Each measured marker's target frame on the flange (3, 3) that the pose rows of ``data`` give
+    for the model ``params`` and registration: the chordal mean of (R_reg · R_flange)⁻¹ · R_measured
+    — how the "before" model places a target whose frame the model does not state; the model's
+    ``rpy_deg`` where it does."""
+    chain = Chain(model)
+    rows = np.flatnonzero(data.oriented)
+    out = {}
+    r_f, _ = chain.flange_pose(data.q_rad[rows], params)
+    s = np.stack([base2sensor[x][:3, :3] for x in data.sensor[rows]]) if rows.size else np.zeros((0, 3, 3))
+    for m in sorted(set(data.marker[rows].tolist())):
+        rpy = model.tool.markers[model.marker_index(m)].rpy_deg
+        if rpy is not None:
+            out[m] = euler_zyx_to_matrix(*np.radians([rpy[2], rpy[1], rpy[0]]))
+            continue
+        sel = data.marker[rows] == m
+        est = np.einsum("kji,kjl->il", s[sel] @ r_f[sel], data.rot[rows][sel])
+        u, _, vt = np.linalg.svd(est)
+        out[m] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
     return out
 
 
@@ -826,17 +992,40 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
              "model with the identified registration; validation points are scored with these calibration "
              "registrations (never one fitted to the points being scored)"]
 
+    from calib.fit.metrics import registrations
+
+    reg_before = registrations(cal, cal_before)
+    oriented = cal.has_orientation
+    frames_before = estimated_tool_frames(result.model, nominal, cal, reg_before) if oriented else {}
+
+    def attitude(data: Dataset, which: str) -> np.ndarray | None:
+        """Attitude errors of ``data``'s pose rows whose marker the calibration's pose rows have."""
+        if not oriented or not data.has_orientation:
+            return None
+        keep = data.oriented & np.isin(data.marker, list(result.tool_frames)) & np.isin(data.sensor, list(reg_before))
+        d = data.subset(keep)
+        if which == "before":
+            return attitude_errors(result.model, nominal, d, reg_before, frames_before)
+        return attitude_errors(result.model, result.params, d, result.base2sensor, result.tool_frames)
+
     def scored(data: Dataset, after_params: np.ndarray, located: dict[str, str] | None = None) -> dict:
         b, a, rb, ra, caveats = validation_scores(cal, data, (cal_before, _marker_rows(chain, data, nominal)),
                                                   (cal_after, _marker_rows(chain, data, after_params)),
                                                   registration_after=result.base2sensor, located=located)
         notes.extend(caveats)
-        return {"before": comprehensive_errors(b), "after": comprehensive_errors(a),
+        return {"before": comprehensive_errors(b, attitude(data, "before")),
+                "after": comprehensive_errors(a, attitude(data, "after")),
                 "reregistered": {"before": comprehensive_errors(rb), "after": comprehensive_errors(ra)},
                 "n_points": int(len(data)), "markers": sorted(set(data.marker.tolist()))}
 
-    metrics = {"calibration": {"before": comprehensive_errors(absolute_errors(cal, cal_before)),
-                               "after": comprehensive_errors(pose_errors(result.model, result.params, cal, result.base2sensor))}}
+    metrics = {"calibration": {"before": comprehensive_errors(absolute_errors(cal, cal_before), attitude(cal, "before")),
+                               "after": comprehensive_errors(pose_errors(result.model, result.params, cal, result.base2sensor),
+                                                             attitude(cal, "after"))}}
+    if oriented:
+        notes.append("EACAE / EMCAE (degrees): mean / max attitude error of the pose rows, the angle of "
+                     "R_measured · R_predicted⁻¹; before: the nominal model with the calibration's least-squares "
+                     "registration and the targets' frames on the flange that the calibration's pose rows give for it "
+                     "(the model's rpy_deg where stated); after: the identified model, registration and frames")
     if val is not None and len(val):
         # Headline: only markers the calibration measured (their positions are fitted). Markers it
         # never measured are placed by an estimate: scored apart, labelled, never in the headline.
@@ -873,6 +1062,10 @@ def ident_result_dict(result: IdentResult, cal: Dataset, val: Dataset | None = N
         "warnings": result.warnings,
         "do_not_use": result.do_not_use,
         "canonical": result.canonical,
+        "attitude_weight": result.attitude_weight,
+        "tool_frames": {m: {"rpy_deg": np.degrees(matrix_to_euler_zyx(t))[::-1].round(6).tolist(),
+                            "std_deg_rotation_vector": [None if not math.isfinite(v) else float(np.degrees(v)) for v in result.tool_frame_std_rad[m]]}
+                        for m, t in result.tool_frames.items()},
         "metrics": metrics,
         "metric_notes": notes,
         "compliance": None if result.compliance is None else [

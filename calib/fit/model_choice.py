@@ -5,9 +5,10 @@ Candidates (``candidates``), simplest first:
 
 ``offsets``                 zero-offsets and the registration; the model's tool taken as exact;
 ``offsets+tool``            … and the measured markers' positions on the flange (tool prior);
-``offsets+tool+links``      … and every link parameter under a Gaussian prior whose scales (lengths,
-                            then angles) are estimated from the data (empirical Bayes: the scales
-                            that maximise the Laplace evidence, ``empirical_link_scale``);
+``offsets+tool+links``      … and every link parameter under a Gaussian prior whose scale is
+                            estimated from the data (empirical Bayes: a length scale (mm) and an
+                            angle scale (deg), the pair that maximises the Laplace evidence,
+                            ``empirical_link_scale``);
 ``full``                    full identification (``calib.fit.identification``, one staged start per fold);
 
 each model with link masses also ``+compliance`` (joint compliance under gravity, ``calib.robot.gravity``;
@@ -38,17 +39,11 @@ from calib.measure.dataset import Dataset
 from calib.fit.offsets import FitOptions, ModeFit, _prior_precision, fit_mode
 from calib.robot.kinematics import Chain
 from calib.robot.model import RobotModel
+from calib.fit.link_scale import ANGLES_DEG, LENGTHS_MM, maximise_evidence
 from calib.fit.registration import register_least_squares
 
 #: Candidate kinds, simplest first (their rank orders "simplest" in the one-standard-error rule).
 KINDS = ("offsets", "offsets+tool", "offsets+tool+links", "full")
-#: Link prior scales tried by the empirical Bayes step: length (mm); angles get 0.1°/mm of it
-#: (the ratio of the old fixed 0.2 mm / 0.02° prior).
-LINK_SCALES_MM = (0.03, 0.1, 0.3, 1.0, 3.0)
-DEG_PER_MM = 0.1
-#: ... then, at the chosen length scale, the angle scales tried (degrees): an arm's twists need not
-#: be off by 0.1°/mm of its lengths (a Panda's published corrections: 0.2–0.9 mm but 0.1–0.66°).
-LINK_SCALES_DEG = (0.01, 0.03, 0.1, 0.3, 1.0)
 #: Relative tolerance of the fold fits' solves: far below any held-out error that matters.
 CV_TOL = 1e-8
 
@@ -116,31 +111,69 @@ def log_evidence(mf: ModeFit) -> float:
     return loglik + logprior - 0.5 * logdet if sign > 0 else -math.inf
 
 
-def empirical_link_scale(model: RobotModel, data: Dataset, base: FitOptions,
-                         scales_mm: tuple[float, ...] = LINK_SCALES_MM,
-                         scales_deg: tuple[float, ...] = LINK_SCALES_DEG) -> dict:
-    """The link prior's scales that maximise the Laplace evidence of the offsets+tool+links model
-    on ``data``, one coordinate at a time: the length scale (angles at ``DEG_PER_MM`` of it), the
-    angle scale at that length, the length scale at that angle scale. {"length_mm", "angle_deg",
-    "log_evidence": {mm: value}, "log_evidence_angle": {deg: value},
-    "log_evidence_length_at_angle": {mm: value}}."""
-    def evidence(mm: float, deg: float) -> float:
-        opts = replace(base, tool_prior_mm=base.tool_prior_mm, link_tolerance=(mm, deg))
-        return log_evidence(fit_mode(model, data, opts, tol=CV_TOL))
+def _link_groups(post) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(positions in the free vector, their prior sds, group) of the Gaussian-prior entries; group
+    0: a tool marker's coordinate (its sd stays), 1: a length (d, a; mm), 2: an angle (α, β; rad)."""
+    pos, sd = post.link_free()
+    start = post.n + 6 * post.S
+    group = np.zeros(pos.size, dtype=int)
+    for i, p in enumerate(pos):
+        link = post.free[p] - start
+        if not post.is_tool[link]:
+            kind = post.chain.param_names[post.link_idx[link]].rsplit(".", 1)[1]
+            group[i] = 1 if kind in ("d", "a") else 2
+    return pos, sd, group
 
-    table = {mm: evidence(mm, mm * DEG_PER_MM) for mm in scales_mm}
-    best = max(table, key=table.get)
-    angles = {round(best * DEG_PER_MM, 12): table[best]}
-    for deg in scales_deg:
-        if not any(math.isclose(deg, a) for a in angles):
-            angles[deg] = evidence(best, deg)
-    best_deg = max(angles, key=angles.get)
-    # The lengths again at that angle scale: the first pass tied the angles to them.
-    lengths = {mm: (angles[best_deg] if mm == best else evidence(mm, best_deg)) for mm in scales_mm}
-    best = max(lengths, key=lengths.get)
-    return {"length_mm": best, "angle_deg": best_deg, "log_evidence": {f"{k:g}": v for k, v in table.items()},
-            "log_evidence_angle": {f"{k:g}": v for k, v in sorted(angles.items())},
-            "log_evidence_length_at_angle": {f"{k:g}": v for k, v in lengths.items()}}
+
+def linearised_log_evidence(mf: ModeFit):
+    """``f(mm, deg)``: the Laplace log evidence of the model linearised at the mode ``mf`` (fitted
+    under some link prior) with the link prior's length sd ``mm`` and angle sd ``deg`` instead —
+    exact for a linear model, and link errors of a millimetre or a degree move the kinematics
+    linearly to ~1e-4 mm. One fit then prices every scale: the new mode is one Newton step
+    (H = JᵀWJ + P, g = JᵀWr + Pθ), its objective Φ(θ) − ½ gᵀH⁻¹g. σ stays at the fit's."""
+    post, theta = mf.post, mf.theta
+    sigma = np.exp(mf.log_sigma)[post.sensor_index]
+    r = post.residuals(theta).reshape(-1)
+    j = post.jacobian(theta).reshape(post.n_rows * 3, -1)
+    w = np.repeat(sigma**-2, 3)
+    a = j.T @ (w[:, None] * j)
+    g_data = j.T @ (w * r)
+    chi2 = float(np.sum(w * r**2))
+    pos, sd0, group = _link_groups(post)
+    const = -3.0 * float(np.sum(np.log(sigma)))
+
+    def evidence(mm: float, deg: float) -> float:
+        sd = np.where(group == 1, mm, np.where(group == 2, math.radians(deg), sd0))
+        prec = np.zeros(post.dim)
+        prec[pos] = sd**-2.0
+        h = a + np.diag(prec)
+        g = g_data + prec * theta
+        sign, logdet = np.linalg.slogdet(h)
+        if sign <= 0:
+            return -math.inf
+        phi = 0.5 * chi2 + 0.5 * float(np.sum(prec * theta**2)) - 0.5 * float(g @ np.linalg.solve(h, g))
+        return const - phi - float(np.sum(np.log(sd))) - 0.5 * logdet
+
+    return evidence
+
+
+def empirical_link_scale(model: RobotModel, data: Dataset, base: FitOptions, lengths_mm: tuple[float, ...] = LENGTHS_MM,
+                         angles_deg: tuple[float, ...] = ANGLES_DEG) -> dict:
+    """The link prior's length (mm) and angle (deg) scales that maximise the Laplace evidence of
+    the offsets+tool+links model on ``data``, each on its own grid (``calib.fit.link_scale``):
+    the mode is fitted under a middle scale, every pair of the grids priced by
+    ``linearised_log_evidence``, and the mode fitted again at the best pair until it stays (at most
+    three fits). {"length_mm", "angle_deg", "log_evidence": {"mm/deg": value}, "at_grid_edge", "fits"}."""
+    ref = (lengths_mm[len(lengths_mm) // 2], angles_deg[len(angles_deg) // 2])
+    for fits in range(1, 4):
+        ev = linearised_log_evidence(fit_mode(model, data, replace(base, link_tolerance=ref), tol=CV_TOL))
+        found = maximise_evidence(ev, lengths_mm, angles_deg, exhaustive=True)
+        best = (found["length_mm"], found["angle_deg"])
+        if best == ref:
+            break
+        ref = best
+    found["fits"] = fits
+    return found
 
 
 # --- cross-validation ------------------------------------------------------------------------------
@@ -210,6 +243,8 @@ class ModelChoice:
     folds: int
     grouping: str
     link_scale: dict | None
+    #: Candidates left out of the comparison and why (one line), or None.
+    excluded: str | None = None
 
     def score(self, name: str) -> Score:
         return next(s for s in self.scores if s.name == name)
@@ -218,7 +253,7 @@ class ModelChoice:
         return {"chosen": self.chosen, "forced": self.forced, "folds": self.folds, "grouped_by": self.grouping,
                 "rule": "the simplest model within one standard error of the best cross-validated mean error",
                 "nominal": self.nominal.to_dict(), "candidates": [s.to_dict() for s in self.scores],
-                "link_scale": self.link_scale}
+                "link_scale": self.link_scale, "excluded": self.excluded}
 
     def format(self) -> str:
         lines = [f"model choice: {self.folds}-fold cross-validation by {self.grouping} (fit on the other folds, "
@@ -234,10 +269,31 @@ class ModelChoice:
             mark = "  ← chosen" + (" (--model)" if self.forced else "") if s.name == self.chosen else ""
             lines.append(f"  {s.name:<32}{'—' if s.n_params is None else s.n_params:>6}{s.rms_mm:>13.4f}"
                          f"{s.mean_mm:>13.4f} ± {s.se_mm:.4f}{mark}")
+        if self.excluded:
+            lines.append(f"  not compared: {self.excluded}")
         if self.link_scale:
-            lines.append(f"  link prior scale (empirical Bayes, max evidence): {self.link_scale['length_mm']:g} mm, "
-                         f"{self.link_scale['angle_deg']:g}°")
+            how = "given" if self.link_scale.get("given") else "empirical Bayes, max evidence"
+            lines.append(f"  link prior of offsets+tool+links ({how}): lengths ±{self.link_scale['length_mm']:g} mm, "
+                         f"angles ±{self.link_scale['angle_deg']:g}°")
         return "\n".join(lines)
+
+
+def format_table(mc: dict) -> str:
+    """The cross-validation table of a result document's ``model_choice`` (``ModelChoice.to_dict``,
+    tracker or socket) as text: for summaries printed from ``result.json``."""
+    lines = [f"model choice ({mc['folds']}-fold cross-validation by {mc['grouped_by']}; {mc['rule']}):",
+             f"  {'model':<50}{'free':>6}{'held-out rms (mm)':>19}{'mean ± se (mm)':>20}"]
+    for c in [mc["nominal"]] + mc["candidates"]:
+        free = "—" if c.get("free_parameters") is None else c["free_parameters"]
+        if c.get("failed") or c.get("cv_mean_mm") is None:
+            lines.append(f"  {c['model']:<50}{free:>6}  failed: {c.get('failed') or 'not scored'}")
+            continue
+        mark = "  ← chosen" + (" (--model)" if mc.get("forced") else "") if c["model"] == mc["chosen"] else ""
+        se = "—" if c.get("cv_se_mm") is None else f"{c['cv_se_mm']:.4f}"
+        lines.append(f"  {c['model']:<50}{free:>6}{c['cv_rms_mm']:>19.4f}{c['cv_mean_mm']:>12.4f} ± {se}{mark}")
+    if mc.get("excluded"):
+        lines.append(f"  not compared: {mc['excluded']}")
+    return "\n".join(lines)
 
 
 def _config_errors(data: Dataset, dist: np.ndarray) -> np.ndarray:
@@ -356,4 +412,10 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
         chosen = force if force is not None else one_se_choice(scores)
     except ValueError:  # too few configurations to fit any model on four folds: the simplest, unvalidated
         chosen = min(cands, key=lambda c: c.rank).name
-    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale)
+    excluded = None
+    if not include_full:
+        excluded = "full: left out by the caller"
+    elif compliance_only:
+        excluded = ("full: full identification is compared without compliance, and only the compliance models "
+                    "were asked for (--compliance / fit.compliance)")
+    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale, excluded)

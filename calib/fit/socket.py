@@ -201,20 +201,27 @@ class SocketFit:
     tolerance: tuple[float, float] | None = None
     #: The parameter kinds the fit was allowed to fit (``fit_socket``'s ``kinds``).
     kinds: tuple[str, ...] = ("offset", "d", "a", "alpha", "beta")
+    #: Whether the ball was fitted (False: the robot model's declared ball, ``fit_socket``'s ``fit_ball``).
+    fit_ball: bool = True
+    #: Laplace approximation of log p(data | model, priors) at the mode, σ_point at its estimate, up
+    #: to a constant shared by fits with the same free parameters (``calib.fit.link_scale``).
+    log_evidence: float = math.nan
 
-    def model_description(self) -> str:
-        """Which model of the arm this fit is, in one line (for the summary, result.json, report)."""
+    def model_description(self, prior: str = "a fixed prior") -> str:
+        """Which model of the arm this fit is, in one line (for the summary, result.json, report);
+        ``prior`` names the link prior (e.g. "an empirical-Bayes prior")."""
         kinds = [k for k in self.kinds if k != "offset"]
         fitted = {n.rsplit(".", 1)[1] for n in self.free_names}
+        ball = "the ball" if self.fit_ball else "the model's declared ball (not fitted)"
         if not kinds:
-            text = "joint zero-offsets and the ball (link parameters at the data sheet's values)"
+            text = f"joint zero-offsets and {ball} (link parameters at the data sheet's values)"
         elif self.tolerance is None:
-            text = ("joint zero-offsets, the ball and every link parameter the data determine "
+            text = (f"joint zero-offsets, {ball} and every link parameter the data determine "
                     f"({', '.join(k for k in kinds if k in fitted) or 'none'}), without a prior")
         else:
             mm, deg = self.tolerance
-            text = (f"joint zero-offsets, the ball and the link parameters ({', '.join(k for k in kinds if k in fitted) or 'none'}) "
-                    f"under a fixed prior of ±{mm:g} mm / ±{deg:g}° (sd) about the data sheet")
+            text = (f"joint zero-offsets, {ball} and the link parameters ({', '.join(k for k in kinds if k in fitted) or 'none'}) "
+                    f"under {prior} of ±{mm:g} mm / ±{deg:g}° (sd) about the data sheet")
         if self.compliance is not None:
             text += ", with joint compliance (gravity sag)"
         return text
@@ -308,18 +315,18 @@ def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: 
     kept: list[int] = []
     dropped: dict[int, str] = {}
     basis = np.zeros((jac.shape[0], 0))
+    ortho = np.zeros((jac.shape[0], 0))  # orthonormal basis of the kept columns (Gram–Schmidt, twice)
     for pos, c in enumerate(order):
         col = jac[:, c]
         norm = np.linalg.norm(col)
         if norm == 0:
             dropped[c] = "moves no ball position in this data"
             continue
-        if basis.shape[1]:
-            coef, *_ = np.linalg.lstsq(basis, col, rcond=None)
-            rel = np.linalg.norm(col - basis @ coef) / norm
-        else:
-            coef, rel = np.zeros(0), 1.0
+        resid = col - ortho @ (ortho.T @ col)
+        resid = resid - ortho @ (ortho.T @ resid)
+        rel = float(np.linalg.norm(resid) / norm)
         if rel < rank_tol and pos >= n_fixed_first:
+            coef, *_ = np.linalg.lstsq(basis, col, rcond=None)
             big = np.argsort(-np.abs(coef))[:3]
             partners = [names[kept[i]] for i in big if abs(coef[i]) > 1e-3 * np.abs(coef).max()]
             how = "indistinguishable from" if rel < RANK_TOL else f"nearly a combination (residual {rel:.1e}) of"
@@ -327,13 +334,15 @@ def _select(jac: np.ndarray, names: list[str], order: list[int], n_fixed_first: 
             continue
         kept.append(c)
         basis = np.column_stack([basis, col])
+        if rel > 0:
+            ortho = np.column_stack([ortho, resid / np.linalg.norm(resid)])
     return kept, dropped
 
 
 def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, float] | None = DEFAULT_TOLERANCE,
                kinds: tuple[str, ...] = ("offset", "d", "a", "alpha", "beta"), sigma_point_mm: float = 0.1,
                sigma_distance_mm: float = 0.1, max_nfev: int = 200, weak_tol: float | None = None,
-               compliance: bool = False) -> SocketFit:
+               compliance: bool = False, fit_ball: bool = True) -> SocketFit:
     """Fit the identifiable kinematic parameters, the ball and the socket points.
 
     tolerance: (mm, deg) prior sd of d, a and α, β around the data sheet; None for no prior
@@ -343,6 +352,8 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     determined); default: ``WEAK_TOL`` without a prior (nothing else bounds them), none with one.
     compliance: also fit one joint compliance per axis (gravity sag; the model needs link
     masses); axes that carry a few % of the largest gravity torque are left out.
+    fit_ball: False keeps the ball where the robot model declares it (its tool's first marker)
+    instead of fitting it: the simplest candidate of ``calib.fit.socket_choice``.
     """
     chain = Chain(model)
     n, k = chain.n, len(ds.q_rad)
@@ -355,12 +366,15 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     if bad:
         raise ValueError(f"unknown parameter kinds {bad}; allowed: {KINDS}")
     nominal = chain.nominal.copy()
-    ball0, pts0 = _pivot_start(chain, ds, nominal)
     ms = chain.marker_slice()
-    nominal[ms.start:ms.start + 3] = ball0
+    if fit_ball:
+        ball0, pts0 = _pivot_start(chain, ds, nominal)
+        nominal[ms.start:ms.start + 3] = ball0
+    else:  # each socket's point starts at the mean of the declared ball's positions
+        pos0 = chain.marker_positions(ds.q_rad, nominal)[:, 0]
+        pts0 = np.array([pos0[ds.group == g].mean(axis=0) for g in range(len(ds.groups))])
     names = list(chain.param_names)
-    ball_idx = list(range(ms.start, ms.start + 3))
-    cand = list(ball_idx)
+    cand = list(range(ms.start, ms.start + 3)) if fit_ball else []
     for kind in ("offset", "a", "d", "alpha", "beta"):
         if kind not in kinds or (kind == "beta" and model.convention == "dh"):
             continue
@@ -434,7 +448,7 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
         p, pts = prob.full(x)
         dev = ball_positions(chain, ds.q_rad, p[: chain.n_params], p[chain.n_params:] * 1e-6 if compliance else None) \
             - pts[ds.group]
-        dof = max(3 * k - 3 * len(ds.groups) - np.sum(~np.isfinite(prior)) - 3, 1)
+        dof = max(3 * k - 3 * len(ds.groups) - np.sum(~np.isfinite(prior)) - (3 if fit_ball else 0), 1)
         sigma = float(math.sqrt(np.sum(dev ** 2) / dof))
     prob = _SocketProblem(chain, ds, free, nominal, prior, sigma, sigma_distance_mm)
     r, j = prob(x)
@@ -444,6 +458,7 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
     except np.linalg.LinAlgError:
         cov = np.linalg.pinv(info)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    evidence = _log_evidence(r, info, k, sigma, prior)
     std = np.full(nominal.size, np.nan)
     std[free] = sd[: len(free)]
     p, pts = prob.full(x)
@@ -464,7 +479,20 @@ def fit_socket(model: RobotModel, ds: SocketDataset, *, tolerance: tuple[float, 
                      excluded=excluded, weak=weak, sigma_point_mm=sigma, condition_number=cond,
                      rms_mm=float(np.sqrt(np.mean(np.sum(dev ** 2, axis=1)))), iterations=int(nfev),
                      groups=list(ds.groups), warnings=warnings, compliance=comp, compliance_std=comp_std,
-                     tolerance=None if tolerance is None else tuple(tolerance), kinds=tuple(kinds))
+                     tolerance=None if tolerance is None else tuple(tolerance), kinds=tuple(kinds), fit_ball=fit_ball,
+                     log_evidence=evidence)
+
+
+def _log_evidence(r: np.ndarray, info: np.ndarray, k: int, sigma: float, prior_sd: np.ndarray) -> float:
+    """Laplace log evidence from the whitened residuals ``r`` (3k point rows, the distance rows, then
+    one row per finite entry of ``prior_sd``, in the parameter's own unit: mm or rad) and the
+    information ``info`` = JᵀJ at the mode: log-likelihood (σ = ``sigma`` per axis) + log prior −
+    ½ log det(info); terms that are the same for every prior scale are left out."""
+    sign, logdet = np.linalg.slogdet(info)
+    if sign <= 0:
+        return -math.inf
+    finite = prior_sd[np.isfinite(prior_sd)]
+    return float(-0.5 * np.sum(r ** 2) - 3 * k * math.log(sigma) - np.sum(np.log(finite)) - 0.5 * logdet)
 
 
 # -------------------------------------------------------------------------------- metrics

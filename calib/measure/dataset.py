@@ -12,6 +12,14 @@ One row per measurement of one marker by one sensor in one robot configuration:
 ``std_mm``   optional, spread of the samples (per-axis standard deviation), mm
 ``n``        optional, number of samples averaged
 ``split``    optional, ``cal`` or ``val`` (calibration or validation part)
+``qw,qx,qy,qz`` optional, all four together: the measured **orientation** of the target's frame
+             (a 6-DoF target: a Motive rigid body, a T-Mac, a probe) as a unit quaternion,
+             **scalar first**, Hamilton convention, rotating target-frame vectors into the sensor
+             frame (``R_sensor←target``; ``x,y,z`` is then that frame's origin). A row may leave
+             all four empty (a position-only row); a norm off 1 by more than 1e-3 is refused
+             (normalised otherwise).
+``std_deg``  optional, attitude spread of the samples (standard deviation per axis of the
+             rotation vector), **degrees**
 
 Lines starting with ``#`` are comments. Everything in memory is mm and radians.
 
@@ -33,6 +41,7 @@ import numpy as np
 from calib.io import csvdialect
 from calib.robot.model import RobotModel
 from calib.measure.units import radians_row
+from calib.robot.transforms import matrix_to_quat, quat_to_matrix
 
 
 class DatasetError(ValueError):
@@ -45,6 +54,10 @@ class Dataset:
 
     q_rad: (k, n) controller convention; xyz_mm: (k, 3) sensor frame; std_mm: (k,) (NaN when
     unknown); count: (k,) samples per row (0 when unknown); the rest are (k,) string arrays.
+
+    Orientation (6-DoF rows), None when no row has one: rot: (k, 3, 3) ``R_sensor←target`` of
+    the measured target frame (NaN for rows without orientation); att_std_rad: (k,) attitude
+    spread per axis, rad (NaN when unknown).
     """
 
     config: np.ndarray
@@ -57,6 +70,8 @@ class Dataset:
     count: np.ndarray
     split: np.ndarray
     source: str = ""
+    rot: np.ndarray | None = None
+    att_std_rad: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.q_rad.shape[0])
@@ -69,12 +84,25 @@ class Dataset:
     def sensors(self) -> list[str]:
         return sorted(set(self.sensor.tolist()))
 
+    @property
+    def oriented(self) -> np.ndarray:
+        """(k,) bool: rows that carry a measured orientation."""
+        if self.rot is None:
+            return np.zeros(len(self), bool)
+        return np.isfinite(self.rot).all(axis=(1, 2))
+
+    @property
+    def has_orientation(self) -> bool:
+        return bool(self.oriented.any())
+
+    def without_orientation(self) -> "Dataset":
+        """The same rows as position-only measurements."""
+        return replace(self, rot=None, att_std_rad=None)
+
     def subset(self, mask: np.ndarray) -> "Dataset":
         mask = np.asarray(mask)
-        return replace(
-            self,
-            **{f: getattr(self, f)[mask] for f in ("config", "pose", "q_rad", "xyz_mm", "marker", "sensor", "std_mm", "count", "split")},
-        )
+        fields = _FIELDS + (("rot", "att_std_rad") if self.rot is not None else ())
+        return replace(self, **{f: getattr(self, f)[mask] for f in fields})
 
     def calibration(self) -> "Dataset":
         return self.subset(self.split != "val")
@@ -88,8 +116,22 @@ class Dataset:
     def concat(self, other: "Dataset") -> "Dataset":
         if other.n_joints != self.n_joints:
             raise DatasetError(f"cannot join datasets with {self.n_joints} and {other.n_joints} joints")
-        fields = ("config", "pose", "q_rad", "xyz_mm", "marker", "sensor", "std_mm", "count", "split")
-        return replace(self, **{f: np.concatenate([getattr(self, f), getattr(other, f)]) for f in fields}, source=f"{self.source}+{other.source}")
+        out = {f: np.concatenate([getattr(self, f), getattr(other, f)]) for f in _FIELDS}
+        if self.rot is not None or other.rot is not None:
+            out["rot"] = np.concatenate([_rot_or_nan(self), _rot_or_nan(other)])
+            out["att_std_rad"] = np.concatenate([_att_or_nan(self), _att_or_nan(other)])
+        return replace(self, **out, source=f"{self.source}+{other.source}")
+
+
+_FIELDS = ("config", "pose", "q_rad", "xyz_mm", "marker", "sensor", "std_mm", "count", "split")
+
+
+def _rot_or_nan(ds: Dataset) -> np.ndarray:
+    return ds.rot if ds.rot is not None else np.full((len(ds), 3, 3), np.nan)
+
+
+def _att_or_nan(ds: Dataset) -> np.ndarray:
+    return ds.att_std_rad if ds.att_std_rad is not None else np.full(len(ds), np.nan)
 
 
 def from_arrays(
@@ -103,8 +145,11 @@ def from_arrays(
     std_mm: np.ndarray | None = None,
     count: np.ndarray | None = None,
     split: str | np.ndarray = "cal",
+    rot: np.ndarray | None = None,
+    att_std_rad: np.ndarray | float | None = None,
 ) -> Dataset:
-    """Build a dataset in memory (simulations, MCAP logs)."""
+    """Build a dataset in memory (simulations, MCAP logs). rot: (k, 3, 3) measured target
+    orientations ``R_sensor←target`` (NaN rows: not measured); att_std_rad: their spread per axis."""
     q = np.atleast_2d(np.asarray(q_rad, dtype=float))
     k = q.shape[0]
     xyz = np.asarray(xyz_mm, dtype=float).reshape(k, 3)
@@ -125,6 +170,8 @@ def from_arrays(
         std_mm=col(std_mm, np.nan).astype(float),
         count=col(count, 0).astype(int),
         split=col(split, "cal").astype(str),
+        rot=None if rot is None else np.asarray(rot, dtype=float).reshape(k, 3, 3),
+        att_std_rad=None if rot is None else col(att_std_rad, np.nan).astype(float),
     )
 
 
@@ -168,15 +215,21 @@ def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset
     missing = [c for c in required if c not in header]
     if missing:
         raise DatasetError(f"{source}:{header_line}: missing column(s) {missing}; required: config, q1…q{n}, x, y, z")
-    known = set(required) | set(qcols) | {"pose", "marker", "sensor", "std_mm", "n", "split"}
+    known = set(required) | set(qcols) | {"pose", "marker", "sensor", "std_mm", "n", "split", *QUAT, "std_deg"}
     unknown = [h for h in header if h not in known]
     if unknown:
         raise DatasetError(f"{source}:{header_line}: unknown column(s) {unknown}; allowed: {sorted(known)}")
     idx = {h: i for i, h in enumerate(header)}
+    partial = [c for c in QUAT if c in idx]
+    if partial and len(partial) != 4:
+        raise DatasetError(f"{source}:{header_line}: orientation columns {partial} without {[c for c in QUAT if c not in idx]}; "
+                           "an orientation needs all four of qw, qx, qy, qz (unit quaternion, scalar first)")
+    if "std_deg" in idx and not partial:
+        raise DatasetError(f"{source}:{header_line}: column 'std_deg' (attitude spread) without orientation columns qw, qx, qy, qz")
     data = rows[1:]
     if not data:
         raise DatasetError(f"{source}: header only, no measurements")
-    numeric = [idx[h] for h in [*qcols, "x", "y", "z", "std_mm", "n"] if h in idx]
+    numeric = [idx[h] for h in [*qcols, "x", "y", "z", "std_mm", "n", *QUAT, "std_deg"] if h in idx]
     dialect = csvdialect.Dialect(sep, csvdialect.sniff_decimal(data, numeric, source, DatasetError))
 
     def number(lineno: int, row: list[str], name: str, allow_empty: bool = False) -> float:
@@ -192,7 +245,7 @@ def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset
             raise DatasetError(f"{source}:{lineno}: column '{name}': {raw!r} is not a finite number")
         return v
 
-    cols: dict[str, list] = {k: [] for k in ("config", "pose", "q", "xyz", "marker", "sensor", "std", "n", "split")}
+    cols: dict[str, list] = {k: [] for k in ("config", "pose", "q", "xyz", "marker", "sensor", "std", "n", "split", "quat", "att")}
     default_marker = model.marker_names[0]
     for lineno, row in data:
         if len(row) != len(header):
@@ -221,6 +274,12 @@ def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset
         if sp not in ("cal", "val"):
             raise DatasetError(f"{source}:{lineno}: column 'split': {sp!r} is not 'cal' or 'val'")
         cols["split"].append(sp)
+        if partial:
+            cols["quat"].append(_quaternion(lineno, row, idx, number, source))
+            att = number(lineno, row, "std_deg", allow_empty=True) if "std_deg" in idx else math.nan
+            if att < 0 or att > 90:
+                raise DatasetError(f"{source}:{lineno}: column 'std_deg': {att} is outside 0…90 (attitude spread in degrees)")
+            cols["att"].append(math.radians(att))
     radians = radians_row(cols["q"], model)
     if radians is not None:  # before the fit: radians barely move the model, so check_units passes them
         row, why = radians
@@ -236,9 +295,34 @@ def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset
         count=np.array(cols["n"], dtype=int),
         split=np.array(cols["split"], dtype=str),
         source=source,
+        rot=quat_to_matrix(np.array(cols["quat"], dtype=float)) if partial else None,
+        att_std_rad=np.array(cols["att"], dtype=float) if partial else None,
     )
     check_units(ds, model)
     return ds
+
+
+#: The orientation columns: a unit quaternion, scalar first (module docstring).
+QUAT = ("qw", "qx", "qy", "qz")
+#: How far a quaternion's norm may be from 1 (rounding in a file) before it is refused.
+QUAT_NORM_TOLERANCE = 1e-3
+
+
+def _quaternion(lineno: int, row: list[str], idx: dict[str, int], number, source: str) -> list[float]:
+    """The row's quaternion (4,) scalar first, or four NaNs when all four cells are empty."""
+    cells = [row[idx[c]].strip() for c in QUAT]
+    if all(c == "" for c in cells):
+        return [math.nan] * 4
+    if any(c == "" for c in cells):
+        raise DatasetError(f"{source}:{lineno}: orientation {dict(zip(QUAT, cells))} is partly empty; give all four of "
+                           "qw, qx, qy, qz or leave all four empty (a position-only row)")
+    q = [number(lineno, row, c) for c in QUAT]
+    norm = math.sqrt(sum(v * v for v in q))
+    if abs(norm - 1.0) > QUAT_NORM_TOLERANCE:
+        raise DatasetError(f"{source}:{lineno}: columns 'qw'…'qz': the quaternion has norm {norm:.6g}; allowed: a unit "
+                           "quaternion (norm 1 within 1e-3), scalar first (w, x, y, z) — Euler angles or a scalar-last "
+                           "quaternion are not accepted")
+    return q
 
 
 def write_csv(ds: Dataset, path: str | Path, *, comment: str = "") -> None:
@@ -248,13 +332,21 @@ def write_csv(ds: Dataset, path: str | Path, *, comment: str = "") -> None:
         for line in comment.splitlines():
             fh.write(f"# {line}\n")
         w = csv.writer(fh)
-        w.writerow(["config", "pose", *[f"q{i + 1}" for i in range(n)], "x", "y", "z", "marker", "sensor", "std_mm", "n", "split"])
+        oriented = ds.has_orientation
+        w.writerow(["config", "pose", *[f"q{i + 1}" for i in range(n)], "x", "y", "z", "marker", "sensor", "std_mm", "n", "split",
+                    *((*QUAT, "std_deg") if oriented else ())])
         qd = np.degrees(ds.q_rad)
+        quat = matrix_to_quat(np.nan_to_num(ds.rot)) if oriented else None
         for i in range(len(ds)):
             std = "" if np.isnan(ds.std_mm[i]) else f"{ds.std_mm[i]:.6g}"
+            extra = []
+            if oriented:
+                ok = bool(ds.oriented[i])
+                extra = [f"{v:.12f}" if ok else "" for v in quat[i]]
+                extra.append("" if not ok or np.isnan(ds.att_std_rad[i]) else f"{np.degrees(ds.att_std_rad[i]):.6g}")
             w.writerow(
                 [ds.config[i], ds.pose[i], *[f"{v:.9g}" for v in qd[i]], *[f"{v:.6f}" for v in ds.xyz_mm[i]],
-                 ds.marker[i], ds.sensor[i], std, int(ds.count[i]), ds.split[i]]
+                 ds.marker[i], ds.sensor[i], std, int(ds.count[i]), ds.split[i], *extra]
             )
 
 

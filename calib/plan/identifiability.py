@@ -190,3 +190,60 @@ def verdicts(singular_values, shape: tuple[int, int], sigma_mm: float, undetermi
         else:
             out.append(Verdict("determined", f"±{std:.3g} mm", std, cond))
     return out
+
+
+def undetermined(ident: Identifiability, min_loading: float = 0.05) -> dict[str, float]:
+    """Parameters that take part in a null direction: name → the length of their loading in the
+    null space (0…1; 1: the parameter alone is a null direction). Below ``min_loading``: left out."""
+    if ident.vectors is None or not ident.deficient:
+        return {}
+    null = np.asarray(ident.vectors)[ident.rank:]  # (p − rank, p) orthonormal rows
+    share = np.sqrt(np.sum(null ** 2, axis=0))
+    return {n: float(v) for n, v in zip(ident.names, share) if v >= min_loading}
+
+
+@dataclass(frozen=True)
+class OrientationGain:
+    """What measured orientations add to positions (same configurations, same parameters).
+
+    newly_determined: parameters in a null direction of the position rows but not of the
+    position + attitude rows; still_undetermined: in a null direction of both (e.g. the first
+    joint's offset against the registration); std_ratio: for parameters determined both ways, the
+    standard deviation with orientation over that without (scaled, same σ per scaled row; < 1:
+    orientation sharpens it)."""
+
+    newly_determined: list[str]
+    still_undetermined: list[str]
+    std_ratio: dict[str, float]
+    positions: Identifiability
+    poses: Identifiability
+
+    def describe(self) -> str:
+        new = ", ".join(self.newly_determined) or "nothing"
+        still = ", ".join(self.still_undetermined) or "nothing"
+        return (f"orientation makes determined what positions alone leave undetermined: {new}; undetermined either way: "
+                f"{still}")
+
+    def to_dict(self) -> dict:
+        return {"newly_determined": self.newly_determined, "still_undetermined": self.still_undetermined,
+                "std_ratio": self.std_ratio, "rank_positions": self.positions.rank, "rank_poses": self.poses.rank,
+                "parameters": list(self.poses.names)}
+
+
+def orientation_gain(j_positions: np.ndarray, j_poses: np.ndarray, names: list[str], scale: np.ndarray, *,
+                     rel_tol: float = 1e-7, min_loading: float = 0.05) -> OrientationGain:
+    """Compare the scaled Jacobian of the position rows (m, p) with that of position + attitude
+    rows (m', p) over the same ``names`` (attitude rows already weighted into mm-equivalents)."""
+    pos = analyse(j_positions, names, scale, rel_tol=rel_tol, min_loading=min_loading)
+    both = analyse(j_poses, names, scale, rel_tol=rel_tol, min_loading=min_loading)
+    u_pos, u_both = undetermined(pos, min_loading), undetermined(both, min_loading)
+    ratio = {}
+    determined = [i for i, n in enumerate(names) if n not in u_pos and n not in u_both]
+    if determined:
+        def stds(j):
+            js = np.asarray(j, dtype=float) / np.asarray(scale, dtype=float)
+            return np.sqrt(np.clip(np.diag(np.linalg.pinv(js.T @ js, rcond=rel_tol ** 2 * 1e2)), 0.0, None))
+        sp, sb = stds(j_positions), stds(j_poses)
+        ratio = {names[i]: float(sb[i] / sp[i]) for i in determined if sp[i] > 0}
+    return OrientationGain([n for n in names if n in u_pos and n not in u_both], [n for n in names if n in u_both],
+                           ratio, pos, both)

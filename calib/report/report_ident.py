@@ -2,7 +2,8 @@
 
 Built from the ``result.json`` document of ``calib.fit.identification.ident_result_dict`` with the
 fast report's building blocks (``calib.report.report_format``, ``calib.report.report_figures``): the outcome and
-its warnings (starts that disagree, conditioning), every start of the solve, the identified
+its warnings (starts that disagree, conditioning), the model choice when the default chose full
+identification (``calib.report.report_choice``: every candidate's held-out error), every start of the solve, the identified
 parameters with their change and std, the tool markers, what was kept nominal and why, the
 accuracy before and after (validation scored with the calibration registration, the
 re-registered figure beside it and named as such), and the error per measurement.
@@ -16,6 +17,7 @@ import numpy as np
 
 from calib.measure.dataset import Dataset
 from calib.fit.identification import IdentResult, pose_errors
+from calib.report.report_choice import model_choice_section
 from calib.report.report_compliance import compliance_section
 from calib.report.report_format import CSS, Html, esc, num, table
 
@@ -77,9 +79,13 @@ def _accuracy(doc: dict) -> list[str]:
                 blocks[0] = (f"{blocks[0][0]} — estimated placement uncertainty {groups_note}", m)
         for title, b in blocks:
             for when in ("before", "after"):
-                rows.append([when, Html(num(b[when]["EACPE"])), Html(num(b[when]["EMCPE"]))])
+                att = [Html(num(b[when].get(k), 4)) if b[when].get(k) is not None else "—" for k in ("EACAE", "EMCAE")]
+                rows.append([when, Html(num(b[when]["EACPE"])), Html(num(b[when]["EMCPE"])), *att])
                 groups.append(title if when == "before" else None)
-    out = ["<h2 id=accuracy>Accuracy before and after (mm)</h2>", table(["", "EACPE (mean)", "EMCPE (max)"], rows, groups=groups)]
+    heads = ["", "EACPE (mean, mm)", "EMCPE (max, mm)", "EACAE (mean, °)", "EMCAE (max, °)"]
+    if not any(r[3] != "—" for r in rows):  # positions only: no attitude columns
+        rows, heads = [r[:3] for r in rows], heads[:3]
+    out = ["<h2 id=accuracy>Accuracy before and after</h2>", table(heads, rows, groups=groups)]
     notes = doc.get("metric_notes") or []
     if notes:
         out.append("<ul class=small>" + "".join(f"<li>{esc(n)}</li>" for n in notes) + "</ul>")
@@ -112,7 +118,7 @@ def render_ident_report(result: IdentResult, cal: Dataset, doc: dict) -> str:
              f"<h1>Full identification: {name}</h1>",
              f"<p class=small>{len(cal)} calibration measurements; tool prior ±{num(doc['tool_prior_mm'], 3)} mm per "
              f"coordinate; {doc['evaluations']} evaluations</p>"]
-    parts += _outcome(doc) + _starts(doc) + _parameters(doc) + compliance_section(doc.get("compliance"))
+    parts += _outcome(doc) + model_choice_section(doc) + _starts(doc) + _parameters(doc) + compliance_section(doc.get("compliance"))
     parts += _accuracy(doc) + _error_figure(result, cal)
     parts.append("</body></html>")
     return "\n".join(parts)

@@ -150,6 +150,9 @@ def summary_html(doc: dict) -> str:
         parts.append(choice)
         parts.append(f"<p class=small>model: {esc(doc['model_choice']['chosen'])} — {esc(doc['model_choice']['rule'])}; each "
                      "model fitted on the other folds, held-out configurations scored with that fit's registration.</p>")
+        from calib.report.report_choice import link_scale_lines  # that module builds on this one's table
+
+        parts += [f"<p class=small>{esc(line)}</p>" for line in link_scale_lines(doc["model_choice"])]
     sig = ", ".join(f"{esc(s)} σ = {num(v['value'], 3)} mm" for s, v in doc.get("sigma_mm", {}).items())
     if sig:
         parts.append(f"<p class=small>fit: {sig}; {doc['data']['n_measurements']} measurements at "

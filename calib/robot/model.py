@@ -81,6 +81,10 @@ class Marker(_Strict):
     name: str = Field(min_length=1)
     xyz: tuple[float, float, float]
     kind: Literal["retroreflector", "infrared", "other"] = "other"
+    rpy_deg: tuple[float, float, float] | None = Field(
+        None, description="A 6-DoF target's frame (T-Mac, rigid body) at this marker: its orientation in the flange "
+                          "frame as roll, pitch, yaw, degrees (R = Rz(yaw)·Ry(pitch)·Rx(roll)); omitted: unknown, "
+                          "fitted from the measured orientations.")
 
 
 class Tool(_Strict):

@@ -130,3 +130,57 @@ def log_so3(r: np.ndarray) -> np.ndarray:
     small = angle < 1e-8
     scale = np.where(small, 0.5, angle / (2.0 * np.sin(np.where(small, 1.0, angle))))
     return v * scale[..., None]
+
+
+def quat_to_matrix(wxyz: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of unit quaternions (..., 4) given **scalar first**
+    (w, x, y, z; Hamilton convention, active: the matrix rotates vectors, R·v = q v q*).
+    The quaternion is normalised first; q and −q give the same matrix."""
+    q = np.asarray(wxyz, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4), scalar first (w, x, y, z) with w ≥ 0, of rotations (..., 3, 3):
+    the inverse of ``quat_to_matrix`` (Shepperd's method, robust at every angle)."""
+    r = np.asarray(r, dtype=float)
+    tr = np.trace(r, axis1=-2, axis2=-1)
+    cand = np.stack([
+        np.stack([1 + tr, r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1),
+        np.stack([r[..., 2, 1] - r[..., 1, 2], 1 + 2 * r[..., 0, 0] - tr, r[..., 0, 1] + r[..., 1, 0], r[..., 0, 2] + r[..., 2, 0]], -1),
+        np.stack([r[..., 0, 2] - r[..., 2, 0], r[..., 0, 1] + r[..., 1, 0], 1 + 2 * r[..., 1, 1] - tr, r[..., 1, 2] + r[..., 2, 1]], -1),
+        np.stack([r[..., 1, 0] - r[..., 0, 1], r[..., 0, 2] + r[..., 2, 0], r[..., 1, 2] + r[..., 2, 1], 1 + 2 * r[..., 2, 2] - tr], -1),
+    ], -2)  # (..., 4, 4): row k is 4·q_k·q, largest for the largest |q_k|
+    k = np.argmax(np.stack([1 + tr, 1 + 2 * r[..., 0, 0] - tr, 1 + 2 * r[..., 1, 1] - tr, 1 + 2 * r[..., 2, 2] - tr], -1), -1)
+    q = np.take_along_axis(cand, k[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def so3_left_jacobian(w: np.ndarray) -> np.ndarray:
+    """J_l(w) (..., 3, 3): exp(w + dw) ≈ exp(J_l(w)·dw) · exp(w)."""
+    w = np.asarray(w, dtype=float)
+    t = np.linalg.norm(w, axis=-1)[..., None, None]
+    k = skew(w)
+    small = t < 1e-6
+    s = np.where(small, 1.0, t)
+    a = np.where(small, 0.5 - t**2 / 24.0, (1.0 - np.cos(s)) / s**2)
+    b = np.where(small, 1.0 / 6.0 - t**2 / 120.0, (s - np.sin(s)) / s**3)
+    return np.eye(3) + a * k + b * (k @ k)
+
+
+def so3_left_jacobian_inv(w: np.ndarray) -> np.ndarray:
+    """J_l(w)⁻¹ (..., 3, 3), for angles below π: log(exp(dv)·exp(w)) ≈ w + J_l(w)⁻¹·dv."""
+    w = np.asarray(w, dtype=float)
+    t = np.linalg.norm(w, axis=-1)[..., None, None]
+    k = skew(w)
+    small = t < 1e-6
+    s = np.where(small, 1.0, t)
+    c = np.where(small, 1.0 / 12.0 + t**2 / 720.0, 1.0 / s**2 - (1.0 + np.cos(s)) / (2.0 * s * np.sin(s)))
+    return np.eye(3) - 0.5 * k + c * (k @ k)

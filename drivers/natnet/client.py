@@ -98,6 +98,24 @@ class MarkerSelector:
         return self.kind == "ms" or isinstance(self.body, str) or (self.kind == "sk" and isinstance(self.name, str))
 
 
+def body_rotation(quat_xyzw) -> np.ndarray | None:
+    """A rigid body's (or bone's) orientation (3, 3) from its NatNet quaternion.
+
+    Motive sends (qx, qy, qz, qw) — scalar **last** — as float32; the quaternion rotates the
+    body's local frame (the one its markers were defined in at creation, origin at the pivot)
+    into Motive's streamed world frame, the same frame its position is in (y up by default;
+    the streaming "Up Axis" setting turns positions and orientations alike). So the matrix is
+    ``R_sensor←body`` as ``calib.measure.dataset`` expects. None for a non-finite or zero
+    quaternion."""
+    q = np.asarray(quat_xyzw, dtype=np.float64)
+    n = float(np.linalg.norm(q))
+    if not np.all(np.isfinite(q)) or n < 0.5:
+        return None
+    from calib.robot.transforms import quat_to_matrix
+
+    return quat_to_matrix(np.array([q[3], q[0], q[1], q[2]]) / n)
+
+
 def _find_body(rows: np.ndarray, ident: int):
     hit = np.flatnonzero(rows["id"] == ident)
     return rows[hit[0]] if hit.size else None
@@ -473,7 +491,7 @@ class NatNetSensor(SensorBase):
     def _samples(self, frame: codec.FrameOfData, host_time: float, resolved) -> list[MarkerSample]:
         out = []
         for plan_name, (kind, ident) in resolved.items():
-            pos, visible, residual = _NAN3, False, None
+            pos, visible, residual, rotation = _NAN3, False, None, None
             if kind == "lm":
                 row = _find_marker(frame, ident)
                 if row is not None:
@@ -487,9 +505,11 @@ class NatNetSensor(SensorBase):
                     pos = row["pos"].astype(np.float64) * self.scale_mm
                     visible = bool(row["params"] & codec.RIGID_BODY_TRACKED)
                     residual = float(row["mean_error"]) * self.scale_mm
+                    rotation = body_rotation(row["quat"]) if visible else None
             if visible and not np.all(np.isfinite(pos)):
                 visible = False
-            out.append(MarkerSample(plan_name, pos, frame.timestamp, host_time, visible, None, residual))
+            out.append(MarkerSample(plan_name, pos, frame.timestamp, host_time, visible, None, residual,
+                                    rotation if visible else None))
         for plan_name in self.selectors:
             if plan_name not in resolved:
                 out.append(MarkerSample(plan_name, _NAN3, frame.timestamp, host_time, False))

@@ -34,7 +34,7 @@ def socket_csv(tmp_path):
 
 def test_acquire_fit_takes_socket_data_and_scores_held_out_placements(tmp_path, socket_csv):
     out = tmp_path / "result.json"
-    r = CliRunner().invoke(app, ["fit", str(socket_csv), "--robot", str(IIWA), "-o", str(out)])
+    r = CliRunner().invoke(app, ["fit", str(socket_csv), "--robot", str(IIWA), "--method", "fast", "-o", str(out)])
     assert r.exit_code == 0, r.output
     assert "A1     " in r.output and "undetermined" in r.output and "held-out placements" in r.output
     doc = json.loads(out.read_text())
@@ -49,6 +49,30 @@ def test_acquire_fit_takes_socket_data_and_scores_held_out_placements(tmp_path, 
     model = load_robot_model(out.with_name("result.model.yaml"))
     assert [m.name for m in model.tool.markers] == ["ball"]
     assert abs(model.tool.markers[0].xyz[2] - doc["ball_mm"]["value"][2]) < 1e-6
+
+
+def test_default_chooses_the_socket_model_by_held_out_placements_and_says_so(tmp_path, socket_csv):
+    """``acquire fit`` without --method on socket data: the candidates' table (held-out placements),
+    the chosen model named in the summary and result.json, its link prior from the evidence."""
+    out = tmp_path / "result.json"
+    r = CliRunner().invoke(app, ["fit", str(socket_csv), "--robot", str(IIWA), "--compliance", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    doc = json.loads(out.read_text())
+    mc, fm = doc["model_choice"], doc["fit_model"]
+    assert mc["grouped_by"] == "placement" and mc["folds"] == 3
+    names = [c["model"] for c in mc["candidates"]]
+    assert names == ["offsets+compliance", "offsets+ball+compliance", "offsets+ball+links+compliance", "full+compliance"]
+    assert fm["method"] == "auto" and fm["model"] == mc["chosen"]
+    assert f"method: auto — model {mc['chosen']} — fitted model: {fm['description']}" in r.output
+    for name in ["nominal (data sheet, ball from the training data)"] + names:
+        assert name in r.output
+    links = mc["link_scale"]["offsets+ball+links+compliance"]
+    assert not links.get("given") and links["length_mm"] > 0 and links["angle_deg"] > 0
+    chosen = next(c for c in mc["candidates"] if c["model"] == mc["chosen"])
+    assert chosen["cv_mean_mm"] < 0.6 * mc["nominal"]["cv_mean_mm"]  # the real arm is predicted better
+    assert doc["trusted"] and any(j["status"] == "fitted" for j in doc["joint_offsets"])
+    forced = CliRunner().invoke(app, ["fit", str(socket_csv), "--robot", str(IIWA), "--model", "offsets+bogus"])
+    assert forced.exit_code == 2 and "known: offsets" in forced.output
 
 
 def test_sensor_options_are_refused_for_socket_data(socket_csv):

@@ -18,7 +18,7 @@ from calib.fit.identification import (
 )
 from calib.robot.kinematics import Chain
 from calib.robot.model import load_robot_model, robot_model_from_dict
-from calib.robot.transforms import pose_to_matrix
+from calib.robot.transforms import exp_so3, pose_to_matrix
 
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 BASE2SENSOR = pose_to_matrix(np.array([1500.0, 200.0, -300.0]), np.radians([170.0, 10.0, -5.0]))
@@ -127,12 +127,15 @@ def test_fused_objective_jacobian_matches_finite_differences():
     rng = np.random.default_rng(4)
     q = rng.uniform(model.lower_limits_rad * 0.5, model.upper_limits_rad * 0.5, (6, 6))
     data = measure(model, chain, q, chain.nominal, rng, 0.0)
-    rot = np.tile(np.eye(3), (len(data), 1, 1))
+    # Measured target orientations: the flange's turned by a fixed frame and by up to ~20° of error,
+    # so the rotation-vector residual and its exact Jacobian (J_l⁻¹ of the residual) are exercised.
+    frame = exp_so3(np.array([0.3, -0.2, 1.0]))
+    rot = BASE2SENSOR[:3, :3] @ chain.flange_pose(data.q_rad)[0] @ frame @ exp_so3(rng.normal(0, 0.2, (len(data), 3)))
     problem = _Problem(chain, data, {"sensor": BASE2SENSOR}, rot, 100.0)
-    x = np.concatenate([chain.nominal + rng.normal(0, 1e-3, chain.n_params), rng.normal(0, 1e-3, 6)])
+    x = np.concatenate([chain.nominal + rng.normal(0, 1e-3, chain.n_params), rng.normal(0, 1e-3, len(problem.names) - chain.n_params)])
     _, j = problem.residuals_and_jacobian(x)
     h = 1e-6
-    for col in rng.choice(x.size, 12, replace=False):
+    for col in [*rng.choice(x.size - 3, 12, replace=False), x.size - 3, x.size - 2, x.size - 1]:
         dx = np.zeros_like(x)
         dx[col] = h
         fd = (problem.residuals_and_jacobian(x + dx, False)[0] - problem.residuals_and_jacobian(x - dx, False)[0]) / (2 * h)
@@ -177,7 +180,7 @@ def test_too_few_measurements_is_a_clear_error():
 def test_comprehensive_errors_on_a_hand_example():
     out = comprehensive_errors(np.array([3.0, 4.0, 5.0]), np.radians([1.0, 2.0, 3.0]))
     assert out["EACPE"] == pytest.approx(4.0) and out["EMCPE"] == 5.0
-    assert out["EACAE"] == pytest.approx(np.radians(2.0)) and out["EMCAE"] == pytest.approx(np.radians(3.0))
+    assert out["EACAE"] == pytest.approx(2.0) and out["EMCAE"] == pytest.approx(3.0)  # degrees, as files are
     assert comprehensive_errors(np.array([1.0]))["EACAE"] is None
 
 

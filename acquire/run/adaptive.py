@@ -1,0 +1,328 @@
+"""An adaptive run's order (the plan's ``adaptive`` section, issue 27): after each measured
+configuration the next is chosen by ``calib.plan.adaptive.SequentialDesign`` — expected gain of
+the stated quantities per second of motion, settling and measuring from where the robot stands —
+and the run stops when the plan's stop rule holds.
+
+``AdaptiveOrder`` holds the design over the plan's configurations (``calib.fit.design``: the
+fit's own parameters and priors, linearised at the nominal robot), the σ it predicts with
+(the plan's ``noise_mm``, or the fast fit's σ of the configurations measured when that is
+larger — unbiased for the effective number of parameters it fitted, used once it has
+``MIN_SIGMA_DOF`` degrees of freedom),
+and the history (predicted intervals and workspace error against the number of
+configurations) that the summary shows. Nothing here moves the robot: the run's
+``ConfigurationRunner`` does, with every check it always makes.
+
+A resumed run rebuilds the design from the log's samples (``mark``) and continues choosing among
+the configurations no sample has: nothing is measured twice.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from calib.plan.adaptive import SequentialDesign, StopRule, Status
+
+log = logging.getLogger(__name__)
+
+#: Degrees of freedom (coordinates less effective parameters) before the fast fit's σ is used.
+MIN_SIGMA_DOF = 10
+
+
+def stop_rule(lp, n_configs: int) -> StopRule:
+    """The plan's stop rule for ``n_configs`` configurations. Raises ConfigError (the plan's
+    file, line and field) when ``min_configurations`` exceeds the plan's configurations."""
+    from calib.fit.offsets import min_configurations
+
+    ad = lp.plan.adaptive
+    fit = lp.plan.fit
+    n_fit = len(fit.joints) if fit.joints else lp.model.n_joints
+    need = min_configurations(n_fit, [len(s.markers) for s in lp.plan.sensors], fix_registration=fit.fix_registration)
+    lo = ad.min_configurations if ad.min_configurations is not None else min(n_configs, max(12, 2 * need))
+    if lo > n_configs:
+        raise lp.error(("adaptive", "min_configurations"), f"more than the plan's {n_configs} configurations "
+                                                           f"(given {lo}; allowed 1…{n_configs})")
+    if lo < need:
+        raise lp.error(("adaptive", "min_configurations"), f"fewer than the fit needs (given {lo}; allowed "
+                                                           f"{need}…{n_configs})")
+    hi = ad.max_configurations
+    return StopRule(interval_deg=ad.stop_when.interval_deg, workspace_within_pct=ad.stop_when.workspace_within_pct,
+                    held_out_within_pct=ad.stop_when.held_out_within_pct, min_configurations=lo, max_configurations=None if hi is None else min(hi, n_configs))
+
+
+def fit_options(lp):
+    """The fit's options as the design linearises them (the Laplace fit's model: link and tool
+    priors, compliance when the plan fits it and the model has masses)."""
+    from calib.fit.offsets import FitOptions
+
+    fit = lp.plan.fit
+    mm, deg = getattr(fit, "link_tolerance_mm", 0.2), getattr(fit, "link_tolerance_deg", 0.02)
+    return FitOptions(method="laplace", joints=tuple(fit.joints) if fit.joints else None,
+                      fix_registration=bool(fit.fix_registration),
+                      link_tolerance=None if mm is None or deg is None else (float(mm), float(deg)),
+                      compliance=bool(fit.compliance) and lp.model.has_dynamics,
+                      tool_prior_mm=float(fit.tool_prior_mm))
+
+
+class AdaptiveOrder:
+    """The sequential design over ``configs`` (the plan's PlannedConfigs) for a run.
+
+    limits: the commander's ``JointLimits``; speed: the plan's speed override; per_config_s:
+    expected settle + measure seconds per configuration.
+    """
+
+    def __init__(self, lp, configs, limits, speed: float, per_config_s: float) -> None:
+        from calib.fit.design import design_model
+
+        self.lp, self.configs = lp, list(configs)
+        self.index = {c.config_id: i for i, c in enumerate(self.configs)}
+        self.limits, self.speed, self.per_config_s = limits, float(speed), float(per_config_s)
+        self.noise_mm = max(float(s.noise_mm) for s in lp.plan.sensors)
+        self.options = fit_options(lp)
+        q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
+        sensors = {s.name: list(s.markers) for s in lp.plan.sensors}
+        self.design = SequentialDesign(design_model(lp.model, q, sensors, self.options),
+                                       stop_rule(lp, len(self.configs)), self.noise_mm)
+        self.dropped: set[int] = set()  # skipped or failed: not chosen again in this run
+        self.records: list[dict] = []
+        self.history: list[dict] = []
+        self.fitted_sigma_mm: float | None = None
+
+    def copy(self) -> "AdaptiveOrder":
+        """An independent copy of the design's state (for predictions: ``simulate``)."""
+        import copy
+
+        other = copy.copy(self)
+        d = self.design
+        other.design = SequentialDesign(d.model, d.rule, d.sigma_mm, measured=list(d.measured))
+        other.dropped, other.records, other.history = set(self.dropped), list(self.records), []
+        return other
+
+    # ------------------------------------------------------------------ state
+    def mark(self, config_id: str, record: dict | None = None) -> None:
+        """``config_id`` was measured (its sample ``record`` updates σ when given)."""
+        i = self.index.get(config_id)
+        if i is None or i in self.design.measured:
+            return
+        self.design.add(i)
+        if record is not None:
+            self.records.append(record)
+
+    def drop(self, config_id: str) -> None:
+        """``config_id`` was skipped or failed: not chosen again in this run (a resume may)."""
+        i = self.index.get(config_id)
+        if i is not None:
+            self.dropped.add(i)
+
+    def update_sigma(self) -> None:
+        """σ for the design: the larger of the plan's ``noise_mm`` and the fast fit's σ of the
+        records so far (unbiased for the parameters it fitted) — the design never predicts a
+        better instrument than the plan states, and a worse one as soon as the data show it."""
+        sigma = self.fast_fit_sigma()
+        if sigma is not None:
+            self.fitted_sigma_mm = sigma
+            self.design.set_sigma(max(self.noise_mm, sigma))
+
+    def fast_fit_sigma(self) -> float | None:
+        """The fitted σ (mm, largest over sensors) of the posterior mode on the records, or None
+        while there are too few of them for the fit."""
+        from calib.fit.offsets import fit_mode
+        from calib.measure.dataset import DatasetError, from_arrays
+
+        q, xyz, mk, sn, cid = [], [], [], [], []
+        for rec in self.records:
+            for m in rec.get("markers", []):
+                q.append(np.radians(rec["q_measured_deg"]))
+                xyz.append(m["mean_mm"])
+                mk.append(m["marker"])
+                sn.append(m["sensor"])
+                cid.append(rec["config_id"])
+        if len(set(cid)) < self.design.rule.min_configurations // 2 or not q:
+            return None
+        data = from_arrays(np.array(q), np.array(xyz, dtype=float), marker=np.array(mk), sensor=np.array(sn),
+                           config=np.array(cid))
+        try:
+            mf = fit_mode(self.lp.model, data, self.options, tol=1e-8)
+        except (DatasetError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            log.info("adaptive: no fast fit yet (%s)", exc)
+            return None
+        # The mode's σ is the maximum-likelihood one, low by the parameters the data fitted (the
+        # effective number: link and tool parameters count in part): unbias it, and trust it only
+        # with MIN_SIGMA_DOF degrees of freedom left.
+        n_coord = 3 * len(data)
+        p_eff = self.design.effective_parameters()
+        if n_coord - p_eff < MIN_SIGMA_DOF:
+            return None
+        sigma = float(np.max(np.exp(mf.log_sigma))) * math.sqrt(n_coord / (n_coord - p_eff))
+        return sigma if math.isfinite(sigma) and sigma > 0 else None
+
+    def status(self) -> Status:
+        st = self.design.status()
+        if not st.stop and not self._choosable().size:
+            st = Status(st.n_measured, st.half_width_deg, st.workspace_mm, st.full_workspace_mm, True,
+                        f"plan exhausted: {st.n_measured} measured, the rest skipped or failed")
+        return st
+
+    def _choosable(self) -> np.ndarray:
+        left = self.design.remaining
+        return np.array([i for i in left if i not in self.dropped], dtype=int)
+
+    # ------------------------------------------------------------------ the choice
+    def seconds_from(self, here_q_rad: np.ndarray) -> np.ndarray:
+        """(N,) move + settle + measure seconds from ``here_q_rad`` to every configuration."""
+        from drivers.trajectory import motion_time, scaled_limits
+
+        v, a, j = scaled_limits(self.limits.max_velocity_rad_s, self.limits.max_acceleration_rad_s2, self.speed)
+        q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
+        here = np.asarray(here_q_rad, dtype=float)[None, :]
+        return np.asarray(motion_time(np.repeat(here, len(q), axis=0), q, v, a, j), dtype=float) + self.per_config_s
+
+    def choose(self, here_q_rad: np.ndarray):
+        """(PlannedConfig, event fields) of the next configuration from ``here_q_rad``; the
+        event fields say why (gain per stated quantity, seconds, score, runner-up)."""
+        secs = self.seconds_from(here_q_rad)
+        design = self.design
+        choice = design.choose(secs, exclude=sorted(self.dropped))
+        cfg = self.configs[choice.index]
+        fields = {"config_id": cfg.config_id, **choice.to_dict(), "sigma_mm": round(design.sigma_mm, 5)}
+        if choice.runner_up is not None:
+            fields["runner_up"] = self.configs[choice.runner_up].config_id
+        return cfg, fields
+
+    def record_status(self, st: Status) -> dict:
+        """One history row (also the ``adaptive_status`` event's fields)."""
+        row = {"n": st.n_measured, "max_half_width_deg": round(st.max_half_width_deg, 6),
+               "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
+               "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),
+               "sigma_mm": round(self.design.sigma_mm, 5)}
+        self.history.append(row)
+        return row
+
+    # ------------------------------------------------------------------ cell time
+    def full_plan_seconds(self, start_q_rad: np.ndarray) -> float:
+        """Estimated cell time of the whole plan in the run's usual order from ``start_q_rad``."""
+        from acquire.sequencer import move_times, order_configurations
+
+        order = order_configurations(self.configs, start_q_rad, self.limits, self.speed)
+        return float(move_times(order, start_q_rad, self.limits, self.speed).sum() + len(order) * self.per_config_s)
+
+    def visited_seconds(self, visited, start_q_rad: np.ndarray) -> float:
+        """Estimated cell time of the configurations ``visited`` (in that order) from ``start_q_rad``."""
+        from acquire.sequencer import move_times
+
+        return float(move_times(list(visited), start_q_rad, self.limits, self.speed).sum()
+                     + len(visited) * self.per_config_s)
+
+
+def simulate(order: AdaptiveOrder, start_q_rad: np.ndarray, *, to_the_end: bool = False) -> tuple[list, Status]:
+    """The choices an adaptive run would make if every configuration is measured and the noise is
+    the plan's (σ = noise_mm): (configurations in order, final status). For ``--dry-run``.
+    to_the_end: ignore the criteria, choose until ``max_configurations`` or the plan's end (the
+    longest the run can take)."""
+    order = order.copy()
+    if to_the_end:
+        from dataclasses import replace
+
+        order.design.rule = replace(order.design.rule, interval_deg=1e-12, workspace_within_pct=None,
+                                    held_out_within_pct=None)
+    here = np.asarray(start_q_rad, dtype=float)
+    chosen = []
+    st = order.status()
+    while not st.stop:
+        cfg, _ = order.choose(here)
+        order.mark(cfg.config_id)
+        chosen.append(cfg)
+        here = np.asarray(cfg.q_rad, dtype=float)
+        st = order.status()
+    return chosen, st
+
+
+class AdaptiveRun:
+    """An adaptive run's side of ``RunController._run``: the design over the plan's ``configs``,
+    rebuilt from a resumed log (its samples are measured, its ``ended`` ids are not chosen), the
+    choices as the run goes (``choices``: a generator of configurations, each with an
+    ``adaptive_choice`` event), each outcome (``outcome``), and the summary at the end.
+
+    cmd: the open commander (its limits; where the robot stands before each choice).
+    """
+
+    def __init__(self, lp, configs, cmd, speed: float, per_config_s: float, resumed, ended, start_q_rad) -> None:
+        self.cmd = cmd
+        self.order = AdaptiveOrder(lp, configs, cmd.limits, speed, per_config_s)
+        for rec in (resumed.samples if resumed is not None else []):
+            self.order.mark(rec["config_id"], rec)
+        for cid in ended:
+            if cid not in {rec["config_id"] for rec in self.order.records}:
+                self.order.drop(cid)
+        self.order.update_sigma()
+        self.start_q = np.asarray(start_q_rad, dtype=float)
+        self.resumed_n = len(self.order.design.measured)
+        self.visited: list = []  # configurations this segment moved to, in order
+        self.final: Status | None = None
+        self.predicted, self.predicted_status = simulate(self.order, self.start_q)
+
+    def started_fields(self) -> dict:
+        rule = self.order.design.rule
+        o = self.order
+        return {"stop_when": {"interval_deg": rule.interval_deg, "workspace_within_pct": rule.workspace_within_pct,
+                              "held_out_within_pct": rule.held_out_within_pct},
+                "min_configurations": rule.min_configurations, "max_configurations": rule.max_configurations,
+                "candidates": len(o.configs), "measured_before": self.resumed_n,
+                "determinable": list(o.design.model.offset_names), "noise_mm": o.noise_mm,
+                "predicted_configurations": len(self.predicted) + self.resumed_n,
+                "predicted_seconds": round(o.visited_seconds(self.predicted, self.start_q), 1),
+                "full_plan_seconds": round(o.full_plan_seconds(self.start_q), 1)}
+
+    def _here(self, last) -> np.ndarray:
+        from drivers.errors import DriverError
+
+        try:
+            return np.asarray(self.cmd.joint_state().position_rad, dtype=float)
+        except DriverError:
+            return np.asarray(last.q_rad, dtype=float) if last is not None else self.start_q
+
+    def choices(self, event):
+        """Configurations to measure, chosen one at a time; stops when the rule holds, the plan
+        is exhausted or ``max_configurations`` is reached (event ``adaptive_stop``)."""
+        last = None
+        while True:
+            st = self.order.status()
+            row = self.order.record_status(st)
+            if st.stop:
+                self.final = st
+                return
+            cfg, why = self.order.choose(self._here(last))
+            event("adaptive_choice", **why, status=row)
+            self.visited.append(cfg)
+            last = cfg
+            yield cfg
+
+    def outcome(self, cfg, outcome: str, record: dict | None) -> None:
+        """What became of ``cfg``: measured (its record updates the design and σ), skipped or failed."""
+        if outcome == "measured":
+            ok = record is not None and record.get("config_id") == cfg.config_id
+            self.order.mark(cfg.config_id, record if ok else None)
+            self.order.update_sigma()
+        elif outcome in ("skipped", "failed"):
+            self.order.drop(cfg.config_id)
+
+    def summary(self) -> dict:
+        """Why the run stopped, the predicted intervals against the number of configurations, and
+        the estimated cell time of what was visited against the full plan's."""
+        o = self.order
+        st = self.final if self.final is not None else o.status()
+        full = o.full_plan_seconds(self.start_q)
+        before = [o.configs[i] for i in o.design.measured[: self.resumed_n]]
+        spent = o.visited_seconds(before + self.visited, self.start_q)
+        return {"stopped": self.final is not None, "reason": st.reason if self.final is not None else
+                "the run ended before the stop rule was evaluated (aborted or failed)",
+                "measured": st.n_measured, "candidates": len(o.configs),
+                "half_width_deg": {k: round(v, 6) for k, v in st.half_width_deg.items()},
+                "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
+                "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),
+                "sigma_mm": round(o.design.sigma_mm, 5),
+                "fitted_sigma_mm": None if o.fitted_sigma_mm is None else round(o.fitted_sigma_mm, 5),
+                "history": o.history, "estimated_seconds": round(spent, 1), "full_plan_seconds": round(full, 1),
+                "saved_seconds": round(full - spent, 1), "saved_pct": round(100 * (1 - spent / full), 1) if full else None}

@@ -1,0 +1,35 @@
+"""The model-choice section of the reports: every candidate model's cross-validated held-out error
+(``doc["model_choice"]``: ``calib.fit.model_choice`` for tracker/mocap data, ``calib.fit.socket_choice``
+for socket data), the chosen one, the rule, and the link prior scales the evidence chose."""
+
+from __future__ import annotations
+
+from calib.report.report_format import esc
+from calib.report.report_summary import model_choice_table
+
+
+def link_scale_lines(mc: dict) -> list[str]:
+    """One line per link prior of ``mc`` ("lengths ±… mm, angles ±…°" and how it was set)."""
+    scales = mc.get("link_scale") or {}
+    if "length_mm" in scales:  # tracker/mocap: one links candidate
+        scales = {"offsets+tool+links": scales}
+    out = []
+    for name, sc in scales.items():
+        how = "given" if sc.get("given") else "empirical Bayes: the maximum of the Laplace evidence"
+        out.append(f"link prior of {name} ({how}): lengths ±{sc['length_mm']:g} mm, angles ±{sc['angle_deg']:g}°")
+    return out
+
+
+def model_choice_section(doc: dict) -> list[str]:
+    """HTML of the section, [] when ``doc`` has no model choice (a forced method)."""
+    mc = doc.get("model_choice")
+    if not mc:
+        return []
+    out = ["<h2 id=model-choice>Model choice</h2>", model_choice_table(doc),
+           f"<p class=small>chosen: <b>{esc(mc['chosen'])}</b>{' (forced by --model)' if mc.get('forced') else ''} — "
+           f"{esc(mc['rule'])}. Each model is fitted without the held-out {esc(mc['grouped_by'])}s and scored on them "
+           "(never re-fitted on the scored points).</p>"]
+    out += [f"<p class=small>{esc(line)}</p>" for line in link_scale_lines(mc)]
+    if mc.get("excluded"):
+        out.append(f"<p class=small>not compared: {esc(mc['excluded'])}</p>")
+    return out

@@ -1,0 +1,47 @@
+"""6-DoF records in the run log: a measurement's orientation goes into the sample record as a
+scalar-first quaternion (schema-checked) and comes back as the dataset's R_sensor←target."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from acquire.recorder import dataset_from_run
+from acquire.sequencer import _orientation
+from calib.robot.kinematics import Chain
+from calib.robot.model import load_robot_model
+from drivers.protocols import MarkerMeasurement
+
+from test_recorder import IIWA, new_log
+
+
+def test_orientation_goes_into_the_record_as_a_scalar_first_quaternion():
+    c, s = math.cos(0.25), math.sin(0.25)
+    rz = np.array([[c * c - s * s, -2 * s * c, 0], [2 * s * c, c * c - s * s, 0], [0, 0, 1]])  # 0.5 rad about z
+    mm = MarkerMeasurement("tool", np.zeros(3), np.zeros(3), 5, 0.0, 0.0, rotation=rz, std_deg=0.02)
+    rec = _orientation(mm)
+    np.testing.assert_allclose(rec["quat_wxyz"], [c, 0, 0, s], atol=1e-12)
+    assert rec["std_deg"] == 0.02
+    assert _orientation(MarkerMeasurement("p", np.zeros(3), np.zeros(3), 5, 0.0, 0.0)) == {}
+
+
+def test_dataset_from_run_reads_orientations(tmp_path):
+    model = load_robot_model(IIWA)
+    chain = Chain(model)
+    rng = np.random.default_rng(2)
+    q_deg = rng.uniform(-60, 60, (6, model.n_joints))
+    pos = chain.marker_positions(np.radians(q_deg))
+    name = model.marker_names[0]
+    path = tmp_path / "run.mcap"
+    half = math.sqrt(0.5)
+    with new_log(path) as lg:
+        for i in range(6):
+            mk = {"sensor": "mocap", "marker": name, "mean_mm": pos[i, 0].tolist(), "std_mm": [0.03] * 3, "count": 10}
+            if i % 2 == 0:  # every other configuration with the body's orientation: 90° about x
+                mk |= {"quat_wxyz": [half, half, 0.0, 0.0], "std_deg": 0.05}
+            lg.sample({"config_id": f"c{i}", "q_measured_deg": q_deg[i].tolist(), "markers": [mk]})
+    ds = dataset_from_run(path, model)
+    assert ds.oriented.tolist() == [True, False] * 3
+    np.testing.assert_allclose(ds.rot[0] @ [0, 1, 0], [0, 0, 1], atol=1e-12)  # the body's y → the sensor's z
+    np.testing.assert_allclose(ds.att_std_rad[ds.oriented], math.radians(0.05))

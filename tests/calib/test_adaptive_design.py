@@ -1,0 +1,147 @@
+"""The sequential designer (calib.plan.adaptive) on toy problems with a known answer, and the
+fit's linearised model over a real plan (calib.fit.design)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from calib.plan.adaptive import T95, DesignModel, SequentialDesign, StopRule
+
+
+def toy(rows, prior_sd=10.0) -> DesignModel:
+    """Two offsets (rad) measured through 1-row candidates ``rows`` (N, 2); workspace = identity."""
+    r = np.asarray(rows, dtype=float)[:, None, :]
+    return DesignModel(rows=r, prior=np.eye(2) / prior_sd**2, offsets=np.array([0, 1]),
+                       offset_names=("A1.offset", "A2.offset"), workspace=np.eye(2), names=("A1.offset", "A2.offset"))
+
+
+def test_prefers_the_parameter_not_yet_measured():
+    # candidates 0, 1 see parameter 0; candidate 2 sees parameter 1. After 0 is measured, 2 wins.
+    d = SequentialDesign(toy([[1, 0], [1, 0], [0, 1]]), StopRule(interval_deg=1.0), sigma_mm=0.1)
+    d.add(0)
+    assert d.choose(np.ones(3)).index == 2
+
+
+def test_prefers_the_cheaper_of_two_equally_informative():
+    d = SequentialDesign(toy([[1, 0], [1, 0], [0, 1]]), StopRule(workspace_within_pct=10), sigma_mm=0.1)
+    d.add(2)
+    assert d.choose(np.array([1.0, 5.0, 1.0])).index == 0
+    assert d.choose(np.array([5.0, 1.0, 1.0])).index == 1
+
+
+def test_trades_information_against_seconds():
+    # candidate 0 is 4x as informative (2x the row) as 1 on the same parameter; parameter 1 is
+    # known already. Gain of the first measurement at σ=1 with a vague prior is ~ all the
+    # variance either way, so only a cheap near-useless one loses: 0 (10 s) vs 2 (1 s, row 0.01).
+    d = SequentialDesign(toy([[2, 0], [1, 0], [0.01, 0], [0, 1]], prior_sd=1.0), StopRule(interval_deg=1.0),
+                         sigma_mm=1.0)
+    d.add(3)
+    g = d.gains(np.array([0, 1, 2]))["interval"]
+    assert g[0] > g[1] > g[2] > 0
+    # per second: 0 at 10 s beats 2 at 1 s (gain of 2 is ~1e-4 of 0's)
+    assert d.choose(np.array([10.0, 10.0, 1.0, 1.0])).index == 0
+    # but when 0 costs 100x as much as 1, the less informative 1 is chosen
+    assert d.choose(np.array([1000.0, 10.0, 1000.0, 1.0])).index == 1
+
+
+def test_gain_is_the_exact_reduction_of_the_linear_model():
+    rng = np.random.default_rng(3)
+    rows = rng.normal(size=(6, 3, 4))
+    model = DesignModel(rows=rows, prior=np.eye(4) * 0.01, offsets=np.array([0, 2]), offset_names=("a", "b"),
+                        workspace=np.diag([1.0, 2.0, 0.0, 1.0]))
+    d = SequentialDesign(model, StopRule(interval_deg=0.1, workspace_within_pct=5), sigma_mm=0.5)
+    d.add(1)
+    before = d.covariance()
+    g = d.gains(np.array([3]))
+    after = d.covariance([1, 3])
+    k = [0, 2]
+    want_int = (np.trace(before[np.ix_(k, k)]) - np.trace(after[np.ix_(k, k)])) / np.trace(before[np.ix_(k, k)])
+    want_ws = (np.sum(model.workspace * before) - np.sum(model.workspace * after)) / np.sum(model.workspace * before)
+    assert g["interval"][0] == pytest.approx(want_int, rel=1e-9)
+    assert g["workspace"][0] == pytest.approx(want_ws, rel=1e-9)
+
+
+def test_held_out_criterion_counts_the_sensor_noise():
+    # held-out error² = 3σ² + workspace²: with the noise dominating, a few configurations predict
+    # nearly as well as all of them, so the held-out rule stops long before the workspace rule.
+    rows = np.tile(np.eye(2), (40, 1)).reshape(40, 2, 2)
+    model = DesignModel(rows=rows, prior=np.eye(2) * 1e-6, offsets=np.array([0]), offset_names=("a",),
+                        workspace=np.eye(2))
+
+    def stops(rule):
+        d = SequentialDesign(model, rule, sigma_mm=0.03)
+        while not (st := d.status()).stop:
+            d.add(d.choose(np.ones(40)).index)
+        return len(d.measured), st
+
+    n_held, st = stops(StopRule(held_out_within_pct=10, min_configurations=2))
+    n_ws, _ = stops(StopRule(workspace_within_pct=10, min_configurations=2))
+    assert st.held_out_mm == pytest.approx(math.sqrt(3 * 0.03**2 + st.workspace_mm**2))
+    assert st.held_out_mm <= 1.1 * st.full_held_out_mm and "held-out" in st.reason
+    # workspace² = 2σ²/n: within 10 % of all 40 needs n ≥ 40/1.21; held-out: 3σ² + 2σ²/n ≤ 1.21·(3σ² + 2σ²/40), n ≥ 3
+    assert n_ws == math.ceil(40 / 1.1**2) and n_held < n_ws / 3
+
+
+def test_stop_rule_half_width_and_minimum():
+    # each candidate measures offset 0 and 1 with σ=0.001 rad-equivalent: sd after n = 0.001/√n rad
+    rows = np.tile(np.eye(2), (20, 1)).reshape(20, 2, 2)
+    model = DesignModel(rows=rows, prior=np.eye(2) * 1e-6, offsets=np.array([0, 1]), offset_names=("a", "b"),
+                        workspace=np.eye(2))
+    limit = math.degrees(T95 * 0.001 / math.sqrt(4.5))  # met from the 5th configuration on
+    d = SequentialDesign(model, StopRule(interval_deg=limit, min_configurations=3), sigma_mm=0.001)
+    seen = []
+    while not (st := d.status()).stop:
+        seen.append(st.max_half_width_deg)
+        d.add(d.choose(np.ones(20)).index)
+    assert len(d.measured) == 5 and st.max_half_width_deg <= limit < seen[-1]
+    assert "stop rule met" in st.reason
+    d2 = SequentialDesign(model, StopRule(interval_deg=1e3, min_configurations=3), sigma_mm=0.001)
+    d2.add(0)
+    assert not d2.status().stop  # met, but fewer than the minimum
+    d2.add(1), d2.add(2)
+    assert d2.status().stop
+
+
+def test_max_configurations_and_exhaustion_stop():
+    rows = np.tile(np.eye(2), (4, 1)).reshape(4, 2, 2)
+    model = DesignModel(rows=rows, prior=np.eye(2), offsets=np.array([0]), offset_names=("a",), workspace=np.eye(2))
+    d = SequentialDesign(model, StopRule(interval_deg=1e-9, max_configurations=2), sigma_mm=1.0)
+    d.add(0), d.add(1)
+    assert d.status().stop and "max_configurations" in d.status().reason
+    d = SequentialDesign(model, StopRule(interval_deg=1e-9), sigma_mm=1.0)
+    for i in range(4):
+        d.add(i)
+    assert d.status().stop and "exhausted" in d.status().reason
+    with pytest.raises(ValueError):
+        d.add(0)
+
+
+def test_bad_rules_are_refused():
+    with pytest.raises(ValueError, match="interval_deg, workspace_within_pct or held_out"):
+        StopRule()
+    with pytest.raises(ValueError, match="max_configurations"):
+        StopRule(interval_deg=0.1, min_configurations=5, max_configurations=4)
+
+
+def test_design_model_of_a_plan_leaves_out_what_the_full_plan_cannot_determine():
+    from calib.fit.design import design_model
+    from calib.fit.offsets import FitOptions
+    from calib.robot.model import load_robot_model
+    from pathlib import Path
+
+    model = load_robot_model(Path(__file__).resolve().parents[2] / "fixtures/robots/kuka_iiwa14_r820.yaml")
+    rng = np.random.default_rng(0)
+    q = rng.uniform(model.lower_limits_rad * 0.6, model.upper_limits_rad * 0.6, size=(25, model.n_joints))
+    dm = design_model(model, q, {"mocap": [model.marker_names[0]]}, FitOptions(method="laplace"))
+    assert dm.rows.shape[:2] == (25, 3)
+    # A1 (a turn of the registration) and A7 (the tool's turn about the last axis) are not determinable
+    assert "A1.offset" not in dm.offset_names and "A7.offset" not in dm.offset_names
+    assert set(dm.offset_names) == {f"A{i}.offset" for i in range(2, 7)}
+    d = SequentialDesign(dm, StopRule(workspace_within_pct=10), sigma_mm=0.03)
+    full = d.full_workspace_mm()
+    for i in range(25):
+        d.add(i)
+    assert d.status().workspace_mm == pytest.approx(full)

@@ -1,0 +1,54 @@
+"""A rigid body's quaternion (NatNet x, y, z, w) reaches the sample, the averaged measurement,
+the run record and the dataset as R_sensor←body, for the 3.x and 4.x frame layouts."""
+
+from __future__ import annotations
+
+import math
+import struct
+
+import numpy as np
+import pytest
+from natnet_helpers import PlateScene
+
+from drivers.base import mean_rotation
+from drivers.natnet.client import NatNetSensor, body_rotation
+from drivers.natnet.fake import FakeMotive
+
+
+def test_scalar_last_quaternion_is_read_as_motive_sends_it():
+    # 90° about Motive's y (up) axis, written by hand: (x, y, z, w) = (0, sin 45°, 0, cos 45°).
+    s = math.sqrt(0.5)
+    raw = struct.unpack("<4f", struct.pack("<4f", 0.0, s, 0.0, s))  # float32 on the wire
+    r = body_rotation(raw)
+    np.testing.assert_allclose(r @ [1, 0, 0], [0, 0, -1], atol=1e-6)  # the body's x → Motive's −z
+    assert body_rotation((0.0, 0.0, 0.0, 0.0)) is None
+
+
+def test_mean_rotation_and_spread():
+    a = np.radians(0.1)
+    rz = lambda t: np.array([[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1]])
+    mean, sd = mean_rotation([rz(a), rz(-a)])
+    np.testing.assert_allclose(mean, np.eye(3), atol=1e-12)
+    assert sd == pytest.approx(math.degrees(math.sqrt(2 * a * a / 3)))
+    assert mean_rotation([rz(a), None]) == (None, None)
+
+
+@pytest.mark.parametrize("version", [(3, 0), (3, 1), (4, 0), (4, 1)])
+def test_rigid_body_orientation_reaches_the_measurement(version):
+    """Motive defines the body at creation (the fake: when it starts); the plate has then turned
+    by 0.5 rad about Motive's z, so the body's orientation is Rz(0.5) and its x axis is seen
+    along (cos 0.5, sin 0.5, 0)."""
+    now = {"t": 0.0}
+    scene = PlateScene(omega_rad_s=1.0, clock=lambda: now["t"])
+    with FakeMotive(scene, natnet_version=version, rate_hz=240) as fake:
+        now["t"] = 0.5
+        url = f"natnet://127.0.0.1:{fake.command_port}?local=127.0.0.1"
+        with NatNetSensor.from_url(url, markers={"plate": "rb:tool", "corner": "ms:tool:m1"}) as sensor:
+            samples = {s.marker: s for s in sensor.read(2.0)}
+            assert samples["corner"].rotation is None  # a single marker has no orientation
+            expected_x = [math.cos(0.5), math.sin(0.5), 0.0]
+            np.testing.assert_allclose(samples["plate"].rotation @ [1, 0, 0], expected_x, atol=1e-5)
+            np.testing.assert_allclose(samples["plate"].rotation @ [0, 0, 1], [0, 0, 1], atol=1e-5)
+            m = sensor.measure("plate", 6, 3.0)
+            np.testing.assert_allclose(m.rotation @ [1, 0, 0], expected_x, atol=1e-5)
+            assert m.std_deg is not None and m.std_deg < 1e-3
