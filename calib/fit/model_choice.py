@@ -200,6 +200,7 @@ class Score:
     n_params: int | None
     errors_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     failed: str | None = None
+    configs: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))  # names, as errors_mm
 
     @property
     def mean_mm(self) -> float:
@@ -214,9 +215,17 @@ class Score:
     def rms_mm(self) -> float:
         return float(np.sqrt(np.mean(self.errors_mm**2))) if self.errors_mm.size and not self.failed else math.inf
 
+    def worst(self, n: int = 3) -> list[list]:
+        """The ``n`` held-out configurations with the largest errors: [[name, mm], …]."""
+        if self.failed or self.configs.size != self.errors_mm.size:
+            return []
+        return [[str(self.configs[i]), float(self.errors_mm[i])] for i in np.argsort(-self.errors_mm)[:n]]
+
     def to_dict(self) -> dict:
+        med = float(np.median(self.errors_mm)) if self.errors_mm.size and not self.failed else math.inf
         return {"model": self.name, "free_parameters": self.n_params, "cv_rms_mm": _num(self.rms_mm),
-                "cv_mean_mm": _num(self.mean_mm), "cv_se_mm": _num(self.se_mm), "failed": self.failed}
+                "cv_mean_mm": _num(self.mean_mm), "cv_se_mm": _num(self.se_mm), "cv_median_mm": _num(med),
+                "worst_configurations": self.worst(), "failed": self.failed}
 
 
 def _num(v: float) -> float | None:
@@ -339,7 +348,7 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
     n_folds = int(labels.max()) + 1
     scores = [Score(c.name, c.rank, None) for c in cands]
     per = [[] for _ in cands]
-    nominal_parts = []
+    nominal_parts, names = [], []
     for f in range(n_folds):
         train = data.subset(labels != f)
         test = data.subset(labels == f)
@@ -347,6 +356,7 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
         if not ok.any():
             continue
         test = test.subset(ok)
+        names.append(np.unique(test.config))  # the order of _config_errors
         nominal_parts.append(_config_errors(test, _nominal_distances(model, train, test)))
         for i, c in enumerate(cands):
             if scores[i].failed:
@@ -361,10 +371,13 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
                 continue
             scores[i].n_params = n_params if scores[i].n_params is None else max(scores[i].n_params, n_params)
             per[i].append(_config_errors(test, dist))
+    all_names = np.concatenate(names) if names else np.zeros(0, dtype=str)
     for s, parts in zip(scores, per):
         if parts and not s.failed:
             s.errors_mm = np.concatenate(parts)
-    nominal = Score("nominal (uncalibrated)", -1.0, 0, np.concatenate(nominal_parts) if nominal_parts else np.zeros(0))
+            s.configs = all_names
+    nominal = Score("nominal (uncalibrated)", -1.0, 0, np.concatenate(nominal_parts) if nominal_parts else np.zeros(0),
+                    configs=all_names)
     return scores, nominal, n_folds, grouping
 
 

@@ -278,6 +278,42 @@ def _resolve_null_space(post_factory, mask: ParamMask, lever_mm: float) -> tuple
     raise RuntimeError("could not resolve the undetermined parameters")  # pragma: no cover
 
 
+def _resolve_rigid_links(post_factory, mask: ParamMask) -> ParamMask:
+    """Fix the link parameters that only move the whole arm rigidly, or only the tool on the
+    flange: whose markers' motion the registrations reproduce exactly (the first link's tilt and
+    shifts ahead of joint 1 — β₁, d₁ in mdh, d₁ in dh), or the fitted markers' coordinates do (the
+    last link's d in mdh; its d, a and α, which follow the last joint, in dh). The registration
+    (flat prior) or the tool (its prior 10× wider) takes them — exactly, to every order, since
+    a rigid move of the base or of the markers is another registration or another set of
+    marker positions — so marginalising them changes no offset's posterior, while their priors
+    alone would hold long ridges, curved where they are turns (a 0.1° tilt is a 4 mm shift at a
+    tracker 2 m away), that neither the Laplace approximation nor a sampler follows. Kept at
+    their nominal values, with the reason."""
+    post = post_factory(mask)
+    start = post.n + 6 * post.S
+    link_pos, _ = post.link_free()
+    link_pos = [k for k in link_pos if not post.is_tool[post.free[k] - start]]
+    if not link_pos:
+        return mask
+    j = post.jacobian(np.zeros(post.dim))
+    reg = [k for k, i in enumerate(post.free) if post.n <= i < start]
+    tool = [k for k, i in enumerate(post.free) if i >= start and i < start + post.L and post.is_tool[i - start]]
+    spans = [(cols, why) for cols, why in (
+        (reg, "moves the whole arm rigidly, as the registration does: the registration takes it"),
+        (tool, "moves the markers rigidly on the flange, as the fitted tool does: the tool takes it")) if cols]
+    for cols, why in spans:
+        q, _ = np.linalg.qr(j[:, cols])
+        for k in link_pos:
+            col = j[:, k]
+            norm = np.linalg.norm(col)
+            if mask.full[post.free[k]] and norm > 0 and np.linalg.norm(col - q @ (q.T @ col)) <= 1e-9 * norm:
+                coef = np.linalg.lstsq(j[:, cols], col, rcond=None)[0]
+                like = [post.free_names[cols[i]] for i in np.flatnonzero(np.abs(coef) > 0.05 * np.abs(coef).max())]
+                mask = mask.fix(int(post.free[k]), f"{why} (it moves the markers exactly like {', '.join(like)}); "
+                                "kept at its nominal value", post.names)
+    return mask
+
+
 def _resolve_tool(post_factory, mask: ParamMask, lever_mm: float, prior_mm: float) -> ParamMask:
     """Fix the offsets that move the markers exactly like a move of the tool on the flange (the
     last axis's offset against a turn of the tool about that axis): the fitted tool takes that
@@ -425,11 +461,11 @@ def _sample_sigma_marginalised(post: OffsetPosterior, theta: np.ndarray, log_sig
 
 def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray,
                     options: FitOptions) -> tuple[Chains, dict]:
-    """Draws of (θ, log σ) by the Laplace Gaussian checked with PSIS, or emcee where k̂ ≥ 0.7
+    """Draws of (θ, log σ) by the Laplace Gaussian checked with PSIS, or a random walk in the Laplace-whitened coordinates where k̂ ≥ 0.7
     (``calib.fit.laplace_sampling``). Gaussian errors: the target is θ's marginal with σ integrated
     out (as ``_sample_sigma_marginalised``), each draw's σ drawn from its conditional; Student-t:
     the joint (θ, log σ) posterior. Returns (chains, importance diagnostics)."""
-    from calib.fit.laplace_sampling import ensemble, laplace_importance
+    from calib.fit.laplace_sampling import laplace_importance, random_walk
 
     link_pos, link_sd = post.link_free()
     cov_full = _laplace_covariance(post, theta, log_sigma)
@@ -448,12 +484,20 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
             return post.log_posterior(x[..., : post.dim], x[..., post.dim:])
 
         start, cov = np.concatenate([theta, log_sigma]), cov_full
+    exact_target = None
+    if post.expanded:
+        def exact_target(x: np.ndarray) -> np.ndarray:
+            with post.exact():
+                return target(x)
+
     chains, info = laplace_importance(target, start, cov, n_chains=options.n_chains, n_draws=options.n_draws,
-                                      seed=options.seed)
+                                      seed=options.seed, exact_target=exact_target)
     info["fallback"] = None
     if chains is None:
-        chains = ensemble(target, start, cov, n_draws=options.n_draws, burn_in=500, seed=options.seed)
-        info["fallback"] = "emcee"
+        use = exact_target if info["predictor"] == "exact" and exact_target is not None else target
+        chains = random_walk(use, start, cov, seed=options.seed)
+        info["fallback"] = "random-walk Metropolis"
+        info["walk"] = chains.diagnostics
     if options.error == "gaussian":
         rng = np.random.default_rng(options.seed + 7919)
         e = np.concatenate([post.sse(b) for b in np.array_split(chains.flat, max(1, chains.flat.shape[0] // 1024))])
@@ -593,6 +637,7 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
     mask, ident0 = _resolve_null_space(factory, mask, lever)
+    mask = _resolve_rigid_links(factory, mask)
     mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
     theta, log_sigma = _mode(post, options.error, options.nu, tol)
@@ -831,6 +876,9 @@ def _tool_degeneracies(post: OffsetPosterior, theta: np.ndarray, lever_mm: float
         out.append(f"{combo.describe()}: moves the markers {how} alike — decided by the priors (tool ±{options.tool_prior_mm:g} mm"
                    + (f", links ±{options.link_tolerance[0]:g} mm / ±{options.link_tolerance[1]:g}°"
                       if options.link_tolerance and options.method != "paper" else "") + ")")
+    # The last link's parameters that only move the tool are kept nominal (``_resolve_rigid_links``):
+    # the fitted markers carry them.
+    out += [f"{name}: {why}" for name, why in post.mask.reasons.items() if "the tool takes it" in why]
     return out
 
 

@@ -34,6 +34,7 @@ class Chains:
     seconds: float
     method: str
     proposal_index: np.ndarray | None = None  # (n_chains, n_draws): which proposal each draw holds (independence MH)
+    diagnostics: dict | None = None  # the sampler's own (``calib.fit.laplace_sampling.random_walk``)
 
     @property
     def flat(self) -> np.ndarray:

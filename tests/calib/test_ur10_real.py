@@ -254,7 +254,7 @@ def _doc(chosen: str, names: list[str], cv_rms_mm: float = 0.4) -> dict:
     row = {"cv_mean_mm": 0.3, "cv_rms_mm": cv_rms_mm, "failed": None}
     return {"model_choice": {"chosen": chosen, "nominal": {"cv_mean_mm": 3.0},
                              "candidates": [dict(row, model=n) for n in names]},
-            "diagnostics": {"error_budget": {"tracker": {"sample_spread_mm": 0.02, "n_rows": 100}}}}
+            "diagnostics": {"error_budget": {"tracker": {"sample_spread_mm": 0.02, "noise_mm": 0.02, "n_rows": 100}}}}
 
 
 @pytest.mark.parametrize("chosen,names,says", [
