@@ -416,12 +416,34 @@ def _mode(post: OffsetPosterior, error: str, nu: float, tol: float = 1e-12) -> t
     return theta, np.log(sigma)
 
 
+#: The smallest eigenvalue of the correlation-scaled curvature, relative to the largest, below which a
+#: combination of parameters counts as undetermined (a condition number of 1e10: its variance would be
+#: lost in rounding, and the samplers' Cholesky fails).
+MIN_CURVATURE_RATIO = 1e-10
+
+
+def _require_determined(post: OffsetPosterior, h: np.ndarray) -> np.ndarray:
+    """Refuse a curvature ``h`` (dim, dim) that is not positive definite: the measured configurations
+    leave a combination of parameters free (too few, or too alike, for this model). Returns the
+    scale (dim,) that makes ``h``'s diagonal one."""
+    scale = np.sqrt(np.maximum(np.diag(h), 1e-300))
+    vals, vecs = np.linalg.eigh(h / np.outer(scale, scale))  # correlation-scaled: units drop out
+    if vals[0] <= MIN_CURVATURE_RATIO * vals[-1]:
+        names = [post.free_names[i] for i in np.argsort(-np.abs(vecs[:, 0]))[:3]]
+        raise DatasetError(
+            f"the {post.n_rows} measurements do not determine every parameter of this model: "
+            f"{', '.join(names)} can move together without changing them; measure more, and more different, "
+            "configurations, or fit a smaller model (fewer link terms, no compliance)") from None
+    return scale
+
+
 def _laplace_covariance(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray) -> np.ndarray:
     """Gauss–Newton covariance of (θ, log σ) at the mode."""
     j = post.jacobian(theta).reshape(post.n_rows, 3, -1)
     w = np.exp(-2 * log_sigma)[post.sensor_index]
     h = np.einsum("kip,k,kiq->pq", j, w, j) + _prior_precision(post)
-    cov_t = np.linalg.pinv(h)
+    scale = _require_determined(post, h)
+    cov_t = np.linalg.pinv(h / np.outer(scale, scale)) / np.outer(scale, scale)  # scaled: units do not cut it
     cov = np.zeros((post.dim + post.S,) * 2)
     cov[: post.dim, : post.dim] = 0.5 * (cov_t + cov_t.T)
     cov[post.dim :, post.dim :] = np.diag(1.0 / (2.0 * (3 * post.rows_per_sensor + 1)))

@@ -234,3 +234,16 @@ def test_full_identification_fits_the_compliances_too():
     assert list(np.flatnonzero(fitted)) == [1, 2, 3]
     assert np.all(np.abs(sag.compliance[fitted] - k_true[fitted]) < 3 * sag.compliance_std[fitted])
     assert "gravity turns this axis by only" in sag.excluded["A5.compliance"]
+
+
+def test_configurations_too_alike_for_the_model_are_a_clear_error_not_a_linalg_trace():
+    """Twelve measured configurations that are only two distinct ones leave parameters free together:
+    the fit says so and what to do, instead of a bare LinAlgError from a Cholesky (as the adaptive
+    run met it early in a run)."""
+    model = load_robot_model(ROBOTS / "kuka_iiwa14_r820.yaml")
+    rng = np.random.default_rng(1)
+    q = np.repeat(rng.uniform(model.lower_limits_rad * 0.5, model.upper_limits_rad * 0.5, (2, 7)), 6, axis=0)
+    data = _dataset(model, q, K_TRUE, 0, params=_real_arm(Chain(model), rng))[0]
+    for method in ("fast", "laplace"):
+        with pytest.raises(ValueError, match="do not determine every parameter.*measure more, and more different"):
+            fit_offsets(model, data, FitOptions(method=method, n_draws=200, compliance=True))
