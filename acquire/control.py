@@ -251,16 +251,18 @@ class ControlServer:
     the query's source info to find the TLS subject of the sender's link.
     """
 
-    def __init__(self, session, cell: str, backend: ControlBackend, authorizer: Authorizer) -> None:
+    def __init__(self, session, cell: str, backend: ControlBackend, authorizer: Authorizer, *,
+                 site: str | None = None) -> None:
         self.session = session
         self.cell = cell
+        self.site = site
         self.backend = backend
         self.authorizer = authorizer
         self.handled = 0
         self._queryables = []
         for op in OPERATIONS:
             self._queryables.append(
-                session.declare_queryable(control_key(cell, op), self._make_handler(op))
+                session.declare_queryable(control_key(cell, op, site), self._make_handler(op))
             )
 
     def close(self) -> None:
@@ -409,13 +411,15 @@ class ControlClient:
     ``last_reply_verified`` says whether the last reply was.
     """
 
-    def __init__(self, session, cell: str, *, client: str | None = None, token: str | None = None) -> None:
+    def __init__(self, session, cell: str, *, client: str | None = None, token: str | None = None,
+                 site: str | None = None) -> None:
         if (client is None) != (token is None):
             raise ValueError("give both client and token, or neither")
         if token is not None:
             check_token(token)
         self.session = session
         self.cell = cell
+        self.site = site
         self._client = client
         self._token = token
         self.last_reply_verified = False
@@ -493,7 +497,7 @@ class ControlClient:
             kwargs["payload"] = payload
         if attachment:
             kwargs["attachment"] = attachment
-        querier = self.session.declare_querier(control_key(self.cell, op), target=zenoh.QueryTarget.ALL,
+        querier = self.session.declare_querier(control_key(self.cell, op, self.site), target=zenoh.QueryTarget.ALL,
                                                consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
         bodies: list[dict] = []
         try:

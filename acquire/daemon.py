@@ -222,6 +222,7 @@ class Daemon:
             cfg.cell,
             config={"mode": zc.mode, "listen": list(zc.listen), "connect": list(zc.connect), "zenoh": overrides},
             listen_loopback_only=not remote,
+            site=cfg.site,
         )
         log.info("Zenoh %s for cell %s listening on %s%s", zc.mode, cfg.cell, ", ".join(zc.listen),
                  " (mTLS)" if zc.tls and zc.tls.enable_mtls else "")
@@ -235,12 +236,13 @@ class Daemon:
         self._bring_up_devices()
         self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))
         authorizer = Authorizer(cfg.auth, self._link_subject)
-        self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer)
+        self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer, site=cfg.site)
         with self._lock:
             self._state = "ready"
         self._healthy = self._check_health()
         self.notifier.ready(self._status_line())
-        log.info("ready: devices %s up; control queries on remaster/%s/control/*", self._device_names, cfg.cell)
+        log.info("ready: devices %s up; control queries on %s/*", self._device_names,
+                 self.bus.key("control"))
         if self._healthy.ok:
             self._ping()
 
