@@ -17,6 +17,9 @@ start      motion      start a run: ``{"plan": "/path/on/the/cell/pc.yaml"}`` (i
 resume     motion      continue a paused run
 confirm    motion      socket calibration: the ball sits in the socket, record now (the
                        run then moves on)
+archive-*  archive     the plant's station: ``archive-list`` (finished runs not yet
+                       confirmed), ``archive-chunk`` (a file's bytes), ``archive-confirm``
+                       (stored: keep no longer pending) — ``acquire.daemon_archive``
 =========  ==========  ===========================================================
 
 Two lines of defence. First, Zenoh itself: loopback-only listeners by default; remote
@@ -69,6 +72,9 @@ OPERATIONS: dict[str, str] = {
     "start": "motion",
     "resume": "motion",
     "confirm": "motion",
+    "archive-list": "archive",
+    "archive-chunk": "archive",
+    "archive-confirm": "archive",
 }
 
 #: Operations that can make the robot move.
@@ -234,6 +240,12 @@ class ControlBackend(Protocol):
 
     def confirm(self) -> dict: ...
 
+    def archive_list(self) -> dict: ...
+
+    def archive_chunk(self, request: dict) -> dict: ...
+
+    def archive_confirm(self, request: dict, identity: Identity) -> dict: ...
+
 
 def _zid_hex(source_info) -> str | None:
     if source_info is None:
@@ -351,6 +363,12 @@ class ControlServer:
             return b.resume()
         if op == "confirm":
             return b.confirm()
+        if op == "archive-list":
+            return b.archive_list()
+        if op == "archive-chunk":
+            return b.archive_chunk(request)
+        if op == "archive-confirm":
+            return b.archive_confirm(request, identity)
         return b.abort(_opt_str(request, "reason") or f"aborted by {identity.describe()}")
 
 
