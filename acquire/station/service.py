@@ -22,6 +22,7 @@ next poll; it never stops the others.
 from __future__ import annotations
 
 import base64
+import json
 import logging
 import threading
 import time
@@ -127,7 +128,18 @@ class Station:
         """Sync every live cell once; returns how many runs were archived."""
         with self._lock:
             live = [c for c in self.cells.values() if c.alive]
-        return sum(self.sync_cell(c.site, c.cell) for c in live)
+        done = sum(self.sync_cell(c.site, c.cell) for c in live)
+        self.write_cells()
+        return done
+
+    def write_cells(self) -> None:
+        """The cells as the station sees them, for ``acquire fleet``: ``<archive>/.station/cells.json``."""
+        folder = self.archive.root / ".station"
+        folder.mkdir(exist_ok=True)
+        rows = [{k: v for k, v in vars(c).items() if k != "timings_s"} for c in self.cell_states()]
+        tmp = folder / "cells.tmp"
+        tmp.write_text(json.dumps({"written": time.time(), "cells": rows}, indent=1))
+        tmp.replace(folder / "cells.json")
 
     def _client(self, site: str, cell: str) -> ControlClient:
         token = self._cell_tokens.get(f"{site}/{cell}" if site else cell, self._token)
