@@ -13,7 +13,7 @@ from typing import Optional
 import typer
 
 fleet_app = typer.Typer(add_completion=False, invoke_without_command=True,
-                        help="The plant's robots: cells, last calibration, drift flags; HTML history pages.")
+                        help="Show every robot of the archive: cell state, last calibration, drift.")
 
 _ARCHIVE = typer.Option(..., "--archive", help="The station's archive folder.")
 
