@@ -170,7 +170,7 @@ class Station:
                 state.pending -= 1
                 state.timings_s.append(time.monotonic() - t0)
             state.last_error = None
-        except (ControlError, ArchiveError, ValueError, KeyError, TypeError) as exc:
+        except (ControlError, ArchiveError, ValueError, KeyError, TypeError, OSError, RuntimeError) as exc:
             state.last_error = f"{type(exc).__name__}: {exc}"
             log.warning("cell %s: %s", "/".join(p for p in (site, cell) if p), state.last_error)
         state.last_sync = time.time()
