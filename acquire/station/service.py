@@ -82,8 +82,11 @@ class Station:
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> "Station":
         z = self.cfg.zenoh
+        # Zenoh's shared-memory transport maps a segment per local peer that sends large payloads
+        # (~15 MB each, measured with 50 cells on one host); cells are remote: off unless asked.
+        overrides = {"transport/shared_memory/enabled": False, **z.zenoh}
         self.bus = Bus("station", config={"mode": z.mode, "listen": list(z.listen), "connect": list(z.connect),
-                                          "zenoh": dict(z.zenoh)},
+                                          "zenoh": overrides},
                        listen_loopback_only=all(_loopback(e) for e in [*z.listen, *z.connect]))
         for expr in DAEMON_TOKENS:
             self.bus.watch_liveliness(expr, self._on_liveliness)
