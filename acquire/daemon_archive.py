@@ -11,7 +11,8 @@ Operations (``acquire.control``, permission ``archive``, each one SCRAM-authenti
                      at most ``MAX_CHUNK_BYTES``.
 ``archive-confirm``  ``{"run_id", "files"}`` → ``{"confirmed": true}`` when ``files`` (what the
                      station stored) equals the run's current listing; the run is then marked
-                     ``<run>/.archived`` (JSON: when, the files) and no longer offered. Nothing is
+                     ``<run>/.archived`` (JSON: when, the files) and no longer offered — unless its
+                     files change later (a resumed run), then it is offered again. Nothing is
                      deleted here: a retention policy may remove confirmed runs.
 
 sha256 of each file is cached in ``<run>/.sha256.json`` by (name, size, mtime).
@@ -79,15 +80,22 @@ class CellRuns:
         runs = []
         if self.runs_dir.is_dir():
             for folder in sorted(p for p in self.runs_dir.iterdir() if p.is_dir()):
-                if folder.name == current or (folder / _MARK).exists():
+                if folder.name == current:
                     continue
                 files = self.files(folder)
-                if not files:
-                    continue
+                if not files or self._confirmed(folder) == files:
+                    continue  # confirmed as it is (a run resumed since then is offered again)
                 newest = max((folder / f["name"]).stat().st_mtime for f in files)
                 finished = datetime.fromtimestamp(newest, timezone.utc).isoformat(timespec="seconds")
                 runs.append({"run_id": folder.name, "finished": finished, "files": files})
         return {"robot_serial": self.robot_serial, "runs": runs}
+
+    @staticmethod
+    def _confirmed(folder: Path) -> list | None:
+        try:
+            return json.loads((folder / _MARK).read_text())["files"]
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
 
     def chunk(self, request: dict, current: str | None) -> dict:
         """The ``archive-chunk`` reply."""

@@ -16,7 +16,9 @@ A transfer is resumable: ``Transfer.offset(name)`` is how many bytes of a file a
 offset. ``finish`` checks every file's size and sha256 against what the cell announced before
 anything enters the archive, then moves the folder in and writes the manifest and the index
 entry. Storing a run that is already archived (a re-send after a lost confirmation) is a no-op
-that returns the stored manifest, provided the checksums agree.
+that returns the stored manifest, provided the checksums agree. A run archived before with other
+content (resumed on the cell after it was confirmed) is stored beside the earlier copy as
+``<run-id>.v2`` (``.v3`` …; ``"version"`` in its manifest), which the index then names.
 """
 
 from __future__ import annotations
@@ -189,7 +191,9 @@ class Archive:
 
     def folder(self, manifest: dict) -> Path:
         day = manifest["finished"][:10]
-        return self.root / manifest["robot_serial"] / day / manifest["run_id"]
+        version = manifest.get("version", 1)
+        name = manifest["run_id"] if version == 1 else f"{manifest['run_id']}.v{version}"
+        return self.root / manifest["robot_serial"] / day / name
 
     def begin(self, ref: RunRef, files: list[dict], finished: str) -> Transfer:
         """A transfer of ``files`` (announced by the cell: name, bytes, sha256) for ``ref``.
@@ -205,11 +209,10 @@ class Archive:
         ref = transfer.ref
         stored = self.manifest(ref)
         if stored is not None:
-            shutil.rmtree(transfer.folder, ignore_errors=True)
-            if stored["files"] != manifest["files"]:
-                raise ArchiveError(f"run {ref.run_id} of cell {ref.cell} is archived with other content; "
-                                   "refusing to replace it")
-            return stored
+            if stored["files"] == manifest["files"]:
+                shutil.rmtree(transfer.folder, ignore_errors=True)
+                return stored
+            manifest["version"] = stored.get("version", 1) + 1  # kept beside the earlier copy
         dest = self.folder(manifest)
         dest.parent.mkdir(parents=True, exist_ok=True)
         if dest.exists():  # a commit interrupted between move and index: redo it

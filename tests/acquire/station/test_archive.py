@@ -83,3 +83,17 @@ def test_names_that_could_leave_the_archive_are_refused(tmp_path):
         archive.begin(REF, [{"name": "../x", "bytes": 1, "sha256": "0" * 64}], "2026-11-26T10:00:00+00:00")
     with pytest.raises(ArchiveError, match="robot_serial"):
         RunRef("", "c1", "r1", "../../etc")
+
+
+def test_a_run_that_changed_after_it_was_archived_is_kept_beside_the_first_copy(tmp_path):
+    archive = Archive(tmp_path)
+    t = archive.begin(REF, _files(CONTENT), "2026-11-26T10:00:00+00:00")
+    _send(t, CONTENT)
+    first = t.finish()
+    grown = dict(CONTENT, **{"r1.resume1.mcap": b"more samples"})
+    t = archive.begin(REF, _files(grown), "2026-11-27T09:00:00+00:00")
+    _send(t, grown)
+    second = t.finish()
+    assert second["version"] == 2 and archive.folder(second).name == "r1.v2"
+    assert archive.verify(first) == [] and archive.verify(second) == []
+    assert archive.manifest(REF)["version"] == 2
