@@ -59,3 +59,8 @@ def test_station_once_archives_a_cells_run_end_to_end(tmp_path):
     assert out.returncode == 0, out.stderr
     assert "1 run(s) archived from 1 cell(s)" in out.stdout
     assert (tmp_path / "archive" / "R1").is_dir() and (run / ".archived").exists()
+
+
+def test_the_shipped_example_configuration_loads():
+    cfg = load_station_config(ROOT / "systemd" / "station.yaml.example")
+    assert cfg.zenoh.mode == "router" and cfg.drift.policy().accuracy_limit_mm == 0.5
