@@ -8,6 +8,12 @@ Key expressions (DESIGN.md)::
     remaster/<cell>/run/<run-id>/status        the run's progress (RunController.status()) on every change
     remaster/<cell>/control/<verb>             the daemon's queryables (status, start, pause, …)
 
+A cell on a plant's router has a *site* (``DaemonConfig.site``, ``Bus(site=…)``): every key of
+that cell then starts ``remaster/<site>/<cell>/…`` (``remaster/<site>/<cell>/daemon``, its
+runs, its control queries), so many sites' cells share one router without clashing and a
+station subscribes to ``remaster/<site>/**`` or ``remaster/**``. Without a site (one cell, no
+router) the keys are unchanged.
+
 Build them with :func:`key`, which validates every chunk.
 
 Payload encoding: a ``dict`` is sent as compact UTF-8 JSON (:mod:`acquire.jsonpayload`: numpy
@@ -84,10 +90,10 @@ class BusQueryError(BusError):
         self.message = message
 
 
-def key(cell: str, *parts: str) -> str:
-    """``remaster/<cell>/<part>/…`` with every chunk checked.
+def key(cell: str, *parts: str, site: str | None = None) -> str:
+    """``remaster/<cell>/<part>/…`` (``remaster/<site>/<cell>/<part>/…`` with a site), every chunk checked.
 
-    ``cell`` matches ``[a-z0-9_-]+``; each part is one or more ``/``-separated chunks of
+    ``cell`` and ``site`` match ``[a-z0-9_-]+``; each part is one or more ``/``-separated chunks of
     ``[A-Za-z0-9_.-]`` (no wildcards, no empty chunks). Raises BusConfigError otherwise.
     """
     if not isinstance(cell, str) or not _CELL_RE.match(cell):
@@ -105,6 +111,10 @@ def key(cell: str, *parts: str) -> str:
                     "letters, digits, '_', '.', '-' (no wildcards)"
                 )
             chunks.append(chunk)
+    if site is not None:
+        if not isinstance(site, str) or not _CELL_RE.match(site):
+            raise BusConfigError(f"site id must match [a-z0-9_-]+, given {site!r}")
+        return "/".join((ROOT, site, cell, *chunks))
     return "/".join((ROOT, cell, *chunks))
 
 
@@ -115,9 +125,9 @@ def run_key(cell: str, run_id: str, kind: str) -> str:
     return key(cell, "run", run_id, kind)
 
 
-def control_key(cell: str, verb: str) -> str:
-    """``remaster/<cell>/control/<verb>`` (status, start, pause, resume, abort, runs, …)."""
-    return key(cell, "control", verb)
+def control_key(cell: str, verb: str, site: str | None = None) -> str:
+    """``remaster/[<site>/]<cell>/control/<verb>`` (status, start, pause, resume, abort, runs, …)."""
+    return key(cell, "control", verb, site=site)
 
 
 def check_key_expr(expr: str, *, concrete: bool = False) -> str:
@@ -281,9 +291,12 @@ class Bus:
     See the module docstring for the network defaults and the payload encoding.
     """
 
-    def __init__(self, cell: str, *, config: dict | None = None, listen_loopback_only: bool = True):
-        key(cell, "x")  # validates the cell id
+    def __init__(self, cell: str, *, config: dict | None = None, listen_loopback_only: bool = True,
+                 site: str | None = None):
+        key(cell, "x", site=site)  # validates the cell and site ids
         self.cell = cell
+        #: The plant site of this cell (keys ``remaster/<site>/<cell>/…``), or None.
+        self.site = site
         self.listen_loopback_only = listen_loopback_only
         cfg, listen, defaulted = build_config(config, listen_loopback_only)
         self._lock = threading.Lock()
@@ -369,8 +382,8 @@ class Bus:
 
     # -- publish / subscribe ----------------------------------------------------------------
     def key(self, *parts: str) -> str:
-        """``remaster/<this cell>/<parts…>``."""
-        return key(self.cell, *parts)
+        """``remaster/[<site>/]<this cell>/<parts…>``."""
+        return key(self.cell, *parts, site=self.site)
 
     def publisher(self, key: str, *, reliable: bool = True) -> Publisher:
         """Declare a publisher on a concrete key; ``reliable`` → CongestionControl.BLOCK (else DROP)."""

@@ -42,6 +42,8 @@ COMMANDS: dict[str, CommandSpec] = {
     "abort": CommandSpec("acquire.commands.daemon", "Stop the run safely now; its log is closed."),
     "confirm": CommandSpec("acquire.commands.daemon", "Socket calibration: the ball sits in the socket, record now (the robot will move on)."),
     "runs": CommandSpec("acquire.commands.daemon", "List the runs in the daemon's state folder."),
+    "station": CommandSpec("acquire.commands.station", "Keep every cell's finished runs: discover, pull, verify, store, confirm; check drift."),
+    "fleet": CommandSpec("acquire.commands.fleet", "Show every robot of the archive: cell state, last calibration, drift."),
     "token": CommandSpec("acquire.commands.token", "Make a control client's token (mode 0600) and print the daemon's configuration lines."),
     "watch": CommandSpec("acquire.commands.watch", "Show a live run or daemon (found on the bus by itself): progress, last sample, warnings."),
     "examples": CommandSpec("acquire.commands.examples", "List the packaged example plans, robot models, simulated cells and Foxglove layout (or copy a plan)."),

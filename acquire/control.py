@@ -17,6 +17,9 @@ start      motion      start a run: ``{"plan": "/path/on/the/cell/pc.yaml"}`` (i
 resume     motion      continue a paused run
 confirm    motion      socket calibration: the ball sits in the socket, record now (the
                        run then moves on)
+archive-*  archive     the plant's station: ``archive-list`` (finished runs not yet
+                       confirmed), ``archive-chunk`` (a file's bytes), ``archive-confirm``
+                       (stored: keep no longer pending) — ``acquire.daemon_archive``
 =========  ==========  ===========================================================
 
 Two lines of defence. First, Zenoh itself: loopback-only listeners by default; remote
@@ -69,6 +72,9 @@ OPERATIONS: dict[str, str] = {
     "start": "motion",
     "resume": "motion",
     "confirm": "motion",
+    "archive-list": "archive",
+    "archive-chunk": "archive",
+    "archive-confirm": "archive",
 }
 
 #: Operations that can make the robot move.
@@ -234,6 +240,12 @@ class ControlBackend(Protocol):
 
     def confirm(self) -> dict: ...
 
+    def archive_list(self) -> dict: ...
+
+    def archive_chunk(self, request: dict) -> dict: ...
+
+    def archive_confirm(self, request: dict, identity: Identity) -> dict: ...
+
 
 def _zid_hex(source_info) -> str | None:
     if source_info is None:
@@ -251,16 +263,18 @@ class ControlServer:
     the query's source info to find the TLS subject of the sender's link.
     """
 
-    def __init__(self, session, cell: str, backend: ControlBackend, authorizer: Authorizer) -> None:
+    def __init__(self, session, cell: str, backend: ControlBackend, authorizer: Authorizer, *,
+                 site: str | None = None) -> None:
         self.session = session
         self.cell = cell
+        self.site = site
         self.backend = backend
         self.authorizer = authorizer
         self.handled = 0
         self._queryables = []
         for op in OPERATIONS:
             self._queryables.append(
-                session.declare_queryable(control_key(cell, op), self._make_handler(op))
+                session.declare_queryable(control_key(cell, op, site), self._make_handler(op))
             )
 
     def close(self) -> None:
@@ -349,6 +363,12 @@ class ControlServer:
             return b.resume()
         if op == "confirm":
             return b.confirm()
+        if op == "archive-list":
+            return b.archive_list()
+        if op == "archive-chunk":
+            return b.archive_chunk(request)
+        if op == "archive-confirm":
+            return b.archive_confirm(request, identity)
         return b.abort(_opt_str(request, "reason") or f"aborted by {identity.describe()}")
 
 
@@ -409,13 +429,15 @@ class ControlClient:
     ``last_reply_verified`` says whether the last reply was.
     """
 
-    def __init__(self, session, cell: str, *, client: str | None = None, token: str | None = None) -> None:
+    def __init__(self, session, cell: str, *, client: str | None = None, token: str | None = None,
+                 site: str | None = None) -> None:
         if (client is None) != (token is None):
             raise ValueError("give both client and token, or neither")
         if token is not None:
             check_token(token)
         self.session = session
         self.cell = cell
+        self.site = site
         self._client = client
         self._token = token
         self.last_reply_verified = False
@@ -493,7 +515,7 @@ class ControlClient:
             kwargs["payload"] = payload
         if attachment:
             kwargs["attachment"] = attachment
-        querier = self.session.declare_querier(control_key(self.cell, op), target=zenoh.QueryTarget.ALL,
+        querier = self.session.declare_querier(control_key(self.cell, op, self.site), target=zenoh.QueryTarget.ALL,
                                                consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout)
         bodies: list[dict] = []
         try:

@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from acquire.control import Authorizer, BadRequest, Conflict, ControlServer, Identity
+from acquire.daemon_archive import CellRuns
 from acquire.daemon_config import DaemonConfig
 from acquire.daemon_devices import CellSource, DeviceHost, cell_for_plan  # noqa: F401 (DeviceHost: acquire.daemon's API)
 from acquire.daemon_runs import list_runs, plan_path, run_log
@@ -171,6 +172,7 @@ class Daemon:
         self.pings = 0
         self._last_status = ""
         self.runs_dir = cfg.state_dir / "runs"
+        self.cell_runs = CellRuns(self.runs_dir, cfg.robot_serial or cfg.cell)
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -222,6 +224,7 @@ class Daemon:
             cfg.cell,
             config={"mode": zc.mode, "listen": list(zc.listen), "connect": list(zc.connect), "zenoh": overrides},
             listen_loopback_only=not remote,
+            site=cfg.site,
         )
         log.info("Zenoh %s for cell %s listening on %s%s", zc.mode, cfg.cell, ", ".join(zc.listen),
                  " (mTLS)" if zc.tls and zc.tls.enable_mtls else "")
@@ -235,12 +238,13 @@ class Daemon:
         self._bring_up_devices()
         self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))
         authorizer = Authorizer(cfg.auth, self._link_subject)
-        self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer)
+        self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer, site=cfg.site)
         with self._lock:
             self._state = "ready"
         self._healthy = self._check_health()
         self.notifier.ready(self._status_line())
-        log.info("ready: devices %s up; control queries on remaster/%s/control/*", self._device_names, cfg.cell)
+        log.info("ready: devices %s up; control queries on %s/*", self._device_names,
+                 self.bus.key("control"))
         if self._healthy.ok:
             self._ping()
 
@@ -509,6 +513,21 @@ class Daemon:
         ctl = self._active("confirm")
         waiting = ctl.confirm()
         return {"run_id": ctl.run_id, "state": ctl.status()["state"], "confirmed": waiting}
+
+    # The plant's station (acquire.daemon_archive): finished runs, their bytes, confirmation.
+    def _active_run_id(self) -> str | None:
+        with self._lock:
+            ctl = self.controller
+        return ctl.run_id if ctl is not None and ctl.status()["state"] in ACTIVE_STATES else None
+
+    def archive_list(self) -> dict:
+        return self.cell_runs.pending(self._active_run_id())
+
+    def archive_chunk(self, request: dict) -> dict:
+        return self.cell_runs.chunk(request, self._active_run_id())
+
+    def archive_confirm(self, request: dict, identity: Identity) -> dict:
+        return self.cell_runs.confirm(request, identity.describe())
 
 
 def init_zenoh_log() -> None:

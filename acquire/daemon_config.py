@@ -7,6 +7,10 @@ taken from the file's folder. See ``systemd/daemon.yaml.example`` for a document
 Sections:
 
 - ``cell``: the cell id, ``[a-z0-9_-]+`` — key expressions are ``remaster/<cell>/…``.
+- ``site`` (optional): the plant site, ``[a-z0-9_-]+``, for a cell on a plant's router — key
+  expressions are then ``remaster/<site>/<cell>/…`` (``acquire.bus``).
+- ``robot_serial`` (optional): the serial number of the cell's robot; the station files this
+  cell's runs under it (default: the cell id).
 - ``state_dir``: where runs are written (one folder per run; the systemd unit's StateDirectory).
 - ``plan_dirs``: folders a ``start`` query may name a plan from (anything else is refused);
   inline plans are written to ``<state_dir>/plans/``.
@@ -26,7 +30,8 @@ Sections:
 - ``auth``: the clients allowed to act, by name: their SCRAM-SHA-256 keys (``scram``: salt,
   iterations ≥ 4096, StoredKey, ServerKey — never the token; ``acquire token new`` prints
   them), optional TLS common names, and the permissions they hold: ``observe`` (status, runs),
-  ``read`` (plan texts), ``control`` (pause, abort), ``motion`` (start, resume). A query with no
+  ``read`` (plan texts), ``control`` (pause, abort), ``motion`` (start, resume), ``archive``
+  (list finished runs, read their files, confirm them archived: the plant's station). A query with no
   or a wrong token holds only ``anonymous`` (default: observe). A file with clients must not be
   readable by other users (``check_config_mode``): its ServerKeys let a reader impersonate the
   daemon to clients (RFC 5802 §9; ``acquire.control_auth``).
@@ -64,8 +69,8 @@ __all__ = [
 ]
 
 #: Every permission a client can hold, weakest first.
-PERMISSIONS = ("observe", "read", "control", "motion")
-Permission = Literal["observe", "read", "control", "motion"]
+PERMISSIONS = ("observe", "read", "control", "motion", "archive")
+Permission = Literal["observe", "read", "control", "motion", "archive"]
 
 _ID = r"^[a-z0-9_-]+$"
 _LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe", "vsock")
@@ -260,9 +265,9 @@ class AuthSection(_Strict):
     @field_validator("anonymous")
     @classmethod
     def _anonymous_never_moves(cls, value: list[str]) -> list[str]:
-        if "motion" in value or "read" in value:
+        if "motion" in value or "read" in value or "archive" in value:
             raise ValueError(
-                f"anonymous clients may not hold 'motion' or 'read' (given {value}); allowed: observe, control"
+                f"anonymous clients may not hold 'motion', 'read' or 'archive' (given {value}); allowed: observe, control"
             )
         return value
 
@@ -325,6 +330,9 @@ class DaemonConfig(_Strict, CrossFieldChecked):
     """The whole daemon configuration (see the module docstring)."""
 
     cell: str = Field(pattern=_ID)
+    site: str | None = Field(None, pattern=_ID, description="plant site: keys remaster/<site>/<cell>/…")
+    robot_serial: str | None = Field(None, pattern=r"^[A-Za-z0-9_.-]+$", max_length=64,
+                                     description="the robot's serial number (archive folder); default: the cell id")
     state_dir: Path = Path("/var/lib/remaster")
     plan_dirs: list[Path] = Field(default_factory=list)
     allow_inline_plans: bool = True

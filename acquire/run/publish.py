@@ -33,7 +33,9 @@ class RunPublisher:
         try:
             from acquire.bus import key
 
-            self.bus.publish(key(self.cell_id, *parts), payload)
+            # The bus's own key when it serves this cell: it carries the cell's site, if any.
+            k = self.bus.key(*parts) if self.bus.cell == self.cell_id else key(self.cell_id, *parts)
+            self.bus.publish(k, payload)
         except Exception as exc:  # noqa: BLE001 - the bus must never stop a run
             log.debug("bus publish failed: %s", exc)
 
@@ -93,7 +95,8 @@ class RunPublisher:
         from acquire.bus import key
 
         try:
-            self.bus.release(key(self.cell_id, "run", self.run_id))
+            same = self.bus.cell == self.cell_id
+            self.bus.release(self.bus.key("run", self.run_id) if same else key(self.cell_id, "run", self.run_id))
         except Exception as exc:  # noqa: BLE001 - the bus must never stop a run
             log.debug("releasing the run's publishers: %s", exc)
 

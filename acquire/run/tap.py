@@ -33,7 +33,8 @@ class JointStateTap:
         if self.bus is not None:
             from acquire.bus import key
 
-            self._key = key(self.cell, self.device, "joint_state")
+            same = getattr(self.bus, "cell", None) == self.cell
+            self._key = self.bus.key(self.device, "joint_state") if same else key(self.cell, self.device, "joint_state")
         self._thread = threading.Thread(target=self._loop, name="joint-state-tap", daemon=True)
         self._thread.start()
         return self

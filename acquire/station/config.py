@@ -1,0 +1,78 @@
+"""The station's configuration file (``/etc/remaster/station.yaml``), validated by pydantic.
+
+::
+
+    archive: /var/lib/remaster-station/archive   # the archive root (acquire.station.archive)
+    client: station                    # the name the cells know the station by (auth.clients)
+    token_file: /etc/remaster/station.token   # its token (mode 0600; `acquire token new`)
+    cell_tokens: {plant-a/c7: /etc/remaster/c7.token}   # optional: a token per cell (site/cell)
+    sites: [plant-a]                   # optional: only these sites' cells (default: every cell)
+    zenoh:
+      mode: router                     # the station's session is the site's router (or peer/client
+      listen: [tcp/0.0.0.0:7447]       # connecting to the site's zenohd)
+      connect: []
+      zenoh: {}                        # TLS / access control, Zenoh config paths → values
+    poll_s: 10                         # how often each cell is asked for finished runs
+    chunk_bytes: 2097152               # bytes per transfer chunk (≤ 4 MiB)
+    drift: {alpha: 0.01, accuracy_limit_mm: 0.5, check_max_configurations: 12, auto_enter: true}
+
+Each cell's daemon lists the station in ``auth.clients`` with permission ``archive``. The station
+believes a cell only through the SCRAM exchange: a cell that cannot sign its replies with the
+station client's keys gets nothing archived. One token for the whole plant lets every cell prove
+itself as any other; ``cell_tokens`` gives each cell its own.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from acquire.daemon_archive import MAX_CHUNK_BYTES
+from acquire.station.intake import DriftPolicy
+from calib.io.yamlfile import load_validated
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class StationZenoh(_Strict):
+    mode: Literal["router", "peer", "client"] = "router"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
+    zenoh: dict = Field(default_factory=dict)
+
+
+class DriftSection(_Strict):
+    alpha: float = Field(0.01, gt=0, lt=0.5, description="false-alarm rate of the offset test")
+    accuracy_limit_mm: float | None = Field(None, gt=0)
+    check_max_configurations: int = Field(12, ge=0)
+    auto_enter: bool = True
+
+    def policy(self) -> DriftPolicy:
+        return DriftPolicy(self.alpha, self.accuracy_limit_mm, self.check_max_configurations, self.auto_enter)
+
+
+class StationConfig(_Strict):
+    archive: Path
+    client: str = Field("station", pattern=r"^[A-Za-z0-9_.-]+$")
+    token_file: Path
+    cell_tokens: dict[str, Path] = Field(default_factory=dict)
+    sites: list[str] | None = None
+    zenoh: StationZenoh = StationZenoh()
+    poll_s: float = Field(10.0, gt=0, le=3600)
+    chunk_bytes: int = Field(2 << 20, ge=1024, le=MAX_CHUNK_BYTES)
+    drift: DriftSection = DriftSection()
+
+
+def load_station_config(path: Path) -> StationConfig:
+    """The validated configuration (``ConfigError`` naming file, line, field); relative paths
+    are taken from the file's folder."""
+    cfg = load_validated(Path(path), StationConfig)
+    base = Path(path).resolve().parent
+    cfg.archive = base / cfg.archive
+    cfg.token_file = base / cfg.token_file
+    cfg.cell_tokens = {k: base / v for k, v in cfg.cell_tokens.items()}
+    return cfg

@@ -1,0 +1,99 @@
+"""The station's archive: stored by serial and date, checksums verified, resumable, idempotent."""
+
+import hashlib
+import json
+
+import pytest
+
+from acquire.station.archive import Archive, ArchiveError, RunRef
+
+
+def _files(contents: dict[str, bytes]) -> list[dict]:
+    return [{"name": n, "bytes": len(b), "sha256": hashlib.sha256(b).hexdigest()} for n, b in contents.items()]
+
+
+CONTENT = {"r1.mcap": bytes(range(256)) * 40, "result.json": b'{"format": "remaster.fit/1"}', "report.html": b"<html/>"}
+REF = RunRef("plant-a", "c1", "r1", "KR6-0815")
+
+
+def _send(transfer, contents, chunk=1000):
+    for name, data in contents.items():
+        off = transfer.offset(name)
+        while off < len(data):
+            off = transfer.write(name, off, data[off:off + chunk])
+
+
+def test_a_run_is_stored_by_serial_and_date_with_a_verified_manifest(tmp_path):
+    archive = Archive(tmp_path)
+    t = archive.begin(REF, _files(CONTENT), "2026-11-26T10:00:00+00:00")
+    _send(t, CONTENT)
+    manifest = t.finish()
+    folder = tmp_path / "KR6-0815" / "2026-11-26" / "r1"
+    assert archive.folder(manifest) == folder
+    assert (folder / "r1.mcap").read_bytes() == CONTENT["r1.mcap"]
+    assert json.loads((folder / "manifest.json").read_text())["files"] == sorted(_files(CONTENT), key=lambda f: f["name"])
+    assert archive.verify(manifest) == []
+    (folder / "report.html").write_bytes(b"<html>tampered")
+    assert archive.verify(manifest) == [f"{folder / 'report.html'}: content does not match the manifest's sha256"]
+
+
+def test_an_interrupted_transfer_resumes_at_its_offset_without_loss_or_duplicate(tmp_path):
+    archive = Archive(tmp_path)
+    t = archive.begin(REF, _files(CONTENT), "2026-11-26T10:00:00+00:00")
+    t.write("r1.mcap", 0, CONTENT["r1.mcap"][:3000])
+    # The station restarts: a new Archive and Transfer find the partial file.
+    t2 = Archive(tmp_path).begin(REF, _files(CONTENT), "2026-11-26T10:00:00+00:00")
+    assert t2.offset("r1.mcap") == 3000
+    with pytest.raises(ArchiveError, match="resume at 3000"):
+        t2.write("r1.mcap", 0, CONTENT["r1.mcap"][:1000])  # a duplicate chunk is refused
+    _send(t2, CONTENT)
+    manifest = t2.finish()
+    assert (archive.folder(manifest) / "r1.mcap").read_bytes() == CONTENT["r1.mcap"]
+    assert len(archive.manifests()) == 1
+
+
+def test_a_corrupted_file_is_refused_and_fetched_again(tmp_path):
+    archive = Archive(tmp_path)
+    files = _files(CONTENT)
+    t = archive.begin(REF, files, "2026-11-26T10:00:00+00:00")
+    bad = dict(CONTENT, **{"result.json": b'{"format": "remaster.fit/X"}'})
+    _send(t, bad)
+    with pytest.raises(ArchiveError, match="result.json: sha256 .* does not match"):
+        t.finish()
+    assert archive.manifest(REF) is None
+    assert t.missing() == {"result.json": 0}
+    _send(t, CONTENT)
+    assert t.finish()["run_id"] == "r1"
+
+
+def test_a_re_sent_run_is_not_stored_twice(tmp_path):
+    archive = Archive(tmp_path)
+    for _ in range(2):
+        t = archive.begin(REF, _files(CONTENT), "2026-11-26T10:00:00+00:00")
+        _send(t, CONTENT)
+        t.finish()
+    assert archive.is_complete(REF, _files(CONTENT))
+    assert len(archive.manifests()) == 1
+    assert sorted(p.name for p in (tmp_path / "KR6-0815" / "2026-11-26").iterdir()) == ["r1"]
+
+
+def test_names_that_could_leave_the_archive_are_refused(tmp_path):
+    archive = Archive(tmp_path)
+    with pytest.raises(ArchiveError, match=r"files\[0\].name '../x' is not allowed"):
+        archive.begin(REF, [{"name": "../x", "bytes": 1, "sha256": "0" * 64}], "2026-11-26T10:00:00+00:00")
+    with pytest.raises(ArchiveError, match="robot_serial"):
+        RunRef("", "c1", "r1", "../../etc")
+
+
+def test_a_run_that_changed_after_it_was_archived_is_kept_beside_the_first_copy(tmp_path):
+    archive = Archive(tmp_path)
+    t = archive.begin(REF, _files(CONTENT), "2026-11-26T10:00:00+00:00")
+    _send(t, CONTENT)
+    first = t.finish()
+    grown = dict(CONTENT, **{"r1.resume1.mcap": b"more samples"})
+    t = archive.begin(REF, _files(grown), "2026-11-27T09:00:00+00:00")
+    _send(t, grown)
+    second = t.finish()
+    assert second["version"] == 2 and archive.folder(second).name == "r1.v2"
+    assert archive.verify(first) == [] and archive.verify(second) == []
+    assert archive.manifest(REF)["version"] == 2

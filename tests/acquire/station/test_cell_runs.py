@@ -1,0 +1,45 @@
+"""The cell's side: finished runs offered with checksums, read in chunks, kept until confirmed."""
+
+import base64
+import hashlib
+
+import pytest
+
+from acquire.control import BadRequest, Conflict
+from acquire.daemon_archive import CellRuns
+
+
+def _run(runs, run_id, data=b"x" * 5000):
+    (runs / run_id).mkdir(parents=True)
+    (runs / run_id / f"{run_id}.mcap").write_bytes(data)
+    return runs / run_id
+
+
+def test_runs_are_offered_until_confirmed_and_again_when_they_change(tmp_path):
+    cell = CellRuns(tmp_path, "R1")
+    folder = _run(tmp_path, "r1")
+    _run(tmp_path, "active")
+    listing = cell.pending(current="active")
+    assert listing["robot_serial"] == "R1" and [r["run_id"] for r in listing["runs"]] == ["r1"]
+    files = listing["runs"][0]["files"]
+    assert files == [{"name": "r1.mcap", "bytes": 5000, "sha256": hashlib.sha256(b"x" * 5000).hexdigest()}]
+    with pytest.raises(Conflict, match="do not match"):
+        cell.confirm({"run_id": "r1", "files": [dict(files[0], bytes=1)]}, "station")
+    assert cell.pending("active")["runs"]  # a wrong confirmation keeps it
+    cell.confirm({"run_id": "r1", "files": files}, "station")
+    assert cell.pending("active")["runs"] == []
+    (folder / "r1.resume1.mcap").write_bytes(b"resumed")  # resumed after it was archived
+    assert [r["run_id"] for r in cell.pending("active")["runs"]] == ["r1"]
+
+
+def test_chunks_are_read_at_an_offset_and_bad_requests_say_what_is_allowed(tmp_path):
+    cell = CellRuns(tmp_path, "R1")
+    _run(tmp_path, "r1", bytes(range(256)) * 10)
+    reply = cell.chunk({"run_id": "r1", "name": "r1.mcap", "offset": 2000, "size": 1000}, current=None)
+    assert base64.b64decode(reply["data"]) == (bytes(range(256)) * 10)[2000:] and reply["eof"]
+    with pytest.raises(BadRequest, match="no file '../x'"):
+        cell.chunk({"run_id": "r1", "name": "../x", "offset": 0}, current=None)
+    with pytest.raises(BadRequest, match="run_id must be a run id"):
+        cell.chunk({"run_id": "..", "name": "r1.mcap", "offset": 0}, current=None)
+    with pytest.raises(Conflict, match="still active"):
+        cell.chunk({"run_id": "r1", "name": "r1.mcap", "offset": 0}, current="r1")

@@ -1,0 +1,66 @@
+"""``acquire station``: a bad configuration names file, line and field (exit 2); ``--once`` archives a
+cell's run end to end (the station a peer connecting to the cell's session: no fixed port)."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquire import control_auth
+from acquire.station.config import load_station_config
+from acquire.tokens import new_token, write_token_file
+from calib.io.yamlfile import ConfigError
+
+ROOT = Path(__file__).resolve().parents[3]
+
+
+def _acquire(*args, timeout=120):
+    return subprocess.run([sys.executable, "-m", "acquire", *args], capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)), timeout=timeout)
+
+
+def test_a_bad_station_configuration_names_file_line_and_field(tmp_path):
+    cfg = tmp_path / "station.yaml"
+    cfg.write_text("archive: a\ntoken_file: t\ndrift:\n  alpha: 2\n")
+    with pytest.raises(ConfigError, match=r"station.yaml:4.*drift.alpha"):
+        load_station_config(cfg)
+    out = _acquire("station", "--config", str(cfg))
+    assert out.returncode == 2 and "drift.alpha" in out.stderr
+
+
+@pytest.mark.slow
+def test_station_once_archives_a_cells_run_end_to_end(tmp_path):
+    from acquire.bus import Bus
+    from acquire.control import Authorizer, ControlServer
+    from acquire.daemon import Daemon
+    from acquire.daemon_config import AuthSection, DaemonConfig
+
+    token = new_token()
+    write_token_file(tmp_path / "station.token", token)
+    creds = control_auth.derive_credentials(token, iterations=control_auth.MIN_ITERATIONS)
+    daemon = Daemon(DaemonConfig(cell="c1", site="s1", robot_serial="R1", fake=True, state_dir=tmp_path / "cell"))
+    run = tmp_path / "cell" / "runs" / "r1"
+    run.mkdir(parents=True)
+    (run / "r1.mcap").write_bytes(np.random.default_rng(0).bytes(100_000))
+    with Bus("c1", site="s1", config={"listen": ["tcp/127.0.0.1:0"]}) as bus:
+        auth = AuthSection.model_validate({"clients": [{"name": "station", "scram": creds.config(), "allow": ["archive"]}]})
+        server = ControlServer(bus.session, "c1", daemon, Authorizer(auth), site="s1")
+        bus.liveliness_token(bus.key("daemon"))
+        (tmp_path / "station.yaml").write_text(
+            f"archive: archive\ntoken_file: station.token\nzenoh: {{mode: peer, listen: [], connect: {json.dumps(bus.locators)}}}\n")
+        try:
+            out = _acquire("station", "--config", str(tmp_path / "station.yaml"), "--once", "--wait", "4")
+        finally:
+            server.close()
+    assert out.returncode == 0, out.stderr
+    assert "1 run(s) archived from 1 cell(s)" in out.stdout
+    assert (tmp_path / "archive" / "R1").is_dir() and (run / ".archived").exists()
+
+
+def test_the_shipped_example_configuration_loads():
+    cfg = load_station_config(ROOT / "systemd" / "station.yaml.example")
+    assert cfg.zenoh.mode == "router" and cfg.drift.policy().accuracy_limit_mm == 0.5
