@@ -38,13 +38,6 @@ from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under 
 )
 
 
-@pytest.fixture
-def notify():
-    n = NotifySocket()
-    yield n
-    n.close()
-
-
 def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tmp_path, notify):
     port = free_port()
     proc = DaemonProcess(write_config(tmp_path, port), notify)
