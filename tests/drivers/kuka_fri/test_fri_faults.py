@@ -19,10 +19,6 @@ from drivers.kuka_fri.messages import SessionState
 
 Q0 = np.radians([0.0, 30.0, 0.0, -45.0, 0.0, 30.0, 0.0])
 FAR = np.radians([80.0, 70.0, -60.0, -100.0, 90.0, 80.0, 120.0])
-#: The tests of lossy links are about the set-points' limits, not the silence limit: the
-#: commander waits up to 1 s (not its 100 ms default, a real cell's) for the controller before a
-#: move fails, so a test process stalled by a loaded machine on top of 5 % loss still checks them.
-PATIENT = "rt_priority=0&timeout_ms=1000&max_state_age_ms=1000"
 
 
 class MoveInThread:
@@ -71,7 +67,7 @@ def test_malformed_packets_are_skipped_and_the_move_completes(limits, kind):
 
 
 def test_packet_loss_both_ways_slows_nothing_unsafe(limits):
-    with fri_pair(limits, initial_position_rad=Q0, loss_out=0.05, loss_in=0.05, seed=7, url_query=PATIENT) as (c, fake):
+    with fri_pair(limits, initial_position_rad=Q0, loss_out=0.05, loss_in=0.05, seed=7) as (c, fake):
         target = Q0 + np.radians([20, -15, 10, 25, -10, 15, 30])
         c.move_to(target, 1.0, timeout=10.0)
         state = c.wait_settled(1e-5, 0.05, 5.0)
@@ -149,7 +145,7 @@ def test_a_move_over_its_timeout_is_stopped_within_limits(limits):
 
 
 def test_a_stale_state_refuses_the_move(limits):
-    with fri_pair(limits, initial_position_rad=Q0) as (c, fake):
+    with fri_pair(limits, initial_position_rad=Q0, url_query="rt_priority=0&max_state_age_ms=100") as (c, fake):
         fake.stop_sending()
         threading.Event().wait(0.15)  # let the last state age past max_state_age (0.1 s)
         snap = c.session.snapshot()
@@ -172,7 +168,7 @@ def test_over_udp_no_set_point_exceeds_the_limits(seed, speed, accel_factor, jit
     target = np.clip(Q0 + rng.uniform(-1, 1, 7) * math.radians(20), limits.lower_rad + 0.01,
                      limits.upper_rad - 0.01)
     with fri_pair(limits, initial_position_rad=Q0, jitter_ms=jitter_ms, loss_out=loss, loss_in=loss,
-                  seed=seed, url_query=PATIENT) as (c, fake):
+                  seed=seed) as (c, fake):
         c.move_to(target, speed, timeout=10.0)
         c.wait_settled(1e-5, 0.05, 5.0)
         stats = fake.stats
