@@ -16,6 +16,14 @@ import pytest
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+# No per-example wall-clock deadline (hypothesis's default is 200 ms): beside other test workers
+# and CPU hogs an example that takes 20 ms quiet takes 350, and that says nothing about the code.
+# A test that sets its own deadline keeps it; pytest-timeout still bounds every test.
+from hypothesis import settings  # noqa: E402
+
+settings.register_profile("suite", deadline=None)
+settings.load_profile("suite")
+
 
 def _ours(handler: logging.Handler) -> bool:
     """A handler not installed by pytest itself (its capture handlers come and go per phase)."""

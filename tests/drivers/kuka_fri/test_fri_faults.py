@@ -78,10 +78,12 @@ def test_packet_loss_both_ways_slows_nothing_unsafe(limits):
 
 
 def test_too_many_lost_answers_drop_the_session_and_end_the_move(limits):
-    with fri_pair(limits, initial_position_rad=Q0, max_missed=3, seed=3) as (c, fake):
+    # (20 missed windows, not 3: beside CPU hogs the exchange can miss a few in a row by itself;
+    # then every answer is lost, so the drop is certain)
+    with fri_pair(limits, initial_position_rad=Q0, max_missed=20, seed=3) as (c, fake):
         mover = MoveInThread(c, FAR)
         wait_commands(fake, 20)
-        fake.loss_in = 0.9
+        fake.loss_in = 1.0
         error = mover.join()
         assert isinstance(error, DeviceFaultError)
         assert "session left COMMANDING_ACTIVE (now MONITORING_WAIT" in str(error)
