@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[2]
@@ -303,3 +304,26 @@ def make_certs(folder: Path, names: list[str]) -> dict[str, tuple[Path, Path]]:
             "-out", f"{n}.pem", "-days", "1", "-extfile", "ext.cnf")
         out[n] = (folder / f"{n}.pem", folder / f"{n}.key")
     return out
+
+
+# ----------------------------------------------------------------------------- fixtures
+# (offered to every test in tests/acquire by its conftest.py)
+@pytest.fixture
+def notify():
+    """A fake systemd notification socket, closed after the test."""
+    n = NotifySocket()
+    yield n
+    n.close()
+
+
+@pytest.fixture
+def daemon(tmp_path, notify):
+    """An ``acquire daemon`` subprocess on a free loopback port with the test configuration
+    (``write_config``) in ``tmp_path``, watchdog 1 s; yields (process, port, tmp_path). Call
+    ``wait_ready()`` on the process before talking to it. Killed after the test."""
+    port = free_port()
+    proc = DaemonProcess(write_config(tmp_path, port), notify, watchdog_usec=1_000_000)
+    try:
+        yield proc, port, tmp_path
+    finally:
+        proc.kill()

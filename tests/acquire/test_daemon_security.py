@@ -38,13 +38,6 @@ from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under 
 )
 
 
-@pytest.fixture
-def notify():
-    n = NotifySocket()
-    yield n
-    n.close()
-
-
 def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tmp_path, notify):
     port = free_port()
     proc = DaemonProcess(write_config(tmp_path, port), notify)
@@ -394,7 +387,9 @@ def test_a_flood_of_malformed_queries_makes_a_bounded_log_without_tracebacks(tmp
     assert "Traceback" not in log
     assert 10 <= len(ours) <= 80, f"{len(ours)} lines:\n" + "\n".join(ours[:100])
     assert len(log.encode()) < 100_000
-    suppressed = max(int(m) for m in re.findall(r"\[(\d+) similar lines from", log))
+    # each admitted line reports the lines suppressed since the one before (a loaded machine
+    # spreads the flood over more admitted lines): their sum is every suppressed line
+    suppressed = sum(int(m) for m in re.findall(r"\[(\d+) similar lines from", log))
     print(f"2000 malformed queries: {len(ours)} acquire.control log lines, {len(log.encode())} bytes of log, "
           f"{suppressed} lines suppressed (counted)")
     assert suppressed >= 1500

@@ -15,7 +15,7 @@ import pytest
 from acquire.plan import load_plan
 from calib.io.yamlfile import ConfigError
 
-from daemon_harness import CELL, OPERATOR_TOKEN, DaemonProcess, NotifySocket, control, free_port, open_client, write_config  # noqa: E402
+from daemon_harness import OPERATOR_TOKEN, control, open_client  # noqa: E402
 from run_helpers import ROOT, small_plan  # noqa: E402
 
 BOMB = "a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
@@ -52,18 +52,7 @@ def test_acquire_run_refuses_the_alias_bomb_plan_with_exit_2(tmp_path):
     assert not (tmp_path / "runs").exists()
 
 
-@pytest.fixture
-def daemon(tmp_path):
-    notify = NotifySocket()
-    port = free_port()
-    proc = DaemonProcess(write_config(tmp_path, port), notify, watchdog_usec=1_000_000)
-    try:
-        yield proc, port, tmp_path
-    finally:
-        proc.kill()
-        notify.close()
-
-
+# (the `daemon` fixture: daemon_harness.py, offered by conftest.py)
 def test_the_daemon_refuses_an_inline_alias_bomb_in_one_line_and_keeps_answering(daemon):
     from acquire.control import BadRequest
 

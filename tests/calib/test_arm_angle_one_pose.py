@@ -3,8 +3,9 @@ against the vectorised path (``arm_angle_intervals_many``, ``solve_many``).
 
 The float path must find the same feasible arm-angle intervals (same count, ends to 1e-9 rad),
 pick the same arm angle and return exactly ``solve_many``'s result (status, message, labels in
-order, rows to 1e-9 rad). Checked on thousands of random reachable poses per iiwa, with and
-without the limit filter, on poses whose joint vectors lie beyond the limits ("limits" status),
+order, rows to 1e-9 rad). Checked on hundreds of random reachable poses per iiwa (thousands in
+the `slow` selection), with and without the limit filter, on poses whose joint vectors lie
+beyond the limits ("limits" status),
 on models with other sign conventions, zero offsets and limits beyond ±180°, with fitted zero
 offsets, and on the edge poses where the float path hands over: singularities, the wrist point
 on axis 1, joints at their limits, out of reach, and limits that a joint only grazes as the arm
@@ -74,10 +75,15 @@ def compare(m, poses, *, within_limits=True, params=None, what=None) -> tuple[in
     return fast_ivs, fast
 
 
+#: Poses per comparison: a few hundred in the default selection, the full thousands in `slow`.
+QUICK_AND_FULL = [500, pytest.param(3000, marks=pytest.mark.slow)]
+
+
+@pytest.mark.parametrize("n", QUICK_AND_FULL)
 @pytest.mark.parametrize("name", SEVEN)
-def test_float_path_equals_vectorised_on_random_reachable_poses(name):
+def test_float_path_equals_vectorised_on_random_reachable_poses(name, n):
     m = model(name)
-    q = np.random.default_rng(31).uniform(m.lower_limits_rad, m.upper_limits_rad, (3000, 7))
+    q = np.random.default_rng(31).uniform(m.lower_limits_rad, m.upper_limits_rad, (n, 7))
     poses = Chain(m).fk(q)
     fast_ivs, fast = compare(m, poses)
     assert fast_ivs >= 0.98 * len(q), f"only {fast_ivs} of {len(q)} poses took the float path for the intervals"
@@ -89,13 +95,14 @@ def test_float_path_equals_vectorised_on_random_reachable_poses(name):
         np.testing.assert_allclose(wrap(ik.arm_angle_of(m, r.q) - psi), 0.0, atol=1e-9)
 
 
+@pytest.mark.parametrize("n", [300, pytest.param(1500, marks=pytest.mark.slow)])
 @pytest.mark.parametrize("name", SEVEN)
-def test_float_path_equals_vectorised_beyond_the_limits(name):
+def test_float_path_equals_vectorised_beyond_the_limits(name, n):
     """Joint vectors up to 30 % beyond the limits: some poses have no feasible arm angle
     ("limits", the vectorised path's message) or lose a configuration to one joint."""
     m = model(name)
     lo, hi = m.lower_limits_rad, m.upper_limits_rad
-    q = np.random.default_rng(33).uniform(1.3 * lo, 1.3 * hi, (1500, 7))
+    q = np.random.default_rng(33).uniform(1.3 * lo, 1.3 * hi, (n, 7))
     poses = Chain(m).fk(q)
     assert any(r.status == "limits" for r in ik.solve_many(m, poses)), "the sample must contain poses with no feasible arm angle"
     fast_ivs, _ = compare(m, poses)

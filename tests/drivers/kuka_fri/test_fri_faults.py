@@ -78,10 +78,12 @@ def test_packet_loss_both_ways_slows_nothing_unsafe(limits):
 
 
 def test_too_many_lost_answers_drop_the_session_and_end_the_move(limits):
-    with fri_pair(limits, initial_position_rad=Q0, max_missed=3, seed=3) as (c, fake):
+    # (20 missed windows, not 3: beside CPU hogs the exchange can miss a few in a row by itself;
+    # then every answer is lost, so the drop is certain)
+    with fri_pair(limits, initial_position_rad=Q0, max_missed=20, seed=3) as (c, fake):
         mover = MoveInThread(c, FAR)
         wait_commands(fake, 20)
-        fake.loss_in = 0.9
+        fake.loss_in = 1.0
         error = mover.join()
         assert isinstance(error, DeviceFaultError)
         assert "session left COMMANDING_ACTIVE (now MONITORING_WAIT" in str(error)
@@ -145,7 +147,7 @@ def test_a_move_over_its_timeout_is_stopped_within_limits(limits):
 
 
 def test_a_stale_state_refuses_the_move(limits):
-    with fri_pair(limits, initial_position_rad=Q0) as (c, fake):
+    with fri_pair(limits, initial_position_rad=Q0, url_query="rt_priority=0&max_state_age_ms=100") as (c, fake):
         fake.stop_sending()
         threading.Event().wait(0.15)  # let the last state age past max_state_age (0.1 s)
         snap = c.session.snapshot()

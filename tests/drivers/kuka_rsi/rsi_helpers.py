@@ -40,7 +40,8 @@ def kr6_limits(speed_scale: float = 1.0, accel_scale: float = 1.0) -> JointLimit
 def rig(limits: JointLimits | None = None, *, fake_kwargs=None, connect=True, **commander_kwargs):
     """A commander on an ephemeral loopback port and a fake KR C4 sending to it."""
     limits = limits or kr6_limits()
-    commander_kwargs.setdefault("connect_timeout", 3.0)
+    # (the exchange process takes seconds to start beside CPU hogs and other test workers)
+    commander_kwargs.setdefault("connect_timeout", 30.0)
     fake_kwargs = dict(fake_kwargs or {})
     fake_kwargs.setdefault("initial_deg", HOME_DEG)
     fake_kwargs.setdefault("max_runtime_s", 60.0)

@@ -50,6 +50,10 @@ def test_sequence_of_moves_reaches_every_target_in_real_time(limits):
 def test_speed_override_slows_the_stream_proportionally(limits):
     target = deg([30, -90, 90, 0, 45, 0])
     with rig(limits, fake_kwargs={"lockstep": True}) as (c, f):
+        # (connect() returns on the commander's first packet; its answer may not be at the fake yet)
+        deadline = time.monotonic() + 30.0
+        while not f.received() and time.monotonic() < deadline:
+            time.sleep(0.01)
         ipoc0 = f.received()[-1].ipoc  # (by IPOC: a busy test process may let the record roll over)
         c.move_to(target, speed=0.25, timeout=20.0)
         time.sleep(0.02)

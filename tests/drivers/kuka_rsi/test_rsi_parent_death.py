@@ -24,7 +24,7 @@ import numpy as np
 from rsi_helpers import kr6_limits
 from drivers.kuka_rsi.commander import RsiCommander
 
-c = RsiCommander(kr6_limits(), host="127.0.0.1", port=0, connect_timeout=5.0, orphan_hold_s=0.5)
+c = RsiCommander(kr6_limits(), host="127.0.0.1", port=0, connect_timeout=30.0, orphan_hold_s=0.5)
 print("port", c.bind()[1], flush=True)
 print("exchange", c.exchange_pid, flush=True)
 sys.stdin.readline()
