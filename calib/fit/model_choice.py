@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 import numpy as np
 
@@ -50,10 +51,11 @@ CV_TOL = 1e-8
 
 @dataclass(frozen=True)
 class Candidate:
-    """A model to compare: ``kind`` of ``KINDS``, with joint ``compliance`` or not."""
+    """A model to compare: ``kind`` of ``kinds`` (simplest first), with joint ``compliance`` or not."""
 
     kind: str
     compliance: bool = False
+    kinds: ClassVar[tuple[str, ...]] = KINDS
 
     @property
     def name(self) -> str:
@@ -61,7 +63,7 @@ class Candidate:
 
     @property
     def rank(self) -> float:
-        return KINDS.index(self.kind) + (0.5 if self.compliance else 0.0)
+        return self.kinds.index(self.kind) + (0.5 if self.compliance else 0.0)
 
 
 def candidates(model: RobotModel, *, include_full: bool = True, compliance_only: bool = False) -> list[Candidate]:

@@ -31,11 +31,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from calib.fit.link_scale import maximise_evidence
-from calib.fit.model_choice import ModelChoice, Score, one_se_choice
+from calib.fit.model_choice import Candidate, ModelChoice, Score, one_se_choice
 from calib.fit.socket import SocketDataError, SocketDataset, SocketFit, _pivot_start, ball_positions, fit_socket
 from calib.robot.kinematics import Chain
 from calib.robot.model import RobotModel
@@ -46,19 +47,10 @@ ALIASES = {"offsets+tool": "offsets+ball", "offsets+tool+links": "offsets+ball+l
 
 
 @dataclass(frozen=True)
-class SocketCandidate:
+class SocketCandidate(Candidate):
     """A socket model to compare: ``kind`` of ``KINDS``, with joint ``compliance`` or not."""
 
-    kind: str
-    compliance: bool = False
-
-    @property
-    def name(self) -> str:
-        return self.kind + ("+compliance" if self.compliance else "")
-
-    @property
-    def rank(self) -> float:
-        return KINDS.index(self.kind) + (0.5 if self.compliance else 0.0)
+    kinds: ClassVar[tuple[str, ...]] = KINDS
 
 
 def socket_candidates(model: RobotModel, *, compliance_only: bool = False) -> list[SocketCandidate]:
