@@ -103,13 +103,14 @@ def test_socket_run_interrupted_resumed_and_fitted_recovers_the_hidden_offsets(t
     assert Path(doc["model_file"]).is_file()
     assert doc["sigma_point_mm"] < 0.1
 
-    # the log fits again later, as any run's: `acquire fit RUN.mcap` sees the socket records
+    # the log fits again later, as any run's: `acquire fit RUN.mcap` sees the socket records and, by
+    # the run's method (the plan's; `acquire fit` would choose its model), gives the run's answer
     from typer.testing import CliRunner
 
     from acquire.cli import app
 
     out = CliRunner().invoke(app, ["fit", str(summary.log_path), "--robot", str(lp.model_path), "--compliance",
-                                   "-o", str(tmp_path / "refit.json")])
+                                   "--method", doc["method"], "-o", str(tmp_path / "refit.json")])
     assert out.exit_code == 0, out.output
     refit = json.loads((tmp_path / "refit.json").read_text())
     assert refit["data"]["distances_mm"] and refit["data"]["n_configurations"] == len(ids)
