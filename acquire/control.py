@@ -174,6 +174,12 @@ class Authorizer:
         suffix = f" [{dropped} similar lines from {source} suppressed]" if dropped else ""
         log.warning("%s%s", line, suffix)
 
+    def flush_warnings(self) -> None:
+        """Log, per source, the count of warnings the throttle still holds back (at the close: a
+        flood that ended quietly is still counted in the log)."""
+        for source, n in self.throttle.drain().items():
+            log.warning("[%d similar lines from %s suppressed, not logged before the close]", n, source)
+
     def open_exchange(self, message: str) -> str:
         """The server-first answering a SCRAM client-first (ProofError if malformed)."""
         server_first, _ = self.exchanges.first(message)
@@ -278,10 +284,12 @@ class ControlServer:
             )
 
     def close(self) -> None:
-        """Undeclare every queryable (idempotent)."""
+        """Undeclare every queryable (idempotent), then log the count of warnings the throttle
+        still holds back, per source: a flood that ended quietly is still counted in the log."""
         while self._queryables:
             q = self._queryables.pop()
             q.undeclare()
+        self.authorizer.flush_warnings()
 
     def _make_handler(self, op: str) -> Callable:
         def handler(query) -> None:

@@ -3,8 +3,8 @@
 ``Throttle.admit(source)`` answers whether one more line about ``source`` may be written, with
 token buckets per source (``burst`` lines, then one every ``1/per_s`` seconds) and one over all
 sources (a client that changes its source id each time is still bounded). A refused line is
-counted; the next admitted line for that source reports how many were suppressed. Sources are
-forgotten (oldest first) beyond ``max_sources``.
+counted; the next admitted line for that source reports how many were suppressed, and ``drain()``
+what is still owed when the server closes. Sources are forgotten (oldest first) beyond ``max_sources``.
 """
 
 from __future__ import annotations
@@ -65,6 +65,15 @@ class Throttle:
             self._total.tokens -= 1
             n, b.suppressed = b.suppressed, 0
             return n
+
+    def drain(self) -> dict[str, int]:
+        """The sources with lines dropped since their last admitted one, and how many (then
+        zeroed): what a closing server still owes its log."""
+        with self._lock:
+            owed = {src: b.suppressed for src, b in self._sources.items() if b.suppressed}
+            for src in owed:
+                self._sources[src].suppressed = 0
+            return owed
 
 
 def clip(text: object, limit: int = 200) -> str:

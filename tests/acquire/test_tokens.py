@@ -108,3 +108,12 @@ def test_throttle_bounds_lines_per_source_and_overall_and_counts_the_rest():
     spread = [throttle.admit(f"zid-{i}") for i in range(1000)]
     assert sum(a is not None for a in spread) == 60
     assert throttle.suppressed_total == 980 + 940
+
+
+def test_throttle_drain_returns_what_is_still_owed_once():
+    throttle = Throttle(burst=2, per_s=0.0, total_burst=100, total_per_s=0.0, clock=lambda: 0.0)
+    for _ in range(7):
+        throttle.admit("zid-a")
+    throttle.admit("zid-b")
+    assert throttle.drain() == {"zid-a": 5}  # zid-b had nothing dropped
+    assert throttle.drain() == {}
