@@ -67,12 +67,13 @@ def test_wrong_ipoc_answers_count_as_late_and_total_rule_stops_the_robot(client)
 
 
 def test_consecutive_rule_tolerates_isolated_late_answers(client):
-    # simulated time at half speed: the (non-real-time) test client has 8 ms of wall time per cycle
-    with fake_for(client, late_limit=4, late_consecutive=True, clock=SimClock(0.5)) as f:
+    # simulated time at quarter speed: the (non-real-time) test client has 16 ms of wall time per cycle
+    with fake_for(client, late_limit=4, late_consecutive=True, clock=SimClock(0.25)) as f:
         client.run(lambda i, s: ([0.0] * 6, s.ipoc + (7 if i % 2 else 0)), 40)
         stats = f.stats()
-        # 20 wrong answers; the snapshot may fall before the last one is judged
-        assert stats.stopped_reason is None and 19 <= stats.late <= 21
+        # 20 wrong answers; the snapshot may fall before the last one is judged, and on a loaded
+        # machine a right answer may miss its window too (seen once: 22) — never 4 in a row
+        assert stats.stopped_reason is None and 19 <= stats.late <= 24, stats
         client.run(lambda i, s: None, 10)  # silence: four in a row
         assert f.wait_stopped(1.0)
         assert f.stats().stopped_reason == "RSI timeout: 4 late answers (limit 4)"
