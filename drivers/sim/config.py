@@ -177,6 +177,9 @@ class SensorConfig(_Strict):
     frame: Frame | None = None
     noise_mm: float = Field(ge=0, description="Constant part of the per-axis noise std, mm.")
     noise_mm_per_m: float = Field(0.0, ge=0, description="Range-proportional part, mm per m of range.")
+    attitude_noise_deg: float = Field(
+        0.005, ge=0, le=10, description="A 6-DoF target's attitude noise, 1σ per axis of the rotation vector, degrees "
+                                        "(a T-Mac on a tracker: about 0.005°; Motive derives a rigid body's from its markers).")
     field_of_view_deg: float = Field(180.0, gt=0, le=180, description="Half-angle about +z; 180 = everywhere.")
     markers: list[str] | None = Field(
         None, description="Tool markers this sensor measures; None → infrared/other for mocap, retroreflector for a tracker."
