@@ -187,11 +187,16 @@ class SensorConfig(_Strict):
     natnet: NatNetServe | None = Field(None, description="mocap only: how the fake Motive serves it (default NatNet 3.0, rigid body).")
     protocols: list[Literal["line", "emscon"]] | None = Field(
         None, min_length=1, description="tracker only: the fake's protocols, line and/or emscon (default [line]).")
+    six_dof: bool = Field(False, description="tracker only: its target is a 6-DoF target (a T-Mac at the marker, "
+                                             "its frame the flange's, or the marker's rpy_deg): the line protocol's "
+                                             "POSE and emScon's 6D stationary mode measure its orientation too.")
 
     @model_validator(mode="after")
     def _kind_fields(self) -> "SensorConfig":
         if self.natnet is not None and self.kind != "mocap":
             raise ValueError(f"sensor {self.name!r}: natnet is for a mocap sensor, this one is a {self.kind}")
+        if self.six_dof and self.kind != "tracker":
+            raise ValueError(f"sensor {self.name!r}: six_dof is for a tracker sensor, this one is a {self.kind}")
         if self.protocols is not None and self.kind != "tracker":
             raise ValueError(f"sensor {self.name!r}: protocols is for a tracker sensor, this one is a {self.kind}")
         return self

@@ -266,6 +266,7 @@ class SimLaunch:
         device = FakeTracker(
             view, clock=self.cell.clock, reflector=self.cell.sensor_markers(sensor)[0],
             noise_um=0.0, noise_um_per_m=0.0, seed=self.cell.config.seed,
+            six_dof=next(s.six_dof for s in self.cell.config.sensors if s.name == sensor),
         )
         protocols = self.tracker_protocols.get(sensor, ("line",))
         if "line" in protocols:
