@@ -152,6 +152,11 @@ class NatNetServe(_Strict):
     asset: Literal["rigid_body", "skeleton", "trained_markerset"] = "rigid_body"
     asset_name: str = Field("tool", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     multicast: bool = Field(False, description="Stream to 239.255.42.99 (Motive's default) instead of unicast.")
+    cluster_radius_mm: float = Field(
+        0.0, ge=0, le=200, description="A rigid-body cluster at each marker the sensor measures: three more infrared "
+                                       "markers at 120° on a circle of this radius about it, in the plane facing the "
+                                       "sensor (the flange's xy plane), so that Motive tracks a rigid body whose origin "
+                                       "(the centroid) is that marker; each with the sensor's noise. 0: no cluster.")
 
     _text = field_validator("version", mode="before")(lambda cls, v: _version_text(v))
 
