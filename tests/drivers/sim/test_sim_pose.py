@@ -54,3 +54,36 @@ def test_default_cells_rigid_body_gives_the_sir_and_the_flange_turn():
     assert _angle_deg(m0.rotation) < 0.2  # Motive defined the body where it stood at start
     assert abs(_angle_deg(m1.rotation @ m0.rotation.T) - 10.0) < 0.2
     assert 0.0 < m1.std_deg < 0.2  # a 30 mm cluster with 0.03 mm per marker: a few hundredths of a degree
+
+
+def test_a_six_dof_tracker_target_turns_with_the_flange_on_both_protocols(tmp_path):
+    """``six_dof: true``: the simulated tracker's target is a T-Mac; the line protocol's POSE and
+    emScon's 6D stationary mode both see the flange turn by A7's 10°."""
+    import yaml
+
+    from drivers.emscon.client import EmsconSensor
+    from drivers.tracker.client import TrackerSensor
+
+    doc = yaml.safe_load(default_sim_config().read_text())
+    doc["robot"] = str((default_sim_config().parent / doc["robot"]).resolve())
+    tracker = next(s for s in doc["sensors"] if s["kind"] == "tracker")
+    tracker |= {"six_dof": True, "protocols": ["line", "emscon"]}
+    path = tmp_path / "cell.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    cell = SimCell.from_yaml(path, seed=3)
+    q0 = cell.joint_positions()
+    q1 = q0 + np.radians([0, 0, 0, 0, 0, 0, 10.0])
+    got = {}
+    with SimLaunch(cell, controller=False) as launch:
+        with TrackerSensor.from_url(launch.addresses["tracker"].url, pose=True, reply_timeout=5.0) as line, \
+                EmsconSensor(launch.addresses["tracker-emscon"].url, pose=True, reply_timeout=5.0) as emscon:
+            for q in (q0, q1):
+                cell.set_joint_positions(q)
+                got.setdefault("line", []).append(line.measure("smr", 100, 10.0))
+                got.setdefault("emscon", []).append(emscon.measure("smr", 100, 10.0))
+    smr = cell.true_marker_positions(np.stack([q0, q1]), frame="tracker")[:, cell.marker_names.index("smr")]
+    for proto, (m0, m1) in got.items():
+        np.testing.assert_allclose(m1.mean_mm, smr[1], atol=0.1, err_msg=proto)
+        assert abs(_angle_deg(m1.rotation @ m0.rotation.T) - 10.0) < 0.05, proto
+        assert 0.0 < m1.std_deg < 0.05, proto
+    assert _angle_deg(got["line"][1].rotation @ got["emscon"][1].rotation.T) < 0.05  # one target, two protocols
