@@ -518,16 +518,13 @@ class RunLog:
             raise RunLogError(f"{self.path}: sample config_id must be a non-empty string, given {record['config_id']!r}")
         data = encode_json(record)
         t_ns = time.time_ns()
-        poses = fv.measured_poses(record, t_ns)
-        for topic in ((fv.POSE_TOPIC, fv.TF_TOPIC) if poses else ()):
-            if topic not in self._channels:
-                self.channel(topic, *fv.CHANNELS[topic])
+        poses = [(topic, doc) for pair in fv.measured_poses(record, t_ns) for topic, doc in zip((fv.POSE_TOPIC, fv.TF_TOPIC), pair)]
         with self._lock:
             self._append(SAMPLE_TOPIC, data, t_ns)
             self._append(fv.LOG_TOPIC, encode_json(fv.sample_log(record, t_ns)), t_ns)
-            for pose, tf in poses:  # a 6-DoF target's measured pose, for Foxglove's 3D panel
-                self._append(fv.POSE_TOPIC, encode_json(pose), t_ns)
-                self._append(fv.TF_TOPIC, encode_json(tf), t_ns)
+            for topic, doc in poses:  # 6-DoF targets' poses for Foxglove (channel(): the same id once registered)
+                self.channel(topic, *fv.CHANNELS[topic])
+                self._append(topic, encode_json(doc), t_ns)
             self._durable()
             self.samples_written += 1
 

@@ -48,6 +48,7 @@ import numpy as np
 from drivers.base import Clock, SensorBase, check_timeout
 from drivers.emscon import codec as es
 from drivers.emscon.codec import Cmd, SSC, Status
+from drivers.emscon.probe import check_probe, probe_pose
 from drivers.emscon.status import WARNINGS, error_for, status_name
 from drivers.errors import (
     ConnectionLostError,
@@ -509,16 +510,9 @@ class EmsconSensor(SensorBase):
         except (LimitError, DeviceFaultError) as exc:
             raise LimitError(f"{self.name}: pose measurement needs a 6-DoF probe (a T-Mac) on the tracker; the "
                              f"server has none ({exc}); measure the reflector's position instead (pose: false)") from None
-        kind = info["probeType"]
-        six_dof = (es.ProbeType.TProbe, es.ProbeType.TScan, es.ProbeType.MachineControlProbe,
-                   es.ProbeType.MachineControlProbeMultiSide)
-        if kind not in [int(k) for k in six_dof]:
-            name = es.ProbeType(kind).name if kind in es.ProbeType._value2member_map_ else str(kind)
-            raise LimitError(f"{self.name}: the tracker's active probe is {name}, not a 6-DoF probe "
-                             f"({', '.join(k.name for k in six_dof)}); pose measurement needs one")
+        check_probe(info, self.name)
         self.probe_info = info
-        self.log.info("6-DoF probe %s, serial %d, firmware %d.%d", es.ProbeType(kind).name, info["lSerialNumber"],
-                      info["iFirmwareMajorVersionNumber"], info["iFirmwareMinorVersionNumber"])
+        self.log.info("6-DoF probe %s, serial %d", es.ProbeType(info["probeType"]).name, info["lSerialNumber"])
 
     def _stationary_measurement(self, meas_time_ms: int, timeout: float):
         """(xyz (3,) mm, std (3,) mm, host time, rotation (3, 3) or None, std_deg or None)."""
@@ -529,18 +523,7 @@ class EmsconSensor(SensorBase):
         v = result.values
         rotation = std_deg = None
         if result.type is es.DataType.StationaryProbeMeasResult:
-            from calib.robot.transforms import quat_to_matrix
-
-            xyz = np.array([v["dPosition1"], v["dPosition2"], v["dPosition3"]], dtype=float)
-            std = np.array([v["dStdDevPosition1"], v["dStdDevPosition2"], v["dStdDevPosition3"]], dtype=float)
-            q = np.array([v["dQuaternion0"], v["dQuaternion1"], v["dQuaternion2"], v["dQuaternion3"]], dtype=float)
-            srot = np.array([v["dStdDevRotationAngleX"], v["dStdDevRotationAngleY"], v["dStdDevRotationAngleZ"]])
-            norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else math.nan
-            if not (abs(norm - 1.0) <= 1e-3 and np.all(np.isfinite(srot))):
-                raise ProtocolError(f"{self.name}: the server sent a 6-DoF result with quaternion {q.tolist()} "
-                                    f"(norm {norm:.6f}, must be 1) and rotation std devs {srot.tolist()}")
-            rotation = quat_to_matrix(q / norm)
-            std_deg = float(np.sqrt(np.mean(srot ** 2)))  # degrees: the angle unit set on connect
+            xyz, std, rotation, std_deg = probe_pose(v, self.name)  # degrees: the angle unit set on connect
         else:
             xyz = np.array([v["dVal1"], v["dVal2"], v["dVal3"]], dtype=float)
             std = np.array([v["dStd1"], v["dStd2"], v["dStd3"]], dtype=float)
