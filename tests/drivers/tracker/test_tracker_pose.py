@@ -16,7 +16,8 @@ from drivers.tracker.client import TrackerSensor
 from drivers.tracker.codec import LineCodec, MeasurePose, PoseReply
 from drivers.tracker.fake import FakeTracker, TcpTrackerServer
 
-from conftest import REFLECTOR_MM  # noqa: E402 - tests/drivers/tracker is on sys.path under pytest
+#: Where the target is, tracker frame, mm (about 2.03 m from the head).
+REFLECTOR_MM = (2000.0, 300.0, -100.0)
 
 
 def _rz(t: float) -> np.ndarray:
