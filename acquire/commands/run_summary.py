@@ -53,6 +53,50 @@ def adaptive_summary_lines(ad: dict) -> list[str]:
     return lines
 
 
+def _attitude_metrics(node, label: str = "", depth: int = 0) -> list[tuple[str, dict, dict]]:
+    """Every (label, before, after) in a result document whose before/after carry EACAE (degrees)."""
+    out: list[tuple[str, dict, dict]] = []
+    if not isinstance(node, dict) or depth > 4:
+        return out
+    b, a = node.get("before"), node.get("after")
+    if isinstance(b, dict) and isinstance(a, dict) and b.get("EACAE") is not None and a.get("EACAE") is not None:
+        return [(label, b, a)]
+    for key, value in node.items():
+        if key not in ("before", "after"):
+            out += _attitude_metrics(value, f"{label}.{key}" if label else str(key), depth + 1)
+    return out
+
+
+def _oriented_configurations(log_path) -> int:
+    """How many measured configurations of the run log carry a 6-DoF target's orientation."""
+    try:
+        from acquire.recorder import read_run
+
+        samples = read_run(Path(log_path)).samples
+    except Exception:  # noqa: BLE001 - a summary line must never fail the summary
+        return 0
+    return sum(any(isinstance(m.get("quat_wxyz"), list) for m in rec.get("markers") or []) for rec in samples)
+
+
+def attitude_summary_lines(fit: dict, log_path=None) -> list[str]:
+    """Attitude accuracy as the pose-selection paper reports it (EACAE / EMCAE, mean / max
+    attitude error, degrees, before → after) wherever the result has it; otherwise, when the run
+    measured orientations, how many and that this fit scored positions only."""
+    found = [(label, b, a) for label, b, a in _attitude_metrics(fit.get("metrics") or {}, "")]
+    found += [(label, b, a) for label, b, a in _attitude_metrics({k: v for k, v in fit.items() if k != "metrics"}, "")]
+    lines = []
+    for label, b, a in found:
+        lines.append(f"attitude accuracy{' (' + label + ')' if label else ''}: EACAE {b['EACAE']:.4f} → {a['EACAE']:.4f}°, "
+                     f"EMCAE {b['EMCAE']:.4f} → {a['EMCAE']:.4f}° (mean / max attitude error, before → after)")
+    if not found and log_path is not None:
+        n = _oriented_configurations(log_path)
+        if n:
+            lines.append(f"attitude: {n} configurations measured with the target's orientation (in the log and the "
+                         "dataset); this fit scored positions only — `acquire fit LOG --method full` fits and scores "
+                         "position and attitude (EACAE / EMCAE)")
+    return lines
+
+
 def format_run_summary(summary, lp, truth: list | None = None, sag: list | None = None) -> str:
     """The summary a person reads. ``truth`` / ``sag``: a simulated cell's hidden zero-offsets
     and mean gravity sag per joint (deg), shown beside the fit when given."""
@@ -111,6 +155,7 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
         if gsag and gsag.get("significant"):
             lines.append(f"warning: the residuals follow the joints' gravity torques (p = {gsag['p_value']:.1g}): "
                          "the arm sags and the fit does not model it — set fit.compliance: true in the plan")
+        lines += attitude_summary_lines(summary.fit, getattr(summary, "log_path", None))
         if summary.fit.get("kind") == "socket":
             lines += socket_summary_lines(summary.fit)
         lines.append("")
