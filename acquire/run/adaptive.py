@@ -98,6 +98,7 @@ class AdaptiveOrder:
         d = self.design
         other.design = SequentialDesign(d.model, d.rule, d.sigma_mm, measured=list(d.measured))
         other.dropped, other.records, other.history = set(self.dropped), list(self.records), []
+        other._between = self.between_seconds()
         return other
 
     # ------------------------------------------------------------------ state
@@ -179,12 +180,23 @@ class AdaptiveOrder:
         here = np.asarray(here_q_rad, dtype=float)[None, :]
         return np.asarray(motion_time(np.repeat(here, len(q), axis=0), q, v, a, j), dtype=float) + self.per_config_s
 
+    def between_seconds(self) -> np.ndarray:
+        """(N, N) move seconds between the plan's configurations (computed once)."""
+        if getattr(self, "_between", None) is None:
+            from acquire.sequencer import motion_cost_matrix
+
+            q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
+            self._between = motion_cost_matrix(q, self.limits, self.speed)
+        return self._between
+
     def choose(self, here_q_rad: np.ndarray):
-        """(PlannedConfig, event fields) of the next configuration from ``here_q_rad``; the
-        event fields say why (gain per stated quantity, seconds, score, runner-up)."""
-        secs = self.seconds_from(here_q_rad)
+        """(PlannedConfig, event fields) of the next configuration from ``here_q_rad``: the first
+        stop of the planned rest of the run (``SequentialDesign.choose_route``: a batch predicted
+        to meet the stop rule, toured from here); the event fields say why (gain per stated
+        quantity, seconds, score, the tour's next stop, the planned count and seconds)."""
         design = self.design
-        choice = design.choose(secs, exclude=sorted(self.dropped))
+        moves = self.seconds_from(here_q_rad) - self.per_config_s
+        choice = design.choose_route(moves, self.between_seconds(), self.per_config_s, exclude=sorted(self.dropped))
         cfg = self.configs[choice.index]
         fields = {"config_id": cfg.config_id, **choice.to_dict(), "sigma_mm": round(design.sigma_mm, 5)}
         if choice.runner_up is not None:
