@@ -48,8 +48,11 @@ def adaptive_summary_lines(ad: dict) -> list[str]:
                      f"{hist[-1].get('full_held_out_mm', float('nan')):.4f} mm; σ used {ad['sigma_mm']:.4f} mm)")
     saved = ad.get("saved_seconds")
     if saved is not None:
-        lines.append(f"  estimated cell time {ad['estimated_seconds']:.0f} s against {ad['full_plan_seconds']:.0f} s for "
-                     f"the full plan: {saved:.0f} s ({ad.get('saved_pct') or 0:.0f} %) saved")
+        comp = ad.get("compute_seconds")
+        lines.append(f"  estimated cell time {ad['estimated_seconds']:.0f} s"
+                     + (f" (with {comp:.1f} s choosing and refitting)" if comp else "")
+                     + f" against {ad['full_plan_seconds']:.0f} s for the full plan: {saved:.0f} s "
+                     f"({ad.get('saved_pct') or 0:.0f} %) saved")
     return lines
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 
 import numpy as np
 
@@ -273,6 +274,7 @@ class AdaptiveRun:
         self.resumed_n = len(self.order.design.measured)
         self.visited: list = []  # configurations this segment moved to, in order
         self.final: Status | None = None
+        self.compute_s = 0.0  # wall seconds the robot stood while this segment chose and refitted
         self.predicted, self.predicted_status = simulate(self.order, self.start_q)
 
     def started_fields(self) -> dict:
@@ -300,12 +302,15 @@ class AdaptiveRun:
         is exhausted or ``max_configurations`` is reached (event ``adaptive_stop``)."""
         last = None
         while True:
+            t0 = time.perf_counter()
             st = self.order.status()
             row = self.order.record_status(st)
             if st.stop:
                 self.final = st
+                self.compute_s += time.perf_counter() - t0
                 return
             cfg, why = self.order.choose(self._here(last))
+            self.compute_s += time.perf_counter() - t0
             event("adaptive_choice", **why, status=row)
             self.visited.append(cfg)
             last = cfg
@@ -315,19 +320,23 @@ class AdaptiveRun:
         """What became of ``cfg``: measured (its record updates the design and σ), skipped or failed."""
         if outcome == "measured":
             ok = record is not None and record.get("config_id") == cfg.config_id
+            t0 = time.perf_counter()
             self.order.mark(cfg.config_id, record if ok else None)
             self.order.update_sigma()
+            self.compute_s += time.perf_counter() - t0
         elif outcome in ("skipped", "failed"):
             self.order.drop(cfg.config_id)
 
     def summary(self) -> dict:
         """Why the run stopped, the predicted intervals against the number of configurations, and
-        the estimated cell time of what was visited against the full plan's."""
+        the estimated cell time of what was visited against the full plan's: moves, settling and
+        measuring as the plan's estimate has them, plus the seconds (wall) the robot stood while
+        this segment chose and refitted (``compute_seconds``; a fixed-order run has none)."""
         o = self.order
         st = self.final if self.final is not None else o.status()
         full = o.full_plan_seconds(self.start_q)
         before = [o.configs[i] for i in o.design.measured[: self.resumed_n]]
-        spent = o.visited_seconds(before + self.visited, self.start_q)
+        spent = o.visited_seconds(before + self.visited, self.start_q) + self.compute_s
         return {"stopped": self.final is not None, "reason": st.reason if self.final is not None else
                 "the run ended before the stop rule was evaluated (aborted or failed)",
                 "measured": st.n_measured, "candidates": len(o.configs),
@@ -336,5 +345,6 @@ class AdaptiveRun:
                 "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),
                 "sigma_mm": round(o.design.sigma_mm, 5),
                 "fitted_sigma_mm": None if o.fitted_sigma_mm is None else round(o.fitted_sigma_mm, 5),
-                "history": o.history, "estimated_seconds": round(spent, 1), "full_plan_seconds": round(full, 1),
+                "history": o.history, "estimated_seconds": round(spent, 1),
+                "compute_seconds": round(self.compute_s, 1), "full_plan_seconds": round(full, 1),
                 "saved_seconds": round(full - spent, 1), "saved_pct": round(100 * (1 - spent / full), 1) if full else None}

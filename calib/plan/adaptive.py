@@ -288,18 +288,18 @@ class SequentialDesign:
         after the measured configurations and ``planned`` ones (candidate indices)."""
         cov = self.covariance(list(self.measured) + [int(i) for i in planned])
         rows = self.model.rows[candidates]  # (c, r, L)
-        m = np.einsum("lk,crk->clr", cov, rows)  # Σ Jᵀ
-        s = np.einsum("crl,clq->crq", rows, m) + self.sigma_mm**2 * np.eye(rows.shape[1])
-        w = np.linalg.solve(s, np.swapaxes(m, 1, 2))  # S⁻¹ M ᵀ: (c, r, L)
+        mt = rows @ cov  # (Σ Jᵀ)ᵀ: (c, r, L)
+        s = mt @ np.swapaxes(rows, 1, 2) + self.sigma_mm**2 * np.eye(rows.shape[1])  # (c, r, r)
+        w = np.linalg.solve(s, mt)  # S⁻¹ J Σ: (c, r, L)
         out = {}
         if self.rule.interval_deg is not None:
             k = self.model.offsets
             now = float(np.trace(cov[np.ix_(k, k)])) or 1.0
-            out["interval"] = np.einsum("clr,crl->c", m[:, k, :], w[:, :, k]) / now
+            out["interval"] = np.sum(mt[:, :, k] * w[:, :, k], axis=(1, 2)) / now
         if self.rule.workspace_within_pct is not None or self.rule.held_out_within_pct is not None:
             a = self.model.workspace
             trace = float(np.sum(a * cov))
-            drop = np.einsum("lk,ckr,crl->c", a, m, w)
+            drop = np.sum((mt @ a) * w, axis=(1, 2))  # trace(A Σ Jᵀ S⁻¹ J Σ), A symmetric
             if self.rule.workspace_within_pct is not None:
                 out["workspace"] = drop / (trace or 1.0)
             if self.rule.held_out_within_pct is not None:
