@@ -109,6 +109,11 @@ def test_summary_and_report_say_why_it_stopped_intervals_against_configurations_
         summ["full_plan_seconds"] - summ["estimated_seconds"], abs=0.11)
     text = "\n".join(adaptive_summary_lines(summ))
     assert f"stopped after {len(chosen)} of {len(configs)}" in text and "saved" in text
+    # against the cell time the run measured: within the estimate, no hint; far over it, the reasons to check
+    near = "\n".join(adaptive_summary_lines(summ, summ["estimated_seconds"] * 1.02))
+    assert "measured cell time" in near and "+2%" in near and "took longer" not in near
+    slow = "\n".join(adaptive_summary_lines(summ, summ["estimated_seconds"] * 1.3))
+    assert "+30%" in slow and "took longer than estimated" in slow
     html = "\n".join(adaptive_section(summ))
     assert "Adaptive run" in html and summ["reason"].split(":")[0] in html and html.count("<tr>") == len(chosen) + 2
     assert adaptive_section(None) == []
