@@ -247,11 +247,12 @@ class SequentialDesign:
         """The measured configurations' predictions and whether the rule says stop."""
         return self.status_of(self.measured)
 
-    def status_of(self, indices) -> Status:
+    def status_of(self, indices, cov: np.ndarray | None = None) -> Status:
         """What measuring ``indices`` (candidate indices) would predict, and whether the rule
-        would say stop then (for plans ahead: ``plan_route``)."""
+        would say stop then (for plans ahead: ``plan_route``); ``cov``: their covariance when
+        the caller has it."""
         idx = list(indices)
-        cov = self.covariance(idx)
+        cov = self.covariance(idx) if cov is None else cov
         hw = self.half_widths_deg(cov)
         ws, full = self.workspace_mm(cov), self.full_workspace_mm()
         held, full_held = self.held_out_mm(ws), self.held_out_mm(full)
@@ -283,10 +284,12 @@ class SequentialDesign:
         return Status(n, hw, ws, full, stop, reason, held, full_held)
 
     # ------------------------------------------------------------------ the choice
-    def gains(self, candidates: np.ndarray, planned=()) -> dict[str, np.ndarray]:
+    def gains(self, candidates: np.ndarray, planned=(), cov: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """Expected relative reduction of each stated quantity's trace, per candidate (len(candidates),),
-        after the measured configurations and ``planned`` ones (candidate indices)."""
-        cov = self.covariance(list(self.measured) + [int(i) for i in planned])
+        after the measured configurations and ``planned`` ones (candidate indices); ``cov``: their
+        covariance when the caller has it."""
+        if cov is None:
+            cov = self.covariance(list(self.measured) + [int(i) for i in planned])
         rows = self.model.rows[candidates]  # (c, r, L)
         mt = rows @ cov  # (Σ Jᵀ)ᵀ: (c, r, L)
         s = mt @ np.swapaxes(rows, 1, 2) + self.sigma_mm**2 * np.eye(rows.shape[1])  # (c, r, r)
@@ -338,16 +341,22 @@ class SequentialDesign:
             raise ValueError("move seconds must be finite for every remaining candidate")
         per = float(per_config_s)
 
+        info0 = self.model.prior + (self._blocks[self.measured].sum(axis=0) if self.measured else 0.0) / self.sigma_mm**2
+
         def grow(timed: bool) -> list[int]:
-            path, batch, left = [0], [], list(left0)
-            while left and not self.status_of(self.measured + batch).stop:
-                g = sum(self.gains(np.array(left), planned=batch).values())
+            path, batch, left, info = [0], [], list(left0), info0.copy()
+            while left:
+                cov = _inv_sym(info)
+                if self.status_of(self.measured + batch, cov).stop:
+                    break
+                g = sum(self.gains(np.array(left), cov=cov).values())
                 if timed:
                     extra, pos = insertion_costs(path, cost, np.array(left) + 1)
                     k = int(np.argmax(g / (extra + per)))
                     path.insert(int(pos[k]) + 1, left[k] + 1)
                 else:
                     k = int(np.argmax(g))
+                info = info + self._blocks[left[k]] / self.sigma_mm**2
                 batch.append(left.pop(k))
             path = path if timed else nearest_neighbour(cost, np.array(batch) + 1)
             return two_opt(path, cost)
