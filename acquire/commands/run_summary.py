@@ -32,9 +32,11 @@ def socket_summary_lines(doc: dict) -> list[str]:
     return lines
 
 
-def adaptive_summary_lines(ad: dict) -> list[str]:
+def adaptive_summary_lines(ad: dict, cell_seconds: float | None = None) -> list[str]:
     """An adaptive run: why it stopped, the predicted intervals against the number of
-    configurations (a few rows), and the estimated cell time against the full plan's."""
+    configurations (a few rows), and the estimated cell time against the full plan's — and
+    against the cell time the run measured (``cell_seconds``, the cell's clock) when given and
+    the run was not resumed (a segment's clock does not cover the earlier segments)."""
     lines = [f"adaptive: stopped after {ad['measured']} of {ad['candidates']} configurations — {ad['reason']}"]
     hist = ad.get("history") or []
     if hist:
@@ -48,8 +50,19 @@ def adaptive_summary_lines(ad: dict) -> list[str]:
                      f"{hist[-1].get('full_held_out_mm', float('nan')):.4f} mm; σ used {ad['sigma_mm']:.4f} mm)")
     saved = ad.get("saved_seconds")
     if saved is not None:
-        lines.append(f"  estimated cell time {ad['estimated_seconds']:.0f} s against {ad['full_plan_seconds']:.0f} s for "
-                     f"the full plan: {saved:.0f} s ({ad.get('saved_pct') or 0:.0f} %) saved")
+        comp = ad.get("compute_seconds")
+        lines.append(f"  estimated cell time {ad['estimated_seconds']:.0f} s"
+                     + (f" (with {comp:.1f} s choosing and refitting)" if comp else "")
+                     + f" against {ad['full_plan_seconds']:.0f} s for the full plan: {saved:.0f} s "
+                     f"({ad.get('saved_pct') or 0:.0f} %) saved")
+        hist = ad.get("history") or [{}]
+        if cell_seconds and hist[0].get("n", 0) == 0 and ad.get("estimated_seconds"):
+            over = cell_seconds / ad["estimated_seconds"] - 1
+            lines.append(f"  measured cell time {cell_seconds:.0f} s ({over:+.0%} against the estimate)")
+            if over > 0.1:
+                lines.append("  (moves, settling or measuring took longer than estimated: a simulated cell at "
+                             "fake.time_scale > 1 falls behind its clock on a busy host — time a plan at "
+                             "time_scale 1; on a real cell, check the speed override and the settle window)")
     return lines
 
 
@@ -109,7 +122,7 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
     for cid, reason in list(summary.skipped_reasons.items())[:20]:
         lines.append(f"  not measured {cid}: {reason}")
     if getattr(summary, "adaptive", None):
-        lines += adaptive_summary_lines(summary.adaptive)
+        lines += adaptive_summary_lines(summary.adaptive, summary.cell_seconds)
     if summary.fit is not None:
         names = lp.model.axis_names
         head = f"{'joint':<6} {'fitted (deg)':>13} {'± std':>8}"
