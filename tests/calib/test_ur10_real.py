@@ -148,19 +148,21 @@ class GeometricLM:
         return self.errors(self._fit(train, kin, marker, False), test)
 
 
-def calibrated_robot(chain: Chain, params: np.ndarray, k: np.ndarray | None = None):
+def calibrated_robot(chain: Chain, params: np.ndarray, k: np.ndarray | None = None, sag_params: np.ndarray | None = None):
     """``positions(q, marker)``: base-frame marker positions (k, 3) mm of a calibrated robot (chain
     parameters ``params``) for any q, with the marker position replaced, and the gravity sag of
-    joint compliances ``k`` (rad/(N·m), to first order through the offsets' Jacobian, as the fit
-    models it); and the calibrated marker position."""
+    joint compliances ``k`` (rad/(N·m), to first order through the offsets' Jacobian and the
+    torques at the arm ``sag_params`` — the fit's reference, None: nominal — as the fit models it);
+    and the calibrated marker position."""
+    sag_at = chain.nominal if sag_params is None else sag_params
 
     def positions(q: np.ndarray, marker: np.ndarray) -> np.ndarray:
         p = params.copy()
         p[chain.marker_slice()] = marker
         pos = chain.marker_positions(q, p)[:, 0]
         if k is not None and np.any(k):
-            _, jac = chain.marker_jacobian(q, chain.nominal)
-            pos = pos + np.einsum("kjn,kn->kj", jac[:, 0, :, : chain.n], chain.sign * gravity_torques(chain, q) * k)
+            _, jac = chain.marker_jacobian(q, sag_at)
+            pos = pos + np.einsum("kjn,kn->kj", jac[:, 0, :, : chain.n], chain.sign * gravity_torques(chain, q, sag_at) * k)
         return pos
 
     return positions, params[chain.marker_slice()]
@@ -172,7 +174,7 @@ def chosen_robot(mode, chain: Chain):
     post = mode.post
     full = post.full_vector(mode.theta)
     k = full[post.n_full - post.C:] * 1e-6 if post.C else None  # µrad/(N·m) → rad/(N·m)
-    return calibrated_robot(chain, post.chain_params(full), k)
+    return calibrated_robot(chain, post.chain_params(full), k, mode.sag_params)
 
 
 def transfer_errors(positions, marker0: np.ndarray, train: Dataset, test: Dataset) -> np.ndarray:
