@@ -292,7 +292,8 @@ class ModelChoice:
                          f"{s.mean_mm:>13.4f} ± {s.se_mm:.4f}{_misfit_text(s.misfit):>8}{mark}")
         if self.excluded:
             lines.append(f"  not compared: {self.excluded}")
-        lines.append(_scale_line(self.score(self.chosen).misfit if self.chosen in {s.name for s in self.scores} else None))
+        if any(s.misfit is not None for s in self.scores):  # (socket scores and full identification have none)
+            lines.append(_scale_line(self.score(self.chosen).misfit if self.chosen in {s.name for s in self.scores} else None))
         if self.link_scale:
             how = "given" if self.link_scale.get("given") else "empirical Bayes, max evidence"
             lines.append(f"  link prior of offsets+tool+links ({how}): lengths ±{self.link_scale['length_mm']:g} mm, "
@@ -346,7 +347,7 @@ def format_table(mc: dict) -> str:
                      f"{_misfit_text(c.get('heldout_misfit')):>8}{mark}")
     if mc.get("excluded"):
         lines.append(f"  not compared: {mc['excluded']}")
-    if any("heldout_misfit" in c for c in mc["candidates"]):
+    if any(c.get("heldout_misfit") is not None for c in mc["candidates"]):
         lines.append(_scale_line(next((c.get("heldout_misfit") for c in mc["candidates"] if c["model"] == mc["chosen"]), None)))
     return "\n".join(lines)
 
