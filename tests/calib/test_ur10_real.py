@@ -236,7 +236,10 @@ def test_the_default_fit_predicts_real_ur10_data_at_least_as_well_as_an_exact_ge
     assert own.mean() <= min(v[0] for v in ref.values()), summary
     assert own_other.mean() <= min(v[1] for v in ref.values()), summary
 
-    # The verdict follows the rule, and result.json says why.
+    # The verdict follows the rule, and result.json says why — and the sampler is not the reason: on
+    # series D the Laplace check fails (a curved ridge, J5's zero against a₅) and the random walk
+    # must settle (it did not within the former 12 000 steps: R-hat 1.10).
+    assert not any(k in r for r in done.refused for k in ("has not converged", "not settled", "effective draws")), done.refused
     chosen = choice.score(choice.chosen)
     spread = float(np.sqrt(np.mean(cal.std_mm**2)))
     entered = [a["axis"] for a in done.doc["controller"]["axes"] if a["action"] == "enter"]
