@@ -67,3 +67,15 @@ def test_a_sagging_cell_fitted_without_compliance_has_a_held_out_misfit_above_on
     with_sag = _misfit(c.model, c.cal, Candidate("offsets+tool+links", True), (1.0, 0.3))
     without = _misfit(c.model, c.cal, Candidate("offsets+tool+links"), (1.0, 0.3))
     assert 0.9 < with_sag < 1.1 < 1.2 < without, (with_sag, without)
+
+
+def test_the_report_says_the_intervals_were_widened():
+    from calib.report.report_choice import model_choice_section
+
+    mc = {"chosen": "offsets", "forced": False, "folds": 5, "grouped_by": "configuration", "rule": "one se",
+          "nominal": {"model": "nominal", "free_parameters": 0, "cv_rms_mm": 1.0, "cv_mean_mm": 0.9, "cv_se_mm": 0.1},
+          "candidates": [{"model": "offsets", "free_parameters": 10, "cv_rms_mm": 0.01, "cv_mean_mm": 0.009,
+                          "cv_se_mm": 0.001, "heldout_misfit": 1.3}]}
+    doc = {"model_choice": mc, "joint_offsets": [{"value_deg": 0.1, "std_deg": 0.01, "ci95_deg": [0.08, 0.12]}]}
+    scale_offset_intervals(doc, 1.3)
+    assert any("σ scaled ×1.30 by held-out misfit" in part for part in model_choice_section(doc))
