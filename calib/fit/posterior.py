@@ -41,8 +41,8 @@ configuration. Deflections are ~1e-4 rad, so the effect enters to first order, t
 offsets' Jacobian at a reference arm: p += Σ_i ∂p/∂δ_i · sign_i τ_i(q) k_i (the neglected terms
 are ~1e-4 of the sag itself). The reference (``sag_params``) must be the fitted arm, not the
 nominal one: a tool 10–30 mm off its drawing moves the lever of every sag by as much, and
-offsets of 0.1° move the torques by 0.1 N·m — at the nominal arm this left 0.001–0.003 mm rms per
-axis of systematic error on a sagging iiwa (a third to two thirds of an averaged tracker row's
+offsets of 0.1° move the torques by 0.1 N·m — at the nominal arm this left 0.0008–0.003 mm rms per
+axis of systematic error on a sagging iiwa (a sixth to two thirds of an averaged tracker row's
 noise), which biased offsets known to ±0.0001° by 2–2.5 σ. ``calib.fit.offsets.fit_mode`` therefore
 fits once at the nominal arm and again with the sag taken at that mode. Flat prior on each k_i.
 """
