@@ -27,10 +27,7 @@ rule", Hastie, Tibshirani & Friedman, *Elements of Statistical Learning*, §7.10
 The link scale is a hyperparameter fitted to data, so it is part of what is validated: each fold
 estimates its own from its training configurations (``empirical_link_scale`` on them), and the
 held-out configurations never inform the scale they are scored with (the scale of all the data
-would leak them into the choice). A fold's search starts at the scale of all the data — only its
-first reference: the answer is the maximum of the fold's own evidence over the whole grid, priced
-at a mode refitted until it stays (``empirical_link_scale``), so it costs one fit where the scale
-agrees. The fit of the chosen model uses the scale of all the data.
+would leak them into the choice). The fit of the chosen model uses the scale of all the data.
 The table states the folds' scales beside it. (On the first 14 nuisance cells of
 ``tests/bench/study_model_choice.py`` the folds' scales were the all-data scale in 69 of 70 folds;
 the chosen model and its cross-validated mean error, to 0.1 µm, were the same in all 14 cells as
@@ -170,14 +167,13 @@ def linearised_log_evidence(mf: ModeFit):
 
 
 def empirical_link_scale(model: RobotModel, data: Dataset, base: FitOptions, lengths_mm: tuple[float, ...] = LENGTHS_MM,
-                         angles_deg: tuple[float, ...] = ANGLES_DEG, start: tuple[float, float] | None = None) -> dict:
+                         angles_deg: tuple[float, ...] = ANGLES_DEG) -> dict:
     """The link prior's length (mm) and angle (deg) scales that maximise the Laplace evidence of
     the offsets+tool+links model on ``data``, each on its own grid (``calib.fit.link_scale``):
     the mode is fitted under a middle scale, every pair of the grids priced by
     ``linearised_log_evidence``, and the mode fitted again at the best pair until it stays (at most
-    three fits). ``start``: the pair to fit first (a fold starts at the scale of all the data, usually
-    its answer: one fit). {"length_mm", "angle_deg", "log_evidence": {"mm/deg": value}, "at_grid_edge", "fits"}."""
-    ref = start or (lengths_mm[len(lengths_mm) // 2], angles_deg[len(angles_deg) // 2])
+    three fits). {"length_mm", "angle_deg", "log_evidence": {"mm/deg": value}, "at_grid_edge", "fits"}."""
+    ref = (lengths_mm[len(lengths_mm) // 2], angles_deg[len(angles_deg) // 2])
     for fits in range(1, 4):
         ev = linearised_log_evidence(fit_mode(model, data, replace(base, link_tolerance=ref), tol=CV_TOL))
         found = maximise_evidence(ev, lengths_mm, angles_deg, exhaustive=True)
@@ -400,12 +396,11 @@ def _candidate_distances(candidate: Candidate, model: RobotModel, train: Dataset
 
 def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], base: FitOptions,
                    link_tolerance: tuple[float, float] | None, *, k: int = 5, seed: int = 0,
-                   fold_scales: list | None = None,
-                   scale_start: tuple[float, float] | None = None) -> tuple[list[Score], Score, int, str]:
+                   fold_scales: list | None = None) -> tuple[list[Score], Score, int, str]:
     """K-fold scores of ``cands`` and of the nominal model on ``data`` (see the module's docstring).
     ``link_tolerance`` None with a links candidate: each fold's link scale by empirical Bayes on its
     training configurations, appended to ``fold_scales`` (a list, when given) as (mm, deg) or None
-    where it could not be estimated; ``scale_start``: where each fold's search starts."""
+    where it could not be estimated."""
     labels, grouping = fold_labels(data, k, seed)
     n_folds = int(labels.max()) + 1
     scores = [Score(c.name, c.rank, None) for c in cands]
@@ -423,7 +418,7 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
         tol, why = link_tolerance, None
         if tol is None and any(c.kind == "offsets+tool+links" for c in cands):
             try:  # the fold's own scale: its held-out configurations never inform it
-                found = empirical_link_scale(model, train, replace(base, compliance=False), start=scale_start)
+                found = empirical_link_scale(model, train, replace(base, compliance=False))
                 tol = (found["length_mm"], found["angle_deg"])
             except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
                 why = f"fold {f + 1}: the link scale could not be estimated on its training configurations: {exc}"
@@ -485,8 +480,7 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
         scale = {"length_mm": link_tolerance[0], "angle_deg": link_tolerance[1], "given": True}
     fold_scales: list = []
     scores, nominal, n_folds, grouping = cross_validate(model, data, cands, base, None if scale and not scale.get("given")
-                                                        else link_tolerance, k=k, seed=base.seed, fold_scales=fold_scales,
-                                                        scale_start=link_tolerance)
+                                                        else link_tolerance, k=k, seed=base.seed, fold_scales=fold_scales)
     if scale is not None and not scale.get("given"):
         scale["per_fold"] = [list(t) if t else None for t in fold_scales]
     try:
