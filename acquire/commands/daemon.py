@@ -97,8 +97,8 @@ def daemon(
 # ---------------------------------------------------------------------------------- clients
 _CONNECT = typer.Option("tcp/127.0.0.1:7447", "--connect", help="The daemon's Zenoh endpoint.")
 _CELL = typer.Option(None, "--cell", help="Cell id (default: $REMASTER_CELL).")
-_SITE = typer.Option(None, "--site", help="The cell's plant site, for a daemon with `site:` (keys remaster/<site>/<cell>/…; "
-                     "default: $REMASTER_SITE, else none).")
+_SITE = typer.Option(None, "--site", help="The cell's plant site, for a daemon with `site:` (keys "
+                     "remaster/<site>/<cell>/…; default: $REMASTER_SITE, else none).")
 _CLIENT = typer.Option(None, "--client", help="Client name (default: $REMASTER_CLIENT).")
 _TOKEN_FILE = typer.Option(None, "--token-file", help="File holding the client's token (else $REMASTER_TOKEN).")
 _CA = typer.Option(None, "--tls-ca", help="CA certificate (PEM) that signed the daemon's certificate.")
@@ -113,7 +113,8 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
-def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], site: Optional[str], client: Optional[str],
+def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], site: Optional[str],
+          client: Optional[str],
           token_file: Optional[Path], tls_ca: Optional[Path], tls_cert: Optional[Path], tls_key: Optional[Path],
           timeout: float, as_json: bool) -> dict:
     from acquire.bus import Bus, BusError, is_loopback_endpoint
@@ -208,14 +209,16 @@ def _print_reply(op: str, reply: dict) -> None:
         typer.echo(" ".join(f"{k} {v}" for k, v in reply.items() if k != "ok"))
 
 
-def status(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE, client: Optional[str] = _CLIENT,
+def status(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
            token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
            tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Show the daemon's and the current run's state."""
     _call("status", None, **locals())
 
 
-def runs(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE, client: Optional[str] = _CLIENT,
+def runs(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
          token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
          tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """List the runs in the daemon's state folder."""
@@ -226,7 +229,8 @@ def start(
     plan: Optional[str] = typer.Argument(None, help="Plan path ON THE CELL PC (inside the daemon's plan_dirs)."),
     inline: Optional[Path] = typer.Option(None, "--inline", help="Send this local plan file's text instead."),
     resume: Optional[str] = typer.Option(None, "--resume", help="Run id to resume (its log in the state folder)."),
-    connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE, client: Optional[str] = _CLIENT,
+    connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
     token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
     tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON,
 ) -> None:
@@ -245,14 +249,16 @@ def start(
           tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
 
 
-def pause(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE, client: Optional[str] = _CLIENT,
+def pause(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
           token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
           tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Pause the run after its current configuration."""
     _call("pause", None, **locals())
 
 
-def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE, client: Optional[str] = _CLIENT,
+def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
            token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
            tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Resume a paused run (the robot will move)."""
@@ -260,7 +266,8 @@ def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[
 
 
 def abort(reason: str = typer.Option("aborted by operator", "--reason", help="Why (goes into the log)."),
-          connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE, client: Optional[str] = _CLIENT,
+          connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
           token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
           tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Stop the run safely now; its log is closed."""
@@ -268,7 +275,8 @@ def abort(reason: str = typer.Option("aborted by operator", "--reason", help="Wh
           tls_ca=tls_ca, tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
 
 
-def confirm(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE, client: Optional[str] = _CLIENT,
+def confirm(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
             token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
             tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Socket calibration: the ball sits in the socket, record now (the robot will move on)."""

@@ -66,7 +66,8 @@ def _connected(bus) -> bool:
 def watch(
     key_expr: Optional[str] = typer.Argument(None, metavar="[KEYEXPR]",
                                              help="Key expression (default: everything of the cell)."),
-    cell: Optional[str] = typer.Option(None, "--cell", help="Cell id ([a-z0-9_-]+); default: the one found on the bus."),
+    cell: Optional[str] = typer.Option(None, "--cell",
+                                       help="Cell id ([a-z0-9_-]+); default: the one found on the bus."),
     site: Optional[str] = typer.Option(None, "--site", envvar="REMASTER_SITE",
                                        help="The cell's plant site (a daemon with `site:`: keys remaster/<site>/<cell>/…)."),
     connect: list[str] = typer.Option([DEFAULT_CONNECT], "--connect", help="Endpoint of the run or daemon (repeatable)."),
