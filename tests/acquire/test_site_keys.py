@@ -68,3 +68,17 @@ def test_status_and_watch_find_a_cell_under_its_site(tmp_path):
     assert watched.returncode == 0, watched.stderr
     assert f"found cell {CELL} via {endpoint}" in watched.stderr
     assert f"daemon of cell {CELL}: alive" in watched.stdout
+
+
+def test_watch_reads_a_sited_cells_keys_as_its_own_and_ignores_other_sites():
+    from acquire.commands.watch import _Session
+    from acquire.livestatus import CellView
+
+    s = _Session(None, None, site="plant-a", raw=False, until_done=False, count=0, duration=0, connect=[],
+                 explicit_expr=False)
+    assert s._local("remaster/plant-a/c7/run/r1/status") == "remaster/c7/run/r1/status"
+    assert s._local("remaster/plant-b/c7/daemon") is None
+    view = CellView("c7")
+    assert view.alive(s._local("remaster/plant-a/c7/daemon"), True) == ["daemon of cell c7: alive"]
+    unsited = _Session(None, None, raw=False, until_done=False, count=0, duration=0, connect=[], explicit_expr=False)
+    assert unsited._local("remaster/c7/daemon") == "remaster/c7/daemon"
