@@ -168,7 +168,8 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], s
     except Refused as exc:
         _fail(str(exc), 3)
     except NoReply as exc:
-        _fail(str(exc), 4)
+        _fail(str(exc) + ("" if site else "; a daemon with `site:` answers only under remaster/<site>/<cell>/…: "
+                          "give --site"), 4)
     except (BadRequest, Conflict) as exc:
         _fail(str(exc), 2)
     except (ControlError, BusError) as exc:

@@ -63,7 +63,7 @@ def test_status_and_watch_find_a_cell_under_its_site(tmp_path):
         notify.close()
     assert sited.returncode == 0, sited.stderr
     assert json.loads(sited.stdout)["cell"] == CELL
-    assert unsited.returncode == 4 and "no reply" in unsited.stderr
+    assert unsited.returncode == 4 and "no reply" in unsited.stderr and "give --site" in unsited.stderr
     assert bad.returncode == 2 and "site id must match" in bad.stderr
     assert watched.returncode == 0, watched.stderr
     assert f"found cell {CELL} via {endpoint}" in watched.stderr
