@@ -46,10 +46,14 @@ only**; ``daemon_config.load_daemon_config`` refuses a file other users may read
 Anonymous queries (no attachment) keep observe-only access; their replies cannot be
 authenticated and the client says so.
 
-Limits, by design: an exchange lives ``EXCHANGE_TTL_S`` = 10 s because the client computes
-PBKDF2 (twice on its first exchange in a process: once inside ``scramp``, once for the reply
-key's ServerKey) between the two round trips — ~0.7 s each at 600 000 iterations on an idle
-cell PC, several seconds on a loaded one. Whoever can reach the control keys can still deny
+The client computes PBKDF2 once per process and (salt, iterations) and keeps ClientKey and
+ServerKey in memory (``client_keys``; RFC 5802 §5.1): a station pulling a run chunk by chunk
+pays ~0.7 s (600 000 iterations) for its first exchange with a daemon and ~1 ms for each
+later one (``tests/bench/bench_control_auth.py``), with fresh nonces and a proof every time.
+
+Limits, by design: an exchange lives ``EXCHANGE_TTL_S`` = 10 s because the client may compute
+PBKDF2 between the two round trips — ~0.7 s at 600 000 iterations on an idle cell PC, several
+seconds on a loaded one. Whoever can reach the control keys can still deny
 service: flood client-firsts (the oldest of ``MAX_PENDING`` pending exchanges is dropped), or
 answer as a stand-in with server-firsts the client then spends up to ``MAX_RESPONDERS`` PBKDF2s
 of at most ``MAX_CLIENT_ITERATIONS`` on. Neither makes anything happen that the operator did
@@ -62,13 +66,13 @@ as used (the client reports that it could not attribute a reply, exit 3).
 from __future__ import annotations
 
 import base64
-import copy
 import hashlib
 import hmac
 import json
 import secrets
 import threading
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Callable
 
@@ -196,24 +200,62 @@ def parse_attachment(data: bytes) -> tuple[str, str]:
 
 
 # ------------------------------------------------------------------------------------ client
-_server_keys: dict[tuple[bytes, bytes, int], bytes] = {}
-_server_keys_lock = threading.Lock()
+#: Most (token, salt, iterations) whose keys a client process keeps (a stand-in's odd salts
+#: cannot make the cache grow without bound).
+KEY_CACHE_SIZE = 1024
+
+_client_keys: "OrderedDict[tuple[bytes, bytes, int], tuple[bytes, bytes]]" = OrderedDict()
+_client_keys_lock = threading.Lock()
 
 
-def _server_key(token: str, salt: bytes, iterations: int) -> bytes:
-    """ServerKey of ``token`` for (salt, iterations), computed once per process."""
-    tag = (hashlib.sha256(token.encode()).digest(), salt, iterations)
-    with _server_keys_lock:
-        key = _server_keys.get(tag)
-    if key is None:
-        key = ScramMechanism(MECHANISM).make_auth_info(token, iteration_count=iterations, salt=salt)[2]
-        with _server_keys_lock:
-            _server_keys[tag] = key
-    return key
+def client_keys(token: str, salt: bytes, iterations: int) -> tuple[bytes, bytes]:
+    """(ClientKey, ServerKey) of ``token`` for ``salt`` and ``iterations``: one PBKDF2 per
+    process and (salt, iterations), then from memory.
+
+    RFC 5802 §5.1 allows exactly this ("the client can store the SaltedPassword, ClientKey,
+    ServerKey for the given salt and iteration count to avoid recomputing them"): every exchange
+    still has fresh nonces on both sides and a proof over its own AuthMessage, so nothing is
+    replayable; what is saved is only the PBKDF2 (~0.7 s at 600 000 iterations). The keys live
+    in this process's memory beside the token they derive from — no new exposure.
+    """
+    tag = (hashlib.sha256(token.encode()).digest(), bytes(salt), int(iterations))
+    with _client_keys_lock:
+        keys = _client_keys.get(tag)
+        if keys is not None:
+            _client_keys.move_to_end(tag)
+            return keys
+    salted = hashlib.pbkdf2_hmac("sha256", token.encode(), bytes(salt), int(iterations))   # Hi() of RFC 5802
+    keys = (hmac.new(salted, b"Client Key", hashlib.sha256).digest(),
+            hmac.new(salted, b"Server Key", hashlib.sha256).digest())
+    with _client_keys_lock:
+        _client_keys[tag] = keys
+        while len(_client_keys) > KEY_CACHE_SIZE:
+            _client_keys.popitem(last=False)
+    return keys
+
+
+def _client_final(client_key: bytes, server_key: bytes, bare_first: str, server_first: str,
+                  nonce: str) -> tuple[str, bytes, bytes]:
+    """(client-final, ServerSignature, AuthMessage) of RFC 5802 §3 from cached keys, without
+    channel binding (GS2 header ``n,,`` → ``c=biws``): ClientProof = ClientKey XOR
+    HMAC(H(ClientKey), AuthMessage); ServerSignature = HMAC(ServerKey, AuthMessage). The same
+    bytes ``scramp``'s client computes (tests/acquire/test_control_auth.py checks it)."""
+    without_proof = f"c={_b64(b'n,,')},r={nonce}"
+    message = ",".join((bare_first, server_first, without_proof)).encode()
+    stored_key = hashlib.sha256(client_key).digest()
+    signature = hmac.new(stored_key, message, hashlib.sha256).digest()
+    proof = bytes(a ^ b for a, b in zip(client_key, signature))
+    server_signature = hmac.new(server_key, message, hashlib.sha256).digest()
+    return f"{without_proof},p={_b64(proof)}", server_signature, message
 
 
 class ClientExchange:
-    """The client's side of one operation's exchange (with one or more responders)."""
+    """The client's side of one operation's exchange (with one or more responders).
+
+    ``scramp`` builds the client-first and parses and checks each server-first (our nonce
+    echoed, salt, iteration count); the client-final is computed from the keys cached per
+    (salt, iterations) (``client_keys``), so the second and later exchanges of a process with
+    a daemon cost HMACs only."""
 
     def __init__(self, token: str, client: str, cell: str, op: str, payload: bytes | None) -> None:
         self._token = check_token(token)
@@ -228,7 +270,7 @@ class ClientExchange:
         """The exchange with the responder that sent ``server_first``; ProofError if it is not
         a server-first for our nonce with an iteration count we accept."""
         scram = ScramClient([MECHANISM], self._client, self._token, c_nonce=self.nonce)
-        bare_first = scram.get_client_first()
+        bare_first = scram.get_client_first().split(",", 2)[2]
         try:
             scram.set_server_first(server_first)
         except ScramException as exc:
@@ -237,17 +279,17 @@ class ClientExchange:
         if iterations > MAX_CLIENT_ITERATIONS:
             raise ProofError(f"server-first asks {iterations} iterations (this client computes at most "
                              f"{MAX_CLIENT_ITERATIONS})")
-        final = scram.get_client_final()
-        message = auth_message(bare_first.split(",", 2)[2], server_first, final)
-        return ClientResponder(scram, final, reply_key(_server_key(self._token, bytes(scram.salt), iterations),
-                                                       message))
+        client_key, server_key = client_keys(self._token, bytes(scram.salt), iterations)
+        final, server_signature, message = _client_final(client_key, server_key, bare_first, server_first,
+                                                         str(scram.nonce))
+        return ClientResponder(server_signature, final, reply_key(server_key, message))
 
 
 class ClientResponder:
     """One responder's exchange after our client-final: builds it, then judges its reply."""
 
-    def __init__(self, scram: ScramClient, client_final: str, key: bytes) -> None:
-        self._scram = scram
+    def __init__(self, server_signature: bytes, client_final: str, key: bytes) -> None:
+        self._server_signature = server_signature
         self.client_final = client_final
         self._key = key
 
@@ -255,16 +297,16 @@ class ClientResponder:
         return attachment("client-final", self.client_final)
 
     def verify(self, body: dict) -> bool:
-        """True when ``body`` carries this exchange's ServerSignature (checked by ``scramp``)
-        and a MAC of its content under the exchange's reply key."""
+        """True when ``body`` carries this exchange's ServerSignature (server-final ``v=…``,
+        RFC 5802 §7) and a MAC of its content under the exchange's reply key."""
         final, mac = body.get("scram"), body.get("mac")
-        if not isinstance(final, str) or not isinstance(mac, str):
+        if not isinstance(final, str) or not isinstance(mac, str) or not final.startswith("v="):
             return False
         try:
-            # A copy: scramp's client takes one server-final; other responders' replies to the
-            # same client-final come first in any order.
-            copy.copy(self._scram).set_server_final(final)
-        except ScramException:
+            signature = base64.b64decode(final[2:], validate=True)
+        except ValueError:
+            return False
+        if not hmac.compare_digest(signature, self._server_signature):
             return False
         return hmac.compare_digest(mac, reply_mac(self._key, body))
 

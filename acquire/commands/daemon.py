@@ -8,6 +8,7 @@ Examples::
     acquire start --inline my-plan.yaml --cell lab1 --client operator --token-file …
     acquire pause|resume|abort --cell lab1 --client operator --token-file …
     acquire runs --cell lab1
+    acquire status --site plant-a --cell c7 --connect tls/router.plant-a:7447 --tls-ca …   # a cell with `site:`
 
 The clients connect to the daemon's Zenoh router (``--connect``, default
 ``tcp/127.0.0.1:7447``); a remote daemon needs ``tls/host:7447`` with ``--tls-ca``,
@@ -96,6 +97,8 @@ def daemon(
 # ---------------------------------------------------------------------------------- clients
 _CONNECT = typer.Option("tcp/127.0.0.1:7447", "--connect", help="The daemon's Zenoh endpoint.")
 _CELL = typer.Option(None, "--cell", help="Cell id (default: $REMASTER_CELL).")
+_SITE = typer.Option(None, "--site", help="The cell's plant site, for a daemon with `site:` (keys "
+                     "remaster/<site>/<cell>/…; default: $REMASTER_SITE, else none).")
 _CLIENT = typer.Option(None, "--client", help="Client name (default: $REMASTER_CLIENT).")
 _TOKEN_FILE = typer.Option(None, "--token-file", help="File holding the client's token (else $REMASTER_TOKEN).")
 _CA = typer.Option(None, "--tls-ca", help="CA certificate (PEM) that signed the daemon's certificate.")
@@ -110,7 +113,8 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
-def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], client: Optional[str],
+def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], site: Optional[str],
+          client: Optional[str],
           token_file: Optional[Path], tls_ca: Optional[Path], tls_cert: Optional[Path], tls_key: Optional[Path],
           timeout: float, as_json: bool) -> dict:
     from acquire.bus import Bus, BusError, is_loopback_endpoint
@@ -119,6 +123,13 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], c
     cell = cell or os.environ.get("REMASTER_CELL")
     if not cell:
         _fail("give --cell (or set REMASTER_CELL)", 2)
+    site = site or os.environ.get("REMASTER_SITE") or None
+    from acquire.bus import BusConfigError, key
+
+    try:
+        key(cell, "x", site=site)  # validates the cell and site ids
+    except BusConfigError as exc:
+        _fail(f"--cell/--site: {exc}", 2)
     client = client or os.environ.get("REMASTER_CLIENT")
     from acquire.tokens import TokenFileError, WeakToken, check_token, read_token_file
 
@@ -149,15 +160,16 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], c
             tls.update(connect_certificate=str(tls_cert), connect_private_key=str(tls_key), enable_mtls=True)
     config = {"mode": "client", "connect": [connect], "zenoh": {"transport/link/tls": tls} if tls else {}}
     try:
-        with Bus(cell, config=config, listen_loopback_only=is_loopback_endpoint(connect)) as bus:
-            cc = ControlClient(bus.session, cell, client=client, token=token)
+        with Bus(cell, config=config, listen_loopback_only=is_loopback_endpoint(connect), site=site) as bus:
+            cc = ControlClient(bus.session, cell, client=client, token=token, site=site)
             reply = cc.call(op, request, timeout=timeout)
     except Unverified as exc:
         _fail(str(exc), 3)
     except Refused as exc:
         _fail(str(exc), 3)
     except NoReply as exc:
-        _fail(str(exc), 4)
+        _fail(str(exc) + ("" if site else "; a daemon with `site:` answers only under remaster/<site>/<cell>/…: "
+                          "give --site"), 4)
     except (BadRequest, Conflict) as exc:
         _fail(str(exc), 2)
     except (ControlError, BusError) as exc:
@@ -198,14 +210,16 @@ def _print_reply(op: str, reply: dict) -> None:
         typer.echo(" ".join(f"{k} {v}" for k, v in reply.items() if k != "ok"))
 
 
-def status(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+def status(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
            token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
            tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Show the daemon's and the current run's state."""
     _call("status", None, **locals())
 
 
-def runs(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+def runs(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
          token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
          tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """List the runs in the daemon's state folder."""
@@ -216,7 +230,8 @@ def start(
     plan: Optional[str] = typer.Argument(None, help="Plan path ON THE CELL PC (inside the daemon's plan_dirs)."),
     inline: Optional[Path] = typer.Option(None, "--inline", help="Send this local plan file's text instead."),
     resume: Optional[str] = typer.Option(None, "--resume", help="Run id to resume (its log in the state folder)."),
-    connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+    connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
     token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
     tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON,
 ) -> None:
@@ -231,18 +246,20 @@ def start(
             _fail(f"cannot read --inline {inline}: {exc.strerror or exc}", 2)
     if resume:
         request["resume"] = resume
-    _call("start", request, connect=connect, cell=cell, client=client, token_file=token_file, tls_ca=tls_ca,
+    _call("start", request, connect=connect, cell=cell, site=site, client=client, token_file=token_file, tls_ca=tls_ca,
           tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
 
 
-def pause(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+def pause(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
           token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
           tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Pause the run after its current configuration."""
     _call("pause", None, **locals())
 
 
-def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
            token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
            tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Resume a paused run (the robot will move)."""
@@ -250,15 +267,17 @@ def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optiona
 
 
 def abort(reason: str = typer.Option("aborted by operator", "--reason", help="Why (goes into the log)."),
-          connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+          connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
           token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
           tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Stop the run safely now; its log is closed."""
-    _call("abort", {"reason": reason}, connect=connect, cell=cell, client=client, token_file=token_file,
+    _call("abort", {"reason": reason}, connect=connect, cell=cell, site=site, client=client, token_file=token_file,
           tls_ca=tls_ca, tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
 
 
-def confirm(connect: str = _CONNECT, cell: Optional[str] = _CELL, client: Optional[str] = _CLIENT,
+def confirm(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+           client: Optional[str] = _CLIENT,
             token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
             tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Socket calibration: the ball sits in the socket, record now (the robot will move on)."""

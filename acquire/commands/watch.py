@@ -7,6 +7,7 @@ Examples::
     acquire watch --raw                              # every message as one JSON line
     acquire watch --raw 'remaster/cell1/run/*/event' # any key expression, raw
     acquire watch --connect tcp/127.0.0.1:7448       # a run started with --listen tcp/127.0.0.1:7448
+    acquire watch --site plant-a --cell c7 --connect tls/router:7447   # a cell of a plant (daemon `site:`)
 
 Subscribes over Zenoh (loopback only) to the process that runs the cell — the daemon, or an
 ``acquire run`` — by default the one listening on tcp/127.0.0.1:7447. Without ``--cell`` the cell
@@ -18,6 +19,10 @@ plain line per status change, sample and warning. ``--raw`` prints every message
 ``<key> <compact JSON>`` (other payloads as their size and hex). It may be started before the
 run: it connects when the run starts. Stops after ``--count`` messages, after ``--duration``
 seconds, with ``--until-done`` when the run ends, or on Ctrl-C.
+
+A cell whose daemon has ``site:`` publishes under ``remaster/<site>/<cell>/…``: give ``--site``
+(or ``$REMASTER_SITE``); the view then reads the keys below ``remaster/<site>/`` and, without
+``--cell``, takes the first cell of that site it sees.
 """
 
 from __future__ import annotations
@@ -61,7 +66,10 @@ def _connected(bus) -> bool:
 def watch(
     key_expr: Optional[str] = typer.Argument(None, metavar="[KEYEXPR]",
                                              help="Key expression (default: everything of the cell)."),
-    cell: Optional[str] = typer.Option(None, "--cell", help="Cell id ([a-z0-9_-]+); default: the one found on the bus."),
+    cell: Optional[str] = typer.Option(None, "--cell",
+                                       help="Cell id ([a-z0-9_-]+); default: the one found on the bus."),
+    site: Optional[str] = typer.Option(None, "--site", envvar="REMASTER_SITE",
+                                       help="The cell's plant site (a daemon with `site:`: keys remaster/<site>/<cell>/…)."),
     connect: list[str] = typer.Option([DEFAULT_CONNECT], "--connect", help="Endpoint of the run or daemon (repeatable)."),
     raw: bool = typer.Option(False, "--raw", help="Print every message as '<key> <JSON>' instead of the status view."),
     until_done: bool = typer.Option(False, "--until-done", help="Exit when the watched run has finished, aborted or failed."),
@@ -76,14 +84,15 @@ def watch(
     if duration < 0:
         raise typer.BadParameter(f"must be >= 0 s, given {duration}", param_hint="--duration")
     try:
-        if cell is not None:
-            key(cell, "x")  # validates the cell id
+        if cell is not None or site is not None:
+            key(cell or "x", "x", site=site)  # validates the cell and site ids
+        prefix = f"{ROOT}/{site}" if site else ROOT
         if key_expr:
             expr = check_key_expr(key_expr)
         else:
-            expr = f"{ROOT}/{cell}/**" if cell else f"{ROOT}/**"
+            expr = f"{prefix}/{cell}/**" if cell else f"{prefix}/**"
     except BusConfigError as exc:
-        raise typer.BadParameter(str(exc), param_hint="KEYEXPR" if key_expr else "--cell") from exc
+        raise typer.BadParameter(str(exc), param_hint="KEYEXPR" if key_expr else "--cell / --site") from exc
     if key_expr and not raw:
         raw = True  # an explicit key expression is a raw stream: the view needs the cell's own keys
     inbox: "queue.Queue[tuple[str, str, object]]" = queue.Queue()
@@ -97,10 +106,10 @@ def watch(
     with bus:
         bus.subscribe(expr, lambda k, p: inbox.put(("msg", k, p)))
         if not key_expr:  # the view's daemon and devices; a raw key expression gets only its own stream
-            bus.watch_liveliness(f"{ROOT}/{cell or '*'}/daemon", lambda k, a: inbox.put(("alive", k, a)))
-            bus.watch_liveliness(f"{ROOT}/{cell or '*'}/device/*", lambda k, a: inbox.put(("alive", k, a)))
+            bus.watch_liveliness(f"{prefix}/{cell or '*'}/daemon", lambda k, a: inbox.put(("alive", k, a)))
+            bus.watch_liveliness(f"{prefix}/{cell or '*'}/device/*", lambda k, a: inbox.put(("alive", k, a)))
         typer.echo(f"watching {expr} via {', '.join(connect)}", err=True)
-        session = _Session(bus, cell, raw=raw, until_done=until_done, count=count, duration=duration,
+        session = _Session(bus, cell, site=site, raw=raw, until_done=until_done, count=count, duration=duration,
                            connect=connect, explicit_expr=bool(key_expr))
         try:
             session.loop(inbox)
@@ -113,11 +122,12 @@ def watch(
 class _Session:
     """The receive loop of one ``acquire watch``: discovery, raw lines, plain lines or the live view."""
 
-    def __init__(self, bus, cell: Optional[str], *, raw: bool, until_done: bool, count: int, duration: float,
+    def __init__(self, bus, cell: Optional[str], *, site: Optional[str] = None, raw: bool, until_done: bool, count: int, duration: float,
                  connect: list[str], explicit_expr: bool) -> None:
         from acquire.livestatus import CellView
 
         self.bus = bus
+        self.site_prefix = f"remaster/{site}/" if site else None
         self.raw = raw
         self.until_done = until_done
         self.count = count
@@ -162,6 +172,9 @@ class _Session:
                 self._idle(now)
                 continue
             self.heard = True
+            k_full, k = k, self._local(k)
+            if k is None:
+                continue
             if self.view is None and not self.explicit_expr:
                 c = cell_of(k)
                 if c is None:
@@ -177,7 +190,7 @@ class _Session:
             if self.raw:
                 if self.view is not None and not self.explicit_expr and cell_of(k) != self.view.cell:
                     continue
-                typer.echo(format_line(k, value))  # type: ignore[arg-type]
+                typer.echo(format_line(k_full, value))  # type: ignore[arg-type]
                 self.received += 1
                 if self.view is not None:
                     self.view.feed(k, value)  # type: ignore[arg-type]
@@ -188,6 +201,15 @@ class _Session:
                 self._show(lines)
             if self.until_done and self.view is not None and self.view.run_done:
                 return
+
+    def _local(self, k: str) -> Optional[str]:
+        """A key as the cell view reads it: ``remaster/<site>/<cell>/…`` → ``remaster/<cell>/…``
+        when watching a site (None: another site's key; the explicit raw stream keeps every key)."""
+        if self.site_prefix is None:
+            return k
+        if k.startswith(self.site_prefix):
+            return "remaster/" + k[len(self.site_prefix):]
+        return k if self.explicit_expr else None
 
     def _show(self, lines: list[str]) -> None:
         if self.live is not None:

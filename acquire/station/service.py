@@ -82,6 +82,11 @@ class Station:
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> "Station":
         z = self.cfg.zenoh
+        problems = z.security_problems()
+        if problems:
+            from acquire.bus import BusConfigError
+
+            raise BusConfigError("; ".join(f"zenoh.{'.'.join(map(str, loc[1:]))}: {msg}" for loc, msg in problems))
         # Zenoh's shared-memory transport maps a segment per local peer that sends large payloads
         # (~15 MB each, measured with 50 cells on one host); cells are remote: off unless asked.
         overrides = {"transport/shared_memory/enabled": False, **z.zenoh}

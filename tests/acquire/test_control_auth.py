@@ -251,3 +251,52 @@ def test_the_configuration_holds_only_scram_keys_with_enough_iterations():
     with pytest.raises(ValidationError, match="base64"):
         Client.model_validate({**good, "scram": {**CREDS.config(), "salt": "not base64!"}})
     assert AuthSection.model_validate({"clients": [good]}).clients[0].name == "operator"
+
+
+def test_the_cached_key_client_final_is_the_one_scramp_computes():
+    """Our client-final from cached keys is byte for byte what scramp's own client sends for the
+    same nonces (RFC 5802 §3), and its ServerSignature is what scramp's server returns."""
+    from scramp import ScramClient
+
+    table = _table()
+    ex = auth.ClientExchange(TOKEN, "operator", CELL, "pause", None)
+    server_first, _ = table.first(_msg(ex.first_attachment()))
+    ours = ex.answer(server_first)
+    theirs = ScramClient(["SCRAM-SHA-256"], "operator", TOKEN, c_nonce=ex.nonce)
+    theirs.get_client_first()
+    theirs.set_server_first(server_first)
+    assert _msg(ours.final_attachment()) == theirs.get_client_final()
+    verified = table.final(_msg(ours.final_attachment()), cell=CELL, op="pause", payload=None)
+    theirs.set_server_final(verified.server_final)  # scramp's client accepts the daemon's signature
+    assert ours.verify(_signed(verified, {"ok": True}))
+
+
+def test_one_pbkdf2_per_salt_then_hmacs_only_and_still_no_replay(monkeypatch):
+    """RFC 5802 §5.1: the client keeps ClientKey/ServerKey per (salt, iterations). After the
+    first exchange no PBKDF2 runs; each exchange still has fresh nonces, a used or replayed
+    client-final is refused, and a wrong token still fails (its keys are its own)."""
+    calls: list[int] = []
+    real = hashlib.pbkdf2_hmac
+
+    def counted(name, password, salt_, rounds, *args):
+        calls.append(rounds)
+        return real(name, password, salt_, rounds, *args)
+
+    monkeypatch.setattr(hashlib, "pbkdf2_hmac", counted)
+    creds = auth.derive_credentials(TOKEN, auth.MIN_ITERATIONS)  # a fresh salt: nothing cached yet
+    table = _table(creds=creds)
+    calls.clear()
+    finals = []
+    for _ in range(5):
+        _, responder, final = _exchange(table)
+        verified = table.final(final, cell=CELL, op="pause", payload=b'{"x":1}')
+        assert responder.verify(_signed(verified, {"ok": True}))
+        finals.append(final)
+    assert calls == [creds.iterations]          # one PBKDF2 for five exchanges
+    assert len(set(finals)) == 5                # fresh nonces and proofs every time
+    with pytest.raises(auth.ProofError, match="used before, or expired"):
+        table.final(finals[-1], cell=CELL, op="pause", payload=b'{"x":1}')
+    _, _, final = _exchange(table, token="Wrong-but-strong-token-8a7sd6f5")
+    with pytest.raises(auth.ProofError, match="wrong token for client 'operator'"):
+        table.final(final, cell=CELL, op="pause", payload=b'{"x":1}')
+    assert len(calls) == 2                      # the wrong token paid its own PBKDF2

@@ -1,5 +1,7 @@
 """Keys of a cell on a plant's router carry its site; a cell without a site keeps its keys."""
 
+import json
+
 import pytest
 
 from acquire.bus import BusConfigError, control_key, key
@@ -27,3 +29,56 @@ def test_the_daemon_config_takes_an_optional_site_and_robot_serial():
     assert (cfg.site, cfg.robot_serial) == ("plant-a", "KR6-0815")
     with pytest.raises(ValueError):
         DaemonConfig(cell="c1", fake=True, auth={"anonymous": ["observe", "archive"]})
+
+
+@pytest.mark.slow  # ~11 s: a daemon, three CLI processes and 6 s of watching
+@pytest.mark.timeout(240)
+def test_status_and_watch_find_a_cell_under_its_site(tmp_path):
+    """A daemon with ``site: plant-a``: ``acquire status --site`` reaches it and ``acquire watch
+    --site`` finds its cell; without the site nothing answers at ``remaster/<cell>/…``."""
+    import os
+    import subprocess
+
+    from tests.acquire.daemon_harness import CELL, DaemonProcess, NotifySocket, free_port, write_config
+    from tests.acquire.run_helpers import ROOT, acquire_cmd
+
+    notify = NotifySocket()
+    port = free_port()
+    daemon = DaemonProcess(write_config(tmp_path, port, site="plant-a"), notify, watchdog_usec=1_000_000)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    endpoint = f"tcp/127.0.0.1:{port}"
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(acquire_cmd(*args), cwd=tmp_path, env=env, capture_output=True, text=True,
+                              timeout=90, stdin=subprocess.DEVNULL)
+
+    try:
+        daemon.wait_ready(90)
+        sited = cli("status", "--site", "plant-a", "--cell", CELL, "--connect", endpoint, "--json")
+        unsited = cli("status", "--cell", CELL, "--connect", endpoint, "--timeout", "2")
+        bad = cli("status", "--site", "Plant A", "--cell", CELL, "--connect", endpoint)
+        watched = cli("watch", "--site", "plant-a", "--connect", endpoint, "--duration", "6")
+    finally:
+        daemon.kill()
+        notify.close()
+    assert sited.returncode == 0, sited.stderr
+    assert json.loads(sited.stdout)["cell"] == CELL
+    assert unsited.returncode == 4 and "no reply" in unsited.stderr and "give --site" in unsited.stderr
+    assert bad.returncode == 2 and "site id must match" in bad.stderr
+    assert watched.returncode == 0, watched.stderr
+    assert f"found cell {CELL} via {endpoint}" in watched.stderr
+    assert f"daemon of cell {CELL}: alive" in watched.stdout
+
+
+def test_watch_reads_a_sited_cells_keys_as_its_own_and_ignores_other_sites():
+    from acquire.commands.watch import _Session
+    from acquire.livestatus import CellView
+
+    s = _Session(None, None, site="plant-a", raw=False, until_done=False, count=0, duration=0, connect=[],
+                 explicit_expr=False)
+    assert s._local("remaster/plant-a/c7/run/r1/status") == "remaster/c7/run/r1/status"
+    assert s._local("remaster/plant-b/c7/daemon") is None
+    view = CellView("c7")
+    assert view.alive(s._local("remaster/plant-a/c7/daemon"), True) == ["daemon of cell c7: alive"]
+    unsited = _Session(None, None, raw=False, until_done=False, count=0, duration=0, connect=[], explicit_expr=False)
+    assert unsited._local("remaster/c7/daemon") == "remaster/c7/daemon"
