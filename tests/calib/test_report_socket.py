@@ -165,3 +165,32 @@ def test_a_fit_that_must_not_be_entered_says_so_with_its_reason(tmp_path):
 def test_a_tracker_document_is_refused():
     with pytest.raises(ValueError, match="not a socket fit"):
         render_socket_report({"kind": "offsets"})
+
+
+def test_the_held_out_distances_equal_an_independent_scorer(tmp_path):
+    """Each held-out configuration's distance in result.json (and so in the report) equals one computed
+    here from the raw kinematics: the fit on the other placements (the same call the command makes),
+    the ball carried by an explicit product of standard-DH link matrices (``_dh_flange``, not
+    ``calib.robot.kinematics``), and the held-out socket's place the mean of its predictions."""
+    from calib.fit.socket import fit_socket
+    from tests.calib.test_canonical import _dh_flange
+
+    model = load_robot_model(PANDA)
+    chain = Chain(model)
+    rng = np.random.default_rng(7)
+    ds, _ = simulate(model, true_params(chain, rng, link_mm=0.3, twist_deg=0.1), rng, per_socket=6)
+    doc = _as_file(run_socket_fit(model, ds, method="fast", link_tolerance=(0.2, 0.02))[0], tmp_path)
+    held = doc["scores"]["held_out"]
+    assert [h["placement"] for h in held] == ds.placements
+    for h in held:
+        train = ds.subset([p for p in ds.placements if p != h["placement"]])
+        test = ds.subset([h["placement"]])
+        params = fit_socket(model, train, tolerance=(0.2, 0.02), compliance=False).params
+        ball = np.append(params[chain.marker_slice()][:3], 1.0)
+        pos = np.array([(_dh_flange(model, params, q) @ ball)[:3] for q in test.q_rad])
+        centre = {g: pos[test.group == g].mean(axis=0) for g in set(test.group.tolist())}
+        mine = np.array([np.linalg.norm(p - centre[g]) for p, g in zip(pos, test.group)])
+        theirs = np.array([c["after_mm"] for c in h["configurations"]])
+        assert len(h["configurations"]) == len(test.q_rad) and [c["socket"] for c in h["configurations"]] == [test.groups[g][1] for g in test.group]
+        np.testing.assert_allclose(theirs, mine, rtol=0, atol=1e-9)
+        assert math.sqrt(np.mean(mine**2)) == pytest.approx(h["after"]["spread_mm"], abs=1e-9)
