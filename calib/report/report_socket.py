@@ -67,7 +67,8 @@ def _summary(doc: dict) -> list[str]:
     what, reasons = verdict(doc)
     if what == "enter":
         n = sum(j["status"] == "fitted" for j in doc["joint_offsets"])
-        cls, banner = "ok", f"<span class=good>Enter the offsets of {n} axes below</span> (the others: leave unchanged)."
+        cls, banner = "ok", (f"<span class=good>Enter the offsets of {n} ax{'is' if n == 1 else 'es'} below</span> "
+                             "(the others: leave unchanged).")
     else:
         cls, banner = "stop", "<span class=bad>DO NOT ENTER these offsets.</span>"
     out = [f"<section class='summary {cls}' id=summary><h2>Summary</h2><p class=banner>{banner}</p>"]

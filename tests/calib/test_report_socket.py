@@ -69,7 +69,8 @@ def test_the_report_states_the_numbers_of_result_json(auto_doc):
     fitted = [j for j in doc["joint_offsets"] if j["status"] == "fitted"]
     what, reasons = verdict(doc)
     if what == "enter":
-        assert f"Enter the offsets of {len(fitted)} axes below" in text and "DO NOT ENTER" not in text
+        n = len(fitted)
+        assert f"Enter the offsets of {n} ax{'is' if n == 1 else 'es'} below" in text and "DO NOT ENTER" not in text
     else:
         assert "DO NOT ENTER these offsets." in text and all(r in text for r in reasons)
     # the offsets: value, std, 95 % interval and the action of every axis
@@ -191,6 +192,7 @@ def test_the_held_out_distances_equal_an_independent_scorer(tmp_path):
         centre = {g: pos[test.group == g].mean(axis=0) for g in set(test.group.tolist())}
         mine = np.array([np.linalg.norm(p - centre[g]) for p, g in zip(pos, test.group)])
         theirs = np.array([c["after_mm"] for c in h["configurations"]])
-        assert len(h["configurations"]) == len(test.q_rad) and [c["socket"] for c in h["configurations"]] == [test.groups[g][1] for g in test.group]
+        assert len(h["configurations"]) == len(test.q_rad)
+        assert [c["socket"] for c in h["configurations"]] == [test.groups[g][1] for g in test.group]
         np.testing.assert_allclose(theirs, mine, rtol=0, atol=1e-9)
         assert math.sqrt(np.mean(mine**2)) == pytest.approx(h["after"]["spread_mm"], abs=1e-9)
