@@ -312,7 +312,7 @@ def fit(
         from acquire.commands.socket_fit import fit_socket_file
 
         sensor_only = {"--validate": validate is not None, "--joints": joints is not None, "--fix-registration": fix_registration,
-                       "--error": error != "gaussian", "--report": report is not None, "--method paper": method == "paper",
+                       "--error": error != "gaussian", "--method paper": method == "paper",
                        "--starts": starts is not None}
         refused = [k for k, v in sensor_only.items() if v]
         if refused:
@@ -323,7 +323,7 @@ def fit(
         given = fixed_link_tolerance if method == "auto" else link_tolerance
         fit_socket_file(data, model, method=method, distance_mm=socket_distance,
                         link_tolerance=None if given is None else _link_tolerance(given),
-                        output=output, model_out=model_out, compliance=compliance, dataset=socket_run, force=model_name)
+                        output=output, model_out=model_out, compliance=compliance, dataset=socket_run, force=model_name, report=report)
         return
     refuse_options(method, {"--model-out": model_out is not None})  # a socket fit writes its model (above)
     if socket_distance is not None:

@@ -1,8 +1,9 @@
 """``acquire fit`` on socket data: the sensorless calibration (``calib.fit.socket``).
 
 Chosen by the file: a CSV whose header ends in ``placement,socket`` (``calib.fit.socket`` format).
-Writes result.json (offsets, ball, socket points, identifiability, held-out scores) and, with
-``--model-out`` (or beside ``-o``), the corrected robot model whose tool is the fitted ball.
+Writes result.json (offsets, ball, socket points, identifiability, held-out scores), with
+``--model-out`` (or beside ``-o``) the corrected robot model whose tool is the fitted ball, and
+with ``--report`` the HTML report (``calib.report.report_socket``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from calib.fit.socket import (
     SocketDataset,
     SocketFit,
     fit_socket,
-    leave_one_placement_out,
+    held_out_placements,
     read_socket_csv,
     socket_scores,
 )
@@ -111,9 +112,13 @@ def socket_result_dict(model: RobotModel, ds: SocketDataset, fit: SocketFit, fol
         "identifiability": {"excluded": fit.excluded, "weak": fit.weak, "condition_number": fit.condition_number},
         "scores": {
             "calibration": [s.__dict__ for s in socket_scores(chain, fit.params, ds, fit.compliance)],
-            "held_out": [{"placement": b.placement, "before": b.__dict__, "after": a.__dict__} for b, a in folds],
+            "held_out": [{"placement": h.before.placement, "before": h.before.__dict__, "after": h.after.__dict__,
+                          "configurations": [{"config": c, "socket": s, "before_mm": float(b), "after_mm": float(a)}
+                                             for c, s, b, a in zip(h.config_ids, h.sockets, h.before_mm, h.after_mm)]}
+                         for h in folds],
             "notes": ["spread: RMS distance of the predicted ball centre from its socket's mean; distance error: "
-                      "| |m_a − m_b| − distance |", "held_out: fitted on the other placements, scored on this one (no re-fit)",
+                      "| |m_a − m_b| − distance |; configurations: each held-out configuration's distance from its "
+                      "socket's mean prediction (their rms is the spread)", "held_out: fitted on the other placements, scored on this one (no re-fit)",
                       "before: the data-sheet model with the ball from the same training data"],
         },
         "trusted": trusted,
@@ -271,16 +276,18 @@ def run_socket_fit(model: RobotModel, ds: SocketDataset, *, method: str, link_to
     else:
         options = {"tolerance": None if method == "full" else link_tolerance, "compliance": compliance}
     fit = fit_socket(model, ds, **options)
-    folds = leave_one_placement_out(model, ds, **options) if len(ds.placements) >= 3 else []
+    folds = held_out_placements(model, ds, **options) if len(ds.placements) >= 3 else []
     return socket_result_dict(model, ds, fit, folds, method, choice), fit
 
 
 def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: float | None,
                     link_tolerance: tuple[float, float] | None, output: Path | None, model_out: Path | None,
-                    compliance: bool = False, dataset: SocketDataset | None = None, force: str | None = None) -> dict:
+                    compliance: bool = False, dataset: SocketDataset | None = None, force: str | None = None,
+                    report: Path | None = None) -> dict:
     """Fit a socket CSV (or ``dataset``, e.g. a socket run's, ``read_socket_run``) by ``method``
-    (``run_socket_fit``); print the summary; write the result and the corrected model. Exits 1 when
-    the values must not be entered."""
+    (``run_socket_fit``); print the summary; write the result, the corrected model and, with
+    ``report``, the HTML report (``calib.report.report_socket``). Exits 1 when the values must not
+    be entered."""
     from calib.fit.result import write_result
 
     try:
@@ -300,6 +307,11 @@ def fit_socket_file(path: Path, model: RobotModel, *, method: str, distance_mm: 
     if output is not None:
         write_result(output, doc)
         typer.echo(f"wrote {output}")
+    if report is not None:
+        from calib.report.report_socket import write_socket_report  # the report's modules only when one is asked for
+
+        write_socket_report(report, doc)
+        typer.echo(f"wrote {report}")
     if not doc["trusted"]:
         raise typer.Exit(1)
     return doc

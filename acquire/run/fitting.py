@@ -1,4 +1,4 @@
-"""Handing a closed run log to the fitter: ``result.json`` (and ``report.html`` or the socket
+"""Handing a closed run log to the fitter: ``result.json`` and ``report.html`` (and the socket
 fit's corrected ``model.yaml``) beside the log."""
 
 from __future__ import annotations
@@ -120,9 +120,10 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
     return done.doc, result_path, report_path
 
 
-def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
+def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, Path | None]:
     """Fit a socket run (``acquire.commands.socket_fit.run_socket_fit``; held-out placements with
-    three or more): ``result.json`` and the corrected model ``model.yaml`` beside the log. The
+    three or more): ``result.json``, ``report.html`` (``calib.report.report_socket``) and the
+    corrected model ``model.yaml`` beside the log; returns (document, result path, report path). The
     plan's ``fit.method`` auto (the default) lets the data choose the model (a link prior set in the
     plan fixes its scale), fast uses the link prior (``link_tolerance_*``), paper/full identify
     without it."""
@@ -144,4 +145,12 @@ def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, None]:
     doc["model_file"] = str(write_socket_model(model, result, base.with_name("model.yaml")))
     result_path = base.with_name("result.json")
     write_result(result_path, doc)
-    return doc, result_path, None
+    report_path = base.with_name("report.html")
+    try:
+        from calib.report.report_socket import write_socket_report
+
+        write_socket_report(report_path, doc)
+    except (ImportError, ValueError, RuntimeError, OSError) as exc:
+        log.warning("report not written (use `acquire fit %s --report report.html`): %s", log_path, exc)
+        report_path = None
+    return doc, result_path, report_path

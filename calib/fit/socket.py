@@ -532,9 +532,32 @@ def socket_scores(chain: Chain, params: np.ndarray, ds: SocketDataset,
     return out
 
 
-def leave_one_placement_out(model: RobotModel, ds: SocketDataset, **fit_options) -> list[tuple[PlacementScore, PlacementScore]]:
-    """For each placement: fit on the others, score the held-out one before (nominal model with
-    the ball from the training data's pivot calibration) and after. [(before, after), …]."""
+def placement_distances(chain: Chain, params: np.ndarray, ds: SocketDataset,
+                        compliance: np.ndarray | None = None) -> np.ndarray:
+    """(k,) mm: each configuration's predicted ball centre from the mean of its socket's predictions
+    (the terms of ``socket_scores``' spread: their rms over a placement is its spread)."""
+    pos = ball_positions(chain, ds.q_rad, params, compliance)
+    means = np.array([pos[ds.group == g].mean(axis=0) for g in range(len(ds.groups))])
+    return np.linalg.norm(pos - means[ds.group], axis=1)
+
+
+@dataclass(frozen=True)
+class HeldOutPlacement:
+    """One placement held out (``held_out_placements``): its scores before (data sheet, ball from the
+    training data's pivot calibration) and after (the fit on the other placements), and per held-out
+    configuration (``config_ids``, ``sockets``) its distance from its socket's mean prediction, mm."""
+
+    before: PlacementScore
+    after: PlacementScore
+    config_ids: list[str]
+    sockets: list[str]
+    before_mm: np.ndarray
+    after_mm: np.ndarray
+
+
+def held_out_placements(model: RobotModel, ds: SocketDataset, **fit_options) -> list[HeldOutPlacement]:
+    """For each placement: fit on the others, score the held-out one before and after — per
+    placement and per configuration (nothing is fitted on the scored configurations)."""
     chain = Chain(model)
     out = []
     for held in ds.placements:
@@ -544,5 +567,15 @@ def leave_one_placement_out(model: RobotModel, ds: SocketDataset, **fit_options)
         before = chain.nominal.copy()
         ms = chain.marker_slice()
         before[ms.start:ms.start + 3] = _pivot_start(chain, train, chain.nominal)[0]
-        out.append((socket_scores(chain, before, test)[0], socket_scores(chain, fit.params, test, fit.compliance)[0]))
+        ids = test.config_ids or [f"#{i + 1}" for i in range(len(test.q_rad))]
+        out.append(HeldOutPlacement(
+            socket_scores(chain, before, test)[0], socket_scores(chain, fit.params, test, fit.compliance)[0],
+            list(ids), [test.groups[g][1] for g in test.group],
+            placement_distances(chain, before, test), placement_distances(chain, fit.params, test, fit.compliance)))
     return out
+
+
+def leave_one_placement_out(model: RobotModel, ds: SocketDataset, **fit_options) -> list[tuple[PlacementScore, PlacementScore]]:
+    """For each placement: fit on the others, score the held-out one before (nominal model with
+    the ball from the training data's pivot calibration) and after. [(before, after), …]."""
+    return [(h.before, h.after) for h in held_out_placements(model, ds, **fit_options)]

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import html
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +14,7 @@ from typer.testing import CliRunner
 from acquire.cli import app
 from calib.robot.model import load_robot_model
 from calib.fit.socket import read_hole_folder
+from calib.report.report_format import fixed
 
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
@@ -33,11 +36,22 @@ def socket_csv(tmp_path):
 
 
 def test_acquire_fit_takes_socket_data_and_scores_held_out_placements(tmp_path, socket_csv):
-    out = tmp_path / "result.json"
-    r = CliRunner().invoke(app, ["fit", str(socket_csv), "--robot", str(IIWA), "--method", "fast", "-o", str(out)])
+    out, report = tmp_path / "result.json", tmp_path / "report.html"
+    r = CliRunner().invoke(app, ["fit", str(socket_csv), "--robot", str(IIWA), "--method", "fast", "-o", str(out),
+                                 "--report", str(report)])
     assert r.exit_code == 0, r.output
     assert "A1     " in r.output and "undetermined" in r.output and "held-out placements" in r.output
     doc = json.loads(out.read_text())
+    # the report states what result.json states (its full reading: tests/calib/test_report_socket.py)
+    page = html.unescape(re.sub(r"<[^>]+>", "", report.read_text()))
+    assert f"method fast — fitted model: {doc['fit_model']['description']}" in page
+    for j in doc["joint_offsets"]:
+        if j["value_deg"] is not None:
+            lo, hi = (fixed(v, 4, sign=True) for v in j["ci95_deg"])
+            assert f"{j['joint']}{fixed(j['value_deg'], 4, sign=True)}{fixed(j['std_deg'], 4)}[{lo}, {hi}]" in page
+    for h in doc["scores"]["held_out"]:
+        assert f"{fixed(h['before']['spread_mm'], 3)} → {fixed(h['after']['spread_mm'], 3)}" in page
+    assert f"σ = {fixed(doc['sigma_point_mm'], 4)} mm" in page
     assert doc["kind"] == "socket" and doc["trusted"]
     status = [j["status"] for j in doc["joint_offsets"]]
     assert status[0] == status[6] == "undetermined" and status[1:5] == ["fitted"] * 4

@@ -67,8 +67,10 @@ def test_a_socket_runs_default_fit_chooses_the_model_and_a_plan_can_fix_the_meth
     monkeypatch.setattr(socket_fit, "read_socket_run", lambda path, n, distance_mm=None: ds)
     for spec, method in ((FitSpec(), "auto"), (FitSpec(method="fast"), "fast")):
         lp = SimpleNamespace(model=model, plan=SimpleNamespace(fit=spec, socket=SimpleNamespace(distance_mm=50.0)))
-        doc, result_path, _ = fit_socket_run_log(tmp_path / "run.mcap", lp)
+        doc, result_path, report_path = fit_socket_run_log(tmp_path / "run.mcap", lp)
         assert doc["fit_model"]["method"] == method and Path(doc["model_file"]).is_file()
+        # the report beside the log names the method and model that ran (tests/calib/test_report_socket.py reads it all)
+        assert report_path == tmp_path / "report.html" and f"method <b>{method}</b>" in report_path.read_text()
         if method == "auto":
             mc = doc["model_choice"]
             assert doc["fit_model"]["model"] == mc["chosen"] and len(mc["candidates"]) == 4  # no masses: no compliance

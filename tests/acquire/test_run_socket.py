@@ -102,6 +102,10 @@ def test_socket_run_interrupted_resumed_and_fitted_recovers_the_hidden_offsets(t
         assert h["after"]["spread_mm"] < 0.2 and h["after"]["distance_error_mm"] < 0.1
     assert Path(doc["model_file"]).is_file()
     assert doc["sigma_point_mm"] < 0.1
+    # the report beside the log (read in full by tests/calib/test_report_socket.py)
+    assert summary.report_path == summary.log_path.with_name("report.html")
+    page = summary.report_path.read_text()
+    assert f"method <b>{doc['method']}</b>" in page and all(h["placement"] in page for h in held)
 
     # the log fits again later, as any run's: `acquire fit RUN.mcap` sees the socket records and, by
     # the run's method (the plan's; `acquire fit` would choose its model), gives the run's answer
