@@ -7,8 +7,11 @@ access control fix that where TLS is configured — and stay recommended for a n
 (``daemon_config``; a client with ``cert_common_names`` must come over such a link) — but not
 on loopback, the default, where every local account can reach the router. SCRAM is a reviewed
 standard (the SASL mechanism of PostgreSQL, MongoDB, XMPP, Kafka), runs over any transport with
-nothing to install, never sends the token, and makes *both* sides prove themselves. We use the
-``scramp`` implementation unchanged; nothing here is a cipher or a proof of our own.
+nothing to install, never sends the token, and makes *both* sides prove themselves. The daemon's
+side is ``scramp``'s server unchanged; the client uses ``scramp`` for its client-first and to parse
+and check each server-first, and computes its client-final with RFC 5802 §3's formula from keys it
+caches (§5.1) — the same bytes ``scramp``'s client sends (``tests/acquire/test_control_auth.py``
+compares them). Nothing here is a cipher, a proof or a message of our own.
 
 One operation is one exchange of two query round trips on ``remaster/<cell>/control/<op>``:
 
