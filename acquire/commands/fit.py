@@ -342,9 +342,9 @@ def fit(
     elif np.any(ds.split == "val"):
         val = ds.validation()
     cal = ds.calibration()
-    if cal.has_orientation and method != "full":
-        typer.echo(f"note: {int(cal.oriented.sum())} rows carry a measured orientation; the zero-offset posterior "
-                   f"(--method {method}) fits their positions only — --method full fits position and attitude together")
+    if cal.has_orientation and method == "auto":
+        typer.echo(f"note: {int(cal.oriented.sum())} rows carry a measured orientation: the chosen model is fitted on "
+                   "their positions and attitudes together; the candidates are cross-validated on positions")
     if compliance and method == "paper":
         raise typer.BadParameter("the paper's model has no compliance: use --method fast or full", param_hint="--compliance")
     if not (math.isfinite(tool_prior_mm) and 0 <= tool_prior_mm <= 100):
