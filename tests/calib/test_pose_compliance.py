@@ -64,3 +64,20 @@ def test_compliances_with_orientation_are_recovered_and_the_attitude_residual_is
     pred_plain = result.base2sensor["tracker"][:3, :3] @ r_plain @ result.tool_frames[chain.marker_names[0]]
     att_plain = np.degrees(np.linalg.norm(log_so3(data.rot @ np.swapaxes(pred_plain, 1, 2)), axis=1))
     assert np.mean(att_plain) > 2 * np.mean(att)
+
+
+def test_the_zero_offset_posterior_fits_compliances_on_position_and_attitude_rows():
+    """The default method's compliance candidate with orientation: the sag's attitude effect is in
+    the attitude rows, the compliances come back within their intervals."""
+    from calib.fit.offsets import FitOptions, fit_offsets
+
+    rng = np.random.default_rng(6)
+    q = rng.uniform(UR10.lower_limits_rad * 0.5, UR10.upper_limits_rad * 0.5, (50, 6))
+    data = sagging_cell(q, rng)
+    result = fit_offsets(UR10, data, FitOptions(method="laplace", n_draws=300, compliance=True, link_tolerance=None))
+    assert result.posterior.attitude is not None
+    comp = result.diagnostics["compliance"]
+    fitted = [(c, k) for c, k in zip(comp, K_TRUE) if c["status"] == "fitted"]
+    assert [c["joint"] for c, _ in fitted] == ["J2", "J3"], comp
+    z = [(c["value"] - k) / c["std"] for c, k in fitted]  # seeds 6–13: |z| up to 2.6, rms 1.3
+    assert np.all(np.abs(z) < 4.0), z
