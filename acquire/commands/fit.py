@@ -544,6 +544,11 @@ def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force:
     doc = done.doc
     doc["metrics"]["notes"] = metric_notes(done.result) + doc["metrics"].get("notes", [])
     typer.echo(format_summary(doc, done.controller_text, done.choice.format()))
+    for part, m in (doc.get("pose_metrics") or {}).items():
+        b, a = m["before"], m["after"]
+        typer.echo(f"{part} (position and attitude): EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → "
+                   f"{a['EMCPE']:.3f} mm" + (f", EACAE {b['EACAE']:.4f} → {a['EACAE']:.4f}°, EMCAE {b['EMCAE']:.4f} → "
+                                             f"{a['EMCAE']:.4f}°" if b.get("EACAE") is not None else ""))
     if output is not None:
         write_result(output, doc)
         typer.echo(f"\nwrote {output}")

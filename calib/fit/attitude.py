@@ -168,12 +168,19 @@ def held_out_pose_errors(mode_fit, data: Dataset, frames: dict[str, np.ndarray])
     zero-offset fit (``calib.fit.offsets.ModeFit``) with its own registration, tool and the target
     frames ``frames`` (e.g. ``fitted_frames`` of the calibration): nothing is re-fitted on ``data``.
     The attitude errors are of the rows that carry an orientation (none: an empty array)."""
+    return pose_errors_at(mode_fit.post, mode_fit.theta, mode_fit.b2s0, data, frames)
+
+
+def pose_errors_at(post, theta: np.ndarray, b2s0: dict[str, np.ndarray], data: Dataset,
+                   frames: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """As ``held_out_pose_errors`` for a posterior ``post`` at its free vector ``theta`` (initial
+    registrations ``b2s0``)."""
     from calib.fit.posterior import OffsetPosterior
 
-    post = mode_fit.post
-    other = OffsetPosterior(post.chain, data, mode_fit.b2s0, mode_fit.mask, error=post.error, nu=post.nu,
-                            link_prior=mode_fit.link_prior, compliance=bool(post.C), orientation=data.has_orientation)
-    pos = np.linalg.norm(other.position_residuals(mode_fit.theta), axis=-1)
+    other = OffsetPosterior(post.chain, data, b2s0, post.mask, error=post.error, nu=post.nu,
+                            link_prior=dict(zip(post.link_idx.tolist(), post.link_sd.tolist())), compliance=bool(post.C),
+                            orientation=data.has_orientation)
+    pos = np.linalg.norm(other.position_residuals(theta), axis=-1)
     att = other.attitude
     if att is None:
         return pos, np.zeros(0)
@@ -182,5 +189,28 @@ def held_out_pose_errors(mode_fit, data: Dataset, frames: dict[str, np.ndarray])
         raise ValueError(f"no target frame for marker(s) {missing}: give the calibration's (fitted_frames)")
     att.frame0 = np.stack([frames[m] for m in att.frame_markers])
     att.known = np.ones(len(att.frame_markers), bool)
-    e = att.residuals(other, other.full_vector(mode_fit.theta)) / att.weight[:, None]
+    e = att.residuals(other, other.full_vector(theta)) / att.weight[:, None]
     return pos, np.linalg.norm(e, axis=-1)
+
+
+def pose_metrics(post, theta: np.ndarray, b2s0: dict[str, np.ndarray], cal: Dataset, val: Dataset | None) -> dict:
+    """EACPE/EMCPE (mm) and EACAE/EMCAE (°) before and after a zero-offset fit with attitude rows,
+    on the calibration rows and, if given, the validation rows — both scored with the calibration's
+    registration, tool and target frames (nothing re-fitted on the validation). "before": the
+    nominal robot (all corrections zero) with the initial registration and the target frame the
+    calibration's orientations give for it. ``post``: the fit's posterior on ``cal``; ``theta`` its
+    free vector (the mode)."""
+    from calib.fit.identification import comprehensive_errors
+
+    out = {}
+    zero = np.zeros_like(theta)
+    frames = {"before": fitted_frames(post, zero), "after": fitted_frames(post, theta)}
+    for part, data in (("calibration", cal), ("validation", val)):
+        if data is None or len(data) == 0:
+            continue
+        entry = {}
+        for when, t in (("before", zero), ("after", theta)):
+            p, a = pose_errors_at(post, t, b2s0, data, frames[when])
+            entry[when] = comprehensive_errors(p, a if a.size else None)
+        out[part] = entry
+    return out

@@ -62,3 +62,17 @@ def test_with_a_known_target_frame_orientation_identifies_the_last_offset_from_o
     assert np.degrees(poses.offsets_std_rad[5]) < 0.01
     positions = fit_offsets(model, data.without_orientation(), exact_tool)
     assert positions.offset_status[5] != "fitted", positions.offset_status[5]
+
+
+def test_pose_metrics_of_a_zero_offset_fit_score_held_out_attitude_without_refitting():
+    from calib.fit.attitude import pose_metrics
+
+    frame = exp_so3(np.radians([3.0, -2.0, 40.0]))
+    data, _ = cell_data(TX60, frame, 60, 7)
+    cal, val = data.subset(np.arange(60) < 40), data.subset(np.arange(60) >= 40)
+    mf = fit_mode(TX60, cal, FitOptions(link_tolerance=None))
+    m = pose_metrics(mf.post, mf.theta, mf.b2s0, cal, val)
+    for part in ("calibration", "validation"):
+        b, a = m[part]["before"], m[part]["after"]
+        assert a["EACPE"] < 0.1 < b["EACPE"] and a["EACAE"] < 0.02 < b["EACAE"], m[part]
+        assert a["EMCAE"] >= a["EACAE"] and a["EMCPE"] >= a["EACPE"]
