@@ -105,7 +105,7 @@ def default_fit(model, cal, val) -> dict[str, tuple]:
     cand = parse_candidate(choice.chosen, model)
     scale = choice.link_scale
     options = options_for(cand, base, (scale["length_mm"], scale["angle_deg"]) if scale else None)
-    out = {}
+    out, robot = {}, None
     for label, data in ((f"default [{choice.chosen}], pos only", cal.without_orientation()),
                         (f"default [{choice.chosen}], pos + att", cal)):
         mf = fit_mode(model, data, options, tol=1e-10)
@@ -113,7 +113,18 @@ def default_fit(model, cal, val) -> dict[str, tuple]:
         p, a = held_out_pose_errors(mf, val, frames)
         a = np.degrees(a)
         out[label] = (p.mean(), a.mean(), p.max(), a.max())
-    return out
+        full = mf.post.full_vector(mf.theta)
+        comp = full[mf.post.n_full - mf.post.C:] * 1e-6 if mf.post.C else np.zeros(model.n_joints)
+        robot = (corrected_model(model, mf.post.chain_params(full)), comp)  # the last: position + attitude
+    return out, robot
+
+
+def sagged(model, data, compliance):
+    """``data`` with each configuration turned by the robot's own sag (compliance rad/(N·m))."""
+    from calib.robot.gravity import gravity_torques
+
+    chain = Chain(model)
+    return replace(data, q_rad=data.q_rad + chain.sign * compliance * gravity_torques(chain, data.q_rad))
 
 
 def _with_orientation(mf, cal):
@@ -136,11 +147,12 @@ def main() -> None:
     data = {k: read_ipa_series(p, prefix=k) for k, p in SERIES.items()}
     print(f"UR10, Leica tracker + T-Mac; {args.cal} calibration poses per series (seed {args.seed}), the rest held out")
     print(f"{'':34}{'EACPE mm':>10}{'EACAE °':>10}{'EMCPE mm':>10}{'EMCAE °':>10}")
-    identified = {}
+    identified, default_robots = {}, {}
     for name, ds in data.items():
         cal, val = split(ds, args.cal, args.seed)
         rows, identified[name] = fits(MODEL, cal, val)
-        rows.update(default_fit(MODEL, cal, val))
+        more, default_robots[name] = default_fit(MODEL, cal, val)
+        rows.update(more)
         print(f"Series {name} ({len(cal)} cal / {len(val)} held out)")
         for label, v in rows.items():
             print(f"  {label:32}" + "".join(f"{x:>10.4f}" for x in v))
@@ -158,6 +170,13 @@ def main() -> None:
             for name, res, m in (("nominal robot, base+tool", nominal, MODEL), (f"robot from {src}, base+tool", r, robot)):
                 fr = res.tool_frames or estimated_tool_frames(m, res.params, cal, res.base2sensor)
                 print(f"  {name:32}" + "".join(f"{x:>10.4f}" for x in score(m, res.params, cal, val, res.base2sensor, fr)))
+            # The default run's robot from src (its links, offsets and compliances): its sag applied.
+            robot_d, comp = default_robots[src]
+            c_s, v_s = sagged(robot_d, c, comp), sagged(robot_d, val, comp)
+            r = identify(robot_d, c_s, IdentOptions(n_starts=1, exclude=tuple(kinematic_names(robot_d))))
+            fr = r.tool_frames or estimated_tool_frames(robot_d, r.params, sagged(robot_d, cal, comp), r.base2sensor)
+            print(f"  {'default-run robot from ' + src + ', b+t':32}" + "".join(
+                f"{x:>10.4f}" for x in score(robot_d, r.params, c_s, v_s, r.base2sensor, fr)))
 
 
 if __name__ == "__main__":
