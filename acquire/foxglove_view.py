@@ -12,6 +12,10 @@ layout, ``fixtures/foxglove/remaster-layout.json``, fits every cell):
 - ``/joint_state`` — ``remaster.JointState``: names, positions in degrees *and* radians (plain
   number arrays: Foxglove's Plot panel plots ``/joint_state.position_deg[0]`` directly).
 - ``/log`` — ``foxglove.Log``: run events and measured configurations, for the Log panel.
+- ``/pose`` — ``foxglove.PoseInFrame``: each measured 6-DoF target's mean pose (position and
+  orientation ``R_sensor←target``) in its sensor's frame, once per measured configuration; the
+  same pose goes on ``/tf`` as the frame ``<sensor>/<marker>`` (parent ``<sensor>``), so the 3D
+  panel draws its axes where the sensor saw the target.
 
 Foxglove's units are metres and quaternions; ours are millimetres (converted here, nowhere
 else). The JSON schemas below carry the names, fields and structure of Foxglove's published
@@ -30,6 +34,7 @@ TF_TOPIC = "/tf"
 SCENE_TOPIC = "/markers"
 JOINT_STATE_TOPIC = "/joint_state"
 LOG_TOPIC = "/log"
+POSE_TOPIC = "/pose"
 BASE_FRAME = "base"
 FLANGE_FRAME = "flange"
 
@@ -106,6 +111,9 @@ LOG_SCHEMA: dict = _obj(
     },
 )
 
+POSE_IN_FRAME_SCHEMA: dict = _obj(
+    "foxglove.PoseInFrame", {"timestamp": TIME_SCHEMA, "frame_id": {"type": "string"}, "pose": _POSE})
+
 JOINT_STATE_SCHEMA: dict = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": "remaster.JointState",
@@ -129,6 +137,7 @@ CHANNELS: dict[str, tuple[str, dict]] = {
     SCENE_TOPIC: ("foxglove.SceneUpdate", SCENE_UPDATE_SCHEMA),
     JOINT_STATE_TOPIC: ("remaster.JointState", JOINT_STATE_SCHEMA),
     LOG_TOPIC: ("foxglove.Log", LOG_SCHEMA),
+    POSE_TOPIC: ("foxglove.PoseInFrame", POSE_IN_FRAME_SCHEMA),
 }
 
 _EMPTY_PRIMITIVES = ("arrows", "cubes", "cylinders", "lines", "triangles", "texts", "models")
@@ -231,6 +240,30 @@ def nominal_markers_scene(marker_xyz_mm: dict[str, Any], t_ns: int, *, diameter_
         for name, xyz in marker_xyz_mm.items()
     ]
     return {"deletions": [], "entities": entities}
+
+
+def measured_poses(sample: dict, t_ns: int) -> list[tuple[dict, dict]]:
+    """The 6-DoF targets of a measured configuration (a ``/run/sample`` record: markers with
+    ``quat_wxyz``, scalar first, ``R_sensor←target``, and ``mean_mm``) as Foxglove messages: one
+    (``foxglove.PoseInFrame`` in the sensor's frame, ``foxglove.FrameTransforms`` with the frame
+    ``<sensor>/<marker>``) pair per target, metres; none for point targets."""
+    out = []
+    for m in sample.get("markers") or []:
+        quat, mean = m.get("quat_wxyz"), m.get("mean_mm")
+        if not (isinstance(quat, (list, tuple)) and len(quat) == 4 and isinstance(mean, (list, tuple)) and len(mean) == 3):
+            continue
+        w, x, y, z = (float(v) for v in quat)
+        p = np.asarray([float("nan") if v is None else v for v in mean], dtype=float) / 1000.0
+        if not (np.all(np.isfinite(p)) and all(math.isfinite(v) for v in (w, x, y, z))):
+            continue
+        sensor, marker = str(m.get("sensor", "sensor")), str(m.get("marker", "marker"))
+        position = {"x": float(p[0]), "y": float(p[1]), "z": float(p[2])}
+        orientation = {"x": x, "y": y, "z": z, "w": w}
+        pose = {"timestamp": stamp(t_ns), "frame_id": sensor, "pose": {"position": position, "orientation": orientation}}
+        tf = {"transforms": [{"timestamp": stamp(t_ns), "parent_frame_id": sensor, "child_frame_id": f"{sensor}/{marker}",
+                              "translation": position, "rotation": orientation}]}
+        out.append((pose, tf))
+    return out
 
 
 def log_message(level: int, message: str, t_ns: int, *, name: str = "remaster") -> dict:

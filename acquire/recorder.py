@@ -518,9 +518,13 @@ class RunLog:
             raise RunLogError(f"{self.path}: sample config_id must be a non-empty string, given {record['config_id']!r}")
         data = encode_json(record)
         t_ns = time.time_ns()
+        poses = [(topic, doc) for pair in fv.measured_poses(record, t_ns) for topic, doc in zip((fv.POSE_TOPIC, fv.TF_TOPIC), pair)]
         with self._lock:
             self._append(SAMPLE_TOPIC, data, t_ns)
             self._append(fv.LOG_TOPIC, encode_json(fv.sample_log(record, t_ns)), t_ns)
+            for topic, doc in poses:  # 6-DoF targets' poses for Foxglove (channel(): the same id once registered)
+                self.channel(topic, *fv.CHANNELS[topic])
+                self._append(topic, encode_json(doc), t_ns)
             self._durable()
             self.samples_written += 1
 

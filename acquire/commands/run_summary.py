@@ -32,9 +32,11 @@ def socket_summary_lines(doc: dict) -> list[str]:
     return lines
 
 
-def adaptive_summary_lines(ad: dict) -> list[str]:
+def adaptive_summary_lines(ad: dict, cell_seconds: float | None = None) -> list[str]:
     """An adaptive run: why it stopped, the predicted intervals against the number of
-    configurations (a few rows), and the estimated cell time against the full plan's."""
+    configurations (a few rows), and the estimated cell time against the full plan's — and
+    against the cell time the run measured (``cell_seconds``, the cell's clock) when given and
+    the run was not resumed (a segment's clock does not cover the earlier segments)."""
     lines = [f"adaptive: stopped after {ad['measured']} of {ad['candidates']} configurations — {ad['reason']}"]
     hist = ad.get("history") or []
     if hist:
@@ -48,8 +50,63 @@ def adaptive_summary_lines(ad: dict) -> list[str]:
                      f"{hist[-1].get('full_held_out_mm', float('nan')):.4f} mm; σ used {ad['sigma_mm']:.4f} mm)")
     saved = ad.get("saved_seconds")
     if saved is not None:
-        lines.append(f"  estimated cell time {ad['estimated_seconds']:.0f} s against {ad['full_plan_seconds']:.0f} s for "
-                     f"the full plan: {saved:.0f} s ({ad.get('saved_pct') or 0:.0f} %) saved")
+        comp = ad.get("compute_seconds")
+        lines.append(f"  estimated cell time {ad['estimated_seconds']:.0f} s"
+                     + (f" (with {comp:.1f} s choosing and refitting)" if comp else "")
+                     + f" against {ad['full_plan_seconds']:.0f} s for the full plan: {saved:.0f} s "
+                     f"({ad.get('saved_pct') or 0:.0f} %) saved")
+        hist = ad.get("history") or [{}]
+        if cell_seconds and hist[0].get("n", 0) == 0 and ad.get("estimated_seconds"):
+            over = cell_seconds / ad["estimated_seconds"] - 1
+            lines.append(f"  measured cell time {cell_seconds:.0f} s ({over:+.0%} against the estimate)")
+            if over > 0.1:
+                lines.append("  (moves, settling or measuring took longer than estimated: a simulated cell at "
+                             "fake.time_scale > 1 falls behind its clock on a busy host — time a plan at "
+                             "time_scale 1; on a real cell, check the speed override and the settle window)")
+    return lines
+
+
+def _attitude_metrics(node, label: str = "", depth: int = 0) -> list[tuple[str, dict, dict]]:
+    """Every (label, before, after) in a result document whose before/after carry EACAE (degrees)."""
+    out: list[tuple[str, dict, dict]] = []
+    if not isinstance(node, dict) or depth > 4:
+        return out
+    b, a = node.get("before"), node.get("after")
+    if isinstance(b, dict) and isinstance(a, dict) and b.get("EACAE") is not None and a.get("EACAE") is not None:
+        return [(label, b, a)]
+    for key, value in node.items():
+        if key not in ("before", "after"):
+            out += _attitude_metrics(value, f"{label}.{key}" if label else str(key), depth + 1)
+    return out
+
+
+def _oriented_configurations(log_path) -> int:
+    """How many measured configurations of the run log carry a 6-DoF target's orientation."""
+    try:
+        from acquire.recorder import read_run
+
+        samples = read_run(Path(log_path)).samples
+    except Exception:  # noqa: BLE001 - a summary line must never fail the summary
+        return 0
+    return sum(any(isinstance(m.get("quat_wxyz"), list) for m in rec.get("markers") or []) for rec in samples)
+
+
+def attitude_summary_lines(fit: dict, log_path=None) -> list[str]:
+    """Attitude accuracy as the pose-selection paper reports it (EACAE / EMCAE, mean / max
+    attitude error, degrees, before → after) wherever the result has it; otherwise, when the run
+    measured orientations, how many and that this fit scored positions only."""
+    found = [(label, b, a) for label, b, a in _attitude_metrics(fit.get("metrics") or {}, "")]
+    found += [(label, b, a) for label, b, a in _attitude_metrics({k: v for k, v in fit.items() if k != "metrics"}, "")]
+    lines = []
+    for label, b, a in found:
+        lines.append(f"attitude accuracy{' (' + label + ')' if label else ''}: EACAE {b['EACAE']:.4f} → {a['EACAE']:.4f}°, "
+                     f"EMCAE {b['EMCAE']:.4f} → {a['EMCAE']:.4f}° (mean / max attitude error, before → after)")
+    if not found and log_path is not None:
+        n = _oriented_configurations(log_path)
+        if n:
+            lines.append(f"attitude: {n} configurations measured with the target's orientation (in the log and the "
+                         "dataset); this fit scored positions only — `acquire fit LOG --method full` fits and scores "
+                         "position and attitude (EACAE / EMCAE)")
     return lines
 
 
@@ -65,7 +122,7 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
     for cid, reason in list(summary.skipped_reasons.items())[:20]:
         lines.append(f"  not measured {cid}: {reason}")
     if getattr(summary, "adaptive", None):
-        lines += adaptive_summary_lines(summary.adaptive)
+        lines += adaptive_summary_lines(summary.adaptive, summary.cell_seconds)
     if summary.fit is not None:
         names = lp.model.axis_names
         head = f"{'joint':<6} {'fitted (deg)':>13} {'± std':>8}"
@@ -111,6 +168,7 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
         if gsag and gsag.get("significant"):
             lines.append(f"warning: the residuals follow the joints' gravity torques (p = {gsag['p_value']:.1g}): "
                          "the arm sags and the fit does not model it — set fit.compliance: true in the plan")
+        lines += attitude_summary_lines(summary.fit, getattr(summary, "log_path", None))
         if summary.fit.get("kind") == "socket":
             lines += socket_summary_lines(summary.fit)
         lines.append("")

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 
 import numpy as np
 
@@ -29,6 +30,20 @@ log = logging.getLogger(__name__)
 
 #: Degrees of freedom (coordinates less effective parameters) before the fast fit's σ is used.
 MIN_SIGMA_DOF = 10
+#: σ is refitted once the records have grown by this fraction (and before every stop decision):
+#: a fast fit of 60 configurations costs ~0.1 s of the robot standing still, and σ changes little
+#: from one configuration to the next.
+REFIT_GROWTH = 0.15
+
+
+def refit_counts(n: int) -> set[int]:
+    """The record counts (up to ``n``) at which σ is refitted: 1, 2, 3, …, each at least
+    ``REFIT_GROWTH`` more than the one before."""
+    out, c = set(), 1
+    while c <= n:
+        out.add(c)
+        c = max(c + 1, math.ceil(c * (1 + REFIT_GROWTH)))
+    return out
 
 
 def stop_rule(lp, n_configs: int) -> StopRule:
@@ -89,6 +104,7 @@ class AdaptiveOrder:
         self.records: list[dict] = []
         self.history: list[dict] = []
         self.fitted_sigma_mm: float | None = None
+        self._sigma_n = 0  # records when σ was last fitted
 
     def copy(self) -> "AdaptiveOrder":
         """An independent copy of the design's state (for predictions: ``simulate``)."""
@@ -98,6 +114,7 @@ class AdaptiveOrder:
         d = self.design
         other.design = SequentialDesign(d.model, d.rule, d.sigma_mm, measured=list(d.measured))
         other.dropped, other.records, other.history = set(self.dropped), list(self.records), []
+        other._between = self.between_seconds()
         return other
 
     # ------------------------------------------------------------------ state
@@ -116,23 +133,35 @@ class AdaptiveOrder:
         if i is not None:
             self.dropped.add(i)
 
-    def update_sigma(self) -> None:
+    def sigma_due(self) -> bool:
+        """Whether σ is refitted at this many records: at 1, 2, … records, each count at least
+        ``REFIT_GROWTH`` more than the one before (a fixed schedule, so a resumed run's σ is the
+        one an uninterrupted run would have). The stop decision always refits
+        (``AdaptiveRun.choices``): what stops the run is judged with σ of everything measured."""
+        return len(self.records) in refit_counts(len(self.records))
+
+    def sigma_stale(self) -> bool:
+        """Records have arrived since σ was last fitted."""
+        return self._sigma_n < len(self.records)
+
+    def update_sigma(self, upto: int | None = None) -> None:
         """σ for the design: the larger of the plan's ``noise_mm`` and the fast fit's σ of the
         records so far (unbiased for the parameters it fitted) — the design never predicts a
         better instrument than the plan states, and a worse one as soon as the data show it."""
-        sigma = self.fast_fit_sigma()
+        self._sigma_n = len(self.records) if upto is None else min(upto, len(self.records))
+        sigma = self.fast_fit_sigma(self._sigma_n)
         if sigma is not None:
             self.fitted_sigma_mm = sigma
             self.design.set_sigma(max(self.noise_mm, sigma))
 
-    def fast_fit_sigma(self) -> float | None:
+    def fast_fit_sigma(self, upto: int | None = None) -> float | None:
         """The fitted σ (mm, largest over sensors) of the posterior mode on the records, or None
         while there are too few of them for the fit."""
         from calib.fit.offsets import fit_mode
         from calib.measure.dataset import DatasetError, from_arrays
 
         q, xyz, mk, sn, cid = [], [], [], [], []
-        for rec in self.records:
+        for rec in self.records[:upto]:
             for m in rec.get("markers", []):
                 q.append(np.radians(rec["q_measured_deg"]))
                 xyz.append(m["mean_mm"])
@@ -179,12 +208,23 @@ class AdaptiveOrder:
         here = np.asarray(here_q_rad, dtype=float)[None, :]
         return np.asarray(motion_time(np.repeat(here, len(q), axis=0), q, v, a, j), dtype=float) + self.per_config_s
 
+    def between_seconds(self) -> np.ndarray:
+        """(N, N) move seconds between the plan's configurations (computed once)."""
+        if getattr(self, "_between", None) is None:
+            from acquire.sequencer import motion_cost_matrix
+
+            q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
+            self._between = motion_cost_matrix(q, self.limits, self.speed)
+        return self._between
+
     def choose(self, here_q_rad: np.ndarray):
-        """(PlannedConfig, event fields) of the next configuration from ``here_q_rad``; the
-        event fields say why (gain per stated quantity, seconds, score, runner-up)."""
-        secs = self.seconds_from(here_q_rad)
+        """(PlannedConfig, event fields) of the next configuration from ``here_q_rad``: the first
+        stop of the planned rest of the run (``SequentialDesign.choose_route``: a batch predicted
+        to meet the stop rule, toured from here); the event fields say why (gain per stated
+        quantity, seconds, score, the tour's next stop, the planned count and seconds)."""
         design = self.design
-        choice = design.choose(secs, exclude=sorted(self.dropped))
+        moves = self.seconds_from(here_q_rad) - self.per_config_s
+        choice = design.choose_route(moves, self.between_seconds(), self.per_config_s, exclude=sorted(self.dropped))
         cfg = self.configs[choice.index]
         fields = {"config_id": cfg.config_id, **choice.to_dict(), "sigma_mm": round(design.sigma_mm, 5)}
         if choice.runner_up is not None:
@@ -256,11 +296,13 @@ class AdaptiveRun:
         for cid in ended:
             if cid not in {rec["config_id"] for rec in self.order.records}:
                 self.order.drop(cid)
-        self.order.update_sigma()
+        done = [c for c in refit_counts(len(self.order.records)) if c <= len(self.order.records)]
+        self.order.update_sigma(upto=done[-1] if done else 0)  # σ as the uninterrupted run had it
         self.start_q = np.asarray(start_q_rad, dtype=float)
         self.resumed_n = len(self.order.design.measured)
         self.visited: list = []  # configurations this segment moved to, in order
         self.final: Status | None = None
+        self.compute_s = 0.0  # wall seconds the robot stood while this segment chose and refitted
         self.predicted, self.predicted_status = simulate(self.order, self.start_q)
 
     def started_fields(self) -> dict:
@@ -288,12 +330,18 @@ class AdaptiveRun:
         is exhausted or ``max_configurations`` is reached (event ``adaptive_stop``)."""
         last = None
         while True:
+            t0 = time.perf_counter()
             st = self.order.status()
+            if st.stop and self.order.sigma_stale():  # judge the stop with every record's σ
+                self.order.update_sigma()
+                st = self.order.status()
             row = self.order.record_status(st)
             if st.stop:
                 self.final = st
+                self.compute_s += time.perf_counter() - t0
                 return
             cfg, why = self.order.choose(self._here(last))
+            self.compute_s += time.perf_counter() - t0
             event("adaptive_choice", **why, status=row)
             self.visited.append(cfg)
             last = cfg
@@ -303,19 +351,24 @@ class AdaptiveRun:
         """What became of ``cfg``: measured (its record updates the design and σ), skipped or failed."""
         if outcome == "measured":
             ok = record is not None and record.get("config_id") == cfg.config_id
+            t0 = time.perf_counter()
             self.order.mark(cfg.config_id, record if ok else None)
-            self.order.update_sigma()
+            if self.order.sigma_due():
+                self.order.update_sigma()
+            self.compute_s += time.perf_counter() - t0
         elif outcome in ("skipped", "failed"):
             self.order.drop(cfg.config_id)
 
     def summary(self) -> dict:
         """Why the run stopped, the predicted intervals against the number of configurations, and
-        the estimated cell time of what was visited against the full plan's."""
+        the estimated cell time of what was visited against the full plan's: moves, settling and
+        measuring as the plan's estimate has them, plus the seconds (wall) the robot stood while
+        this segment chose and refitted (``compute_seconds``; a fixed-order run has none)."""
         o = self.order
         st = self.final if self.final is not None else o.status()
         full = o.full_plan_seconds(self.start_q)
         before = [o.configs[i] for i in o.design.measured[: self.resumed_n]]
-        spent = o.visited_seconds(before + self.visited, self.start_q)
+        spent = o.visited_seconds(before + self.visited, self.start_q) + self.compute_s
         return {"stopped": self.final is not None, "reason": st.reason if self.final is not None else
                 "the run ended before the stop rule was evaluated (aborted or failed)",
                 "measured": st.n_measured, "candidates": len(o.configs),
@@ -324,5 +377,6 @@ class AdaptiveRun:
                 "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),
                 "sigma_mm": round(o.design.sigma_mm, 5),
                 "fitted_sigma_mm": None if o.fitted_sigma_mm is None else round(o.fitted_sigma_mm, 5),
-                "history": o.history, "estimated_seconds": round(spent, 1), "full_plan_seconds": round(full, 1),
+                "history": o.history, "estimated_seconds": round(spent, 1),
+                "compute_seconds": round(self.compute_s, 1), "full_plan_seconds": round(full, 1),
                 "saved_seconds": round(full - spent, 1), "saved_pct": round(100 * (1 - spent / full), 1) if full else None}

@@ -52,8 +52,9 @@ class AttitudeRows:
     """The attitude rows of one dataset. ``sensors``: sorted sensor names; ``b2s0``: (S, 4, 4)."""
 
     def __init__(self, chain: Chain, data: Dataset, sensors: list[str], b2s0: np.ndarray,
-                 sag_gain: np.ndarray | None = None) -> None:
-        """``sag_gain``: (k, n) joint-angle change per µrad/(N·m) (sign·τ·1e-6) when compliance is fitted."""
+                 sag_gain: np.ndarray | None = None, sag_params: np.ndarray | None = None) -> None:
+        """``sag_gain``: (k, n) joint-angle change per µrad/(N·m) (sign·τ·1e-6) when compliance is
+        fitted; ``sag_params``: the chain vector (P,) the sag is taken at (None: nominal)."""
         self.chain = chain
         rot = np.asarray(data.rot, dtype=float)
         self.rows = np.flatnonzero(np.isfinite(rot).all(axis=(1, 2)))  # dataset rows with an orientation
@@ -86,7 +87,8 @@ class AttitudeRows:
         self.known = np.array(known, dtype=bool)
         self.sag_w = None
         if sag_gain is not None:
-            jw = chain.flange_jacobian(self.q, chain.nominal).jw[..., : chain.n]  # (ko, 3, n)
+            ref = chain.nominal if sag_params is None else sag_params
+            jw = chain.flange_jacobian(self.q, ref).jw[..., : chain.n]  # (ko, 3, n)
             self.sag_w = jw * sag_gain[self.rows][:, None, :]  # rad per µrad/(N·m)
 
     # --- prediction ----------------------------------------------------------------------
@@ -179,7 +181,7 @@ def pose_errors_at(post, theta: np.ndarray, b2s0: dict[str, np.ndarray], data: D
 
     other = OffsetPosterior(post.chain, data, b2s0, post.mask, error=post.error, nu=post.nu,
                             link_prior=dict(zip(post.link_idx.tolist(), post.link_sd.tolist())), compliance=bool(post.C),
-                            orientation=data.has_orientation)
+                            sag_params=post.sag_params if post.C else None, orientation=data.has_orientation)
     pos = np.linalg.norm(other.position_residuals(theta), axis=-1)
     att = other.attitude
     if att is None:

@@ -6,7 +6,9 @@
 ``model_choice``. A chosen ``offsets…`` model is fitted by ``calib.fit.offsets.fit_offsets`` with the
 Laplace + PSIS posterior (``method="laplace"``); a chosen ``full`` model by
 ``calib.fit.identification.identify`` (its document is the identification's, with the guards'
-reasons in ``do_not_use``).
+reasons in ``do_not_use``). An offsets model's intervals are widened by its held-out misfit where
+that is above 1 (``calib.fit.heldout_misfit``; ``interval_scale`` in the document, and a line under
+the model-choice table); the stored draws stay the posterior's.
 """
 
 from __future__ import annotations
@@ -17,7 +19,8 @@ from calib.robot.controller import apply_guards, controller_values, earned_reaso
 from calib.measure.dataset import Dataset
 from calib.fit.offsets import FitOptions, FitResult, fit_offsets
 from calib.robot.model import RobotModel
-from calib.fit.model_choice import ModelChoice, choose_model, options_for, parse_candidate
+from calib.fit.model_choice import ModelChoice, choose_model, interval_factor, options_for, parse_candidate
+from calib.fit.heldout_misfit import scale_offset_intervals
 
 
 def ident_joint_offsets(doc: dict, model: RobotModel) -> list[dict]:
@@ -105,6 +108,9 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
         doc["pose_metrics"] = pose_metrics(post, result.mode[: post.dim], result.base2sensor0, cal, val)
         doc["attitude_weight"] = post.attitude.weight_info
     doc["model_choice"] = choice.to_dict()
+    factor = interval_factor(choice.score(choice.chosen).misfit)
+    if factor > 1.0:  # the intervals as wide as the held-out configurations say (calib.fit.heldout_misfit)
+        scale_offset_intervals(doc, factor)
     refused = apply_guards(doc)
     values = controller_values(model, doc["joint_offsets"])
     doc["controller"] = values.to_dict()

@@ -379,11 +379,13 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, *, tol: float = 1e-12, max_it
     return x
 
 
-def _mode(post: OffsetPosterior, error: str, nu: float, tol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
-    """Posterior mode: θ (dim,) and log σ (S,); ``tol``: relative step/cost change that ends a solve."""
+def _mode(post: OffsetPosterior, error: str, nu: float, tol: float = 1e-12,
+          theta0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior mode: θ (dim,) and log σ (S,); ``tol``: relative step/cost change that ends a solve;
+    ``theta0``: where to start (zeros: the nominal model)."""
     s_idx = post.sensor_index
     n_s = post.rows_per_sensor
-    theta = np.zeros(post.dim)
+    theta = np.zeros(post.dim) if theta0 is None else np.asarray(theta0, dtype=float).copy()
     sigma = np.ones(post.S)
     weights = np.ones(post.n_rows)
     link_pos, link_sd = post.link_free()
@@ -573,13 +575,16 @@ class ModeFit:
     link_prior: dict[int, float]
     identifiability_start: Identifiability
     lever_mm: float
+    #: The chain vector (P,) the compliance sag is taken at (the first mode's arm), or None.
+    sag_params: np.ndarray | None = None
 
     def predict_residuals(self, data: Dataset) -> np.ndarray:
         """measured − predicted (k, 3) mm for other rows ``data`` with this fit's parameters and its
         own registration (the same sensors; markers the fit did not measure keep the model's place).
-        Positions only: attitude rows, where measured, are scored by ``calib.fit.metrics``."""
+        Positions only: attitude rows, where measured, are scored by ``calib.fit.attitude.pose_metrics``."""
         other = OffsetPosterior(self.post.chain, data, self.b2s0, self.mask, error=self.post.error, nu=self.post.nu,
-                                link_prior=self.link_prior, compliance=bool(self.post.C), orientation=False)
+                                link_prior=self.link_prior, compliance=bool(self.post.C), sag_params=self.sag_params,
+                                orientation=False)
         return other.position_residuals(self.theta)
 
 
@@ -653,9 +658,9 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
             f"measure at least {min_measurements(n_free)} configurations (more is much better)"
         )
 
-    def factory(m: ParamMask) -> OffsetPosterior:
+    def factory(m: ParamMask, sag_params: np.ndarray | None = None) -> OffsetPosterior:
         return OffsetPosterior(chain, data, b2s0, m, error=options.error, nu=options.nu, link_prior=link_prior,
-                               compliance=options.compliance)
+                               compliance=options.compliance, sag_params=sag_params)
 
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
@@ -664,7 +669,15 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
     theta, log_sigma = _mode(post, options.error, options.nu, tol)
-    return ModeFit(post, mask, theta, log_sigma, b2s0, link_prior, ident0, lever)
+    sag_params = None
+    if options.compliance:
+        # The sag's torques and levers at the fitted arm (offsets, links, tool), not the nominal one:
+        # ``calib.fit.posterior``'s compliance paragraph. One more solve from the first mode; the
+        # change of reference is second order, so a third would move nothing.
+        sag_params = post.chain_params(post.full_vector(theta))
+        post = factory(mask, sag_params)
+        theta, log_sigma = _mode(post, options.error, options.nu, tol, theta0=theta)
+    return ModeFit(post, mask, theta, log_sigma, b2s0, link_prior, ident0, lever, sag_params)
 
 
 def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptions()) -> FitResult:

@@ -38,8 +38,13 @@ intervals include the tool's uncertainty.
 gravity torque τ_i(q) it carries by Δθ_i = k_i τ_i (``calib.robot.gravity``), i.e. its angle is off by
 sign_i k_i τ_i in the controller's convention — like an offset that changes with the
 configuration. Deflections are ~1e-4 rad, so the effect enters to first order, through the
-offsets' Jacobian at the nominal arm: p += Σ_i ∂p/∂δ_i · sign_i τ_i(q) k_i (the neglected terms
-are ~1e-4 of the sag itself). Flat prior on each k_i.
+offsets' Jacobian at a reference arm: p += Σ_i ∂p/∂δ_i · sign_i τ_i(q) k_i (the neglected terms
+are ~1e-4 of the sag itself). The reference (``sag_params``) must be the fitted arm, not the
+nominal one: a tool 10–30 mm off its drawing moves the lever of every sag by as much, and
+offsets of 0.1° move the torques by 0.1 N·m — at the nominal arm this left 0.0008–0.003 mm rms per
+axis of systematic error on a sagging iiwa (a sixth to two thirds of an averaged tracker row's
+noise), which biased offsets known to ±0.0001° by 2–2.5 σ. ``calib.fit.offsets.fit_mode`` therefore
+fits once at the nominal arm and again with the sag taken at that mode. Flat prior on each k_i.
 """
 
 from __future__ import annotations
@@ -106,6 +111,7 @@ class OffsetPosterior:
         nu: float = 4.0,
         link_prior: dict[int, float] | None = None,
         compliance: bool = False,
+        sag_params: np.ndarray | None = None,
         orientation: bool = True,
     ) -> None:
         if error not in ("gaussian", "student"):
@@ -167,8 +173,10 @@ class OffsetPosterior:
         if self.C:
             from calib.robot.gravity import gravity_torques
 
-            self.torques = gravity_torques(chain, data.q_rad)  # (k, n) N·m at the nominal arm
-            _, jac = chain.marker_jacobian(data.q_rad, chain.nominal)
+            #: The chain vector (P,) the sag's torques and lever arms are taken at (nominal: None).
+            self.sag_params = chain.nominal if sag_params is None else np.asarray(sag_params, dtype=float)
+            self.torques = gravity_torques(chain, data.q_rad, self.sag_params)  # (k, n) N·m at that arm
+            _, jac = chain.marker_jacobian(data.q_rad, self.sag_params)
             j_off = jac[np.arange(self.n_rows), self.marker_index][..., : self.n]  # (k, 3, n)
             #: ∂ p_base / ∂ k (k, 3, n), mm per µrad/(N·m).
             self._sag = j_off * (chain.sign * self.torques * 1e-6)[:, None, :]
@@ -183,7 +191,8 @@ class OffsetPosterior:
             from calib.fit.attitude import AttitudeRows
 
             self.attitude = AttitudeRows(chain, data, self.sensors, self.b2s0,
-                                         chain.sign * self.torques * 1e-6 if self.C else None)
+                                         chain.sign * self.torques * 1e-6 if self.C else None,
+                                         self.sag_params if self.C else None)
             self.n_rows = self.k_pos + self.attitude.k
             self.sensor_index = np.concatenate([self._pos_sensor, self.attitude.sensor_index])
             self.rows_per_sensor = np.bincount(self.sensor_index, minlength=self.S)

@@ -30,6 +30,8 @@ def model_choice_section(doc: dict) -> list[str]:
            f"{esc(mc['rule'])}. Each model is fitted without the held-out {esc(mc['grouped_by'])}s and scored on them "
            "(never re-fitted on the scored points).</p>"]
     out += [f"<p class=small>{esc(line)}</p>" for line in link_scale_lines(mc)]
+    if (doc.get("interval_scale") or {}).get("why"):  # calib.fit.heldout_misfit
+        out.append(f"<p class=small>{esc(doc['interval_scale']['why'])}</p>")
     if mc.get("excluded"):
         out.append(f"<p class=small>not compared: {esc(mc['excluded'])}</p>")
     return out

@@ -12,6 +12,13 @@ mean position (mm, tracker frame), per-axis spread ``dStd1..3`` and ``count = n`
 is a short stationary measurement (``read_time_ms``). emScon results carry no time stamp:
 ``device_time`` is NaN, ``host_time`` the sensor clock when the result arrived.
 
+6-DoF (``pose=True``, a T-Mac or another probe on the tracker): on ``connect()`` the sensor asks
+``GetMeasurementProbeInfo`` (refused with LimitError unless a 6-DoF probe is there) and selects
+``ES_MM_6DStationary``; ``measure`` then reads the ``ProbeStationaryResultT``: the probe's
+position (``dPosition1..3``, mm) with ``dStdDevPosition1..3``, and its orientation from
+``dQuaternion0..3`` (scalar first; ``R_tracker←probe``) as ``rotation`` with ``std_deg`` the RMS
+over the axes of ``dStdDevRotationAngleX..Z`` (degrees: the units set on connect).
+
 Re-acquisition (as ``TrackerSensor``): ``aim(xyz)`` sends ``GoPosition`` (with ADM) to the
 predicted reflector position and checks ``GetMeasurementStatusInfo`` for a found reflector;
 ``search(radius, timeout)`` sets the search parameters and sends ``FindReflector``.
@@ -41,6 +48,7 @@ import numpy as np
 from drivers.base import Clock, SensorBase, check_timeout
 from drivers.emscon import codec as es
 from drivers.emscon.codec import Cmd, SSC, Status
+from drivers.emscon.probe import check_probe, probe_pose
 from drivers.emscon.status import WARNINGS, error_for, status_name
 from drivers.errors import (
     ConnectionLostError,
@@ -103,7 +111,8 @@ class EmsconSensor(SensorBase):
     point_rate_hz: the tracker's internal point rate, to turn ``n`` points into a measure time;
     measure_time_ms fixes the measure time instead; read_time_ms: measure time of ``read()``.
     environment: ``Air`` / ``"station"`` / the plan's mapping; reflector: type name or
-    ``{type, offset_mm}``; both applied on connect when given. search_radius_mm: default spiral
+    ``{type, offset_mm}``; both applied on connect when given. pose: measure a 6-DoF probe's pose
+    (ES_MM_6DStationary) instead of a reflector's position. search_radius_mm: default spiral
     radius of ``search``; approx_distance_mm: distance given to ``FindReflector`` before
     anything was aimed at or measured.
     """
@@ -122,6 +131,7 @@ class EmsconSensor(SensorBase):
         read_time_ms: int = 10,
         environment: Air | str | dict | None = None,
         reflector: str | dict | None = None,
+        pose: bool = False,
         search_radius_mm: float = 50.0,
         approx_distance_mm: float = 2000.0,
         auto_reconnect: bool = True,
@@ -142,6 +152,11 @@ class EmsconSensor(SensorBase):
         for label, v in (("search_radius_mm", search_radius_mm), ("approx_distance_mm", approx_distance_mm)):
             if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 < v <= 1e5):
                 raise ValueError(f"{label} must be a positive number of mm, got {v!r}")
+        if not isinstance(pose, bool):
+            raise ValueError(f"pose must be true (a 6-DoF probe such as a T-Mac) or false, got {pose!r}")
+        self.pose = pose
+        #: ``GetMeasurementProbeInfo`` values of the 6-DoF probe (pose mode), after connect
+        self.probe_info: dict | None = None
         self.marker = marker
         self.reply_timeout = check_timeout(reply_timeout)
         self.initialize_timeout = check_timeout(initialize_timeout)
@@ -231,7 +246,10 @@ class EmsconSensor(SensorBase):
             "tempUnitType": int(es.TemperatureUnit.Celsius), "pressUnitType": int(es.PressureUnit.HPascal),
             "humUnitType": int(es.HumidityUnit.RH)}))
         self.request(es.Request(Cmd.SetCoordinateSystemType, {"coordSysType": int(es.CoordinateSystem.RHR)}))
-        self.request(es.Request(Cmd.SetMeasurementMode, {"measMode": int(es.MeasMode.Stationary)}))
+        if self.pose:
+            self._select_probe()
+        self.request(es.Request(Cmd.SetMeasurementMode, {"measMode": int(
+            es.MeasMode.SixDStationary if self.pose else es.MeasMode.Stationary)}))
         self._stationary = None
         self._search = None
         if self.environment is not None:
@@ -279,7 +297,8 @@ class EmsconSensor(SensorBase):
                     self.log.debug("discarding an error answer to command %d", packet.command)
                     continue
                 if isinstance(packet, es.DataResult):
-                    if want_result and packet.type in (es.DataType.SingleMeasResult, es.DataType.SingleMeasResult2):
+                    if want_result and packet.type in (es.DataType.SingleMeasResult, es.DataType.SingleMeasResult2,
+                                                       es.DataType.StationaryProbeMeasResult):
                         if packet.status != Status.AllOK and packet.status not in WARNINGS:
                             raise error_for(packet.status, f"{what} result")
                         return packet, host_time
@@ -484,18 +503,34 @@ class EmsconSensor(SensorBase):
             self.request(es.Request(Cmd.SetStationaryModeParams, {"lMeasTime": want[0], "bUseADM": want[1]}))
             self._stationary = want
 
+    def _select_probe(self) -> None:
+        """Check that a 6-DoF probe is there (``GetMeasurementProbeInfo``) and log what it is."""
+        try:
+            info = dict(self.request(es.Request(Cmd.GetMeasurementProbeInfo)).values)
+        except (LimitError, DeviceFaultError) as exc:
+            raise LimitError(f"{self.name}: pose measurement needs a 6-DoF probe (a T-Mac) on the tracker; the "
+                             f"server has none ({exc}); measure the reflector's position instead (pose: false)") from None
+        check_probe(info, self.name)
+        self.probe_info = info
+        self.log.info("6-DoF probe %s, serial %d", es.ProbeType(info["probeType"]).name, info["lSerialNumber"])
+
     def _stationary_measurement(self, meas_time_ms: int, timeout: float):
+        """(xyz (3,) mm, std (3,) mm, host time, rotation (3, 3) or None, std_deg or None)."""
         self._set_stationary(meas_time_ms)
         result, host_time = self._exchange(es.Request(Cmd.StartMeasurement),
                                            timeout=max(timeout, meas_time_ms / 1000.0 + self.reply_timeout),
                                            want_result=True)
         v = result.values
-        xyz = np.array([v["dVal1"], v["dVal2"], v["dVal3"]], dtype=float)
-        std = np.array([v["dStd1"], v["dStd2"], v["dStd3"]], dtype=float)
+        rotation = std_deg = None
+        if result.type is es.DataType.StationaryProbeMeasResult:
+            xyz, std, rotation, std_deg = probe_pose(v, self.name)  # degrees: the angle unit set on connect
+        else:
+            xyz = np.array([v["dVal1"], v["dVal2"], v["dVal3"]], dtype=float)
+            std = np.array([v["dStd1"], v["dStd2"], v["dStd3"]], dtype=float)
         if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(std))):
             raise ProtocolError(f"{self.name}: the server sent a non-finite measurement {xyz} ± {std}")
         self._last_xyz = xyz
-        return xyz, std, host_time
+        return xyz, std, host_time, rotation, std_deg
 
     def marker_names(self) -> list[str]:
         return [self.marker]
@@ -503,11 +538,12 @@ class EmsconSensor(SensorBase):
     def _read_internal(self, timeout: float) -> list[MarkerSample]:
         """One short stationary measurement; ``visible=False`` (NaN) when no reflector is locked."""
         try:
-            xyz, std, host_time = self._stationary_measurement(self.read_time_ms, timeout)
+            xyz, std, host_time, rotation, _ = self._stationary_measurement(self.read_time_ms, timeout)
         except TargetLostError as exc:
             self.log.info("%s", exc)
             return [MarkerSample(self.marker, np.full(3, np.nan), math.nan, self.clock(), visible=False)]
-        return [MarkerSample(self.marker, xyz, math.nan, host_time, visible=True, std_mm=float(np.mean(std)))]
+        return [MarkerSample(self.marker, xyz, math.nan, host_time, visible=True, std_mm=float(np.mean(std)),
+                             rotation=rotation)]
 
     def measure(self, marker: str, n: int, timeout: float) -> MarkerMeasurement:
         """One stationary measurement averaging ``n`` internal points (see the module
@@ -518,5 +554,5 @@ class EmsconSensor(SensorBase):
             raise ValueError(f"n must be an integer in 1..{MAX_AVERAGE}, got {n!r}")
         timeout = check_timeout(timeout)
         meas_ms = self.measure_time_ms or max(1, math.ceil(n * 1000.0 / self.point_rate_hz))
-        xyz, std, host_time = self._stationary_measurement(meas_ms, timeout)
-        return MarkerMeasurement(self.marker, xyz, std, n, math.nan, host_time)
+        xyz, std, host_time, rotation, std_deg = self._stationary_measurement(meas_ms, timeout)
+        return MarkerMeasurement(self.marker, xyz, std, n, math.nan, host_time, rotation=rotation, std_deg=std_deg)

@@ -11,6 +11,12 @@ ES_DataType type;}``: the size of the whole packet in bytes and what follows.
 - ``ES_DT_Error`` server → host: ``ErrorResponseT {header; command; status;}`` (``ErrorAnswer``).
 - ``ES_DT_SingleMeasResult`` / ``ES_DT_SingleMeasResult2`` / ``ES_DT_NivelResult`` /
   ``ES_DT_ReflectorPosResult``: ``ReturnDataT {header; status;}`` then values (``DataResult``).
+- ``ES_DT_StationaryProbeMeasResult``: ``ProbeStationaryResultT {ReturnDataT; ...}``, the result of
+  a 6-DoF stationary measurement (``ES_MM_6DStationary``): status words, the probe and tip, the
+  position with its std devs and covariances (measured and a-priori), the orientation as a
+  quaternion ``dQuaternion0..3`` (scalar ``dQuaternion0`` first; the header's SDK sample builds
+  the probe's x, y, z axes in tracker coordinates as the columns of its rotation matrix, so it is
+  ``R_tracker←probe``) and as rotation angles with their std devs, and the air (``DataResult``).
 - ``ES_DT_SystemStatusChange``: ``{header; ES_SystemStatusChange systemStatusChange;}``
   (``StatusChange``), unsolicited.
 
@@ -43,6 +49,11 @@ from drivers.emscon.enums import (  # noqa: F401 - re-exported: the codec speaks
     HumidityUnit,
     CoordinateSystem,
     MeasMode,
+    TriggerStatus,
+    MeasurementTipStatus,
+    ProbeType,
+    ProbeConnectionType,
+    ProbeButtonType,
     TargetType,
     TrackerStatus,
     SystemParameter,
@@ -115,6 +126,12 @@ LAYOUTS: dict[Cmd, tuple[Fields, Fields]] = {
     Cmd.GetLongSystemParameter: ((("systemParam", "I"),), (("systemParam", "I"), ("lParameter", "i"))),
     Cmd.GetMeasurementStatusInfo: ((), (("lastResultStatus", "I"), ("lMeasurementStatusInfo", "i"))),
     Cmd.GetSystemSoftwareVersion: ((), (("cSoftwareVersion", "w"),)),
+    Cmd.GetMeasurementProbeInfo: ((), (
+        ("iFirmwareMajorVersionNumber", "i"), ("iFirmwareMinorVersionNumber", "i"), ("lSerialNumber", "i"),
+        ("probeType", "I"), ("lCompensationIdNumber", "i"), ("lActiveField", "i"), ("connectionType", "I"),
+        ("lNumberOfTipAdapters", "i"), ("probeButtonType", "I"), ("lNumberOfFields", "i"),
+        ("bHasWideAngleReceiver", "i"), ("lNumberOfTipDataSets", "i"), ("lNumberOfMelodies", "i"),
+        ("lNumberOfLoudnesSteps", "i"))),
 }
 
 #: Values after ``ReturnDataT`` (header + status) of each result packet type.
@@ -130,6 +147,25 @@ RESULT_LAYOUTS: dict[DataType, Fields] = {
         ("dPointingErrorH", "d"), ("dPointingErrorV", "d"), ("dPointingErrorD", "d"),
         ("dAprioriStd1", "d"), ("dAprioriStd2", "d"), ("dAprioriStd3", "d"), ("dAprioriStdTotal", "d"),
         ("dAprioriCovar12", "d"), ("dAprioriCovar13", "d"), ("dAprioriCovar23", "d"), *_ENV),
+    DataType.StationaryProbeMeasResult: (  # ProbeStationaryResultT, 376 bytes with its ReturnDataT
+        ("measMode", "I"), ("bIsTryMode", "i"), ("triggerStatus", "I"), ("lRotationStatus", "i"),
+        ("iInternalProbeId", "i"), ("iFieldNumber", "i"), ("tipStatus", "I"), ("iInternalTipAdapterId", "i"),
+        ("iTipAdapterInterface", "i"),
+        ("dPosition1", "d"), ("dPosition2", "d"), ("dPosition3", "d"),
+        ("dStdDevPosition1", "d"), ("dStdDevPosition2", "d"), ("dStdDevPosition3", "d"), ("dStdDevPositionTotal", "d"),
+        ("dCovarPosition12", "d"), ("dCovarPosition13", "d"), ("dCovarPosition23", "d"),
+        ("dAprioriStdDevPosition1", "d"), ("dAprioriStdDevPosition2", "d"), ("dAprioriStdDevPosition3", "d"),
+        ("dAprioriStdDevPositionTotal", "d"),
+        ("dAprioriCovarPosition12", "d"), ("dAprioriCovarPosition13", "d"), ("dAprioriCovarPosition23", "d"),
+        ("dQuaternion0", "d"), ("dQuaternion1", "d"), ("dQuaternion2", "d"), ("dQuaternion3", "d"),
+        ("dRotationAngleX", "d"), ("dRotationAngleY", "d"), ("dRotationAngleZ", "d"),
+        ("dStdDevRotationAngleX", "d"), ("dStdDevRotationAngleY", "d"), ("dStdDevRotationAngleZ", "d"),
+        ("dStdDevRotationAngleTotal", "d"),
+        ("dCovarRotationAngleXY", "d"), ("dCovarRotationAngleXZ", "d"), ("dCovarRotationAngleYZ", "d"),
+        ("dAprioriStdDevRotationAngleX", "d"), ("dAprioriStdDevRotationAngleY", "d"),
+        ("dAprioriStdDevRotationAngleZ", "d"), ("dAprioriStdDevRotationAngleTotal", "d"),
+        ("dAprioriCovarRotationAngleXY", "d"), ("dAprioriCovarRotationAngleXZ", "d"),
+        ("dAprioriCovarRotationAngleYZ", "d"), *_ENV),
     DataType.NivelResult: (("nivelStatus", "I"), ("dXTilt", "d"), ("dYTilt", "d"), ("dNivelTemperature", "d")),
     DataType.ReflectorPosResult: _XYZ,
 }
@@ -434,5 +470,5 @@ def decode(frame: bytes) -> ServerPacket:
             raise ProtocolError(f"{t.name}: {size} bytes, its layout has {want}")
         (status,) = _WORD.unpack_from(frame, 8)
         return DataResult(t, status, _unpack(RESULT_LAYOUTS[t], _RESULT[t], frame[12:]))
-    raise ProtocolError(f"answer: {t.name} packets (continuous / probe modes) are not supported by this "
-                        "driver; use stationary measurements")
+    raise ProtocolError(f"answer: {t.name} packets (continuous modes) are not supported by this "
+                        "driver; use stationary (3D or 6D) measurements")

@@ -456,6 +456,52 @@ class MeasMode(IntEnum):
     SixDCircleCenter = 11
 
 
+class TriggerStatus(IntEnum):
+    """``ES_TriggerStatus``: the probe's trigger button in a 6-DoF result."""
+
+    TriggerNotPressed = 0
+    TriggerPressed = 1
+
+
+class MeasurementTipStatus(IntEnum):
+    """``ES_MeasurementTipStatus``: the probe's tip in a 6-DoF result."""
+
+    TipOK = 0
+    UnknownTip = 1
+    MultipleTipsAttached = 2
+
+
+class ProbeType(IntEnum):
+    """``ES_ProbeType`` (``GetMeasurementProbeInfo``): a T-Mac is ``MachineControlProbe``."""
+
+    None_ = 0  # ES_PT_None
+    Reflector = 1
+    TProbe = 2
+    TScan = 3
+    MachineControlProbe = 4
+    MachineControlProbeMultiSide = 5
+    TCamToTrackerTool = 100
+    ZoomArtifactTool = 200
+
+
+class ProbeConnectionType(IntEnum):
+    """``ES_ProbeConnectionType``."""
+
+    None_ = 0  # ES_PCT_None
+    CableController = 1
+    CableSensor = 2
+    IRLaser = 3
+    IRWideAngle = 4
+
+
+class ProbeButtonType(IntEnum):
+    """``ES_ProbeButtonType``."""
+
+    None_ = 0  # ES_PBT_None
+    Measurement = 1
+    FourButton = 2  # ES_PBT_4Button
+
+
 class TargetType(IntEnum):
     Unknown = 0
     CornerCube = 1

@@ -27,8 +27,17 @@ Behaviour, from the TPI header and manual where they say it, our choice (marked)
   before ``Initialize`` → ``TrackerNotInitialized``; ``FindReflector`` that finds nothing →
   ``MeasurementStatusNotReady`` (*our choice; unverified*); ``GoPosition`` always succeeds (the
   beam moved) and the lock shows in ``GetTrackerStatus`` and the notifications.
-- Only the RHR (Cartesian, right-handed) coordinate system and stationary mode are emulated;
-  the others are refused with ``NotImplemented``. Every length, temperature and pressure on the
+- 6-DoF: when the tracker carries a 6-DoF target (``FakeTracker(six_dof=True)``, a T-Mac:
+  ``GetMeasurementProbeInfo`` says ``ES_PT_MachineControlProbe``), ``SetMeasurementMode
+  (ES_MM_6DStationary)`` is accepted and ``StartMeasurement`` answers one ``ProbeStationaryResultT``
+  (``ES_DT_StationaryProbeMeasResult``): the tracker's ``POSE`` average (position, quaternion
+  ``R_tracker←probe`` scalar first, per-axis spreads). Without one, 6D modes are refused with
+  ``ES_RS_6DModeNotAllowed`` and ``GetMeasurementProbeInfo`` with ``ES_RS_NoMeasurementProbe``.
+  The rotation angles ``dRotationAngleX/Y/Z`` are filled as R = Rz(Z)·Ry(Y)·Rx(X) in the angle
+  unit set (*our choice*: the header does not state their convention; our client reads the
+  quaternion), their std devs with the rotation-vector spread per axis.
+- Only the RHR (Cartesian, right-handed) coordinate system and stationary (3D or 6D) modes are
+  emulated; the others are refused with ``NotImplemented``. Every length, temperature and pressure on the
   wire is in the units set with ``SetUnits`` (default after start: mm, °C, mbar... as ``units``).
 - A stationary measurement of ``lMeasTime`` ms averages lMeasTime·rate/1000 points of the
   tracker (``FakeTracker.average_rate_hz``); ``dStd1..3`` are their per-axis spread,
@@ -52,6 +61,7 @@ from drivers.tracker.codec import (
     Environment,
     ErrorCode,
     MeasureAverage,
+    MeasurePose,
     Search,
     SelectReflector,
 )
@@ -278,6 +288,15 @@ class FakeEmscon:
             t.tick()
             flags = 1 | 2 | 4 | 8 | 4096 | (2048 if t.locked else 0) | (65536 if self.initialized else 0)
             return [ok(c, Status.AllOK, {"lastResultStatus": int(self.last_status), "lMeasurementStatusInfo": flags})]
+        if c is Cmd.GetMeasurementProbeInfo:
+            if not self.tracker.six_dof:
+                raise _Refused(Status.NoMeasurementProbe, "no 6-DoF probe on this tracker")
+            return [ok(c, Status.AllOK, {
+                "iFirmwareMajorVersionNumber": 1, "iFirmwareMinorVersionNumber": 0, "lSerialNumber": self.serial + 1,
+                "probeType": int(es.ProbeType.MachineControlProbe), "lCompensationIdNumber": 1, "lActiveField": 0,
+                "connectionType": int(es.ProbeConnectionType.CableSensor), "lNumberOfTipAdapters": 1,
+                "probeButtonType": int(es.ProbeButtonType.None_), "lNumberOfFields": 1, "bHasWideAngleReceiver": 0,
+                "lNumberOfTipDataSets": 1, "lNumberOfMelodies": 0, "lNumberOfLoudnesSteps": 0})]
         if c is Cmd.GetSystemSoftwareVersion:
             return [ok(c, Status.AllOK, {"cSoftwareVersion": f"emScon {es.API_VERSION[0]}.{es.API_VERSION[1]}.{self.build} (remaster fake)"[:32]})]
         if c is Cmd.SetUnits:
@@ -301,8 +320,12 @@ class FakeEmscon:
         if c is Cmd.GetCoordinateSystemType:
             return [ok(c, Status.AllOK, {"coordSysType": int(self.coord_sys)})]
         if c is Cmd.SetMeasurementMode:
-            if p["measMode"] != es.MeasMode.Stationary:
-                raise _Refused(Status.NotImplemented, "this fake emulates stationary measurements only")
+            mode = p["measMode"]
+            if mode == es.MeasMode.SixDStationary and not self.tracker.six_dof:
+                raise _Refused(Status.SixDModeNotAllowed, "no 6-DoF probe on this tracker")
+            if mode not in (es.MeasMode.Stationary, es.MeasMode.SixDStationary):
+                raise _Refused(Status.NotImplemented, "this fake emulates stationary (3D and 6D) measurements only")
+            self.meas_mode = es.MeasMode(mode)
             after.append(SSC.MeasurementModeChanged)
             return [ok(c, Status.AllOK)]
         if c is Cmd.GetMeasurementMode:
@@ -380,7 +403,7 @@ class FakeEmscon:
             return out
         if c is Cmd.StartMeasurement:
             self._need_initialized()
-            return [self._stationary()]
+            return [self._six_d() if self.meas_mode == es.MeasMode.SixDStationary else self._stationary()]
         if c is Cmd.StopMeasurement or c is Cmd.ExitApplication:
             return [ok(c, Status.AllOK)]
         if c in (Cmd.GoPosition, Cmd.PointLaser, Cmd.GoBirdBath, Cmd.Park, Cmd.GoLastMeasuredPoint):
@@ -435,6 +458,53 @@ class FakeEmscon:
             "dPointingError1": 0.0, "dPointingError2": 0.0, "dPointingError3": 0.0,
             "dAprioriStd1": v(sigma), "dAprioriStd2": v(sigma), "dAprioriStd3": v(sigma),
             "dAprioriStdTotal": v(sigma * math.sqrt(3.0)), **air})
+
+
+    def _six_d(self) -> es.DataResult:
+        """A 6-DoF stationary measurement (``ProbeStationaryResultT``) from the tracker's POSE."""
+        from calib.robot.transforms import matrix_to_euler_zyx, quat_to_matrix
+
+        t = self.tracker
+        n = max(1, min(MAX_AVERAGE, round(self.meas_time_ms * t.average_rate_hz / 1000.0)))
+        t.tick()
+        was_locked = t.locked
+        try:
+            pose = self._run(MeasurePose(n))
+        except _Refused as exc:
+            if exc.status is Status.MeasurementStatusNotReady and was_locked and not t.locked:
+                raise _Refused(Status.NoStationaryResult, "the beam broke during the measurement") from None
+            raise
+        xyz, std = pose.xyz_mm, pose.std_xyz_mm
+        self.last_point_mm = xyz
+        sigma = t.sigma_mm(float(np.linalg.norm(xyz)))
+        a_sigma = math.degrees(t.attitude_noise_rad)
+        yaw, pitch, roll = matrix_to_euler_zyx(quat_to_matrix(pose.quat_wxyz))
+        ang = {es.AngleUnit.Radian: math.radians(1.0), es.AngleUnit.Degree: 1.0,
+               es.AngleUnit.Gon: 400.0 / 360.0}[es.AngleUnit(self.units["angUnitType"])]  # per degree
+        srot = pose.std_rot_deg * ang
+        v = self._from_mm
+        return es.DataResult(es.DataType.StationaryProbeMeasResult, Status.AllOK, {
+            "measMode": int(es.MeasMode.SixDStationary), "bIsTryMode": 0,
+            "triggerStatus": int(es.TriggerStatus.TriggerNotPressed), "lRotationStatus": 0,
+            "iInternalProbeId": 1, "iFieldNumber": 0, "tipStatus": int(es.MeasurementTipStatus.TipOK),
+            "iInternalTipAdapterId": 1, "iTipAdapterInterface": 0,
+            "dPosition1": v(xyz[0]), "dPosition2": v(xyz[1]), "dPosition3": v(xyz[2]),
+            "dStdDevPosition1": v(std[0]), "dStdDevPosition2": v(std[1]), "dStdDevPosition3": v(std[2]),
+            "dStdDevPositionTotal": v(float(np.linalg.norm(std))),
+            "dCovarPosition12": 0.0, "dCovarPosition13": 0.0, "dCovarPosition23": 0.0,
+            "dAprioriStdDevPosition1": v(sigma), "dAprioriStdDevPosition2": v(sigma),
+            "dAprioriStdDevPosition3": v(sigma), "dAprioriStdDevPositionTotal": v(sigma * math.sqrt(3.0)),
+            "dAprioriCovarPosition12": 0.0, "dAprioriCovarPosition13": 0.0, "dAprioriCovarPosition23": 0.0,
+            "dQuaternion0": pose.qw, "dQuaternion1": pose.qx, "dQuaternion2": pose.qy, "dQuaternion3": pose.qz,
+            "dRotationAngleX": math.degrees(roll) * ang, "dRotationAngleY": math.degrees(pitch) * ang,
+            "dRotationAngleZ": math.degrees(yaw) * ang,
+            "dStdDevRotationAngleX": float(srot[0]), "dStdDevRotationAngleY": float(srot[1]),
+            "dStdDevRotationAngleZ": float(srot[2]), "dStdDevRotationAngleTotal": float(np.linalg.norm(srot)),
+            "dCovarRotationAngleXY": 0.0, "dCovarRotationAngleXZ": 0.0, "dCovarRotationAngleYZ": 0.0,
+            "dAprioriStdDevRotationAngleX": a_sigma * ang, "dAprioriStdDevRotationAngleY": a_sigma * ang,
+            "dAprioriStdDevRotationAngleZ": a_sigma * ang, "dAprioriStdDevRotationAngleTotal": a_sigma * ang * math.sqrt(3.0),
+            "dAprioriCovarRotationAngleXY": 0.0, "dAprioriCovarRotationAngleXZ": 0.0,
+            "dAprioriCovarRotationAngleYZ": 0.0, **self._air_values()})
 
 
 class EmsconServer(TcpTrackerServer):

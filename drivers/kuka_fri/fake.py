@@ -10,13 +10,11 @@ counters, timing, echo and step sizes, and exposes fault hooks for the failure p
 ``inject_fault`` / ``clear_fault``; the robot application's own steps: ``open_session``,
 ``close_session``, ``start_commanding``, ``stop_commanding``, ``stop``.
 
-Message layouts (``fri_version``), from the generated tables of KUKA's FRI client SDK:
-``"1.15"`` (Sunrise.OS 1.x: monitor data carries ``commandedJointPosition``, field 3),
-``"2.5"`` (no field 3; measured and ipo Cartesian pose in mm and quaternion, E1 redundancy)
-and ``"2.7"`` (as 2.5 without ``endOfMessageData``, and every datagram, both ways, framed with a
-length and a CRC-32: ``framing``; an answer in the other framing is malformed, as it is to the
-SDK). The Cartesian pose is the flange of the nominal LBR iiwa 14 R820 kinematics, as the
-controller's own model would compute it.
+Message layouts (``fri_version``: ``"1.15"``, ``"2.5"``, ``"2.7"``) are built in
+``fake_monitoring``; in 2.7 every datagram, both ways, is framed with a length and a CRC-32
+(``framing``), and an answer in the other framing is malformed, as it is to the SDK. The joints
+are ``fake_servo.JointServo``; answer windows and quality are scored by
+``fake_windows.AnswerWindows``.
 
 Like a cabinet: nothing is sent until the robot application opens the FRI session (the first
 message already says MONITORING_WAIT; an SDK example reading IDLE would quit); when the
@@ -48,87 +46,47 @@ Session state machine (see ``PROTOCOL.md``)::
     any non-IDLE --(max_missed consecutive unanswered windows)--> MONITORING_WAIT
     any --(close_session / stop: closing_idle_messages IDLE messages; restart: silent)--> IDLE
 
-An answer *window* is ``receive_multiplier`` consecutive monitoring messages; the client must
-answer one message of each window before the window's last message is followed by the next.
-An answer reflecting an older message is *late*; a window without a timely answer is *missed*.
-Quality is taken over the last ``quality_window`` windows: no miss EXCELLENT, up to 10 % GOOD,
-up to 30 % FAIR, else POOR.
+Answer windows, late answers and connection quality: see ``fake_windows``.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import os
-import select
-import socket
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
 
 from drivers.errors import ProtocolError
-from drivers.kuka_fri.framing import frame, unframe
+from drivers.kuka_fri.fake_monitoring import (
+    MALFORMED_KINDS,
+    ControllerView,
+    malformed_datagram,
+    monitoring_datagram,
+    nominal_flange_pose,
+)
+from drivers.kuka_fri.fake_port import FriPort
+from drivers.kuka_fri.fake_servo import N_JOINTS, JointServo, set_point_violation
+from drivers.kuka_fri.fake_windows import AnswerWindows
+from drivers.kuka_fri.framing import unframe
 from drivers.kuka_fri.messages import (
-    COMMAND_MESSAGE_ID,
-    MONITORING_MESSAGE_ID,
-    ClientCommandMode,
-    EndOfMessage,
-    QuaternionTransformation,
-    RedundancyInformation,
-    RedundancyStrategy,
-    ConnectionInfo,
     ConnectionQuality,
-    ControlMode,
     DriveState,
-    FRIMonitoringMessage,
-    IODirection,
-    IOType,
-    IOValue,
-    IpoData,
-    MessageHeader,
-    MonitorData,
-    OperationMode,
-    OverlayType,
-    RobotInfo,
     SafetyState,
     SessionState,
-    TimeStamp,
     decode_command,
 )
 from drivers.protocols import JointLimits
 
 log = logging.getLogger("remaster.fake.sunrise")
 
-N_JOINTS = 7
+__all__ = ["FRI_VERSIONS", "MALFORMED_KINDS", "FakeSunrise", "FakeSunriseStats", "nominal_flange_pose"]
+
 _LOOPBACK = {"127.0.0.1", "localhost", "::1"}
 FRI_VERSIONS = ("1.15", "2.5", "2.7")
-#: Wall seconds between tries to take the FRI port, until a client holds its port (``_claim_fri_port``).
-_CLAIM_EVERY_S = 0.5
-MALFORMED_KINDS = ("garbage", "truncated", "wrong_id", "bad_crc")
-
-#: Nominal LBR iiwa 14 R820, standard DH (d mm, alpha rad; a = 0): the controller's own model.
-_IIWA14_D = np.array([360.0, 0.0, 420.0, 0.0, 400.0, 0.0, 126.0])
-_IIWA14_ALPHA = np.radians([-90.0, 90.0, 90.0, -90.0, -90.0, 90.0, 0.0])
-
-
-def nominal_flange_pose(q_rad: np.ndarray) -> tuple[float, ...]:
-    """Flange pose of the nominal iiwa 14 at joints ``q_rad`` (7,): ``(t_x, t_y, t_z, q_w,
-    q_x, q_y, q_z)``, translation in mm, unit quaternion (FRI 2.x ``QuaternionTransformation``)."""
-    T = np.eye(4)
-    for th, d, al in zip(q_rad, _IIWA14_D, _IIWA14_ALPHA):
-        ct, st, ca, sa = math.cos(th), math.sin(th), math.cos(al), math.sin(al)
-        T = T @ np.array([[ct, -st * ca, st * sa, 0.0], [st, ct * ca, -ct * sa, 0.0],
-                          [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]])
-    R = T[:3, :3]
-    w = math.sqrt(max(0.0, 1.0 + R[0, 0] + R[1, 1] + R[2, 2])) / 2.0
-    x = math.copysign(math.sqrt(max(0.0, 1.0 + R[0, 0] - R[1, 1] - R[2, 2])) / 2.0, R[2, 1] - R[1, 2])
-    y = math.copysign(math.sqrt(max(0.0, 1.0 - R[0, 0] + R[1, 1] - R[2, 2])) / 2.0, R[0, 2] - R[2, 0])
-    z = math.copysign(math.sqrt(max(0.0, 1.0 - R[0, 0] - R[1, 1] + R[2, 2])) / 2.0, R[1, 0] - R[0, 1])
-    return (*T[:3, 3].tolist(), w, x, y, z)
 
 
 @dataclass
@@ -155,7 +113,7 @@ class FakeSunrise:
     controller_host: loopback address the fake sends from, on the client's port (the FRI port,
         as Sunrise does), taken once a client holds its port; until then, and if it cannot be
         bound (a client holding the port on every address, as KUKA's SDK binds it), the fake
-        sends from an ephemeral port on 127.0.0.1 (``_claim_fri_port``).
+        sends from an ephemeral port on 127.0.0.1 (``fake_port.FriPort.claim``).
     idle_cycles: silent cycles before the session opens by itself (``auto_open``) at start and
         after a ``restart``.
     closing_idle_messages: IDLE messages sent when the application closes the session.
@@ -258,23 +216,14 @@ class FakeSunrise:
         self.application_start_cycles = int(application_start_cycles)
         self.overruns = 0
         self._rng = np.random.default_rng(seed)
-        self._omega = 2 * math.pi * servo_frequency_hz
-        self._zeta = servo_damping
 
         if initial_position_rad is None:
             initial_position_rad = (
                 np.asarray(scene.joint_positions(), dtype=float) if scene is not None else np.zeros(N_JOINTS)
             )
-        q0 = np.asarray(initial_position_rad, dtype=float).copy()
-        if q0.shape != (N_JOINTS,):
-            raise ValueError(f"initial_position_rad must have shape ({N_JOINTS},), got {q0.shape}")
-        self._q = q0  # actual position, rad
-        self._qd = np.zeros(N_JOINTS)  # actual velocity, rad/s
-        self._setpoint = q0.copy()  # commanded position (ipo + the client's overlay), rad
-        self._ipo = q0.copy()  # the interpolator's position: the application's motion, rad
-        self._windows_since_applied = 1
-        self._guide = np.zeros(N_JOINTS)  # the operator's hand: displacement from the set-point, rad
-        self._compliant = False  # joint-impedance mode while someone guides the arm
+        self._servo = JointServo(initial_position_rad, servo_frequency_hz, servo_damping)
+        self._ipo = self._servo.q.copy()  # the interpolator's position: the application's motion, rad
+        self._windows = AnswerWindows(receive_multiplier, quality_window)
         for name in inputs:
             if not (isinstance(name, str) and 0 < len(name.encode("utf-8")) <= 63):
                 raise ValueError(f"an FRI IO name is 1–63 bytes of UTF-8 (<IO group>.<IO>), got {name!r}")
@@ -287,16 +236,9 @@ class FakeSunrise:
         self._seq = 0  # our counter, next message
         self._client_seq = 0  # last counter the client sent
         self._cycles_in_state = 0
-        self._window_first_seq = 0
         self._idle_first_seq = 0  # first counter sent since the session went IDLE
         self._idle_to_send = 0  # IDLE messages still to send after the session was closed
-        self._brakes_held = False  # hold_brakes(): the joints do not follow the set-point
         self._ended = False  # the robot application ended (stop, max_runtime_s): no re-opening
-        self._window_count = 0
-        self._window_answered = False
-        self._windows: deque[bool] = deque(maxlen=quality_window)
-        self._consecutive_missed = 0
-        self._consecutive_good = 0
         self._first_active_command = True
         self._drop_next = 0
         self._malformed_next: list[str] = []
@@ -304,9 +246,7 @@ class FakeSunrise:
         self._safety = SafetyState.NORMAL_OPERATION
         self._drives = DriveState.ACTIVE
         self._sim_time = 0.0
-        self._sock: Optional[socket.socket] = None
-        self._on_fri_port = False  # sending from controller_host:client port (``_claim_fri_port``)
-        self._warned_port = False
+        self._port: Optional[FriPort] = None
         self._thread: Optional[threading.Thread] = None
         self._stop = threading.Event()
 
@@ -315,9 +255,9 @@ class FakeSunrise:
     @property
     def address(self) -> tuple[str, int]:
         """The fake's own (host, port): where the client's answers go."""
-        if self._sock is None:
+        if self._port is None:
             raise RuntimeError("FakeSunrise is not started")
-        return self._sock.getsockname()
+        return self._port.address
 
     @property
     def session_state(self) -> SessionState:
@@ -332,24 +272,20 @@ class FakeSunrise:
     def actual_position(self) -> np.ndarray:
         """The servo's actual joint positions, shape (7,), radians."""
         with self._lock:
-            return self._q.copy()
+            return self._servo.q.copy()
 
     def setpoint(self) -> np.ndarray:
         """The commanded position the servo holds (the client's last set-point), shape (7,), rad."""
         with self._lock:
-            return self._setpoint.copy()
+            return self._servo.setpoint.copy()
 
     def hand_guide(self, displacement_rad: np.ndarray) -> None:
         """A person pushes the arm: the joint-impedance servo settles at set-point +
         ``displacement_rad`` (7,) instead of the set-point, and the monitoring messages say
         JOINT_IMPEDANCE_CONTROL_MODE (the robot application's hand-guiding mode, in which an iiwa
         yields to the hand). Zeros: the hand lets go and the arm springs back."""
-        d = np.asarray(displacement_rad, dtype=float)
-        if d.shape != (N_JOINTS,) or not np.all(np.isfinite(d)):
-            raise ValueError(f"displacement must be {N_JOINTS} finite angles (rad), got {d!r}")
         with self._lock:
-            self._guide = d.copy()
-            self._compliant = self._compliant or bool(np.any(d))
+            self._servo.push(displacement_rad)
 
     def release(self) -> None:
         """The hand lets go."""
@@ -367,53 +303,11 @@ class FakeSunrise:
         """Bind the FRI port on ``controller_host`` (see the class docstring) and start."""
         if self._thread is not None:
             raise RuntimeError("FakeSunrise already started")
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind(("127.0.0.1", 0))
-        self._sock.setblocking(False)
-        self._claim_fri_port()
+        self._port = FriPort(self.client_address, self.controller_host)
+        self._port.claim(self._on_answer)
         self._thread = threading.Thread(target=self._run, name="fake-sunrise", daemon=True)
         self._thread.start()
         return self
-
-    def _claim_fri_port(self) -> None:
-        """Send from the FRI port (``controller_host``:client port) once a client holds its
-        port, as Sunrise does. Not before: a client that binds the port on every address (KUKA's
-        SDK does, without ``SO_REUSEADDR``) could not start while we held it. If the client holds
-        it on every address we cannot bind it either: we keep sending from an ephemeral port
-        (such a client answers whoever sent). KUKA's SDK given a controller host ``connect()``s,
-        which on Linux narrows its socket to one local address (127.0.0.1 for 127.0.0.2), so the
-        port on ``controller_host`` is then free. Called at start and every ``_CLAIM_EVERY_S``
-        from the send thread."""
-        if self._on_fri_port:
-            return
-        host, port = self.client_address
-        probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            probe.bind((host, port))  # succeeds only while no client holds the port
-        except OSError:
-            pass
-        else:
-            return
-        finally:
-            probe.close()
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.bind((self.controller_host, port))
-        except OSError as exc:
-            sock.close()
-            if not self._warned_port:
-                self._warned_port = True
-                log.info(  # such a client answers whoever sends: it works, it is only not a cabinet's port
-                    "fake Sunrise: sending from %s:%d, not the FRI port %s:%d (%s): the FRI client holds its "
-                    "port on every address (KUKA's SDK example started without a controller host)",
-                    *self._sock.getsockname(), self.controller_host, port, exc)
-            return
-        sock.setblocking(False)
-        old, self._sock = self._sock, sock
-        self._on_fri_port = True
-        self._drain(old)  # answers already sent to the old port
-        old.close()
-        log.info("fake Sunrise: sending from the FRI port %s:%d", self.controller_host, port)
 
     def stop(self, close_session: bool = True) -> None:
         """The robot application ends (idempotent): with ``close_session`` it closes the FRI
@@ -434,8 +328,8 @@ class FakeSunrise:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
-        if self._sock is not None:
-            self._sock.close()
+        if self._port is not None:
+            self._port.close()
 
     def __enter__(self) -> "FakeSunrise":
         return self.start()
@@ -507,8 +401,7 @@ class FakeSunrise:
         with self._lock:
             self._seq = 0
             self._client_seq = 0
-            self._windows.clear()
-            self._consecutive_good = self._consecutive_missed = 0
+            self._windows.forget()
             self._set_state(SessionState.IDLE, "controller restart")
             self._idle_to_send = 0
 
@@ -532,7 +425,7 @@ class FakeSunrise:
                 self._drop_session("injected session drop")
             else:
                 raise ValueError(f"kind must be drives_off, safety_stop or session_drop, got {kind!r}")
-            self._qd[:] = 0.0
+            self._servo.halt()
 
     def drives_off(self) -> None:
         """Drives off (brakes hold); the monitoring messages say so. Same as ``inject_fault``."""
@@ -546,14 +439,14 @@ class FakeSunrise:
         """The joints stay where they are (a brake that does not release, a seized gear) while
         the controller reports everything normal and keeps taking the client's set-points."""
         with self._lock:
-            self._brakes_held = bool(held)
-            self._qd[:] = 0.0
+            self._servo.brakes_held = bool(held)
+            self._servo.halt()
 
     def clear_fault(self) -> None:
         with self._lock:
             self._drives = DriveState.ACTIVE
             self._safety = SafetyState.NORMAL_OPERATION
-            self._setpoint = self._q - self._guide
+            self._servo.hold_here()
 
     # ------------------------------------------------------------------ internals (lock held)
 
@@ -562,14 +455,14 @@ class FakeSunrise:
             log.info("fake Sunrise: %s -> %s (%s)", self._state.name, new.name, why)
             self._state = new
             self._cycles_in_state = 0
-            self._consecutive_good = 0
+            self._windows.consecutive_good = 0
             if new == SessionState.COMMANDING_WAIT:
-                self._ipo = self._setpoint.copy()  # the overlay motion holds where the robot is
+                self._ipo = self._servo.setpoint.copy()  # the overlay motion holds where the robot is
             if new == SessionState.COMMANDING_ACTIVE:
                 self._first_active_command = True
-                self._windows_since_applied = 1
+                self._windows.since_applied = 1
             if new == SessionState.IDLE:
-                self._setpoint = self._q - self._guide  # a hand on the arm does not move the set-point
+                self._servo.hold_here()
                 self._idle_first_seq = self._seq
             self._state_changed.notify_all()
 
@@ -588,16 +481,7 @@ class FakeSunrise:
             self._set_state(SessionState.MONITORING_READY, f"motion aborted: {text}")
 
     def _quality(self) -> ConnectionQuality:
-        if not self._windows:
-            return ConnectionQuality.POOR
-        miss = sum(self._windows) / len(self._windows)
-        if miss == 0:
-            return ConnectionQuality.EXCELLENT
-        if miss <= 0.1:
-            return ConnectionQuality.GOOD
-        if miss <= 0.3:
-            return ConnectionQuality.FAIR
-        return ConnectionQuality.POOR
+        return self._windows.quality()
 
     def _receive_period_s(self) -> float:
         return self.send_period_ms * self.receive_multiplier / 1000.0
@@ -631,21 +515,21 @@ class FakeSunrise:
             self.stats.bad_reflections += 1
             log.warning("fake Sunrise: answer reflects %d, never sent (last %d)", r, last_sent)
             return
-        if r < self._window_first_seq:
+        if r < self._windows.first_seq:
             self.stats.late_answers += 1
             return
-        if self._window_answered:
+        if self._windows.answered:
             return  # a second answer in one window: nothing more to apply
-        self._window_answered = True
+        self._windows.answered = True
         self._client_seq = msg.header.sequence_counter
         jp = None if msg.command_data is None else msg.command_data.joint_position
         if self._state == SessionState.COMMANDING_WAIT:
             if jp is None or len(jp) != N_JOINTS:
                 self.stats.violations.append("COMMANDING_WAIT answer without 7 joint positions")
-                self._consecutive_good = -1
+                self._windows.consecutive_good = -1
             elif np.max(np.abs(np.asarray(jp) - self._ipo)) > self.echo_tolerance_rad:
                 self.stats.violations.append("COMMANDING_WAIT answer does not echo the ipo position")
-                self._consecutive_good = -1
+                self._windows.consecutive_good = -1
         elif self._state == SessionState.COMMANDING_ACTIVE:
             self._apply_command(jp)
 
@@ -658,12 +542,9 @@ class FakeSunrise:
         if self._drives != DriveState.ACTIVE or self._safety != SafetyState.NORMAL_OPERATION:
             return  # brakes hold; the set-point is not taken
         cmd = np.asarray(jp, dtype=float)
-        if not np.all(np.isfinite(cmd)):
-            self._violation(f"non-finite command {cmd}")
-            return
-        if self._first_active_command:
+        if self._first_active_command and np.all(np.isfinite(cmd)):
             self._first_active_command = False
-            jump = np.max(np.abs(cmd - (self._q - self._guide)))  # a hand on the arm is not the client's
+            jump = np.max(np.abs(cmd - self._servo.unguided()))  # a hand on the arm is not the client's
             if jump > self.start_tolerance_rad:
                 self._violation(
                     f"first command is {jump:.4g} rad from the measured position "
@@ -673,151 +554,65 @@ class FakeSunrise:
         # The client advances one step per answer; a window whose answer was lost or late
         # leaves the robot a step behind, so the speed is judged over the windows since the
         # last set-point we took.
-        dt = self._receive_period_s() * self._windows_since_applied
-        step = cmd - self._setpoint
-        if self.limits is not None:
-            lim = self.limits
-            out = (cmd < lim.lower_rad) | (cmd > lim.upper_rad)
-            if np.any(out):
-                self._violation(f"command outside joint limits on axes {np.flatnonzero(out) + 1}")
-                return
-            speed = np.abs(step) / dt
-            if np.any(speed > lim.max_velocity_rad_s * (1 + self.speed_tolerance)):
-                i = int(np.argmax(speed / lim.max_velocity_rad_s))
-                self._violation(
-                    f"commanded speed {speed[i]:.4g} rad/s on A{i + 1} above "
-                    f"{lim.max_velocity_rad_s[i]:.4g} rad/s"
-                )
-                return
-        self._setpoint = cmd
-        self._windows_since_applied = 0
+        dt = self._receive_period_s() * self._windows.since_applied
+        why = set_point_violation(cmd, self._servo.setpoint, dt, self.limits, self.speed_tolerance)
+        if why is not None:
+            self._violation(why)
+            return
+        self._servo.setpoint = cmd
+        self._windows.since_applied = 0
         self.stats.commands.append((self._sim_time, cmd.copy()))
 
-    def _step_servo(self, dt: float) -> None:
-        if (self._brakes_held or self._drives != DriveState.ACTIVE
-                or self._safety != SafetyState.NORMAL_OPERATION):
-            self._qd[:] = 0.0
-            return
-        n_sub = max(1, int(math.ceil(dt / 0.0005)))
-        h = dt / n_sub
-        w, z = self._omega, self._zeta
-        for _ in range(n_sub):  # semi-implicit Euler, stable for w*h << 1
-            acc = w * w * (self._setpoint + self._guide - self._q) - 2 * z * w * self._qd
-            self._qd += acc * h
-            self._q += self._qd * h
+    def _powered(self) -> bool:
+        return self._drives == DriveState.ACTIVE and self._safety == SafetyState.NORMAL_OPERATION
 
     def _close_window(self) -> None:
-        """End of a receive window: score it, update quality, walk the state machine."""
+        """End of a receive window: score it, walk the state machine."""
+        w = self._windows
         if self._state == SessionState.IDLE:
-            self._window_answered = False
+            w.skip()
             return
-        missed = not self._window_answered
-        self._windows.append(missed)
-        self._windows_since_applied += 1
-        if missed:
+        if w.close():
             self.stats.missed_windows += 1
-            self._consecutive_missed += 1
-            self._consecutive_good = 0
-        else:
-            self._consecutive_missed = 0
-            self._consecutive_good += 1
-        self._window_answered = False
-        if self._consecutive_missed >= self.max_missed and self._state != SessionState.MONITORING_WAIT:
-            self._drop_session(f"{self._consecutive_missed} answer windows missed in a row")
+        if w.consecutive_missed >= self.max_missed and self._state != SessionState.MONITORING_WAIT:
+            self._drop_session(f"{w.consecutive_missed} answer windows missed in a row")
             return
-        good = self._quality() >= ConnectionQuality.GOOD
-        if self._state == SessionState.MONITORING_WAIT and good and self._consecutive_good >= self.ready_after:
+        good = w.quality() >= ConnectionQuality.GOOD
+        if self._state == SessionState.MONITORING_WAIT and good and w.consecutive_good >= self.ready_after:
             self._set_state(SessionState.MONITORING_READY, "connection quality good")
         elif (
             self._state == SessionState.COMMANDING_WAIT
             and good
-            and self._consecutive_good >= self.commanding_wait_cycles
+            and w.consecutive_good >= self.commanding_wait_cycles
         ):
             self._set_state(SessionState.COMMANDING_ACTIVE, "client echoes the ipo position")
 
     def _build(self) -> bytes:
-        q = self._q + (self._rng.normal(0.0, self.noise_rad, N_JOINTS) if self.noise_rad else 0.0)
-        commanding = self._state in (SessionState.COMMANDING_WAIT, SessionState.COMMANDING_ACTIVE)
-        v1 = self.fri_version.startswith("1.")
-        stamp = TimeStamp.from_seconds(time.time())  # the controller's clock: time of day, not simulated time
-        pose = red = ipo_pose = ipo_red = None
-        if not v1:
-            pose = QuaternionTransformation("flange", nominal_flange_pose(q), stamp)
-            red = RedundancyInformation(RedundancyStrategy.E1, float(q[2]))
-            if commanding:
-                ipo_pose = QuaternionTransformation("flange", nominal_flange_pose(self._ipo), stamp)
-                ipo_red = RedundancyInformation(RedundancyStrategy.E1, float(self._ipo[2]))
-        msg = FRIMonitoringMessage(
-            header=MessageHeader(MONITORING_MESSAGE_ID, self._seq, self._client_seq),
-            robot_info=RobotInfo(
-                number_of_joints=N_JOINTS,
-                safety_state=self._safety,
-                drive_state=(self._drives,) * N_JOINTS,
-                operation_mode=OperationMode.AUTOMATIC_MODE,
-                control_mode=ControlMode.JOINT_IMPEDANCE_CONTROL_MODE if self._compliant else ControlMode.POSITION_CONTROL_MODE,
-            ),
-            monitor_data=MonitorData(
-                measured_joint_position=tuple(q.tolist()),
-                measured_torque=(0.0,) * N_JOINTS,
-                commanded_joint_position=tuple(self._setpoint.tolist()) if v1 else None,
-                timestamp=stamp,
-                measured_cartesian_pose=pose,
-                measured_redundancy=red,
-                io=tuple(IOValue(name, IOType.BOOLEAN, IODirection.INPUT, int(v)) for name, v in self._inputs.items()),
-            ),
-            connection_info=ConnectionInfo(
-                self._state, self._quality(), self.send_period_ms, self.receive_multiplier
-            ),
-            ipo_data=IpoData(
-                joint_position=tuple(self._ipo.tolist()) if commanding else None,
-                client_command_mode=ClientCommandMode.POSITION if commanding else ClientCommandMode.NO_COMMAND_MODE,
-                overlay_type=OverlayType.JOINT if commanding else OverlayType.NO_OVERLAY,
-                cartesian_pose=ipo_pose,
-                redundancy=ipo_red,
-            ),
-        )
-        body = msg.encode()
-        if self.fri_version == "2.7":
-            return frame(body)  # no endOfMessageData; length and CRC-32 around the message
-        # 1.x and 2.5 close with endOfMessageData; the SDK's decoder does not read it. We state
-        # the length of what precedes it (unverified against a real controller).
-        return FRIMonitoringMessage.encode(
-            FRIMonitoringMessage(msg.header, msg.robot_info, msg.monitor_data, msg.connection_info,
-                                 msg.ipo_data, EndOfMessage(message_length=len(body)))
-        )
-
-    def _malformed_bytes(self, kind: str, good: bytes) -> bytes:
-        if kind == "bad_crc":  # an FRI 2.7 frame whose CRC-32 does not match its message
-            body = unframe(good)[0]
-            bad = frame(body)
-            return bad[:-4] + bytes(b ^ 0xFF for b in bad[-4:])
-        if kind == "garbage":
-            return self._rng.integers(0, 256, size=int(self._rng.integers(1, 64)), dtype=np.uint8).tobytes()
-        if kind == "truncated":
-            return good[: max(1, len(good) // 2)]
-        # wrong_id: a well-formed message of the other type
-        msg = FRIMonitoringMessage(header=MessageHeader(COMMAND_MESSAGE_ID, self._seq, self._client_seq))
-        return frame(msg.encode()) if self.fri_version == "2.7" else msg.encode()
+        servo = self._servo
+        noise = self._rng.normal(0.0, self.noise_rad, N_JOINTS) if self.noise_rad else 0.0
+        return monitoring_datagram(self.fri_version, ControllerView(
+            seq=self._seq, client_seq=self._client_seq, measured=servo.q + noise,
+            setpoint=servo.setpoint, ipo=self._ipo, state=self._state, quality=self._quality(),
+            send_period_ms=self.send_period_ms, receive_multiplier=self.receive_multiplier,
+            safety=self._safety, drives=self._drives, compliant=servo.compliant, inputs=dict(self._inputs)))
 
     def _cycle(self) -> Optional[bytes]:
         """One controller cycle (lock held): servo, window scoring, next message bytes."""
         dt = self.send_period_ms / 1000.0
         self._sim_time += dt
-        self._step_servo(dt)
+        self._servo.step(dt, self._powered())
         if self.scene is not None:
-            self.scene.set_joint_positions(self._q.copy())
-        self._window_count += 1
-        if self._window_count >= self.receive_multiplier:
-            self._window_count = 0
+            self.scene.set_joint_positions(self._servo.q.copy())
+        if self._windows.message_due():
             self._close_window()
-            self._window_first_seq = self._seq
+            self._windows.open(self._seq)
         self._cycles_in_state += 1
         if (self._state == SessionState.IDLE and self.auto_open and not self._ended and not self._idle_to_send
                 and self._cycles_in_state > self.idle_cycles):
             self._set_state(SessionState.MONITORING_WAIT, "session opened")
         if (self.application and self._state == SessionState.MONITORING_READY
                 and self._cycles_in_state > self.application_start_cycles
-                and self._drives == DriveState.ACTIVE and self._safety == SafetyState.NORMAL_OPERATION):
+                and self._powered()):
             self._set_state(SessionState.COMMANDING_WAIT, "robot application started its FRI overlay motion")
         if not self._sending:
             return None
@@ -829,7 +624,8 @@ class FakeSunrise:
                 self._state_changed.notify_all()
         data = self._build()
         if self._malformed_next:
-            data = self._malformed_bytes(self._malformed_next.pop(0), data)
+            data = malformed_datagram(self._malformed_next.pop(0), data, self.fri_version, self._seq,
+                                      self._client_seq, self._rng)
         self._seq = (self._seq + 1) & 0xFFFF_FFFF
         self.stats.sent += 1
         if self._drop_next > 0:
@@ -852,17 +648,14 @@ class FakeSunrise:
 
     def _run(self) -> None:
         self._set_realtime()
-        assert self._sock is not None
+        port = self._port
+        assert port is not None
         period = self._wall(self.send_period_ms / 1000.0)
         t_end = time.monotonic() + self.max_runtime_s
         next_t = time.monotonic()
-        next_claim = next_t + _CLAIM_EVERY_S
         ending = False
         while not self._stop.is_set():
-            if not self._on_fri_port and time.monotonic() >= next_claim:
-                next_claim = time.monotonic() + _CLAIM_EVERY_S
-                self._claim_fri_port()
-            sock = self._sock
+            port.claim(self._on_answer)
             if not ending and time.monotonic() >= t_end:
                 ending = True
                 with self._lock:  # the robot application ends: it closes the session first
@@ -870,27 +663,14 @@ class FakeSunrise:
                     self._close(f"robot application ended after max_runtime_s={self.max_runtime_s:g} s")
             if ending and self._idle_to_send == 0:
                 break
-            # collect answers until the next send time
-            while True:
-                remaining = next_t - time.monotonic()
-                if remaining <= 0:
-                    break
-                ready, _, _ = select.select([sock], [], [], remaining)
-                if ready:
-                    self._drain(sock)
-            # Whatever is queued now arrived by the deadline as far as we can tell: our own
-            # thread may have been descheduled past it, which is not the client's fault.
-            self._drain(sock)
+            port.collect_until(next_t, self._on_answer)
             with self._lock:
                 data = self._cycle()
                 jitter = self._rng.uniform(0.0, self.jitter_ms / 1000.0) if self.jitter_ms else 0.0
             if data is not None:
                 if jitter:
                     time.sleep(self._wall(jitter))
-                try:
-                    sock.sendto(data, self.client_address)
-                except OSError as exc:  # e.g. ECONNREFUSED from an earlier ICMP: keep sending
-                    log.debug("fake Sunrise: send failed: %s", exc)
+                port.send(data)
             next_t += period
             now = time.monotonic()
             if next_t < now + 0.5 * period:
@@ -901,14 +681,6 @@ class FakeSunrise:
                 next_t = now + period
         log.info("fake Sunrise: stopped after %d messages", self.stats.sent)
 
-    def _drain(self, sock: socket.socket) -> None:
-        while True:
-            try:
-                data, _addr = sock.recvfrom(65536)
-            except BlockingIOError:
-                return
-            except OSError as exc:  # ICMP port unreachable surfaces here on Linux
-                log.debug("fake Sunrise: receive failed: %s", exc)
-                return
-            with self._lock:
-                self._handle_answer(data)
+    def _on_answer(self, data: bytes) -> None:
+        with self._lock:
+            self._handle_answer(data)

@@ -23,7 +23,11 @@ Observation of a marker by a sensor: it is visible when (1) it lies in the senso
 view, (2) the sensor lies inside the marker's acceptance cone about the flange z axis, and
 (3) no link capsule or obstacle crosses the segment sensor → marker (``drivers.sim.geometry``).
 Its position is then ``base2sensor · p`` plus Gaussian noise with per-axis std
-``noise_mm + noise_mm_per_m · range``; an invisible marker's position is NaN.
+``noise_mm + noise_mm_per_m · range``; an invisible marker's position is NaN. Every visible
+marker also carries its frame's orientation ``R_sensor←target`` (the flange's, turned by the
+marker's ``rpy_deg`` when the model gives one), turned by a random rotation vector with per-axis
+std ``attitude_noise_deg``, for 6-DoF targets (a T-Mac on the tracker); a motion-capture rigid
+body's orientation is not taken from here but fitted by the fake Motive to its noisy markers.
 
 Units: mm, rad, s; degrees only in the YAML file.
 """
@@ -40,7 +44,7 @@ import numpy as np
 
 from calib.robot.kinematics import Chain, joint_frames
 from calib.robot.model import RobotModel, load_robot_model
-from calib.robot.transforms import apply, invert
+from calib.robot.transforms import apply, euler_zyx_to_matrix, exp_so3, invert
 from calib.io.yamlfile import ConfigError
 from drivers.errors import LimitError
 from drivers.sim import geometry
@@ -95,6 +99,8 @@ class _Sensor:
     noise_mm_per_m: float
     rng: np.random.Generator
     rng_lock: threading.Lock
+    attitude_noise_rad: float = 0.0
+    att_rng: np.random.Generator | None = None  # its own stream: position noise stays as it was
 
 
 @dataclass(frozen=True)
@@ -103,6 +109,7 @@ class _Pose:
 
     markers: np.ndarray  # (..., m, 3) base frame, with sag
     normal: np.ndarray  # (..., 3) flange z in base
+    flange_rot: np.ndarray  # (..., 3, 3) R_base←flange, with sag
     cap_a: np.ndarray  # (..., c, 3)
     cap_b: np.ndarray  # (..., c, 3)
 
@@ -114,6 +121,7 @@ class _View:
     positions: np.ndarray  # (ms, 3) sensor frame; NaN where invisible
     visible: np.ndarray  # (ms,) bool
     std: np.ndarray  # (ms,) per-axis noise std, mm
+    rotations: np.ndarray  # (ms, 3, 3) R_sensor←target of each marker's frame, noise-free
 
 
 def _rng(seed: int, purpose: str) -> np.random.Generator:
@@ -150,6 +158,11 @@ class SimCell:
         params, offsets = self._draw_truth(config, n, m)
         self._params = params
         self._flange = self.chain.flange
+        #: (m, 3, 3) R_flange←target of each tool marker's frame (identity without rpy_deg)
+        self._marker_rot = np.stack([
+            np.eye(3) if mk.rpy_deg is None
+            else euler_zyx_to_matrix(*np.radians([mk.rpy_deg[2], mk.rpy_deg[1], mk.rpy_deg[0]]))
+            for mk in self.model.tool.markers])
 
         dfl = config.deflection
         masses = _per_joint(dfl.link_masses_kg, n, "deflection.link_masses_kg")
@@ -262,6 +275,8 @@ class SimCell:
             noise_mm_per_m=s.noise_mm_per_m,
             rng=_rng(self.config.seed, f"noise.{s.name}"),
             rng_lock=threading.Lock(),
+            attitude_noise_rad=float(np.radians(s.attitude_noise_deg)),
+            att_rng=_rng(self.config.seed, f"attitude.{s.name}"),
         )
 
     # --- names --------------------------------------------------------------------------
@@ -373,7 +388,7 @@ class SimCell:
         if len(self._obs_a):
             cap_a = np.concatenate([cap_a, np.broadcast_to(self._obs_a, lead + self._obs_a.shape)], axis=-2)
             cap_b = np.concatenate([cap_b, np.broadcast_to(self._obs_b, lead + self._obs_b.shape)], axis=-2)
-        return _Pose(markers=markers, normal=flange[..., :3, 2], cap_a=cap_a, cap_b=cap_b)
+        return _Pose(markers=markers, normal=flange[..., :3, 2], flange_rot=flange[..., :3, :3], cap_a=cap_a, cap_b=cap_b)
 
     def _visible(self, pose: _Pose, s: _Sensor) -> np.ndarray:
         """(..., ms) bool visibility of the sensor's markers."""
@@ -425,7 +440,8 @@ class SimCell:
             positions = apply(s.base2sensor, markers)
             positions[~visible] = np.nan
             std = self.noise_std_mm(s.name, np.linalg.norm(markers - s.origin, axis=-1))
-            view = _View(positions=positions, visible=visible, std=std)
+            rotations = s.base2sensor[:3, :3] @ pose.flange_rot @ self._marker_rot[s.markers]
+            view = _View(positions=positions, visible=visible, std=std, rotations=rotations)
             views[s.name] = view
         return view
 
@@ -440,8 +456,12 @@ class SimCell:
         with s.rng_lock:
             noise = s.rng.standard_normal(view.positions.shape)
         positions = view.positions + noise * view.std[:, None]
+        with s.rng_lock:
+            turn = s.att_rng.standard_normal(positions.shape) * s.attitude_noise_rad
+        rotations = exp_so3(turn) @ view.rotations
         return [
-            MarkerObservation(name, positions[i], bool(view.visible[i])) for i, name in enumerate(s.marker_names)
+            MarkerObservation(name, positions[i], bool(view.visible[i]), rotations[i] if view.visible[i] else None)
+            for i, name in enumerate(s.marker_names)
         ]
 
 

@@ -152,6 +152,11 @@ class NatNetServe(_Strict):
     asset: Literal["rigid_body", "skeleton", "trained_markerset"] = "rigid_body"
     asset_name: str = Field("tool", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")
     multicast: bool = Field(False, description="Stream to 239.255.42.99 (Motive's default) instead of unicast.")
+    cluster_radius_mm: float = Field(
+        0.0, ge=0, le=200, description="A rigid-body cluster at each marker the sensor measures: three more infrared "
+                                       "markers at 120° on a circle of this radius about it, in the plane facing the "
+                                       "sensor (the flange's xy plane), so that Motive tracks a rigid body whose origin "
+                                       "(the centroid) is that marker; each with the sensor's noise. 0: no cluster.")
 
     _text = field_validator("version", mode="before")(lambda cls, v: _version_text(v))
 
@@ -177,6 +182,9 @@ class SensorConfig(_Strict):
     frame: Frame | None = None
     noise_mm: float = Field(ge=0, description="Constant part of the per-axis noise std, mm.")
     noise_mm_per_m: float = Field(0.0, ge=0, description="Range-proportional part, mm per m of range.")
+    attitude_noise_deg: float = Field(
+        0.005, ge=0, le=10, description="A 6-DoF target's attitude noise, 1σ per axis of the rotation vector, degrees "
+                                        "(a T-Mac on a tracker: about 0.005°; Motive derives a rigid body's from its markers).")
     field_of_view_deg: float = Field(180.0, gt=0, le=180, description="Half-angle about +z; 180 = everywhere.")
     markers: list[str] | None = Field(
         None, description="Tool markers this sensor measures; None → infrared/other for mocap, retroreflector for a tracker."
@@ -184,11 +192,16 @@ class SensorConfig(_Strict):
     natnet: NatNetServe | None = Field(None, description="mocap only: how the fake Motive serves it (default NatNet 3.0, rigid body).")
     protocols: list[Literal["line", "emscon"]] | None = Field(
         None, min_length=1, description="tracker only: the fake's protocols, line and/or emscon (default [line]).")
+    six_dof: bool = Field(False, description="tracker only: its target is a 6-DoF target (a T-Mac at the marker, "
+                                             "its frame the flange's, or the marker's rpy_deg): the line protocol's "
+                                             "POSE and emScon's 6D stationary mode measure its orientation too.")
 
     @model_validator(mode="after")
     def _kind_fields(self) -> "SensorConfig":
         if self.natnet is not None and self.kind != "mocap":
             raise ValueError(f"sensor {self.name!r}: natnet is for a mocap sensor, this one is a {self.kind}")
+        if self.six_dof and self.kind != "tracker":
+            raise ValueError(f"sensor {self.name!r}: six_dof is for a tracker sensor, this one is a {self.kind}")
         if self.protocols is not None and self.kind != "tracker":
             raise ValueError(f"sensor {self.name!r}: protocols is for a tracker sensor, this one is a {self.kind}")
         return self

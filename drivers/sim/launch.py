@@ -64,15 +64,42 @@ class DeviceAddress:
 class _SensorView:
     """A ``MarkerScene`` that answers every ``observe`` with one named sensor of the cell (the
     fake tracker always asks for ``"tracker"``). ``blocked`` hides every marker (a beam break:
-    someone in the line of sight)."""
+    someone in the line of sight).
 
-    def __init__(self, cell: SimCell, sensor: str) -> None:
+    cluster_radius_mm > 0: each marker ``m`` also brings a rigid-body cluster, three infrared
+    markers ``m.1 m.2 m.3`` at 120° on a circle of that radius about it in its frame's xy plane
+    (the flange's), each with its own draw of the sensor's noise, so that the fake Motive tracks a
+    rigid body whose origin (their centroid with ``m``) is ``m`` and whose orientation is as noisy
+    as a real one fitted to its markers."""
+
+    def __init__(self, cell: SimCell, sensor: str, *, cluster_radius_mm: float = 0.0) -> None:
         self.cell = cell
         self.sensor = sensor
         self.blocked = False
+        angles = np.radians([90.0, 210.0, 330.0])
+        self._cluster = float(cluster_radius_mm) * np.stack([np.cos(angles), np.sin(angles), np.zeros(3)], 1)
+        self._rng = np.random.default_rng(np.random.SeedSequence(cell.config.seed, spawn_key=(0xC1,)))
+        self._rng_lock = threading.Lock()
+
+    def _with_cluster(self, obs: list[MarkerObservation]) -> list[MarkerObservation]:
+        out = []
+        for o in obs:
+            out.append(o)
+            seen = o.visible and o.rotation is not None
+            with self._rng_lock:
+                noise = self._rng.standard_normal((len(self._cluster), 3))
+            if seen:
+                pts = o.position_mm + self._cluster @ np.asarray(o.rotation).T
+                std = self.cell.noise_std_mm(self.sensor, float(np.linalg.norm(o.position_mm)))
+                pts = pts + noise * std
+            for k in range(len(self._cluster)):
+                out.append(MarkerObservation(f"{o.name}.{k + 1}", pts[k] if seen else np.full(3, np.nan), bool(seen)))
+        return out
 
     def observe(self, sensor: str) -> list[MarkerObservation]:
         obs = self.cell.observe(self.sensor)
+        if self._cluster.any():
+            obs = self._with_cluster(obs)
         if self.blocked:
             return [MarkerObservation(o.name, np.full(3, np.nan), False) for o in obs]
         return obs
@@ -240,7 +267,8 @@ class SimLaunch:
         serve = next(s for s in self.cell.config.sensors if s.name == sensor).natnet
         version = self.natnet_version or _natnet_version(serve.version if serve else "3.0")
         asset = self.mocap_asset or (serve.asset if serve else "rigid_body")
-        view = self.views[sensor] = _SensorView(self.cell, sensor)
+        view = self.views[sensor] = _SensorView(self.cell, sensor,
+                                                cluster_radius_mm=serve.cluster_radius_mm if serve else 0.0)
         motive = FakeMotive(
             view, sensor=sensor, rate_hz=self.mocap_rate_hz, natnet_version=version, asset=asset,
             rigid_body_name=serve.asset_name if serve else "tool", multicast=bool(serve and serve.multicast),
@@ -266,6 +294,7 @@ class SimLaunch:
         device = FakeTracker(
             view, clock=self.cell.clock, reflector=self.cell.sensor_markers(sensor)[0],
             noise_um=0.0, noise_um_per_m=0.0, seed=self.cell.config.seed,
+            six_dof=next(s.six_dof for s in self.cell.config.sensors if s.name == sensor),
         )
         protocols = self.tracker_protocols.get(sensor, ("line",))
         if "line" in protocols:

@@ -16,11 +16,15 @@ class MarkerObservation(NamedTuple):
 
     position_mm: shape (3,), sensor frame, mm, with the sensor's noise applied.
     visible: False when occluded / the beam is broken / outside the acceptance cone.
+    rotation: the marker's frame (a 6-DoF target: T-Mac, probe) as the sensor sees it,
+    (3, 3) ``R_sensor←target`` with the sensor's attitude noise applied; None when not visible
+    or when the scene gives no orientation.
     """
 
     name: str
     position_mm: np.ndarray
     visible: bool
+    rotation: np.ndarray | None = None
 
 
 @runtime_checkable

@@ -58,6 +58,7 @@ from drivers.tracker.codec import (
     IdentifyReply,
     LineCodec,
     MeasureAverage,
+    MeasurePose,
     MeasurePoint,
     Mode,
     ModeReply,
@@ -80,10 +81,11 @@ ERROR_CLASSES: dict[int, type[Exception]] = {
     ErrorCode.DISTANCE_INVALID: DistanceLostError,
     ErrorCode.WARMING_UP: TrackerWarmingUpError,
     ErrorCode.NO_WEATHER_STATION: DeviceFaultError,
+    ErrorCode.NOT_6DOF: DeviceFaultError,
 }
 
 #: Commands safe to send again after a reconnect (a search restarts from where the beam is).
-_IDEMPOTENT = (Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim, Home, Environment, SelectReflector)
+_IDEMPOTENT = (Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, MeasurePose, Aim, Home, Environment, SelectReflector)
 
 
 class LinePort:
@@ -159,7 +161,9 @@ class TrackerSensor(SensorBase):
     environment: the air for the refraction correction, sent on connect (``ENV``): an ``Air``,
     ``"station"`` (the tracker's weather station) or the plan's mapping; None leaves the
     tracker's setting. reflector: the reflector type (``"RRR15"``) or ``{type, offset_mm}``,
-    selected on connect (``REFL``); None leaves it.
+    selected on connect (``REFL``); None leaves it. pose: the target is a 6-DoF target (a T-Mac,
+    a probe): ``measure`` asks for its pose (``POSE``) and returns its orientation
+    ``R_tracker←target`` and attitude spread with the position.
     """
 
     def __init__(
@@ -174,6 +178,7 @@ class TrackerSensor(SensorBase):
         clock: Clock = time.monotonic,
         environment: Air | str | dict | None = None,
         reflector: str | dict | None = None,
+        pose: bool = False,
         **serial_options: Any,
     ) -> None:
         super().__init__(name, clock=clock)
@@ -189,6 +194,9 @@ class TrackerSensor(SensorBase):
         self.serial_options = serial_options
         self.environment = parse_environment(environment)
         self.reflector = parse_reflector(reflector)
+        if not isinstance(pose, bool):
+            raise ValueError(f"pose must be true (a 6-DoF target) or false, got {pose!r}")
+        self.pose = pose
         #: what the tracker reported on the last ENV / REFL exchange
         self.air_in_use: EnvironmentReply | None = None
         self.reflector_in_use: ReflectorReply | None = None
@@ -443,6 +451,8 @@ class TrackerSensor(SensorBase):
         if not (isinstance(n, int) and 1 <= n <= MAX_AVERAGE):
             raise ValueError(f"n must be an integer in 1..{MAX_AVERAGE}, got {n!r}")
         timeout = check_timeout(timeout)
+        if self.pose:
+            return self._measure_pose(n, timeout)
         if self._average_supported:
             try:
                 reply, host_time = self._request(MeasureAverage(n), timeout=timeout)
@@ -455,3 +465,17 @@ class TrackerSensor(SensorBase):
                 return MarkerMeasurement(self.marker, reply.xyz_mm, reply.std_xyz_mm, reply.n,
                                          reply.device_time, host_time)
         return super().measure(marker, n, timeout)
+
+    def _measure_pose(self, n: int, timeout: float) -> MarkerMeasurement:
+        """``POSE n``: the 6-DoF target's mean position and orientation (``R_tracker←target``)
+        with their spreads (``std_deg``: RMS over the three axes of the rotation-vector spread)."""
+        from calib.robot.transforms import quat_to_matrix
+
+        reply, host_time = self._request(MeasurePose(n), timeout=timeout)
+        q = reply.quat_wxyz
+        norm = float(np.linalg.norm(q))
+        if abs(norm - 1.0) > 1e-3:
+            raise ProtocolError(f"{self.name}: POSE quaternion {q.tolist()} has norm {norm:.6f}, not 1")
+        return MarkerMeasurement(self.marker, reply.xyz_mm, reply.std_xyz_mm, reply.n, reply.device_time, host_time,
+                                 rotation=quat_to_matrix(q / norm),
+                                 std_deg=float(np.sqrt(np.mean(reply.std_rot_deg ** 2))))

@@ -47,6 +47,7 @@ class ErrorCode(int, Enum):
     BAD_ARGUMENT = 3
     BEAM_LOST = 10
     DISTANCE_INVALID = 11
+    NOT_6DOF = 12
     WARMING_UP = 20
     NO_WEATHER_STATION = 30
     INTERNAL = 50
@@ -135,6 +136,8 @@ _KINDS: dict[str, tuple[Any, Any]] = {
     "s": (_fmt_fixed(6), _parse_float),  # 1 µs resolution
     "ms3": (_fmt_fixed(3), _parse_float),  # three decimals (timeouts, warm-up left, turns)
     "env": (_fmt_fixed(3), _parse_float),  # three decimals (°C, hPa, %)
+    "unit": (_fmt_fixed(9), _parse_float),  # quaternion components, 1e-9
+    "deg": (_fmt_fixed(6), _parse_float),  # angles in degrees, 1e-6°
     "int": (_fmt_int, _parse_int),
     "bool": (lambda v: "1" if v else "0", _parse_bool),
     "mode": (lambda v: Mode(v).value, _parse_mode),
@@ -195,6 +198,19 @@ class MeasureAverage:
     """``AVG``: the mean of ``n`` consecutive points (1..MAX_AVERAGE)."""
 
     verb: ClassVar[str] = "AVG"
+    n: int = _f("n", "int")
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.n, int) and not isinstance(self.n, bool) and 1 <= self.n <= MAX_AVERAGE):
+            raise ValueError(f"n must be an integer in 1..{MAX_AVERAGE}, got {self.n!r}")
+
+
+@dataclass(frozen=True)
+class MeasurePose:
+    """``POSE``: a 6-DoF target's mean position and orientation over ``n`` consecutive
+    measurements (1..MAX_AVERAGE)."""
+
+    verb: ClassVar[str] = "POSE"
     n: int = _f("n", "int")
 
     def __post_init__(self) -> None:
@@ -303,10 +319,10 @@ class SelectReflector:
             _finite("offset", self.offset_mm, 0.0, 1000.0)
 
 
-Command = Union[Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim, Search, Home, Environment,
-                SelectReflector]
-COMMANDS: dict[str, type] = {c.verb: c for c in (Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, Aim,
-                                                 Search, Home, Environment, SelectReflector)}
+Command = Union[Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, MeasurePose, Aim, Search, Home,
+                Environment, SelectReflector]
+COMMANDS: dict[str, type] = {c.verb: c for c in (Identify, GetStatus, SetMode, MeasurePoint, MeasureAverage, MeasurePose,
+                                                 Aim, Search, Home, Environment, SelectReflector)}
 
 # --------------------------------------------------------------------------- replies
 
@@ -386,6 +402,51 @@ class AverageReply:
 
 
 @dataclass(frozen=True)
+class PoseReply:
+    """A 6-DoF target's mean pose over ``n`` measurements, tracker frame: position (mm) with
+    per-axis sample standard deviations, orientation ``R_tracker←target`` as a unit quaternion
+    (scalar first, Hamilton), and the spread of the orientation as the sample standard deviation
+    of each measurement's rotation vector against the mean, per tracker axis, degrees."""
+
+    verb: ClassVar[str] = "POSE"
+    x: float = _f("x", "mm")
+    y: float = _f("y", "mm")
+    z: float = _f("z", "mm")
+    sx: float = _f("sx", "mm")
+    sy: float = _f("sy", "mm")
+    sz: float = _f("sz", "mm")
+    qw: float = _f("qw", "unit")
+    qx: float = _f("qx", "unit")
+    qy: float = _f("qy", "unit")
+    qz: float = _f("qz", "unit")
+    srx: float = _f("srx", "deg")
+    sry: float = _f("sry", "deg")
+    srz: float = _f("srz", "deg")
+    n: int = _f("n", "int")
+    device_time: float = _f("t", "s")
+
+    @property
+    def xyz_mm(self) -> np.ndarray:
+        """shape (3,), mm."""
+        return np.array([self.x, self.y, self.z])
+
+    @property
+    def std_xyz_mm(self) -> np.ndarray:
+        """shape (3,), mm."""
+        return np.array([self.sx, self.sy, self.sz])
+
+    @property
+    def quat_wxyz(self) -> np.ndarray:
+        """shape (4,), scalar first."""
+        return np.array([self.qw, self.qx, self.qy, self.qz])
+
+    @property
+    def std_rot_deg(self) -> np.ndarray:
+        """shape (3,), degrees."""
+        return np.array([self.srx, self.sry, self.srz])
+
+
+@dataclass(frozen=True)
 class AimReply:
     verb: ClassVar[str] = "AIM"
     locked: bool = _f("beam", "beam")
@@ -458,12 +519,12 @@ class Event:
 
 EVENT_NAMES = ("BEAM_LOST", "BEAM_LOCKED")
 
-Reply = Union[IdentifyReply, StatusReply, ModeReply, PointReply, AverageReply, AimReply, SearchReply, HomeReply,
-              EnvironmentReply, ReflectorReply]
+Reply = Union[IdentifyReply, StatusReply, ModeReply, PointReply, AverageReply, PoseReply, AimReply, SearchReply,
+              HomeReply, EnvironmentReply, ReflectorReply]
 REPLIES: dict[str, type] = {
     r.verb: r
-    for r in (IdentifyReply, StatusReply, ModeReply, PointReply, AverageReply, AimReply, SearchReply, HomeReply,
-              EnvironmentReply, ReflectorReply)
+    for r in (IdentifyReply, StatusReply, ModeReply, PointReply, AverageReply, PoseReply, AimReply, SearchReply,
+              HomeReply, EnvironmentReply, ReflectorReply)
 }
 #: The reply type each command expects.
 REPLY_FOR: dict[type, type] = {COMMANDS[v]: REPLIES[v] for v in COMMANDS}

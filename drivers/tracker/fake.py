@@ -22,6 +22,10 @@ Behaviour (all configurable in the constructor):
   told the wrong temperature measures a few ppm long or short, as a real one does. ``ENV`` sets
   the air in use by hand or switches to the simulated weather station (which reads ``air``).
 - Reflectors: ``REFL`` selects one of ``reflectors`` by type name (the host may give its offset).
+- 6-DoF target (``six_dof=True``, a T-Mac-like target): ``POSE n`` averages ``n`` measurements
+  of the target's position and orientation (the scene's ``rotation``, ``R_tracker←target``) with
+  per-measurement attitude noise ``attitude_noise_deg`` per axis; a plain reflector refuses
+  ``POSE`` with ``NOT_6DOF``.
 - Spiral search: an Archimedean spiral of pitch ``search_pitch_mm`` (default: the capture
   radius) around the current beam direction, at ``search_speed_mm_s`` in the plane of the current
   aim point; it takes simulated time π·ρ²/(pitch·speed) to reach radius ρ.
@@ -50,6 +54,7 @@ from drivers.tracker.codec import (
     Aim,
     AimReply,
     AverageReply,
+    PoseReply,
     Environment,
     EnvironmentReply,
     ErrorCode,
@@ -62,6 +67,7 @@ from drivers.tracker.codec import (
     IdentifyReply,
     LineCodec,
     MeasureAverage,
+    MeasurePose,
     MeasurePoint,
     Mode,
     ModeReply,
@@ -137,6 +143,8 @@ class FakeTracker:
         weather_station: bool = True,
         reflectors: tuple[Reflector, ...] = REFLECTORS,
         reflector_type: str = "RRR15",
+        six_dof: bool = False,
+        attitude_noise_deg: float = 0.01,
     ) -> None:
         for name, value in (("capture_radius_mm", capture_radius_mm), ("average_rate_hz", average_rate_hz),
                             ("aim_slew_rad_s", aim_slew_rad_s), ("search_speed_mm_s", search_speed_mm_s)):
@@ -146,6 +154,10 @@ class FakeTracker:
                             ("measure_time_s", measure_time_s), ("adm_lock_s", adm_lock_s), ("home_s", home_s)):
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a non-negative number, got {value!r}")
+        if not (math.isfinite(attitude_noise_deg) and attitude_noise_deg >= 0):
+            raise ValueError(f"attitude_noise_deg must be a non-negative number, got {attitude_noise_deg!r}")
+        self.six_dof = bool(six_dof)
+        self.attitude_noise_rad = math.radians(attitude_noise_deg)
         self.scene = scene
         self.clock = clock or SimClock()
         self.reflector = reflector
@@ -343,6 +355,8 @@ class FakeTracker:
             if not self.supports_average:
                 raise _DeviceFault(ErrorCode.UNKNOWN_COMMAND, "unknown command 'AVG' (averaging disabled)")
             return self._average(cmd.n)
+        if isinstance(cmd, MeasurePose):
+            return self._pose(cmd.n)
         if isinstance(cmd, Aim):
             return self._aim(np.array([cmd.x, cmd.y, cmd.z]))
         if isinstance(cmd, Search):
@@ -399,6 +413,32 @@ class FakeTracker:
         mean = pts.mean(axis=0)
         std = pts.std(axis=0, ddof=1) if n > 1 else np.zeros(3)
         return AverageReply(mean[0], mean[1], mean[2], std[0], std[1], std[2], n, self.clock.now())
+
+    def _observe_rotation(self) -> np.ndarray | None:
+        for obs in self.scene.observe("tracker"):
+            if obs.name == self.reflector:
+                rot = getattr(obs, "rotation", None)
+                return None if rot is None else np.asarray(rot, dtype=float).reshape(3, 3)
+        return None
+
+    def _pose(self, n: int) -> PoseReply:
+        """``POSE``: the mean of ``n`` measurements of the 6-DoF target's position and orientation."""
+        from calib.robot.transforms import exp_so3, log_so3, matrix_to_quat
+
+        if not self.six_dof:
+            raise _DeviceFault(ErrorCode.NOT_6DOF, f"the target {self.reflector!r} is a plain reflector, "
+                                                   "not a 6-DoF target; use AVG")
+        avg = self._average(n)
+        rot = self._observe_rotation()
+        if rot is None:
+            raise _DeviceFault(ErrorCode.BEAM_LOST, "the 6-DoF target's orientation was lost during the measurement")
+        samples = exp_so3(self._rng.normal(0.0, self.attitude_noise_rad, (n, 3))) @ rot
+        u, _, vt = np.linalg.svd(samples.sum(axis=0))
+        mean = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        spread = np.degrees(log_so3(samples @ mean.T).std(axis=0, ddof=1)) if n > 1 else np.zeros(3)
+        q = matrix_to_quat(mean)
+        return PoseReply(avg.x, avg.y, avg.z, avg.sx, avg.sy, avg.sz, q[0], q[1], q[2], q[3],
+                         spread[0], spread[1], spread[2], n, avg.device_time)
 
     def _aim(self, target: np.ndarray) -> AimReply:
         pos, visible = self._update()

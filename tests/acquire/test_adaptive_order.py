@@ -109,6 +109,41 @@ def test_summary_and_report_say_why_it_stopped_intervals_against_configurations_
         summ["full_plan_seconds"] - summ["estimated_seconds"], abs=0.11)
     text = "\n".join(adaptive_summary_lines(summ))
     assert f"stopped after {len(chosen)} of {len(configs)}" in text and "saved" in text
+    # against the cell time the run measured: within the estimate, no hint; far over it, the reasons to check
+    near = "\n".join(adaptive_summary_lines(summ, summ["estimated_seconds"] * 1.02))
+    assert "measured cell time" in near and "+2%" in near and "took longer" not in near
+    slow = "\n".join(adaptive_summary_lines(summ, summ["estimated_seconds"] * 1.3))
+    assert "+30%" in slow and "took longer than estimated" in slow
     html = "\n".join(adaptive_section(summ))
     assert "Adaptive run" in html and summ["reason"].split(":")[0] in html and html.count("<tr>") == len(chosen) + 2
     assert adaptive_section(None) == []
+
+
+def test_the_stop_is_judged_with_the_sigma_of_every_measured_configuration(plan):
+    # σ is refitted on a schedule (each count ≥ 15 % more records), but the decision to stop is
+    # made with σ fitted to everything measured: a noisier cell than the plan says (0.09 mm against
+    # 0.03) is seen in the rule that stops it.
+    from acquire.run.adaptive import refit_counts
+
+    lp, configs = plan
+    chain, rng = Chain(lp.model), np.random.default_rng(2)
+    robot = StandingRobot(lp.model, None)
+    ad = AdaptiveRun(lp, configs, robot, 0.5, 0.3, None, set(), np.zeros(lp.model.n_joints))
+    m = chain.marker_names.index("sir")
+    for cfg in ad.choices(lambda kind, **f: None):
+        xyz = chain.marker_positions(np.asarray(cfg.q_rad)[None, :])[0, m] + rng.normal(0, 0.09, 3)
+        rec = {"config_id": cfg.config_id, "q_measured_deg": np.degrees(cfg.q_rad).tolist(),
+               "markers": [{"sensor": "mocap", "marker": "sir", "mean_mm": xyz.tolist()}]}
+        robot.q = np.asarray(cfg.q_rad, dtype=float)
+        ad.outcome(cfg, "measured", rec)
+    n = len(ad.order.records)
+    assert ad.final is not None and not ad.order.sigma_stale()
+    assert n not in refit_counts(n)  # (so the schedule alone would have left σ stale at the stop)
+    fitted = ad.order.fast_fit_sigma()
+    assert fitted is not None and fitted > 0.05  # the data show the noisier sensor
+    # the σ the stop was judged with is the fit of all n records (refitted now it agrees, up to the
+    # effective-parameter count's dependence on σ itself)
+    assert ad.order.design.sigma_mm == max(0.03, ad.order.fitted_sigma_mm)
+    assert ad.order.fitted_sigma_mm == pytest.approx(fitted, rel=0.02)
+    assert ad.summary()["sigma_mm"] > 0.05 and n == ad.summary()["measured"]
+    assert sorted(refit_counts(30))[:8] == [1, 2, 3, 4, 5, 6, 7, 9]

@@ -137,6 +137,9 @@ def test_the_log_holds_every_foxglove_channel_with_valid_messages(tmp_path):
         lg.record_scene(fv.nominal_markers_scene({m.name: m.xyz for m in model.tool.markers}, 12), log_time_ns=12)
         lg.event("settled", config_id="c0")
         lg.sample({"config_id": "c0", "q_measured_deg": np.degrees(q).tolist(), "markers": []})
+        body = {"sensor": "mocap", "marker": "body", "mean_mm": [900.0, 10.0, 5.0], "std_mm": [0.03] * 3, "count": 5,
+                "quat_wxyz": [1.0, 0.0, 0.0, 0.0], "std_deg": 0.02}  # a 6-DoF target: /pose and a /tf frame
+        lg.sample({"config_id": "c1", "q_measured_deg": np.degrees(q).tolist(), "markers": [body]})
     seen: dict[str, list[dict]] = {}
     with open(path, "rb") as fh:
         for schema, channel, message in make_reader(fh).iter_messages():
@@ -151,8 +154,11 @@ def test_the_log_holds_every_foxglove_channel_with_valid_messages(tmp_path):
     assert js["position_deg"] == pytest.approx(np.arange(model.n_joints) * 5.0)
     assert js["position_rad"] == pytest.approx(q, abs=1e-8)
     assert [len(s["entities"]) for s in seen["/markers"]] == [1, len(model.tool.markers)]
-    assert [d["level"] for d in seen["/log"]] == [fv.INFO, fv.INFO]
-    assert len(seen[SAMPLE_TOPIC]) == 1 and len(seen[EVENT_TOPIC]) == 1
+    assert [d["level"] for d in seen["/log"]] == [fv.INFO, fv.INFO, fv.INFO]
+    assert len(seen[SAMPLE_TOPIC]) == 2 and len(seen[EVENT_TOPIC]) == 1
+    (pose,) = seen[fv.POSE_TOPIC]
+    assert pose["frame_id"] == "mocap" and pose["pose"]["position"] == {"x": 0.9, "y": 0.01, "z": 0.005}
+    assert seen[fv.TF_TOPIC][-1]["transforms"][0]["child_frame_id"] == "mocap/body"
 
 
 # --------------------------------------------------------------------------------- layout

@@ -45,3 +45,30 @@ def test_dataset_from_run_reads_orientations(tmp_path):
     assert ds.oriented.tolist() == [True, False] * 3
     np.testing.assert_allclose(ds.rot[0] @ [0, 1, 0], [0, 0, 1], atol=1e-12)  # the body's y → the sensor's z
     np.testing.assert_allclose(ds.att_std_rad[ds.oriented], math.radians(0.05))
+
+
+def test_measured_poses_are_foxglove_pose_frames_any_mcap_reader_opens(tmp_path):
+    """A 6-DoF target's pose goes on /pose (foxglove.PoseInFrame, metres, sensor frame) and on /tf
+    as the frame <sensor>/<marker>; point targets add nothing there. Read with mcap's own reader."""
+    import json
+
+    from mcap.reader import make_reader
+
+    half = math.sqrt(0.5)
+    path = tmp_path / "run.mcap"
+    with new_log(path) as lg:
+        for i in range(3):
+            mk = {"sensor": "mocap", "marker": "body", "mean_mm": [1000.0 + i, 20.0, -30.0], "std_mm": [0.03] * 3, "count": 5}
+            if i != 1:
+                mk |= {"quat_wxyz": [half, 0.0, 0.0, half], "std_deg": 0.05}
+            lg.sample({"config_id": f"c{i}", "q_measured_deg": [0.0] * 7, "markers": [mk]})
+    with open(path, "rb") as fh:
+        msgs = [(schema.name, channel.topic, json.loads(m.data)) for schema, channel, m in
+                make_reader(fh).iter_messages(topics=["/pose", "/tf"])]
+    poses = [d for name, topic, d in msgs if topic == "/pose"]
+    assert {name for name, topic, _ in msgs if topic == "/pose"} == {"foxglove.PoseInFrame"}
+    assert len(poses) == 2 and all(p["frame_id"] == "mocap" for p in poses)
+    assert poses[1]["pose"]["position"] == {"x": 1.002, "y": 0.02, "z": -0.03}
+    assert poses[0]["pose"]["orientation"] == {"x": 0.0, "y": 0.0, "z": half, "w": half}  # Foxglove: x, y, z, w
+    frames = [t for _, topic, d in msgs if topic == "/tf" for t in d["transforms"]]
+    assert [(f["parent_frame_id"], f["child_frame_id"]) for f in frames] == [("mocap", "mocap/body")] * 2

@@ -56,7 +56,10 @@ def test_complete_fake_run_logs_every_configuration_and_fits_near_the_truth(tmp_
     assert contents.message_counts.get("/joint_state", 0) > 10
     assert contents.message_counts.get("/mocap/markers", 0) > 10
     # the Foxglove view: the robot's frames with each joint state, markers in the scene, events as log lines
-    assert contents.message_counts.get("/tf", 0) == contents.message_counts["/joint_state"]
+    # plus, per measured configuration, the rigid body's measured pose (/pose, and its frame on /tf)
+    assert contents.message_counts.get("/tf", 0) == contents.message_counts["/joint_state"] + len(ids)
+    assert contents.message_counts.get("/pose", 0) == len(ids)
+    assert all(len(rec["markers"][0]["quat_wxyz"]) == 4 and rec["markers"][0]["std_deg"] > 0 for rec in contents.samples)
     assert contents.message_counts.get("/markers", 0) > len(ids)
     assert contents.message_counts.get("/log", 0) == len(contents.samples) + len(contents.events)
     # progress went up one configuration at a time, with an ETA
@@ -161,6 +164,8 @@ def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     # the suspended configurations were measured again after re-acquisition, once each
     ids = [s["config_id"] for s in contents.samples]
     assert len(ids) == len(set(ids))
+    # tracker.yaml measures the simulated T-Mac's pose (POSE): every record carries its orientation
+    assert all(len(s["markers"][0]["quat_wxyz"]) == 4 and s["markers"][0]["std_deg"] > 0 for s in contents.samples)
     for e in resumed:
         assert e["config_id"] in ids
     ended = {e["config_id"] for e in events if e["kind"] in ("skipped", "failed")}
@@ -236,6 +241,8 @@ def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     assert aims and any("registration" in e["source"] for e in aims)
     ids = [s["config_id"] for s in contents.samples]
     assert len(ids) == len(set(ids))
+    # tracker.yaml measures the simulated T-Mac's pose (POSE): every record carries its orientation
+    assert all(len(s["markers"][0]["quat_wxyz"]) == 4 and s["markers"][0]["std_deg"] > 0 for s in contents.samples)
     for e in resumed:
         assert e["config_id"] in ids
     ended = {e["config_id"] for e in events if e["kind"] in ("skipped", "failed")}

@@ -46,6 +46,7 @@ class CellOutcome:
     rhat_max: float | None
     ess_min: float | None
     seconds: float
+    misfit: float | None = None  # the chosen model's held-out Birge ratio (its intervals widened by it where > 1)
 
 
 def heldout_rms(done, cell: NuisanceCell, base: FitOptions) -> float:
@@ -82,7 +83,7 @@ def run_cell(seed: int, *, include_full: bool = False, n_draws: int = 300) -> Ce
     return CellOutcome(seed, cell.tool_mm, cell.outlier_mm, done.choice.chosen, chosen.rms_mm / np.sqrt(3.0),
                        heldout_rms(done, cell, base), float(np.sqrt(np.mean(truth_res**2))), cell.noise_mm, entered,
                        outside, list(done.refused), str(d.get("sampler", "")), d.get("rhat_max"), d.get("ess_min"),
-                       time.process_time() - t0)
+                       time.process_time() - t0, chosen.misfit)
 
 
 def reason_kind(reason: str) -> str:
@@ -131,7 +132,7 @@ def main() -> None:
         rows.append(r)
         conv = f"R-hat {r.rhat_max:.2f} ESS {r.ess_min:.0f}" if r.rhat_max is not None else "PSIS"
         print(f"cell {seed:2d} tool {r.tool_mm:4.1f} mm outlier {r.outlier_mm:.2f} mm → {r.chosen:<30} CV {r.cv_mm:.4f} "
-              f"held-out {r.heldout_mm:.4f} (true arm {r.best_mm:.4f}) mm/axis; {conv}; entered {r.entered}, outside 95 % "
+              f"held-out {r.heldout_mm:.4f} (true arm {r.best_mm:.4f}) mm/axis; misfit {r.misfit or float('nan'):.2f}; {conv}; entered {r.entered}, outside 95 % "
               f"{len(r.outside)}; {r.seconds:.0f} CPU-s" + (f"\n     refused: {' | '.join(r.refused)[:300]}" if r.refused else ""),
               flush=True)
     print()

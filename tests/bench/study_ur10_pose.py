@@ -134,7 +134,7 @@ def _with_orientation(mf, cal):
 
     post = mf.post
     return OffsetPosterior(post.chain, cal, mf.b2s0, mf.mask, error=post.error, nu=post.nu, link_prior=mf.link_prior,
-                           compliance=bool(post.C))
+                           compliance=bool(post.C), sag_params=mf.sag_params)
 
 
 def main() -> None:

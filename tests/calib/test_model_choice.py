@@ -226,7 +226,7 @@ def test_the_random_walk_gets_a_40_parameter_correlated_posterior_right():
         return -0.5 * np.einsum("...i,ij,...j->...", x, prec, x)
 
     laplace = ((q * lam * rng.uniform(0.3, 1.0, d)) @ q.T) * np.outer(scales, scales)
-    draws = random_walk(target, np.zeros(d), laplace, seed=1)
+    draws = random_walk(target, np.zeros(d), laplace, seed=1, max_steps=12000)  # the test's budget: it settles at 28 000
     ratio = np.sqrt(np.diag(np.cov(draws.flat.T)) / np.diag(cov))
     assert 0.9 < ratio.min() and ratio.max() < 1.1, (ratio.min(), ratio.max())
     assert abs(target(draws.flat).mean() + d / 2) < 1.0
@@ -281,3 +281,31 @@ def test_real_ur10_tracker_data_get_an_answer_and_enter_only_where_earned():
     if chosen.rms_mm / np.sqrt(3) > 3 * spread:
         assert any("the measured spread of one sample" in r for r in done.refused)
         assert all(a["action"] != "enter" for a in done.doc["controller"]["axes"])
+
+
+def test_each_fold_estimates_the_link_scale_on_its_training_configurations_only(monkeypatch):
+    """The link scale is fitted to data: a fold that used the scale of all the data would have
+    seen its held-out configurations. Every fold's scale is estimated on configurations disjoint
+    from the ones it scores, and the table says what the folds found."""
+    import calib.fit.model_choice as mc
+
+    model, truth, cal = cell(3, link_mm=0.5, angle_deg=0.1, k=20)
+    seen: list[set] = []
+    real = mc.empirical_link_scale
+
+    def spy(model, data, base, *args, **kwargs):
+        seen.append(set(np.unique(data.config).tolist()))
+        return real(model, data, base, *args, **kwargs)
+
+    monkeypatch.setattr(mc, "empirical_link_scale", spy)
+    labels, _ = fold_labels(cal, 5, seed=0)
+    choice = choose_model(model, cal, FitOptions(), include_full=False)
+    everything = set(np.unique(cal.config).tolist())
+    assert seen[0] == everything  # the chosen model's final fit: the scale of all the data
+    folds = seen[1:]
+    assert len(folds) == 5 and len(choice.link_scale["per_fold"]) == 5
+    for f, train in enumerate(folds):
+        held_out = set(np.unique(cal.config[labels == f]).tolist())
+        assert held_out and not train & held_out and train | held_out == everything
+    assert all(t is not None and t[0] in (0.01, 0.03, 0.1, 0.3, 1.0, 3.0) for t in choice.link_scale["per_fold"])
+    assert "each fold its own (on its training configurations)" in choice.format()

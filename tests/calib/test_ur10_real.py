@@ -148,19 +148,21 @@ class GeometricLM:
         return self.errors(self._fit(train, kin, marker, False), test)
 
 
-def calibrated_robot(chain: Chain, params: np.ndarray, k: np.ndarray | None = None):
+def calibrated_robot(chain: Chain, params: np.ndarray, k: np.ndarray | None = None, sag_params: np.ndarray | None = None):
     """``positions(q, marker)``: base-frame marker positions (k, 3) mm of a calibrated robot (chain
     parameters ``params``) for any q, with the marker position replaced, and the gravity sag of
-    joint compliances ``k`` (rad/(N·m), to first order through the offsets' Jacobian, as the fit
-    models it); and the calibrated marker position."""
+    joint compliances ``k`` (rad/(N·m), to first order through the offsets' Jacobian and the
+    torques at the arm ``sag_params`` — the fit's reference, None: nominal — as the fit models it);
+    and the calibrated marker position."""
+    sag_at = chain.nominal if sag_params is None else sag_params
 
     def positions(q: np.ndarray, marker: np.ndarray) -> np.ndarray:
         p = params.copy()
         p[chain.marker_slice()] = marker
         pos = chain.marker_positions(q, p)[:, 0]
         if k is not None and np.any(k):
-            _, jac = chain.marker_jacobian(q, chain.nominal)
-            pos = pos + np.einsum("kjn,kn->kj", jac[:, 0, :, : chain.n], chain.sign * gravity_torques(chain, q) * k)
+            _, jac = chain.marker_jacobian(q, sag_at)
+            pos = pos + np.einsum("kjn,kn->kj", jac[:, 0, :, : chain.n], chain.sign * gravity_torques(chain, q, sag_at) * k)
         return pos
 
     return positions, params[chain.marker_slice()]
@@ -172,7 +174,7 @@ def chosen_robot(mode, chain: Chain):
     post = mode.post
     full = post.full_vector(mode.theta)
     k = full[post.n_full - post.C:] * 1e-6 if post.C else None  # µrad/(N·m) → rad/(N·m)
-    return calibrated_robot(chain, post.chain_params(full), k)
+    return calibrated_robot(chain, post.chain_params(full), k, mode.sag_params)
 
 
 def transfer_errors(positions, marker0: np.ndarray, train: Dataset, test: Dataset) -> np.ndarray:
@@ -188,6 +190,7 @@ def transfer_errors(positions, marker0: np.ndarray, train: Dataset, test: Datase
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)  # series D: the random walk takes 40 000 steps to settle — 7 min of wall time on a loaded 2-core machine
 @pytest.mark.skipif(not all(p.is_file() for p in SERIES.values()), reason="the shared UR10 tracker data is not next to the repository")
 @pytest.mark.parametrize("name,other", [("B", "D"), ("D", "B")])
 def test_the_default_fit_predicts_real_ur10_data_at_least_as_well_as_an_exact_geometric_fit(name, other):
@@ -234,7 +237,10 @@ def test_the_default_fit_predicts_real_ur10_data_at_least_as_well_as_an_exact_ge
     assert own.mean() <= min(v[0] for v in ref.values()), summary
     assert own_other.mean() <= min(v[1] for v in ref.values()), summary
 
-    # The verdict follows the rule, and result.json says why.
+    # The verdict follows the rule, and result.json says why — and the sampler is not the reason: on
+    # series D the Laplace check fails (a curved ridge, J5's zero against a₅) and the random walk
+    # must settle (it did not within the former 12 000 steps: R-hat 1.10).
+    assert not any(k in r for r in done.refused for k in ("has not converged", "not settled", "effective draws")), done.refused
     chosen = choice.score(choice.chosen)
     spread = float(np.sqrt(np.mean(cal.std_mm**2)))
     entered = [a["axis"] for a in done.doc["controller"]["axes"] if a["action"] == "enter"]

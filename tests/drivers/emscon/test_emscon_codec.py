@@ -58,7 +58,14 @@ def _cesapi_get(obj, name):
     return None
 
 
-@pytest.mark.parametrize("cmd", list(LAYOUTS), ids=lambda c: c.name)
+#: 6-DoF packets: CESAPI is generated from the AT4xx (3D) extract of the header, which has none of
+#: them; tests/drivers/emscon/test_emscon_6dof.py checks them against the full header's layout.
+SIX_DOF_COMMANDS = (Cmd.GetMeasurementProbeInfo,)
+SIX_DOF_RESULTS = (es.DataType.StationaryProbeMeasResult,)
+CESAPI_COMMANDS = [c for c in LAYOUTS if c not in SIX_DOF_COMMANDS]
+
+
+@pytest.mark.parametrize("cmd", CESAPI_COMMANDS, ids=lambda c: c.name)
 def test_every_request_round_trips_and_matches_cesapi_bytes(cmd):
     rng = np.random.default_rng(int(cmd))
     req = es.Request(cmd, _values(LAYOUTS[cmd][0], rng))
@@ -71,7 +78,7 @@ def test_every_request_round_trips_and_matches_cesapi_bytes(cmd):
     assert theirs.pack() == data
 
 
-@pytest.mark.parametrize("cmd", list(LAYOUTS), ids=lambda c: c.name)
+@pytest.mark.parametrize("cmd", CESAPI_COMMANDS, ids=lambda c: c.name)
 def test_every_answer_round_trips_and_cesapi_reads_our_values(cmd):
     rng = np.random.default_rng(1000 + int(cmd))
     values = _values(LAYOUTS[cmd][1], rng)
@@ -89,7 +96,7 @@ def test_every_answer_round_trips_and_cesapi_reads_our_values(cmd):
         assert got == value, name
 
 
-@pytest.mark.parametrize("kind", list(RESULT_LAYOUTS), ids=lambda t: t.name)
+@pytest.mark.parametrize("kind", [t for t in RESULT_LAYOUTS if t not in SIX_DOF_RESULTS], ids=lambda t: t.name)
 def test_result_packets_match_cesapi(kind):
     rng = np.random.default_rng(int(kind))
     res = es.DataResult(kind, Status.AllOK, _values(RESULT_LAYOUTS[kind], rng))

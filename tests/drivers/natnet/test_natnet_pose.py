@@ -52,3 +52,41 @@ def test_rigid_body_orientation_reaches_the_measurement(version):
             m = sensor.measure("plate", 6, 3.0)
             np.testing.assert_allclose(m.rotation @ [1, 0, 0], expected_x, atol=1e-5)
             assert m.std_deg is not None and m.std_deg < 1e-3
+
+
+def _frame_bytes(version: tuple[int, int], quat_xyzw, pos_m) -> bytes:
+    """A FRAMEOFDATA with one tracked rigid body, written here from the wire facts (PROTOCOLS.md),
+    not by our encoder: sections in order, NatNet 4.1's byte count after each section's count,
+    4.x's two precision-time words."""
+    sized = version >= (4, 1)
+
+    def section(count: int, body: bytes) -> bytes:
+        return struct.pack("<i", count) + (struct.pack("<i", len(body)) if sized else b"") + body
+
+    body = struct.pack("<i3f4ffh", 3, *pos_m, *quat_xyzw, 0.0002, 1)  # id, pos, quat x y z w, mean error, tracked
+    payload = struct.pack("<i", 1234)  # frame number
+    payload += section(0, b"") + section(0, b"") + section(1, body) + section(0, b"")  # marker sets, legacy, bodies, skeletons
+    if version >= (4, 1):
+        payload += section(0, b"")  # assets
+    payload += section(0, b"") + section(0, b"") + section(0, b"")  # labeled markers, force plates, devices
+    payload += struct.pack("<IId3Q", 0, 0, 10.5, 1, 2, 3)  # timecode, subframe, timestamp, three tick stamps
+    if version >= (4, 0):
+        payload += struct.pack("<II", 0, 0)  # precision timestamp
+    payload += struct.pack("<hi", 0, 0)  # params, end of data
+    return struct.pack("<HH", 7, len(payload)) + payload
+
+
+@pytest.mark.parametrize("version", [(3, 0), (3, 1), (4, 0), (4, 1)])
+def test_a_hand_built_frame_gives_the_bodys_orientation_in_motives_frame(version):
+    """Motive's quaternion (x, y, z, w) = 90° about its y (up) axis; the body's x axis is then
+    Motive's −z, its z axis Motive's +x, whatever the frame layout."""
+    from drivers.natnet import codec
+
+    s = math.sqrt(0.5)
+    frame = codec.decode_packet(_frame_bytes(version, (0.0, s, 0.0, s), (0.1, 1.2, -0.3)), version)
+    (row,) = frame.rigid_bodies
+    assert row["id"] == 3
+    np.testing.assert_allclose(row["pos"], (0.1, 1.2, -0.3), rtol=1e-6)
+    r = body_rotation(row["quat"])
+    np.testing.assert_allclose(r @ [1, 0, 0], [0, 0, -1], atol=1e-6)
+    np.testing.assert_allclose(r @ [0, 0, 1], [1, 0, 0], atol=1e-6)

@@ -60,7 +60,7 @@ def test_natnetsdk_reads_the_simulated_cells_motive(version, asset):
             positions = [m.pos for a in mocap.asset_data.asset_list for m in a.marker_list]
         else:
             positions = [lm.pos for lm in mocap.labeled_marker_data.labeled_marker_list]
-        assert len(positions) == 1  # the bar sees the infrared marker only
+        assert len(positions) == 4  # the bar sees the infrared marker and its rigid-body cluster (the SIR first)
         np.testing.assert_allclose(np.asarray(positions[0]) * 1000.0, truth_mm, atol=0.3)  # noise 0.03 mm
 
 

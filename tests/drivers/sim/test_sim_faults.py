@@ -94,8 +94,9 @@ def test_cell_file_fields_for_what_the_fakes_speak_are_checked(tmp_path):
         load_sim_config(bad)
     text = DEFAULT_CONFIG_PATH.read_text().replace("robot: ../robots/kuka_iiwa14_r820.yaml", f"robot: {ROBOT}")
     markerset = tmp_path / "ms.yaml"
-    markerset.write_text(text.replace("    field_of_view_deg: 28 ", "    natnet: {version: 4.0, asset: trained_markerset}\n"
-                                      "    field_of_view_deg: 28 "))
+    assert "natnet: {cluster_radius_mm: 30}" in text
+    markerset.write_text(text.replace("natnet: {cluster_radius_mm: 30}",
+                                      "natnet: {version: 4.0, asset: trained_markerset, cluster_radius_mm: 30}"))
     with pytest.raises(ConfigError, match=r"ms\.yaml:\d+:\d+: sensors\.0\.natnet: .*trained_markerset needs NatNet version 4\.1"):
         load_sim_config(markerset)
 
@@ -235,6 +236,7 @@ def test_the_commented_examples_in_the_default_cell_are_valid(tmp_path):
 
     text = DEFAULT_CONFIG_PATH.read_text(encoding="utf-8").replace(
         "robot: ../robots/kuka_iiwa14_r820.yaml", f"robot: {ROBOT}")
+    text = text.replace("    natnet: {cluster_radius_mm: 30}", "    # (the rigid-body cluster gives way to the example)")
     text = re.sub(r"(?m)^(\s*)# (natnet|protocols|controller|faults)(:.*)$", r"\1\2\3", text)
     text = re.sub(r"(?m)^#(   - \{.*)$", r"\1", text)
     path = tmp_path / "examples.yaml"

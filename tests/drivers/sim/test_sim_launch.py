@@ -69,7 +69,9 @@ def test_every_fake_reports_the_same_cell():
             # The motion-capture bar sees the infrared marker where the truth puts it (metres).
             frame = natnet_frame(launch.addresses["mocap"].port)
             truth_mocap = cell.true_marker_positions(q, frame="mocap")[cell.marker_names.index("sir")]
-            assert len(frame.labeled_markers) == 1
+            assert len(frame.labeled_markers) == 4  # the SIR first, then its rigid-body cluster
+            (body,) = frame.rigid_bodies  # tracked from the four: its origin is the SIR
+            assert body["pos"] * 1000 == pytest.approx(truth_mocap, abs=0.2)
             assert frame.labeled_markers["pos"][0] * 1000 == pytest.approx(truth_mocap, abs=0.2)
 
             # The tracker measures the retroreflector in its own frame (mm).
