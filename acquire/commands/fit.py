@@ -342,9 +342,9 @@ def fit(
     elif np.any(ds.split == "val"):
         val = ds.validation()
     cal = ds.calibration()
-    if cal.has_orientation and method != "full":
-        typer.echo(f"note: {int(cal.oriented.sum())} rows carry a measured orientation; the zero-offset posterior "
-                   f"(--method {method}) fits their positions only — --method full fits position and attitude together")
+    if cal.has_orientation and method == "auto":
+        typer.echo(f"note: {int(cal.oriented.sum())} rows carry a measured orientation: the chosen model is fitted on "
+                   "their positions and attitudes together; the candidates are cross-validated on positions")
     if compliance and method == "paper":
         raise typer.BadParameter("the paper's model has no compliance: use --method fast or full", param_hint="--compliance")
     if not (math.isfinite(tool_prior_mm) and 0 <= tool_prior_mm <= 100):
@@ -544,6 +544,11 @@ def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force:
     doc = done.doc
     doc["metrics"]["notes"] = metric_notes(done.result) + doc["metrics"].get("notes", [])
     typer.echo(format_summary(doc, done.controller_text, done.choice.format()))
+    for part, m in (doc.get("pose_metrics") or {}).items():
+        b, a = m["before"], m["after"]
+        typer.echo(f"{part} (position and attitude): EACPE {b['EACPE']:.3f} → {a['EACPE']:.3f} mm, EMCPE {b['EMCPE']:.3f} → "
+                   f"{a['EMCPE']:.3f} mm" + (f", EACAE {b['EACAE']:.4f} → {a['EACAE']:.4f}°, EMCAE {b['EMCAE']:.4f} → "
+                                             f"{a['EMCAE']:.4f}°" if b.get("EACAE") is not None else ""))
     if output is not None:
         write_result(output, doc)
         typer.echo(f"\nwrote {output}")

@@ -101,6 +101,12 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
                                result.applied_sigma_mm, validation=val, n_random=n_random, seed=base.seed,
                                markers_mm=result.fitted_markers_mm)
     doc = result_dict(result, cal, metrics=metrics)
+    if result.posterior.attitude is not None:  # 6-DoF rows: the paper's position and attitude metrics
+        from calib.fit.attitude import pose_metrics
+
+        post = result.posterior
+        doc["pose_metrics"] = pose_metrics(post, result.mode[: post.dim], result.base2sensor0, cal, val)
+        doc["attitude_weight"] = post.attitude.weight_info
     doc["model_choice"] = choice.to_dict()
     factor = interval_factor(choice.score(choice.chosen).misfit)
     if factor > 1.0:  # the intervals as wide as the held-out configurations say (calib.fit.heldout_misfit)

@@ -55,8 +55,8 @@ def heldout_chi2(mf, test: Dataset) -> tuple[float, int]:
     p_eff = float(np.trace(h_data @ h_inv))
     inflate = n / max(n - p_eff, 1.0)
     other = OffsetPosterior(post.chain, test, mf.b2s0, mf.mask, error=post.error, nu=post.nu, link_prior=mf.link_prior,
-                            compliance=bool(post.C), sag_params=mf.sag_params)
-    r = other.residuals(mf.theta)  # (k', 3)
+                            compliance=bool(post.C), sag_params=mf.sag_params, orientation=False)
+    r = other.residuals(mf.theta)  # (k', 3): positions (as the CV scores; attitude rows would re-fit the target frame)
     jt = other.jacobian(mf.theta).reshape(other.n_rows, 3, -1)
     s2 = np.exp(2.0 * np.asarray(mf.log_sigma))[[post.sensors.index(s) for s in test.sensor]] * inflate  # (k',)
     var = s2[:, None] + inflate * np.einsum("kip,pq,kiq->ki", jt, h_inv, jt)

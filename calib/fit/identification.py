@@ -46,6 +46,11 @@ exact), or freely from a start the data give when the model has none. A turn of 
 the last axis cannot be told from that axis's offset: the frame takes it (like the markers'
 positions) unless it is known (prior 0), and then orientation identifies the last offset even
 from one marker on the last axis (``calib.fit.pose_identifiability``).
+
+**Compliance with orientation** (``IdentOptions.compliance``): a joint that yields by
+Δθ_i = sign_i k_i τ_i turns the flange and everything on it by ω = Σ_i z_i Δθ_i (base frame), so the
+predicted attitude is exp(ω)·R_flange(q), to the same first order as the positions' sag; the
+compliances get attitude rows as well as position rows.
 """
 
 from __future__ import annotations
@@ -174,12 +179,12 @@ class _Problem:
             self._init_orientation(np.asarray(rotation, dtype=float), weight)
         #: Joint-angle change per µrad/(N·m) of compliance per distinct configuration (u, n), or None.
         self.gain = None
+        self.comp_start = None
         if compliance:
-            if rotation is not None:
-                raise ValueError("the compliance model is not available with measured orientations")
             from calib.robot.gravity import gravity_torques
 
             self.gain = chain.sign * gravity_torques(chain, self.uq) * 1e-6
+            self.comp_start = len(self.names)
             self.names += [f"{ax}.compliance" for ax in chain.model.axis_names]
         self.n_reg = 6 * len(self.sensors)
         if self.rotation is not None:
@@ -255,7 +260,12 @@ class _Problem:
             n = self.chain.n
             d_off = fj.jp[..., :n][:, None] + np.cross(fj.jw[..., :n][:, None], arm[..., None], axis=2)  # (u,m,3,n)
             sag_cols = d_off[self.inv, self.midx] * self.gain[self.inv][:, None, :]  # (k,3,n) per µrad/(N·m)
-            p_base = p_base + np.einsum("kjn,n->kj", sag_cols, x[self.P + self.n_reg:])
+            comp = x[self.comp_start: self.comp_start + n]
+            p_base = p_base + np.einsum("kjn,n->kj", sag_cols, comp)
+            # The same sag turns the flange and everything on it: ω = Σ_i z_i·sign_i·k_i·τ_i (base
+            # frame, the offsets' rotation Jacobian), to the same first order as the positions.
+            sag_w = fj.jw[..., :n] * self.gain[:, None, :]  # (u,3,n) rad per µrad/(N·m)
+            f_rot = exp_so3(np.einsum("ujn,n->uj", sag_w, comp)) @ f_rot
         pred = np.empty((k, 3))
         sensor_r = rot @ self.b2s0[:, :3, :3]  # (S,3,3): sensor-from-base rotation, total
         for s, rows in enumerate(self.rows_of):
@@ -292,7 +302,7 @@ class _Problem:
             jrows = jk[self.inv[rows], self.midx[rows]]  # (ks,3,P)
             jp[rows, :, : self.P] = np.einsum("ij,kjp->kip", sensor_r[s], jrows)
             if self.gain is not None:
-                jp[rows, :, self.P + n_reg:] = np.einsum("ij,kjn->kin", sensor_r[s], sag_cols[rows])
+                jp[rows, :, self.comp_start: self.comp_start + self.chain.n] = np.einsum("ij,kjn->kin", sensor_r[s], sag_cols[rows])
             c = self.P + 6 * s
             jp[rows, :, c : c + 3] = np.eye(3)
             rp = pred[rows] - reg[s, :3]
@@ -305,6 +315,8 @@ class _Problem:
             w = np.zeros((ko, 3, n_cols))
             so = sensor_r[self.sidx[o]]
             w[:, :, : self.P] = np.einsum("kij,kjp->kip", so, fj.jw[self.inv[o]])
+            if self.gain is not None:
+                w[:, :, self.comp_start: self.comp_start + self.chain.n] = np.einsum("kij,kjn->kin", so, sag_w[self.inv[o]])
             sid = self.sidx[o]
             for ax in range(3):
                 for s in range(len(self.sensors)):
@@ -335,7 +347,7 @@ class _Problem:
             kind = name.rsplit(".", 1)[1]
             out.append(1.0 if kind in ("d", "a", "x", "y", "z") else lever)
         if self.gain is not None:  # compliances: mm of marker motion per µrad/(N·m)
-            out[-self.chain.n:] = list(lever * np.maximum(np.sqrt(np.mean(self.gain ** 2, axis=0)), 1e-12))
+            out[self.comp_start: self.comp_start + self.chain.n] = list(lever * np.maximum(np.sqrt(np.mean(self.gain ** 2, axis=0)), 1e-12))
         return np.array(out)
 
 
@@ -431,11 +443,6 @@ def identify(
         raise DatasetError(f"the dataset has {data.n_joints} joints, the model '{model.name}' has {model.n_joints}")
     chain = Chain(model)
     dropped = []
-    if options.compliance and rotation is None and data.has_orientation:
-        data = data.without_orientation()
-        dropped.append("measured orientations not used: the compliance model is not combined with attitude rows "
-                       "yet (fit without --compliance to use them)")
-        log.warning(dropped[-1])
     b2s0 = registration or initial_registrations(chain, data, options.initial_registration, 0)
     if options.compliance and not model.has_dynamics:
         raise ValueError(f"{model.name}: the compliance model needs link masses and centres of mass in the robot model")
@@ -524,7 +531,8 @@ def identify(
     worse = {id(o) for o in disagreement(starts, options.disagree_rel, _cost_floor(starts))}
     comp = comp_std = None
     if options.compliance:
-        comp, comp_std = x[-chain.n:] * 1e-6, std[-chain.n:] * 1e-6
+        cs = slice(problem.comp_start, problem.comp_start + chain.n)
+        comp, comp_std = x[cs] * 1e-6, std[cs] * 1e-6
     tool_frames, frame_std = {}, {}
     if problem.rotation is not None:
         for f, (m, t) in enumerate(zip(problem.frame_markers, problem.target_frames(x))):

@@ -554,7 +554,7 @@ def sandwich_std(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray
     w = np.exp(-2 * np.asarray(log_sigma))[post.sensor_index]
     h_inv = np.linalg.pinv(np.einsum("kip,k,kiq->pq", j, w, j) + _prior_precision(post))
     score = np.einsum("kip,k,ki->kp", j, w, r)  # (k, dim)
-    _, group = np.unique(np.round(post.data.q_rad, 9), axis=0, return_inverse=True)
+    _, group = np.unique(np.round(post.data.q_rad[post.row_source], 9), axis=0, return_inverse=True)
     pooled = np.zeros((int(group.max()) + 1, score.shape[1]))
     np.add.at(pooled, group.ravel(), score)
     cov = h_inv @ (pooled.T @ pooled) @ h_inv
@@ -580,10 +580,12 @@ class ModeFit:
 
     def predict_residuals(self, data: Dataset) -> np.ndarray:
         """measured − predicted (k, 3) mm for other rows ``data`` with this fit's parameters and its
-        own registration (the same sensors; markers the fit did not measure keep the model's place)."""
+        own registration (the same sensors; markers the fit did not measure keep the model's place).
+        Positions only: attitude rows, where measured, are scored by ``calib.fit.attitude.pose_metrics``."""
         other = OffsetPosterior(self.post.chain, data, self.b2s0, self.mask, error=self.post.error, nu=self.post.nu,
-                                link_prior=self.link_prior, compliance=bool(self.post.C), sag_params=self.sag_params)
-        return other.residuals(self.theta)
+                                link_prior=self.link_prior, compliance=bool(self.post.C), sag_params=self.sag_params,
+                                orientation=False)
+        return other.position_residuals(self.theta)
 
 
 def _check_data(model: RobotModel, data: Dataset, options: FitOptions) -> None:

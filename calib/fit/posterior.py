@@ -112,6 +112,7 @@ class OffsetPosterior:
         link_prior: dict[int, float] | None = None,
         compliance: bool = False,
         sag_params: np.ndarray | None = None,
+        orientation: bool = True,
     ) -> None:
         if error not in ("gaussian", "student"):
             raise ValueError(f"error model {error!r} not known; use 'gaussian' or 'student'")
@@ -179,6 +180,23 @@ class OffsetPosterior:
             j_off = jac[np.arange(self.n_rows), self.marker_index][..., : self.n]  # (k, 3, n)
             #: ∂ p_base / ∂ k (k, 3, n), mm per µrad/(N·m).
             self._sag = j_off * (chain.sign * self.torques * 1e-6)[:, None, :]
+        #: Position rows (the dataset's) and their sensors; ``n_rows``/``sensor_index`` count every
+        #: residual row of three coordinates: the positions, then the attitude rows (``calib.fit.attitude``).
+        self.k_pos = self.n_rows
+        self._pos_sensor = self.sensor_index
+        self.attitude = None
+        #: Dataset row of each residual row (n_rows,): the positions, then the attitude rows'.
+        self.row_source = np.arange(self.k_pos)
+        if orientation and data.has_orientation:
+            from calib.fit.attitude import AttitudeRows
+
+            self.attitude = AttitudeRows(chain, data, self.sensors, self.b2s0,
+                                         chain.sign * self.torques * 1e-6 if self.C else None,
+                                         self.sag_params if self.C else None)
+            self.n_rows = self.k_pos + self.attitude.k
+            self.sensor_index = np.concatenate([self._pos_sensor, self.attitude.sensor_index])
+            self.rows_per_sensor = np.bincount(self.sensor_index, minlength=self.S)
+            self.row_source = np.concatenate([self.row_source, self.attitude.rows])
 
     # --- parameter packing -----------------------------------------------------------
     @property
@@ -240,7 +258,7 @@ class OffsetPosterior:
         link_cols = self.link_idx[~self.is_tool]
         if link_cols.size:
             _, jac = self.chain.marker_jacobian(self.data.q_rad, params)
-            self._link_jac = np.ascontiguousarray(jac[np.arange(self.n_rows), self.marker_index][..., link_cols])
+            self._link_jac = np.ascontiguousarray(jac[np.arange(self.k_pos), self.marker_index][..., link_cols])
             self._link_jac_t = np.ascontiguousarray(self._link_jac.reshape(-1, link_cols.size).T)  # (L_links, 3k)
         else:
             self._link_jac = None
@@ -311,7 +329,7 @@ class OffsetPosterior:
             if self._tool_fk is not None:
                 # Exact in the marker position: p = p(m_ref) + R_flange (m − m_ref), R's columns
                 # from the same folded kinematics at m_ref + e_x, e_y, e_z.
-                k = self.n_rows
+                k = self.k_pos
                 four = self._tool_fk.positions(full[..., : self.n])  # (..., 4k, 3)
                 p_base = four[..., :k, :]
                 dev = links[..., self.is_tool] - self._tool_ref  # (..., T)
@@ -324,7 +342,7 @@ class OffsetPosterior:
                 p_base = p_base + ((links[..., ~self.is_tool] - self._link_ref) @ self._link_jac_t).reshape(p_base.shape)  # one BLAS product
         elif self.L:
             pos = self.chain.marker_positions(self.data.q_rad, self.chain_params(full))  # (..., k, m, 3)
-            p_base = pos[..., np.arange(self.n_rows), self.marker_index, :]
+            p_base = pos[..., np.arange(self.k_pos), self.marker_index, :]
         else:
             p_base = self._offset_fk.positions(full[..., : self.n])  # (..., k, 3)
         return p_base
@@ -346,24 +364,32 @@ class OffsetPosterior:
             out[..., rows, :] = p_base[..., rows, :] @ np.swapaxes(r_total[..., k_s, :, :], -1, -2) + t_total[..., k_s, None, :]
         return out
 
-    def residuals(self, theta: np.ndarray) -> np.ndarray:
-        """measured − predicted, (..., k, 3) mm."""
+    def position_residuals(self, theta: np.ndarray) -> np.ndarray:
+        """measured − predicted positions, (..., k, 3) mm (the dataset's rows)."""
         return self.data.xyz_mm - self.predict(theta)
 
+    def residuals(self, theta: np.ndarray) -> np.ndarray:
+        """measured − predicted, (..., n_rows, 3) mm: the positions, then the weighted attitude rows
+        (``calib.fit.attitude``) where orientation is measured."""
+        r = self.data.xyz_mm - self.predict(theta)
+        if self.attitude is None:
+            return r
+        return np.concatenate([r, self.attitude.residuals(self, self.full_vector(theta))], axis=-2)
+
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
-        """∂ predicted / ∂ θ_free for one θ: (k·3, dim)."""
+        """∂ predicted / ∂ θ_free for one θ: (n_rows·3, dim), positions then attitude rows."""
         full = self.full_vector(theta)
         params = self.chain_params(full)
         pos, jac = self.chain.marker_jacobian(self.data.q_rad, params)  # (k, m, 3), (k, m, 3, P)
-        rows = np.arange(self.n_rows)
+        rows = np.arange(self.k_pos)
         p_base = pos[rows, self.marker_index]
         j_rows = jac[rows, self.marker_index]  # (k, 3, P)
         j_off = j_rows[..., : self.n]  # (k, 3, n)
-        b2s0 = self.b2s0[self.sensor_index]
+        b2s0 = self.b2s0[self._pos_sensor]
         rot, trans = self.corrections(full)  # (S,3,3), (S,3)
-        r_rows = rot[self.sensor_index]
+        r_rows = rot[self._pos_sensor]
         total = r_rows @ b2s0[:, :3, :3]  # (k, 3, 3)
-        j = np.zeros((self.n_rows, 3, self.n_full))
+        j = np.zeros((self.k_pos, 3, self.n_full))
         j[..., : self.n] = total @ j_off
         if self.L:
             j[..., self.n + 6 * self.S : self.n + 6 * self.S + self.L] = total @ j_rows[..., self.link_idx]
@@ -378,7 +404,7 @@ class OffsetPosterior:
         ez = np.array([0.0, 0.0, 1.0])
         ey_rot = np.stack([-sa, ca, np.zeros_like(ca)], -1)  # Rz(α) e_y
         ex_rot = np.stack([ca * cb, sa * cb, -sb], -1)  # Rz(α) Ry(β) e_x
-        s = self.sensor_index
+        s = self._pos_sensor
         for k_s in range(self.S):
             rows_s = s == k_s
             col = self.n + 6 * k_s
@@ -386,6 +412,8 @@ class OffsetPosterior:
             j[rows_s, :, col + 3] = np.cross(ez, rp[rows_s])
             j[rows_s, :, col + 4] = np.cross(ey_rot[k_s], rp[rows_s])
             j[rows_s, :, col + 5] = np.cross(ex_rot[k_s], rp[rows_s])
+        if self.attitude is not None:
+            j = np.concatenate([j, self.attitude.jacobian(self, full)])
         return j.reshape(self.n_rows * 3, -1)[:, self.free]
 
     # --- densities ---------------------------------------------------------------------

@@ -128,12 +128,14 @@ def sag_check(post, theta: np.ndarray, sigma_mm: dict[str, float]) -> Compliance
     full = post.full_vector(theta)
     params = post.chain_params(full)
     _, jac = chain.marker_jacobian(post.data.q_rad, params)
-    rows = np.arange(post.n_rows)
+    k = post.k_pos  # the position rows (attitude rows, where measured, follow them: not scored here)
+    s_idx = post.sensor_index[:k]
+    rows = np.arange(k)
     j_off = jac[rows, post.marker_index][..., : chain.n]  # (k, 3, n) base frame
     rot, _ = post.corrections(full)
-    total = rot[post.sensor_index] @ post.b2s0[post.sensor_index][:, :3, :3]
+    total = rot[s_idx] @ post.b2s0[s_idx][:, :3, :3]
     j_off = total @ j_off  # sensor frame, like the predictions
-    w = 1.0 / np.array([sigma_mm[s] for s in post.sensors])[post.sensor_index]  # (k,)
-    r = (post.residuals(theta) * w[:, None]).reshape(-1)
-    jf = post.jacobian(theta) * np.repeat(w, 3)[:, None]
+    w = 1.0 / np.array([sigma_mm[s] for s in post.sensors])[s_idx]  # (k,)
+    r = (post.position_residuals(theta) * w[:, None]).reshape(-1)
+    jf = post.jacobian(theta)[: 3 * k] * np.repeat(w, 3)[:, None]
     return compliance_score(chain, post.data.q_rad, j_off * w[:, None, None], jf, r, 1.0)

@@ -66,3 +66,27 @@ def test_select_on_position_and_attitude_rows(tmp_path):
     assert n[1] > n[0] and "position + attitude rows" in pose.output  # the target's frame and more are seen
     bad = CliRunner().invoke(app, args + ["--orientation", "0.024"])
     assert bad.exit_code == 2 and "SIGMA_MM,SIGMA_DEG" in bad.output
+
+
+def test_the_default_fit_uses_the_attitude_rows_and_reports_attitude_accuracy(tmp_path):
+    """`acquire fit` (default: the model chosen by cross-validation, zero-offset family) on 6-DoF
+    rows fits positions and attitudes together and prints and writes EACAE / EMCAE."""
+    model = load_robot_model(ROBOT)
+    chain = Chain(model)
+    rng = np.random.default_rng(8)
+    q = rng.uniform(model.lower_limits_rad * 0.7, model.upper_limits_rad * 0.7, (60, 6))
+    truth = chain.with_offsets(np.radians(rng.normal(0.0, 0.05, 6)))
+    data = measure_poses(chain, q, PoseCell(truth, exp_so3(np.radians([1.0, 2.0, 30.0])), BASE2SENSOR, 0.02, 0.01), rng)
+    cal, val = data.subset(np.arange(60) < 40), data.subset(np.arange(60) >= 40)
+    write_csv(cal, tmp_path / "cal.csv")
+    write_csv(val, tmp_path / "val.csv")
+    out = tmp_path / "r.json"
+    res = CliRunner().invoke(app, ["fit", str(tmp_path / "cal.csv"), "--robot", str(ROBOT), "--validate", str(tmp_path / "val.csv"),
+                                   "--model", "offsets+tool", "--draws", "300", "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "fitted on their positions and attitudes together" in res.output
+    assert "validation (position and attitude)" in res.output and "EACAE" in res.output
+    doc = json.loads(out.read_text())
+    v = doc["pose_metrics"]["validation"]
+    assert v["after"]["EACAE"] < 0.3 * v["before"]["EACAE"] and v["after"]["EACPE"] < 0.3 * v["before"]["EACPE"]
+    assert doc["attitude_weight"]["how"].startswith("σ_position")

@@ -10,12 +10,19 @@ positions only (its attitude through the T-Mac frame the calibration's orientati
 identified model) and with position + attitude rows. Across series: the robot identified on B,
 only registration and T-Mac (position, frame) re-fitted on 20 poses of D, scored on D's rest.
 
+The default run (``acquire fit``: the model chosen by cross-validation, ``calib.fit.model_choice``,
+fitted by the zero-offset posterior's mode) with position + attitude rows and with positions only
+(its attitude through the T-Mac frame the calibration's orientations give for the fitted robot),
+and full identification with joint compliance and attitude rows (the reference's model).
+Across series both ways (B → D and D → B).
+
     python tests/bench/study_ur10_pose.py [--seed 0] [--cal 200]
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import sys
 from pathlib import Path
 
@@ -26,7 +33,10 @@ sys.path.insert(0, str(ROOT))
 
 from calib.fit.identification import (IdentOptions, attitude_errors, corrected_model, estimated_tool_frames,  # noqa: E402
                                       identify, pose_errors)
+from calib.fit.attitude import fitted_frames, held_out_pose_errors  # noqa: E402
 from calib.fit.metrics import registrations  # noqa: E402
+from calib.fit.model_choice import choose_model, options_for, parse_candidate  # noqa: E402
+from calib.fit.offsets import FitOptions, fit_mode  # noqa: E402
 from calib.measure.ipa_tracker import read_ipa_series  # noqa: E402
 from calib.robot.kinematics import Chain  # noqa: E402
 from calib.robot.model import load_robot_model  # noqa: E402
@@ -70,7 +80,61 @@ def fits(model, cal, val, n_starts: int = 6) -> dict[str, tuple]:
                                        estimated_tool_frames(model, r.params, cal, r.base2sensor))
     pose = identify(model, cal, IdentOptions(n_starts=n_starts))
     out["full, position + attitude"] = score(model, pose.params, cal, val, pose.base2sensor, pose.tool_frames)
+    if model.has_dynamics:
+        sag = identify(model, cal, IdentOptions(n_starts=n_starts, compliance=True))
+        out["full+compliance, pos + att"] = score_sag(model, sag, val)
     return out, pose
+
+
+def score_sag(model, result, val) -> tuple[float, float, float, float]:
+    """Held-out errors of an identification with compliance: the sag turns the arm at val's poses."""
+    from calib.robot.gravity import gravity_torques
+
+    chain = Chain(model)
+    if result.compliance is None:
+        return score(model, result.params, None, val, result.base2sensor, result.tool_frames)
+    q = val.q_rad + chain.sign * result.compliance * gravity_torques(chain, val.q_rad, result.params)
+    return score(model, result.params, None, replace(val, q_rad=q), result.base2sensor, result.tool_frames)
+
+
+def default_fit(model, cal, val) -> dict[str, tuple]:
+    """The default run's model (cross-validated choice among the zero-offset candidates and full),
+    fitted with and without the attitude rows; for a chosen "full" the identification's rows above."""
+    base = FitOptions(method="laplace")
+    choice = choose_model(model, cal, base, include_full=False)
+    cand = parse_candidate(choice.chosen, model)
+    scale = choice.link_scale
+    options = options_for(cand, base, (scale["length_mm"], scale["angle_deg"]) if scale else None)
+    out, robot = {}, None
+    for label, data in ((f"default [{choice.chosen}], pos only", cal.without_orientation()),
+                        (f"default [{choice.chosen}], pos + att", cal)):
+        mf = fit_mode(model, data, options, tol=1e-10)
+        frames = fitted_frames(_with_orientation(mf, cal), mf.theta)
+        p, a = held_out_pose_errors(mf, val, frames)
+        a = np.degrees(a)
+        out[label] = (p.mean(), a.mean(), p.max(), a.max())
+        full = mf.post.full_vector(mf.theta)
+        comp = full[mf.post.n_full - mf.post.C:] * 1e-6 if mf.post.C else np.zeros(model.n_joints)
+        robot = (corrected_model(model, mf.post.chain_params(full)), comp)  # the last: position + attitude
+    return out, robot
+
+
+def sagged(model, data, compliance):
+    """``data`` with each configuration turned by the robot's own sag (compliance rad/(N·m))."""
+    from calib.robot.gravity import gravity_torques
+
+    chain = Chain(model)
+    return replace(data, q_rad=data.q_rad + chain.sign * compliance * gravity_torques(chain, data.q_rad))
+
+
+def _with_orientation(mf, cal):
+    """The fit's posterior on ``cal`` with its attitude rows (the same mask): its profiled target
+    frame at the fit's vector is the one the calibration's orientations give for the fitted robot."""
+    from calib.fit.posterior import OffsetPosterior
+
+    post = mf.post
+    return OffsetPosterior(post.chain, cal, mf.b2s0, mf.mask, error=post.error, nu=post.nu, link_prior=mf.link_prior,
+                           compliance=bool(post.C), sag_params=mf.sag_params)
 
 
 def main() -> None:
@@ -83,26 +147,36 @@ def main() -> None:
     data = {k: read_ipa_series(p, prefix=k) for k, p in SERIES.items()}
     print(f"UR10, Leica tracker + T-Mac; {args.cal} calibration poses per series (seed {args.seed}), the rest held out")
     print(f"{'':34}{'EACPE mm':>10}{'EACAE °':>10}{'EMCPE mm':>10}{'EMCAE °':>10}")
-    identified = {}
+    identified, default_robots = {}, {}
     for name, ds in data.items():
         cal, val = split(ds, args.cal, args.seed)
         rows, identified[name] = fits(MODEL, cal, val)
+        more, default_robots[name] = default_fit(MODEL, cal, val)
+        rows.update(more)
         print(f"Series {name} ({len(cal)} cal / {len(val)} held out)")
         for label, v in rows.items():
             print(f"  {label:32}" + "".join(f"{x:>10.4f}" for x in v))
         (rb, ab), (ra, aa) = REFERENCE[name]
         print(f"  {'reference: base+tool → full+compl.':32}{rb:>10.3f}{ab:>10.3f} → {ra:.3f} mm, {aa:.3f}°")
-    # Across series: the robot from B, registration and T-Mac re-fitted on 20 poses of D.
-    robot_b = corrected_model(MODEL, identified["B"].params)
-    cal, val = split(data["D"], 20, args.seed)
-    only_base_tool = IdentOptions(n_starts=1, exclude=tuple(kinematic_names(robot_b)))
-    nominal_rows, _ = fits(MODEL, cal, val, n_starts=1)
-    r = identify(robot_b, cal, only_base_tool)
-    print("Across series: robot identified on B (position + attitude); on D only registration and T-Mac re-fitted "
-          f"on {len(cal)} poses, {len(val)} held out")
-    print(f"  {'nominal robot, base+tool':32}" + "".join(f"{x:>10.4f}" for x in nominal_rows["base+tool"]))
-    print(f"  {'robot from B, base+tool':32}" + "".join(f"{x:>10.4f}" for x in
-                                                       score(robot_b, r.params, cal, val, r.base2sensor, r.tool_frames)))
+    # Across series: the robot from one series, registration and T-Mac re-fitted on 20 poses of the other.
+    for src, dst in (("B", "D"), ("D", "B")):
+        robot = corrected_model(MODEL, identified[src].params)
+        cal, val = split(data[dst], 20, args.seed)
+        for label, c in (("pos + att", cal), ("pos only", cal.without_orientation())):
+            nominal = identify(MODEL, c, IdentOptions(n_starts=1, exclude=tuple(kinematic_names(MODEL))))
+            r = identify(robot, c, IdentOptions(n_starts=1, exclude=tuple(kinematic_names(robot))))
+            print(f"Across series: robot identified on {src} (position + attitude); on {dst} only registration and "
+                  f"T-Mac re-fitted on {len(cal)} poses ({label}), {len(val)} held out")
+            for name, res, m in (("nominal robot, base+tool", nominal, MODEL), (f"robot from {src}, base+tool", r, robot)):
+                fr = res.tool_frames or estimated_tool_frames(m, res.params, cal, res.base2sensor)
+                print(f"  {name:32}" + "".join(f"{x:>10.4f}" for x in score(m, res.params, cal, val, res.base2sensor, fr)))
+            # The default run's robot from src (its links, offsets and compliances): its sag applied.
+            robot_d, comp = default_robots[src]
+            c_s, v_s = sagged(robot_d, c, comp), sagged(robot_d, val, comp)
+            r = identify(robot_d, c_s, IdentOptions(n_starts=1, exclude=tuple(kinematic_names(robot_d))))
+            fr = r.tool_frames or estimated_tool_frames(robot_d, r.params, sagged(robot_d, cal, comp), r.base2sensor)
+            print(f"  {'default-run robot from ' + src + ', b+t':32}" + "".join(
+                f"{x:>10.4f}" for x in score(robot_d, r.params, c_s, v_s, r.base2sensor, fr)))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,218 @@
+"""Attitude rows of the zero-offset posterior (``calib.fit.posterior.OffsetPosterior``).
+
+Where the dataset carries a measured orientation (``Dataset.rot``: a 6-DoF target's frame
+``R_sensor←target``), each such row adds the residual
+
+    e = log(R_measured · R_predicted⁻¹)        (rad, sensor frame; a rotation vector, never Euler)
+
+with R_predicted = T*_s · base2sensor0_s · exp(ω_sag) · R_flange(q + δ; links) · R_target, weighted by
+w = σ_position / σ_attitude (mm/rad; the data's median ``std_mm`` over the row's ``att_std_rad``, or
+√L of ``IdentOptions.orientation_weight`` where the data state no spreads), so that a weighted
+attitude row counts like a position row against the sensor's σ. The rows enter the posterior as
+extra rows of three coordinates each; σ, the priors and every method are unchanged.
+
+**The target's frame on the flange**, R_target, per frame marker:
+- known (the model gives the marker's ``rpy_deg``): held at it — then the attitude determines the
+  last joint's offset even from one marker on the last axis;
+- unknown: **profiled** — for every parameter vector the frame is set to its weighted chordal
+  mean ``argmax_F Σ w² tr(Fᵀ A_iᵀ R_meas,i)``, A_i = sensor rotation · flange rotation, and the
+  Jacobian is the variable-projection one (the frame's three columns projected out), so the
+  curvature carries the frame's uncertainty: a turn of the target about the last axis cannot be
+  told from that axis's offset, and the attitude rows then say nothing about that offset.
+
+**Compliance**: a joint yielding by Δθ_i = sign_i k_i τ_i turns the flange by ω_sag = Σ z_i Δθ_i
+(base frame), to the same first order as the positions' sag (``calib.robot.gravity``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from calib.measure.dataset import Dataset
+from calib.robot.kinematics import Chain
+from calib.robot.transforms import euler_zyx_to_matrix, exp_so3, log_so3, so3_left_jacobian_inv
+
+#: mm² per rad², the weight² of an attitude row when the data state no spreads (as
+#: ``calib.fit.identification.IdentOptions.orientation_weight``).
+DEFAULT_ORIENTATION_WEIGHT = 100.0
+
+
+def _polar(m: np.ndarray) -> np.ndarray:
+    """The rotation nearest (..., 3, 3) matrices m (chordal mean), batched."""
+    u, _, vt = np.linalg.svd(m)
+    d = np.sign(np.linalg.det(u @ vt))
+    u = u.copy()
+    u[..., :, 2] *= d[..., None]
+    return u @ vt
+
+
+class AttitudeRows:
+    """The attitude rows of one dataset. ``sensors``: sorted sensor names; ``b2s0``: (S, 4, 4)."""
+
+    def __init__(self, chain: Chain, data: Dataset, sensors: list[str], b2s0: np.ndarray,
+                 sag_gain: np.ndarray | None = None, sag_params: np.ndarray | None = None) -> None:
+        """``sag_gain``: (k, n) joint-angle change per µrad/(N·m) (sign·τ·1e-6) when compliance is
+        fitted; ``sag_params``: the chain vector (P,) the sag is taken at (None: nominal)."""
+        self.chain = chain
+        rot = np.asarray(data.rot, dtype=float)
+        self.rows = np.flatnonzero(np.isfinite(rot).all(axis=(1, 2)))  # dataset rows with an orientation
+        self.k = self.rows.size
+        self.q = data.q_rad[self.rows]
+        self.r_meas = rot[self.rows]
+        self.sensor_index = np.array([sensors.index(s) for s in data.sensor[self.rows]], dtype=int)
+        self.b2s0_r = b2s0[:, :3, :3]
+        sp = float(np.nanmedian(data.std_mm)) if np.isfinite(data.std_mm).any() else math.nan
+        att = data.att_std_rad[self.rows] if data.att_std_rad is not None else np.full(self.k, np.nan)
+        good = np.isfinite(att) & (att > 0)
+        if math.isfinite(sp) and sp > 0 and good.any():
+            att = np.where(good, att, np.median(att[good]))
+            self.weight = sp / att  # (ko,) mm per rad
+            self.weight_info = {"how": "σ_position / σ_attitude of each row (the data's spreads)",
+                                "sigma_position_mm": sp, "median_mm_per_rad": float(np.median(self.weight))}
+        else:
+            self.weight = np.full(self.k, math.sqrt(DEFAULT_ORIENTATION_WEIGHT))
+            self.weight_info = {"how": f"√L with L = {DEFAULT_ORIENTATION_WEIGHT:g} mm² (the data state no spreads)",
+                                "median_mm_per_rad": math.sqrt(DEFAULT_ORIENTATION_WEIGHT)}
+        markers = data.marker[self.rows]
+        self.frame_markers = sorted(set(markers.tolist()))
+        self.frame_index = np.array([self.frame_markers.index(m) for m in markers], dtype=int)
+        frames, known = [], []
+        for m in self.frame_markers:
+            rpy = chain.model.tool.markers[chain.model.marker_index(m)].rpy_deg
+            known.append(rpy is not None)
+            frames.append(euler_zyx_to_matrix(*np.radians([rpy[2], rpy[1], rpy[0]])) if rpy is not None else np.eye(3))
+        self.frame0 = np.array(frames).reshape(-1, 3, 3)
+        self.known = np.array(known, dtype=bool)
+        self.sag_w = None
+        if sag_gain is not None:
+            ref = chain.nominal if sag_params is None else sag_params
+            jw = chain.flange_jacobian(self.q, ref).jw[..., : chain.n]  # (ko, 3, n)
+            self.sag_w = jw * sag_gain[self.rows][:, None, :]  # rad per µrad/(N·m)
+
+    # --- prediction ----------------------------------------------------------------------
+    def _sensor_flange(self, post, full: np.ndarray) -> np.ndarray:
+        """A = sensor-from-base rotation · flange rotation, (..., ko, 3, 3)."""
+        params = post.chain_params(full)
+        r_f, _ = self.chain.flange_pose(self.q, params)  # (..., ko, 3, 3)
+        if self.sag_w is not None:
+            comp = full[..., post.n_full - post.C:]
+            r_f = exp_so3(np.einsum("kjn,...n->...kj", self.sag_w, comp)) @ r_f
+        rot, _ = post.corrections(full)  # (..., S, 3, 3)
+        total = rot @ self.b2s0_r  # (..., S, 3, 3)
+        return total[..., self.sensor_index, :, :] @ r_f
+
+    def frames(self, a: np.ndarray) -> np.ndarray:
+        """R_target per row (..., ko, 3, 3): the model's where known, else the weighted chordal mean."""
+        out = np.broadcast_to(self.frame0[self.frame_index], a.shape).copy()
+        w2 = self.weight ** 2
+        for f in np.flatnonzero(~self.known):
+            rows = self.frame_index == f
+            m = np.einsum("k,...kji,kjl->...il", w2[rows], a[..., rows, :, :], self.r_meas[rows])
+            out[..., rows, :, :] = _polar(m)[..., None, :, :]
+        return out
+
+    def residuals(self, post, full: np.ndarray) -> np.ndarray:
+        """Weighted attitude residuals w·log(R_meas R_pred⁻¹), (..., ko, 3) "mm"."""
+        a = self._sensor_flange(post, full)
+        r_pred = a @ self.frames(a)
+        return self.weight[:, None] * log_so3(self.r_meas @ np.swapaxes(r_pred, -1, -2))
+
+    def jacobian(self, post, full: np.ndarray) -> np.ndarray:
+        """∂(weighted prediction)/∂(full vector) at one full vector, (ko, 3, n_full): minus the
+        residuals' derivative, as ``OffsetPosterior.jacobian`` gives the positions'; the profiled
+        frames' columns projected out (variable projection)."""
+        n, S = post.n, post.S
+        params = post.chain_params(full)
+        fj = self.chain.flange_jacobian(self.q, params)
+        a = self._sensor_flange(post, full)  # (ko,3,3)
+        e = log_so3(self.r_meas @ np.swapaxes(a @ self.frames(a), -1, -2))
+        so = (post.corrections(full)[0] @ self.b2s0_r)[self.sensor_index]  # (ko,3,3)
+        om = np.zeros((self.k, 3, post.n_full))  # rotation (sensor frame) per unit of each entry
+        om[..., :n] = so @ fj.jw[..., :n]
+        if post.L:
+            om[..., n + 6 * S: n + 6 * S + post.L] = so @ fj.jw[..., post.link_idx]
+        if self.sag_w is not None:
+            om[..., post.n_full - post.C:] = so @ self.sag_w
+        reg = full[n: n + 6 * S].reshape(S, 6)
+        ca, sa = np.cos(reg[:, 3]), np.sin(reg[:, 3])
+        cb, sb = np.cos(reg[:, 4]), np.sin(reg[:, 4])
+        axes = [np.broadcast_to([0.0, 0.0, 1.0], (S, 3)), np.stack([-sa, ca, np.zeros_like(ca)], -1),
+                np.stack([ca * cb, sa * cb, -sb], -1)]
+        for s in range(S):
+            rows = self.sensor_index == s
+            for ax in range(3):
+                om[rows, :, n + 6 * s + 3 + ax] = axes[ax][s]
+        jl = so3_left_jacobian_inv(-e) * self.weight[:, None, None]  # (ko,3,3)
+        g = np.einsum("kij,kjp->kip", jl, om)
+        for f in np.flatnonzero(~self.known):
+            rows = self.frame_index == f
+            b = (jl[rows] @ a[rows]).reshape(-1, 3)  # the frame's columns (3·kf, 3)
+            gf = g[rows].reshape(-1, post.n_full)
+            gf = gf - b @ np.linalg.solve(b.T @ b, b.T @ gf)
+            g[rows] = gf.reshape(-1, 3, post.n_full)
+        return g
+
+
+def fitted_frames(post, theta: np.ndarray) -> dict[str, np.ndarray]:
+    """Marker name → R_flange←target (3, 3) at the free vector ``theta`` of a posterior with attitude
+    rows: the model's where known, else the profiled (weighted chordal mean) frame."""
+    att = post.attitude
+    if att is None:
+        return {}
+    frames = att.frames(att._sensor_flange(post, post.full_vector(theta)))
+    return {m: frames[np.flatnonzero(att.frame_index == f)[0]] for f, m in enumerate(att.frame_markers)}
+
+
+def held_out_pose_errors(mode_fit, data: Dataset, frames: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Position errors (k,) mm and attitude errors (ko,) rad of other rows ``data`` predicted by a
+    zero-offset fit (``calib.fit.offsets.ModeFit``) with its own registration, tool and the target
+    frames ``frames`` (e.g. ``fitted_frames`` of the calibration): nothing is re-fitted on ``data``.
+    The attitude errors are of the rows that carry an orientation (none: an empty array)."""
+    return pose_errors_at(mode_fit.post, mode_fit.theta, mode_fit.b2s0, data, frames)
+
+
+def pose_errors_at(post, theta: np.ndarray, b2s0: dict[str, np.ndarray], data: Dataset,
+                   frames: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """As ``held_out_pose_errors`` for a posterior ``post`` at its free vector ``theta`` (initial
+    registrations ``b2s0``)."""
+    from calib.fit.posterior import OffsetPosterior
+
+    other = OffsetPosterior(post.chain, data, b2s0, post.mask, error=post.error, nu=post.nu,
+                            link_prior=dict(zip(post.link_idx.tolist(), post.link_sd.tolist())), compliance=bool(post.C),
+                            sag_params=post.sag_params if post.C else None, orientation=data.has_orientation)
+    pos = np.linalg.norm(other.position_residuals(theta), axis=-1)
+    att = other.attitude
+    if att is None:
+        return pos, np.zeros(0)
+    missing = sorted(set(att.frame_markers) - set(frames))
+    if missing:
+        raise ValueError(f"no target frame for marker(s) {missing}: give the calibration's (fitted_frames)")
+    att.frame0 = np.stack([frames[m] for m in att.frame_markers])
+    att.known = np.ones(len(att.frame_markers), bool)
+    e = att.residuals(other, other.full_vector(theta)) / att.weight[:, None]
+    return pos, np.linalg.norm(e, axis=-1)
+
+
+def pose_metrics(post, theta: np.ndarray, b2s0: dict[str, np.ndarray], cal: Dataset, val: Dataset | None) -> dict:
+    """EACPE/EMCPE (mm) and EACAE/EMCAE (°) before and after a zero-offset fit with attitude rows,
+    on the calibration rows and, if given, the validation rows — both scored with the calibration's
+    registration, tool and target frames (nothing re-fitted on the validation). "before": the
+    nominal robot (all corrections zero) with the initial registration and the target frame the
+    calibration's orientations give for it. ``post``: the fit's posterior on ``cal``; ``theta`` its
+    free vector (the mode)."""
+    from calib.fit.identification import comprehensive_errors
+
+    out = {}
+    zero = np.zeros_like(theta)
+    frames = {"before": fitted_frames(post, zero), "after": fitted_frames(post, theta)}
+    for part, data in (("calibration", cal), ("validation", val)):
+        if data is None or len(data) == 0:
+            continue
+        entry = {}
+        for when, t in (("before", zero), ("after", theta)):
+            p, a = pose_errors_at(post, t, b2s0, data, frames[when])
+            entry[when] = comprehensive_errors(p, a if a.size else None)
+        out[part] = entry
+    return out
