@@ -544,10 +544,13 @@ class FakeSunrise:
         cmd = np.asarray(jp, dtype=float)
         if self._first_active_command and np.all(np.isfinite(cmd)):
             self._first_active_command = False
-            jump = np.max(np.abs(cmd - self._servo.unguided()))  # a hand on the arm is not the client's
+            # The overlay starts at zero: the first set-point is the interpolator's position.
+            # Not the measured one: a hand on the arm, or a servo still following it, is not the
+            # client's to command away (it would be a jump when the hand lets go).
+            jump = np.max(np.abs(cmd - self._ipo))
             if jump > self.start_tolerance_rad:
                 self._violation(
-                    f"first command is {jump:.4g} rad from the measured position "
+                    f"first command is {jump:.4g} rad from the interpolator's position "
                     f"(allowed {self.start_tolerance_rad:.3g})"
                 )
                 return
