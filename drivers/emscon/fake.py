@@ -435,15 +435,7 @@ class FakeEmscon:
 
     def _stationary(self) -> es.DataResult:
         t = self.tracker
-        n = max(1, min(MAX_AVERAGE, round(self.meas_time_ms * t.average_rate_hz / 1000.0)))
-        t.tick()  # a break before the command is NotReady, one during it NoStationaryResult
-        was_locked = t.locked
-        try:
-            avg = self._run(MeasureAverage(n))
-        except _Refused as exc:
-            if exc.status is Status.MeasurementStatusNotReady and was_locked and not t.locked:
-                raise _Refused(Status.NoStationaryResult, "the beam broke during the measurement") from None
-            raise
+        avg = self._averaged(MeasureAverage)
         xyz = avg.xyz_mm
         std = avg.std_xyz_mm
         self.last_point_mm = xyz
@@ -459,21 +451,26 @@ class FakeEmscon:
             "dAprioriStd1": v(sigma), "dAprioriStd2": v(sigma), "dAprioriStd3": v(sigma),
             "dAprioriStdTotal": v(sigma * math.sqrt(3.0)), **air})
 
+    def _averaged(self, command):
+        """Run ``command(n)`` (``MeasureAverage`` or ``MeasurePose``) over the stationary
+        measurement time: a beam break before it is NotReady, one during it NoStationaryResult."""
+        t = self.tracker
+        n = max(1, min(MAX_AVERAGE, round(self.meas_time_ms * t.average_rate_hz / 1000.0)))
+        t.tick()
+        was_locked = t.locked
+        try:
+            return self._run(command(n))
+        except _Refused as exc:
+            if exc.status is Status.MeasurementStatusNotReady and was_locked and not t.locked:
+                raise _Refused(Status.NoStationaryResult, "the beam broke during the measurement") from None
+            raise
 
     def _six_d(self) -> es.DataResult:
         """A 6-DoF stationary measurement (``ProbeStationaryResultT``) from the tracker's POSE."""
         from calib.robot.transforms import matrix_to_euler_zyx, quat_to_matrix
 
         t = self.tracker
-        n = max(1, min(MAX_AVERAGE, round(self.meas_time_ms * t.average_rate_hz / 1000.0)))
-        t.tick()
-        was_locked = t.locked
-        try:
-            pose = self._run(MeasurePose(n))
-        except _Refused as exc:
-            if exc.status is Status.MeasurementStatusNotReady and was_locked and not t.locked:
-                raise _Refused(Status.NoStationaryResult, "the beam broke during the measurement") from None
-            raise
+        pose = self._averaged(MeasurePose)
         xyz, std = pose.xyz_mm, pose.std_xyz_mm
         self.last_point_mm = xyz
         sigma = t.sigma_mm(float(np.linalg.norm(xyz)))

@@ -376,19 +376,15 @@ class PointReply:
         return np.array([self.x, self.y, self.z])
 
 
-@dataclass(frozen=True)
-class AverageReply:
-    """Mean of ``n`` points, tracker frame, mm, with per-axis sample standard deviations."""
+class _MeanPosition:
+    """The position part of a mean reply (fields ``x y z`` and ``sx sy sz``, mm)."""
 
-    verb: ClassVar[str] = "AVG"
-    x: float = _f("x", "mm")
-    y: float = _f("y", "mm")
-    z: float = _f("z", "mm")
-    sx: float = _f("sx", "mm")
-    sy: float = _f("sy", "mm")
-    sz: float = _f("sz", "mm")
-    n: int = _f("n", "int")
-    device_time: float = _f("t", "s")
+    x: float
+    y: float
+    z: float
+    sx: float
+    sy: float
+    sz: float
 
     @property
     def xyz_mm(self) -> np.ndarray:
@@ -402,7 +398,22 @@ class AverageReply:
 
 
 @dataclass(frozen=True)
-class PoseReply:
+class AverageReply(_MeanPosition):
+    """Mean of ``n`` points, tracker frame, mm, with per-axis sample standard deviations."""
+
+    verb: ClassVar[str] = "AVG"
+    x: float = _f("x", "mm")
+    y: float = _f("y", "mm")
+    z: float = _f("z", "mm")
+    sx: float = _f("sx", "mm")
+    sy: float = _f("sy", "mm")
+    sz: float = _f("sz", "mm")
+    n: int = _f("n", "int")
+    device_time: float = _f("t", "s")
+
+
+@dataclass(frozen=True)
+class PoseReply(_MeanPosition):
     """A 6-DoF target's mean pose over ``n`` measurements, tracker frame: position (mm) with
     per-axis sample standard deviations, orientation ``R_tracker←target`` as a unit quaternion
     (scalar first, Hamilton), and the spread of the orientation as the sample standard deviation
@@ -424,16 +435,6 @@ class PoseReply:
     srz: float = _f("srz", "deg")
     n: int = _f("n", "int")
     device_time: float = _f("t", "s")
-
-    @property
-    def xyz_mm(self) -> np.ndarray:
-        """shape (3,), mm."""
-        return np.array([self.x, self.y, self.z])
-
-    @property
-    def std_xyz_mm(self) -> np.ndarray:
-        """shape (3,), mm."""
-        return np.array([self.sx, self.sy, self.sz])
 
     @property
     def quat_wxyz(self) -> np.ndarray:
