@@ -297,7 +297,7 @@ class ModelChoice:
         if self.link_scale:
             how = "given" if self.link_scale.get("given") else "empirical Bayes, max evidence"
             lines.append(f"  link prior of offsets+tool+links ({how}): lengths ±{self.link_scale['length_mm']:g} mm, "
-                         f"angles ±{self.link_scale['angle_deg']:g}°" + _fold_text(self.link_scale))
+                         f"angles ±{self.link_scale['angle_deg']:g}°" + fold_scale_text(self.link_scale))
         return "\n".join(lines)
 
 
@@ -319,7 +319,7 @@ def _scale_line(misfit: float | None) -> str:
     return what + (f"; the chosen model's σ scaled ×{f:.2f} by held-out misfit" if f > 1.0 else "")
 
 
-def _fold_text(scale: dict) -> str:
+def fold_scale_text(scale: dict) -> str:
     """The folds' own link scales (``cross_validate``), as ``; folds: 1 mm/0.3° ×4, 0.3 mm/0.3° ×1``."""
     per = scale.get("per_fold")
     if not per:

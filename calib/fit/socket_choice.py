@@ -36,7 +36,7 @@ from typing import ClassVar
 import numpy as np
 
 from calib.fit.link_scale import maximise_evidence
-from calib.fit.model_choice import Candidate, ModelChoice, Score, one_se_choice
+from calib.fit.model_choice import Candidate, ModelChoice, Score, fold_scale_text, one_se_choice
 from calib.fit.socket import SocketDataError, SocketDataset, SocketFit, _pivot_start, ball_positions, fit_socket
 from calib.robot.kinematics import Chain
 from calib.robot.model import RobotModel
@@ -159,9 +159,13 @@ def _nominal_params(chain: Chain, train: SocketDataset) -> tuple[np.ndarray, np.
 
 def cross_validate_sockets(model: RobotModel, ds: SocketDataset, cands: list[SocketCandidate],
                            scales: dict[bool, tuple[float, float] | None], *, k: int = 5,
-                           seed: int = 0) -> tuple[list[SocketScore], SocketScore, int, str]:
+                           seed: int = 0, fold_scales: dict[bool, list] | None = None,
+                           ) -> tuple[list[SocketScore], SocketScore, int, str]:
     """Held-out scores of ``cands`` and of the nominal model (module docstring); ``scales``: the
-    link scale per compliance flag."""
+    link scale per compliance flag, given by the user. ``fold_scales`` (a dict, when given): the
+    links candidates' scales are instead estimated by evidence on each fold's training data only
+    (the held-out data must not choose the prior they are scored under), and each fold's
+    (mm, deg) is appended under its compliance flag."""
     chain = Chain(model)
     folds, grouping = socket_folds(ds, k, seed)
     scores = [SocketScore(c.name, c.rank, None) for c in cands]
@@ -174,11 +178,16 @@ def cross_validate_sockets(model: RobotModel, ds: SocketDataset, cands: list[Soc
         labels.append(label)
         p0, pts0 = _nominal_params(chain, train)
         nominal_parts.append(held_out_distances(chain, p0, None, test, pts0 if by_point else None))
+        fold_scale = dict(scales)
         for i, c in enumerate(cands):
             if scores[i].failed:
                 continue
             try:
-                fit = fit_candidate(model, train, c, scales.get(c.compliance))
+                if fold_scales is not None and c.kind == "offsets+ball+links" and c.compliance not in fold_scale:
+                    sc = socket_link_scale(model, train, c.compliance)
+                    fold_scale[c.compliance] = (sc["length_mm"], sc["angle_deg"])
+                    fold_scales.setdefault(c.compliance, []).append(fold_scale[c.compliance])
+                fit = fit_candidate(model, train, c, fold_scale.get(c.compliance))
             except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
                 scores[i].failed = f"fold {f + 1}: {exc}"
                 continue
@@ -227,7 +236,8 @@ class SocketChoice(ModelChoice):
             lines.append(f"  {s.name:<50}{free:>6}{s.rms_mm:>19.4f}{s.mean_mm:>12.4f} ± {s.se_mm:.4f}{mark}")
         for name, sc in (self.link_scale or {}).items():
             how = "given" if sc.get("given") else "empirical Bayes, max evidence"
-            lines.append(f"  link prior of {name} ({how}): lengths ±{sc['length_mm']:g} mm, angles ±{sc['angle_deg']:g}°")
+            lines.append(f"  link prior of {name} ({how}): lengths ±{sc['length_mm']:g} mm, angles ±{sc['angle_deg']:g}°"
+                         + fold_scale_text(sc))
         return "\n".join(lines)
 
 
@@ -253,7 +263,12 @@ def choose_socket_model(model: RobotModel, ds: SocketDataset, *, force: str | No
             sc = socket_link_scale(model, ds, c.compliance)
         scales[c.compliance] = (sc["length_mm"], sc["angle_deg"])
         shown[c.name] = sc
-    scores, nominal, n_folds, grouping = cross_validate_sockets(model, ds, cands, scales, k=k, seed=seed)
+    per_fold: dict[bool, list] | None = None if link_tolerance is not None else {}
+    scores, nominal, n_folds, grouping = cross_validate_sockets(model, ds, cands, scales if per_fold is None else {},
+                                                                k=k, seed=seed, fold_scales=per_fold)
+    for c in cands:
+        if per_fold and c.name in shown:
+            shown[c.name]["per_fold"] = [list(t) for t in per_fold.get(c.compliance, [])]
     try:
         chosen = force if force is not None else one_se_choice(scores)
     except ValueError:  # nothing could be fitted on the training folds: the simplest, unvalidated

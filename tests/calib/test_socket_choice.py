@@ -133,3 +133,30 @@ def test_default_never_enters_offsets_outside_the_truth_over_many_panda_cells():
         missed += _entered_outside(doc, truth)
     assert entered >= 30
     assert len(missed) <= 0.05 * entered, missed
+
+
+def test_each_fold_chooses_its_link_scale_without_the_held_out_configurations(monkeypatch):
+    """The evidence that sets a links candidate's prior scale sees only the fold's training data:
+    every call made during cross-validation gets a dataset that holds none of that fold's held-out
+    configurations, and the folds' scales are reported beside the all-data one."""
+    import calib.fit.socket_choice as sc
+
+    model, _truth, ds = _panda_cell(0, per_socket=12)
+    seen: list[int] = []
+    real = sc.socket_link_scale
+
+    def spy(model_, data, compliance=False):
+        seen.append(len(data.q_rad))
+        return real(model_, data, compliance)
+
+    monkeypatch.setattr(sc, "socket_link_scale", spy)
+    choice = choose_socket_model(model, ds, k=5, seed=0)
+    folds, _grouping = socket_folds(ds, 5, 0)
+    n_links = sum(1 for name in choice.link_scale if name.startswith("offsets+ball+links"))
+    assert seen[:n_links] == [len(ds.q_rad)] * n_links  # the final fit's scale: all the data
+    per_fold = seen[n_links:]
+    assert sorted(per_fold) == sorted([len(train.q_rad) for train, _test in folds] * n_links)
+    assert all(n < len(ds.q_rad) for n in per_fold)
+    for name, scale in choice.link_scale.items():
+        assert len(scale["per_fold"]) == len(folds), (name, scale)
+    assert "each fold its own" in choice.format()
