@@ -8,7 +8,8 @@ Candidates (``socket_candidates``), simplest first, each fitted by ``calib.fit.s
 ``offsets+ball``         zero-offsets and the ball on the flange (the socket points are always free);
 ``offsets+ball+links``   … and every link parameter under a Gaussian prior whose two scales —
                          lengths (d, a; mm) and angles (α, β; degrees) — maximise the Laplace
-                         evidence of all the data (``calib.fit.link_scale``);
+                         evidence (``calib.fit.link_scale``): of each fold's training data
+                         when it is scored, of all the data for the final fit;
 ``full``                 … the link parameters the data determine, without a prior (weakly
                          determined combinations left out);
 
