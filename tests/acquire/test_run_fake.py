@@ -241,8 +241,8 @@ def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     assert aims and any("registration" in e["source"] for e in aims)
     ids = [s["config_id"] for s in contents.samples]
     assert len(ids) == len(set(ids))
-    # tracker.yaml measures the simulated T-Mac's pose (POSE): every record carries its orientation
-    assert all(len(s["markers"][0]["quat_wxyz"]) == 4 and s["markers"][0]["std_deg"] > 0 for s in contents.samples)
+    # example-emscon.yaml follows a plain reflector (RRR15): positions only, no orientation claimed
+    assert all("quat_wxyz" not in s["markers"][0] for s in contents.samples)
     for e in resumed:
         assert e["config_id"] in ids
     ended = {e["config_id"] for e in events if e["kind"] in ("skipped", "failed")}
