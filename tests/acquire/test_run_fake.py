@@ -132,6 +132,7 @@ def test_dry_run_prints_the_order_and_cell_time_and_connects_to_nothing(tmp_path
     assert not (tmp_path / "runs").exists()
 
 
+@pytest.mark.slow  # ~80 s; the run loop's suspend/re-acquire path has a default test (test_run_sim_faults.py)
 def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     plan = small_plan(tmp_path, "tracker.yaml", n=6,
                       sequencing={"samples": 10, "settle_window_s": 0.2}, fake={"time_scale": 6.0})
@@ -198,7 +199,7 @@ def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compli
     assert comp["A2"]["status"] == "fitted" and comp["A1"]["status"] == "undetermined"
 
 
-@pytest.mark.slow  # long run; the run loop's suspend/re-acquire path is the tracker run's above, emScon's re-acquisition is covered in tests/drivers/emscon
+@pytest.mark.slow  # long run; the run loop's suspend/re-acquire path is test_run_sim_faults.py's, emScon's re-acquisition is covered in tests/drivers/emscon
 @pytest.mark.timeout(300)
 def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     from drivers.emscon import codec as es
