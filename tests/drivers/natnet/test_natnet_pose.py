@@ -3,6 +3,7 @@ the run record and the dataset as R_sensor←body, for the 3.x and 4.x frame lay
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 
@@ -38,10 +39,12 @@ def test_rigid_body_orientation_reaches_the_measurement(version):
     """Motive defines the body at creation (the fake: when it starts); the plate has then turned
     by 0.5 rad about Motive's z, so the body's orientation is Rz(0.5) and its x axis is seen
     along (cos 0.5, sin 0.5, 0)."""
-    now = {"t": 0.0}
-    scene = PlateScene(omega_rad_s=1.0, clock=lambda: now["t"])
+    # The clock reads 0 for the scene's t0 and for the body's definition in ``start``, then 0.5
+    # for every frame: no frame can be built before the plate has turned (the fake streams from
+    # its own thread as soon as it starts, however loaded the machine).
+    ticks = itertools.chain([0.0, 0.0], itertools.repeat(0.5))
+    scene = PlateScene(omega_rad_s=1.0, clock=lambda: next(ticks))
     with FakeMotive(scene, natnet_version=version, rate_hz=240) as fake:
-        now["t"] = 0.5
         url = f"natnet://127.0.0.1:{fake.command_port}?local=127.0.0.1"
         with NatNetSensor.from_url(url, markers={"plate": "rb:tool", "corner": "ms:tool:m1"}) as sensor:
             samples = {s.marker: s for s in sensor.read(2.0)}
