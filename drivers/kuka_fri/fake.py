@@ -134,6 +134,9 @@ class FakeSunrise:
     inputs: names of the BOOLEAN inputs the robot application shares over FRI (registered in
         its FRI configuration), e.g. ``MediaFlange.UserButton``; all released until
         ``set_input``. Every monitoring message carries them (``readIORequest``).
+    record_commands: keep every applied set-point in ``stats.commands`` (for tests that judge
+        the client's trajectory). A long-lived fake (the simulated cell of a daemon) passes
+        False: the record grows by ~0.2 kB per set-point, without bound.
     """
 
     def __init__(
@@ -171,6 +174,7 @@ class FakeSunrise:
         application: bool = False,
         application_start_cycles: int = 20,
         inputs: tuple[str, ...] = (),
+        record_commands: bool = True,
     ) -> None:
         host, port = client_address
         if fri_version not in FRI_VERSIONS:
@@ -213,6 +217,7 @@ class FakeSunrise:
         self.rt_priority = int(rt_priority)
         self.fri_version = fri_version
         self.application = bool(application)
+        self.record_commands = bool(record_commands)
         self.application_start_cycles = int(application_start_cycles)
         self.overruns = 0
         self._rng = np.random.default_rng(seed)
@@ -564,7 +569,8 @@ class FakeSunrise:
             return
         self._servo.setpoint = cmd
         self._windows.since_applied = 0
-        self.stats.commands.append((self._sim_time, cmd.copy()))
+        if self.record_commands:
+            self.stats.commands.append((self._sim_time, cmd.copy()))
 
     def _powered(self) -> bool:
         return self._drives == DriveState.ACTIVE and self._safety == SafetyState.NORMAL_OPERATION
