@@ -133,6 +133,7 @@ class IdentResult:
     iterations: int
     warnings: list[str] = field(default_factory=list)
     #: With ``IdentOptions.compliance``: per joint rad/(N·m) (0 where not identified) and std (NaN there).
+    #: The sag they give is sign·k·τ(q) with the torques τ at ``params`` (the identified arm), as fitted.
     compliance: np.ndarray | None = None
     compliance_std: np.ndarray | None = None
     #: Prior std (mm per coordinate) of the marker positions; 0: taken as exact.

@@ -195,7 +195,9 @@ class SocketFit:
     iterations: int
     groups: list[tuple[str, str]]
     warnings: list[str] = field(default_factory=list)
-    compliance: np.ndarray | None = None  # (n,) rad/(N·m) with the compliance model; 0 where not fitted
+    #: (n,) rad/(N·m) with the compliance model, 0 where not fitted; the sag it gives takes its torques
+    #: at ``params`` (the fitted arm), as ``ball_positions`` does.
+    compliance: np.ndarray | None = None
     compliance_std: np.ndarray | None = None  # (n,) NaN where not fitted
     #: The link prior the fit ran with, (mm, deg) sd of d, a / α, β; None: no prior.
     tolerance: tuple[float, float] | None = None
