@@ -152,8 +152,10 @@ class NatNetSensor(SensorBase):
         #: Plan marker name → what it is on the stream.
         self.selectors = {str(k): MarkerSelector.parse(v) for k, v in markers.items()}
         self.settings = NatNetSettings(
-            name, server, command_port, data_port, multicast, local, bitstream, silence_timeout_s,
-            handshake_timeout_s, keepalive_interval_s, units, reorder_window, restart_run,
+            name=name, server=server, command_port=command_port, data_port=data_port,
+            multicast=multicast, local=local, bitstream=bitstream, silence_timeout_s=silence_timeout_s,
+            handshake_timeout_s=handshake_timeout_s, keepalive_interval_s=keepalive_interval_s,
+            units=units, reorder_window=reorder_window, restart_run=restart_run,
         )
         self._state = ServerState(self.settings, self.selectors, self.log)
         self._channel = CommandChannel(self.settings, clock, self.log, lambda: self._state.stream_version)
@@ -179,8 +181,7 @@ class NatNetSensor(SensorBase):
         self._state.reset()  # nothing learnt from an earlier connection carries over
         self._receiver.start()
         try:
-            Handshake(self.settings, self._channel, self._state, self._frames, self._receiver.listen,
-                      self.clock, self.log).run()
+            Handshake(self._receiver).run()
         except BaseException:
             self.close()
             raise

@@ -17,6 +17,16 @@ from drivers.natnet.settings import NatNetSettings
 KEEP_REPLIES = 16
 
 
+#: What CONNECT says the client is: name and version.
+CLIENT_NAME, CLIENT_VERSION = "remaster", (0, 1, 0, 0)
+
+
+def connect_message(settings: NatNetSettings) -> codec.Connect:
+    """The CONNECT this client sends (NatNetLib layout, asking for ``settings.bitstream``
+    when set)."""
+    return codec.Connect(CLIENT_NAME, CLIENT_VERSION, settings.bitstream_or_any, "natnetlib")
+
+
 class CommandChannel:
     """Requests to ``settings.server:command_port`` and their replies.
 

@@ -4,29 +4,14 @@ model definitions (order and messages as in NatNetSensor's "Handshake")."""
 
 from __future__ import annotations
 
-import logging
 import math
-import socket
-from collections.abc import Callable
 
-from drivers.base import Clock
 from drivers.errors import ProtocolError
 from drivers.natnet import codec
-from drivers.natnet.command import CommandChannel
-from drivers.natnet.newest_frame import NewestFrame
-from drivers.natnet.server_state import ServerState
+from drivers.natnet.command import connect_message
+from drivers.natnet.receiver import Receiver
 from drivers.natnet.settings import NatNetSettings
 from drivers.natnet.transport import open_multicast, stream_route
-
-#: What CONNECT says the client is: name and version.
-CLIENT_NAME, CLIENT_VERSION = "remaster", (0, 1, 0, 0)
-
-
-def connect_message(settings: NatNetSettings) -> codec.Connect:
-    """The CONNECT this client sends (NatNetLib layout, asking for ``settings.bitstream``
-    when set)."""
-    return codec.Connect(CLIENT_NAME, CLIENT_VERSION, settings.bitstream_or_any, "natnetlib")
-
 
 def too_new(settings: NatNetSettings, version: codec.Version, app: str) -> ProtocolError:
     """The error for a server streaming a NatNet layout newer than this driver reads."""
@@ -42,24 +27,17 @@ def too_new(settings: NatNetSettings, version: codec.Version, app: str) -> Proto
 
 
 class Handshake:
-    """One connect()'s handshake; ``run()`` leaves ``state`` connected and ``handshake_done``
-    or raises (ProtocolError, DeviceTimeoutError, ConnectionLostError) saying what to do.
-
-    ``listen(sock)`` hands the joined multicast socket to the receiver thread.
+    """One connect()'s handshake over a running ``Receiver`` (it delivers the replies) and
+    the parts it feeds; ``run()`` leaves the server state connected and ``handshake_done``
+    (a multicast socket joined and handed to the receiver) or raises (ProtocolError,
+    DeviceTimeoutError, ConnectionLostError) saying what to do.
     """
 
-    def __init__(
-        self, settings: NatNetSettings, channel: CommandChannel, state: ServerState,
-        frames: NewestFrame, listen: Callable[[socket.socket], None], clock: Clock,
-        log: logging.Logger,
-    ) -> None:
-        self.settings = settings
-        self.channel = channel
-        self.state = state
-        self.frames = frames
-        self.listen = listen
-        self.clock = clock
-        self.log = log
+    def __init__(self, receiver: Receiver) -> None:
+        self.receiver = receiver
+        self.settings, self.channel = receiver.settings, receiver.channel
+        self.state, self.frames = receiver.state, receiver.frames
+        self.clock, self.log = receiver.clock, receiver.log
 
     def run(self) -> None:
         s = self.settings
@@ -88,7 +66,7 @@ class Handshake:
         self.frames.heard(self.clock())  # before adopt(): the receiver's silence check starts now
         self.state.adopt(info, version, group, port)
         if group is not None:
-            self.listen(open_multicast(group, port, s))
+            self.receiver.listen(open_multicast(group, port, s))
             self.log.info("joined multicast %s:%d on %s", group, port, s.local)
         self.state.frame_rate_hz = self._ask_frame_rate()
         md = self._model_def()

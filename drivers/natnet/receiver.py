@@ -12,8 +12,7 @@ import threading
 from drivers.base import Clock
 from drivers.errors import ProtocolError
 from drivers.natnet import codec
-from drivers.natnet.command import CommandChannel
-from drivers.natnet.handshake import connect_message
+from drivers.natnet.command import CommandChannel, connect_message
 from drivers.natnet.newest_frame import NewestFrame
 from drivers.natnet.server_state import ServerState
 from drivers.natnet.settings import NatNetSettings
@@ -36,12 +35,8 @@ class Receiver:
         self, settings: NatNetSettings, channel: CommandChannel, frames: NewestFrame,
         state: ServerState, clock: Clock, log: logging.Logger,
     ) -> None:
-        self.settings = settings
-        self.channel = channel
-        self.frames = frames
-        self.state = state
-        self.clock = clock
-        self.log = log
+        self.settings, self.channel, self.frames, self.state = settings, channel, frames, state
+        self.clock, self.log = clock, log
         self.bad_packets = 0
         self.data: socket.socket | None = None
         self._stop = threading.Event()
