@@ -13,6 +13,7 @@ from drivers.natnet.receiver import Receiver
 from drivers.natnet.settings import NatNetSettings
 from drivers.natnet.transport import open_multicast, stream_route
 
+
 def too_new(settings: NatNetSettings, version: codec.Version, app: str) -> ProtocolError:
     """The error for a server streaming a NatNet layout newer than this driver reads."""
     mx, s = codec.MAX_VERSION, settings
