@@ -146,13 +146,26 @@ def write_config(tmp_path: Path, port: int, **extra) -> Path:
     return path
 
 
+def unit_environment(unit: str = "remaster.service") -> dict[str, str]:
+    """The ``Environment=`` assignments of a shipped systemd unit (``systemd/<unit>``): the daemon
+    under test runs with the environment its unit gives it in a cell."""
+    env = {}
+    for line in (REPO / "systemd" / unit).read_text().splitlines():
+        if line.startswith("Environment="):
+            for item in line.removeprefix("Environment=").split():
+                key, _, value = item.partition("=")
+                env[key] = value
+    return env
+
+
 class DaemonProcess:
-    """``python -m acquire daemon --config …`` with a fake notify socket and a watchdog."""
+    """``python -m acquire daemon --config …`` with a fake notify socket and a watchdog, in the
+    environment of its systemd unit (``unit_environment``) plus ``env``."""
 
     def __init__(self, config: Path, notify: NotifySocket, *, watchdog_usec: int = 1_000_000,
                  env: dict | None = None) -> None:
         self.log_path = config.parent / "daemon.log"
-        e = dict(os.environ, NOTIFY_SOCKET=notify.name, WATCHDOG_USEC=str(watchdog_usec), PYTHONUNBUFFERED="1")
+        e = dict(os.environ, **unit_environment(), NOTIFY_SOCKET=notify.name, WATCHDOG_USEC=str(watchdog_usec))
         e.pop("JOURNAL_STREAM", None)
         e.update(env or {})
         self._log = open(self.log_path, "wb")
