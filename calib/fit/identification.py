@@ -50,7 +50,13 @@ from one marker on the last axis (``calib.fit.pose_identifiability``).
 **Compliance with orientation** (``IdentOptions.compliance``): a joint that yields by
 Δθ_i = sign_i k_i τ_i turns the flange and everything on it by ω = Σ_i z_i Δθ_i (base frame), so the
 predicted attitude is exp(ω)·R_flange(q), to the same first order as the positions' sag; the
-compliances get attitude rows as well as position rows.
+compliances get attitude rows as well as position rows. The gravity torques τ_i(q) are taken at the
+fitted arm, not the nominal one (``_sag_at_fitted_arm``): the solve starts with the nominal
+model's, then the canonical answer's torques replace them and the solution is polished — a model
+whose joint zero is 180° off otherwise turns every mass beyond it (the compliances came back
+negated, or the sag unexplained). The link masses' centres are given in the nominal model's
+frames, so an answer left mirrored (a frame turned by 180° that could not be mapped back) has no
+torques that are the robot's: it is marked "do not enter", naming the axes.
 """
 
 from __future__ import annotations
@@ -66,6 +72,7 @@ import yaml
 from calib.measure.dataset import Dataset, DatasetError
 from calib.fit.offsets import initial_registrations
 from calib.plan.identifiability import exact_tolerance
+from calib.robot.canonical import wrap_angle, wrapped_only
 from calib.robot.kinematics import KINDS, Chain
 from calib.robot.model import RobotModel
 from calib.fit.multistart import StartOutcome, disagreement, solve_from
@@ -508,6 +515,9 @@ def identify(
     x = x0.copy()
     x[free] = x0[free] + sol.z / scale[free]
     x, sol, canonical = _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options, tool_pos.size)
+    mirrored = []
+    if options.compliance:
+        x, sol, mirrored = _sag_at_fitted_arm(chain, problem, x, x0, free, scale, sol, fun_p, jac_p, options)
     r = sol.fun[: sol.fun.size - tool_pos.size]
     n_pos = 3 * len(data)
     rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
@@ -527,7 +537,7 @@ def identify(
         log.warning(warnings[-1])
     params, reg = problem.split(x)
     warnings += _prior_conflicts(chain, params, options)
-    do_not_use = _implausible(problem, data, r[:n_pos].reshape(-1, 3))
+    do_not_use = mirrored + _implausible(problem, data, r[:n_pos].reshape(-1, 3))
     worse = {id(o) for o in disagreement(starts, options.disagree_rel, _cost_floor(starts))}
     comp = comp_std = None
     if options.compliance:
@@ -600,6 +610,69 @@ def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, opti
              f"marker {mapping.fk_change_mm:.1g} mm): " + "; ".join(mapping.changes)]
     log.info(lines[0])
     return x, polished, lines
+
+
+#: A link whose fitted twist or torsion lies more than this from its nominal value (rad), or whose
+#: length has the opposite sign to a nominal length of at least ``MIRROR_MIN_LENGTH_MM``, has its
+#: frame turned against the nominal model's: a mirrored parameter set.
+MIRROR_ANGLE_RAD = math.pi / 2
+MIRROR_MIN_LENGTH_MM = 1.0
+
+
+def mirrored_links(chain: Chain, params: np.ndarray) -> list[str]:
+    """Axes whose link in ``params`` (P,) is written mirrored against the nominal model (a frame
+    turned by 180°: α or β more than 90° from nominal, or a turned against a nominal length),
+    one line per axis saying which; [] on the nominal model's branch."""
+    n, nom = chain.n, chain.nominal
+    out = []
+    for i, ax in enumerate(chain.model.axis_names):
+        what = []
+        for kind in ("alpha", "beta"):
+            c = chain.index(kind, i)
+            gap = abs(wrap_angle(params[c] - nom[c]))
+            if gap > MIRROR_ANGLE_RAD:
+                what.append(f"{kind} {math.degrees(gap):.0f}° from nominal")
+        a, a_nom = params[2 * n + i], nom[2 * n + i]
+        if abs(a_nom) >= MIRROR_MIN_LENGTH_MM and a * a_nom < 0:
+            what.append(f"a {a:+.4g} mm against nominal {a_nom:+.4g} mm")
+        if what:
+            out.append(f"{ax} ({', '.join(what)})")
+    return out
+
+
+def _sag_at_fitted_arm(chain, problem, x, x0, free, scale, sol, fun_p, jac_p, options):
+    """Gravity torques and their levers at the fitted arm, then a polish with them (compliance only).
+
+    The solve takes the torques at the nominal model's arm (the only one known before it). A model
+    whose joint zero is 180° off turns every mass beyond that joint: about a horizontal axis that
+    negates every torque beyond it, and the compliances come back with the wrong sign, or a minimum
+    worse than the noise is kept. The link masses' centres are given in the nominal model's frames,
+    so the torques are taken at the canonical answer (``_canonical``: on the nominal model's branch)
+    and the solution is polished with them (the change of reference is a few LM steps).
+
+    A solution still mirrored (a frame turned by 180° that ``calib.robot.canonical`` could not map
+    back) carries the masses in turned frames: no torques at that arm are the robot's, so nothing is
+    polished and the answer is marked "do not enter", naming the axes. Returns (x, outcome, those
+    lines)."""
+    from calib.robot.gravity import gravity_torques
+
+    params = x[: problem.P]
+    turned = mirrored_links(chain, params)
+    if turned:
+        msg = ("do not enter: the solution is a mirrored parameter set that could not be mapped back to the nominal "
+               f"model's branch ({'; '.join(turned)}); the link masses' centres are given in the nominal model's frames, "
+               "so the gravity torques, the compliances and the offsets beside them are not this robot's — check the "
+               "model's joint zeros and conventions, fit more of the axes' parameters, or fit without --compliance")
+        log.warning(msg)
+        return x, sol, [msg]
+    problem.gain = chain.sign * gravity_torques(chain, problem.uq, params) * 1e-6
+    z = (x[free] - x0[free]) * scale[free]
+    polished = solve_from(sol.label, fun_p, jac_p, z, [None], options.max_nfev)
+    polished.nfev += sol.nfev
+    x = x.copy()
+    x[free] = x0[free] + polished.z / scale[free]
+    x[: problem.P] = wrapped_only(chain, x[: problem.P])
+    return x, polished, []
 
 
 def _ratio(cost: float, best: float) -> str:
