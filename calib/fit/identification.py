@@ -72,7 +72,7 @@ import yaml
 from calib.measure.dataset import Dataset, DatasetError
 from calib.fit.offsets import initial_registrations
 from calib.plan.identifiability import exact_tolerance
-from calib.robot.canonical import wrap_angle, wrapped_only
+from calib.robot.canonical import mirrored_links, wrapped_only
 from calib.robot.kinematics import KINDS, Chain
 from calib.robot.model import RobotModel
 from calib.fit.multistart import StartOutcome, disagreement, solve_from
@@ -584,10 +584,12 @@ def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, opti
     """The best solution on the nominal model's branch (``calib.robot.canonical``): offsets wrapped to
     (−180°, 180°], mirrored links mapped back with the same forward kinematics. The mapped point
     must give the same residuals (else, e.g. measured orientations that see a turned flange, only
-    the wrapping is kept). A mirror moves markers toward their prior, so the mapped point is
+    the wrapping is kept), and with the compliance model the same gravity torques, the masses
+    carried with the turned frames (``calib.robot.canonical.carries_masses_alike``; else only the
+    wrapping). A mirror moves markers toward their prior, so the mapped point is
     polished (a few LM steps; same minimum) and its Jacobian gives the stds. ``n_prior``: the
     prior rows at the end of the residuals. Returns (x, outcome, lines saying what was mapped)."""
-    from calib.robot.canonical import FK_TOLERANCE_MM, canonical_params, wrapped_only
+    from calib.robot.canonical import FK_TOLERANCE_MM, canonical_params, carries_masses_alike, wrapped_only
 
     names = {problem.names[c] for c in free}
     measured = sorted(set(data.marker.tolist()))
@@ -596,6 +598,9 @@ def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, opti
     x = x.copy()
     x[: problem.P] = mapping.params
     if not mapping.changes:
+        return x, sol, []
+    if problem.gain is not None and not carries_masses_alike(chain, problem.uq, original, mapping.params):
+        x[: problem.P] = wrapped_only(chain, original)
         return x, sol, []
     z = (x[free] - x0[free]) * scale[free]
     n_res = sol.fun.size - n_prior
@@ -610,34 +615,6 @@ def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, opti
              f"marker {mapping.fk_change_mm:.1g} mm): " + "; ".join(mapping.changes)]
     log.info(lines[0])
     return x, polished, lines
-
-
-#: A link whose fitted twist or torsion lies more than this from its nominal value (rad), or whose
-#: length has the opposite sign to a nominal length of at least ``MIRROR_MIN_LENGTH_MM``, has its
-#: frame turned against the nominal model's: a mirrored parameter set.
-MIRROR_ANGLE_RAD = math.pi / 2
-MIRROR_MIN_LENGTH_MM = 1.0
-
-
-def mirrored_links(chain: Chain, params: np.ndarray) -> list[str]:
-    """Axes whose link in ``params`` (P,) is written mirrored against the nominal model (a frame
-    turned by 180°: α or β more than 90° from nominal, or a turned against a nominal length),
-    one line per axis saying which; [] on the nominal model's branch."""
-    n, nom = chain.n, chain.nominal
-    out = []
-    for i, ax in enumerate(chain.model.axis_names):
-        what = []
-        for kind in ("alpha", "beta"):
-            c = chain.index(kind, i)
-            gap = abs(wrap_angle(params[c] - nom[c]))
-            if gap > MIRROR_ANGLE_RAD:
-                what.append(f"{kind} {math.degrees(gap):.0f}° from nominal")
-        a, a_nom = params[2 * n + i], nom[2 * n + i]
-        if abs(a_nom) >= MIRROR_MIN_LENGTH_MM and a * a_nom < 0:
-            what.append(f"a {a:+.4g} mm against nominal {a_nom:+.4g} mm")
-        if what:
-            out.append(f"{ax} ({', '.join(what)})")
-    return out
 
 
 def _sag_at_fitted_arm(chain, problem, x, x0, free, scale, sol, fun_p, jac_p, options):
