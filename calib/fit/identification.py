@@ -59,6 +59,14 @@ tracker row) and biased an offset by 3σ (``tests/calib/test_sag_fitted_arm.py``
 Δθ_i = sign_i k_i τ_i turns the flange and everything on it by ω = Σ_i z_i Δθ_i (base frame), so the
 predicted attitude is exp(ω)·R_flange(q), to the same first order as the positions' sag; the
 compliances get attitude rows as well as position rows.
+
+**Canonical answers with link masses**: the model's centres of mass belong to the nominal model's
+frames, so a mirrored solution (a frame turned by 180°) evaluated its sag with those masses turned
+with the frame — not the robot's. Mapping it back carries the masses with the frames
+(``calib.robot.canonical.carries_masses_alike``): the canonical set must predict what the fitted
+set predicts with its masses so carried, and is then polished with the masses where the model puts
+them. An answer left mirrored (the mapping refused) has no sag that is the robot's: it is marked
+"do not enter", naming the axes (``_left_mirrored``).
 """
 
 from __future__ import annotations
@@ -74,6 +82,7 @@ import yaml
 from calib.measure.dataset import Dataset, DatasetError
 from calib.fit.offsets import initial_registrations
 from calib.plan.identifiability import exact_tolerance
+from calib.robot.canonical import mirrored_links
 from calib.robot.kinematics import KINDS, Chain
 from calib.robot.model import RobotModel
 from calib.fit.multistart import StartOutcome, disagreement, solve_from
@@ -191,6 +200,9 @@ class _Problem:
         #: loads. The residuals take the sag at the arm being evaluated (``sag_gain``).
         self.gain = None
         self.comp_start = None
+        #: Centres of mass (n+1, 3) mm in place of the model's (``calib.robot.gravity.moved_coms``), or
+        #: None: only while ``_canonical`` evaluates a mirrored set with its masses carried along.
+        self.coms = None
         if compliance:
             self.gain = self.sag_gain(chain.nominal)
             self.comp_start = len(self.names)
@@ -205,7 +217,7 @@ class _Problem:
         µrad/(N·m) of compliance, the gravity torques τ (N·m) taken at the arm ``params`` (P,)."""
         from calib.robot.gravity import gravity_torques
 
-        return self.chain.sign * gravity_torques(self.chain, self.uq, params) * 1e-6
+        return self.chain.sign * gravity_torques(self.chain, self.uq, params, self.coms) * 1e-6
 
     def _init_orientation(self, rotation: np.ndarray, weight: float) -> None:
         """Pose rows, their weights and the targets' nominal frames on the flange."""
@@ -529,6 +541,7 @@ def identify(
     x = x0.copy()
     x[free] = x0[free] + sol.z / scale[free]
     x, sol, canonical = _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options, tool_pos.size)
+    mirrored = _left_mirrored(chain, x[: problem.P]) if options.compliance else []
     r = sol.fun[: sol.fun.size - tool_pos.size]
     n_pos = 3 * len(data)
     rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
@@ -548,7 +561,7 @@ def identify(
         log.warning(warnings[-1])
     params, reg = problem.split(x)
     warnings += _prior_conflicts(chain, params, options)
-    do_not_use = _implausible(problem, data, r[:n_pos].reshape(-1, 3))
+    do_not_use = mirrored + _implausible(problem, data, r[:n_pos].reshape(-1, 3))
     worse = {id(o) for o in disagreement(starts, options.disagree_rel, _cost_floor(starts))}
     comp = comp_std = None
     if options.compliance:
@@ -595,10 +608,16 @@ def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, opti
     """The best solution on the nominal model's branch (``calib.robot.canonical``): offsets wrapped to
     (−180°, 180°], mirrored links mapped back with the same forward kinematics. The mapped point
     must give the same residuals (else, e.g. measured orientations that see a turned flange, only
-    the wrapping is kept). A mirror moves markers toward their prior, so the mapped point is
-    polished (a few LM steps; same minimum) and its Jacobian gives the stds. ``n_prior``: the
+    the wrapping is kept). With the compliance model the fitted set's sag had the model's masses
+    turned with its frames: the mapped set must carry them alike (the same gravity torques with the
+    masses moved with the frames, ``calib.robot.canonical.carries_masses_alike``) and give the
+    residuals the fitted set gives with its masses so carried; else only the wrapping. A mirror
+    moves markers toward their prior (and with masses puts them where the model says), so the
+    mapped point is polished (a few LM steps; the same minimum, with masses the one of the masses
+    where the model puts them) and its Jacobian gives the stds. ``n_prior``: the
     prior rows at the end of the residuals. Returns (x, outcome, lines saying what was mapped)."""
-    from calib.robot.canonical import FK_TOLERANCE_MM, canonical_params, wrapped_only
+    from calib.robot.canonical import FK_TOLERANCE_MM, canonical_params, carries_masses_alike, wrapped_only
+    from calib.robot.gravity import moved_coms
 
     names = {problem.names[c] for c in free}
     measured = sorted(set(data.marker.tolist()))
@@ -610,7 +629,20 @@ def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, opti
         return x, sol, []
     z = (x[free] - x0[free]) * scale[free]
     n_res = sol.fun.size - n_prior
-    if np.abs(fun_p(z)[:n_res] - sol.fun[:n_res]).max() > FK_TOLERANCE_MM * math.sqrt(max(options.orientation_weight, 1.0)):
+    before = sol.fun[:n_res]
+    masses = ""
+    if problem.gain is not None:
+        if not carries_masses_alike(chain, problem.uq, original, mapping.params):
+            x[: problem.P] = wrapped_only(chain, original)
+            log.info("mirror not mapped back: its frames do not carry the link masses as the canonical set's do")
+            return x, sol, []
+        problem.coms = moved_coms(chain, original, mapping.params, problem.uq[0])
+        try:
+            before = fun_p(sol.z)[:n_res]  # the fitted set, its masses carried with its turned frames
+        finally:
+            problem.coms = None
+        masses = "; the link masses carried with the turned frames"
+    if np.abs(fun_p(z)[:n_res] - before).max() > FK_TOLERANCE_MM * math.sqrt(max(options.orientation_weight, 1.0)):
         x[: problem.P] = wrapped_only(chain, original)
         return x, sol, []
     polished = solve_from(sol.label, fun_p, jac_p, z, [None], options.max_nfev)
@@ -618,9 +650,25 @@ def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, opti
     x[free] = x0[free] + polished.z / scale[free]
     x[: problem.P] = wrapped_only(chain, x[: problem.P])
     lines = [f"reported on the nominal model's branch (same forward kinematics, largest change of a measured "
-             f"marker {mapping.fk_change_mm:.1g} mm): " + "; ".join(mapping.changes)]
+             f"marker {mapping.fk_change_mm:.1g} mm{masses}): " + "; ".join(mapping.changes)]
     log.info(lines[0])
     return x, polished, lines
+
+
+def _left_mirrored(chain: Chain, params: np.ndarray) -> list[str]:
+    """With the compliance model: "do not enter" (one line) when the answer ``params`` (P,) is still a
+    mirrored parameter set (``calib.robot.canonical.mirrored_links``) — the mapping back was
+    refused, so the model's masses sat turned with its frames and no sag at that arm is the
+    robot's; [] on the nominal model's branch."""
+    turned = mirrored_links(chain, params)
+    if not turned:
+        return []
+    msg = ("do not enter: the solution is a mirrored parameter set that could not be mapped back to the nominal "
+           f"model's branch ({'; '.join(turned)}); the link masses' centres are given in the nominal model's frames, "
+           "so the gravity torques, the compliances and the offsets beside them are not this robot's — check the "
+           "model's joint zeros and conventions, fit more of the axes' parameters, or fit without --compliance")
+    log.warning(msg)
+    return [msg]
 
 
 def _ratio(cost: float, best: float) -> str:

@@ -14,6 +14,11 @@ of −70 mm. ``canonical_params`` picks, among the mirrors, the set nearest the 
 every offset in (−180°, 180°] and every twist and torsion within 180° of its nominal value, and
 checks that the forward kinematics of every measured marker is unchanged.
 
+With link masses (the compliance model) a mirror must carry them too: the model's centres of mass
+belong to the nominal model's frames, so a turned frame carries its link's centre turned with it;
+``carries_masses_alike`` checks that the fitted set, its masses so carried, has the canonical
+set's gravity torques, and ``mirrored_links`` names the links an answer left mirrored has turned.
+
 Where the 180° turn cannot go into the next joint's offset (the last axis, or an axis whose
 offset is not fitted), it goes into the marker positions when all measured markers are fitted;
 otherwise that mirror is not offered.
@@ -26,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calib.robot.gravity import gravity_torques, moved_coms
 from calib.robot.kinematics import Chain
 
 #: Weights of the distance to nominal: mm of a link length or marker coordinate per unit, and
@@ -190,3 +196,48 @@ def _fk_change(chain: Chain, p0: np.ndarray, p: np.ndarray, q: np.ndarray, midx:
     a = chain.marker_positions(q, p0)[:, midx]
     b = chain.marker_positions(q, p)[:, midx]
     return float(np.abs(a - b).max())
+
+
+#: Largest difference of a gravity torque (N·m) between a fitted parameter set, its masses moved with
+#: its frames, and the canonical set that still counts as the same sag (rounding; the sag of 1e-6
+#: N·m is ~1e-11 rad).
+TORQUE_TOLERANCE_NM = 1e-6
+
+
+def carries_masses_alike(chain: Chain, q: np.ndarray, fitted: np.ndarray, mapped: np.ndarray) -> bool:
+    """Whether the canonical set ``mapped`` (P,) predicts the same sag as the ``fitted`` one: the
+    model's centres of mass belong to the nominal model's frames (``mapped``'s branch); carried into
+    the fitted set's frames (``calib.robot.gravity.moved_coms``) they must give the same gravity
+    torques at every configuration q (u, n) rad, to ``TORQUE_TOLERANCE_NM``. A mapping that keeps the
+    measured markers' positions but moves an intermediate frame differently fails it and is refused."""
+    coms = moved_coms(chain, fitted, mapped, q[0])
+    gap = float(np.abs(gravity_torques(chain, q, fitted, coms) - gravity_torques(chain, q, mapped)).max())
+    return gap <= TORQUE_TOLERANCE_NM
+
+
+#: A link whose fitted twist or torsion lies more than this from its nominal value (rad), or whose
+#: length has the opposite sign to a nominal length of at least ``MIRROR_MIN_LENGTH_MM``, has its
+#: frame turned against the nominal model's: a mirrored parameter set.
+MIRROR_ANGLE_RAD = math.pi / 2
+MIRROR_MIN_LENGTH_MM = 1.0
+
+
+def mirrored_links(chain: Chain, params: np.ndarray) -> list[str]:
+    """Axes whose link in ``params`` (P,) is written mirrored against the nominal model (a frame
+    turned by 180°: α or β more than 90° from nominal, or a turned against a nominal length),
+    one line per axis saying which; [] on the nominal model's branch."""
+    n, nom = chain.n, chain.nominal
+    out = []
+    for i, ax in enumerate(chain.model.axis_names):
+        what = []
+        for kind in ("alpha", "beta"):
+            c = chain.index(kind, i)
+            gap = abs(wrap_angle(params[c] - nom[c]))
+            if gap > MIRROR_ANGLE_RAD:
+                what.append(f"{kind} {math.degrees(gap):.0f}° from nominal")
+        a, a_nom = params[2 * n + i], nom[2 * n + i]
+        if abs(a_nom) >= MIRROR_MIN_LENGTH_MM and a * a_nom < 0:
+            what.append(f"a {a:+.4g} mm against nominal {a_nom:+.4g} mm")
+        if what:
+            out.append(f"{ax} ({', '.join(what)})")
+    return out

@@ -36,10 +36,16 @@ def _masses(chain: Chain) -> tuple[np.ndarray, np.ndarray]:
     return m, c
 
 
-def gravity_torques(chain: Chain, q: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
-    """Gravity torque about each joint axis, DH sense: (..., n) N·m for q (..., n) rad."""
+def gravity_torques(chain: Chain, q: np.ndarray, params: np.ndarray | None = None,
+                    coms: np.ndarray | None = None) -> np.ndarray:
+    """Gravity torque about each joint axis, DH sense: (..., n) N·m for q (..., n) rad.
+
+    coms: centres of mass (n+1, 3) mm in the frames of ``params`` (links, then the tool in the
+    flange frame) in place of the model's — the same masses written for a parameter set whose
+    frames are turned against the model's (``moved_coms``)."""
     n = chain.n
-    masses, coms = _masses(chain)
+    masses, coms0 = _masses(chain)
+    coms = coms0 if coms is None else np.asarray(coms, dtype=float)
     frames = joint_frames(chain, q, params)
     tool_frame = frames[..., n, :, :] @ chain.flange
     own = np.concatenate([frames[..., 1:, :, :], tool_frame[..., None, :, :]], axis=-3)  # (..., n+1, 4, 4)
@@ -52,6 +58,24 @@ def gravity_torques(chain: Chain, q: np.ndarray, params: np.ndarray | None = Non
         moment = np.cross(lever, weight[i:]).sum(axis=-2)  # N·mm
         tau[..., i] = np.einsum("...j,...j->...", moment, axes[..., i, :]) / 1000.0
     return tau
+
+
+def moved_coms(chain: Chain, params: np.ndarray, model_params: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """The model's centres of mass, given in the frames of ``model_params`` (P,) (the nominal
+    model's branch), written in the frames of ``params`` (P,): (n+1, 3) mm, each moved by the rigid
+    transform between the two sets' frames at the configuration q (n,) rad. For two sets that
+    differ by frames turned 180° (mirrors, ``calib.robot.canonical``) the transforms are the same at
+    every configuration, and ``gravity_torques(chain, q, params, moved)`` equals
+    ``gravity_torques(chain, q, model_params)``; where it does not, the sets carry the masses
+    differently."""
+    n = chain.n
+    _, coms = _masses(chain)
+    f_new = joint_frames(chain, q, params)
+    f_model = joint_frames(chain, q, model_params)
+    own_new = np.concatenate([f_new[1:], (f_new[n] @ chain.flange)[None]])  # (n+1, 4, 4)
+    own_model = np.concatenate([f_model[1:], (f_model[n] @ chain.flange)[None]])
+    rel = np.linalg.solve(own_new, own_model)  # model frame → params' frame, per body
+    return np.einsum("kij,kj->ki", rel[:, :3, :3], coms) + rel[:, :3, 3]
 
 
 def chi2_sf(dof: int, x: float) -> float:
