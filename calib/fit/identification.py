@@ -65,8 +65,9 @@ frames, so a mirrored solution (a frame turned by 180°) evaluated its sag with 
 with the frame — not the robot's. Mapping it back carries the masses with the frames
 (``calib.robot.canonical.carries_masses_alike``): the canonical set must predict what the fitted
 set predicts with its masses so carried, and is then polished with the masses where the model puts
-them. An answer left mirrored (the mapping refused) has no sag that is the robot's: it is marked
-"do not enter", naming the axes (``_left_mirrored``).
+them. An answer left mirrored (the mapping refused) is marked "do not enter", naming the axes
+(``_left_mirrored``): its offsets are zeros of turned frames, and with masses no sag at that arm is
+the robot's.
 """
 
 from __future__ import annotations
@@ -541,7 +542,7 @@ def identify(
     x = x0.copy()
     x[free] = x0[free] + sol.z / scale[free]
     x, sol, canonical = _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, options, tool_pos.size)
-    mirrored = _left_mirrored(chain, x[: problem.P]) if options.compliance else []
+    mirrored = _left_mirrored(chain, x[: problem.P], options.compliance)
     r = sol.fun[: sol.fun.size - tool_pos.size]
     n_pos = 3 * len(data)
     rms = float(np.sqrt(np.mean(r[:n_pos] ** 2)))
@@ -655,18 +656,23 @@ def _canonical(chain, problem, data, x, x0, free, scale, sol, fun_p, jac_p, opti
     return x, polished, lines
 
 
-def _left_mirrored(chain: Chain, params: np.ndarray) -> list[str]:
-    """With the compliance model: "do not enter" (one line) when the answer ``params`` (P,) is still a
-    mirrored parameter set (``calib.robot.canonical.mirrored_links``) — the mapping back was
-    refused, so the model's masses sat turned with its frames and no sag at that arm is the
-    robot's; [] on the nominal model's branch."""
+def _left_mirrored(chain: Chain, params: np.ndarray, compliance: bool) -> list[str]:
+    """"do not enter" (one line) when the answer ``params`` (P,) is still a mirrored parameter set
+    (``calib.robot.canonical.mirrored_links``): the mapping back was refused, so its offsets are
+    zeros of turned frames — entered into a controller that keeps the nominal links they would be
+    off by up to a half turn. With the compliance model the masses also sat turned with the frames,
+    so no sag at that arm is the robot's. [] on the nominal model's branch."""
     turned = mirrored_links(chain, params)
     if not turned:
         return []
     msg = ("do not enter: the solution is a mirrored parameter set that could not be mapped back to the nominal "
-           f"model's branch ({'; '.join(turned)}); the link masses' centres are given in the nominal model's frames, "
-           "so the gravity torques, the compliances and the offsets beside them are not this robot's — check the "
-           "model's joint zeros and conventions, fit more of the axes' parameters, or fit without --compliance")
+           f"model's branch ({'; '.join(turned)}); its offsets are zeros of turned frames, not of the controller's ")
+    if compliance:
+        msg += ("model, and the link masses' centres are given in the nominal model's frames, so the gravity torques "
+                "and the compliances are not this robot's either — check the model's joint zeros and conventions, "
+                "fit more of the axes' parameters, or fit without --compliance")
+    else:
+        msg += "model — check the model's joint zeros and conventions, or fit more of the axes' parameters"
     log.warning(msg)
     return [msg]
 

@@ -137,10 +137,12 @@ def test_a_mirrored_set_is_mapped_back_with_its_masses():
     assert not carries_masses_alike(chain, q, other, right)
 
 
-def test_an_answer_left_mirrored_with_compliance_is_do_not_enter(monkeypatch):
+@pytest.mark.parametrize("compliance", [True, False])
+def test_an_answer_left_mirrored_is_do_not_enter(monkeypatch, compliance):
     """Where the mapping back is refused (a parameter it needs is not fitted, or the masses are not
-    carried alike), the answer stays mirrored: the model's masses sit in turned frames, so no
-    torques at that arm are the robot's. The user reads "do not enter" naming the mirrored axis.
+    carried alike), the answer stays mirrored: its offsets are zeros of turned frames, and with the
+    compliance model the model's masses sit in turned frames too, so no torques at that arm are the
+    robot's. The user reads "do not enter" naming the mirrored axis.
     The refusal is made here by leaving the solve's answer mirrored (A2) after the mapping step."""
     import calib.fit.identification as ident
 
@@ -153,13 +155,17 @@ def test_an_answer_left_mirrored_with_compliance_is_do_not_enter(monkeypatch):
         x[: problem.P] = _mirror(chain_, x[: problem.P], (1,))
         return x, sol, []
 
+    options = IdentOptions(compliance=compliance, n_starts=1)
+    plain = identify(cell.model, cell.cal, options)
     monkeypatch.setattr(ident, "_canonical", refused)
-    result = identify(cell.model, cell.cal, IdentOptions(compliance=True, n_starts=1))
-    assert result.rms_mm < 1.5 * cell.noise_mm  # the same forward kinematics: the data cannot tell
+    result = identify(cell.model, cell.cal, options)
+    assert result.rms_mm == pytest.approx(plain.rms_mm, rel=1e-9)  # the same minimum: the data cannot tell
+    assert not any("mirrored" in m for m in plain.do_not_use)
     assert len(result.do_not_use) == 1
     msg = result.do_not_use[0]
     assert msg.startswith("do not enter") and "A2 (alpha 180° from nominal" in msg and "mirrored" in msg
     assert "A4" not in msg
+    assert ("compliances" in msg) == compliance
 
 
 def test_a_mirrored_minimum_with_compliance_is_mapped_back_with_its_masses(monkeypatch):
