@@ -15,8 +15,9 @@ Message layouts (``fri_version``: ``"1.15"``, ``"2.5"``, ``"2.7"``) are built in
 (``framing``), and an answer in the other framing is malformed, as it is to the SDK. The joints
 are ``fake_servo.JointServo``; answer windows and quality are scored by
 ``fake_windows.AnswerWindows``; the session state machine below is ``fake_session.SunriseSession``
-and what the controller does with each answer ``fake_answers.AnswerHandler``; this class holds
-the options, the sending thread, the messages it builds and the hooks tests pull.
+and what the controller does with each answer ``fake_answers.AnswerHandler``; the sending thread
+is ``fake_sender.SendLoop``. This class holds the options, the cycle (servo, windows, the
+message built) and the hooks tests pull.
 
 Like a cabinet: nothing is sent until the robot application opens the FRI session (the first
 message already says MONITORING_WAIT; an SDK example reading IDLE would quit); when the
@@ -54,9 +55,7 @@ Answer windows, late answers and connection quality: see ``fake_windows``.
 from __future__ import annotations
 
 import logging
-import os
 import threading
-import time
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -71,6 +70,7 @@ from drivers.kuka_fri.fake_monitoring import (
     nominal_flange_pose,
 )
 from drivers.kuka_fri.fake_port import FriPort
+from drivers.kuka_fri.fake_sender import SendLoop
 from drivers.kuka_fri.fake_servo import N_JOINTS, JointServo
 from drivers.kuka_fri.fake_session import SunriseSession
 from drivers.kuka_fri.fake_windows import AnswerWindows
@@ -189,27 +189,14 @@ class FakeSunrise:
         self.scene = scene
         self.clock = clock
         self.noise_rad = float(noise_rad)
-        self.auto_open = auto_open
-        self.idle_cycles = idle_cycles
-        self.closing_idle_messages = int(closing_idle_messages)
         if controller_host not in _LOOPBACK and not controller_host.startswith("127."):
             raise ValueError(f"the fake Sunrise only sends from loopback, got controller_host {controller_host!r}")
         self.controller_host = controller_host
-        self.ready_after = ready_after
-        self.commanding_wait_cycles = commanding_wait_cycles
-        self.max_missed = max_missed
-        self.start_tolerance_rad = start_tolerance_rad
-        self.echo_tolerance_rad = echo_tolerance_rad
-        self.speed_tolerance = speed_tolerance
-        self.abort_on_violation = abort_on_violation
         self.jitter_ms = float(jitter_ms)
         self.loss_out = float(loss_out)
         self.max_runtime_s = float(max_runtime_s)
         self.rt_priority = int(rt_priority)
         self.fri_version = fri_version
-        self.application = bool(application)
-        self.application_start_cycles = int(application_start_cycles)
-        self.overruns = 0
         self._rng = np.random.default_rng(seed)
 
         if initial_position_rad is None:
@@ -227,10 +214,10 @@ class FakeSunrise:
         self._lock = threading.Lock()
         self._session = SunriseSession(
             self._servo, self._windows, self.stats, self._lock, auto_open=auto_open, idle_cycles=idle_cycles,
-            closing_idle_messages=self.closing_idle_messages, ready_after=ready_after,
+            closing_idle_messages=int(closing_idle_messages), ready_after=ready_after,
             commanding_wait_cycles=commanding_wait_cycles, max_missed=max_missed,
-            abort_on_violation=abort_on_violation, application=self.application,
-            application_start_cycles=self.application_start_cycles)
+            abort_on_violation=abort_on_violation, application=bool(application),
+            application_start_cycles=int(application_start_cycles))
         self._answers = AnswerHandler(
             self._session, fri_version=fri_version, limits=limits,
             receive_period_s=send_period_ms * receive_multiplier / 1000.0, start_tolerance_rad=start_tolerance_rad,
@@ -240,8 +227,7 @@ class FakeSunrise:
         self._malformed_next: list[str] = []
         self._sending = True
         self._port: Optional[FriPort] = None
-        self._thread: Optional[threading.Thread] = None
-        self._stop = threading.Event()
+        self._sender: Optional[SendLoop] = None
 
     # ------------------------------------------------------------------ public API
 
@@ -251,6 +237,11 @@ class FakeSunrise:
         if self._port is None:
             raise RuntimeError("FakeSunrise is not started")
         return self._port.address
+
+    @property
+    def overruns(self) -> int:
+        """Send times the sending thread was descheduled past (it re-anchored)."""
+        return 0 if self._sender is None else self._sender.overruns
 
     @property
     def loss_in(self) -> float:
@@ -303,12 +294,15 @@ class FakeSunrise:
 
     def start(self) -> "FakeSunrise":
         """Bind the FRI port on ``controller_host`` (see the class docstring) and start."""
-        if self._thread is not None:
+        if self._sender is not None:
             raise RuntimeError("FakeSunrise already started")
         self._port = FriPort(self.client_address, self.controller_host)
         self._port.claim(self._on_answer)
-        self._thread = threading.Thread(target=self._run, name="fake-sunrise", daemon=True)
-        self._thread.start()
+        self._sender = SendLoop(self._port, period_s=self._wall(self.send_period_ms / 1000.0),
+                                max_runtime_s=self.max_runtime_s, rt_priority=self.rt_priority, cycle=self._tick,
+                                on_answer=self._on_answer, end=self._end, closed=lambda: self._session.idle_to_send == 0,
+                                stats=self.stats)
+        self._sender.start()
         return self
 
     def stop(self, close_session: bool = True) -> None:
@@ -316,7 +310,7 @@ class FakeSunrise:
         session first, so the client reads IDLE (``closing_idle_messages`` of them), then the
         sending stops and the socket closes. ``close_session=False``: the controller just goes
         quiet (power cut, cable pulled)."""
-        if self._thread is not None and self._thread.is_alive() and close_session:
+        if self._sender is not None and self._sender.alive() and close_session:
             session = self._session
             with self._lock:
                 session.ended = True
@@ -327,9 +321,8 @@ class FakeSunrise:
             wall = self._wall(self.send_period_ms / 1000.0) * (pending + 2) + 1.0
             with session.changed:
                 session.changed.wait_for(lambda: session.idle_to_send == 0, wall)
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        if self._sender is not None:
+            self._sender.stop()
         if self._port is not None:
             self._port.close()
 
@@ -484,48 +477,18 @@ class FakeSunrise:
     def _wall(self, sim_s: float) -> float:
         return self.clock.wall_duration(sim_s) if self.clock is not None else sim_s
 
-    def _set_realtime(self) -> None:
-        if self.rt_priority <= 0 or not hasattr(os, "sched_setscheduler"):
-            return
-        try:  # pid 0: this thread (Linux)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
-        except PermissionError as exc:
-            log.info("fake Sunrise: SCHED_FIFO %d not permitted (%s); normal priority", self.rt_priority, exc)
+    def _tick(self) -> tuple[Optional[bytes], float]:
+        """The sending thread's cycle: (message or None, wall seconds of jitter before it)."""
+        with self._lock:
+            data = self._cycle()
+            jitter = self._rng.uniform(0.0, self.jitter_ms / 1000.0) if self.jitter_ms else 0.0
+        return data, (self._wall(jitter) if jitter else 0.0)
 
-    def _run(self) -> None:
-        self._set_realtime()
-        port = self._port
-        assert port is not None
-        period = self._wall(self.send_period_ms / 1000.0)
-        t_end = time.monotonic() + self.max_runtime_s
-        next_t = time.monotonic()
-        ending = False
-        while not self._stop.is_set():
-            port.claim(self._on_answer)
-            if not ending and time.monotonic() >= t_end:
-                ending = True
-                with self._lock:  # the robot application ends: it closes the session first
-                    self._session.ended = True
-                    self._session.close(f"robot application ended after max_runtime_s={self.max_runtime_s:g} s")
-            if ending and self._session.idle_to_send == 0:
-                break
-            port.collect_until(next_t, self._on_answer)
-            with self._lock:
-                data = self._cycle()
-                jitter = self._rng.uniform(0.0, self.jitter_ms / 1000.0) if self.jitter_ms else 0.0
-            if data is not None:
-                if jitter:
-                    time.sleep(self._wall(jitter))
-                port.send(data)
-            next_t += period
-            now = time.monotonic()
-            if next_t < now + 0.5 * period:
-                # We were descheduled past a send time. A real controller never sends two
-                # messages back to back; re-anchor instead of catching up, so the client always
-                # has a whole period to answer the message just sent.
-                self.overruns += 1
-                next_t = now + period
-        log.info("fake Sunrise: stopped after %d messages", self.stats.sent)
+    def _end(self, why: str) -> None:
+        """The robot application ends by itself: it closes the session first, never to reopen it."""
+        with self._lock:
+            self._session.ended = True
+            self._session.close(why)
 
     def _on_answer(self, data: bytes) -> None:
         with self._lock:
