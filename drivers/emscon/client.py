@@ -35,7 +35,6 @@ DeviceTimeoutError; transport closed â†’ ConnectionLostError; unreadable bytes â
 
 from __future__ import annotations
 
-import collections
 import math
 import time
 from typing import Any
@@ -54,6 +53,11 @@ from drivers.tracker.air import Air, parse_environment, parse_reflector
 from drivers.tracker.codec import MAX_AVERAGE
 
 __all__ = ["EmsconSensor", "EmsconStatus", "SearchResult", "REFLECTOR_FOUND", "parse_url"]
+
+
+def _held_by(part: str, name: str, doc: str) -> property:
+    """A read-only attribute of the sensor that its collaborator ``part`` holds as ``name``."""
+    return property(lambda self: getattr(getattr(self, part), name), doc=doc)
 
 
 class EmsconSensor(SensorBase):
@@ -134,33 +138,12 @@ class EmsconSensor(SensorBase):
         return cls(url, marker=marker, **kwargs)
 
     # ----------------------------------------------------------------- what the collaborators hold
-    @property
-    def events(self) -> collections.deque[tuple[int, float]]:
-        """Notifications as (ES_SystemStatusChange, host time), newest last."""
-        return self._channel.events
-
-    @property
-    def beam_ready(self) -> bool | None:
-        """Beam state from the last MeasStatus notification (None: not told yet)."""
-        return self._channel.beam_ready
-
-    @property
-    def probe_info(self) -> dict | None:
-        """``GetMeasurementProbeInfo`` values of the 6-DoF probe (pose mode), after connect."""
-        return self._config.probe_info
-
-    @property
-    def air_in_use(self) -> Air | None:
-        return self._config.air_in_use
-
-    @property
-    def air_source(self) -> str | None:
-        return self._config.air_source
-
-    @property
-    def reflector_in_use(self) -> tuple[int, str, float] | None:
-        """(id, name, surface offset mm) of the selected reflector."""
-        return self._config.reflector_in_use
+    events = _held_by("_channel", "events", "Notifications as (ES_SystemStatusChange, host time), newest last.")
+    beam_ready = _held_by("_channel", "beam_ready", "Beam state of the last MeasStatus notification (None: none yet).")
+    probe_info = _held_by("_config", "probe_info", "``GetMeasurementProbeInfo`` of the 6-DoF probe, after connect.")
+    air_in_use = _held_by("_config", "air_in_use", "The air (``Air``) the server reports using, after set_environment.")
+    air_source = _held_by("_config", "air_source", "Where that air came from: ``station`` or ``host``.")
+    reflector_in_use = _held_by("_config", "reflector_in_use", "(id, name, surface offset mm) of the reflector.")
 
     # ----------------------------------------------------------------- connection
     def connect(self) -> None:
