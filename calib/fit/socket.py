@@ -195,7 +195,9 @@ class SocketFit:
     iterations: int
     groups: list[tuple[str, str]]
     warnings: list[str] = field(default_factory=list)
-    compliance: np.ndarray | None = None  # (n,) rad/(N·m) with the compliance model; 0 where not fitted
+    #: (n,) rad/(N·m) with the compliance model, 0 where not fitted; the sag it gives takes its torques
+    #: at ``params`` (the fitted arm), as ``ball_positions`` does.
+    compliance: np.ndarray | None = None
     compliance_std: np.ndarray | None = None  # (n,) NaN where not fitted
     #: The link prior the fit ran with, (mm, deg) sd of d, a / α, β; None: no prior.
     tolerance: tuple[float, float] | None = None
@@ -231,11 +233,14 @@ class SocketFit:
         return self.params[s][:3], self.std[s][:3]
 
 
-def _sag_gain(chain: Chain, q: np.ndarray) -> np.ndarray:
-    """sign_i τ_i(q) · 1e-6, (k, n): joint-angle change per µrad/(N·m) of compliance."""
+def _sag_gain(chain: Chain, q: np.ndarray, params: np.ndarray | None = None) -> np.ndarray:
+    """sign_i τ_i(q) · 1e-6, (k, n): joint-angle change (rad) per µrad/(N·m) of compliance, the
+    gravity torques τ (N·m) taken at the arm ``params`` (P,) (None: the nominal arm — only for
+    scaling columns and deciding which axes gravity loads; the fit and its predictions pass the
+    arm they evaluate)."""
     from calib.robot.gravity import gravity_torques
 
-    return chain.sign * gravity_torques(chain, q) * 1e-6
+    return chain.sign * gravity_torques(chain, q, params) * 1e-6
 
 
 class _SocketProblem:
@@ -243,6 +248,11 @@ class _SocketProblem:
 
     The extended vector is the chain's (P,) followed, with compliance, by one compliance per
     joint in µrad/(N·m) (first-order sag through the offsets' Jacobian, as in ``calib.fit.posterior``).
+    The sag's torques and lever arms are both taken at the arm being evaluated (at the solution,
+    the fitted arm: its offsets, links and ball), not the data sheet's — offsets of a degree or
+    links of a millimetre move the torques by as much as the sag's size can show. The torques'
+    own change with the parameters (k·∂τ/∂p, ~1e-4 of the columns it would join) is left out of
+    the Jacobian.
     """
 
     def __init__(self, chain: Chain, ds: SocketDataset, free: np.ndarray, nominal: np.ndarray,
@@ -252,7 +262,7 @@ class _SocketProblem:
         self.prior_sd = prior_sd  # (len(free),) inf where no prior
         self.sp, self.sd = sigma_point, sigma_distance
         self.g = len(ds.groups)
-        self.gain = _sag_gain(chain, ds.q_rad) if nominal.size > chain.n_params else None
+        self.compliance = nominal.size > chain.n_params
 
     def full(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         p = self.nominal.copy()
@@ -264,8 +274,9 @@ class _SocketProblem:
         nf, k = len(self.free), len(self.ds.q_rad)
         pos, jac = self.chain.marker_jacobian(self.ds.q_rad, ext[: self.chain.n_params])
         pos, jac = pos[:, 0], jac[:, 0]
-        if self.gain is not None:
-            sag = jac[..., : self.chain.n] * self.gain[:, None, :]  # (k, 3, n) per µrad/(N·m)
+        if self.compliance:
+            gain = _sag_gain(self.chain, self.ds.q_rad, ext[: self.chain.n_params])
+            sag = jac[..., : self.chain.n] * gain[:, None, :]  # (k, 3, n) per µrad/(N·m)
             pos = pos + np.einsum("kjn,n->kj", sag, ext[self.chain.n_params:])
             jac = np.concatenate([jac, sag], axis=-1)
         jac = jac[..., self.free]  # (k,3,nf)
@@ -508,11 +519,13 @@ class PlacementScore:
 
 def ball_positions(chain: Chain, q: np.ndarray, params: np.ndarray, compliance: np.ndarray | None = None) -> np.ndarray:
     """Ball centre (k, 3) mm in the base frame for q (k, n): marker slot 0 of ``params``, with
-    the first-order gravity sag of ``compliance`` (n,) rad/(N·m) when given."""
+    the first-order gravity sag of ``compliance`` (n,) rad/(N·m) when given — its torques and
+    lever arms at the arm ``params`` (as the fit takes them), so held-out predictions and
+    cross-validation folds carry the sag of the fitted arm."""
     pos, jac = chain.marker_jacobian(q, params)
     pos = pos[:, 0]
     if compliance is not None:
-        gain = _sag_gain(chain, q) * 1e6 * compliance  # rad per joint
+        gain = _sag_gain(chain, q, params) * 1e6 * compliance  # rad per joint
         pos = pos + np.einsum("kjn,kn->kj", jac[:, 0, :, : chain.n], gain)
     return pos
 

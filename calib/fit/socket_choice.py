@@ -18,7 +18,9 @@ each also ``+compliance`` (gravity sag) when the model has link masses.
 Scoring (``choose_socket_model``). With two or more placements each placement is held out in turn
 ("placement"): the candidate is fitted on the others and predicts the held-out ball positions;
 a held-out socket's place is not known to the fit, so it is estimated from those predictions (their
-mean, 3 of the socket's ~20×3 coordinates) and every configuration scores its distance from it.
+mean, 3 of the socket's ~20×3 coordinates) and every configuration scores its distance from it. A
+compliance candidate predicts the held-out ball with the sag of its fold's fitted arm (torques and
+lever arms at the fitted parameters, ``calib.fit.socket.ball_positions``), as it was fitted.
 With a single placement the configurations of every socket are dealt into ``k`` folds
 ("configuration") and score their distance from the socket point the training fit found. A
 candidate's error is the mean of the per-configuration distances (mm) with a standard error from

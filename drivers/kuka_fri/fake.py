@@ -130,6 +130,9 @@ class FakeSunrise:
     inputs: names of the BOOLEAN inputs the robot application shares over FRI (registered in
         its FRI configuration), e.g. ``MediaFlange.UserButton``; all released until
         ``set_input``. Every monitoring message carries them (``readIORequest``).
+    record_commands: keep every applied set-point in ``stats.commands`` (for tests that judge
+        the client's trajectory). A long-lived fake (the simulated cell of a daemon) passes
+        False: the record grows by ~0.2 kB per set-point, without bound.
     """
 
     def __init__(
@@ -167,6 +170,7 @@ class FakeSunrise:
         application: bool = False,
         application_start_cycles: int = 20,
         inputs: tuple[str, ...] = (),
+        record_commands: bool = True,
     ) -> None:
         host, port = client_address
         if fri_version not in FRI_VERSIONS:

@@ -31,13 +31,14 @@ log = logging.getLogger("remaster.fake.sunrise")
 class AnswerHandler:
     """Checks and applies the client's answers to ``session`` (lock held by the caller).
 
-    receive_period_s: the time one answer window spans (s); rng: draws the answer losses;
-    other options as ``FakeSunrise``'s of the same names.
+    receive_period_s: the time one answer window spans (s); record_commands: keep every applied
+    set-point in ``stats.commands``; rng: draws the answer losses; other options as
+    ``FakeSunrise``'s of the same names.
     """
 
     def __init__(self, session: SunriseSession, *, fri_version: str, limits: Optional[JointLimits],
                  receive_period_s: float, start_tolerance_rad: float, echo_tolerance_rad: float,
-                 speed_tolerance: float, loss_in: float, rng: np.random.Generator) -> None:
+                 speed_tolerance: float, loss_in: float, record_commands: bool, rng: np.random.Generator) -> None:
         self.session = session
         self.fri_version = fri_version
         self.limits = limits
@@ -46,6 +47,7 @@ class AnswerHandler:
         self.echo_tolerance_rad = echo_tolerance_rad
         self.speed_tolerance = speed_tolerance
         self.loss_in = loss_in
+        self.record_commands = record_commands
         self.rng = rng
 
     def handle(self, data: bytes) -> None:
@@ -128,4 +130,5 @@ class AnswerHandler:
             return
         s.servo.setpoint = cmd
         s.windows.since_applied = 0
-        s.stats.commands.append((s.sim_time, cmd.copy()))
+        if self.record_commands:
+            s.stats.commands.append((s.sim_time, cmd.copy()))

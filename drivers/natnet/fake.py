@@ -11,72 +11,35 @@ socket to ``group:data_port``, default group 239.255.42.99, with ``IP_MULTICAST_
 127.0.0.1, ``IP_MULTICAST_LOOP`` on and TTL 0, so nothing leaves the host).
 
 Frame content comes from a ``drivers.sim.scene.MarkerScene``: every marker the scene reports
-for ``sensor`` belongs to one rigid body (the tool plate). The body's pose is fitted (Kabsch)
-from its visible markers to the layout seen at start; with fewer than three visible markers
-the body is untracked. Visible markers are labeled markers ``(body id, index + 1)``;
-an invisible one is sent occluded at its model-predicted position while the body is tracked
-and omitted otherwise. Positions go out in metres (Motive's default).
+for ``sensor`` belongs to one asset (the tool plate), fitted and labeled as ``fake_asset``
+describes. Positions go out in metres (Motive's default).
 
-Fault hooks: ``set_faults(drop=, duplicate=, reorder=)`` (per-frame probabilities, seeded),
-``stall()`` / ``resume()`` (stop / restart sending frames; ``stall()`` before ``start()``
-starts it silent), ``restart()`` (frame counter and
-clock reset, like a Motive restart). Threads stop on ``close()`` or context exit.
+Fault hooks: ``set_faults(drop=, duplicate=, reorder=)`` (per-frame probabilities, seeded;
+``fake_faults``), ``stall()`` / ``resume()`` (stop / restart sending frames; ``stall()``
+before ``start()`` starts it silent), ``restart()`` (frame counter and clock reset, like a
+Motive restart). Threads stop on ``close()`` or context exit.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import socket
 import threading
 import time
 
-import numpy as np
-
 from drivers.errors import ProtocolError
 from drivers.natnet import codec
+from drivers.natnet.fake_asset import ASSET_KINDS, BONE_ID, BONE_NAME, FakeAsset
+from drivers.natnet.fake_faults import FrameFaults
 from drivers.sim.scene import MarkerScene
+
+__all__ = ["ASSET_KINDS", "BITSTREAM_VERSIONS", "BONE_ID", "BONE_NAME", "FakeMotive"]
 
 log = logging.getLogger("remaster.fake.natnet")
 
 #: Stream versions a fake 4.x server may switch to with ``Bitstream,X.Y``.
 BITSTREAM_VERSIONS = {(3, 0), (3, 1), (4, 0), (4, 1)}
-#: What the scene's markers are in Motive: a rigid body (default), a one-bone skeleton, or a
-#: NatNet 4.1 trained markerset with one bone. All share ``rigid_body_id`` / ``rigid_body_name``.
-ASSET_KINDS = ("rigid_body", "skeleton", "trained_markerset")
-#: The fake skeleton's / trained markerset's single bone: id and name.
-BONE_ID, BONE_NAME = 1, "plate"
 _TIMELINE_COMMANDS = ("TimelinePlay", "TimelineStop", "SetPlaybackCurrentFrame")
-
-
-def _quat_xyzw(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a 3×3 rotation matrix."""
-    m = r
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
-
-
-def _kabsch(local: np.ndarray, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """R, t with ``seen ≈ local @ R.T + t``; local, seen shape (n, 3), n ≥ 3."""
-    cl, cs = local.mean(axis=0), seen.mean(axis=0)
-    h = (local - cl).T @ (seen - cs)
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
-    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return r, cs - r @ cl
 
 
 class FakeMotive:
@@ -148,19 +111,16 @@ class FakeMotive:
         self.analog_samples_per_frame = analog_samples_per_frame
         self.asset = asset
         self._want_ports = (command_port, data_port)
-        self._rng = np.random.default_rng(seed)
+        self._asset = FakeAsset(scene, sensor, asset, rigid_body_id, rigid_body_name)
+        self._faults = FrameFaults(seed)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._cmd: socket.socket | None = None
         self._data: socket.socket | None = None
         self._clients: dict[tuple[str, int], float] = {}
-        self._marker_names: list[str] = []
-        self._layout_m: np.ndarray | None = None  # (n, 3) reference layout about its centroid
         self._frame_no = 0
         self._t0 = time.monotonic()
-        self._held: bytes | None = None  # a frame held back for reordering
-        self._drop = self._dup = self._reorder = 0.0
         self._stalled = False
         self._last_frame: codec.FrameOfData | None = None
         #: Counters for tests: frames sent (after faults), commands answered, bad packets,
@@ -192,12 +152,7 @@ class FakeMotive:
     def start(self) -> "FakeMotive":
         if self._cmd is not None:
             raise RuntimeError("FakeMotive already started")
-        obs = self.scene.observe(self.sensor)
-        if not obs:
-            raise ValueError(f"scene reports no markers for sensor {self.sensor!r}")
-        self._marker_names = [o.name for o in obs]
-        pos_m = np.array([o.position_mm for o in obs], dtype=float) / 1000.0
-        self._layout_m = pos_m - pos_m.mean(axis=0)
+        self._asset.learn_layout()
         cmd = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         data = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -246,11 +201,7 @@ class FakeMotive:
     # ------------------------------------------------------------------ fault hooks
     def set_faults(self, *, drop: float = 0.0, duplicate: float = 0.0, reorder: float = 0.0) -> None:
         """Per-frame probabilities of dropping, sending twice, or swapping with the next."""
-        for name, p in (("drop", drop), ("duplicate", duplicate), ("reorder", reorder)):
-            if not 0.0 <= p <= 1.0:
-                raise ValueError(f"{name} probability must be within [0, 1], got {p}")
-        with self._lock:
-            self._drop, self._dup, self._reorder = drop, duplicate, reorder
+        self._faults.set(drop=drop, duplicate=duplicate, reorder=reorder)
 
     def stall(self) -> None:
         """Stop sending frames (commands are still answered) until ``resume()``."""
@@ -267,7 +218,7 @@ class FakeMotive:
         with self._lock:
             self._frame_no = 0
             self._t0 = time.monotonic()
-            self._held = None
+            self._faults.forget_held()
             self.stream_version = self.server_version
             if forget_clients:
                 self._clients.clear()
@@ -280,96 +231,19 @@ class FakeMotive:
         )
 
     def model_def(self) -> codec.ModelDef:
-        assert self._layout_m is not None
-        markers = tuple(
-            codec.RigidBodyMarkerDescription(tuple(float(v) for v in p), 0, name)
-            for p, name in zip(self._layout_m, self._marker_names)
-        )
-        marker_set = codec.MarkerSetDescription(self.rigid_body_name, tuple(self._marker_names))
-        if self.asset == "rigid_body":
-            body = codec.RigidBodyDescription(self.rigid_body_name, self.rigid_body_id, -1, (0.0, 0.0, 0.0), markers)
-            return codec.ModelDef((body, marker_set))
-        bone = codec.RigidBodyDescription(BONE_NAME, BONE_ID, -1, (0.0, 0.0, 0.0), markers)
-        if self.asset == "skeleton":
-            skeleton = codec.SkeletonDescription(self.rigid_body_name, self.rigid_body_id, (bone,))
-            return codec.ModelDef((marker_set, skeleton))
-        asset_markers = tuple(
-            codec.AssetMarkerDescription(name, (self.rigid_body_id << 16) | (i + 1),
-                                         tuple(float(v) for v in p), 0.014, 0)
-            for i, (p, name) in enumerate(zip(self._layout_m, self._marker_names))
-        )
-        return codec.ModelDef((marker_set, codec.AssetDescription(
-            self.rigid_body_name, 0, self.rigid_body_id, (bone,), asset_markers)))
+        """The MODELDEF describing the asset (``fake_asset.FakeAsset.model_def``)."""
+        return self._asset.model_def()
 
     def _ticks(self) -> int:
         return int(time.monotonic_ns() * self.clock_frequency // 1_000_000_000)
 
     def make_frame(self) -> codec.FrameOfData:
         """The next frame from the scene as it is now (advances the frame counter)."""
-        assert self._layout_m is not None
-        obs = self.scene.observe(self.sensor)
-        by_name = {o.name: o for o in obs}
-        n = len(self._marker_names)
-        seen = np.full((n, 3), np.nan)
-        vis = np.zeros(n, dtype=bool)
-        for i, name in enumerate(self._marker_names):
-            o = by_name.get(name)
-            if o is not None:
-                seen[i] = np.asarray(o.position_mm, dtype=float) / 1000.0
-                vis[i] = bool(o.visible)
-        tracked = int(vis.sum()) >= 3
-        rb = np.zeros(1, dtype=codec.RIGID_BODY_DTYPE)
-        rb["id"] = self.rigid_body_id
-        predicted = None
-        if tracked:
-            r, t = _kabsch(self._layout_m[vis], seen[vis])
-            predicted = self._layout_m @ r.T + t
-            err = np.linalg.norm(predicted[vis] - seen[vis], axis=1)
-            rb["pos"] = t
-            rb["quat"] = _quat_xyzw(r)
-            rb["mean_error"] = float(err.mean())
-            rb["params"] = codec.RIGID_BODY_TRACKED
-        else:
-            rb["quat"] = (0.0, 0.0, 0.0, 1.0)
-        rows = []
-        for i in range(n):
-            mid = (self.rigid_body_id << 16) | (i + 1)
-            if vis[i]:
-                res = float(np.linalg.norm(predicted[i] - seen[i])) if predicted is not None else 0.0
-                rows.append((mid, seen[i], 0.014, codec.MARKER_PC_SOLVED | codec.MARKER_HAS_MODEL, res))
-            elif predicted is not None:
-                flags = codec.MARKER_OCCLUDED | codec.MARKER_MODEL_SOLVED | codec.MARKER_HAS_MODEL
-                rows.append((mid, predicted[i], 0.014, flags, 0.0))
-        labeled = np.zeros(len(rows), codec.LABELED_MARKER_DTYPE)
-        for k, row in enumerate(rows):
-            labeled[k] = row
-        set_pos = np.where(vis[:, None], seen, predicted if predicted is not None else 0.0)
         now = self._ticks()
         with self._lock:
             frame_no = self._frame_no
             self._frame_no += 1
-        skeletons, assets = (), ()
-        if self.asset != "rigid_body":  # the plate is the asset's one bone
-            rb["id"] = (self.rigid_body_id << 16) | BONE_ID
-            if self.asset == "skeleton":
-                skeletons = (codec.SkeletonData(self.rigid_body_id, rb),)
-            else:  # trained markerset: its markers go with the asset, not the labeled list
-                assets = (codec.AssetData(self.rigid_body_id, rb, labeled),)
-                labeled = labeled[:0]
-            rb = rb[:0]
-        frame = codec.FrameOfData(
-            frame_number=frame_no,
-            marker_sets=(codec.MarkerSetData(self.rigid_body_name, set_pos.astype("<f4")),),
-            unlabeled=seen[vis].astype("<f4").reshape(-1, 3),
-            rigid_bodies=rb,
-            skeletons=skeletons,
-            assets=assets,
-            labeled_markers=labeled,
-            timestamp=frame_no / self.rate_hz,
-            stamp_camera_mid_exposure=now - self.clock_frequency // 200,
-            stamp_data_received=now - self.clock_frequency // 1000,
-            stamp_transmit=now,
-        )
+        frame = self._asset.frame(frame_no, frame_no / self.rate_hz, now, self.clock_frequency)
         self._last_frame = frame
         return frame
 
@@ -479,23 +353,8 @@ class FakeMotive:
             if stalled:
                 continue
             packet = codec.encode_packet(self.make_frame(), version)
-            for p in self._apply_faults(packet):
+            for p in self._faults.apply(packet):
                 self._emit(p)
-
-    def _apply_faults(self, packet: bytes) -> list[bytes]:
-        with self._lock:
-            drop, dup, reorder = self._drop, self._dup, self._reorder
-            u = self._rng.random(3)
-            if drop and u[0] < drop:
-                return []
-            out = [packet, packet] if dup and u[1] < dup else [packet]
-            if self._held is not None:
-                out.append(self._held)  # the held-back older frame goes after this newer one
-                self._held = None
-            elif reorder and u[2] < reorder:
-                self._held = packet
-                out = out[1:]
-            return out
 
     def _emit(self, packet: bytes) -> None:
         self.frames_sent += 1

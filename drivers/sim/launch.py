@@ -331,7 +331,7 @@ class SimLaunch:
             fake = FakeSunrise(
                 ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.cell,
                 clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
-                application=True, fri_version=self.fri_version, inputs=inputs, **period,
+                application=True, fri_version=self.fri_version, inputs=inputs, record_commands=False, **period,
             )
             fake.start()
             host, port = fake.address

@@ -224,7 +224,10 @@ def test_an_sdk_style_client_started_first_runs_30_s_and_ends_when_the_sim_does(
     assert abs(client.stamps[-1] - time.time()) < 120.0  # the controller's clock: time of day
     a4 = np.asarray(client.measured)[:, JOINT] - client.ipo_first[JOINT]
     assert np.ptp(a4) > 1.5 * AMPLITUDE_RAD  # the robot followed the overlay, both ways
-    assert np.max(np.abs(a4)) < 1.2 * AMPLITUDE_RAD  # and did not run away (ipo did not accumulate)
+    # and did not run away: had the ipo taken up each command, A4 would add up the overlay every
+    # 5 ms cycle and be radians away within half a period. Not tighter: a servo a step behind after a
+    # late answer overshoots (1.20×, 0.0481 rad, seen under four CPU hogs).
+    assert np.max(np.abs(a4)) < 1.5 * AMPLITUDE_RAD
 
 
 @pytest.mark.timeout(120)

@@ -72,14 +72,16 @@ def _observe(cell: NuisanceCell, q: np.ndarray, rng: np.random.Generator, split:
     return replace(ds, std_mm=np.full(len(ds), NOISE_MM), count=np.full(len(ds), SAMPLES))
 
 
-def nuisance_cell(seed: int, *, k_cal: int = 36, k_val: int = 40, outlier: bool | None = None) -> NuisanceCell:
-    """Cell ``seed`` (see the module's docstring); ``outlier``: None — every other seed."""
+def nuisance_cell(seed: int, *, k_cal: int = 36, k_val: int = 40, outlier: bool | None = None,
+                  offset_deg: float = 0.1) -> NuisanceCell:
+    """Cell ``seed`` (see the module's docstring); ``outlier``: None — every other seed;
+    ``offset_deg``: sd of the zero-offsets (the same draws scaled: a cell that lost its mastering)."""
     rng = np.random.default_rng(5000 + seed)
     model = plate_model(ROBOT)
     chain = Chain(model)
     truth = chain.nominal.copy()
     n = chain.n
-    truth[:n] = np.radians(rng.normal(0.0, 0.1, n))
+    truth[:n] = np.radians(rng.normal(0.0, offset_deg, n))
     for kind in ("d", "a"):
         truth[chain.index(kind)] += rng.choice([-1.0, 1.0], n) * rng.uniform(0.2, 0.9, n)
     truth[chain.index("alpha")] += np.radians(rng.choice([-1.0, 1.0], n) * rng.uniform(0.1, 0.66, n))

@@ -82,10 +82,24 @@ def _configurations(chain: Chain, truth: np.ndarray, q_ref: np.ndarray, c: np.nd
     return None
 
 
+def _commanded(chain: Chain, truth: np.ndarray, q_phys: np.ndarray, compliance: np.ndarray) -> np.ndarray:
+    """The commanded angles (k, n) that sag to ``q_phys``: q = q_phys − sign·k·τ(q; truth), by
+    fixed-point iteration (the sag is ~1e-4 rad, so each step gains ~4 digits)."""
+    from calib.robot.gravity import gravity_torques
+
+    q = q_phys.copy()
+    for _ in range(4):
+        q = q_phys - chain.sign * compliance * gravity_torques(chain, q, truth)
+    return q
+
+
 def simulate(model: RobotModel, truth: np.ndarray, rng: np.random.Generator, *, placements: int = 3,
              per_socket: int = 20, distance_mm: float = 50.0, play_mm: float = 0.1,
-             spread_rad: float = 0.5) -> tuple[SocketDataset, np.ndarray]:
+             spread_rad: float = 0.5, compliance: np.ndarray | None = None) -> tuple[SocketDataset, np.ndarray]:
     """Socket data from the true arm; returns the dataset and the true socket points (g, 3).
+    ``compliance`` (n,) rad/(N·m): the arm sags under its own weight (the model needs link
+    masses) — the recorded angles are the commanded ones, q_cmd + sign·k·τ(q_cmd) on the true arm
+    being the angles that put the ball in the socket (``_commanded``).
 
     Each placement: a reference configuration puts the ball at socket 0; socket 1 is
     ``distance_mm`` away horizontally. Each recorded configuration starts from the reference
@@ -108,7 +122,8 @@ def simulate(model: RobotModel, truth: np.ndarray, rng: np.random.Generator, *, 
         for si, (c, q) in enumerate(zip(sockets, qs)):
             groups.append((f"p{len(groups) // 2}", str(si)))
             points.append(c)
-            q_all += list(_ik_points(chain, truth, q, c + rng.normal(0, play_mm, (per_socket, 3))))
+            q_phys = _ik_points(chain, truth, q, c + rng.normal(0, play_mm, (per_socket, 3)))
+            q_all += list(q_phys if compliance is None else _commanded(chain, truth, q_phys, compliance))
             g_all += [len(groups) - 1] * per_socket
     ds = SocketDataset(np.array(q_all), np.array(g_all), groups, with_distance(groups, distance_mm),
                        source="simulated socket cell")

@@ -54,7 +54,7 @@ def test_compliances_with_orientation_are_recovered_and_the_attitude_residual_is
     assert np.all(np.abs(z) < 4.0), z
     chain = Chain(UR10)
     # The attitude the fit predicts, with the fitted sag turning the flange, against the measured one.
-    q_fit = q + chain.sign * result.compliance * gravity_torques(chain, q)
+    q_fit = q + chain.sign * result.compliance * gravity_torques(chain, q, result.params)  # the sag at the identified arm, as the fit takes it
     r_f, _ = chain.flange_pose(q_fit, result.params)
     pred = result.base2sensor["tracker"][:3, :3] @ r_f @ result.tool_frames[chain.marker_names[0]]
     att = np.degrees(np.linalg.norm(log_so3(data.rot @ np.swapaxes(pred, 1, 2)), axis=1))

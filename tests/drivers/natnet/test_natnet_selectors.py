@@ -9,7 +9,9 @@ import pytest
 from natnet_helpers import PLATE_MM, PLATE_ORIGIN_MM, capture
 
 from drivers.natnet import codec
-from drivers.natnet.client import MarkerSelector, NatNetSensor, _find_bone, _resolve_by_name
+from drivers.natnet.client import MarkerSelector, NatNetSensor
+from drivers.natnet.samples import find_bone
+from drivers.natnet.selection import resolve_by_name
 from drivers.natnet.fake import BONE_ID, FakeMotive
 
 TRUE_MM = PLATE_MM + PLATE_ORIGIN_MM
@@ -102,14 +104,14 @@ def test_real_modeldef_resolves_a_rigid_bodys_markers_by_name():
     md = codec.decode_packet(capture("modeldef_packet_v3.bin"), (3, 0, 0, 0))
     frame = codec.decode_packet(capture("mocapframe_packet_v3.bin"), (3, 0, 0, 0))
     for i in range(5):
-        kind, ident = _resolve_by_name(md, MarkerSelector.parse(f"ms:RaceQuad:Marker{i + 1}"), "t")
+        kind, ident = resolve_by_name(md, MarkerSelector.parse(f"ms:RaceQuad:Marker{i + 1}"), "t")
         assert (kind, ident) == ("lm", (2 << 16) | (i + 1))
         assert ident in frame.labeled_markers["id"].tolist()
-    assert _resolve_by_name(md, MarkerSelector.parse("rb:RaceQuad"), "t") == ("rb", 2)
+    assert resolve_by_name(md, MarkerSelector.parse("rb:RaceQuad"), "t") == ("rb", 2)
     with pytest.raises(ValueError, match=r"no skeleton or asset 'RaceQuad'; Motive defines skeletons \[\]"):
-        _resolve_by_name(md, MarkerSelector.parse("sk:RaceQuad:1"), "t")
+        resolve_by_name(md, MarkerSelector.parse("sk:RaceQuad:1"), "t")
     with pytest.raises(ValueError, match="marker set 'all' belongs to no rigid body, skeleton or asset"):
-        _resolve_by_name(md, MarkerSelector("ms", body="all", name="RaceQuad_1"), "t")
+        resolve_by_name(md, MarkerSelector("ms", body="all", name="RaceQuad_1"), "t")
 
 
 def test_frame_bone_ids_are_matched_on_their_member_id():
@@ -117,5 +119,5 @@ def test_frame_bone_ids_are_matched_on_their_member_id():
     rb["id"] = [(4 << 16) | 1, (4 << 16) | 2]  # frame data: skeleton id << 16 | bone id
     rb["pos"] = [[1, 2, 3], [4, 5, 6]]
     frame = codec.FrameOfData(1, skeletons=(codec.SkeletonData(4, rb),))
-    assert _find_bone(frame, 4, 2)["pos"].tolist() == [4, 5, 6]
-    assert _find_bone(frame, 4, 3) is None and _find_bone(frame, 5, 1) is None
+    assert find_bone(frame, 4, 2)["pos"].tolist() == [4, 5, 6]
+    assert find_bone(frame, 4, 3) is None and find_bone(frame, 5, 1) is None

@@ -90,7 +90,7 @@ def test_a_group_it_cannot_join_fails_saying_what_to_set(still_scene):
     assert f"streams multicast to 239.255.42.99:{port}" in msg
     assert "on interface 127.0.0.1" in msg and "local=" in msg
     assert "Transmission Type to Unicast" in msg
-    assert sensor._thread is None  # cleaned up
+    assert not sensor._receiver.running  # cleaned up
 
 
 def test_silence_on_the_multicast_group_says_where_the_client_listens(still_scene):
