@@ -226,7 +226,7 @@ class FakeSunrise:
             self._session, fri_version=fri_version, limits=limits,
             receive_period_s=send_period_ms * receive_multiplier / 1000.0, start_tolerance_rad=start_tolerance_rad,
             echo_tolerance_rad=echo_tolerance_rad, speed_tolerance=speed_tolerance, loss_in=float(loss_in),
-            rng=self._rng)
+            record_commands=bool(record_commands), rng=self._rng)
         self._drop_next = 0
         self._malformed_next: list[str] = []
         self._sending = True
