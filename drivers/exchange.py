@@ -57,7 +57,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-__all__ = ["ExchangeProcess", "SharedState", "ChildLink", "run_child", "set_realtime"]
+__all__ = ["ExchangeProcess", "SharedState", "ChildLink", "run_child", "set_realtime", "ring_in_order", "read_state",
+           "answer_log", "ring_timing"]
 
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
 _LENGTH = struct.Struct("<I")
@@ -71,6 +72,41 @@ def ring_in_order(ring: np.ndarray, count: int) -> np.ndarray:
         return ring[:count].copy()
     i = count % w
     return np.concatenate([ring[i:], ring[:i]])
+
+
+def read_state(exchange: "ExchangeProcess | None", names) -> dict[str, np.ndarray] | None:
+    """``exchange.state.read(names)`` (copies), or None when there is no exchange process, it
+    has no state any more, or another thread closed it meanwhile."""
+    state = None if exchange is None else exchange.state
+    if state is None:
+        return None
+    try:
+        return state.read(names)
+    except ConnectionError:  # closed meanwhile by another thread
+        return None
+
+
+def answer_log(exchange: "ExchangeProcess | None") -> tuple[int, np.ndarray, np.ndarray]:
+    """``(count, arrived, latency)`` from a commander's rings ``count`` / ``rx`` / ``lat``: cycles
+    so far and, for the last min(count, window), oldest first, each shape (m,), the arrival
+    stamp (s) and the answer latency (s); ``(0, [], [])`` without a running exchange."""
+    st = read_state(exchange, ("count", "lat", "rx"))
+    if st is None:
+        return 0, np.zeros(0), np.zeros(0)
+    count = int(st["count"][0])
+    return count, ring_in_order(st["rx"], count), ring_in_order(st["lat"], count)
+
+
+def ring_timing(count: int, rx_ring: np.ndarray, lat_ring: np.ndarray) -> dict[str, float | int]:
+    """The timing fields of ``LinkStats`` (packets, window, period_* and latency_*, s) from the
+    arrival-stamp and latency rings (each shape (window,)) after ``count`` cycles."""
+    rx, lat = ring_in_order(rx_ring, count), ring_in_order(lat_ring, count)
+    n = lat.shape[0]
+    per = np.diff(rx) if n > 1 else np.zeros(1)
+    q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
+    return dict(packets=count, window=n, period_mean_s=float(per.mean()), period_std_s=float(per.std()),
+                period_max_s=float(per.max()), latency_p50_s=float(q[0]), latency_p99_s=float(q[1]),
+                latency_max_s=float(lat.max()) if n else 0.0)
 
 
 class SharedState:

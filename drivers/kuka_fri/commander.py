@@ -36,10 +36,7 @@ flange that confirms a socket recording (``drivers.socket``).
 
 from __future__ import annotations
 
-import itertools
 import math
-import socket
-import threading
 import time
 from typing import Callable, Optional
 from urllib.parse import parse_qsl, urlsplit
@@ -47,22 +44,14 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, Clock, CommanderBase
-from drivers.errors import ConnectionLostError, DeviceFaultError, DeviceTimeoutError, DriverError
-from drivers.exchange import ExchangeProcess, ring_in_order
-from drivers.kuka_fri import realtime
-from drivers.kuka_fri.messages import ConnectionQuality, IOType, SessionState
-from drivers.kuka_fri.session import (
-    N_JOINTS,
-    Motion,
-    MotionStoppedError,
-    SessionCounters,
-    SessionSnapshot,
-    joint_state_of,
-    plan_move,
-)
+from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError
+from drivers.kuka_fri.link import FriLink, enum_name
+from drivers.kuka_fri.messages import IOType, SessionState
+from drivers.kuka_fri.session import N_JOINTS, MotionStoppedError, SessionSnapshot, joint_state_of
+from drivers.kuka_fri.session_view import SessionView
 from drivers.protocols import JointLimits, JointState, LinkStats
 
-__all__ = ["FriCommander", "MotionStoppedError"]
+__all__ = ["FriCommander", "MotionStoppedError", "SessionView"]
 
 DEFAULT_PORT = 30200
 #: Seconds a move waits for COMMANDING_ACTIVE before the wait is worth a warning.
@@ -71,13 +60,6 @@ _URL_OPTIONS = ("controller", "rt_priority", "timeout_ms", "max_speed", "start_t
                 "max_state_age_ms", "fri_version", "session_wait_s", "name")
 #: FRI versions whose message tables the session knows (1.11–1.16 share 1.x's layout).
 KNOWN_VERSIONS = ("1.11", "1.12", "1.13", "1.14", "1.15", "1.16", "2.5", "2.6", "2.7")
-
-
-def _enum_name(cls, value: int) -> str:
-    try:
-        return cls(value).name
-    except ValueError:
-        return str(value)
 
 
 def _fri_major(value: str) -> Optional[int]:
@@ -150,16 +132,10 @@ class FriCommander(CommanderBase):
         self.fri_version = str(fri_version)
         self.session_wait_s = float(session_wait_s)
         self.orphan_hold_s = float(orphan_hold_s)
-        self.session = SessionView(self, start_tolerance_rad=float(start_tolerance_rad), expect_major=major)
         self._W = 1 << 16  # cycles in the latency ring
-        self._exchange: Optional[ExchangeProcess] = None
-        self._address: Optional[tuple[str, int]] = None
-        self._lock = threading.Lock()
-        self._motions: dict[int, Motion] = {}  # handed to the exchange, not reported done
-        self._io_tables: dict[int, tuple] = {}  # generation -> the shared IOs' (name, type, direction)
-        self._ids = itertools.count(1)
-        self._final_stats: Optional[LinkStats] = None
-        self._last_scheduling = "not started"
+        self._link = FriLink(self.name, self.log, window=self._W, rt_priority=rt_priority)
+        self.session = SessionView(self._link, self.limits, start_tolerance_rad=float(start_tolerance_rad),
+                                   expect_major=major)
 
     # ------------------------------------------------------------------ construction
 
@@ -204,123 +180,50 @@ class FriCommander(CommanderBase):
     @property
     def address(self) -> tuple[str, int]:
         """The bound local (host, port); the controller sends here."""
-        if self._exchange is None:
+        if self._link.exchange is None:
             raise RuntimeError(f"{self.name}: not connected")
-        return self._address
+        return self._link.address
 
     @property
     def exchange_pid(self) -> Optional[int]:
         """Process id of the exchange process (None when not connected)."""
-        return None if self._exchange is None else self._exchange.pid
+        return None if self._link.exchange is None else self._link.exchange.pid
 
     @property
     def rt_scheduling(self) -> str:
         """How the exchange process is (or last was) scheduled (``SCHED_FIFO 50, memory locked``, …)."""
-        return self._last_scheduling if self._exchange is None else self._exchange.realtime
+        return self._link.scheduling
 
     def connect(self) -> None:
         """Bind the UDP port and start the exchange process (answers start with the controller)."""
-        if self._exchange is not None:
+        if self._link.exchange is not None:
             return
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            sock.bind(self.bind)
-        except OSError as exc:
-            sock.close()
-            raise ConnectionLostError(f"{self.name}: cannot bind UDP {self.bind[0]}:{self.bind[1]}: {exc}") from exc
-        self._address = sock.getsockname()
         options = dict(
             limits=self.limits, start_tolerance_rad=self.session.start_tolerance_rad,
             expect_major=self.session.expect_major, controller_host=self.controller_host,
             receive_timeout_s=self.receive_timeout_s, clock=self.clock, window=self._W,
             orphan_hold_s=self.orphan_hold_s,
         )
-        ex = ExchangeProcess(self.name, realtime.layout(self._W), realtime.FriLoop, options, self._on_event,
-                             rt_priority=self.rt_priority, log=self.log)
-        try:
-            ex.start(sock)
-        except RuntimeError as exc:
-            raise ConnectionLostError(str(exc)) from exc
-        self._exchange = ex
-        self._final_stats = None
-        self.log.info("FRI client listening on %s:%d; exchange process %s: %s", *self._address, ex.pid, ex.realtime)
+        self._link.start(self.bind, options)
+        ex = self._link.exchange
+        self.log.info("FRI client listening on %s:%d; exchange process %s: %s", *self._link.address, ex.pid,
+                      ex.realtime)
 
     def close(self) -> None:
         """Stop a running motion (decelerating), end the exchange process (it closes the port)."""
-        if self._exchange is None:
+        if self._link.exchange is None:
             return
         if self.session.motion_active():
             try:
                 self.stop()
             except DeviceTimeoutError as exc:
                 self.log.warning("stop on close did not finish: %s", exc)
-        self._final_stats = self.link_stats()
-        self._last_scheduling = self._exchange.realtime
-        self._exchange.close()
-        self._exchange = None
-        with self._lock:
-            left, self._motions = list(self._motions.values()), {}
-        for m in left:
-            m.error = ConnectionLostError(f"{self.name}: closed")
-            m.done.set()
-
-    def _on_event(self, event: tuple) -> None:
-        """Reader thread: one event from the exchange process (see ``realtime``)."""
-        kind = event[0]
-        if kind == "done":
-            with self._lock:
-                m = self._motions.pop(event[1], None)
-            if m is not None:
-                m.error = event[2]
-                m.done.set()
-        elif kind == "io_table":
-            gen, table = event[1], event[2]
-            self._io_tables = {g: t for g, t in self._io_tables.items() if g >= gen - 1} | {gen: table}
-        elif kind == "crashed":
-            err = ConnectionLostError(f"{self.name}: the FRI exchange process failed: {event[1]}")
-            with self._lock:
-                left, self._motions = list(self._motions.values()), {}
-            for m in left:
-                m.error = err
-                m.done.set()
-
-    def _read(self, names) -> Optional[dict]:
-        ex = self._exchange
-        state = None if ex is None else ex.state
-        if state is None:
-            return None
-        try:
-            return state.read(names)
-        except ConnectionError:  # closed meanwhile by another thread
-            return None
+        self._link.close(self.link_stats())
 
     def link_stats(self) -> LinkStats:
         """Timing of the last cycles, measured in the exchange process (see ``LinkStats``).
         Costs O(window); not for a tight loop."""
-        st = self._read(realtime.LINK + realtime.COUNTERS + ("lat", "rx"))
-        if st is None:
-            if self._final_stats is not None:
-                return self._final_stats
-            st = {k: np.zeros(max(1, self._W)) for k in realtime.LINK + realtime.COUNTERS + ("lat", "rx")}
-        count = int(st["count"][0])
-        rx, lat = ring_in_order(st["rx"], count), ring_in_order(st["lat"], count)
-        n = lat.shape[0]
-        per = np.diff(rx) if n > 1 else np.zeros(1)
-        q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
-        snap = self.session.snapshot()
-        notes = ["session: no monitoring message yet"] if snap is None else [
-            f"session: {snap.session_state.name}, quality {_enum_name(ConnectionQuality, snap.quality)}, "
-            f"{snap.layout}, receive period {(snap.receive_period_s or 0) * 1e3:.0f} ms",
-        ]
-        notes.append(f"exchange process: {self.rt_scheduling}; foreign datagrams {int(st['foreign'][0])}")
-        return LinkStats(
-            packets=count, window=n, period_mean_s=float(per.mean()), period_std_s=float(per.std()),
-            period_max_s=float(per.max()), latency_p50_s=float(q[0]), latency_p99_s=float(q[1]),
-            latency_max_s=float(lat.max()) if n else 0.0, late_answers=int(st["late"][0]),
-            gaps=int(st["gaps"][0]), malformed=int(st["malformed"][0]), restarts=int(st["restarts"][0]),
-            guard_clamps=int(st["step_clamps"][0]), delay=None,
-            realtime=self.rt_scheduling.startswith("SCHED_FIFO"), notes=tuple(notes),
-        )
+        return self._link.link_stats(self.session.snapshot())
 
     def latencies(self) -> np.ndarray:
         """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),),
@@ -333,20 +236,16 @@ class FriCommander(CommanderBase):
         min(messages, window) of them, oldest first, each shape (m,), the arrival time on the
         commander's ``clock`` (s; ``time.monotonic`` by default) and the answer latency (s; 0 for
         a message that needed no answer) — to place late answers in time (benches poll it)."""
-        st = self._read(("count", "lat", "rx"))
-        if st is None:
-            return 0, np.zeros(0), np.zeros(0)
-        count = int(st["count"][0])
-        return count, ring_in_order(st["rx"], count), ring_in_order(st["lat"], count)
+        return self._link.answer_log()
 
     @property
     def malformed_messages(self) -> int:
-        st = self._read(("malformed",))
+        st = self._link.read(("malformed",))
         return 0 if st is None else int(st["malformed"][0])
 
     @property
     def foreign_datagrams(self) -> int:
-        st = self._read(("foreign",))
+        st = self._link.read(("foreign",))
         return 0 if st is None else int(st["foreign"][0])
 
     # ------------------------------------------------------------------ JointCommander
@@ -400,7 +299,7 @@ class FriCommander(CommanderBase):
             if io.name != name:
                 continue
             if io.type not in (IOType.BOOLEAN, IOType.DIGITAL):
-                raise DriverError(f"{self.name}: controller IO {name!r} is {_enum_name(IOType, io.type)}; "
+                raise DriverError(f"{self.name}: controller IO {name!r} is {enum_name(IOType, io.type)}; "
                                   "name a BOOLEAN or DIGITAL IO")
             return bool(io.digital_value)
         shared = ", ".join(repr(io.name) for io in snap.io) or "none"
@@ -454,24 +353,6 @@ class FriCommander(CommanderBase):
         if motion.error is not None:
             raise motion.error
 
-    def _hand_over(self, motion: Motion, hold: np.ndarray) -> None:
-        """Send a checked, planned motion to the exchange process; its ``done`` is set when the
-        exchange reports it ended (or refused it)."""
-        motion_id = next(self._ids)
-        with self._lock:
-            self._motions[motion_id] = motion
-        try:
-            self._exchange.request("move", motion_id, motion.trajectory, motion.dt, motion.max_step_rad,
-                                   motion.limits_scaled, motion.planned_s, hold)
-        except (ConnectionError, AttributeError) as exc:
-            with self._lock:
-                self._motions.pop(motion_id, None)
-            raise ConnectionLostError(f"{self.name}: the FRI exchange process is not running ({exc})") from exc
-
-    def _active_motion(self) -> Optional[Motion]:
-        with self._lock:
-            return next(iter(self._motions.values()), None)
-
     def _stop_wait_s(self, motion) -> float:
         """Wall time to wait for a stop to finish: the worst stop time plus slack."""
         v, a, _ = motion.limits_scaled
@@ -492,80 +373,3 @@ class FriCommander(CommanderBase):
     def _sleep(self, dt: float) -> None:
         self._sleep_fn(dt)
 
-
-class SessionView:
-    """The main process's read-only view of the exchange process's ``FriClientSession`` (same
-    names: ``snapshot``, ``session_state``, ``held_position``, ``motion_active``, ``counters``),
-    plus ``begin_move`` (checked and planned here, streamed there) and ``request_stop``."""
-
-    def __init__(self, commander: FriCommander, *, start_tolerance_rad: float, expect_major: Optional[int]) -> None:
-        self._c = commander
-        self.limits = commander.limits
-        self.start_tolerance_rad = start_tolerance_rad
-        self.expect_major = expect_major
-        self._cached: Optional[SessionSnapshot] = None
-
-    def _read(self, names) -> Optional[dict]:
-        return self._c._read(names)  # noqa: SLF001 - the view belongs to its commander
-
-    def snapshot(self) -> Optional[SessionSnapshot]:
-        """The latest monitoring message as the exchange saw it (the same object until the next)."""
-        st = self._read(realtime.SNAP + realtime.layout_arrays())
-        if st is None:
-            return self._cached
-        c = self._cached
-        tables = self._c._io_tables  # noqa: SLF001 - the view belongs to its commander
-        same = c is not None and c.host_time == st["host_time"][0] and c.sequence_counter == int(st["seq"][0])
-        if same and (c.io or not int(st["n_io"][0]) or realtime.io_pending(st, tables)):
-            return c  # (rebuilt when the names of its IO values have arrived since)
-        self._cached = realtime.snapshot_from(st, tables)
-        return self._cached
-
-    def io_pending(self) -> bool:
-        """The exchange shares IO values whose names have not reached this process yet."""
-        st = self._read(realtime.SNAP)
-        return st is not None and realtime.io_pending(st, self._c._io_tables)  # noqa: SLF001
-
-    @property
-    def session_state(self) -> Optional[SessionState]:
-        snap = self.snapshot()
-        return None if snap is None else snap.session_state
-
-    def held_position(self) -> Optional[np.ndarray]:
-        st = self._read(("has_hold", "hold"))
-        return None if st is None or not st["has_hold"][0] else st["hold"].copy()
-
-    def motion_active(self) -> bool:
-        """A move is handed over and not reported done, or the exchange is still streaming one."""
-        if self._c._active_motion() is not None:  # noqa: SLF001
-            return True
-        st = self._read(("busy",))
-        return st is not None and bool(st["busy"][0])
-
-    @property
-    def counters(self) -> SessionCounters:
-        st = self._read(realtime.COUNTERS)
-        return SessionCounters() if st is None else realtime.counters_from(st)
-
-    def begin_move(self, target_rad: np.ndarray, speed: float, name: str) -> Motion:
-        """Check and plan a move here (LimitError: nothing moved), then hand it to the exchange,
-        which starts it only if the session and the held position are still as checked."""
-        st = self._read(realtime.SNAP + realtime.layout_arrays() + ("hold",))
-        snap = None if st is None else realtime.snapshot_from(st)
-        hold = None if st is None or not st["has_hold"][0] else st["hold"].copy()
-        busy = self.motion_active()
-        motion = plan_move(snap, hold, busy, target_rad, speed, limits=self.limits,
-                           start_tolerance_rad=self.start_tolerance_rad, expect_major=self.expect_major, name=name)
-        self._c._hand_over(motion, hold)  # noqa: SLF001
-        return motion
-
-    def request_stop(self) -> Optional[Motion]:
-        """Ask the exchange to decelerate the current motion; returns it (None if idle)."""
-        motion = self._c._active_motion()  # noqa: SLF001
-        ex = self._c._exchange  # noqa: SLF001
-        if ex is not None:
-            try:
-                ex.request("stop")
-            except ConnectionError:
-                pass
-        return motion

@@ -14,7 +14,10 @@ Message layouts (``fri_version``: ``"1.15"``, ``"2.5"``, ``"2.7"``) are built in
 ``fake_monitoring``; in 2.7 every datagram, both ways, is framed with a length and a CRC-32
 (``framing``), and an answer in the other framing is malformed, as it is to the SDK. The joints
 are ``fake_servo.JointServo``; answer windows and quality are scored by
-``fake_windows.AnswerWindows``.
+``fake_windows.AnswerWindows``; the session state machine below is ``fake_session.SunriseSession``
+and what the controller does with each answer ``fake_answers.AnswerHandler``; the sending thread
+is ``fake_sender.SendLoop``. This class holds the options, the cycle (servo, windows, the
+message built) and the hooks tests pull.
 
 Like a cabinet: nothing is sent until the robot application opens the FRI session (the first
 message already says MONITORING_WAIT; an SDK example reading IDLE would quit); when the
@@ -52,15 +55,13 @@ Answer windows, late answers and connection quality: see ``fake_windows``.
 from __future__ import annotations
 
 import logging
-import os
 import threading
-import time
 from dataclasses import dataclass, field
 from typing import Optional
 
 import numpy as np
 
-from drivers.errors import ProtocolError
+from drivers.kuka_fri.fake_answers import AnswerHandler
 from drivers.kuka_fri.fake_monitoring import (
     MALFORMED_KINDS,
     ControllerView,
@@ -69,16 +70,11 @@ from drivers.kuka_fri.fake_monitoring import (
     nominal_flange_pose,
 )
 from drivers.kuka_fri.fake_port import FriPort
-from drivers.kuka_fri.fake_servo import N_JOINTS, JointServo, set_point_violation
+from drivers.kuka_fri.fake_sender import SendLoop
+from drivers.kuka_fri.fake_servo import N_JOINTS, JointServo
+from drivers.kuka_fri.fake_session import SunriseSession
 from drivers.kuka_fri.fake_windows import AnswerWindows
-from drivers.kuka_fri.framing import unframe
-from drivers.kuka_fri.messages import (
-    ConnectionQuality,
-    DriveState,
-    SafetyState,
-    SessionState,
-    decode_command,
-)
+from drivers.kuka_fri.messages import ConnectionQuality, DriveState, SafetyState, SessionState
 from drivers.protocols import JointLimits
 
 log = logging.getLogger("remaster.fake.sunrise")
@@ -197,29 +193,14 @@ class FakeSunrise:
         self.scene = scene
         self.clock = clock
         self.noise_rad = float(noise_rad)
-        self.auto_open = auto_open
-        self.idle_cycles = idle_cycles
-        self.closing_idle_messages = int(closing_idle_messages)
         if controller_host not in _LOOPBACK and not controller_host.startswith("127."):
             raise ValueError(f"the fake Sunrise only sends from loopback, got controller_host {controller_host!r}")
         self.controller_host = controller_host
-        self.ready_after = ready_after
-        self.commanding_wait_cycles = commanding_wait_cycles
-        self.max_missed = max_missed
-        self.start_tolerance_rad = start_tolerance_rad
-        self.echo_tolerance_rad = echo_tolerance_rad
-        self.speed_tolerance = speed_tolerance
-        self.abort_on_violation = abort_on_violation
         self.jitter_ms = float(jitter_ms)
         self.loss_out = float(loss_out)
-        self.loss_in = float(loss_in)
         self.max_runtime_s = float(max_runtime_s)
         self.rt_priority = int(rt_priority)
         self.fri_version = fri_version
-        self.application = bool(application)
-        self.record_commands = bool(record_commands)
-        self.application_start_cycles = int(application_start_cycles)
-        self.overruns = 0
         self._rng = np.random.default_rng(seed)
 
         if initial_position_rad is None:
@@ -227,7 +208,6 @@ class FakeSunrise:
                 np.asarray(scene.joint_positions(), dtype=float) if scene is not None else np.zeros(N_JOINTS)
             )
         self._servo = JointServo(initial_position_rad, servo_frequency_hz, servo_damping)
-        self._ipo = self._servo.q.copy()  # the interpolator's position: the application's motion, rad
         self._windows = AnswerWindows(receive_multiplier, quality_window)
         for name in inputs:
             if not (isinstance(name, str) and 0 < len(name.encode("utf-8")) <= 63):
@@ -236,24 +216,22 @@ class FakeSunrise:
 
         self.stats = FakeSunriseStats()
         self._lock = threading.Lock()
-        self._state_changed = threading.Condition(self._lock)
-        self._state = SessionState.IDLE
-        self._seq = 0  # our counter, next message
-        self._client_seq = 0  # last counter the client sent
-        self._cycles_in_state = 0
-        self._idle_first_seq = 0  # first counter sent since the session went IDLE
-        self._idle_to_send = 0  # IDLE messages still to send after the session was closed
-        self._ended = False  # the robot application ended (stop, max_runtime_s): no re-opening
-        self._first_active_command = True
+        self._session = SunriseSession(
+            self._servo, self._windows, self.stats, self._lock, auto_open=auto_open, idle_cycles=idle_cycles,
+            closing_idle_messages=int(closing_idle_messages), ready_after=ready_after,
+            commanding_wait_cycles=commanding_wait_cycles, max_missed=max_missed,
+            abort_on_violation=abort_on_violation, application=bool(application),
+            application_start_cycles=int(application_start_cycles))
+        self._answers = AnswerHandler(
+            self._session, fri_version=fri_version, limits=limits,
+            receive_period_s=send_period_ms * receive_multiplier / 1000.0, start_tolerance_rad=start_tolerance_rad,
+            echo_tolerance_rad=echo_tolerance_rad, speed_tolerance=speed_tolerance, loss_in=float(loss_in),
+            record_commands=bool(record_commands), rng=self._rng)
         self._drop_next = 0
         self._malformed_next: list[str] = []
         self._sending = True
-        self._safety = SafetyState.NORMAL_OPERATION
-        self._drives = DriveState.ACTIVE
-        self._sim_time = 0.0
         self._port: Optional[FriPort] = None
-        self._thread: Optional[threading.Thread] = None
-        self._stop = threading.Event()
+        self._sender: Optional[SendLoop] = None
 
     # ------------------------------------------------------------------ public API
 
@@ -265,14 +243,28 @@ class FakeSunrise:
         return self._port.address
 
     @property
+    def overruns(self) -> int:
+        """Send times the sending thread was descheduled past (it re-anchored)."""
+        return 0 if self._sender is None else self._sender.overruns
+
+    @property
+    def loss_in(self) -> float:
+        """Probability that an answer is lost (may be changed while running)."""
+        return self._answers.loss_in
+
+    @loss_in.setter
+    def loss_in(self, p: float) -> None:
+        self._answers.loss_in = float(p)
+
+    @property
     def session_state(self) -> SessionState:
         with self._lock:
-            return self._state
+            return self._session.state
 
     @property
     def quality(self) -> ConnectionQuality:
         with self._lock:
-            return self._quality()
+            return self._windows.quality()
 
     def actual_position(self) -> np.ndarray:
         """The servo's actual joint positions, shape (7,), radians."""
@@ -306,12 +298,15 @@ class FakeSunrise:
 
     def start(self) -> "FakeSunrise":
         """Bind the FRI port on ``controller_host`` (see the class docstring) and start."""
-        if self._thread is not None:
+        if self._sender is not None:
             raise RuntimeError("FakeSunrise already started")
         self._port = FriPort(self.client_address, self.controller_host)
         self._port.claim(self._on_answer)
-        self._thread = threading.Thread(target=self._run, name="fake-sunrise", daemon=True)
-        self._thread.start()
+        self._sender = SendLoop(self._port, period_s=self._wall(self.send_period_ms / 1000.0),
+                                max_runtime_s=self.max_runtime_s, rt_priority=self.rt_priority, cycle=self._tick,
+                                on_answer=self._on_answer, end=self._end, closed=lambda: self._session.idle_to_send == 0,
+                                stats=self.stats)
+        self._sender.start()
         return self
 
     def stop(self, close_session: bool = True) -> None:
@@ -319,20 +314,19 @@ class FakeSunrise:
         session first, so the client reads IDLE (``closing_idle_messages`` of them), then the
         sending stops and the socket closes. ``close_session=False``: the controller just goes
         quiet (power cut, cable pulled)."""
-        if self._thread is not None and self._thread.is_alive() and close_session:
+        if self._sender is not None and self._sender.alive() and close_session:
+            session = self._session
             with self._lock:
-                self._ended = True
-                if self._state != SessionState.IDLE:
-                    self._close("robot application ended")
+                session.ended = True
+                session.close("robot application ended")
                 if not self._sending:  # stop_sending(): a quiet controller says nothing more
-                    self._idle_to_send = 0
-                pending = self._idle_to_send
+                    session.idle_to_send = 0
+                pending = session.idle_to_send
             wall = self._wall(self.send_period_ms / 1000.0) * (pending + 2) + 1.0
-            with self._state_changed:
-                self._state_changed.wait_for(lambda: self._idle_to_send == 0, wall)
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+            with session.changed:
+                session.changed.wait_for(lambda: session.idle_to_send == 0, wall)
+        if self._sender is not None:
+            self._sender.stop()
         if self._port is not None:
             self._port.close()
 
@@ -344,44 +338,38 @@ class FakeSunrise:
 
     def wait_state(self, state: SessionState, timeout: float) -> None:
         """Block until the session is in ``state``; TimeoutError after ``timeout`` wall s."""
-        with self._state_changed:
-            if not self._state_changed.wait_for(lambda: self._state == state, timeout):
+        session = self._session
+        with session.changed:
+            if not session.changed.wait_for(lambda: session.state == state, timeout):
                 raise TimeoutError(
-                    f"fake Sunrise: session is {self._state.name}, not {state.name}, after {timeout} s"
+                    f"fake Sunrise: session is {session.state.name}, not {state.name}, after {timeout} s"
                 )
 
     def open_session(self) -> None:
         """The robot application opens its FRI session: IDLE → MONITORING_WAIT."""
         with self._lock:
-            if self._state == SessionState.IDLE:
-                self._idle_to_send = 0
-                self._set_state(SessionState.MONITORING_WAIT, "session opened")
+            self._session.open()
 
     def close_session(self) -> None:
         """The robot application closes its FRI session: ``closing_idle_messages`` IDLE
         messages, then silence until the session opens again (``open_session``)."""
         with self._lock:
-            self._close("session closed")
-
-    def _close(self, why: str) -> None:
-        if self._state != SessionState.IDLE:
-            self._set_state(SessionState.IDLE, why)
-            self._idle_to_send = self.closing_idle_messages
+            self._session.close("session closed")
 
     def start_commanding(self) -> None:
         """The robot application starts a motion with a joint-position FRI overlay."""
         with self._lock:
-            if self._state != SessionState.MONITORING_READY:
+            if self._session.state != SessionState.MONITORING_READY:
                 raise RuntimeError(
-                    f"start_commanding needs MONITORING_READY, the session is {self._state.name}"
+                    f"start_commanding needs MONITORING_READY, the session is {self._session.state.name}"
                 )
-            self._set_state(SessionState.COMMANDING_WAIT, "application started an FRI motion")
+            self._session.set_state(SessionState.COMMANDING_WAIT, "application started an FRI motion")
 
     def stop_commanding(self) -> None:
         """The robot application ends its FRI motion."""
         with self._lock:
-            if self._state in (SessionState.COMMANDING_WAIT, SessionState.COMMANDING_ACTIVE):
-                self._set_state(SessionState.MONITORING_READY, "application ended the FRI motion")
+            if self._session.commanding():
+                self._session.set_state(SessionState.MONITORING_READY, "application ended the FRI motion")
 
     # fault hooks ------------------------------------------------------
 
@@ -404,11 +392,7 @@ class FakeSunrise:
         ``idle_cycles`` cycles, then the application opens the session again (``auto_open``)
         with the counters back at zero."""
         with self._lock:
-            self._seq = 0
-            self._client_seq = 0
-            self._windows.forget()
-            self._set_state(SessionState.IDLE, "controller restart")
-            self._idle_to_send = 0
+            self._session.restart()
 
     def stop_sending(self) -> None:
         with self._lock:
@@ -423,11 +407,11 @@ class FakeSunrise:
         brakes hold) or ``session_drop`` (the session falls back to MONITORING_WAIT)."""
         with self._lock:
             if kind == "drives_off":
-                self._drives = DriveState.OFF
+                self._session.drives = DriveState.OFF
             elif kind == "safety_stop":
-                self._safety = SafetyState.SAFETY_STOP_LEVEL_1
+                self._session.safety = SafetyState.SAFETY_STOP_LEVEL_1
             elif kind == "session_drop":
-                self._drop_session("injected session drop")
+                self._session.drop("injected session drop")
             else:
                 raise ValueError(f"kind must be drives_off, safety_stop or session_drop, got {kind!r}")
             self._servo.halt()
@@ -449,193 +433,43 @@ class FakeSunrise:
 
     def clear_fault(self) -> None:
         with self._lock:
-            self._drives = DriveState.ACTIVE
-            self._safety = SafetyState.NORMAL_OPERATION
+            self._session.drives = DriveState.ACTIVE
+            self._session.safety = SafetyState.NORMAL_OPERATION
             self._servo.hold_here()
 
     # ------------------------------------------------------------------ internals (lock held)
 
-    def _set_state(self, new: SessionState, why: str) -> None:
-        if new != self._state:
-            log.info("fake Sunrise: %s -> %s (%s)", self._state.name, new.name, why)
-            self._state = new
-            self._cycles_in_state = 0
-            self._windows.consecutive_good = 0
-            if new == SessionState.COMMANDING_WAIT:
-                self._ipo = self._servo.setpoint.copy()  # the overlay motion holds where the robot is
-            if new == SessionState.COMMANDING_ACTIVE:
-                self._first_active_command = True
-                self._windows.since_applied = 1
-            if new == SessionState.IDLE:
-                self._servo.hold_here()
-                self._idle_first_seq = self._seq
-            self._state_changed.notify_all()
-
-    def _drop_session(self, why: str) -> None:
-        if self._state != SessionState.IDLE:
-            self.stats.session_drops += 1
-            self._set_state(SessionState.MONITORING_WAIT, why)
-
-    def _violation(self, text: str) -> None:
-        log.warning("fake Sunrise: %s", text)
-        self.stats.violations.append(text)
-        if self.abort_on_violation and self._state in (
-            SessionState.COMMANDING_WAIT,
-            SessionState.COMMANDING_ACTIVE,
-        ):
-            self._set_state(SessionState.MONITORING_READY, f"motion aborted: {text}")
-
-    def _quality(self) -> ConnectionQuality:
-        return self._windows.quality()
-
-    def _receive_period_s(self) -> float:
-        return self.send_period_ms * self.receive_multiplier / 1000.0
-
-    def _handle_answer(self, data: bytes) -> None:
-        if self._rng.random() < self.loss_in:
-            return
-        try:
-            body, framed = unframe(data)
-            if framed != (self.fri_version == "2.7"):
-                raise ProtocolError(
-                    "a 2.7-framed answer to an FRI {0} controller, which sends and reads bare messages".format(
-                        self.fri_version) if framed else
-                    "a bare answer to an FRI 2.7 controller: SDK 2.7 frames every datagram (length, message, CRC-32)")
-            msg = decode_command(body)
-        except ProtocolError as exc:
-            self.stats.malformed_answers += 1
-            log.warning("fake Sunrise: malformed answer (%d bytes): %s", len(data), exc)
-            return
-        self.stats.answers += 1
-        r = msg.header.reflected_sequence_counter
-        if self._state == SessionState.IDLE:
-            if self._idle_first_seq <= r < self._seq:
-                self.stats.answers_in_idle += 1
-                self.stats.violations.append("client answered while the session is IDLE")
-            else:  # in flight when the session went IDLE (or the controller restarted)
-                self.stats.late_answers += 1
-            return
-        last_sent = self._seq - 1
-        if r > last_sent:
-            self.stats.bad_reflections += 1
-            log.warning("fake Sunrise: answer reflects %d, never sent (last %d)", r, last_sent)
-            return
-        if r < self._windows.first_seq:
-            self.stats.late_answers += 1
-            return
-        if self._windows.answered:
-            return  # a second answer in one window: nothing more to apply
-        self._windows.answered = True
-        self._client_seq = msg.header.sequence_counter
-        jp = None if msg.command_data is None else msg.command_data.joint_position
-        if self._state == SessionState.COMMANDING_WAIT:
-            if jp is None or len(jp) != N_JOINTS:
-                self.stats.violations.append("COMMANDING_WAIT answer without 7 joint positions")
-                self._windows.consecutive_good = -1
-            elif np.max(np.abs(np.asarray(jp) - self._ipo)) > self.echo_tolerance_rad:
-                self.stats.violations.append("COMMANDING_WAIT answer does not echo the ipo position")
-                self._windows.consecutive_good = -1
-        elif self._state == SessionState.COMMANDING_ACTIVE:
-            self._apply_command(jp)
-
-    def _apply_command(self, jp) -> None:
-        if jp is None or len(jp) != N_JOINTS:
-            self._violation(
-                f"command without {N_JOINTS} joint positions ({'none' if jp is None else len(jp)})"
-            )
-            return
-        if self._drives != DriveState.ACTIVE or self._safety != SafetyState.NORMAL_OPERATION:
-            return  # brakes hold; the set-point is not taken
-        cmd = np.asarray(jp, dtype=float)
-        if self._first_active_command and np.all(np.isfinite(cmd)):
-            self._first_active_command = False
-            # The overlay starts at zero: the first set-point is the interpolator's position.
-            # Not the measured one: a hand on the arm, or a servo still following it, is not the
-            # client's to command away (it would be a jump when the hand lets go).
-            jump = np.max(np.abs(cmd - self._ipo))
-            if jump > self.start_tolerance_rad:
-                self._violation(
-                    f"first command is {jump:.4g} rad from the interpolator's position "
-                    f"(allowed {self.start_tolerance_rad:.3g})"
-                )
-                return
-        # The client advances one step per answer; a window whose answer was lost or late
-        # leaves the robot a step behind, so the speed is judged over the windows since the
-        # last set-point we took.
-        dt = self._receive_period_s() * self._windows.since_applied
-        why = set_point_violation(cmd, self._servo.setpoint, dt, self.limits, self.speed_tolerance)
-        if why is not None:
-            self._violation(why)
-            return
-        self._servo.setpoint = cmd
-        self._windows.since_applied = 0
-        if self.record_commands:
-            self.stats.commands.append((self._sim_time, cmd.copy()))
-
-    def _powered(self) -> bool:
-        return self._drives == DriveState.ACTIVE and self._safety == SafetyState.NORMAL_OPERATION
-
-    def _close_window(self) -> None:
-        """End of a receive window: score it, walk the state machine."""
-        w = self._windows
-        if self._state == SessionState.IDLE:
-            w.skip()
-            return
-        if w.close():
-            self.stats.missed_windows += 1
-        if w.consecutive_missed >= self.max_missed and self._state != SessionState.MONITORING_WAIT:
-            self._drop_session(f"{w.consecutive_missed} answer windows missed in a row")
-            return
-        good = w.quality() >= ConnectionQuality.GOOD
-        if self._state == SessionState.MONITORING_WAIT and good and w.consecutive_good >= self.ready_after:
-            self._set_state(SessionState.MONITORING_READY, "connection quality good")
-        elif (
-            self._state == SessionState.COMMANDING_WAIT
-            and good
-            and w.consecutive_good >= self.commanding_wait_cycles
-        ):
-            self._set_state(SessionState.COMMANDING_ACTIVE, "client echoes the ipo position")
-
     def _build(self) -> bytes:
         servo = self._servo
         noise = self._rng.normal(0.0, self.noise_rad, N_JOINTS) if self.noise_rad else 0.0
+        session = self._session
         return monitoring_datagram(self.fri_version, ControllerView(
-            seq=self._seq, client_seq=self._client_seq, measured=servo.q + noise,
-            setpoint=servo.setpoint, ipo=self._ipo, state=self._state, quality=self._quality(),
+            seq=session.seq, client_seq=session.client_seq, measured=servo.q + noise,
+            setpoint=servo.setpoint, ipo=session.ipo, state=session.state, quality=self._windows.quality(),
             send_period_ms=self.send_period_ms, receive_multiplier=self.receive_multiplier,
-            safety=self._safety, drives=self._drives, compliant=servo.compliant, inputs=dict(self._inputs)))
+            safety=session.safety, drives=session.drives, compliant=servo.compliant, inputs=dict(self._inputs)))
 
     def _cycle(self) -> Optional[bytes]:
         """One controller cycle (lock held): servo, window scoring, next message bytes."""
+        session = self._session
         dt = self.send_period_ms / 1000.0
-        self._sim_time += dt
-        self._servo.step(dt, self._powered())
+        session.sim_time += dt
+        self._servo.step(dt, session.powered())
         if self.scene is not None:
             self.scene.set_joint_positions(self._servo.q.copy())
         if self._windows.message_due():
-            self._close_window()
-            self._windows.open(self._seq)
-        self._cycles_in_state += 1
-        if (self._state == SessionState.IDLE and self.auto_open and not self._ended and not self._idle_to_send
-                and self._cycles_in_state > self.idle_cycles):
-            self._set_state(SessionState.MONITORING_WAIT, "session opened")
-        if (self.application and self._state == SessionState.MONITORING_READY
-                and self._cycles_in_state > self.application_start_cycles
-                and self._powered()):
-            self._set_state(SessionState.COMMANDING_WAIT, "robot application started its FRI overlay motion")
+            session.close_window()
+            self._windows.open(session.seq)
+        session.tick()
         if not self._sending:
             return None
-        if self._state == SessionState.IDLE:
-            if not self._idle_to_send:
-                return None  # no session: the controller sends nothing
-            self._idle_to_send -= 1
-            if not self._idle_to_send:
-                self._state_changed.notify_all()
+        if session.state == SessionState.IDLE and not session.idle_message_due():
+            return None  # no session: the controller sends nothing
         data = self._build()
         if self._malformed_next:
-            data = malformed_datagram(self._malformed_next.pop(0), data, self.fri_version, self._seq,
-                                      self._client_seq, self._rng)
-        self._seq = (self._seq + 1) & 0xFFFF_FFFF
+            data = malformed_datagram(self._malformed_next.pop(0), data, self.fri_version, session.seq,
+                                      session.client_seq, self._rng)
+        session.next_seq()
         self.stats.sent += 1
         if self._drop_next > 0:
             self._drop_next -= 1
@@ -647,49 +481,19 @@ class FakeSunrise:
     def _wall(self, sim_s: float) -> float:
         return self.clock.wall_duration(sim_s) if self.clock is not None else sim_s
 
-    def _set_realtime(self) -> None:
-        if self.rt_priority <= 0 or not hasattr(os, "sched_setscheduler"):
-            return
-        try:  # pid 0: this thread (Linux)
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
-        except PermissionError as exc:
-            log.info("fake Sunrise: SCHED_FIFO %d not permitted (%s); normal priority", self.rt_priority, exc)
+    def _tick(self) -> tuple[Optional[bytes], float]:
+        """The sending thread's cycle: (message or None, wall seconds of jitter before it)."""
+        with self._lock:
+            data = self._cycle()
+            jitter = self._rng.uniform(0.0, self.jitter_ms / 1000.0) if self.jitter_ms else 0.0
+        return data, (self._wall(jitter) if jitter else 0.0)
 
-    def _run(self) -> None:
-        self._set_realtime()
-        port = self._port
-        assert port is not None
-        period = self._wall(self.send_period_ms / 1000.0)
-        t_end = time.monotonic() + self.max_runtime_s
-        next_t = time.monotonic()
-        ending = False
-        while not self._stop.is_set():
-            port.claim(self._on_answer)
-            if not ending and time.monotonic() >= t_end:
-                ending = True
-                with self._lock:  # the robot application ends: it closes the session first
-                    self._ended = True
-                    self._close(f"robot application ended after max_runtime_s={self.max_runtime_s:g} s")
-            if ending and self._idle_to_send == 0:
-                break
-            port.collect_until(next_t, self._on_answer)
-            with self._lock:
-                data = self._cycle()
-                jitter = self._rng.uniform(0.0, self.jitter_ms / 1000.0) if self.jitter_ms else 0.0
-            if data is not None:
-                if jitter:
-                    time.sleep(self._wall(jitter))
-                port.send(data)
-            next_t += period
-            now = time.monotonic()
-            if next_t < now + 0.5 * period:
-                # We were descheduled past a send time. A real controller never sends two
-                # messages back to back; re-anchor instead of catching up, so the client always
-                # has a whole period to answer the message just sent.
-                self.overruns += 1
-                next_t = now + period
-        log.info("fake Sunrise: stopped after %d messages", self.stats.sent)
+    def _end(self, why: str) -> None:
+        """The robot application ends by itself: it closes the session first, never to reopen it."""
+        with self._lock:
+            self._session.ended = True
+            self._session.close(why)
 
     def _on_answer(self, data: bytes) -> None:
         with self._lock:
-            self._handle_answer(data)
+            self._answers.handle(data)

@@ -20,6 +20,10 @@ before the first packet; lateness is measured in that process, from the kernel's
 to the answer's send. If this process dies, the exchange process stops a running motion within
 the limits, holds, sends the Stop flag and exits.
 
+The commander holds the options and the ``JointCommander`` calls; ``drivers/kuka_rsi/link.py``
+(``RsiLink``) holds the exchange process and what it reports, ``drivers/kuka_rsi/motion.py``
+(``plan_move``) the checks against the verified state and the correction table of a move.
+
 Faults end the motion with a clear error: no packet for ``timeout_cycles`` cycles
 (``DeviceTimeoutError``), the controller's ``Delay`` growing by more than ``delay_limit`` within
 ``delay_window`` cycles or the RSI session restarting mid-motion (``DeviceFaultError``).
@@ -27,35 +31,22 @@ Faults end the motion with a clear error: no packet for ``timeout_cycles`` cycle
 
 from __future__ import annotations
 
-import itertools
 import math
-import socket
-import threading
 import time
 from urllib.parse import parse_qsl, urlsplit
 
 import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, CommanderBase, check_timeout
-from drivers.errors import ConnectionLostError, DeviceTimeoutError, DriverError, LimitError
-from drivers.exchange import ExchangeProcess, ring_in_order
-from drivers.kuka_rsi import realtime
+from drivers.errors import DeviceTimeoutError, DriverError, LimitError
+from drivers.kuka_rsi.link import RsiLink
+from drivers.kuka_rsi.motion import plan_move
 from drivers.protocols import JointLimits, JointState, LinkStats
-from drivers.trajectory import JointTrajectory, default_jerk, scaled_limits
+from drivers.trajectory import default_jerk
 
 __all__ = ["RsiCommander", "LinkStats"]
 
 DEFAULT_PORT = 49152
-
-
-class _Waiter:
-    """The main process's side of one motion: set when the exchange process reports it done."""
-
-    __slots__ = ("done", "error")
-
-    def __init__(self) -> None:
-        self.done = threading.Event()
-        self.error: DriverError | None = None
 
 
 class RsiCommander(CommanderBase):
@@ -121,18 +112,7 @@ class RsiCommander(CommanderBase):
             raise ValueError(f"stats_window must be an integer >= 2, got {stats_window!r}")
         self._W = stats_window
         self.orphan_hold_s = float(orphan_hold_s)
-        self._sock: socket.socket | None = None  # bound here, owned by the exchange process once started
-        self._address: tuple[str, int] | None = None
-        self._exchange: ExchangeProcess | None = None
-        self._first = threading.Event()
-        self._stop_sent = threading.Event()
-        self._axis_error: str | None = None
-        self._fault: DriverError | None = None
-        self._waiters: dict[int, _Waiter] = {}
-        self._ids = itertools.count(1)
-        self._active: int | None = None  # id of the motion handed over and not reported done
-        self._lock = threading.Lock()
-        self._final_stats: LinkStats | None = None  # the figures of the last exchange, after close
+        self._link = RsiLink(name, self.log, n_axes=n, window=stats_window, rt_priority=self.rt_priority)
 
     # -- construction from a URL --------------------------------------------------------------
 
@@ -182,71 +162,30 @@ class RsiCommander(CommanderBase):
     @property
     def exchange_pid(self) -> int | None:
         """Process id of the exchange process (None before ``bind``): for ``chrt -p``, ``top``."""
-        return None if self._exchange is None else self._exchange.pid
+        return None if self._link.exchange is None else self._link.exchange.pid
+
+    @property
+    def _exchange(self):
+        """The running ``ExchangeProcess`` (None before ``bind``), for its ``startup`` figures."""
+        return self._link.exchange
 
     def bind(self) -> tuple[str, int]:
         """Open the UDP socket and start the exchange process answering on it (``connect`` does
         it too); returns the bound address, so a controller (or fake) can be pointed at it
         before ``connect`` waits. Blocks until the exchange process is ready (under a second on
         an idle machine)."""
-        if self._exchange is None:
-            sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            try:
-                sock.bind((self.host, self.port))
-            except OSError as exc:
-                sock.close()
-                raise ConnectionLostError(f"{self.name}: cannot listen on {self.host}:{self.port}: {exc}") from exc
-            self._address = sock.getsockname()
-            self._first.clear()
-            self._axis_error = None
-            self._final_stats = None
-            lim = self.limits
-            options = dict(
-                n_axes=lim.n_axes, dt=self.dt, timeout_cycles=self.timeout_cycles, delay_limit=self.delay_limit,
-                delay_window=self.delay_window, sen_type=self.sen_type,
-                lower_rad=np.asarray(lim.lower_rad, float), upper_rad=np.asarray(lim.upper_rad, float),
-                max_velocity_rad_s=np.asarray(lim.max_velocity_rad_s, float),
-                max_acceleration_rad_s2=np.asarray(lim.max_acceleration_rad_s2, float),
-                max_jerk_rad_s3=self.max_jerk_rad_s3, window=self._W, orphan_hold_s=self.orphan_hold_s,
-            )
-            ex = ExchangeProcess(self.name, realtime.layout(lim.n_axes, self._W), realtime.RsiLoop, options,
-                                 self._on_event, rt_priority=self.rt_priority, log=self.log)
-            self._exchange = ex
-            try:
-                ex.start(sock)
-            except RuntimeError as exc:
-                self._exchange = None
-                raise ConnectionLostError(str(exc)) from exc
-        return self._address
-
-    def _on_event(self, event: tuple) -> None:
-        """Reader thread: one event from the exchange process (see ``realtime``)."""
-        kind = event[0]
-        if kind == "first":
-            self._first.set()
-        elif kind == "axis_error":
-            self._axis_error = event[1]
-            self._first.set()
-        elif kind == "done":
-            with self._lock:
-                w = self._waiters.pop(event[1], None)
-                if self._active == event[1]:
-                    self._active = None
-            if w is not None:
-                w.error = event[2]
-                w.done.set()
-        elif kind == "fault":
-            self._fault = event[1]
-        elif kind == "stop_sent":
-            self._stop_sent.set()
-        elif kind == "crashed":
-            err = ConnectionLostError(f"{self.name}: the RSI exchange process failed: {event[1]}")
-            self._fault = err
-            with self._lock:
-                waiters, self._waiters, self._active = list(self._waiters.values()), {}, None
-            for w in waiters:
-                w.error = err
-                w.done.set()
+        if self._link.exchange is not None:
+            return self._link.address
+        lim = self.limits
+        options = dict(
+            n_axes=lim.n_axes, dt=self.dt, timeout_cycles=self.timeout_cycles, delay_limit=self.delay_limit,
+            delay_window=self.delay_window, sen_type=self.sen_type,
+            lower_rad=np.asarray(lim.lower_rad, float), upper_rad=np.asarray(lim.upper_rad, float),
+            max_velocity_rad_s=np.asarray(lim.max_velocity_rad_s, float),
+            max_acceleration_rad_s2=np.asarray(lim.max_acceleration_rad_s2, float),
+            max_jerk_rad_s3=self.max_jerk_rad_s3, window=self._W, orphan_hold_s=self.orphan_hold_s,
+        )
+        return self._link.start(self.host, self.port, options)
 
     def connect(self) -> None:
         """Listen, start the exchange process and wait for the controller's first packet.
@@ -255,72 +194,48 @@ class RsiCommander(CommanderBase):
         when the controller's axis count differs from the robot model's.
         """
         host, port = self.bind()
-        if not self._first.wait(self.connect_timeout):
+        if not self._link.first.wait(self.connect_timeout):
             self.close()
             raise DeviceTimeoutError(
                 f"{self.name}: no RSI packet within {self.connect_timeout:.3g} s on {host}:{port}; "
                 "is the RSI program running and configured to send to this PC and port?"
             )
-        if self._axis_error is not None:
-            msg = self._axis_error
+        if self._link.axis_error is not None:
+            msg = self._link.axis_error
             self.close()
             raise LimitError(msg)
-        snap = self._snapshot()
+        snap = self._link.snapshot()
         self.log.info(
             "%s: RSI link up from the controller: %d axes, session reference %s deg; exchange process %s: %s",
             self.name,
             self.limits.n_axes,
             None if snap is None else np.round(snap["ref"], 3).tolist(),
-            self._exchange.pid,
-            self._exchange.realtime,
+            self._link.exchange.pid,
+            self._link.exchange.realtime,
         )
 
     def close(self) -> None:
         """Stop any motion (within limits), then end the exchange process (it closes the socket)."""
-        if self._exchange is None:
+        if self._link.exchange is None:
             return
-        if self._busy() and self._fresh():
+        if self._link.busy() and self._link.fresh(self.max_state_age_s):
             try:
-                self._stop_motion(timeout=2.0)
+                self._link.stop_motion(timeout=2.0)
             except DriverError as exc:
                 self.log.warning("%s: stopping on close failed: %s", self.name, exc)
-        self._final_stats = self.link_stats()
-        self._exchange.close()
-        self._exchange = None
+        self._link.close()
 
     # -- state --------------------------------------------------------------------------------
 
-    def _snapshot(self, *extra: str) -> dict | None:
-        """The latest packet's state from the exchange process (None before the first)."""
-        ex = self._exchange
-        state = None if ex is None else ex.state
-        if state is None:
-            return None
-        try:
-            st = state.read(realtime.SCALARS + ("actual", "cmd", "ref") + extra)
-        except ConnectionError:  # closed meanwhile by another thread
-            return None
-        if not st["has_state"][0]:
-            return None
-        return st
-
-    def _busy(self) -> bool:
-        snap = self._snapshot()
-        return self._active is not None or (snap is not None and bool(snap["busy"][0]))
-
-    def _fresh(self) -> bool:
-        snap = self._snapshot()
-        return snap is not None and time.monotonic() - snap["t_rx"][0] <= self.max_state_age_s
-
     def joint_state(self) -> JointState:
         """Latest measured axes (AIPos then EIPos), radians. DeviceTimeoutError when stale."""
-        snap = self._snapshot()
+        snap = self._link.snapshot()
         if snap is None:
             raise DeviceTimeoutError(f"{self.name}: no packet from the controller yet (call connect())")
         host_time = float(snap["t_rx"][0])
         age = time.monotonic() - host_time
         if age > self.max_state_age_s:
-            fault = f" ({self._fault})" if self._fault is not None else ""
+            fault = f" ({self._link.fault})" if self._link.fault is not None else ""
             raise DeviceTimeoutError(
                 f"{self.name}: last controller packet is {age * 1e3:.0f} ms old "
                 f"(allowed {self.max_state_age_s * 1e3:.0f} ms){fault}"
@@ -335,43 +250,7 @@ class RsiCommander(CommanderBase):
     def link_stats(self) -> LinkStats:
         """Timing of the last cycles, as measured by the exchange process (see ``LinkStats``).
         Costs O(window); not for a tight loop."""
-        ex = self._exchange
-        if ex is None and self._final_stats is not None:
-            return self._final_stats
-        try:
-            snap = None if ex is None or ex.state is None else ex.state.read(realtime.SCALARS + ("lat", "rx"))
-        except ConnectionError:  # closed meanwhile by another thread
-            snap = None
-            if self._final_stats is not None:
-                return self._final_stats
-        if snap is None:
-            count, lat, rx = 0, np.zeros(0), np.zeros(0)
-            snap = dict.fromkeys(realtime.SCALARS, np.zeros(1))
-        else:
-            count = int(snap["count"][0])
-            lat, rx = ring_in_order(snap["lat"], count), ring_in_order(snap["rx"], count)
-        n = lat.shape[0]
-        per = np.diff(rx) if n > 1 else np.zeros(1)
-        q = np.percentile(lat, [50, 99]) if n else np.zeros(2)
-        delay = int(snap["delay"][0]) if snap["has_delay"][0] else None
-        return LinkStats(
-            packets=count,
-            window=n,
-            period_mean_s=float(per.mean()),
-            period_std_s=float(per.std()),
-            period_max_s=float(per.max()),
-            latency_p50_s=float(q[0]),
-            latency_p99_s=float(q[1]),
-            latency_max_s=float(lat.max()) if n else 0.0,
-            late_answers=int(snap["late"][0]),
-            gaps=int(snap["gaps"][0]),
-            malformed=int(snap["malformed"][0]),
-            restarts=int(snap["restarts"][0]),
-            guard_clamps=int(snap["clamps"][0]),
-            delay=delay,
-            realtime=ex is not None and ex.realtime.startswith("SCHED_FIFO"),
-            notes=(f"controller Delay {delay}", f"exchange process: {ex.realtime if ex else 'not running'}"),
-        )
+        return self._link.link_stats()
 
     def latencies(self) -> np.ndarray:
         """Answer latencies (s) of the last cycles, oldest first, shape (min(packets, window),),
@@ -383,113 +262,40 @@ class RsiCommander(CommanderBase):
         min(packets, stats_window) of them, oldest first, each shape (m,), the kernel's arrival
         stamp (wall-clock s, ``time.time`` scale) and the answer latency (s) — to place late
         answers in time (benches poll it to keep more than the ring holds)."""
-        ex = self._exchange
-        try:
-            snap = None if ex is None or ex.state is None else ex.state.read(("count", "lat", "rx"))
-        except ConnectionError:  # closed meanwhile by another thread
-            snap = None
-        if snap is None:
-            return 0, np.zeros(0), np.zeros(0)
-        count = int(snap["count"][0])
-        return count, ring_in_order(snap["rx"], count), ring_in_order(snap["lat"], count)
+        return self._link.answer_log()
 
     # -- motion -------------------------------------------------------------------------------
 
-    def _raise_fault(self) -> None:
-        fault, self._fault = self._fault, None
-        if fault is not None:
-            raise fault
-
     def _move_internal(self, start: JointState, target_rad: np.ndarray, speed: float, timeout: float) -> None:
-        self._raise_fault()
-        snap = self._snapshot()
-        if snap is None:
-            raise DeviceTimeoutError(f"{self.name}: no packet from the controller yet (call connect())")
-        if snap["session_ended"][0]:
-            raise LimitError(f"{self.name}: the RSI session was ended with the Stop flag; restart the RSI program")
-        if self._busy():
-            raise LimitError(f"{self.name}: a motion is already running")
-        ref = snap["ref"]
-        commanded = np.radians(ref + snap["cmd"])
-        deviation = np.abs(start.position_rad - commanded)
-        if np.max(deviation) > self.max_deviation_rad:
-            i = int(np.argmax(deviation))
-            raise LimitError(
-                f"{self.name}: measured and commanded positions disagree by {math.degrees(deviation[i]):.3f}° "
-                f"on axis {i + 1} (allowed {math.degrees(self.max_deviation_rad):.3f}°); wait until settled"
-            )
-        v, a, j = scaled_limits(
-            self.limits.max_velocity_rad_s, self.limits.max_acceleration_rad_s2, speed, self.max_jerk_rad_s3
-        )
-        traj = JointTrajectory.plan(commanded, target_rad, v, a, j)
-        m = max(1, math.ceil(traj.duration / self.dt - 1e-9))
-        wall = m * self.dt
-        if wall + 10 * self.dt > timeout:
-            raise LimitError(
-                f"{self.name}: the move takes {wall:.3f} s at speed {speed}, longer than the timeout {timeout:.3f} s"
-            )
-        pos, _, _ = traj.sample(self.dt * np.arange(1, m + 1))
-        pos[-1] = target_rad
-        rows = np.degrees(pos) - ref
+        self._link.raise_fault()
+        snap = self._link.snapshot()
+        move = plan_move(snap, snap is not None and self._link.busy(), start.position_rad, target_rad, speed,
+                         limits=self.limits, max_jerk_rad_s3=self.max_jerk_rad_s3,
+                         max_deviation_rad=self.max_deviation_rad, dt=self.dt, timeout=timeout, name=self.name)
         self.log.info(
             "%s: moving to %s deg in %.3f s (%d cycles, speed %.2f)",
             self.name,
             np.round(np.degrees(target_rad), 3).tolist(),
-            traj.duration,
-            m,
+            move.trajectory.duration,
+            move.cycles,
             speed,
         )
-        motion_id = next(self._ids)
-        waiter = _Waiter()
-        with self._lock:
-            self._waiters[motion_id] = waiter
-            self._active = motion_id
-        try:
-            self._exchange.request("move", motion_id, rows, traj, int(snap["session"][0]))
-        except ConnectionError as exc:
-            with self._lock:
-                self._waiters.pop(motion_id, None)
-                self._active = None
-            raise ConnectionLostError(str(exc)) from exc
+        waiter = self._link.hand_over(move.rows, move.trajectory, move.session)
         if not waiter.done.wait(timeout):
-            self._request("stop")
+            self._link.request("stop")
             waiter.done.wait(2.0)
             raise DeviceTimeoutError(f"{self.name}: move not completed within {timeout:.3g} s; stopped")
         if waiter.error is not None:
-            if self._fault is waiter.error:
-                self._fault = None  # reported here, once
+            self._link.reported(waiter.error)  # reported here, once
             raise waiter.error
-
-    def _request(self, *msg) -> None:
-        try:
-            self._exchange.request(*msg)
-        except (ConnectionError, AttributeError) as exc:
-            raise ConnectionLostError(f"{self.name}: the RSI exchange process is not running ({exc})") from exc
 
     def stop(self, *, end_session: bool = True, timeout: float = 5.0) -> None:
         """Decelerate within limits (a jerk-limited stop planned from the current velocity and
         acceleration), then send the Stop flag (``end_session``) so the RSI program ends."""
-        if self._exchange is None:
+        if self._link.exchange is None:
             return
-        self._stop_motion(timeout)
+        self._link.stop_motion(timeout)
         if end_session:
-            self._stop_sent.clear()
             self.log.info("%s: robot at rest; sending the Stop flag", self.name)
-            self._request("end_session")
-            if not self._stop_sent.wait(max(min(timeout, 20 * self.dt), 0.5)):
+            if not self._link.end_session(max(min(timeout, 20 * self.dt), 0.5)):
                 self.log.warning("%s: no controller packet to carry the Stop flag", self.name)
-
-    def _stop_motion(self, timeout: float) -> None:
-        """Ask the exchange process to stop the current motion and wait until it is at rest."""
-        with self._lock:
-            active = self._active
-            waiter = None if active is None else self._waiters.get(active)
-        self._request("stop")
-        deadline = time.monotonic() + timeout
-        if waiter is not None:
-            waiter.done.wait(timeout)
-        # an aborted motion reports done at once and then stops: wait for the stop's end too
-        while self._busy() and time.monotonic() < deadline:
-            time.sleep(0.01)
-        if self._busy():
-            raise DeviceTimeoutError(f"{self.name}: stop not completed within {timeout:.3g} s (no packets?)")

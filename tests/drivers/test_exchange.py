@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from drivers import exchange
-from drivers.exchange import SharedState, ring_in_order
+from drivers.exchange import SharedState, answer_log, read_state, ring_in_order, ring_timing
 
 
 class RecordingLink:
@@ -134,6 +134,25 @@ def test_ring_in_order_returns_the_last_entries_oldest_first():
     np.testing.assert_array_equal(ring_in_order(ring, 6), [2, 3, 4, 5])
     np.testing.assert_array_equal(ring_in_order(ring, 3), [4, 5, 2])  # not yet wrapped: first 3 slots
     assert ring_in_order(ring, 0).shape == (0,)
+
+
+def test_ring_timing_gives_the_period_and_latency_figures_of_the_cycles_kept():
+    rx, lat = np.zeros(4), np.zeros(4)
+    for k in range(6):  # arrivals every 4 ms, latencies 0.1 .. 0.6 ms: the ring keeps the last 4
+        rx[k % 4], lat[k % 4] = 0.004 * k, 1e-4 * (k + 1)
+    t = ring_timing(6, rx, lat)
+    assert (t["packets"], t["window"]) == (6, 4)
+    assert t["period_mean_s"] == pytest.approx(0.004) and t["period_max_s"] == pytest.approx(0.004)
+    assert t["period_std_s"] == pytest.approx(0.0, abs=1e-12)
+    assert t["latency_p50_s"] == pytest.approx(4.5e-4) and t["latency_max_s"] == pytest.approx(6e-4)
+    empty = ring_timing(0, np.zeros(4), np.zeros(4))
+    assert (empty["window"], empty["latency_max_s"], empty["period_mean_s"]) == (0, 0.0, 0.0)
+
+
+def test_no_exchange_reads_as_no_state_and_an_empty_answer_log():
+    assert read_state(None, ("count",)) is None
+    count, arrived, latency = answer_log(None)
+    assert count == 0 and arrived.shape == latency.shape == (0,)
 
 
 def test_the_exchange_process_does_not_trace_allocations_a_traced_parent_asked_for():
