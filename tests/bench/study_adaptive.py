@@ -55,7 +55,7 @@ SENSOR = np.array([2000.0, 100.0, -300.0])
 
 
 def plan_file(folder: Path, poses: int, within: float | None, interval: float | None, held_out: float | None,
-              seed: int = 1, marker: str = "sir", noise_mm: float = 0.03) -> Path:
+              seed: int = 1, marker: str = "sir", noise_mm: float = 0.03, extra: int = 0) -> Path:
     doc = yaml.safe_load((ROOT / "fixtures/plans/example.yaml").read_text())
     doc["sensors"][0]["markers"] = {marker: f"ms:tool:{marker}"}
     doc["sensors"][0]["noise_mm"] = noise_mm
@@ -67,6 +67,8 @@ def plan_file(folder: Path, poses: int, within: float | None, interval: float | 
     stop = {k: v for k, v in (("workspace_within_pct", within), ("interval_deg", interval),
                               ("held_out_within_pct", held_out)) if v is not None}
     doc["adaptive"] = {"stop_when": stop}
+    if extra:  # a generated pool beyond the plan: the plan's generator, seed + 1 (never the held-out's 77)
+        doc["adaptive"]["candidates"] = {"extra_poses": extra}
     path = folder / f"plan{seed}.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
@@ -124,8 +126,9 @@ def score(lp, cell, q, xyz, ids, q_val, xyz_val, opts, marker):
     return held, hits, trials
 
 
-def tx60_configs(model, poses: int, seed: int):
-    """Every IK branch of ``poses`` Latin-hypercube poses aimed at a tracker 1.8 m away."""
+def tx60_configs(model, poses: int, seed: int, prefix: str = "p"):
+    """Every IK branch of ``poses`` Latin-hypercube poses aimed at a tracker 1.8 m away (ids
+    ``<prefix>07-b1``; prefix "x" for a generated pool, as ``acquire.plan.resolve_candidate_pool``)."""
     from acquire.plan import PlannedConfig
     from calib.plan.poses import plan_poses
 
@@ -134,7 +137,8 @@ def tx60_configs(model, poses: int, seed: int):
     out = []
     for c in pp.configurations:
         b = within[c.pose] = within.get(c.pose, -1) + 1
-        out.append(PlannedConfig(f"p{c.pose:02d}-b{b}", f"p{c.pose:02d}", c.branch, np.asarray(c.q, dtype=float)))
+        out.append(PlannedConfig(f"{prefix}{c.pose:02d}-b{b}", f"{prefix}{c.pose:02d}", c.branch,
+                                 np.asarray(c.q, dtype=float)))
     return out
 
 
