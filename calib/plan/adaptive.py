@@ -302,7 +302,8 @@ class SequentialDesign:
         rows = self.model.rows[candidates]  # (c, r, L)
         mt = rows @ cov  # (Σ Jᵀ)ᵀ: (c, r, L)
         s = mt @ np.swapaxes(rows, 1, 2) + self.sigma_mm**2 * np.eye(rows.shape[1])  # (c, r, r)
-        w = np.linalg.solve(s, mt)  # S⁻¹ J Σ: (c, r, L)
+        w = np.linalg.inv(s) @ mt  # S⁻¹ J Σ: (c, r, L); S is r × r and well conditioned (σ² I + …), and a
+        # batched inverse then a product is ~3× faster than a batched solve (pools of hundreds of candidates)
         out = {}
         if self.rule.interval_deg is not None:
             k = self.model.offsets
