@@ -14,6 +14,12 @@ configurations) that the summary shows. Nothing here moves the robot: the run's
 
 A resumed run rebuilds the design from the log's samples (``mark``) and continues choosing among
 the configurations no sample has: nothing is measured twice.
+
+A plan's ``adaptive.candidates`` adds generated configurations (``acquire.plan.resolve_candidate_pool``:
+the plan's own pose generator, another seed, the same checks) after the plan's: the design may
+choose them (``admissible_pool`` keeps those inside the open commander's limits less its margin;
+each chosen one is logged with its joint angles), while the workspace the rule's errors average
+over, "the full plan" it compares with, and the full plan's cell time stay the plan's own.
 """
 
 from __future__ import annotations
