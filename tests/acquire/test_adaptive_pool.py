@@ -162,3 +162,42 @@ def test_a_resumed_run_with_a_pool_continues_its_choices_and_repeats_none(pooled
     assert ad2.resumed_n == 5 and not set(then) & set(first)
     assert then == straight[5:9]
     assert any(i.startswith("x") for i in straight[:9])  # generated ones among them, resumed by id
+
+
+@pytest.mark.slow  # ~30 s: two runs of the simulated cell; the logic is tested above without a cell
+@pytest.mark.timeout(300)
+def test_a_pooled_run_on_the_simulated_cell_logs_its_generated_choices_and_resumes(tmp_path):
+    from collections import Counter
+
+    from acquire.recorder import read_run
+    from run_helpers import fake_controller
+
+    lp = load_plan(small_plan(tmp_path, n=10, sequencing={"samples": 5, "settle_window_s": 0.2},
+                              fake={"time_scale": 6.0},
+                              adaptive={**RULE, "candidates": {"extra_poses": 16}}))
+
+    def abort_after_four(status):
+        if status["measured"] >= 4 and status["state"] == "running":
+            rc.abort("test abort")
+
+    rc = fake_controller(lp, on_progress=abort_after_four, fit=False)
+    rc.start()
+    first = rc.wait(150)
+    assert first.state == "aborted", first.reason
+    before = [s["config_id"] for s in read_run(first.log_path).samples]
+    rc2 = fake_controller(lp, resume=first.log_path, fit=False)
+    rc2.start()
+    second = rc2.wait(200)
+    assert second.state == "finished", second.reason
+    run = read_run(first.log_path)
+    counts = Counter(s["config_id"] for s in run.samples)
+    assert max(counts.values()) == 1 and set(before) <= set(counts)
+    pool = {c.config_id: c for c in resolve_candidate_pool(lp)}
+    choices = [e for e in run.events if e["kind"] == "adaptive_choice"]
+    generated = [e for e in choices if e.get("generated")]
+    assert generated and all(e["config_id"] in pool for e in generated)
+    for e in generated:  # the log says where a configuration the plan file does not list was
+        assert np.allclose(e["q_deg"], np.degrees(pool[e["config_id"]].q_rad), atol=1e-5)
+    stop = [e for e in run.events if e["kind"] == "adaptive_stop"][-1]
+    assert stop["stopped"] and stop["measured"] == len(counts)
+    assert stop["generated_measured"] == sum(1 for c in counts if c in pool)
