@@ -360,7 +360,7 @@ class AdaptiveRun:
         return {"stop_when": {"interval_deg": rule.interval_deg, "workspace_within_pct": rule.workspace_within_pct,
                               "held_out_within_pct": rule.held_out_within_pct},
                 "min_configurations": rule.min_configurations, "max_configurations": rule.max_configurations,
-                "candidates": len(o.configs), **o.pool_fields(), "measured_before": self.resumed_n,
+                "candidates": len(o.plan_configs), **o.pool_fields(), "measured_before": self.resumed_n,
                 "determinable": list(o.design.model.offset_names), "noise_mm": o.noise_mm,
                 "predicted_configurations": len(self.predicted) + self.resumed_n,
                 "predicted_seconds": round(o.visited_seconds(self.predicted, self.start_q), 1),
@@ -420,7 +420,7 @@ class AdaptiveRun:
         spent = o.visited_seconds(before + self.visited, self.start_q) + self.compute_s
         return {"stopped": self.final is not None, "reason": st.reason if self.final is not None else
                 "the run ended before the stop rule was evaluated (aborted or failed)",
-                "measured": st.n_measured, "candidates": len(o.configs), **o.pool_fields(),
+                "measured": st.n_measured, "candidates": len(o.plan_configs), **o.pool_fields(),
                 "half_width_deg": {k: round(v, 6) for k, v in st.half_width_deg.items()},
                 "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
                 "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),

@@ -134,6 +134,11 @@ def test_a_run_with_a_pool_stops_with_its_rule_met_against_the_plans_own_full_pl
     assert generated, "the pool gave nothing the design wanted"
     assert all(e["config_id"].startswith("x") and len(e["q_deg"]) == lp.model.n_joints for e in generated)
     assert summ["generated_measured"] == len(generated) and summ["plan_configurations"] == len(configs)
+    assert summ["candidates"] == len(configs) and summ["generated_candidates"] == len(pool)
+    from acquire.commands.run_summary import adaptive_summary_lines
+
+    text = "\n".join(adaptive_summary_lines(summ))
+    assert f"stopped after {len(chosen)} of {len(configs)}" in text and f"{len(generated)} of them generated" in text
     # The rule, recomputed independently: the full plan is the plan's configurations only, and the
     # workspace its errors average over is theirs too.
     sensors = {s.name: list(s.markers) for s in lp.plan.sensors}
