@@ -66,6 +66,9 @@ commented example)::
         held_out_within_pct: 5       # predicted held-out error (model + sensor noise) within this %
       min_configurations: null       # never stop before [null: twice what the fit needs, ≥ 12]
       max_configurations: null       # stop here anyway [null: the plan's size]
+      candidates:                    # optional: generated candidates beyond the plan's (poses.generated only)
+        extra_poses: 300             # further poses of the plan's generator, every feasible IK branch
+        seed: null                   # their seed, not the plan's [null: the plan's seed + 1]
     sequencing:
       speed: 0.3                     # fraction (0, 1] of the model's joint speeds [0.3]
       settle_window_s: 0.5           # robot still and sensor stable this long [0.5]
@@ -425,6 +428,19 @@ class StopWhenSpec(_Strict):
                                               "uncertainty and the sensor's noise) within this many % of the full plan's.")
 
 
+class CandidatePoolSpec(_Strict):
+    """More candidates for the adaptive design than the plan measures: ``extra_poses`` further
+    poses of the plan's own generator (``poses.generated``: its ranges, sensor origin, arm angles,
+    ``min_solutions`` and limit margin; another seed), every feasible IK branch of each — the
+    same region and the same checks as the plan's configurations. The design may choose them;
+    the stop rule's errors and "the full plan" stay the plan's configurations."""
+
+    extra_poses: int = Field(ge=1, le=2000, description="How many further candidate poses to generate (each gives "
+                                                        "every feasible IK branch as a candidate configuration).")
+    seed: int | None = Field(None, ge=0, description="Seed of their Latin hypercube; must differ from the plan's "
+                                                     "[null: the plan's seed + 1].")
+
+
 class AdaptiveSpec(_Strict):
     """Sequential design (``calib.plan.adaptive``): after each configuration the next is chosen among
     the plan's remaining ones by expected gain per second of motion; the run stops when ``stop_when``
@@ -435,6 +451,8 @@ class AdaptiveSpec(_Strict):
                                            "configurations are measured [null: twice what the fit needs, at least 12].")
     max_configurations: int | None = Field(None, ge=1, le=10000, description="Stop at this many even if the rule "
                                            "is not met [null: the plan's size].")
+    candidates: CandidatePoolSpec | None = Field(None, description="A pool of generated configurations beyond the "
+                                                 "plan's for the design to choose from [null: the plan's only].")
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         errors: list[tuple[tuple, str]] = []
@@ -529,6 +547,17 @@ class Plan(_Strict, CrossFieldChecked):
         if self.socket is not None:
             errors.append((("adaptive",), "an adaptive order applies to pose plans (given a socket plan; allowed: "
                                           "leave adaptive out — the operator guides every socket)"))
+        pool = self.adaptive.candidates
+        if pool is not None and self.poses is not None:
+            g = self.poses.generated
+            if g is None:
+                errors.append((("adaptive", "candidates"), f"a candidate pool is generated in the region poses.generated "
+                                                           f"declares (given poses.{self.poses.kind}; allowed: "
+                                                           "poses.generated, or leave candidates out)"))
+            elif pool.seed is not None and pool.seed == g.seed:
+                errors.append((("adaptive", "candidates", "seed"), f"the pool's poses must be other than the plan's "
+                                                                   f"(given {pool.seed}, the seed of poses.generated; "
+                                                                   "allowed: another seed ≥ 0, or null)"))
         return errors
 
     def _socket_errors(self) -> list[tuple[tuple, str]]:
@@ -1251,3 +1280,44 @@ def resolve_plan(lp: LoadedPlan) -> ResolvedPlan:
 def resolve_configurations(lp: LoadedPlan) -> list[PlannedConfig]:
     """The plan's joint configurations (not yet ordered), each with a stable id."""
     return resolve_plan(lp).configs
+
+
+def resolve_candidate_pool(lp: LoadedPlan) -> list[PlannedConfig]:
+    """The adaptive design's generated candidates beyond the plan (``adaptive.candidates``; [] without
+    one): ``extra_poses`` poses of the plan's own generator with the pool's seed, every feasible IK
+    branch, through the same checks as the plan's configurations (``plan_poses``: FK reproduces the
+    aimed pose, joint limits less the larger of the plan's and the commander's margin,
+    ``min_solutions``; then the commander's margin again). Ids ``x07-b1`` (extra pose 7, its second
+    branch), pose group ``x07``: seeded, so a resumed run finds the same ones. Deterministic."""
+    from calib.plan.poses import PoseRanges, plan_poses
+
+    ad = lp.plan.adaptive
+    pool = ad.candidates if ad is not None else None
+    if pool is None:
+        return []
+    g = lp.plan.poses.generated if lp.plan.poses is not None else None
+    assert g is not None, "load_plan refuses a pool without poses.generated"
+    seed = g.seed + 1 if pool.seed is None else pool.seed
+    ranges = PoseRanges(radius_mm=g.radius_mm, height_mm=g.height_mm,
+                        angle_rad=(math.radians(g.angle_deg[0]), math.radians(g.angle_deg[1])),
+                        roll_rad=(math.radians(g.roll_deg[0]), math.radians(g.roll_deg[1])))
+    margin = lp.commander_margin_rad
+    try:
+        pp = plan_poses(lp.model, g.sensor_origin_mm, n=pool.extra_poses, seed=seed, ranges=ranges,
+                        extra_arm_angles_rad=[math.radians(a) for a in (g.arm_angles_deg or [])],
+                        min_solutions=g.min_solutions, limit_margin_rad=max(math.radians(g.limit_margin_deg), margin))
+    except ValueError as exc:
+        raise lp.error(("adaptive", "candidates"), f"cannot generate these candidates: {exc}") from exc
+    width = max(2, len(str(pool.extra_poses - 1)))
+    out: list[PlannedConfig] = []
+    within: dict[int, int] = {}
+    for c in pp.configurations:
+        b = within[c.pose] = within.get(c.pose, -1) + 1
+        group = f"x{c.pose:0{width}d}"
+        out.append(PlannedConfig(f"{group}-b{b}", group, c.branch, _frozen(c.q)))
+    refused = [c for c in out if not lp.model.within_limits(c.q_rad, margin)]
+    if refused:  # the same safety net as the plan's own configurations (resolve_plan)
+        raise lp.error(("adaptive", "candidates"), f"{len(refused)} generated candidate(s) lie within the commander's "
+                                                   f"{math.degrees(margin):g}° margin of a joint limit (given "
+                                                   f"{refused[0].config_id}; allowed: inside the limits less the margin)")
+    return out

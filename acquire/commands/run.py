@@ -165,8 +165,9 @@ def adaptive_dry_run_lines(lp, configs, limits, speed: float, per_config_s: floa
     the plan's ``noise_mm`` (the earliest it can stop), and at most ``max_configurations`` or the
     whole plan. Raises ConfigError when the stop rule cannot be followed (min_configurations)."""
     from acquire.run.adaptive import AdaptiveOrder, simulate
+    from acquire.run.controller import candidate_pool
 
-    order = AdaptiveOrder(lp, configs, limits, speed, per_config_s)
+    order = AdaptiveOrder(lp, configs, limits, speed, per_config_s, candidate_pool(lp))
     chosen, st = simulate(order, start)
     rule = order.design.rule
     low = order.visited_seconds(chosen, start)
@@ -189,6 +190,10 @@ def adaptive_dry_run_lines(lp, configs, limits, speed: float, per_config_s: floa
              f"estimated cell time range: {low:.0f}–{high:.0f} s ({low / 60:.1f}–{high / 60:.1f} min; the full plan "
              f"{full:.0f} s); more noise than the plan says means more configurations",
              "  first choices: " + " ".join(c.config_id for c in chosen[:12]) + (" …" if len(chosen) > 12 else "")]
+    if len(order.configs) > len(configs):
+        n_gen = sum(1 for c in chosen if c.config_id not in {p.config_id for p in configs})
+        lines.insert(3, f"  candidates: the plan's {len(configs)} and {len(order.configs) - len(configs)} generated "
+                        f"(adaptive.candidates; the full plan is the plan's); {n_gen} generated chosen")
     return lines
 
 

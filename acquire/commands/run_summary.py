@@ -38,6 +38,9 @@ def adaptive_summary_lines(ad: dict, cell_seconds: float | None = None) -> list[
     against the cell time the run measured (``cell_seconds``, the cell's clock) when given and
     the run was not resumed (a segment's clock does not cover the earlier segments)."""
     lines = [f"adaptive: stopped after {ad['measured']} of {ad['candidates']} configurations — {ad['reason']}"]
+    if ad.get("generated_candidates"):  # a pool beyond the plan (adaptive.candidates)
+        lines.append(f"  {ad.get('generated_measured', 0)} of them generated (a pool of {ad['generated_candidates']} "
+                     "beyond the plan's; the full plan compared with is the plan's)")
     hist = ad.get("history") or []
     if hist:
         step = max(1, len(hist) // 8)

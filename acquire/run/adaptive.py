@@ -14,6 +14,12 @@ configurations) that the summary shows. Nothing here moves the robot: the run's
 
 A resumed run rebuilds the design from the log's samples (``mark``) and continues choosing among
 the configurations no sample has: nothing is measured twice.
+
+A plan's ``adaptive.candidates`` adds generated configurations (``acquire.plan.resolve_candidate_pool``:
+the plan's own pose generator, another seed, the same checks) after the plan's: the design may
+choose them (``admissible_pool`` keeps those inside the open commander's limits less its margin;
+each chosen one is logged with its joint angles), while the workspace the rule's errors average
+over, "the full plan" it compares with, and the full plan's cell time stay the plan's own.
 """
 
 from __future__ import annotations
@@ -85,21 +91,27 @@ class AdaptiveOrder:
     """The sequential design over ``configs`` (the plan's PlannedConfigs) for a run.
 
     limits: the commander's ``JointLimits``; speed: the plan's speed override; per_config_s:
-    expected settle + measure seconds per configuration.
+    expected settle + measure seconds per configuration; pool: generated candidates beyond the
+    plan (``acquire.plan.resolve_candidate_pool``), chosen like the plan's but never part of the
+    full plan the rule compares with (``admissible_pool`` keeps those the commander accepts).
     """
 
-    def __init__(self, lp, configs, limits, speed: float, per_config_s: float) -> None:
+    def __init__(self, lp, configs, limits, speed: float, per_config_s: float, pool=()) -> None:
         from calib.fit.design import design_model
 
-        self.lp, self.configs = lp, list(configs)
+        self.plan_configs = list(configs)
+        pool = admissible_pool(pool, limits, lp.commander_margin_rad)
+        self.lp, self.configs = lp, self.plan_configs + pool
         self.index = {c.config_id: i for i, c in enumerate(self.configs)}
         self.limits, self.speed, self.per_config_s = limits, float(speed), float(per_config_s)
         self.noise_mm = max(float(s.noise_mm) for s in lp.plan.sensors)
         self.options = fit_options(lp)
         q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
         sensors = {s.name: list(s.markers) for s in lp.plan.sensors}
-        self.design = SequentialDesign(design_model(lp.model, q, sensors, self.options),
-                                       stop_rule(lp, len(self.configs)), self.noise_mm)
+        n_plan = len(self.plan_configs)
+        self.design = SequentialDesign(design_model(lp.model, q, sensors, self.options,
+                                                    plan_size=n_plan if pool else None),
+                                       stop_rule(lp, n_plan), self.noise_mm)
         self.dropped: set[int] = set()  # skipped or failed: not chosen again in this run
         self.records: list[dict] = []
         self.history: list[dict] = []
@@ -226,10 +238,28 @@ class AdaptiveOrder:
         moves = self.seconds_from(here_q_rad) - self.per_config_s
         choice = design.choose_route(moves, self.between_seconds(), self.per_config_s, exclude=sorted(self.dropped))
         cfg = self.configs[choice.index]
-        fields = {"config_id": cfg.config_id, **choice.to_dict(), "sigma_mm": round(design.sigma_mm, 5)}
+        fields = {"config_id": cfg.config_id, **choice.to_dict(), "sigma_mm": round(design.sigma_mm, 5),
+                  **self.generated_fields(choice.index)}
         if choice.runner_up is not None:
             fields["runner_up"] = self.configs[choice.runner_up].config_id
         return cfg, fields
+
+    def pool_fields(self) -> dict:
+        """How many candidates are the plan's and how many generated (and measured of those); {} without a pool."""
+        n_plan = len(self.plan_configs)
+        if len(self.configs) == n_plan:
+            return {}
+        return {"plan_configurations": n_plan, "generated_candidates": len(self.configs) - n_plan,
+                "generated_measured": sum(1 for i in self.design.measured if i >= n_plan)}
+
+    def generated_fields(self, index: int) -> dict:
+        """A chosen candidate from the generated pool, for the log (it is not in the plan file):
+        ``generated: true``, its pose group, IK branch and joint angles (deg); {} for the plan's own."""
+        if index < len(self.plan_configs):
+            return {}
+        cfg = self.configs[index]
+        return {"generated": True, "pose": cfg.pose, "branch": cfg.branch,
+                "q_deg": [round(float(math.degrees(v)), 6) for v in cfg.q_rad]}
 
     def record_status(self, st: Status) -> dict:
         """One history row (also the ``adaptive_status`` event's fields)."""
@@ -245,7 +275,7 @@ class AdaptiveOrder:
         """Estimated cell time of the whole plan in the run's usual order from ``start_q_rad``."""
         from acquire.sequencer import move_times, order_configurations
 
-        order = order_configurations(self.configs, start_q_rad, self.limits, self.speed)
+        order = order_configurations(self.plan_configs, start_q_rad, self.limits, self.speed)
         return float(move_times(order, start_q_rad, self.limits, self.speed).sum() + len(order) * self.per_config_s)
 
     def visited_seconds(self, visited, start_q_rad: np.ndarray) -> float:
@@ -254,6 +284,24 @@ class AdaptiveOrder:
 
         return float(move_times(list(visited), start_q_rad, self.limits, self.speed).sum()
                      + len(visited) * self.per_config_s)
+
+
+def admissible_pool(pool, limits, margin_rad: float) -> list:
+    """The generated candidates (``PlannedConfig``) a run may choose: those inside the commander's
+    joint limits less its margin (the plan's configurations were checked against the model's
+    limits at load; the pool also against what the open commander reports), ids not repeated."""
+    lo = np.asarray(limits.lower_rad, dtype=float) + margin_rad
+    hi = np.asarray(limits.upper_rad, dtype=float) - margin_rad
+    out, seen = [], set()
+    for c in pool:
+        q = np.asarray(c.q_rad, dtype=float)
+        if q.shape == lo.shape and np.all((q >= lo) & (q <= hi)) and c.config_id not in seen:
+            out.append(c)
+            seen.add(c.config_id)
+    if len(out) < len(pool):
+        log.info("adaptive: %d of %d generated candidates outside the commander's limits less %.3g°; not chosen",
+                 len(pool) - len(out), len(pool), math.degrees(margin_rad))
+    return out
 
 
 def simulate(order: AdaptiveOrder, start_q_rad: np.ndarray, *, to_the_end: bool = False) -> tuple[list, Status]:
@@ -288,9 +336,10 @@ class AdaptiveRun:
     cmd: the open commander (its limits; where the robot stands before each choice).
     """
 
-    def __init__(self, lp, configs, cmd, speed: float, per_config_s: float, resumed, ended, start_q_rad) -> None:
+    def __init__(self, lp, configs, cmd, speed: float, per_config_s: float, resumed, ended, start_q_rad,
+                 pool=()) -> None:
         self.cmd = cmd
-        self.order = AdaptiveOrder(lp, configs, cmd.limits, speed, per_config_s)
+        self.order = AdaptiveOrder(lp, configs, cmd.limits, speed, per_config_s, pool)
         for rec in (resumed.samples if resumed is not None else []):
             self.order.mark(rec["config_id"], rec)
         for cid in ended:
@@ -311,7 +360,7 @@ class AdaptiveRun:
         return {"stop_when": {"interval_deg": rule.interval_deg, "workspace_within_pct": rule.workspace_within_pct,
                               "held_out_within_pct": rule.held_out_within_pct},
                 "min_configurations": rule.min_configurations, "max_configurations": rule.max_configurations,
-                "candidates": len(o.configs), "measured_before": self.resumed_n,
+                "candidates": len(o.plan_configs), **o.pool_fields(), "measured_before": self.resumed_n,
                 "determinable": list(o.design.model.offset_names), "noise_mm": o.noise_mm,
                 "predicted_configurations": len(self.predicted) + self.resumed_n,
                 "predicted_seconds": round(o.visited_seconds(self.predicted, self.start_q), 1),
@@ -371,7 +420,7 @@ class AdaptiveRun:
         spent = o.visited_seconds(before + self.visited, self.start_q) + self.compute_s
         return {"stopped": self.final is not None, "reason": st.reason if self.final is not None else
                 "the run ended before the stop rule was evaluated (aborted or failed)",
-                "measured": st.n_measured, "candidates": len(o.configs),
+                "measured": st.n_measured, "candidates": len(o.plan_configs), **o.pool_fields(),
                 "half_width_deg": {k: round(v, 6) for k, v in st.half_width_deg.items()},
                 "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
                 "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),

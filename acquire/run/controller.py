@@ -229,8 +229,12 @@ class RunController:
 
         lp, s, st, cell = self.lp, self.settings, self.state, self.cell
         configs = self.configs if self.configs is not None else resolve_configurations(lp)
+        pool = candidate_pool(lp)  # an adaptive run's generated candidates beyond the plan ([] without)
         todo, ended, (measured, skipped, failed) = prepare.remaining(
-            configs, self._resumed, plan_text=lp.text, resume_path=self.resume_path, skip_failed=self.skip_failed)
+            configs + pool, self._resumed, plan_text=lp.text, resume_path=self.resume_path,
+            skip_failed=self.skip_failed)
+        plan_ids = {c.config_id for c in configs}
+        todo = [c for c in todo if c.config_id in plan_ids]  # the fixed order: the plan's own
         with st.lock:
             st.total, st.done = len(configs), len(ended)
             st.measured, st.skipped, st.failed = measured, skipped, failed
@@ -245,7 +249,7 @@ class RunController:
         if self.plan.adaptive is not None:  # the order is chosen as the run goes (acquire.run.adaptive)
             from acquire.run.adaptive import AdaptiveRun
 
-            adaptive = AdaptiveRun(lp, configs, cmd, s.speed, per_config, self._resumed, ended, start_q)
+            adaptive = AdaptiveRun(lp, configs, cmd, s.speed, per_config, self._resumed, ended, start_q, pool)
             order = adaptive.predicted
         else:
             order = order_configurations(todo, start_q, cmd.limits, s.speed)
@@ -300,3 +304,13 @@ class RunController:
         self._tap = JointStateTap(cmd, self.pub.runlog, self.bus, self.cell_id, self.lp.model.axis_names,
                                   period_s=0.04, view=view).start()
         return runner
+
+
+def candidate_pool(lp) -> list:
+    """The generated candidates an adaptive plan's design may choose beyond the plan's own
+    (``adaptive.candidates``; ``acquire.plan.resolve_candidate_pool``), [] for any other plan."""
+    if lp.plan.adaptive is None or lp.plan.adaptive.candidates is None:
+        return []
+    from acquire.plan import resolve_candidate_pool
+
+    return resolve_candidate_pool(lp)

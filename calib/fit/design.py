@@ -28,14 +28,21 @@ FLAT_PRIOR = {"offset": 5.0, "translation": 1000.0, "rotation": 30.0, "complianc
 
 
 def design_model(model: RobotModel, q_rad: np.ndarray, sensors: dict[str, list[str]],
-                 options: FitOptions = FitOptions(), *, seed: int = 0) -> DesignModel:
+                 options: FitOptions = FitOptions(), *, seed: int = 0, plan_size: int | None = None) -> DesignModel:
     """The linearised fit over candidates ``q_rad`` (N, n) rad, each measured by every sensor's
     markers (``sensors``: name → marker names on the tool). Rows of a candidate: 3 per (sensor,
     marker), in the sensor's frame (the registration at identity: the information does not
-    depend on where the sensor stands, only on the robot's configurations)."""
+    depend on where the sensor stands, only on the robot's configurations).
+
+    plan_size: the first this many candidates are the plan's configurations, the rest a pool of
+    generated ones (the plan's ``adaptive.candidates``): the workspace (what the stop rule's
+    errors average over) and the full plan stay the plan's [None: every candidate]."""
     chain = Chain(model)
     q = np.asarray(q_rad, dtype=float)
     n_cfg = q.shape[0]
+    n_plan = n_cfg if plan_size is None else int(plan_size)
+    if not 1 <= n_plan <= n_cfg:
+        raise ValueError(f"plan_size must be 1…{n_cfg} (the candidates), given {plan_size}")
     pairs = [(s, m) for s, ms in sorted(sensors.items()) for m in ms]
     if not pairs:
         raise ValueError("the design needs at least one measured marker")
@@ -67,8 +74,8 @@ def design_model(model: RobotModel, q_rad: np.ndarray, sensors: dict[str, list[s
     # Workspace: the calibrated model's marker positions over the plan's configurations as the
     # sensor sees them — with the registration, so that what only moves the model's base frame
     # (a link length along the first axis against the registration's shift) is not counted.
-    workspace = np.einsum("nri,nrj->ij", rows, rows) / (n_cfg * len(pairs))
+    workspace = np.einsum("nri,nrj->ij", rows[:n_plan], rows[:n_plan]) / (n_plan * len(pairs))
     off = np.array(offsets, dtype=int)
     return DesignModel(rows=rows, prior=prior, offsets=off,
                        offset_names=tuple(post.free_names[k] for k in off), workspace=workspace,
-                       names=tuple(post.free_names))
+                       names=tuple(post.free_names), plan_size=None if plan_size is None else n_plan)

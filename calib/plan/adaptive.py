@@ -89,8 +89,10 @@ class DesignModel:
     rows: (N, r, L) Jacobian rows per candidate, mm per parameter unit.
     prior: (L, L) prior precision, 1 / unit².
     offsets: (K,) indices into L of the determinable offsets (rad); offset_names: their names.
-    workspace: (L, L) A, mm² per unit².
+    workspace: (L, L) A, mm² per unit² (over the plan's configurations).
     names: (L,) parameter names.
+    plan_size: the first this many candidates are the plan's configurations — "the full plan"
+    the rule compares with — and the rest a generated pool (None: every candidate is the plan's).
     """
 
     rows: np.ndarray
@@ -99,10 +101,16 @@ class DesignModel:
     offset_names: tuple[str, ...]
     workspace: np.ndarray
     names: tuple[str, ...] = ()
+    plan_size: int | None = None
 
     @property
     def n_candidates(self) -> int:
         return int(self.rows.shape[0])
+
+    @property
+    def n_plan(self) -> int:
+        """How many of the candidates are the plan's own configurations (the first ones)."""
+        return self.n_candidates if self.plan_size is None else int(self.plan_size)
 
 
 @dataclass(frozen=True)
@@ -185,7 +193,7 @@ class SequentialDesign:
             raise ValueError(f"sigma_mm must be > 0, given {self.sigma_mm}")
         r = self.model.rows
         self._blocks = np.einsum("nri,nrj->nij", r, r)  # (N, L, L), mm² per unit²
-        self._all = self._blocks.sum(axis=0)
+        self._all = self._blocks[: self.model.n_plan].sum(axis=0)  # the full plan: the plan's own
         self._full_ws: float | None = None
 
     # ------------------------------------------------------------------ state
@@ -238,7 +246,8 @@ class SequentialDesign:
         return math.sqrt(3 * self.sigma_mm**2 + workspace_mm**2)
 
     def full_workspace_mm(self) -> float:
-        """The predicted workspace error with every candidate measured."""
+        """The predicted workspace error with every configuration of the plan measured (a
+        generated pool beyond the plan is not part of "the full plan")."""
         if self._full_ws is None:
             self._full_ws = self.workspace_mm(_inv_sym(self.model.prior + self._all / self.sigma_mm**2))
         return self._full_ws
@@ -293,7 +302,8 @@ class SequentialDesign:
         rows = self.model.rows[candidates]  # (c, r, L)
         mt = rows @ cov  # (Σ Jᵀ)ᵀ: (c, r, L)
         s = mt @ np.swapaxes(rows, 1, 2) + self.sigma_mm**2 * np.eye(rows.shape[1])  # (c, r, r)
-        w = np.linalg.solve(s, mt)  # S⁻¹ J Σ: (c, r, L)
+        w = np.linalg.inv(s) @ mt  # S⁻¹ J Σ: (c, r, L); S is r × r and well conditioned (σ² I + …), and a
+        # batched inverse then a product is ~3× faster than a batched solve (pools of hundreds of candidates)
         out = {}
         if self.rule.interval_deg is not None:
             k = self.model.offsets

@@ -22,6 +22,7 @@ Scored per seed, for the adaptive selection and for the whole plan:
 
     PYTHONPATH=$PWD python3 tests/bench/study_adaptive.py --seeds 20 --held-out 10
     PYTHONPATH=$PWD python3 tests/bench/study_adaptive.py --cell tx60 --poses 20 --seeds 20 --held-out 10
+    PYTHONPATH=$PWD python3 tests/bench/study_adaptive.py --seeds 20 --held-out 10 --extra 200   # + a pool
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from types import SimpleNamespace
 import numpy as np
 import yaml
 
-from acquire.plan import load_plan, resolve_configurations
+from acquire.plan import load_plan, resolve_candidate_pool, resolve_configurations
 from acquire.run import SENSOR_RATE_HZ, plan_settings
 from acquire.run.adaptive import AdaptiveRun, fit_options
 from acquire.sequencer import (estimate_measure_s, estimate_settle_s, move_times, order_by_pose_proximity,
@@ -55,7 +56,7 @@ SENSOR = np.array([2000.0, 100.0, -300.0])
 
 
 def plan_file(folder: Path, poses: int, within: float | None, interval: float | None, held_out: float | None,
-              seed: int = 1, marker: str = "sir", noise_mm: float = 0.03) -> Path:
+              seed: int = 1, marker: str = "sir", noise_mm: float = 0.03, extra: int = 0) -> Path:
     doc = yaml.safe_load((ROOT / "fixtures/plans/example.yaml").read_text())
     doc["sensors"][0]["markers"] = {marker: f"ms:tool:{marker}"}
     doc["sensors"][0]["noise_mm"] = noise_mm
@@ -67,6 +68,8 @@ def plan_file(folder: Path, poses: int, within: float | None, interval: float | 
     stop = {k: v for k, v in (("workspace_within_pct", within), ("interval_deg", interval),
                               ("held_out_within_pct", held_out)) if v is not None}
     doc["adaptive"] = {"stop_when": stop}
+    if extra:  # a generated pool beyond the plan: the plan's generator, seed + 1 (never the held-out's 77)
+        doc["adaptive"]["candidates"] = {"extra_poses": extra}
     path = folder / f"plan{seed}.yaml"
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
@@ -124,8 +127,9 @@ def score(lp, cell, q, xyz, ids, q_val, xyz_val, opts, marker):
     return held, hits, trials
 
 
-def tx60_configs(model, poses: int, seed: int):
-    """Every IK branch of ``poses`` Latin-hypercube poses aimed at a tracker 1.8 m away."""
+def tx60_configs(model, poses: int, seed: int, prefix: str = "p"):
+    """Every IK branch of ``poses`` Latin-hypercube poses aimed at a tracker 1.8 m away (ids
+    ``<prefix>07-b1``; prefix "x" for a generated pool, as ``acquire.plan.resolve_candidate_pool``)."""
     from acquire.plan import PlannedConfig
     from calib.plan.poses import plan_poses
 
@@ -134,7 +138,8 @@ def tx60_configs(model, poses: int, seed: int):
     out = []
     for c in pp.configurations:
         b = within[c.pose] = within.get(c.pose, -1) + 1
-        out.append(PlannedConfig(f"p{c.pose:02d}-b{b}", f"p{c.pose:02d}", c.branch, np.asarray(c.q, dtype=float)))
+        out.append(PlannedConfig(f"{prefix}{c.pose:02d}-b{b}", f"{prefix}{c.pose:02d}", c.branch,
+                                 np.asarray(c.q, dtype=float)))
     return out
 
 
@@ -158,6 +163,8 @@ def main() -> None:
     ap.add_argument("--held-out", type=float, default=5.0, help="stop_when.held_out_within_pct")
     ap.add_argument("--interval", type=float, default=None, help="stop_when.interval_deg")
     ap.add_argument("--noise", type=float, default=None, help="mm per axis per configuration [iiwa 0.03, tx60 0.02]")
+    ap.add_argument("--extra", type=int, default=0, help="adaptive.candidates.extra_poses: a generated pool the "
+                                                         "design may choose from (the full plan stays the plan's)")
     ap.add_argument("--cell", choices=("iiwa", "tx60"), default="iiwa",
                     help="iiwa: motion capture (marker sir), sag; tx60: laser tracker (SMR), no link masses")
     args = ap.parse_args()
@@ -167,15 +174,16 @@ def main() -> None:
     args.noise = noise
     with tempfile.TemporaryDirectory() as tmp:
         lp = load_plan(plan_file(Path(tmp), args.poses, args.within, args.interval, args.held_out, marker=marker,
-                                 noise_mm=noise))
+                                 noise_mm=noise, extra=args.extra))
         if args.cell == "iiwa":
-            configs = resolve_configurations(lp)
+            configs, pool = resolve_configurations(lp), resolve_candidate_pool(lp)
             # held out: the same workspace, other poses (the generator with another seed)
             held_out = resolve_configurations(load_plan(plan_file(Path(tmp), 20, args.within, args.interval,
                                                                   args.held_out, seed=77)))
         else:  # the plan's sections on a TX60 (no plan can name its CS8 commander yet): poses aimed at a tracker
             lp = replace(lp, model=load_robot_model(ROOT / "fixtures/robots/staubli_tx60.yaml"))
             configs, held_out = tx60_configs(lp.model, args.poses, 3), tx60_configs(lp.model, 20, 77)
+            pool = tx60_configs(lp.model, args.extra, 4, prefix="x") if args.extra else []
     s = plan_settings(lp.plan)
     limits = JointLimits.from_model(lp.model)
     settle, measure = estimate_settle_s(s.settle_window_s), estimate_measure_s(s.samples, [SENSOR_RATE_HZ["natnet"]])
@@ -186,13 +194,14 @@ def main() -> None:
     paper = order_by_pose_proximity(configs, start, Chain(lp.model))
     t_paper = float(move_times(paper, start, limits, s.speed).sum() + len(configs) * (3.0 + measure))
     opts = fit_options(lp)
-    print(f"plan: {len(configs)} configurations ({args.poses} candidate poses); stop rule {lp.plan.adaptive.stop_when}")
+    print(f"plan: {len(configs)} configurations ({args.poses} candidate poses) + {len(pool)} generated "
+          f"({args.extra} poses); stop rule {lp.plan.adaptive.stop_when}")
     print(f"cell time: full plan {t_full:.0f} s (run order), paper's procedure {t_paper:.0f} s")
     rows = []
     for seed in range(args.seeds):
         cell = Cell(lp.model, seed, args.noise, marker)
         robot = Standing(limits)
-        run = AdaptiveRun(lp, configs, robot, s.speed, per_config, None, set(), start)
+        run = AdaptiveRun(lp, configs, robot, s.speed, per_config, None, set(), start, pool)
         seen = {}
         for cfg in run.choices(lambda kind, **f: None):
             xyz = cell.observe(cfg.q_rad)[0]
@@ -217,8 +226,10 @@ def main() -> None:
         pre = score(lp, cell, [c.q_rad for c in prefix], [xyz_all[pos[c.config_id]] for c in prefix],
                     [c.config_id for c in prefix], q_val, xyz_val, opts, marker)
         rows.append((seed, len(ids), summ["estimated_seconds"], ad, fu, summ["reason"], pre, t_prefix,
-                     summ["held_out_mm"] / summ["full_held_out_mm"], summ.get("compute_seconds", 0.0)))
-        print(f"seed {seed:2d}: adaptive {len(ids):3d} configs {summ['estimated_seconds']:6.0f} s "
+                     summ["held_out_mm"] / summ["full_held_out_mm"], summ.get("compute_seconds", 0.0),
+                     summ.get("generated_measured", 0)))
+        print(f"seed {seed:2d}: adaptive {len(ids):3d} configs ({summ.get('generated_measured', 0)} generated) "
+              f"{summ['estimated_seconds']:6.0f} s "
               f"({summ['estimated_seconds'] / t_full:5.1%} of the full plan) held-out {ad[0]:.4f} mm "
               f"cover {ad[1]}/{ad[2]} | full {len(configs)} held-out {fu[0]:.4f} mm cover {fu[1]}/{fu[2]} | "
               f"tour prefix {t_prefix:.0f} s held-out {pre[0]:.4f} mm", flush=True)
@@ -232,7 +243,8 @@ def main() -> None:
     cov_f = sum(r[4][1] for r in rows) / max(1, sum(r[4][2] for r in rows))
     print()
     print(f"{len(rows)} seeds; plan {len(configs)} configurations, full plan {t_full:.0f} s, paper's procedure {t_paper:.0f} s")
-    print(f"adaptive: {n.mean():.1f} configurations (min {n.min()}, max {n.max()}), cell time {t.mean():.0f} s = "
+    gen = np.array([r[10] for r in rows])
+    print(f"adaptive: {n.mean():.1f} configurations (min {n.min()}, max {n.max()}; {gen.mean():.1f} generated), cell time {t.mean():.0f} s = "
           f"{t.mean() / t_full:.1%} of the full plan, {t.mean() / t_paper:.1%} of the paper's procedure")
     print(f"held-out rms: adaptive {ha.mean():.4f} ± {se(ha):.4f} mm, full plan {hf.mean():.4f} ± {se(hf):.4f} mm; "
           f"paired difference {d.mean():+.4f} ± {se(d):.4f} mm")
@@ -244,6 +256,8 @@ def main() -> None:
     comp = np.array([r[9] for r in rows])
     print(f"held-out ratio adaptive / full: predicted at the stop {pr.mean():.3f}, found {np.mean(ha / hf):.3f} "
           f"± {se(ha / hf):.3f}; choosing and refitting {comp.mean():.1f} s of the cell time (wall, this machine)")
+    print(f"cell time less the choosing (moves, settling, measuring): {t.mean() - comp.mean():.0f} s = "
+          f"{(t.mean() - comp.mean()) / t_full:.1%} of the full plan")
     print(f"target (held-out within its standard error, ≤ 40 % of the full plan's time): "
           f"{'met' if d.mean() <= max(se(hf), se(d)) and t.mean() <= 0.4 * t_full else 'not met'}")
     print(f"coverage of the determinable offsets' 95 % intervals: adaptive {cov_a:.1%} "
