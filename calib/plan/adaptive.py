@@ -215,14 +215,16 @@ class SequentialDesign:
         info = self.model.prior + (self._blocks[idx].sum(axis=0) if idx else 0.0) / self.sigma_mm**2
         return _inv_sym(info)
 
-    def effective_parameters(self) -> float:
-        """How many parameters the measured configurations fit, trace(I_data Σ): 1 per parameter
-        the data determine, less for one its prior still holds (for σ estimates' degrees of freedom)."""
-        idx = self.measured
+    def effective_parameters(self, indices=None, sigma_mm: float | None = None) -> float:
+        """How many parameters the configurations ``indices`` (default: the measured ones) fit at
+        noise ``sigma_mm`` (default: the design's), trace(I_data Σ): 1 per parameter the data
+        determine, less for one its prior still holds (for σ estimates' degrees of freedom)."""
+        idx = self.measured if indices is None else [int(i) for i in indices]
         if not idx:
             return 0.0
-        data = self._blocks[idx].sum(axis=0) / self.sigma_mm**2
-        return float(np.sum(data * self.covariance()))
+        s2 = (self.sigma_mm if sigma_mm is None else float(sigma_mm)) ** 2
+        data = self._blocks[idx].sum(axis=0) / s2
+        return float(np.sum(data * _inv_sym(self.model.prior + data)))
 
     # ------------------------------------------------------------------ quantities
     def half_widths_deg(self, cov: np.ndarray) -> dict[str, float]:

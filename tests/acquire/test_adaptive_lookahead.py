@@ -1,0 +1,88 @@
+"""The next adaptive choice computed while the robot moves (acquire.run.lookahead, issue 27): it
+is the choice the run would compute after the measurement, it is thrown away when the state it
+assumed did not come true (a failed configuration), and the worker process gives the same
+choices as the run computing them itself. Fast: synthetic sample records, no devices."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from acquire.plan import load_plan, resolve_configurations
+from acquire.run.adaptive import AdaptiveRun
+from calib.robot.kinematics import Chain
+
+from run_helpers import small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from test_adaptive_order import StandingRobot, record  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def plan(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("lookahead")
+    lp = load_plan(small_plan(tmp, n=20, adaptive={"stop_when": {"held_out_within_pct": 10}, "min_configurations": 12}))
+    return lp, resolve_configurations(lp)
+
+
+def drive(lp, configs, lookahead, k, fail=(), check=None):
+    """Run the adaptive loop for k choices; configurations whose position is in ``fail`` fail, the
+    rest are 'measured' (same noise draws whatever the look-ahead). ``check(ad, cfg)`` is called
+    before each choice is handed on. Returns (AdaptiveRun, chosen ids, choice events)."""
+    chain, rng = Chain(lp.model), np.random.default_rng(7)
+    robot = StandingRobot(lp.model, None)
+    ad = AdaptiveRun(lp, configs, robot, 0.5, 0.3, None, set(), np.zeros(lp.model.n_joints), lookahead=lookahead)
+    chosen, events = [], []
+    for cfg in ad.choices(lambda kind, **f: events.append(f) if kind == "adaptive_choice" else None):
+        chosen.append(cfg.config_id)
+        robot.q = np.asarray(cfg.q_rad, dtype=float)
+        if len(chosen) - 1 in fail:
+            ad.outcome(cfg, "failed", None)
+        else:
+            ad.outcome(cfg, "measured", record(lp, chain, cfg, rng))
+        if check is not None:
+            check(ad, cfg)
+        if len(chosen) == k:
+            break
+    return ad, chosen, events
+
+
+def test_the_choice_computed_ahead_is_the_one_computed_after_the_measurement(plan):
+    lp, configs = plan
+    seen = []
+
+    def fresh_choice(ad, cfg):
+        # after the outcome, before the run takes the choice computed ahead: compute it afresh
+        o = ad.order
+        o.use_sigma(o.sigma_count())
+        seen.append(o.choose(np.asarray(cfg.q_rad, dtype=float))[0].config_id)
+
+    ad, ahead, events = drive(lp, configs, "inline", 16, check=fresh_choice)
+    _, after, _ = drive(lp, configs, None, 16)
+    assert ahead == after  # the same run, choice for choice
+    assert ahead[1:] == seen[:-1]  # each handed-out choice is the one computed after its predecessor
+    assert [e["precomputed"] for e in events] == [False] + [True] * (len(events) - 1)
+    # σ was refitted on the schedule along the way (in the look-ahead's jobs), and the fits are the run's
+    assert ad.order.fitted_sigma_mm is not None and len(ad.order._fits) > 5
+    assert ad.lookahead.used == len(events) - 1 and ad.lookahead.discarded == 0
+
+
+def test_a_failed_configuration_discards_the_choice_computed_ahead(plan):
+    lp, configs = plan
+    ad, chosen, events = drive(lp, configs, "inline", 8, fail=(3,))
+    assert [e["precomputed"] for e in events] == [False, True, True, True, False, True, True, True]
+    assert ad.lookahead.discarded == 1 and ad.lookahead.used == 6
+    assert chosen[3] not in chosen[4:]  # not chosen again
+    # the choice after the failure is the one the run computes without a look-ahead
+    _, plain, _ = drive(lp, configs, None, 8, fail=(3,))
+    assert plain == chosen
+
+
+def test_the_worker_process_gives_the_choices_the_run_computes_itself(plan):
+    lp, configs = plan
+    procs = []
+    ad, chosen, events = drive(lp, configs, "process", 5, check=lambda ad, cfg: procs.append(ad.lookahead.worker._proc))
+    _, plain, _ = drive(lp, configs, None, 5)
+    assert chosen == plain
+    stats = ad.summary()["lookahead"]
+    assert stats["used"] == 4 and stats["discarded"] == 0 and stats["failed"] == 0 and stats["ahead_seconds"] > 0
+    # the worker ended cleanly when the loop let go of the choices (RunController also closes it)
+    assert not procs[0].is_alive() and procs[0].exitcode == 0 and ad.lookahead.worker is None
