@@ -49,8 +49,8 @@ WAIT_S = 10.0
 def run_job(order, job: dict) -> dict:
     """Compute ``job``'s choice on ``order`` (the worker's own copy of the run's ``AdaptiveOrder``):
     its records extended by the job's new ones, the job's measured and dropped candidates, σ of
-    the job's record count. Returns the job id, the key, the chosen index and why, the σ fits
-    made, and the seconds it took."""
+    the job's record count. Returns the job id, the key, the chosen index (None when the stop
+    rule holds at that state) and why, the σ fits made, and the seconds it took."""
     t0 = time.perf_counter()
     order.records.extend(job["records"])
     order._fits.update({int(c): v for c, v in job["fits"].items()})  # the run's fits win: one σ per count
@@ -59,10 +59,22 @@ def run_job(order, job: dict) -> dict:
     before = set(order._fits)
     order.use_sigma(int(job["sigma_count"]))
     here = np.asarray(job["here"], dtype=float)
+    if order.status().stop:  # the rule holds with this σ: no next choice (the run judges the stop)
+        return {"id": job["id"], "key": order.choice_key(here), "index": None, "why": {},
+                "fits": {c: v for c, v in order._fits.items() if c not in before},
+                "seconds": time.perf_counter() - t0}
     cfg, why = order.choose(here)
     return {"id": job["id"], "key": order.choice_key(here), "index": order.index[cfg.config_id], "why": why,
             "fits": {c: v for c, v in order._fits.items() if c not in before},  # made here
             "seconds": time.perf_counter() - t0}
+
+
+def answer(order, job: dict) -> dict:
+    """``run_job``, or the job id and the error (the run then computes the choice itself)."""
+    try:
+        return run_job(order, job)
+    except Exception as exc:  # noqa: BLE001 - a look-ahead must never end the run
+        return {"id": job.get("id"), "error": f"{type(exc).__name__}: {exc}"}
 
 
 def serve(conn, snapshot: bytes) -> None:
@@ -81,11 +93,7 @@ def serve(conn, snapshot: bytes) -> None:
         if job is None:
             return
         try:
-            out = run_job(order, job)
-        except Exception as exc:  # noqa: BLE001 - the run computes the choice itself
-            out = {"id": job.get("id"), "error": f"{type(exc).__name__}: {exc}"}
-        try:
-            conn.send(out)
+            conn.send(answer(order, job))
         except (BrokenPipeError, OSError):
             return
 
@@ -135,7 +143,7 @@ class InlineWorker:
         self._out: list[dict] = []
 
     def send(self, job: dict) -> bool:
-        self._out.append(run_job(self._order, job))
+        self._out.append(answer(self._order, job))
         return True
 
     def receive(self, timeout_s: float) -> dict | None:
@@ -221,6 +229,8 @@ class Lookahead:
         self.ahead_s += float(out["seconds"])
         for c, v in out["fits"].items():
             order._fits.setdefault(int(c), v)
+        if out["index"] is None:  # the job found the rule met: the run decides with the new record
+            return None
         return Ahead(tuple(out["key"]), int(out["index"]), dict(out["why"]))
 
     def count(self, used: bool) -> None:
