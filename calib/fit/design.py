@@ -71,4 +71,4 @@ def design_model(model: RobotModel, q_rad: np.ndarray, sensors: dict[str, list[s
     off = np.array(offsets, dtype=int)
     return DesignModel(rows=rows, prior=prior, offsets=off,
                        offset_names=tuple(post.free_names[k] for k in off), workspace=workspace,
-                       names=tuple(post.free_names))
+                       names=tuple(post.free_names), workspace_from_candidates=True)

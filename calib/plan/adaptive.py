@@ -21,11 +21,15 @@ Two quantities a metrologist states a stop rule in (``StopRule``):
   configurations and markers of the calibrated model's position uncertainty as the sensor sees
   them (A = mean of J_wᵀ J_w over those points, registration included: what only redefines the
   model's base frame is no error). The rule compares it with what the full plan would reach
-  (every candidate measured);
-* the predicted held-out error, ``sqrt(3σ² + trace(A Σ))`` (mm): what validation on further
-  configurations of the same workspace measures — the model's uncertainty and the sensor's
-  noise — again against the full plan's. Where the noise dominates, a fraction of the plan
-  predicts as well as all of it.
+  (every candidate measured). Scored on the candidates themselves this is optimistic for the
+  configurations that were measured — the fit has seen them, a new pose beside one it has not —
+  and most so for the full plan, which has measured them all; when A is the candidates' own
+  (``DesignModel.workspace_from_candidates``) each measured candidate's term is therefore taken
+  leave-one-out (``new_pose_workspace_mm``): the error at new poses of the same workspace;
+* the predicted held-out error, ``sqrt(3σ² + w²)`` (mm), w the workspace error above: what
+  validation on further configurations of the same workspace measures — the model's
+  uncertainty and the sensor's noise — again against the full plan's. Where the noise
+  dominates, a fraction of the plan predicts as well as all of it.
 
 ``SequentialDesign.choose_route`` plans the rest of the run — a batch that the linear model
 predicts meets the stop rule, toured from where the robot stands (``plan_route``) — and goes to
@@ -91,6 +95,9 @@ class DesignModel:
     offsets: (K,) indices into L of the determinable offsets (rad); offset_names: their names.
     workspace: (L, L) A, mm² per unit².
     names: (L,) parameter names.
+    workspace_from_candidates: A is the mean of the candidates' own JᵀJ per 3 rows (as
+    ``calib.fit.design`` builds it): the predicted errors are then those at new configurations
+    like the candidates (``SequentialDesign.new_pose_workspace_mm``), not at the measured ones.
     """
 
     rows: np.ndarray
@@ -99,6 +106,7 @@ class DesignModel:
     offset_names: tuple[str, ...]
     workspace: np.ndarray
     names: tuple[str, ...] = ()
+    workspace_from_candidates: bool = False
 
     @property
     def n_candidates(self) -> int:
@@ -235,14 +243,43 @@ class SequentialDesign:
     def workspace_mm(self, cov: np.ndarray) -> float:
         return math.sqrt(max(float(np.sum(self.model.workspace * cov)), 0.0))
 
+    def new_pose_workspace_mm(self, indices, cov: np.ndarray | None = None) -> float:
+        """The predicted workspace error at configurations like the plan's that were not measured
+        (mm): the mean over candidates of the model's position variance, trace(J_c Σ J_cᵀ), where
+        a measured candidate's own information is taken out (leave-one-out, Woodbury:
+        trace(σ² B (σ² I − B)⁻¹), B = J_c Σ J_cᵀ). ``workspace_mm`` scores the candidates
+        themselves, and a measured one is predicted better than a new pose beside it would be —
+        more so the more of them are measured: the full plan's in-sample error is its most
+        optimistic. indices: the measured candidates; cov: their covariance when the caller has it."""
+        idx = [int(i) for i in indices]
+        cov = self.covariance(idx) if cov is None else cov
+        rows = self.model.rows  # (N, r, L)
+        var = np.einsum("nri,ij,nrj->n", rows, cov, rows)  # trace(J_c Σ J_cᵀ), (N,)
+        if idx:
+            j = rows[idx]
+            b = j @ cov @ np.swapaxes(j, 1, 2)  # (k, r, r)
+            s2 = self.sigma_mm**2
+            eye = np.eye(b.shape[1])
+            var[idx] = s2 * np.trace(np.linalg.solve(s2 * eye - b, b), axis1=1, axis2=2)
+        return math.sqrt(max(float(var.mean()) / rows.shape[1] * 3, 0.0))
+
     def held_out_mm(self, workspace_mm: float) -> float:
         """Predicted rms 3-D error of a held-out measurement: the model's and the sensor's."""
         return math.sqrt(3 * self.sigma_mm**2 + workspace_mm**2)
 
+    def predicted_workspace_mm(self, indices, cov: np.ndarray) -> float:
+        """The workspace error the stop rule and the reports use after measuring ``indices``:
+        at new configurations like the candidates when the model's workspace is theirs
+        (``new_pose_workspace_mm``), else sqrt(trace(A Σ))."""
+        if self.model.workspace_from_candidates:
+            return self.new_pose_workspace_mm(indices, cov)
+        return self.workspace_mm(cov)
+
     def full_workspace_mm(self) -> float:
         """The predicted workspace error with every candidate measured."""
         if self._full_ws is None:
-            self._full_ws = self.workspace_mm(_inv_sym(self.model.prior + self._all / self.sigma_mm**2))
+            cov = _inv_sym(self.model.prior + self._all / self.sigma_mm**2)
+            self._full_ws = self.predicted_workspace_mm(range(self.model.n_candidates), cov)
         return self._full_ws
 
     def status(self) -> Status:
@@ -256,7 +293,7 @@ class SequentialDesign:
         idx = list(indices)
         cov = self.covariance(idx) if cov is None else cov
         hw = self.half_widths_deg(cov)
-        ws, full = self.workspace_mm(cov), self.full_workspace_mm()
+        ws, full = self.predicted_workspace_mm(idx, cov), self.full_workspace_mm()
         held, full_held = self.held_out_mm(ws), self.held_out_mm(full)
         n, rule = len(idx), self.rule
         stop, reason = False, ""
