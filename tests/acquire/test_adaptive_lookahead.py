@@ -87,5 +87,6 @@ def test_the_worker_process_gives_the_choices_the_run_computes_itself(plan):
     assert chosen == plain
     stats = ad.summary()["lookahead"]
     assert stats["used"] == 4 and stats["discarded"] == 0 and stats["failed"] == 0 and stats["ahead_seconds"] > 0
-    # the worker ended cleanly when the loop let go of the choices (RunController also closes it)
-    assert not procs[0].is_alive() and procs[0].exitcode == 0 and ad.lookahead.worker is None
+    # the worker ended when the loop let go of the choices (RunController also closes it): on its
+    # own, or ended by the run when still busy with the job it no longer needs
+    assert not procs[0].is_alive() and ad.lookahead.worker is None
