@@ -254,14 +254,16 @@ class SequentialDesign:
         idx = [int(i) for i in indices]
         cov = self.covariance(idx) if cov is None else cov
         rows = self.model.rows  # (N, r, L)
-        var = np.einsum("nri,ij,nrj->n", rows, cov, rows)  # trace(J_c Σ J_cᵀ), (N,)
+        n, r, L = rows.shape
+        flat = rows.reshape(n * r, L)
+        var = np.sum((flat @ cov) * flat, axis=1).reshape(n, r).sum(axis=1)  # trace(J_c Σ J_cᵀ), (N,)
         if idx:
             j = rows[idx]
-            b = j @ cov @ np.swapaxes(j, 1, 2)  # (k, r, r)
+            b = (j.reshape(-1, L) @ cov).reshape(len(idx), r, L) @ np.swapaxes(j, 1, 2)  # (k, r, r)
             s2 = self.sigma_mm**2
             eye = np.eye(b.shape[1])
             var[idx] = s2 * np.trace(np.linalg.solve(s2 * eye - b, b), axis1=1, axis2=2)
-        return math.sqrt(max(float(var.mean()) / rows.shape[1] * 3, 0.0))
+        return math.sqrt(max(float(var.mean()) / r * 3, 0.0))
 
     def held_out_mm(self, workspace_mm: float) -> float:
         """Predicted rms 3-D error of a held-out measurement: the model's and the sensor's."""

@@ -43,6 +43,7 @@ from acquire.run.adaptive import AdaptiveRun, fit_options
 from acquire.sequencer import (estimate_measure_s, estimate_settle_s, move_times, order_by_pose_proximity,
                                order_configurations)
 from calib.fit.offsets import fit_mode, fit_offsets
+from calib.plan.adaptive import SequentialDesign
 from calib.measure.dataset import from_arrays
 from calib.robot.gravity import gravity_torques
 from calib.robot.kinematics import Chain
@@ -171,6 +172,9 @@ def main() -> None:
     ap.add_argument("--cell", choices=("iiwa", "tx60"), default="iiwa",
                     help="iiwa: motion capture (marker sir), sag; tx60: laser tracker (SMR), no link masses")
     ap.add_argument("--no-coverage", action="store_true", help="skip the Laplace fits (coverage): faster")
+    ap.add_argument("--in-sample", action="store_true",
+                    help="predict the errors on the measured candidates themselves (the design before the "
+                         "leave-one-out correction), for comparison")
     args = ap.parse_args()
     t0 = time.process_time()
     marker = "sir" if args.cell == "iiwa" else "smr"
@@ -207,7 +211,13 @@ def main() -> None:
     for seed in range(args.seeds):
         cell = Cell(lp.model, seed, args.noise, marker)
         robot = Standing(limits)
-        run = AdaptiveRun(lp, configs, robot, s.speed, per_config, None, set(), start)
+        # the choice computed while the robot moves (in the caller here: the seconds it takes are
+        # not the robot's, as in a run with its worker process)
+        run = AdaptiveRun(lp, configs, robot, s.speed, per_config, None, set(), start, lookahead="inline")
+        if args.in_sample:
+            d0 = run.order.design
+            run.order.design = SequentialDesign(replace(d0.model, workspace_from_candidates=False), d0.rule,
+                                                d0.sigma_mm)
         seen = {}
         for cfg in run.choices(lambda kind, **f: None):
             xyz = cell.observe(cfg.q_rad)[0]
