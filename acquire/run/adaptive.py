@@ -382,15 +382,15 @@ class AdaptiveRun:
 
     def _stop_status(self) -> Status:
         """The rule at this many records, with the σ the choices use; a predicted stop is judged
-        again with σ of every record (the choices keep the schedule's σ when it does not hold)."""
+        again with σ of every record, and when it does not hold the next choice is made with that
+        σ too (the rule already holds at the schedule's σ: a choice with it would plan nothing).
+        Both are functions of the records: a resumed run decides and chooses the same."""
         o = self.order
         o.use_sigma(o.sigma_count())
         st = o.status()
         if st.stop and o.sigma_stale():
             o.use_sigma(len(o.records))
             st = o.status()
-            if not st.stop:
-                o.use_sigma(o.sigma_count())
         return st
 
     def choices(self, event):

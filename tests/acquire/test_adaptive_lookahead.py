@@ -90,3 +90,25 @@ def test_the_worker_process_gives_the_choices_the_run_computes_itself(plan):
     # the worker ended when the loop let go of the choices (RunController also closes it): on its
     # own, or ended by the run when still busy with the job it no longer needs
     assert not procs[0].is_alive() and ad.lookahead.worker is None
+
+
+def test_a_stop_the_records_do_not_confirm_goes_on_choosing_with_their_sigma(plan, monkeypatch):
+    # The schedule's σ (one record behind) says stop; σ of every record is larger (here: made so,
+    # off the schedule's counts) and the offsets' intervals with it too wide — go on:
+    # the next choice is made with that σ (the schedule's would plan nothing), not the one computed ahead.
+    from acquire.run.adaptive import AdaptiveOrder
+
+    schedule = refit_counts(100)
+    monkeypatch.setattr(AdaptiveOrder, "fast_fit_sigma",
+                        lambda self, upto=None: None if (upto or len(self.records)) in schedule else 0.5)
+    lp0, configs = plan
+    from dataclasses import replace
+
+    lp = replace(lp0, plan=lp0.plan.model_copy(update={"adaptive": lp0.plan.adaptive.model_copy(
+        update={"stop_when": lp0.plan.adaptive.stop_when.model_copy(update={"interval_deg": 0.1, "held_out_within_pct": None})})}))
+    ad, chosen, events = drive(lp, configs, "inline", len(configs))
+    st = ad.final
+    assert st is not None and st.reason.startswith("stop rule met") and len(chosen) in schedule
+    held_on = [e for e in events if e["sigma_mm"] == 0.5]
+    assert held_on and not any(e["precomputed"] for e in held_on)  # chosen afresh, with every record's σ
+    assert len(set(chosen)) == len(chosen)
