@@ -20,6 +20,15 @@ Scored per seed, for the adaptive selection and for the whole plan:
 * coverage: how often each determinable offset's 95 % interval (the Laplace fit with the plan's
   model) holds the hidden truth.
 
+* predicted against found: the held-out error and the model's own error (the fit against the
+  true positions, no sensor noise) the design predicts at the stop, for the adaptive selection
+  and the full plan, against what the fits show on the held-out configurations; and the
+  prediction over the held-out configurations' own workspace matrix. ``--in-sample`` predicts
+  as the design did before the leave-one-out correction (the errors at the measured candidates).
+
+The adaptive loop computes each choice ahead (``lookahead="inline"``): its seconds are not the
+robot's, as in a run with its worker process. ``--no-coverage`` skips the Laplace fits.
+
     PYTHONPATH=$PWD python3 tests/bench/study_adaptive.py --seeds 20 --held-out 10
     PYTHONPATH=$PWD python3 tests/bench/study_adaptive.py --cell tx60 --poses 20 --seeds 20 --held-out 10
 """
