@@ -191,7 +191,12 @@ class Lookahead:
         """Compute the choice that follows ``cfg`` once it is measured."""
         if self._make is not None:
             make, self._make = self._make, None
-            self.worker, self._sent = make(order), len(order.records)
+            try:
+                self.worker, self._sent = make(order), len(order.records)
+            except Exception as exc:  # noqa: BLE001 - e.g. an unpicklable order: the run chooses itself
+                log.warning("adaptive look-ahead not started (%s: %s); the run chooses after each measurement",
+                            type(exc).__name__, exc)
+                self.failed += 1
         if self.worker is None:
             return
         n = len(order.records) + 1

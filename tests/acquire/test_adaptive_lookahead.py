@@ -112,3 +112,17 @@ def test_a_stop_the_records_do_not_confirm_goes_on_choosing_with_their_sigma(pla
     held_on = [e for e in events if e["sigma_mm"] == 0.5]
     assert held_on and not any(e["precomputed"] for e in held_on)  # chosen afresh, with every record's σ
     assert len(set(chosen)) == len(chosen)
+
+
+def test_a_worker_that_cannot_start_leaves_the_run_choosing_itself(plan, monkeypatch):
+    import acquire.run.lookahead as la
+
+    def refuse(order):
+        raise TypeError("cannot pickle this order")
+
+    monkeypatch.setattr(la, "InlineWorker", refuse)
+    lp, configs = plan
+    ad, chosen, events = drive(lp, configs, "inline", 4)
+    _, plain, _ = drive(lp, configs, None, 4)
+    assert chosen == plain and not any(e["precomputed"] for e in events)
+    assert ad.summary()["lookahead"]["failed"] == 1
