@@ -9,7 +9,8 @@ ahead of the run.
 - ``submit(order, cfg)`` as the run sets off for ``cfg``: a job with the state the design will
   have once ``cfg`` is measured — measured + cfg, the dropped candidates, σ of the schedule's
   count for that many records (fitted in the job when not yet), the robot standing at ``cfg``;
-- ``result(order)`` after the outcome: waits for the job (up to ``WAIT_S``), hands the σ fits it
+- ``result(order)`` after the outcome: waits for the job (up to ``WAIT_S``; ``MAX_LATE`` late
+  in a row end the look-ahead), hands the σ fits it
   made to ``order``; ``Ahead.choice(order, here)`` is the job's choice when the job's key
   (``AdaptiveOrder.choice_key``: measured, dropped, σ, where the robot stands) is the state's,
   else None: discarded — ``cfg`` failed or was skipped, its record is missing, the robot is
@@ -42,8 +43,11 @@ log = logging.getLogger(__name__)
 
 #: Niceness of the worker process (lower priority than the run, the readers and the exchange).
 WORKER_NICE = 10
-#: Wall seconds the run waits for a job before it computes the choice itself.
-WAIT_S = 10.0
+#: Wall seconds the run waits for a job before it computes the choice itself (a choice takes
+#: 0.05–0.8 s: a job not done after the whole move, settle and measure is starved).
+WAIT_S = 2.0
+#: Jobs late in a row after which the look-ahead stops (the worker cannot keep up on this host).
+MAX_LATE = 3
 
 
 def run_job(order, job: dict) -> dict:
@@ -178,7 +182,8 @@ class Lookahead:
         self._sent = 0  # records the worker has
         self._next_id = 0
         self._pending: int | None = None
-        self.used = self.discarded = self.failed = 0
+        self.used = self.discarded = self.failed = self.late = 0
+        self._late_run = 0
         self.ahead_s = self.waited_s = 0.0
 
     @classmethod
@@ -220,13 +225,17 @@ class Lookahead:
         deadline = t0 + WAIT_S
         while True:
             out = self.worker.receive(max(0.0, deadline - time.perf_counter()))
-            if out is None:
+            if out is None:  # late (its answer is dropped when it comes) or gone
                 self.waited_s += time.perf_counter() - t0
-                self._lost(f"no answer within {WAIT_S:g} s")
+                self.late += 1
+                self._late_run += 1
+                if self._late_run >= MAX_LATE:
+                    self._lost(f"{self._late_run} jobs in a row without an answer within {WAIT_S:g} s")
                 return None
             if out.get("id") == want:
                 break  # (answers to earlier jobs are stale: dropped)
         self.waited_s += time.perf_counter() - t0
+        self._late_run = 0
         if "error" in out:
             log.warning("adaptive look-ahead: %s (the run chooses itself)", out["error"])
             self.failed += 1
@@ -251,7 +260,7 @@ class Lookahead:
 
     def stats(self) -> dict:
         """Choices used and discarded, seconds computed ahead and waited for."""
-        return {"used": self.used, "discarded": self.discarded, "failed": self.failed,
+        return {"used": self.used, "discarded": self.discarded, "failed": self.failed, "late": self.late,
                 "ahead_seconds": round(self.ahead_s, 2), "waited_seconds": round(self.waited_s, 2)}
 
     def close(self) -> None:

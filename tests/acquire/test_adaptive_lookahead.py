@@ -126,3 +126,20 @@ def test_a_worker_that_cannot_start_leaves_the_run_choosing_itself(plan, monkeyp
     _, plain, _ = drive(lp, configs, None, 4)
     assert chosen == plain and not any(e["precomputed"] for e in events)
     assert ad.summary()["lookahead"]["failed"] == 1
+
+
+def test_a_worker_that_does_not_answer_in_time_is_waited_for_briefly_then_given_up(plan, monkeypatch):
+    import acquire.run.lookahead as la
+
+    class Silent(la.InlineWorker):
+        def receive(self, timeout_s):
+            return None  # as a starved worker: nothing within the wait
+
+    monkeypatch.setattr(la, "InlineWorker", Silent)
+    monkeypatch.setattr(la, "WAIT_S", 0.01)
+    lp, configs = plan
+    ad, chosen, events = drive(lp, configs, "inline", 6)
+    _, plain, _ = drive(lp, configs, None, 6)
+    assert chosen == plain and not any(e["precomputed"] for e in events)
+    stats = ad.summary()["lookahead"]
+    assert stats["late"] == la.MAX_LATE and stats["used"] == 0 and ad.lookahead.worker is None
