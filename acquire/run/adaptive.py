@@ -7,7 +7,9 @@ and the run stops when the plan's stop rule holds.
 fit's own parameters and priors, linearised at the nominal robot), the σ it predicts with
 (the plan's ``noise_mm``, or the fast fit's σ of the configurations measured when that is
 larger — unbiased for the effective number of parameters it fitted, used once it has
-``MIN_SIGMA_DOF`` degrees of freedom),
+``MIN_SIGMA_DOF`` degrees of freedom; the choice after n records uses the fit at the schedule's
+last count before the newest record, ``sigma_count``, so that it can be computed while that
+record is measured: ``acquire.run.lookahead``),
 and the history (predicted intervals and workspace error against the number of
 configurations) that the summary shows. Nothing here moves the robot: the run's
 ``ConfigurationRunner`` does, with every check it always makes.
@@ -37,8 +39,8 @@ log = logging.getLogger(__name__)
 #: Degrees of freedom (coordinates less effective parameters) before the fast fit's σ is used.
 MIN_SIGMA_DOF = 10
 #: σ is refitted once the records have grown by this fraction (and before every stop decision):
-#: a fast fit of 60 configurations costs ~0.1 s of the robot standing still, and σ changes little
-#: from one configuration to the next.
+#: a fast fit of 60 configurations costs ~0.1 s (in the look-ahead worker while the robot moves,
+#: except before a stop decision), and σ changes little from one configuration to the next.
 REFIT_GROWTH = 0.15
 
 
@@ -101,7 +103,7 @@ class AdaptiveOrder:
 
         self.plan_configs = list(configs)
         pool = admissible_pool(pool, limits, lp.commander_margin_rad)
-        self.lp, self.configs = lp, self.plan_configs + pool
+        self.lp, self.model, self.configs = lp, lp.model, self.plan_configs + pool
         self.index = {c.config_id: i for i, c in enumerate(self.configs)}
         self.limits, self.speed, self.per_config_s = limits, float(speed), float(per_config_s)
         self.noise_mm = max(float(s.noise_mm) for s in lp.plan.sensors)
@@ -117,6 +119,21 @@ class AdaptiveOrder:
         self.history: list[dict] = []
         self.fitted_sigma_mm: float | None = None
         self._sigma_n = 0  # records when σ was last fitted
+        self._fits: dict[int, float | None] = {}  # fast-fit σ by record count (records only grow)
+
+    def __getstate__(self) -> dict:
+        """Picklable state for the look-ahead worker (``acquire.run.lookahead``): the plan's
+        model as its validated dict (the model object caches unpicklable solvers), no plan."""
+        state = dict(self.__dict__)
+        state["lp"], state["model"] = None, self.model.model_dump()
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        from calib.robot.model import robot_model_from_dict
+
+        state = dict(state)
+        state["model"] = robot_model_from_dict(state["model"])
+        self.__dict__.update(state)
 
     def copy(self) -> "AdaptiveOrder":
         """An independent copy of the design's state (for predictions: ``simulate``)."""
@@ -126,6 +143,7 @@ class AdaptiveOrder:
         d = self.design
         other.design = SequentialDesign(d.model, d.rule, d.sigma_mm, measured=list(d.measured))
         other.dropped, other.records, other.history = set(self.dropped), list(self.records), []
+        other._fits = dict(self._fits)
         other._between = self.between_seconds()
         return other
 
@@ -145,26 +163,46 @@ class AdaptiveOrder:
         if i is not None:
             self.dropped.add(i)
 
-    def sigma_due(self) -> bool:
-        """Whether σ is refitted at this many records: at 1, 2, … records, each count at least
-        ``REFIT_GROWTH`` more than the one before (a fixed schedule, so a resumed run's σ is the
-        one an uninterrupted run would have). The stop decision always refits
-        (``AdaptiveRun.choices``): what stops the run is judged with σ of everything measured."""
-        return len(self.records) in refit_counts(len(self.records))
+    def sigma_count(self, n_records: int | None = None) -> int:
+        """The record count whose fast fit gives σ for the choice after ``n_records`` records
+        (default: those so far): the schedule's (``refit_counts``: 1, 2, …, each at least
+        ``REFIT_GROWTH`` more than the one before) last count before the newest record — one record
+        behind, so the choice can be computed while that record is being measured. A function of
+        the records alone: a resumed run predicts with the σ an uninterrupted one had. The stop
+        decision is judged with σ of every record (``AdaptiveRun.choices``)."""
+        n = len(self.records) if n_records is None else int(n_records)
+        return max(refit_counts(n - 1), default=0)
 
     def sigma_stale(self) -> bool:
-        """Records have arrived since σ was last fitted."""
+        """Records have arrived since the σ the design predicts with was fitted."""
         return self._sigma_n < len(self.records)
 
+    def fitted_sigma(self, upto: int) -> float | None:
+        """The fast fit's σ (mm) of the first ``upto`` records, fitted once (None: no fit yet)."""
+        if upto not in self._fits:
+            self._fits[upto] = self.fast_fit_sigma(upto) if upto > 0 else None
+        return self._fits[upto]
+
+    def use_sigma(self, upto: int) -> None:
+        """Predict with σ of the first ``upto`` records: the larger of the plan's ``noise_mm`` and
+        their fast fit's σ (the plan's while there is no fit) — the design never predicts a better
+        instrument than the plan states, and a worse one as soon as the data show it."""
+        fitted = self.fitted_sigma(upto)
+        self._sigma_n = upto
+        self.fitted_sigma_mm = fitted
+        sigma = self.noise_mm if fitted is None else max(self.noise_mm, fitted)
+        if sigma != self.design.sigma_mm:
+            self.design.set_sigma(sigma)
+
     def update_sigma(self, upto: int | None = None) -> None:
-        """σ for the design: the larger of the plan's ``noise_mm`` and the fast fit's σ of the
-        records so far (unbiased for the parameters it fitted) — the design never predicts a
-        better instrument than the plan states, and a worse one as soon as the data show it."""
-        self._sigma_n = len(self.records) if upto is None else min(upto, len(self.records))
-        sigma = self.fast_fit_sigma(self._sigma_n)
-        if sigma is not None:
-            self.fitted_sigma_mm = sigma
-            self.design.set_sigma(max(self.noise_mm, sigma))
+        """σ of every record so far (or of the first ``upto``): ``use_sigma``."""
+        self.use_sigma(len(self.records) if upto is None else min(upto, len(self.records)))
+
+    def choice_key(self, here_q_rad) -> tuple:
+        """What a choice depends on: the measured (in order) and dropped candidates, σ and where
+        the robot stands. A choice computed ahead is used only when its key is the state's."""
+        return (tuple(int(i) for i in self.design.measured), tuple(sorted(int(i) for i in self.dropped)),
+                float(self.design.sigma_mm), tuple(float(x) for x in np.asarray(here_q_rad, dtype=float).ravel()))
 
     def fast_fit_sigma(self, upto: int | None = None) -> float | None:
         """The fitted σ (mm, largest over sensors) of the posterior mode on the records, or None
@@ -185,7 +223,7 @@ class AdaptiveOrder:
         data = from_arrays(np.array(q), np.array(xyz, dtype=float), marker=np.array(mk), sensor=np.array(sn),
                            config=np.array(cid))
         try:
-            mf = fit_mode(self.lp.model, data, self.options, tol=1e-8)
+            mf = fit_mode(self.model, data, self.options, tol=1e-8)
         except (DatasetError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             log.info("adaptive: no fast fit yet (%s)", exc)
             return None
@@ -193,7 +231,8 @@ class AdaptiveOrder:
         # effective number: link and tool parameters count in part): unbias it, and trust it only
         # with MIN_SIGMA_DOF degrees of freedom left.
         n_coord = 3 * len(data)
-        p_eff = self.design.effective_parameters()
+        fitted = sorted({self.index[c] for c in cid if c in self.index})
+        p_eff = self.design.effective_parameters(fitted, self.noise_mm)
         if n_coord - p_eff < MIN_SIGMA_DOF:
             return None
         sigma = float(np.max(np.exp(mf.log_sigma))) * math.sqrt(n_coord / (n_coord - p_eff))
@@ -334,10 +373,15 @@ class AdaptiveRun:
     ``adaptive_choice`` event), each outcome (``outcome``), and the summary at the end.
 
     cmd: the open commander (its limits; where the robot stands before each choice).
+    lookahead: compute each next choice while the current configuration is measured
+    (``acquire.run.lookahead``): "process" (a worker process, as ``RunController`` runs),
+    "inline" (computed in the caller when the configuration is handed out: tests, studies) or
+    None (computed after each outcome). The choices are the same; only the seconds the robot
+    stands while the run chooses differ.
     """
 
     def __init__(self, lp, configs, cmd, speed: float, per_config_s: float, resumed, ended, start_q_rad,
-                 pool=()) -> None:
+                 pool=(), *, lookahead: str | None = None) -> None:
         self.cmd = cmd
         self.order = AdaptiveOrder(lp, configs, cmd.limits, speed, per_config_s, pool)
         for rec in (resumed.samples if resumed is not None else []):
@@ -345,14 +389,19 @@ class AdaptiveRun:
         for cid in ended:
             if cid not in {rec["config_id"] for rec in self.order.records}:
                 self.order.drop(cid)
-        done = [c for c in refit_counts(len(self.order.records)) if c <= len(self.order.records)]
-        self.order.update_sigma(upto=done[-1] if done else 0)  # σ as the uninterrupted run had it
+        self.order.use_sigma(self.order.sigma_count())  # σ as the uninterrupted run had it
         self.start_q = np.asarray(start_q_rad, dtype=float)
         self.resumed_n = len(self.order.design.measured)
         self.visited: list = []  # configurations this segment moved to, in order
         self.final: Status | None = None
         self.compute_s = 0.0  # wall seconds the robot stood while this segment chose and refitted
+        self._last_outcome: str | None = None
         self.predicted, self.predicted_status = simulate(self.order, self.start_q)
+        self.lookahead = None
+        if lookahead is not None:
+            from acquire.run.lookahead import Lookahead
+
+            self.lookahead = Lookahead.start(self.order, lookahead)
 
     def started_fields(self) -> dict:
         rule = self.order.design.rule
@@ -367,46 +416,77 @@ class AdaptiveRun:
                 "full_plan_seconds": round(o.full_plan_seconds(self.start_q), 1)}
 
     def _here(self, last) -> np.ndarray:
+        """Where the next choice starts: the last configuration when it was measured (the robot
+        settled there, within the plan's tolerance; a choice computed ahead assumed it), else
+        where the robot reports it stands."""
         from drivers.errors import DriverError
 
+        if last is not None and self._last_outcome == "measured":
+            return np.asarray(last.q_rad, dtype=float)
         try:
             return np.asarray(self.cmd.joint_state().position_rad, dtype=float)
         except DriverError:
             return np.asarray(last.q_rad, dtype=float) if last is not None else self.start_q
 
+    def _stop_status(self) -> Status:
+        """The rule at this many records, with the σ the choices use; a predicted stop is judged
+        again with σ of every record, and when it does not hold the next choice is made with that
+        σ too (the rule already holds at the schedule's σ: a choice with it would plan nothing).
+        Both are functions of the records: a resumed run decides and chooses the same."""
+        o = self.order
+        o.use_sigma(o.sigma_count())
+        st = o.status()
+        if st.stop and o.sigma_stale():
+            o.use_sigma(len(o.records))
+            st = o.status()
+        return st
+
     def choices(self, event):
         """Configurations to measure, chosen one at a time; stops when the rule holds, the plan
-        is exhausted or ``max_configurations`` is reached (event ``adaptive_stop``)."""
+        is exhausted or ``max_configurations`` is reached (event ``adaptive_stop``). With a
+        look-ahead the choice after each configuration is computed while it is measured and used
+        when the state it assumed is the state after the outcome (event field ``precomputed``)."""
         last = None
-        while True:
-            t0 = time.perf_counter()
-            st = self.order.status()
-            if st.stop and self.order.sigma_stale():  # judge the stop with every record's σ
-                self.order.update_sigma()
-                st = self.order.status()
-            row = self.order.record_status(st)
-            if st.stop:
-                self.final = st
+        try:
+            while True:
+                t0 = time.perf_counter()
+                ahead = self.lookahead.result(self.order) if self.lookahead is not None else None
+                st = self._stop_status()
+                row = self.order.record_status(st)
+                if st.stop:
+                    self.final = st
+                    self.compute_s += time.perf_counter() - t0
+                    return
+                here = self._here(last)
+                taken = ahead.choice(self.order, here) if ahead is not None else None
+                cfg, why = taken if taken is not None else self.order.choose(here)
+                if self.lookahead is not None:
+                    if ahead is not None:
+                        self.lookahead.count(taken is not None)
+                    why["precomputed"] = taken is not None
                 self.compute_s += time.perf_counter() - t0
-                return
-            cfg, why = self.order.choose(self._here(last))
-            self.compute_s += time.perf_counter() - t0
-            event("adaptive_choice", **why, status=row)
-            self.visited.append(cfg)
-            last = cfg
-            yield cfg
+                event("adaptive_choice", **why, status=row)
+                if self.lookahead is not None:
+                    self.lookahead.submit(self.order, cfg)
+                self.visited.append(cfg)
+                last = cfg
+                yield cfg
+        finally:
+            self.close()
 
     def outcome(self, cfg, outcome: str, record: dict | None) -> None:
-        """What became of ``cfg``: measured (its record updates the design and σ), skipped or failed."""
+        """What became of ``cfg``: measured (its record joins the design's σ), skipped or failed."""
+        self._last_outcome = outcome
         if outcome == "measured":
             ok = record is not None and record.get("config_id") == cfg.config_id
-            t0 = time.perf_counter()
             self.order.mark(cfg.config_id, record if ok else None)
-            if self.order.sigma_due():
-                self.order.update_sigma()
-            self.compute_s += time.perf_counter() - t0
         elif outcome in ("skipped", "failed"):
             self.order.drop(cfg.config_id)
+
+    def close(self) -> None:
+        """End the look-ahead worker (idempotent; ``choices`` does it when the run stops)."""
+        if self.lookahead is not None:
+            self.lookahead.close()
 
     def summary(self) -> dict:
         """Why the run stopped, the predicted intervals against the number of configurations, and
@@ -428,4 +508,5 @@ class AdaptiveRun:
                 "fitted_sigma_mm": None if o.fitted_sigma_mm is None else round(o.fitted_sigma_mm, 5),
                 "history": o.history, "estimated_seconds": round(spent, 1),
                 "compute_seconds": round(self.compute_s, 1), "full_plan_seconds": round(full, 1),
+                **({"lookahead": self.lookahead.stats()} if self.lookahead is not None else {}),
                 "saved_seconds": round(full - spent, 1), "saved_pct": round(100 * (1 - spent / full), 1) if full else None}

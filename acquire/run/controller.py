@@ -249,7 +249,8 @@ class RunController:
         if self.plan.adaptive is not None:  # the order is chosen as the run goes (acquire.run.adaptive)
             from acquire.run.adaptive import AdaptiveRun
 
-            adaptive = AdaptiveRun(lp, configs, cmd, s.speed, per_config, self._resumed, ended, start_q, pool)
+            adaptive = AdaptiveRun(lp, configs, cmd, s.speed, per_config, self._resumed, ended, start_q, pool,
+                                   lookahead="process")  # the next choice computed while the robot moves
             order = adaptive.predicted
         else:
             order = order_configurations(todo, start_q, cmd.limits, s.speed)
@@ -268,8 +269,21 @@ class RunController:
         st.set("running")
         t_cell0 = cell.clock()
         st.loop_wall0 = time.monotonic()
-        streak = 0
-        for cfg in (order if adaptive is None else adaptive.choices(self.pub.event)):
+        try:
+            self._loop(order if adaptive is None else adaptive.choices(self.pub.event), runner, adaptive)
+        finally:
+            if adaptive is not None:
+                adaptive.close()  # its look-ahead worker
+        if adaptive is not None:
+            self.adaptive_summary = adaptive.summary()
+            self.pub.event("adaptive_stop", **self.adaptive_summary)
+        return finish(self, cell.clock() - t_cell0)
+
+    def _loop(self, configs, runner: ConfigurationRunner, adaptive) -> None:
+        """Measure ``configs`` (a list, or an adaptive run's choices) until done, paused into an
+        abort, or too many failures in a row (RunError)."""
+        st, streak = self.state, 0
+        for cfg in configs:
             if not st.checkpoint():
                 break
             st.begin(cfg.config_id)
@@ -284,10 +298,6 @@ class RunController:
             if streak >= MAX_CONSECUTIVE_FAILURES:
                 raise RunError(f"{streak} configurations failed in a row (last: {st.skip_reasons.get(cfg.config_id)}); "
                                "the cell is not usable — fix it and resume the run")
-        if adaptive is not None:
-            self.adaptive_summary = adaptive.summary()
-            self.pub.event("adaptive_stop", **self.adaptive_summary)
-        return finish(self, cell.clock() - t_cell0)
 
     def _runner(self, cmd, sensors) -> ConfigurationRunner:
         """The per-configuration procedure, its registration estimate and the robot's view."""

@@ -78,4 +78,5 @@ def design_model(model: RobotModel, q_rad: np.ndarray, sensors: dict[str, list[s
     off = np.array(offsets, dtype=int)
     return DesignModel(rows=rows, prior=prior, offsets=off,
                        offset_names=tuple(post.free_names[k] for k in off), workspace=workspace,
-                       names=tuple(post.free_names), plan_size=None if plan_size is None else n_plan)
+                       names=tuple(post.free_names), plan_size=None if plan_size is None else n_plan,
+                       workspace_from_candidates=True)

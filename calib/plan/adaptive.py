@@ -21,11 +21,15 @@ Two quantities a metrologist states a stop rule in (``StopRule``):
   configurations and markers of the calibrated model's position uncertainty as the sensor sees
   them (A = mean of J_wᵀ J_w over those points, registration included: what only redefines the
   model's base frame is no error). The rule compares it with what the full plan would reach
-  (every candidate measured);
-* the predicted held-out error, ``sqrt(3σ² + trace(A Σ))`` (mm): what validation on further
-  configurations of the same workspace measures — the model's uncertainty and the sensor's
-  noise — again against the full plan's. Where the noise dominates, a fraction of the plan
-  predicts as well as all of it.
+  (every candidate measured). Scored on the candidates themselves this is optimistic for the
+  configurations that were measured — the fit has seen them, a new pose beside one it has not —
+  and most so for the full plan, which has measured them all; when A is the candidates' own
+  (``DesignModel.workspace_from_candidates``) each measured candidate's term is therefore taken
+  leave-one-out (``new_pose_workspace_mm``): the error at new poses of the same workspace;
+* the predicted held-out error, ``sqrt(3σ² + w²)`` (mm), w the workspace error above: what
+  validation on further configurations of the same workspace measures — the model's
+  uncertainty and the sensor's noise — again against the full plan's. Where the noise
+  dominates, a fraction of the plan predicts as well as all of it.
 
 ``SequentialDesign.choose_route`` plans the rest of the run — a batch that the linear model
 predicts meets the stop rule, toured from where the robot stands (``plan_route``) — and goes to
@@ -93,6 +97,9 @@ class DesignModel:
     names: (L,) parameter names.
     plan_size: the first this many candidates are the plan's configurations — "the full plan"
     the rule compares with — and the rest a generated pool (None: every candidate is the plan's).
+    workspace_from_candidates: A is the mean of the plan's candidates' own JᵀJ per 3 rows (as
+    ``calib.fit.design`` builds it): the predicted errors are then those at new configurations
+    like the plan's (``SequentialDesign.new_pose_workspace_mm``), not at the measured ones.
     """
 
     rows: np.ndarray
@@ -102,6 +109,7 @@ class DesignModel:
     workspace: np.ndarray
     names: tuple[str, ...] = ()
     plan_size: int | None = None
+    workspace_from_candidates: bool = False
 
     @property
     def n_candidates(self) -> int:
@@ -223,14 +231,16 @@ class SequentialDesign:
         info = self.model.prior + (self._blocks[idx].sum(axis=0) if idx else 0.0) / self.sigma_mm**2
         return _inv_sym(info)
 
-    def effective_parameters(self) -> float:
-        """How many parameters the measured configurations fit, trace(I_data Σ): 1 per parameter
-        the data determine, less for one its prior still holds (for σ estimates' degrees of freedom)."""
-        idx = self.measured
+    def effective_parameters(self, indices=None, sigma_mm: float | None = None) -> float:
+        """How many parameters the configurations ``indices`` (default: the measured ones) fit at
+        noise ``sigma_mm`` (default: the design's), trace(I_data Σ): 1 per parameter the data
+        determine, less for one its prior still holds (for σ estimates' degrees of freedom)."""
+        idx = self.measured if indices is None else [int(i) for i in indices]
         if not idx:
             return 0.0
-        data = self._blocks[idx].sum(axis=0) / self.sigma_mm**2
-        return float(np.sum(data * self.covariance()))
+        s2 = (self.sigma_mm if sigma_mm is None else float(sigma_mm)) ** 2
+        data = self._blocks[idx].sum(axis=0) / s2
+        return float(np.sum(data * _inv_sym(self.model.prior + data)))
 
     # ------------------------------------------------------------------ quantities
     def half_widths_deg(self, cov: np.ndarray) -> dict[str, float]:
@@ -241,15 +251,50 @@ class SequentialDesign:
     def workspace_mm(self, cov: np.ndarray) -> float:
         return math.sqrt(max(float(np.sum(self.model.workspace * cov)), 0.0))
 
+    def new_pose_workspace_mm(self, indices, cov: np.ndarray | None = None) -> float:
+        """The predicted workspace error at configurations like the plan's that were not measured
+        (mm): the mean over the plan's candidates (the first ``n_plan``; a generated pool is not
+        the workspace the rule averages over) of the model's position variance, trace(J_c Σ J_cᵀ),
+        where a measured candidate's own information is taken out (leave-one-out, Woodbury:
+        trace(σ² B (σ² I − B)⁻¹), B = J_c Σ J_cᵀ). ``workspace_mm`` scores the candidates
+        themselves, and a measured one is predicted better than a new pose beside it would be —
+        more so the more of them are measured: the full plan's in-sample error is its most
+        optimistic. indices: the measured candidates (plan's and pool's); cov: their covariance
+        when the caller has it."""
+        n_plan = self.model.n_plan
+        measured = [int(i) for i in indices]
+        cov = self.covariance(measured) if cov is None else cov
+        idx = [i for i in measured if i < n_plan]  # measured pool candidates are not averaged over
+        rows = self.model.rows[:n_plan]  # (N_plan, r, L)
+        n, r, L = rows.shape
+        flat = rows.reshape(n * r, L)
+        var = np.sum((flat @ cov) * flat, axis=1).reshape(n, r).sum(axis=1)  # trace(J_c Σ J_cᵀ), (N,)
+        if idx:
+            j = rows[idx]
+            b = (j.reshape(-1, L) @ cov).reshape(len(idx), r, L) @ np.swapaxes(j, 1, 2)  # (k, r, r)
+            s2 = self.sigma_mm**2
+            eye = np.eye(b.shape[1])
+            var[idx] = s2 * np.trace(np.linalg.solve(s2 * eye - b, b), axis1=1, axis2=2)
+        return math.sqrt(max(float(var.mean()) / r * 3, 0.0))
+
     def held_out_mm(self, workspace_mm: float) -> float:
         """Predicted rms 3-D error of a held-out measurement: the model's and the sensor's."""
         return math.sqrt(3 * self.sigma_mm**2 + workspace_mm**2)
+
+    def predicted_workspace_mm(self, indices, cov: np.ndarray) -> float:
+        """The workspace error the stop rule and the reports use after measuring ``indices``:
+        at new configurations like the candidates when the model's workspace is theirs
+        (``new_pose_workspace_mm``), else sqrt(trace(A Σ))."""
+        if self.model.workspace_from_candidates:
+            return self.new_pose_workspace_mm(indices, cov)
+        return self.workspace_mm(cov)
 
     def full_workspace_mm(self) -> float:
         """The predicted workspace error with every configuration of the plan measured (a
         generated pool beyond the plan is not part of "the full plan")."""
         if self._full_ws is None:
-            self._full_ws = self.workspace_mm(_inv_sym(self.model.prior + self._all / self.sigma_mm**2))
+            cov = _inv_sym(self.model.prior + self._all / self.sigma_mm**2)
+            self._full_ws = self.predicted_workspace_mm(range(self.model.n_plan), cov)
         return self._full_ws
 
     def status(self) -> Status:
@@ -263,7 +308,7 @@ class SequentialDesign:
         idx = list(indices)
         cov = self.covariance(idx) if cov is None else cov
         hw = self.half_widths_deg(cov)
-        ws, full = self.workspace_mm(cov), self.full_workspace_mm()
+        ws, full = self.predicted_workspace_mm(idx, cov), self.full_workspace_mm()
         held, full_held = self.held_out_mm(ws), self.held_out_mm(full)
         n, rule = len(idx), self.rule
         stop, reason = False, ""

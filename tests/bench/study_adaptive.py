@@ -20,6 +20,15 @@ Scored per seed, for the adaptive selection and for the whole plan:
 * coverage: how often each determinable offset's 95 % interval (the Laplace fit with the plan's
   model) holds the hidden truth.
 
+* predicted against found: the held-out error and the model's own error (the fit against the
+  true positions, no sensor noise) the design predicts at the stop, for the adaptive selection
+  and the full plan, against what the fits show on the held-out configurations; and the
+  prediction over the held-out configurations' own workspace matrix. ``--in-sample`` predicts
+  as the design did before the leave-one-out correction (the errors at the measured candidates).
+
+The adaptive loop computes each choice ahead (``lookahead="inline"``): its seconds are not the
+robot's, as in a run with its worker process. ``--no-coverage`` skips the Laplace fits.
+
     PYTHONPATH=$PWD python3 tests/bench/study_adaptive.py --seeds 20 --held-out 10
     PYTHONPATH=$PWD python3 tests/bench/study_adaptive.py --cell tx60 --poses 20 --seeds 20 --held-out 10
     PYTHONPATH=$PWD python3 tests/bench/study_adaptive.py --seeds 20 --held-out 10 --extra 200   # + a pool
@@ -44,6 +53,7 @@ from acquire.run.adaptive import AdaptiveRun, fit_options
 from acquire.sequencer import (estimate_measure_s, estimate_settle_s, move_times, order_by_pose_proximity,
                                order_configurations)
 from calib.fit.offsets import fit_mode, fit_offsets
+from calib.plan.adaptive import SequentialDesign
 from calib.measure.dataset import from_arrays
 from calib.robot.gravity import gravity_torques
 from calib.robot.kinematics import Chain
@@ -94,37 +104,47 @@ class Cell:
         self.marker = c.marker_names.index(marker)
         self.sag = model.has_dynamics
 
-    def observe(self, q: np.ndarray) -> np.ndarray:
-        """(k, 3) measured marker positions (mm, sensor frame) at commanded ``q`` (k, n)."""
+    def observe(self, q: np.ndarray, noise: bool = True) -> np.ndarray:
+        """(k, 3) measured marker positions (mm, sensor frame) at commanded ``q`` (k, n); without
+        ``noise`` the true positions (for the model's own error on held-out configurations)."""
         q = np.atleast_2d(q)
         q_true = q + self.offsets
         if self.sag:
             q_true = q_true + self.chain.sign * K_TRUE * gravity_torques(self.chain, q, self.params)
         pos = self.chain.marker_positions(q_true, self.params)[:, self.marker]
-        return pos + SENSOR + self.rng.normal(0, self.noise, pos.shape)
+        return pos + SENSOR + (self.rng.normal(0, self.noise, pos.shape) if noise else 0.0)
 
 
 def dataset(q, xyz, ids, marker):
     return from_arrays(np.asarray(q), np.asarray(xyz), marker=marker, sensor="mocap", config=np.asarray(ids))
 
 
-def score(lp, cell, q, xyz, ids, q_val, xyz_val, opts, marker):
-    """(held-out rms mm, coverage hits, coverage trials) of a fit on the given configurations."""
+def score(lp, cell, q, xyz, ids, q_val, xyz_val, opts, marker, xyz_true=None, coverage=True):
+    """(held-out rms mm, coverage hits, coverage trials, the model's own held-out rms error mm —
+    against the true positions ``xyz_true``, no sensor noise — or nan) of a fit on the given
+    configurations."""
     cal = dataset(q, xyz, ids, marker)
     mf = fit_mode(lp.model, cal, opts)
-    res = mf.predict_residuals(dataset(q_val, xyz_val, [f"v{i}" for i in range(len(q_val))], marker))
+    names = [f"v{i}" for i in range(len(q_val))]
+    res = mf.predict_residuals(dataset(q_val, xyz_val, names, marker))
     held = float(np.sqrt(np.mean(np.sum(res**2, axis=-1))))
+    model = float("nan")
+    if xyz_true is not None:
+        res0 = mf.predict_residuals(dataset(q_val, xyz_true, names, marker))
+        model = float(np.sqrt(np.mean(np.sum(res0**2, axis=-1))))
     hits = trials = 0
+    if not coverage:
+        return held, 0, 0, model
     try:
         fit = fit_offsets(lp.model, cal, opts)
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
         print(f"  (no Laplace fit: {exc})")
-        return held, 0, 0
+        return held, 0, 0, model
     for i in np.flatnonzero(fit.identifiable()):
         lo, hi = fit.offsets_ci95_rad[i]
         trials += 1
         hits += bool(lo <= cell.offsets[i] <= hi)
-    return held, hits, trials
+    return held, hits, trials, model
 
 
 def tx60_configs(model, poses: int, seed: int, prefix: str = "p"):
@@ -167,6 +187,10 @@ def main() -> None:
                                                          "design may choose from (the full plan stays the plan's)")
     ap.add_argument("--cell", choices=("iiwa", "tx60"), default="iiwa",
                     help="iiwa: motion capture (marker sir), sag; tx60: laser tracker (SMR), no link masses")
+    ap.add_argument("--no-coverage", action="store_true", help="skip the Laplace fits (coverage): faster")
+    ap.add_argument("--in-sample", action="store_true",
+                    help="predict the errors on the measured candidates themselves (the design before the "
+                         "leave-one-out correction), for comparison")
     args = ap.parse_args()
     t0 = time.process_time()
     marker = "sir" if args.cell == "iiwa" else "smr"
@@ -194,6 +218,10 @@ def main() -> None:
     paper = order_by_pose_proximity(configs, start, Chain(lp.model))
     t_paper = float(move_times(paper, start, limits, s.speed).sum() + len(configs) * (3.0 + measure))
     opts = fit_options(lp)
+    # the held-out configurations' own workspace matrix: the prediction over them, not the plan's
+    from calib.fit.design import design_model
+
+    held_design = design_model(lp.model, np.stack([c.q_rad for c in held_out]), {"mocap": [marker]}, opts)
     print(f"plan: {len(configs)} configurations ({args.poses} candidate poses) + {len(pool)} generated "
           f"({args.extra} poses); stop rule {lp.plan.adaptive.stop_when}")
     print(f"cell time: full plan {t_full:.0f} s (run order), paper's procedure {t_paper:.0f} s")
@@ -201,7 +229,13 @@ def main() -> None:
     for seed in range(args.seeds):
         cell = Cell(lp.model, seed, args.noise, marker)
         robot = Standing(limits)
-        run = AdaptiveRun(lp, configs, robot, s.speed, per_config, None, set(), start, pool)
+        # the choice computed while the robot moves (in the caller here: the seconds it takes are
+        # not the robot's, as in a run with its worker process)
+        run = AdaptiveRun(lp, configs, robot, s.speed, per_config, None, set(), start, pool, lookahead="inline")
+        if args.in_sample:
+            d0 = run.order.design
+            run.order.design = SequentialDesign(replace(d0.model, workspace_from_candidates=False), d0.rule,
+                                                d0.sigma_mm)
         seen = {}
         for cfg in run.choices(lambda kind, **f: None):
             xyz = cell.observe(cfg.q_rad)[0]
@@ -211,28 +245,45 @@ def main() -> None:
             robot.q = np.asarray(cfg.q_rad, dtype=float)
             run.outcome(cfg, "measured", rec)
         summ = run.summary()
+        dsg = run.order.design
+        assert held_design.names == dsg.model.names
+        a_held = held_design.workspace
+        w_a_held = math.sqrt(float(np.sum(a_held * dsg.covariance())))
+        w_f_held = math.sqrt(float(np.sum(a_held * dsg.covariance(range(len(configs))))))
+        ratio_held = dsg.held_out_mm(w_a_held) / dsg.held_out_mm(w_f_held)
+        w_a_new = dsg.new_pose_workspace_mm(dsg.measured)
+        w_f_new = dsg.new_pose_workspace_mm(range(len(configs)))
         q_val = np.stack([c.q_rad for c in held_out])
         xyz_val = cell.observe(q_val)
+        xyz_true = cell.observe(q_val, noise=False)
+        cov = not args.no_coverage
         ids = list(seen)
-        ad = score(lp, cell, [seen[i][0] for i in ids], [seen[i][1] for i in ids], ids, q_val, xyz_val, opts, marker)
+        ad = score(lp, cell, [seen[i][0] for i in ids], [seen[i][1] for i in ids], ids, q_val, xyz_val, opts, marker,
+                   xyz_true, cov)
         # the full plan: the adaptive run's measurements plus the rest, measured now
         q_all = np.stack([c.q_rad for c in configs])
         xyz_all = np.stack([seen[c.config_id][1] if c.config_id in seen else cell.observe(c.q_rad)[0] for c in configs])
-        fu = score(lp, cell, q_all, xyz_all, [c.config_id for c in configs], q_val, xyz_val, opts, marker)
+        fu = score(lp, cell, q_all, xyz_all, [c.config_id for c in configs], q_val, xyz_val, opts, marker,
+                   xyz_true, cov)
         # baseline: as many configurations, the first of the full plan's minimum-time tour (no design)
         pos = {c.config_id: k for k, c in enumerate(configs)}
         prefix = full_order[: len(ids)]
         t_prefix = float(move_times(prefix, start, limits, s.speed).sum() + len(prefix) * per_config)
         pre = score(lp, cell, [c.q_rad for c in prefix], [xyz_all[pos[c.config_id]] for c in prefix],
-                    [c.config_id for c in prefix], q_val, xyz_val, opts, marker)
+                    [c.config_id for c in prefix], q_val, xyz_val, opts, marker, coverage=cov)
         rows.append((seed, len(ids), summ["estimated_seconds"], ad, fu, summ["reason"], pre, t_prefix,
                      summ["held_out_mm"] / summ["full_held_out_mm"], summ.get("compute_seconds", 0.0),
+                     (summ["held_out_mm"], summ["full_held_out_mm"], summ["workspace_mm"], summ["full_workspace_mm"],
+                      summ["sigma_mm"], ratio_held, w_a_held, w_f_held, w_a_new, w_f_new),
                      summ.get("generated_measured", 0)))
         print(f"seed {seed:2d}: adaptive {len(ids):3d} configs ({summ.get('generated_measured', 0)} generated) "
               f"{summ['estimated_seconds']:6.0f} s "
               f"({summ['estimated_seconds'] / t_full:5.1%} of the full plan) held-out {ad[0]:.4f} mm "
               f"cover {ad[1]}/{ad[2]} | full {len(configs)} held-out {fu[0]:.4f} mm cover {fu[1]}/{fu[2]} | "
               f"tour prefix {t_prefix:.0f} s held-out {pre[0]:.4f} mm", flush=True)
+        print(f"         predicted / found: held-out adaptive {summ['held_out_mm']:.4f} / {ad[0]:.4f}, full "
+              f"{summ['full_held_out_mm']:.4f} / {fu[0]:.4f} mm; model error adaptive {summ['workspace_mm']:.4f} / "
+              f"{ad[3]:.4f}, full {summ['full_workspace_mm']:.4f} / {fu[3]:.4f} mm", flush=True)
     n = np.array([r[1] for r in rows])
     t = np.array([r[2] for r in rows])
     ha = np.array([r[3][0] for r in rows])
@@ -243,7 +294,7 @@ def main() -> None:
     cov_f = sum(r[4][1] for r in rows) / max(1, sum(r[4][2] for r in rows))
     print()
     print(f"{len(rows)} seeds; plan {len(configs)} configurations, full plan {t_full:.0f} s, paper's procedure {t_paper:.0f} s")
-    gen = np.array([r[10] for r in rows])
+    gen = np.array([r[11] for r in rows])
     print(f"adaptive: {n.mean():.1f} configurations (min {n.min()}, max {n.max()}; {gen.mean():.1f} generated), cell time {t.mean():.0f} s = "
           f"{t.mean() / t_full:.1%} of the full plan, {t.mean() / t_paper:.1%} of the paper's procedure")
     print(f"held-out rms: adaptive {ha.mean():.4f} ± {se(ha):.4f} mm, full plan {hf.mean():.4f} ± {se(hf):.4f} mm; "
@@ -258,6 +309,19 @@ def main() -> None:
           f"± {se(ha / hf):.3f}; choosing and refitting {comp.mean():.1f} s of the cell time (wall, this machine)")
     print(f"cell time less the choosing (moves, settling, measuring): {t.mean() - comp.mean():.0f} s = "
           f"{(t.mean() - comp.mean()) / t_full:.1%} of the full plan")
+    pa, pf, wa, wf, sg, rh, wah, wfh, wan, wfn = (np.array([r[10][k] for r in rows]) for k in range(10))
+    ma, mfu = np.array([r[3][3] for r in rows]), np.array([r[4][3] for r in rows])
+    print(f"predicted / found, mean over seeds: held-out adaptive {pa.mean():.4f} / {ha.mean():.4f} ± {se(ha):.4f} mm "
+          f"(found/predicted {np.mean(ha / pa):.3f} ± {se(ha / pa):.3f}), full {pf.mean():.4f} / {hf.mean():.4f} ± "
+          f"{se(hf):.4f} mm ({np.mean(hf / pf):.3f} ± {se(hf / pf):.3f}); σ used {sg.mean():.4f} mm")
+    print(f"model's own error (no sensor noise), rms predicted / found: adaptive {math.sqrt(np.mean(wa**2)):.4f} / "
+          f"{math.sqrt(np.mean(ma**2)):.4f} mm (mean square found/predicted {np.mean(ma**2) / np.mean(wa**2):.2f}), "
+          f"full {math.sqrt(np.mean(wf**2)):.4f} / {math.sqrt(np.mean(mfu**2)):.4f} mm "
+          f"({np.mean(mfu**2) / np.mean(wf**2):.2f}); over the held-out configurations' own workspace: predicted "
+          f"adaptive {math.sqrt(np.mean(wah**2)):.4f}, full {math.sqrt(np.mean(wfh**2)):.4f} mm, ratio {rh.mean():.3f}; "
+          f"new poses (leave-one-out over the plan's): adaptive {math.sqrt(np.mean(wan**2)):.4f}, full "
+          f"{math.sqrt(np.mean(wfn**2)):.4f} mm, ratio "
+          f"{np.mean(np.sqrt((3 * sg**2 + wan**2) / (3 * sg**2 + wfn**2))):.3f}")
     print(f"target (held-out within its standard error, ≤ 40 % of the full plan's time): "
           f"{'met' if d.mean() <= max(se(hf), se(d)) and t.mean() <= 0.4 * t_full else 'not met'}")
     print(f"coverage of the determinable offsets' 95 % intervals: adaptive {cov_a:.1%} "

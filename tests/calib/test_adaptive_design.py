@@ -218,3 +218,55 @@ def test_the_batch_plan_meets_the_rule_in_less_time_than_the_one_step_choice():
         assert st_b.stop and st_s.stop and "stop rule met" in st_b.reason
         ratios.append(t_batch / t_step)
     assert np.mean(ratios) < 0.95, ratios
+
+
+def test_the_new_pose_error_takes_each_measured_candidates_own_information_out():
+    # With the workspace the candidates' own, the predicted error at a measured candidate is the
+    # one of the fit without it (leave-one-out): brute force here, Woodbury in the design.
+    rng = np.random.default_rng(3)
+    n, r, L = 12, 3, 4
+    rows = rng.normal(size=(n, r, L))
+    ws = np.einsum("nri,nrj->ij", rows, rows) / (n * r / 3)
+    model = DesignModel(rows=rows, prior=0.01 * np.eye(L), offsets=np.array([0]), offset_names=("A2.offset",),
+                        workspace=ws, workspace_from_candidates=True)
+    d = SequentialDesign(model, StopRule(held_out_within_pct=10, min_configurations=2), sigma_mm=0.2)
+    measured = [0, 3, 4, 7, 9]
+    var = []
+    for c in range(n):
+        others = [i for i in measured if i != c]
+        cov = d.covariance(others)
+        var.append(np.trace(rows[c] @ cov @ rows[c].T))
+    want = math.sqrt(np.mean(var) * 3 / r)
+    assert d.new_pose_workspace_mm(measured) == pytest.approx(want, rel=1e-9)
+    # larger than the in-sample error of the same fit; the status and the rule use it
+    assert want > d.workspace_mm(d.covariance(measured))
+    d.measured = list(measured)
+    st = d.status()
+    assert st.workspace_mm == pytest.approx(want, rel=1e-9)
+    assert st.held_out_mm == pytest.approx(math.sqrt(3 * 0.2**2 + want**2))
+    # the full plan's prediction too: every candidate left out in turn
+    full = [np.trace(rows[c] @ d.covariance([i for i in range(n) if i != c]) @ rows[c].T) for c in range(n)]
+    assert st.full_workspace_mm == pytest.approx(math.sqrt(np.mean(full) * 3 / r), rel=1e-9)
+
+
+def test_with_a_pool_the_new_pose_error_and_the_full_plan_stay_the_plans():
+    # Candidates 0…7 are the plan's, 8…11 a generated pool. The error at new poses averages over
+    # the plan's candidates only (a measured pool candidate adds information, not a place to be
+    # scored), and "the full plan" is the plan's eight — brute force against the design.
+    rng = np.random.default_rng(5)
+    n_plan, n, r, L = 8, 12, 3, 4
+    rows = rng.normal(size=(n, r, L))
+    ws = np.einsum("nri,nrj->ij", rows[:n_plan], rows[:n_plan]) / (n_plan * r / 3)
+    model = DesignModel(rows=rows, prior=0.01 * np.eye(L), offsets=np.array([0]), offset_names=("A2.offset",),
+                        workspace=ws, plan_size=n_plan, workspace_from_candidates=True)
+    d = SequentialDesign(model, StopRule(held_out_within_pct=10, min_configurations=2), sigma_mm=0.2)
+
+    def brute(measured):
+        var = [np.trace(rows[c] @ d.covariance([i for i in measured if i != c]) @ rows[c].T) for c in range(n_plan)]
+        return math.sqrt(np.mean(var) * 3 / r)
+
+    measured = [0, 3, 9, 10]  # two of the plan's, two of the pool's
+    assert d.new_pose_workspace_mm(measured) == pytest.approx(brute(measured), rel=1e-9)
+    assert d.full_workspace_mm() == pytest.approx(brute(list(range(n_plan))), rel=1e-9)
+    # measuring the pool as well would predict better than the plan alone: not what the rule compares with
+    assert brute(list(range(n))) < d.full_workspace_mm()
