@@ -48,6 +48,9 @@ def wait_for_starts(log, n: int, timeout: float) -> bool:
     return False
 
 
+# ~60 s of simulated runs killed and resumed: the slow selection (resume after an abort and after a
+# controller drop stay in the default one)
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [7])
 def test_sigkill_at_random_moments_then_resume_measures_every_configuration_once(tmp_path, seed):
     rng = random.Random(seed)
