@@ -124,7 +124,7 @@ def varied(name: str, seed: int, wide: bool):
 
 
 @pytest.mark.parametrize("wide", [False, True])
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.slow)])  # a second model: slow selection
 def test_float_path_equals_vectorised_for_other_conventions_and_wide_limits(seed, wide):
     m = varied(SEVEN[0], seed, wide)
     q = np.random.default_rng(seed).uniform(m.lower_limits_rad, m.upper_limits_rad, (600, 7))
@@ -222,7 +222,7 @@ def _extreme(m, pose, branch: int, joint: int) -> tuple[float, float]:
     return float(res.x), float(-res.fun)
 
 
-@pytest.mark.parametrize("joint", [0, 1, 4, 5, 6])
+@pytest.mark.parametrize("joint", [0, 1, pytest.param(4, marks=pytest.mark.slow), 5, 6])  # A5: 12 s, slow selection
 def test_limits_a_joint_only_grazes_are_handed_over_or_decided_alike(joint):
     """A limit set at (or a hair's breadth from) a joint's largest value over the arm angle is
     a double root of its crossing equation: the float path hands such poses over (a root pair
