@@ -81,3 +81,15 @@ def fake_controller(lp, **kwargs):
 
     threading.Thread(target=close_after_the_run, name="sim-closer", daemon=True).start()
     return rc
+
+
+def aborted_run(lp, after: int, timeout_s: float = 120.0):
+    """A fake run of ``lp`` (no fit) aborted by the operator once ``after`` configurations are
+    measured; its summary (state "aborted" unless the run ended first)."""
+    def abort_once_measured(status):
+        if status["measured"] >= after and status["state"] == "running":
+            rc.abort("test abort")
+
+    rc = fake_controller(lp, on_progress=abort_once_measured, fit=False)
+    rc.start()
+    return rc.wait(timeout_s)

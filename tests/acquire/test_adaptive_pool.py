@@ -6,7 +6,6 @@ Fast: synthetic sample records, no devices (as tests/acquire/test_adaptive_order
 
 from __future__ import annotations
 
-import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -175,19 +174,13 @@ def test_a_pooled_run_on_the_simulated_cell_logs_its_generated_choices_and_resum
     from collections import Counter
 
     from acquire.recorder import read_run
-    from run_helpers import fake_controller
+    from run_helpers import aborted_run, fake_controller
 
     lp = load_plan(small_plan(tmp_path, n=10, sequencing={"samples": 5, "settle_window_s": 0.2},
                               fake={"time_scale": 6.0},
                               adaptive={**RULE, "candidates": {"extra_poses": 16}}))
 
-    def abort_after_four(status):
-        if status["measured"] >= 4 and status["state"] == "running":
-            rc.abort("test abort")
-
-    rc = fake_controller(lp, on_progress=abort_after_four, fit=False)
-    rc.start()
-    first = rc.wait(150)
+    first = aborted_run(lp, 4, 150)
     assert first.state == "aborted", first.reason
     before = [s["config_id"] for s in read_run(first.log_path).samples]
     rc2 = fake_controller(lp, resume=first.log_path, fit=False)

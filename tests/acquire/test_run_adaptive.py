@@ -8,13 +8,12 @@ import math
 from dataclasses import replace
 from collections import Counter
 
-import numpy as np
 import pytest
 
 from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import dataset_from_run, read_run
 
-from run_helpers import fake_controller, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import aborted_run, fake_controller, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -63,13 +62,7 @@ def test_the_run_stops_when_every_offsets_interval_is_as_narrow_as_the_plan_asks
 def test_a_resumed_adaptive_run_continues_its_choices_without_repeating_one(tmp_path):
     lp = load_plan(adaptive_plan(tmp_path, {"workspace_within_pct": 5}, min_configurations=10))
 
-    def abort_after_four(status):
-        if status["measured"] >= 4 and status["state"] == "running":
-            rc.abort("test abort")
-
-    rc = fake_controller(lp, on_progress=abort_after_four, fit=False)
-    rc.start()
-    first = rc.wait(120)
+    first = aborted_run(lp, 4)
     assert first.state == "aborted"
     before = [s["config_id"] for s in read_run(first.log_path).samples]
     assert len(before) >= 4

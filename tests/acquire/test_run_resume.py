@@ -12,7 +12,7 @@ import pytest
 from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import RunLogError, read_run
 
-from run_helpers import fake_controller, popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import aborted_run, fake_controller, popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = pytest.mark.timeout(170)
 
@@ -95,13 +95,7 @@ def test_resume_after_an_abort_continues_and_refuses_another_plan(tmp_path):
     lp = load_plan(plan)
     configs = {c.config_id for c in resolve_configurations(lp)}
 
-    def abort_after_three(status):
-        if status["measured"] >= 3 and status["state"] == "running":
-            rc.abort("test abort")
-
-    rc = fake_controller(lp, on_progress=abort_after_three, fit=False)
-    rc.start()
-    first = rc.wait(120)
+    first = aborted_run(lp, 3)
     assert first.state == "aborted" and first.exit_code != 0
     recorded = read_run(first.log_path)
     done_before = {s["config_id"] for s in recorded.samples}
