@@ -93,3 +93,10 @@ def aborted_run(lp, after: int, timeout_s: float = 120.0):
     rc = fake_controller(lp, on_progress=abort_once_measured, fit=False)
     rc.start()
     return rc.wait(timeout_s)
+
+
+def resumed_run(lp, log_path, timeout_s: float = 200.0):
+    """The fake run of ``lp`` (no fit) resuming the log ``log_path``, to its end; its summary."""
+    rc = fake_controller(lp, resume=log_path, fit=False)
+    rc.start()
+    return rc.wait(timeout_s)

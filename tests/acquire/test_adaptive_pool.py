@@ -174,7 +174,7 @@ def test_a_pooled_run_on_the_simulated_cell_logs_its_generated_choices_and_resum
     from collections import Counter
 
     from acquire.recorder import read_run
-    from run_helpers import aborted_run, fake_controller
+    from run_helpers import aborted_run, resumed_run
 
     lp = load_plan(small_plan(tmp_path, n=10, sequencing={"samples": 5, "settle_window_s": 0.2},
                               fake={"time_scale": 6.0},
@@ -183,9 +183,7 @@ def test_a_pooled_run_on_the_simulated_cell_logs_its_generated_choices_and_resum
     first = aborted_run(lp, 4, 150)
     assert first.state == "aborted", first.reason
     before = [s["config_id"] for s in read_run(first.log_path).samples]
-    rc2 = fake_controller(lp, resume=first.log_path, fit=False)
-    rc2.start()
-    second = rc2.wait(200)
+    second = resumed_run(lp, first.log_path)
     assert second.state == "finished", second.reason
     run = read_run(first.log_path)
     counts = Counter(s["config_id"] for s in run.samples)

@@ -13,7 +13,7 @@ import pytest
 from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import dataset_from_run, read_run
 
-from run_helpers import aborted_run, fake_controller, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import aborted_run, fake_controller, resumed_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -67,9 +67,7 @@ def test_a_resumed_adaptive_run_continues_its_choices_without_repeating_one(tmp_
     before = [s["config_id"] for s in read_run(first.log_path).samples]
     assert len(before) >= 4
 
-    rc2 = fake_controller(lp, resume=first.log_path, fit=False)
-    rc2.start()
-    second = rc2.wait(200)
+    second = resumed_run(lp, first.log_path)
     assert second.state == "finished", second.reason
     run = read_run(first.log_path)
     counts = Counter(s["config_id"] for s in run.samples)
