@@ -120,6 +120,7 @@ def blocked_view_plan(tmp_path: Path) -> Path:
                       sequencing={"on_lost_target": "skip", "lost_target_wait_s": 0.2})
 
 
+@pytest.mark.slow  # ~55 s: 14 configurations moved to and skipped; a failed fit's exit is also tested below
 def test_a_run_that_measures_nothing_exits_1_and_says_why(tmp_path):
     plan = blocked_view_plan(tmp_path)
     result = CliRunner().invoke(app, ["run", str(plan), "--fake", "--no-bus"])
