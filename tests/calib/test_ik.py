@@ -133,7 +133,9 @@ def test_wrist_equivalents_within_limits_are_returned_and_labelled():
 
 # --- completeness against a brute-force numeric search ---------------------------------------------
 @pytest.mark.parametrize(
-    "name,n_poses,n_starts", [("kuka_kr6_r900_2", 12, 1000), ("staubli_tx60", 12, 1000), ("kuka_iiwa14_r820", 4, 500)]
+    "name,n_poses,n_starts",
+    [("kuka_kr6_r900_2", 12, 1000), ("staubli_tx60", 12, 1000),
+     pytest.param("kuka_iiwa14_r820", 4, 500, marks=pytest.mark.slow)],  # the 7R case: ~10 s, slow selection
 )
 def test_solution_count_matches_brute_force_numeric_search(name, n_poses, n_starts):
     m = model(name)

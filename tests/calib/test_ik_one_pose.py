@@ -27,6 +27,10 @@ from calib.robot.model import load_robot_model
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 SIX = ["kuka_kr6_r900_2", "staubli_tx60"]
 SEVEN = ["kuka_iiwa14_r820", "kuka_iiwa7_r800"]
+#: The slowest equivalence checks (~5 s a model) run one model in the default selection and the
+#: other in the slow one.
+SIX_FAST_ONE = [SIX[0], pytest.param(SIX[1], marks=pytest.mark.slow)]
+SEVEN_FAST_ONE = [SEVEN[0], pytest.param(SEVEN[1], marks=pytest.mark.slow)]
 
 
 def model(name: str):
@@ -65,7 +69,7 @@ def test_one_pose_path_equals_vectorised_on_random_reachable_poses(name, within_
     assert fast >= 0.95 * len(q), f"only {fast} of {len(q)} poses took the float path"
 
 
-@pytest.mark.parametrize("name", SIX)
+@pytest.mark.parametrize("name", SIX_FAST_ONE)
 def test_one_pose_path_equals_vectorised_beyond_the_limits(name):
     """Joint vectors up to 40 % beyond the limits (A1 kept inside the reach of a real arm):
     poses whose solutions are all outside the limits give "limits" with the same message."""
@@ -241,7 +245,7 @@ def test_rotations_written_out_per_coordinate_axis_equal_the_general_formulas():
 
 # --- 7R at a given arm angle ---------------------------------------------------------------------
 @pytest.mark.parametrize("within_limits", [True, False])
-@pytest.mark.parametrize("name", SEVEN)
+@pytest.mark.parametrize("name", SEVEN_FAST_ONE)
 def test_one_pose_path_equals_vectorised_7r_at_own_and_random_arm_angles(name, within_limits):
     m = model(name)
     rng = np.random.default_rng(9)
