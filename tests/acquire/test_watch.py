@@ -202,6 +202,7 @@ def test_watch_finds_a_real_run_by_itself_and_follows_it_to_the_end(tmp_path):
     assert f"text log: {text_log.relative_to(tmp_path)}" in console  # relative to the working folder
 
 
+@pytest.mark.slow  # ~20 s: a whole fake run for what -v prints; watching a run stays in the default selection
 @pytest.mark.timeout(200)
 def test_run_with_v_shows_device_logs_on_the_terminal(tmp_path):
     plan = small_plan(tmp_path, n=4)
