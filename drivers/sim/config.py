@@ -20,7 +20,8 @@ defaults this module applies (see ``fixtures/sim/default.yaml`` for a documented
                natnet: {version: "3.0", asset: rigid_body, asset_name: tool, multicast: false},  # mocap
                protocols: [line]}]                  # tracker: line and/or emscon
     allowances: {silence_ms: 300, state_age_ms: 300}   # the commander's timing allowances, wall ms
-    controller: {fri_version: "1.15"}  # the fake Sunrise's FRI layout: 1.15, 2.5 or 2.7
+    controller: {fri_version: "1.15",  # the fake Sunrise's FRI layout: 1.15, 2.5 or 2.7
+                 mastering_deg: null}  # the controller's zero corrections (drivers/sim/mastering.py)
     faults:                       # scripted faults (drivers/sim/faults.py), wall s after the cell starts
       - {at_s: 12, fault: beam_break, device: tracker, duration_s: 3}
 
@@ -255,6 +256,17 @@ class ControllerServe(_Strict):
     """How the cell's fake controller speaks (the controller kind comes from the robot model)."""
 
     fri_version: Literal["1.15", "2.5", "2.7"] = Field("1.15", description="FRI layout of a fake Sunrise.")
+    mastering_deg: list[float] | None = Field(
+        None, description="The controller's mastering at start: one zero correction per axis, deg, relative to the "
+                          "mastering the arm was built with (drivers/sim/mastering.py; KSS: the change of $MAMES[i]). "
+                          "Entering a fit's corrections here is entering them on the controller. None: all zero.")
+
+    @field_validator("mastering_deg")
+    @classmethod
+    def _sane_corrections(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and any(not abs(x) <= 180.0 for x in v):
+            raise ValueError(f"corrections must be numbers within ±180°, got {v}")
+        return v
 
     _text = field_validator("fri_version", mode="before")(lambda cls, v: _version_text(v))
 
