@@ -28,8 +28,10 @@ The controller's mastering (``drivers/sim/mastering.py``), entered as on the rea
 (with no run commanding the robot; the controller restarts with it): a line ``master AXIS
 CORRECTION_DEG`` (``master A2 -0.0123``: the axis zero shifts by the correction, KSS ``$MAMES[2] =
 $MAMES[2] -0.0123``, which is also taken as written), ``enter RESULT.json`` (every correction the
-result tells the operator to enter) or ``mastering`` (show the table); on a terminal, key ``m``
-asks for such a line. The answer is the new table, or ``error: ...``.
+result tells the operator to enter), ``mastering`` (show the table) or ``save CELL.yaml`` (a copy
+of the cell file with the mastering: the cell a later ``--fake`` run starts with, as a controller
+keeps its mastering through a restart); on a terminal, key ``m`` asks for such a line. The answer
+is the new table, or ``error: ...``.
 """
 
 from __future__ import annotations
@@ -134,16 +136,16 @@ def sim(
         interactive = sys.stdin is not None and sys.stdin.isatty()
         typer.echo(KEY_HELP + "; m: enter mastering" if interactive else
                    "faults: one line on stdin 'FAULT [DEVICE|all] [DURATION_S] [PROBABILITY]'; mastering: "
-                   "'master AXIS CORRECTION_DEG', 'enter RESULT.json', 'mastering'")
+                   "'master AXIS CORRECTION_DEG', 'enter RESULT.json', 'mastering', 'save CELL.yaml'")
         try:
             with _sigterm_as_interrupt():
-                (_keys if interactive else _lines)(launch, time.monotonic() + duration)
+                (_keys if interactive else _lines)(launch, time.monotonic() + duration, Path(config))
         except KeyboardInterrupt:
             typer.echo("stopping")
     finally:
         launch.close()
-    q = np.degrees(cell.joint_positions())
-    typer.echo(f"stopped; final joints (deg) {np.round(q, 3).tolist()}")
+    q = np.degrees(launch.robot_view.joint_positions())
+    typer.echo(f"stopped; final joints as the controller reports them (deg) {np.round(q, 3).tolist()}")
 
 
 class _sigterm_as_interrupt:
@@ -177,19 +179,26 @@ def _running(deadline: float) -> None:
 
 
 #: The first words of a stdin line that speaks to the controller's mastering, not a fault.
-MASTERING_WORDS = ("master", "enter", "mastering")
+MASTERING_WORDS = ("master", "enter", "mastering", "save")
 
 
-def _mastering(launch: SimLaunch, line: str) -> str:
+def _mastering(launch: SimLaunch, line: str, source: Path | None = None) -> str:
     """Do one mastering line (``master AXIS C``, ``$MAMES[i] = $MAMES[i] ±C``, ``enter RESULT.json``,
-    ``mastering``); the answer to print: the table after it, or ``error: …``."""
+    ``mastering``, ``save CELL.yaml`` — a copy of the cell file ``source`` with the mastering); the
+    answer to print: the table after it, or ``error: …``."""
     from calib.robot.entered import read_entered
+    from drivers.sim.config import save_with_mastering
     from drivers.sim.mastering import MasteringEntry, MasteringError, parse_entry
 
     words = line.split()
     try:
         if words == ["mastering"]:
             return "\n".join(["mastering:"] + launch.mastering.lines())
+        if words[0] == "save":
+            if len(words) != 2:
+                raise MasteringError(f"give 'save CELL.yaml'; given {line.strip()!r}")
+            path = save_with_mastering(source, words[1], launch.mastering.corrections_deg, seed=launch.cell.config.seed)
+            return f"saved {path}: this cell with the controller's mastering (--config it, or a plan's fake.sim_config)"
         if words[0] == "enter":
             if len(words) != 2:
                 raise MasteringError(f"give 'enter RESULT.json'; given {line.strip()!r}")
@@ -204,15 +213,15 @@ def _mastering(launch: SimLaunch, line: str) -> str:
             entries = parse_entry(line)
             what = "entered: " + ", ".join(f"{e.axis} {e.correction_deg:+.4f}°" for e in entries)
         launch.enter_mastering(entries)
-    except ValueError as exc:  # MasteringError, a result that cannot be read
+    except (ValueError, OSError) as exc:  # MasteringError, ConfigError, a file that cannot be read or written
         return f"error: {exc}"
     return "\n".join([what, "mastering (the controller restarted with it):"] + launch.mastering.lines())
 
 
-def _answer(launch: SimLaunch, line: str) -> str:
-    """What one stdin line does: a mastering entry or a fault."""
+def _answer(launch: SimLaunch, line: str, source: Path | None = None) -> str:
+    """What one stdin line does: a mastering entry (``source``: the cell file) or a fault."""
     if line.split()[0] in MASTERING_WORDS or line.lstrip().startswith("$MAMES"):
-        return _mastering(launch, line)
+        return _mastering(launch, line, source)
     try:
         f = parse_command(line)
     except FaultError as exc:
@@ -220,7 +229,7 @@ def _answer(launch: SimLaunch, line: str) -> str:
     return _inject(launch, f.fault, f.device, f.duration_s, f.probability)
 
 
-def _lines(launch: SimLaunch, deadline: float) -> None:
+def _lines(launch: SimLaunch, deadline: float, source: Path | None = None) -> None:
     """stdin is a pipe (or closed): one fault or mastering line at a time until the deadline (EOF: just wait)."""
     done = threading.Event()
 
@@ -230,7 +239,7 @@ def _lines(launch: SimLaunch, deadline: float) -> None:
                 return
             if not line.strip():
                 continue
-            print(_answer(launch, line), flush=True)
+            print(_answer(launch, line, source), flush=True)
 
     threading.Thread(target=read, name="sim-stdin", daemon=True).start()
     _running(deadline)
@@ -241,7 +250,7 @@ def _lines(launch: SimLaunch, deadline: float) -> None:
         done.set()
 
 
-def _keys(launch: SimLaunch, deadline: float) -> None:
+def _keys(launch: SimLaunch, deadline: float, source: Path | None = None) -> None:
     """stdin is a terminal: single keys (no Enter) inject faults; ``q`` quits."""
     import termios
     import tty
@@ -269,7 +278,7 @@ def _keys(launch: SimLaunch, deadline: float) -> None:
                     tty.setcbreak(fd)
                 if line.strip():
                     typer.echo(_mastering(launch, line if line.split()[0] in MASTERING_WORDS or
-                                          line.lstrip().startswith("$MAMES") else f"master {line}"))
+                                          line.lstrip().startswith("$MAMES") else f"master {line}", source))
             elif key in ("h", "?"):
                 typer.echo(KEY_HELP + "; m: enter mastering")
     finally:

@@ -367,3 +367,36 @@ def load_sim_config(path: str | Path) -> SimConfig:
     if not robot.is_absolute():
         robot = (path.resolve().parent / robot).resolve()
     return config.model_copy(update={"robot": str(robot)})
+
+
+def save_with_mastering(source: str | Path, target: str | Path, mastering_deg, *, seed: int | None = None) -> Path:
+    """Write a copy of the cell file ``source`` to ``target`` with ``controller.mastering_deg`` set
+    (n values, deg): the cell the next ``--fake`` run starts with — a controller keeps its mastering
+    through a restart. A relative robot path is made absolute when the folder changes. The copy is
+    checked by loading it (ConfigError naming the line otherwise); ``target`` is written only then.
+    ``seed``: the seed the cell runs with, when it was overridden."""
+    import yaml
+
+    from calib.io.yamlfile import load_yaml_with_marks
+
+    source, target = Path(source), Path(target)
+    data, _ = load_yaml_with_marks(source)
+    controller = dict(data.get("controller") or {})
+    controller["mastering_deg"] = [round(float(v), 9) for v in mastering_deg]
+    data["controller"] = controller
+    if seed is not None:
+        data["seed"] = int(seed)
+    robot = Path(str(data.get("robot", "")))
+    if not robot.is_absolute() and source.resolve().parent != target.resolve().parent:
+        data["robot"] = str((source.resolve().parent / robot).resolve())
+    text = ("# " + f"{source.name} with the controller's mastering entered (acquire sim 'save')\n"
+            + yaml.safe_dump(data, sort_keys=False))
+    tmp = target.with_name(f".{target.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    try:
+        load_sim_config(tmp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    tmp.replace(target)
+    return target
