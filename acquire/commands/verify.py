@@ -110,6 +110,16 @@ def _measure(lp, configs, *, fake: bool, out: Optional[Path], resume: Optional[P
             sim.close()
 
 
+def _load_only(plan: Path):
+    """The plan without resolving its configurations (``--log`` moves nothing); exit 2 when bad."""
+    from acquire.plan import load_plan
+
+    try:
+        return load_plan(plan)
+    except (ValueError, OSError) as exc:  # ConfigError is a ValueError
+        _fail(str(exc))
+
+
 def _with_cell(lp, cell: Path, fake: bool):
     """``lp`` whose ``--fake`` cell is ``cell`` (checked as ``acquire run --fake`` checks a plan's)."""
     from dataclasses import replace
@@ -140,23 +150,24 @@ def verify(
     log_path: Optional[Path] = typer.Option(None, "--log", help="Score this verification log again; move nothing."),
     resume: Optional[Path] = typer.Option(None, "--resume", help="Continue the verification run recorded in this log "
                                                                  "(same --poses and --seed)."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Folder for the run (default: the plan's output.folder)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for the run (default: the plan's output.folder); "
+                                                           "with --log, for verify.json (default: beside the log)."),
     verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="Console shows INFO (-v) or DEBUG (-vv) logs too."),
 ) -> None:
     """Measure fresh configurations after the offsets were entered; compare with the prediction."""
     from acquire.commands.run import _load, plan_argument
     from acquire.run.verify import fresh_configurations, load_result
 
-    plan, _ = plan_argument(plan)
-    lp, _ = _load(plan, fake)
-    if cell is not None:
-        lp = _with_cell(lp, cell, fake)
     if not result.is_file():
         _fail(f"--result {result}: no such file (give the result.json of the calibration whose values were entered)")
     try:
         _, values = load_result(result)
     except ValueError as exc:
         _fail(str(exc))
+    plan, _ = plan_argument(plan)
+    lp = _load(plan, fake)[0] if log_path is None else _load_only(plan)
+    if cell is not None:
+        lp = _with_cell(lp, cell, fake)
     if values.refused:
         typer.echo("warning: the result says do not enter: " + "; ".join(values.refused), err=True)
     typer.echo("entered (" + values.source + "): " + (", ".join(f"{a.axis} δ {a.delta_deg:+.4f}°" for a in values.axes)
@@ -187,8 +198,8 @@ def verify(
     from calib.fit.verification import summary_lines
 
     try:
-        doc, json_path, report = verify_log(log_path, lp, result)
-    except ValueError as exc:
+        doc, json_path, report = verify_log(log_path, lp, result, out_dir=out)
+    except (ValueError, OSError) as exc:
         _fail(str(exc), 1)
     typer.echo(f"prediction: {doc['prediction_from']}")
     for line in summary_lines(doc):

@@ -31,8 +31,9 @@ log = logging.getLogger(__name__)
 FRESH_SEED_OFFSET = 1000
 #: Id prefix of the fresh configurations.
 PREFIX = "v"
-#: A fresh configuration this close (rad, every joint) to a calibration configuration is left out.
-SAME_Q_RAD = 1e-6
+#: A fresh configuration this close (rad, every joint) to one the calibration measured is left out
+#: (the measured angles sit within the settling tolerance of their targets).
+SAME_Q_RAD = 1e-3
 
 
 def fresh_configurations(lp, *, poses: int | None = None, seed: int | None = None,
@@ -95,10 +96,11 @@ def prediction_for(result_path: Path, doc: dict, values: EnteredValues, model) -
         return None, f"none: the calibration log {cal_log} could not be scored ({exc})"
 
 
-def verify_log(log_path: Path, lp, result_path: Path) -> tuple[dict, Path, Path | None]:
+def verify_log(log_path: Path, lp, result_path: Path, *, out_dir: Path | None = None) -> tuple[dict, Path, Path | None]:
     """Score the verification run log ``log_path`` against the result ``result_path``; write
-    ``verify.json`` and ``verify.html`` beside the log. Returns (document, json path, report path).
-    Raises ValueError (DatasetError) for a log or a result that cannot be used."""
+    ``verify.json`` and ``verify.html`` beside the log (or into ``out_dir``). Returns (document,
+    json path, report path). Raises ValueError (DatasetError) for a log or a result that cannot be
+    used, OSError for a folder that cannot be written."""
     from acquire.commands.fit import load_dataset
     from calib.fit.result import write_result
     from calib.fit.verification import verify_entry
@@ -118,9 +120,9 @@ def verify_log(log_path: Path, lp, result_path: Path) -> tuple[dict, Path, Path 
     cal_log = calibration_log(Path(result_path), doc)
     if cal_log is not None:
         out["calibration_log"] = str(cal_log)
-    path = Path(log_path).with_name("verify.json")
-    write_result(path, out)
-    report = Path(log_path).with_name("verify.html")
+    folder = Path(out_dir) if out_dir is not None else Path(log_path).parent
+    path = write_result(folder / "verify.json", out)
+    report = folder / "verify.html"
     try:
         from calib.report.report_verify import write_verify_report
 

@@ -1,4 +1,5 @@
-"""``acquire sim``'s mastering lines, as its stdin reader answers them: ``enter RESULT.json`` puts
+"""Entering and verifying without a whole run. ``acquire sim``'s mastering lines, as its stdin reader
+answers them: ``enter RESULT.json`` puts
 the correction of every axis the result enters into the running controller (a result written by
 the real ``acquire fit``), ``save`` writes the cell a later ``--fake`` run starts with, and a bad
 line changes nothing."""
@@ -61,3 +62,24 @@ def test_enter_a_result_then_save_the_cell_with_its_mastering(result_json, tmp_p
     assert cfg.controller.mastering_deg == pytest.approx(expected, abs=1e-8)
     # the same robot: the hidden truth is the file's, only the controller's mastering changed
     assert SimCell(cfg).truth.offsets_deg == pytest.approx(cell.truth.offsets_deg)
+
+
+def test_verify_scores_a_given_log_against_a_prediction_made_from_the_calibration(result_json, tmp_path):
+    """``acquire verify --log``: the robot of the packaged validation set had nothing entered, so it
+    does worse than the result predicts (exit 3); the prediction is made from the calibration data
+    the result names (an older result without ``entered``)."""
+    from run_helpers import small_plan
+
+    plan = small_plan(tmp_path, n=6)
+    val = tmp_path / "val.csv"
+    val.write_bytes((ROOT / "fixtures" / "datasets" / "iiwa14_sim_val.csv").read_bytes())
+    res = CliRunner().invoke(app, ["verify", str(plan), "--result", str(result_json), "--log", str(val), "--out", str(tmp_path)])
+    assert res.exit_code == 3, res.output
+    assert "prediction: made here from the calibration log" in res.output
+    assert "verdict: worse than predicted" in res.output
+    doc = json.loads((tmp_path / "verify.json").read_text())
+    assert doc["entered_from"] == "joint_offsets"
+    after, found = doc["after"]["mean_mm"], doc["before"]["calibration"]["mean_mm"]
+    assert after == pytest.approx(found, rel=0.3)  # nothing entered: the robot is as found
+    assert doc["measured"]["improvement_mm"]["value"] < doc["predicted"]["interval_for_this_run"][0]
+    assert (tmp_path / "verify.html").read_text().count("<svg") == 1
