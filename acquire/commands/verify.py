@@ -28,8 +28,6 @@ safely, the log is closed and resumable).
 from __future__ import annotations
 
 import logging
-import signal
-import threading
 from pathlib import Path
 from typing import Optional
 
@@ -69,6 +67,7 @@ def _calibration_q(result: Path, lp):
 
 def _measure(lp, configs, *, fake: bool, out: Optional[Path], resume: Optional[Path], verbose: int):
     """Run ``configs`` without a fit (``acquire run``'s procedure); the run's summary."""
+    from acquire.commands.run import StopSafelyOnSignals, _start_simulated_cell, wait_for_end
     from acquire.console import configure_console
     from acquire.progress import make_progress
     from acquire.run import RunController, RunError
@@ -81,30 +80,15 @@ def _measure(lp, configs, *, fake: bool, out: Optional[Path], resume: Optional[P
         _fail(str(exc))
     progress = make_progress()
     controller.on_progress = progress.update
-    interrupted = threading.Event()
-
-    def on_signal(signum, frame):  # noqa: ARG001
-        if not interrupted.is_set():
-            interrupted.set()
-            log.warning("%s: stopping safely (the robot decelerates, the log is closed)", signal.Signals(signum).name)
-            threading.Thread(target=controller.abort, args=("interrupted",), daemon=True).start()
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    signals = StopSafelyOnSignals(controller).install()
     sim = None
     try:
         if fake:
-            from acquire.commands.run import _start_simulated_cell
-
             sim = _start_simulated_cell(lp, controller)
         controller.start()
-        while True:
-            try:
-                return controller.wait(0.2)
-            except TimeoutError:
-                continue
+        return wait_for_end(controller)
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        signals.restore()
         progress.close()
         if sim is not None:
             sim.close()

@@ -124,9 +124,9 @@ def verify_log(log_path: Path, lp, result_path: Path, *, out_dir: Path | None = 
     path = write_result(folder / "verify.json", out)
     report = folder / "verify.html"
     try:
-        from calib.report.report_verify import write_verify_report
+        from calib.report.report_verify import render_verify_report
 
-        write_verify_report(report, out)
+        report.write_text(render_verify_report(out), encoding="utf-8")
     except (ValueError, OSError) as exc:
         log.warning("verify.html not written: %s", exc)
         report = None

@@ -9,8 +9,6 @@ is ``calib.fit.verification.verify_entry``'s, with the run's paths added by ``ac
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from calib.fit.verification import summary_lines
@@ -73,9 +71,3 @@ def render_verify_report(doc: dict) -> str:
         parts.append("<p class=small>" + "; ".join(f"{k}: {esc(v)}" for k, v in src.items()) + "</p>")
     parts.append("</body></html>")
     return "\n".join(parts)
-
-
-def write_verify_report(path: str | Path, doc: dict) -> Path:
-    path = Path(path)
-    path.write_text(render_verify_report(doc), encoding="utf-8")
-    return path

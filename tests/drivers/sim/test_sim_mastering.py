@@ -16,14 +16,7 @@ from drivers.sim.config import DEFAULT_CONFIG_PATH, SimConfig, load_sim_config
 from drivers.sim.launch import SimLaunch
 from drivers.sim.mastering import Mastering, MasteringEntry, MasteringError, parse_entry
 
-WAIT_S = 10.0
-
-
-def udp_listener() -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    sock.settimeout(WAIT_S)
-    return sock
+from test_sim_launch import WAIT_S, udp_listener  # noqa: E402 - the test's folder is on sys.path under pytest
 
 
 def cell_with(mastering_deg, robot: str | None = None, time_scale: float = 1.0, **changes) -> SimCell:
