@@ -123,8 +123,8 @@ def verify_entry(model: RobotModel, data: Dataset, delta_deg, prediction: dict |
     interval = _interval_for_sample(imp, _half_width(after_ci))
     v = measured["value"]
     doc["predicted"] = {"improvement_mm": {"value": imp["value"], "ci95": list(imp["ci95"]), "metric": metric},
-                        "after": prediction.get("entered"), "scored_on": prediction.get("scored_on"),
-                        "interval_for_this_run": interval}
+                        "after": prediction.get("entered"), "full_model": prediction.get("full_model"),
+                        "scored_on": prediction.get("scored_on"), "interval_for_this_run": interval}
     doc["within_predicted_ci95"] = bool(imp["ci95"][0] <= v <= imp["ci95"][1])
     doc["verdict"] = ("as predicted" if interval[0] <= v <= interval[1]
                       else "better than predicted" if v > interval[1] else "worse than predicted")
@@ -156,6 +156,9 @@ def summary_lines(doc: dict) -> list[str]:
                      f"for {a['n']} configurations {iv[0]:+.3f} … {iv[1]:+.3f})")
         if p.get("after"):
             lines.append(f"  predicted after the entry        {word} {p['after'][metric]:.3f} mm")
+        if p.get("full_model"):
+            lines.append(f"  the full model (compensation)    {word} {p['full_model'][metric]:.3f} mm predicted: what the "
+                         "rest of the gain is, for a consumer of the whole model")
         inside = "inside" if doc["within_predicted_ci95"] else "outside"
         lines.append(f"verdict: {doc['verdict']} (the measured improvement lies {inside} the predicted 95 % interval)")
     lines += [f"note: {n}" for n in doc.get("notes", [])]

@@ -51,6 +51,9 @@ def render_verify_report(doc: dict) -> str:
             _row("now, after the entry", doc["after"], "these configurations, as the controller runs them")]
     if p is not None and p.get("after"):
         rows.append(_row("predicted after the entry", p["after"], "held out, the calibration's configurations"))
+    if p is not None and p.get("full_model"):
+        rows.append(_row("predicted, full model (compensation)", p["full_model"],
+                         "held out, the calibration's configurations: the rest of the gain"))
     parts.append(table(["robot", "mean (mm)", "rms (mm)", "max (mm)", "configurations", "scored on"], rows, left=1))
     parts.append(f"<p class=small>{esc(doc['scored_on'])}. Errors are per configuration: the rms distance between measured "
                  "and predicted marker positions.</p>")

@@ -415,7 +415,8 @@ class SimLaunch:
             log.warning("the cell has sockets but its %s controller cannot be hand-guided: the simulated operator "
                         "guides an iiwa (FRI) only", self.cell.model.controller)
             return
-        self.socket_operator = SocketOperator(self.cell, self.controller, seed=self.cell.config.seed).start()
+        self.socket_operator = SocketOperator(self.cell, self.controller, seed=self.cell.config.seed,
+                                              mastering=self.mastering).start()
         self._closers.append(("socket operator", self.socket_operator.close))
 
     def restart_stopped_rsi(self) -> bool:
@@ -462,6 +463,8 @@ class SimLaunch:
                 self._close_controller()
                 self.mastering.set(table)
                 self.controller = self._new_controller()
+                if self.socket_operator is not None:  # the operator hand-guides the controller now running
+                    self.socket_operator.controller = self.controller
         log.info("mastering entered; the controller restarted: %s", "; ".join(self.mastering.lines()))
         return self.mastering.corrections_deg
 

@@ -15,8 +15,10 @@ read them when it was built (mastering all zero); the fake controllers (``driver
     reported axis angle  = cell position − c        (what the controller reports)
     cell position        = commanded axis angle + c (where a commanded angle puts the arm)
 
-so the controller keeps its nominal kinematics and its own limits in axis angles, the truth
-(hidden offsets, links, sag) stays in the cell, and nothing above the driver can tell.
+(the sign convention ``calib.robot.controller`` assumes and calls unverified: the simulation
+follows it, it cannot prove it), so the controller keeps its nominal kinematics and its own
+limits in axis angles, the truth (hidden offsets, links, sag) stays in the cell, and nothing
+above the driver can tell.
 
 A real controller takes a new mastering only at standstill, with no program running (KSS reads
 ``$MAMES`` from its machine data at a cold start; the iiwa is mastered from the smartPAD): the
