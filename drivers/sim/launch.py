@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,6 +52,8 @@ FRI_CLIENT_PORT = 30200
 RSI_CLIENT_PORT = 49152
 #: How often the simulated operator looks at the KR C4 (wall s).
 OPERATOR_POLL_S = 0.1
+#: How long a KR C4 is watched for a commander's answers before a mastering is entered (wall s).
+COMMANDING_WATCH_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -442,8 +445,12 @@ class SimLaunch:
             from drivers.kuka_fri.messages import SessionState
 
             return fake.session_state in (SessionState.COMMANDING_WAIT, SessionState.COMMANDING_ACTIVE)
-        st = fake.stats()
-        return bool(st.running and st.answers_on_time > 0 and st.late_consecutive == 0)
+        before = fake.stats()
+        if before.running and before.answers_on_time > 0 and before.late_consecutive == 0:
+            return True
+        time.sleep(COMMANDING_WATCH_S)  # a commander answering now: its on-time answers grow
+        after = fake.stats()
+        return bool(after.running and after.answers_on_time > before.answers_on_time)
 
     def enter_mastering(self, entries) -> np.ndarray:
         """Enter zero corrections on the controller (``drivers.sim.mastering.MasteringEntry`` list,

@@ -83,3 +83,23 @@ def test_verify_scores_a_given_log_against_a_prediction_made_from_the_calibratio
     assert after == pytest.approx(found, rel=0.3)  # nothing entered: the robot is as found
     assert doc["measured"]["improvement_mm"]["value"] < doc["predicted"]["interval_for_this_run"][0]
     assert (tmp_path / "verify.html").read_text().count("<svg") == 1
+
+
+def test_fresh_configurations_are_the_regions_and_never_the_calibrations(tmp_path):
+    from acquire.plan import load_plan, resolve_configurations
+    from acquire.run.verify import fresh_configurations
+    from calib.io.yamlfile import ConfigError
+    from run_helpers import small_plan
+
+    lp = load_plan(small_plan(tmp_path, n=4))
+    cal = np.stack([c.q_rad for c in resolve_configurations(lp)])
+    fresh = fresh_configurations(lp, poses=4)
+    assert fresh and all(c.config_id.startswith("v") for c in fresh)
+    q = np.stack([c.q_rad for c in fresh])
+    assert np.min(np.abs(q[:, None] - cal[None]).max(axis=-1)) > 1e-3  # another sample of the region
+    assert all(lp.model.within_limits(c.q_rad, lp.commander_margin_rad) for c in fresh)
+    # a configuration the calibration measured is left out; the plan's own seed is refused
+    again = fresh_configurations(lp, poses=4, exclude_q_rad=q[:2] + 1e-5)
+    assert [c.config_id for c in again] == [c.config_id for c in fresh[2:]]
+    with pytest.raises(ConfigError, match="other than the calibration's"):
+        fresh_configurations(lp, poses=4, seed=lp.plan.poses.generated.seed)

@@ -4,6 +4,7 @@ the wire (FRI monitoring messages, RSI ``<Rob>`` packets answered with ``<Sen>``
 cell's arm position."""
 
 import socket
+import threading
 import time
 
 import numpy as np
@@ -72,23 +73,37 @@ def test_an_rsi_controller_reports_and_commands_axis_angles_through_its_masterin
     q_arm = np.degrees(cell.joint_positions())
     sen = SenFormatter(6)
     ak = [0.0, 3.0, 0.0, 0.0, 0.0, 0.0]
+    target = q_arm - c + ak  # the commanded axis angles
+    seen: list = []
+    stop = threading.Event()
+
+    def answer(commander) -> None:  # an RSI commander: every packet answered with the same correction
+        while not stop.is_set():
+            data, peer = commander.recvfrom(65536)
+            seen.append(parse_rob(data))
+            commander.sendto(sen.format(ak, False, seen[-1].ipoc), peer)
+
     with udp_listener() as commander:
         with SimLaunch(cell, rsi_port=commander.getsockname()[1], max_runtime_s=30) as launch:
-            data, peer = commander.recvfrom(65536)
-            rob = parse_rob(data)
-            assert np.array(rob.axis_actual_deg) == pytest.approx(q_arm - c, abs=1e-4)
-            assert np.array(rob.axis_setpoint_deg) == pytest.approx(q_arm - c, abs=1e-4)
-            commander.sendto(sen.format(ak, False, rob.ipoc), peer)
-            for _ in range(150):  # 0.6 s simulated: the 15 Hz servo has settled
-                data, peer = commander.recvfrom(65536)
-                rob = parse_rob(data)
-                commander.sendto(sen.format(ak, False, rob.ipoc), peer)
-            assert launch.controller.stats().late < 10
+            krc4 = launch.controller
+            thread = threading.Thread(target=answer, args=(commander,), daemon=True)
+            thread.start()
+            deadline = time.monotonic() + WAIT_S
+            while time.monotonic() < deadline and not (
+                    len(seen) > 25 and all(np.max(np.abs(np.subtract(r.axis_actual_deg, target))) < 0.005
+                                           for r in seen[-25:])):
+                time.sleep(0.05)  # until the 15 Hz servo has settled
+            first = seen[0]
+            assert np.array(first.axis_actual_deg) == pytest.approx(q_arm - c, abs=1e-4)
+            assert np.array(first.axis_setpoint_deg) == pytest.approx(q_arm - c, abs=1e-4)
             with pytest.raises(MasteringError, match="commands the robot"):
                 launch.enter_mastering([MasteringEntry("A1", 0.1)])  # a program runs: refused
-    target = q_arm - c + ak  # the commanded axis angles
-    assert np.array(rob.axis_actual_deg) == pytest.approx(target, abs=0.02)
-    assert np.degrees(cell.joint_positions()) == pytest.approx(target + c, abs=0.02)
+            rob, arm = seen[-1], np.degrees(cell.joint_positions())
+            stop.set()
+            thread.join(timeout=WAIT_S)
+            assert launch.controller is krc4 and krc4.stats().sessions == 1  # one RSI session: ASPos is the start's
+    assert np.array(rob.axis_actual_deg) == pytest.approx(target, abs=0.005)
+    assert arm == pytest.approx(target + c, abs=0.01)
 
 
 def test_mastering_lines_and_bad_entries():
