@@ -222,5 +222,7 @@ def test_the_first_real_cell_tutorial_runs_as_written_against_the_simulated_cell
         if sim is not None:
             sim.terminate()
             sim.wait(30)
+            sim.stdout.close()
+            sim.stdin.close()
     results = list(tmp_path.glob("runs/*/result.json"))
     assert results, "the run wrote no result"
