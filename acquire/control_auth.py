@@ -20,7 +20,8 @@ One operation is one exchange of two query round trips on ``remaster/<cell>/cont
    payload are part of the SCRAM AuthMessage, so the ClientProof covers them. The daemon
    answers with the client's salt and iteration count and a server nonce of its own: this
    daemon instance's random id (drawn at start-up) between ``@`` and ``.``, and 24 random characters. It keeps
-   the exchange pending for ``EXCHANGE_TTL_S`` seconds (at most ``MAX_PENDING`` at once).
+   the exchange pending for ``EXCHANGE_TTL_S`` seconds (at most ``MAX_PENDING_PER_SOURCE`` per
+   source and ``MAX_PENDING`` at once).
 2. client-final (attachment, with the payload) → the reply. The daemon takes the pending
    exchange out of its table (single use: a second client-final with the same nonce finds
    nothing), checks that the operation and payload hash to what the client nonce says, and
@@ -100,8 +101,12 @@ MAX_CLIENT_ITERATIONS = 2_000_000
 #: Seconds an exchange stays pending after its server-first.
 EXCHANGE_TTL_S = 10.0
 
-#: Most exchanges pending at once (the oldest is dropped beyond).
+#: Most exchanges pending at once; beyond, the oldest of the source holding the most is dropped.
 MAX_PENDING = 256
+
+#: Most exchanges pending at once per source (the query's source Zenoh id); beyond, that
+#: source's oldest is dropped — a flood from one source never evicts another's exchange.
+MAX_PENDING_PER_SOURCE = 8
 
 #: Most responders a client completes an exchange with, per operation.
 MAX_RESPONDERS = 4
@@ -322,6 +327,7 @@ class _Pending:
     client_nonce: str
     known: bool            # a configured client (False: decoy credentials, the proof fails)
     deadline: float
+    source: str            # who sent the client-first (source Zenoh id, or "unknown")
 
 
 @dataclass(frozen=True)
@@ -363,8 +369,9 @@ class ExchangeTable:
         salt = hmac.new(self._decoy_secret, name.encode(), hashlib.sha256).digest()[:16]
         return (salt, secrets.token_bytes(32), secrets.token_bytes(32), self.decoy_iterations), False
 
-    def first(self, client_first: str) -> tuple[str, str]:
-        """(server-first, client name) for a client-first; the exchange is then pending."""
+    def first(self, client_first: str, source: str | None = None) -> tuple[str, str]:
+        """(server-first, client name) for a client-first from ``source``; the exchange is then
+        pending (bounded per source: ``MAX_PENDING_PER_SOURCE``, and in all: ``max_pending``)."""
         found: dict = {}
 
         def auth_fn(name: str):
@@ -381,12 +388,24 @@ class ExchangeTable:
         nonce = str(scram.nonce)
         c_nonce = nonce[: -len(str(scram.s_nonce))]
         now = self._clock()
+        source = source or "unknown"
         with self._lock:
             self._expire(now)
-            while len(self._pending) >= self.max_pending:
-                self._pending.pop(next(iter(self._pending)))
-            self._pending[nonce] = _Pending(scram, found["name"], c_nonce, found["known"], now + self.ttl_s)
+            if self._count(source) >= MAX_PENDING_PER_SOURCE:
+                self._drop_oldest(source)
+            if len(self._pending) >= self.max_pending:
+                self._drop_oldest(max(self._sources(), key=self._count))
+            self._pending[nonce] = _Pending(scram, found["name"], c_nonce, found["known"], now + self.ttl_s, source)
         return server_first, found["name"]
+
+    def _sources(self) -> set[str]:
+        return {p.source for p in self._pending.values()}
+
+    def _count(self, source: str) -> int:
+        return sum(p.source == source for p in self._pending.values())
+
+    def _drop_oldest(self, source: str) -> None:
+        del self._pending[next(n for n, p in self._pending.items() if p.source == source)]
 
     def _expire(self, now: float) -> None:
         for nonce in [n for n, p in self._pending.items() if p.deadline < now]:

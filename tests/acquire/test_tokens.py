@@ -82,7 +82,7 @@ def test_an_unprotected_or_weak_token_file_is_refused_like_ssh_refuses_a_key(tmp
     assert res.exit_code == 2 and re.search(r"token too short: 10 characters.*acquire token new", res.output)
     res = CliRunner().invoke(app, ["pause", "--cell", "lab1", "--client", "operator"],
                              env={"REMASTER_TOKEN": "operator-secret-token"})
-    assert res.exit_code == 2 and "REMASTER_TOKEN: token too short" in res.output
+    assert res.exit_code == 2 and "REMASTER_TOKEN: token too weak" in res.output
 
 
 def test_write_token_file_never_creates_a_readable_file(tmp_path):
