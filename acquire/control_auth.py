@@ -42,10 +42,13 @@ iteration count (≥ ``MIN_ITERATIONS``), StoredKey = H(ClientKey) and ServerKey
 token offline from a captured exchange costs one PBKDF2 of ``iterations`` rounds per candidate,
 and tokens are 256 random bits (``acquire.tokens``). Per RFC 5802 §9, whoever reads
 StoredKey and ServerKey can impersonate the *daemon* to clients (compute ServerSignature and
-reply MACs) but cannot log in as a client — unless they also see one client-final message
-(any local process can, by declaring the control keys) or get a client to talk to them, which
-reveals ClientKey. **So the daemon's configuration must be readable by root and the daemon
-only**; ``daemon_config.load_daemon_config`` refuses a file other users may read.
+reply MACs) but cannot log in as a client — unless they also see one client-final message or
+get a client to talk to them, which reveals ClientKey. Hence: the daemon's router forwards no
+control query to any other session (``daemon_config.control_guard``: nobody but the daemon sees a
+client-final, whatever it declares), remote clients come over TLS with the daemon's certificate
+pinned (a stand-in cannot answer them), local operators use the control socket, which carries no
+secret at all (``acquire.control_socket``), and the configuration is readable by root and the
+daemon's group only (``daemon_config.load_daemon_config`` refuses a file others may read).
 
 Anonymous queries (no attachment) keep observe-only access; their replies cannot be
 authenticated and the client says so.
@@ -57,14 +60,16 @@ later one (``tests/bench/bench_control_auth.py``), with fresh nonces and a proof
 
 Limits, by design: an exchange lives ``EXCHANGE_TTL_S`` = 10 s because the client may compute
 PBKDF2 between the two round trips — ~0.7 s at 600 000 iterations on an idle cell PC, several
-seconds on a loaded one. Whoever can reach the control keys can still deny
-service: flood client-firsts (the oldest of ``MAX_PENDING`` pending exchanges is dropped), or
+seconds on a loaded one. Whoever can reach the control keys can still delay SCRAM clients: flood
+client-firsts (bounded per source: a flood from one source id evicts only its own exchanges; one
+that forges a new source id for each query shares ``MAX_PENDING`` with everyone — the operators'
+abort goes over the control socket, which holds no such table), or
 answer as a stand-in with server-firsts the client then spends up to ``MAX_RESPONDERS`` PBKDF2s
 of at most ``MAX_CLIENT_ITERATIONS`` on. Neither makes anything happen that the operator did
-not ask for, nor lets the client report a success the daemon did not sign. A client-final is
-delivered to every matching queryable, so a local process may race it to the daemon: the daemon
-then performs the operation the client asked for, once, and the client's own copy is refused
-as used (the client reports that it could not attribute a reply, exit 3).
+not ask for, nor lets the client report a success the daemon did not sign. (Without the
+router's guard — a daemon that is a peer of a plant router it does not run — a client-final is
+delivered to every matching queryable there; a process that races it to the daemon makes it
+perform what the client asked, once, and the client's own copy is refused as used, exit 3.)
 """
 
 from __future__ import annotations

@@ -283,13 +283,18 @@ def _read_request(conn: socket.socket) -> tuple[str, bytes | None]:
     it is too long, not JSON or names no operation."""
     limit = MAX_REQUEST_BYTES + 4096
     data = bytearray()
-    while not data.endswith(b"\n"):
+    received = 0
+    while not data.endswith(b"\n") and received <= 8 * limit:
         chunk = conn.recv(65536)
         if not chunk:
             break
-        data += chunk
-        if len(data) > limit:
-            raise BadRequest(f"request longer than {limit} bytes")
+        received += len(chunk)
+        if received <= limit:
+            data += chunk
+        else:  # read on to the end (bounded) so the caller gets the reply rather than a reset
+            data = bytearray(chunk[-1:])
+    if received > limit:
+        raise BadRequest(f"request longer than {limit} bytes")
     try:
         message = json.loads(bytes(data).decode())
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:

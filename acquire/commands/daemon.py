@@ -193,6 +193,10 @@ def _call_zenoh(op: str, request: dict | None, *, connect: str, cell: Optional[s
               "`acquire token new`)", 2)
     if token and not client:
         _fail("a token needs --client (or REMASTER_CLIENT)", 2)
+    if token and connect.split("/", 1)[0] not in ("tls", "quic"):
+        typer.echo(f"note: SCRAM over plain {connect.split('/', 1)[0]}: if the daemon is down, whatever answers on "
+                   "that address gets a proof that, with a leaked daemon configuration, acts as you; on the cell PC "
+                   "use the control socket (no --client), from elsewhere tls/ with --tls-ca", err=True)
     tls = {}
     if tls_ca is not None:
         tls = {"root_ca_certificate": str(tls_ca)}
