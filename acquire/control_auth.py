@@ -363,7 +363,8 @@ class ExchangeTable:
         #: This daemon instance's id: the head of every server nonce it issues.
         self.instance = secrets.token_hex(8)
         self._decoy_secret = secrets.token_bytes(32)
-        self._pending: dict[str, _Pending] = {}
+        self._pending: dict[str, _Pending] = {}  # nonce → exchange, oldest first
+        self._per_source: dict[str, int] = {}     # source → its pending exchanges
         self._lock = threading.Lock()
         self._mech = ScramMechanism(MECHANISM)
 
@@ -396,25 +397,31 @@ class ExchangeTable:
         source = source or "unknown"
         with self._lock:
             self._expire(now)
-            if self._count(source) >= MAX_PENDING_PER_SOURCE:
+            if self._per_source.get(source, 0) >= MAX_PENDING_PER_SOURCE:
                 self._drop_oldest(source)
             if len(self._pending) >= self.max_pending:
-                self._drop_oldest(max(self._sources(), key=self._count))
+                self._drop_oldest(max(self._per_source, key=self._per_source.__getitem__))
             self._pending[nonce] = _Pending(scram, found["name"], c_nonce, found["known"], now + self.ttl_s, source)
+            self._per_source[source] = self._per_source.get(source, 0) + 1
         return server_first, found["name"]
 
-    def _sources(self) -> set[str]:
-        return {p.source for p in self._pending.values()}
-
-    def _count(self, source: str) -> int:
-        return sum(p.source == source for p in self._pending.values())
+    def _take(self, nonce: str) -> _Pending | None:
+        """Remove and return the exchange of ``nonce`` (None if unknown); lock held."""
+        pending = self._pending.pop(nonce, None)
+        if pending is not None:
+            left = self._per_source[pending.source] - 1
+            if left:
+                self._per_source[pending.source] = left
+            else:
+                del self._per_source[pending.source]
+        return pending
 
     def _drop_oldest(self, source: str) -> None:
-        del self._pending[next(n for n, p in self._pending.items() if p.source == source)]
+        self._take(next(n for n, p in self._pending.items() if p.source == source))
 
     def _expire(self, now: float) -> None:
         for nonce in [n for n, p in self._pending.items() if p.deadline < now]:
-            del self._pending[nonce]
+            self._take(nonce)
 
     def pending(self) -> int:
         with self._lock:
@@ -430,7 +437,7 @@ class ExchangeTable:
             raise ProofError("malformed SCRAM client-final (no nonce)")
         now = self._clock()
         with self._lock:
-            pending = self._pending.pop(nonce, None)
+            pending = self._take(nonce)
             self._expire(now)
         if pending is None:
             mine = f"@{self.instance}." in nonce
