@@ -22,9 +22,12 @@ archive-*  archive     the plant's station: ``archive-list`` (finished runs not 
                        (stored: keep no longer pending) — ``acquire.daemon_archive``
 =========  ==========  ===========================================================
 
-Two lines of defence. First, Zenoh itself: loopback-only listeners by default; remote
-listeners need mTLS or an access-control block (see ``daemon_config``), so the router drops a
-query from a subject the ACL does not allow before it reaches us. Second, this module checks
+Operators on the cell PC do not come this way: they use the control socket
+(``acquire.control_socket``), where the kernel authenticates them and ``ControlServer.perform``
+acts for them. On Zenoh, two lines of defence. First, Zenoh itself: loopback-only listeners by
+default; remote listeners need mTLS or an access-control block (see ``daemon_config``), so the
+router drops a query from a subject the ACL does not allow before it reaches us, and it sends
+no control query to any session but ours (``daemon_config.control_guard``). Second, this module checks
 every query in its handler. An authenticated operation is one SCRAM-SHA-256 exchange
 (``acquire.control_auth``) over two queries on the operation's key: the first's attachment is a
 client-first, answered with a server-first carrying a fresh nonce of this daemon instance; the
@@ -451,7 +454,7 @@ class ControlClient:
         if (client is None) != (token is None):
             raise ValueError("give both client and token, or neither")
         if token is not None:
-            check_token(token)
+            check_token(token, (client or "", cell))
         self.session = session
         self.cell = cell
         self.site = site

@@ -271,7 +271,7 @@ class ClientExchange:
     a daemon cost HMACs only."""
 
     def __init__(self, token: str, client: str, cell: str, op: str, payload: bytes | None) -> None:
-        self._token = check_token(token)
+        self._token = check_token(token, (client, cell))
         self._client = client
         self.nonce = f"{secrets.token_urlsafe(18)}.{request_digest(cell, op, payload)}"
         self._first = ScramClient([MECHANISM], client, token, c_nonce=self.nonce).get_client_first()

@@ -175,19 +175,20 @@ def _call_zenoh(op: str, request: dict | None, *, connect: str, cell: Optional[s
         _fail(f"--cell/--site: {exc}", 2)
     from acquire.tokens import TokenFileError, WeakToken, check_token, read_token_file
 
-    token = None
+    token, source = None, "REMASTER_TOKEN"
     if token_file is not None:
+        source = "--token-file"
         try:
             token = read_token_file(token_file)
         except TokenFileError as exc:
             _fail(f"--token-file: {exc}", 2)
     else:
         token = os.environ.get("REMASTER_TOKEN")
-        if token:
-            try:
-                check_token(token)
-            except WeakToken as exc:
-                _fail(f"REMASTER_TOKEN: {exc}", 2)
+    if token:
+        try:
+            check_token(token, (client or "", cell))  # the client's name and the cell are known words too
+        except WeakToken as exc:
+            _fail(f"{source}: {exc}", 2)
     if client and not token:
         _fail(f"client {client!r} needs a token (--token-file or REMASTER_TOKEN; make one with "
               "`acquire token new`)", 2)
