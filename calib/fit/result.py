@@ -225,7 +225,6 @@ def result_dict(
                  "degeneracies": result.diagnostics.get("tool_degeneracies", [])},
         "sigma_mm": {s: {"value": v[0], "std": v[1]} for s, v in result.sigma_mm.items()},
         "diagnostics": diagnostics(result),
-        "registration_statistics": registration_statistics(result),
         "identifiability": identifiability(result),
         "metrics": metrics or {},
     }
