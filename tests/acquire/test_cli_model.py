@@ -105,9 +105,9 @@ def test_calibrated_export_has_the_identified_kinematics_in_yourdfpy_and_on_reim
     assert fk_difference(Chain(load_robot_model(again)).fk(q), fitted)[0] < 1e-6
 
 
-def test_offset_fit_export_applies_the_fitted_offsets_and_says_which_stay_nominal(tmp_path):
+def test_offset_fit_export_applies_offsets_links_and_tool_and_says_which_stay_nominal(tmp_path):
     fit_out = tmp_path / "fast.json"
-    res = run("fit", CAL, "--robot", IIWA, "--draws", "300", "--random-configs", "100", "-o", fit_out)
+    res = run("fit", CAL, "--robot", IIWA, "--method", "fast", "--draws", "300", "--random-configs", "100", "-o", fit_out)
     assert res.exit_code == 0, res.output
     doc = json.loads(fit_out.read_text())
     out = tmp_path / "iiwa_off.urdf"
@@ -117,10 +117,21 @@ def test_offset_fit_export_applies_the_fitted_offsets_and_says_which_stay_nomina
     kept = [e["joint"] for e in doc["joint_offsets"] if e["status"] != "fitted"]
     assert fitted and all(f"{ax}.offset kept nominal" in res.output for ax in kept)
     nominal = load_robot_model(IIWA)
-    delta = np.radians([fitted.get(ax, 0.0) for ax in nominal.axis_names])
+    chain = Chain(nominal)
+    # The fit's own arm, from result.json: offsets, the link terms it estimated alongside them
+    # (--method fast marginalises a link prior) and the fitted marker.
+    params = chain.nominal.copy()
+    params[:nominal.n_joints] = np.radians([fitted.get(ax, 0.0) for ax in nominal.axis_names])
+    links = doc["diagnostics"]["link_prior"]["parameters"]
+    assert links
+    for name, entry in links.items():
+        kind = name.rsplit(".", 1)[1]
+        params[chain.param_names.index(name)] += np.radians(entry["mean"]) if kind in ("alpha", "beta") else entry["mean"]
     q = random_configurations(nominal, 30, seed=11)
     in_urdf = urdf_fk(load_urdf(out), nominal.axis_names, "base_link", "flange", q)
-    assert fk_difference(in_urdf, Chain(nominal).fk(q + delta))[0] < 1e-6
+    assert fk_difference(in_urdf, chain.fk(q, params))[0] < 1e-6
+    offsets_only = chain.fk(q + params[:nominal.n_joints])
+    assert fk_difference(in_urdf, offsets_only)[0] > 0.05  # the link terms are in it, not only the offsets
 
 
 def test_export_of_a_result_on_the_wrong_model_is_refused(tmp_path, full_fit):
