@@ -118,3 +118,22 @@ class Compensator:
         dp, dw = pose_error(corrected, target)
         return Compensated(corrected, q, np.asarray(nominal_joints, dtype=float), float(np.linalg.norm(dp)),
                            float(np.degrees(np.linalg.norm(dw))))
+
+    def calibrated_solutions(self, target: np.ndarray) -> tuple[np.ndarray, str]:
+        """Every configuration (k, n) rad, within the joint limits, at which the calibrated arm's TCP
+        is at ``target`` (4, 4) mm — one per branch of the nominal IK, each polished onto the
+        calibrated arm — and, when there is none, why (else "")."""
+        sols = self.controller_solutions(target)
+        if len(sols) == 0:
+            return np.zeros((0, self.nominal.n_joints)), f"{sols.status}: {sols.message}"
+        rows = []
+        for q0 in sols.q:
+            try:
+                q = calibrated_joints(self.arm, target @ self._tool_inv, q0)
+            except CompensationError:
+                continue
+            if self.nominal.within_limits(q):
+                rows.append(q)
+        if not rows:
+            return np.zeros((0, self.nominal.n_joints)), "the calibrated arm reaches it only outside the joint limits"
+        return np.array(rows), ""

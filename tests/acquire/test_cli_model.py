@@ -160,3 +160,36 @@ def test_import_of_a_malformed_urdf_exits_non_zero_and_writes_nothing(tmp_path):
     assert res.stderr.startswith(f"error: {urdf}:10:") and "Opening and ending tag mismatch" in res.stderr
     assert "Traceback" not in res.stderr and "Using different parsing approach" not in res.stderr
     assert not out.exists()
+
+
+UR10 = ROOT / "fixtures" / "robots" / "ur10.yaml"
+
+
+@pytest.mark.parametrize("fmt,name", [("ur", "ur10_calibration.yaml"), ("urdf", "ur10.urdf"), ("model", "ur10_cal.yaml")])
+def test_export_of_a_compliance_fit_writes_the_sag_beside_the_kinematics_and_checks_both(tmp_path, fmt, name):
+    from calib.robot.calibrated import apply_result
+    from calib.robot.sag_file import read_sag_file
+    from tests.calib.calibrated_sim import full_result
+
+    nominal = load_robot_model(UR10)
+    doc = full_result(nominal, seed=5)
+    result = tmp_path / "result.json"
+    result.write_text(json.dumps(doc))
+    out = tmp_path / name
+    res = run("model", "export", UR10, "--result", result, "--format", fmt, "-o", out, "--check", "40")
+    assert res.exit_code == 0, res.output
+    sag = out.with_name(out.stem + ".sag.yaml")
+    assert f"the gravity sag cannot be in a {fmt} file: wrote it as data to {sag}" in res.output
+    assert "with the sag of" in res.output and "FAILED" not in res.output
+    assert "J2.a" in res.output and "J3.compliance" in res.output  # links and compliance applied, and said so
+    truth = apply_result(nominal, doc)
+    back = read_sag_file(sag)
+    q = random_configurations(nominal, 30, seed=3)
+    assert fk_difference(back.fk(q), truth.fk(q))[0] < 1e-6
+    if fmt == "ur":
+        assert "the model's flange is wrist_3_link" in res.output
+
+
+def test_export_needs_a_format_it_can_tell(tmp_path):
+    res = run("model", "export", UR10, "-o", tmp_path / "x.yaml")
+    assert res.exit_code == 2 and "--format" in res.output and "x.yaml" in res.output and not (tmp_path / "x.yaml").exists()
