@@ -200,8 +200,8 @@ def compensate(
     except TargetFileError as exc:
         _fail(str(exc))
     if joint_targets is not None:
-        write_csv(joint_targets, [(t.name, new[t.name], np.degrees(c.joints).tolist(), c.shift_mm) for t, _, c in done],
-                  model.axis_names)
+        write_csv(joint_targets, [(t.name, pose_values("csv", c.corrected, None), np.degrees(c.joints).tolist(), c.shift_mm)
+                                  for t, _, c in done], model.axis_names)
     # Read back what was written and drive it through the controller onto the calibrated arm.
     back = {t.name: t for t in read_targets(output, tf.format).targets}
     worst_mm = worst_deg = 0.0
