@@ -189,6 +189,7 @@ def export_model(
     with the gravity sag beside it as data; every file is checked by reading it back."""
     from calib.robot.kinematics import Chain  # noqa: PLC0415
     from calib.robot.model import load_robot_model  # noqa: PLC0415
+    from calib.robot.urdf import fk_difference, random_configurations  # noqa: PLC0415
     from calib.io.yamlfile import ConfigError  # noqa: PLC0415
 
     if checks < 1:
@@ -211,10 +212,10 @@ def export_model(
         exported = _write_export(fmt, arm.model, output, header)
     except ValueError as exc:
         _fail(str(exc))
-    q = random_configurations_of(arm.model, checks)
+    q = random_configurations(arm.model, checks, seed=0)
     ok = True
     for label, fk in exported:
-        ok &= _check(label, fk_difference_of(Chain(arm.model).fk(q), fk(q)), checks)
+        ok &= _check(label, fk_difference(Chain(arm.model).fk(q), fk(q)), checks)
     if sag_path is not None:
         from calib.robot.sag_file import read_sag_file, write_sag_file  # noqa: PLC0415
 
@@ -222,24 +223,12 @@ def export_model(
         sag = read_sag_file(sag_path)
         label, fk = exported[0]
         ok &= _check(f"{label} with the sag of {sag_path.name}, against the calibrated arm with its sag",
-                     fk_difference_of(arm.fk(q), fk(q + sag.joint_sag(q))), checks)
+                     fk_difference(arm.fk(q), fk(q + sag.joint_sag(q))), checks)
         typer.echo(f"the gravity sag cannot be in a {fmt} file: wrote it as data to {sag_path} "
                    "(Δq = sign·k·τ(q), see the file)")
     if not ok:
         _fail(f"{output} does not reproduce the calibrated model", 1)
     typer.echo(f"wrote {output}")
-
-
-def random_configurations_of(model, n: int):
-    from calib.robot.urdf import random_configurations  # noqa: PLC0415
-
-    return random_configurations(model, n, seed=0)
-
-
-def fk_difference_of(a, b):
-    from calib.robot.urdf import fk_difference  # noqa: PLC0415
-
-    return fk_difference(a, b)
 
 
 def _write_export(fmt: str, model, output: Path, header: str) -> list:
