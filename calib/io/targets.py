@@ -154,6 +154,7 @@ def write_csv(path: Path, rows: list[tuple[str, tuple[float, ...], list[float] |
 # --- KUKA KRL .dat ------------------------------------------------------------------------------
 _KUKA_DECL = re.compile(r"^[ \t]*DECL[ \t]+(?:GLOBAL[ \t]+)?(E6POS|POS)[ \t]+(\w+)[ \t]*=[ \t]*\{([^}\n]*)\}",
                         re.IGNORECASE | re.MULTILINE)
+_KUKA_ANY = re.compile(r"^[ \t]*DECL[ \t]+(?:GLOBAL[ \t]+)?(?:E6POS|POS)[ \t]+\w+[ \t]*=", re.IGNORECASE | re.MULTILINE)
 _KUKA_FIELD = re.compile(r"([A-Za-z]\w*)[ \t]+(" + _NUM + r"|'[^']*')")
 _KUKA_POSE = ("X", "Y", "Z", "A", "B", "C")
 
@@ -182,12 +183,24 @@ def _read_kuka(path: Path, text: str) -> TargetFile:
                     raise TargetFileError(f"{path}:{line}: {name}: field {key} is {fields[key][0]}; allowed: a whole number ≥ 0 (bits)")
                 config[key] = int(v)
         targets.append(Target(name, line, values, config, [fields[k][1:] for k in _KUKA_POSE]))
+    _all_understood(path, text, _KUKA_ANY, targets, "an E6POS/POS declaration", "DECL E6POS NAME={X …, Y …, Z …, A …, B …, C …, …} on one line")
     return TargetFile(path, "kuka", targets, text)
 
 
+def _all_understood(path: Path, text: str, anywhere: re.Pattern, targets: list[Target], what: str, allowed: str) -> None:
+    """Refuse a file with a declaration the reader did not take: it would stay uncompensated unseen."""
+    read = {t.line for t in targets}
+    for m in anywhere.finditer(text):
+        line = _line_of(text, m.start())
+        if line not in read:
+            raise TargetFileError(f"{path}:{line}: {what} this reader does not understand (an array, or a layout other than "
+                                  f"{allowed}): it would be left uncompensated — write it out as single targets")
+
+
 # --- ABB RAPID ----------------------------------------------------------------------------------
-_RAPID_DECL = re.compile(r"\b(?:CONST|PERS|VAR)[ \t]+robtarget[ \t]+(\w+)[ \t]*:=[ \t]*\[[ \t]*\[([^\]]*)\][ \t]*,[ \t]*"
-                         r"\[([^\]]*)\][ \t]*,[ \t]*\[([^\]]*)\]", re.IGNORECASE)
+_RAPID_DECL = re.compile(r"\b(?:CONST|PERS|VAR)\s+robtarget\s+(\w+)\s*:=\s*\[\s*\[([^\]]*)\]\s*,\s*"
+                         r"\[([^\]]*)\]\s*,\s*\[([^\]]*)\]", re.IGNORECASE)
+_RAPID_ANY = re.compile(r"\b(?:CONST|PERS|VAR)\s+robtarget\b", re.IGNORECASE)
 
 
 def _rapid_numbers(path: Path, line: int, name: str, what: str, body: str, at: int, n: int) -> list[tuple[float, int, int]]:
@@ -218,6 +231,7 @@ def _read_rapid(path: Path, text: str) -> TargetFile:
         values = tuple(v for v, _, _ in pos) + tuple(v / norm for v, _, _ in quat)
         targets.append(Target(name, line, values, {"cf": [int(v) for v, _, _ in conf]},
                               [(s, e) for _, s, e in pos + quat]))
+    _all_understood(path, text, _RAPID_ANY, targets, "a robtarget declaration", "name:=[[x,y,z],[q1,q2,q3,q4],[cf1,cf4,cf6,cfx],[eax…]]")
     return TargetFile(path, "rapid", targets, text)
 
 

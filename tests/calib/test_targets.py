@@ -87,3 +87,19 @@ def test_csv_targets_carry_their_configuration_columns(tmp_path):
     path.write_text("# cell 3\nname,x,y,z,a,b,c,q1,q2,q3,q4,q5,q6\np1,500,0,600,0,90,0,0,-90,90,0,45,0\n")
     t = read_targets(path).targets[0]
     assert t.values == (500, 0, 600, 0, 90, 0) and t.config["joints_deg"] == [0, -90, 90, 0, 45, 0] and t.line == 3
+
+
+def test_declarations_the_reader_does_not_take_are_refused_not_left_behind(tmp_path):
+    path = tmp_path / "a.mod"
+    path.write_text("MODULE a\n  CONST robtarget p1:=[[1,2,3],[1,0,0,0],[0,0,0,0],[9E9,9E9,9E9,9E9,9E9,9E9]];\n"
+                    "  CONST robtarget path{2}:=[[[1,2,3],[1,0,0,0],[0,0,0,0],[9E9]],[[4,5,6],[1,0,0,0],[0,0,0,0],[9E9]]];\n"
+                    "ENDMODULE\n")
+    with pytest.raises(TargetFileError, match=r"a\.mod:3: a robtarget declaration this reader does not understand"):
+        read_targets(path)
+    multi = tmp_path / "b.mod"
+    multi.write_text("CONST robtarget p1:=[[1,2,3],\n    [1,0,0,0],\n    [0,0,0,0],[9E9]];\n")
+    assert read_targets(multi).targets[0].values[:3] == (1, 2, 3)
+    dat = tmp_path / "a.dat"
+    dat.write_text("DEFDAT a\nDECL E6POS XP1={X 1,Y 2,Z 3,A 0,B 0,C 0}\nDECL E6POS XP2=XP1\nENDDAT\n")
+    with pytest.raises(TargetFileError, match=r"a\.dat:3: an E6POS/POS declaration this reader does not understand"):
+        read_targets(dat)
