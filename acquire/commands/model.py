@@ -132,8 +132,9 @@ def _export_format(fmt: str, output: Path) -> str:
 
 def entered_shift(doc: dict, model, entered: str, where: str):
     """The offsets (n,) rad entered in the controller since the measurement, by ``--entered``:
-    ``auto`` the result's record if it has one, else none; ``result`` the record (required);
-    ``none`` nothing entered. Returns (offsets, sentence saying which)."""
+    ``auto`` the result's ``entered`` block (the offsets ``acquire fit`` says to enter, ``enter:
+    true``) if it has one, else none; ``result`` that block (required); ``none`` nothing entered.
+    Returns (offsets, sentence saying which)."""
     import numpy as np  # noqa: PLC0415
 
     from calib.robot.calibrated import entered_offsets  # noqa: PLC0415
@@ -148,7 +149,8 @@ def entered_shift(doc: dict, model, entered: str, where: str):
         why = "--entered none" if entered == "none" else f"{where} records none"
         return np.zeros(model.n_joints), f"controller angles as measured: no offsets entered since ({why})"
     values = ", ".join(f"{ax} {np.degrees(v):+.4f}°" for ax, v in zip(model.axis_names, recorded) if v)
-    return recorded, f"controller angles after entering {values} (recorded in {where})"
+    return recorded, (f"controller angles after entering {values} (the offsets {where} says to enter, taken as entered"
+                      + (": give --entered none if they are not on the controller)" if entered == "auto" else ")"))
 
 
 def calibrated_arm(model, result: Optional[Path], entered: str = "auto", echo=typer.echo):

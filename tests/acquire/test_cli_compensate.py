@@ -126,3 +126,23 @@ def test_a_csv_is_compensated_and_bad_targets_stop_everything(tmp_path, cell):
     res = run("compensate", src, "--robot", robot, "--result", result, "--tool", TOOL, "-o", out2)
     assert res.exit_code == 2 and f"{src}:5: far: the controller cannot reach it" in res.output
     assert "nothing written" in res.output and not out2.exists()
+
+
+def test_the_entered_offsets_assumption_is_said_and_can_be_overridden(tmp_path, cell):
+    robot, result, doc, tool, poses = cell
+    src = tmp_path / "t.csv"
+    abc = np.degrees(matrix_to_euler_zyx(poses[0][:3, :3]))
+    src.write_text("name,x,y,z,a,b,c\n" + ",".join(["t0", *(f"{v:.6f}" for v in (*poses[0][:3, 3], *abc))]) + "\n")
+    res = run("compensate", src, "--robot", robot, "--result", result, "--entered", "result", "-o", tmp_path / "x.csv")
+    assert res.exit_code == 2 and "records no entered offsets" in " ".join(res.output.replace("│", " ").split())
+    doc["entered"] = {"verdict": "enter", "offsets": [{"joint": "A2", "index": 2, "value_deg": 0.1, "enter": True}]}
+    result.write_text(json.dumps(doc))
+    auto, none = tmp_path / "auto.csv", tmp_path / "none.csv"
+    res = run("compensate", src, "--robot", robot, "--result", result, "-o", auto, "--near", "10,-80,100,20,40,-30")
+    assert res.exit_code == 0 and "after entering A2 +0.1000° (the offsets" in res.output
+    assert "give --entered none if they are not on the controller" in res.output
+    res = run("compensate", src, "--robot", robot, "--result", result, "--entered", "none", "-o", none,
+              "--near", "10,-80,100,20,40,-30")
+    assert res.exit_code == 0 and "no offsets entered since (--entered none)" in res.output
+    a, n = (np.array(read_targets(p).targets[0].values) for p in (auto, none))
+    assert np.linalg.norm(a[:3] - n[:3]) > 0.1  # 0.1° on A2 moves the TCP by about a millimetre
