@@ -112,6 +112,19 @@ def configuration_filter(fmt: str, target, n: int):
     return None
 
 
+def _predicted(result: Path) -> str:
+    """The fit's own held-out figures for the full model (what compensation delivers) and the robot
+    as found, where the result has them (``entered.heldout``); '' otherwise."""
+    from calib.robot.calibrated import read_result  # noqa: PLC0415
+
+    held = ((read_result(result).get("entered") or {}).get("heldout") or {})
+    full, found = held.get("full_model"), held.get("as_found")
+    if not isinstance(full, dict) or not isinstance(found, dict) or "rms_mm" not in full or "rms_mm" not in found:
+        return ""
+    return (f"predicted by the fit, held out ({held.get('scored_on', '?')}): the compensated robot lands within "
+            f"{full['rms_mm']:.4f} mm rms (as found: {found['rms_mm']:.4f} mm)")
+
+
 def compensate(
     targets: Path = typer.Argument(..., metavar="TARGETS", help="Targets: .csv, KUKA .dat or ABB .mod/.modx/.prg."),
     robot: Path = typer.Option(..., "--robot", help="The nominal robot model YAML the fit used (the controller's kinematics)."),
@@ -220,6 +233,9 @@ def compensate(
         worst_deg = max(worst_deg, float(np.degrees(np.linalg.norm(dw))))
     typer.echo(f"{len(done)} targets: the calibrated arm misses them by {np.mean(before):.4f} mm on average "
                f"(worst {np.max(before):.4f}) uncompensated")
+    predicted = _predicted(result)
+    if predicted:
+        typer.echo(predicted)
     ok = worst_mm <= READBACK_TOLERANCE_MM and worst_deg <= READBACK_TOLERANCE_DEG
     typer.echo(f"read back {output}: through the controller's nominal kinematics the calibrated arm lands within "
                f"{worst_mm:.2g} mm, {worst_deg:.2g}° of every target ({'ok' if ok else 'FAILED'}; tolerance "

@@ -135,12 +135,14 @@ def test_the_entered_offsets_assumption_is_said_and_can_be_overridden(tmp_path, 
     src.write_text("name,x,y,z,a,b,c\n" + ",".join(["t0", *(f"{v:.6f}" for v in (*poses[0][:3, 3], *abc))]) + "\n")
     res = run("compensate", src, "--robot", robot, "--result", result, "--entered", "result", "-o", tmp_path / "x.csv")
     assert res.exit_code == 2 and "records no entered offsets" in " ".join(res.output.replace("│", " ").split())
-    doc["entered"] = {"verdict": "enter", "offsets": [{"joint": "A2", "index": 2, "value_deg": 0.1, "enter": True}]}
+    doc["entered"] = {"verdict": "enter", "offsets": [{"joint": "A2", "index": 2, "value_deg": 0.1, "enter": True}],
+                      "heldout": {"scored_on": "validation", "as_found": {"rms_mm": 1.2}, "full_model": {"rms_mm": 0.05}}}
     result.write_text(json.dumps(doc))
     auto, none = tmp_path / "auto.csv", tmp_path / "none.csv"
     res = run("compensate", src, "--robot", robot, "--result", result, "-o", auto, "--near", "10,-80,100,20,40,-30")
     assert res.exit_code == 0 and "after entering A2 +0.1000° (the offsets" in res.output
     assert "give --entered none if they are not on the controller" in res.output
+    assert "predicted by the fit, held out (validation): the compensated robot lands within 0.0500 mm rms" in res.output
     res = run("compensate", src, "--robot", robot, "--result", result, "--entered", "none", "-o", none,
               "--near", "10,-80,100,20,40,-30")
     assert res.exit_code == 0 and "no offsets entered since (--entered none)" in res.output
