@@ -54,7 +54,7 @@ def calibrated_joints(arm: Calibrated, flange_target: np.ndarray, q0: np.ndarray
     """Controller angles (n,) rad at which the calibrated arm (sag included) has its flange at
     ``flange_target`` (4, 4) mm, by Gauss–Newton from ``q0`` (n,) rad (least-norm steps for a
     redundant arm). ``CompensationError`` if it does not converge."""
-    chain = Chain(arm.model)
+    chain = arm.chain
     n = chain.n
     q = np.array(q0, dtype=float)
     for _ in range(IK_ITERATIONS):

@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +61,11 @@ class Calibrated:
     #: (n,) joint compliances, rad/(N·m) (0 where not fitted); None: the result has no sag model.
     compliance: np.ndarray | None = None
 
+    @cached_property
+    def chain(self) -> Chain:
+        """The calibrated model's chain (its nominal vector is the calibrated arm)."""
+        return Chain(self.model)
+
     @property
     def has_sag(self) -> bool:
         return self.compliance is not None and bool(np.any(self.compliance))
@@ -72,14 +78,13 @@ class Calibrated:
             return np.zeros_like(q)
         from calib.robot.gravity import gravity_torques  # noqa: PLC0415
 
-        chain = Chain(self.model)
-        return chain.sign * self.compliance * gravity_torques(chain, q)
+        return self.chain.sign * self.compliance * gravity_torques(self.chain, q)
 
     def fk(self, q: np.ndarray) -> np.ndarray:
         """Flange frames (..., 4, 4) mm the calibrated arm reaches at controller angles q (..., n)
         rad, its sag included."""
         q = np.asarray(q, dtype=float)
-        return Chain(self.model).fk(q + self.joint_sag(q))
+        return self.chain.fk(q + self.joint_sag(q))
 
     def after_entering(self, entered_rad: np.ndarray) -> Calibrated:
         """The same arm in the controller's angles after the zero-offsets ``entered_rad`` (n,) rad
