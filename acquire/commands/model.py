@@ -184,11 +184,13 @@ def export_model(
     fmt: str = typer.Option("auto", "--format", help="urdf, ur (UR's kinematics parameters YAML) or model (our YAML); "
                                                      "auto: urdf for a .urdf output."),
     entered: str = typer.Option("auto", "--entered", help="Offsets entered in the controller since the measurement: "
-                                                         "auto (the result's 'entered' record if any, else none), result, none."),
+                                                         "auto (the offsets the result's 'entered' block says to enter, if any; else none), result, none."),
     checks: int = typer.Option(200, "--check", help="Random configurations for the read-back FK checks."),
 ) -> None:
     """Export a robot model (calibrated with --result) as URDF, UR calibration YAML or model YAML,
     with the gravity sag beside it as data; every file is checked by reading it back."""
+    import numpy as np  # noqa: PLC0415
+
     from calib.robot.kinematics import Chain  # noqa: PLC0415
     from calib.robot.model import load_robot_model  # noqa: PLC0415
     from calib.robot.urdf import fk_difference, random_configurations  # noqa: PLC0415
@@ -228,8 +230,6 @@ def export_model(
                      fk_difference(arm.fk(q), fk(q + sag.joint_sag(q))), checks)
         typer.echo(f"the gravity sag cannot be in a {fmt} file: wrote it as data to {sag_path} "
                    "(Δq = sign·k·τ(q), see the file)")
-        import numpy as np  # noqa: PLC0415
-
         off = np.linalg.norm(Chain(arm.model).fk(q)[:, :3, 3] - arm.fk(q)[:, :3, 3], axis=-1)
         typer.echo(f"without its sag, the {fmt} file's arm is off the calibrated arm by {np.sqrt(np.mean(off ** 2)):.3f} mm "
                    f"rms, {off.max():.3f} mm at worst ({checks} random configurations): its links were fitted together with "
@@ -267,7 +267,8 @@ def _write_export(fmt: str, model, output: Path, header: str) -> list:
                   f"the model's flange is wrist_3_link · (xyz {np.round(res[:3, 3], 6).tolist()} mm, rpy "
                   f"{np.round(rpy, 6).tolist()} deg): the sixth link's a, α, β and the flange frame, which this file cannot "
                   "hold — put them in your tool (TCP) definition")
-        text = (header + "\nUniversal Robots kinematics parameters (ur_description: kinematics_parameters_file:=<this file>); "
+        text = (header + "\nUniversal Robots kinematics parameters: ur_robot_driver's launch argument kinematics_params_file:=<this file> "
+                "(ur_description's xacro argument kinematics_parameters_file); "
                 "metres, radians, URDF rpy. tool0 = wrist_3_link · Rz(180°) as ur_description builds it; " + flange + ".\n"
                 f"hash {kin.hash}: not the controller's calibration hash — the driver's check that the file matches the "
                 "controller's own calibration will report a mismatch, by design (this file is the measured arm).")
