@@ -134,7 +134,7 @@ def compensate(
     tool: Optional[str] = typer.Option(None, "--tool", help="The controller's TCP in the flange frame X,Y,Z,A,B,C (mm, "
                                                             "ZYX degrees); default the flange."),
     entered: str = typer.Option("auto", "--entered", help="Offsets entered in the controller since the measurement: auto "
-                                                          "(the result's 'entered' record if any, else none), result, none."),
+                                                          "(the offsets the result's 'entered' block says to enter, if any; else none), result, none."),
     near: Optional[str] = typer.Option(None, "--near", help="J1,…,Jn degrees: where the first target's configuration is "
                                                             "chosen from when the file leaves a choice (default: all zero)."),
     joint_targets: Optional[Path] = typer.Option(None, "--joint-targets", help="Also write the joint targets (controller "
