@@ -169,6 +169,9 @@ def compensate(
         _fail(str(exc))
     if out_fmt != tf.format:
         _fail(f"{output}: the output is written in the input's format ({tf.format}); give it a matching suffix")
+    if model.n_joints != 6 and tf.format != "csv":
+        _fail(f"{targets}: {model.name} has {model.n_joints} axes; {tf.format} targets are written here for 6-axis arms — "
+              "give the targets as CSV (a 7-axis arm's corrected pose comes with the arm angle it holds only at)")
     arm = calibrated_arm(model, result, entered)
     comp = Compensator(model, arm, tool_pose)
     done, errors = [], []
@@ -206,15 +209,15 @@ def compensate(
     new = {t.name: pose_values(tf.format, c.corrected, t.values) for t, _, c in done}
     try:
         if tf.format == "csv":
-            write_csv(output, [(t.name, new[t.name], np.degrees(c.joints).tolist(), c.shift_mm) for t, _, c in done],
-                      model.axis_names)
+            write_csv(output, [(t.name, new[t.name], np.degrees(c.joints).tolist(), c.shift_mm, c.arm_angle) for t, _, c in done],
+                  model.axis_names)
         else:
             write_patched(tf, new, output)
     except TargetFileError as exc:
         _fail(str(exc))
     if joint_targets is not None:
-        write_csv(joint_targets, [(t.name, pose_values("csv", c.corrected, None), np.degrees(c.joints).tolist(), c.shift_mm)
-                                  for t, _, c in done], model.axis_names)
+        write_csv(joint_targets, [(t.name, pose_values("csv", c.corrected, None), np.degrees(c.joints).tolist(), c.shift_mm,
+                                   c.arm_angle) for t, _, c in done], model.axis_names)
     # Read back what was written and drive it through the controller onto the calibrated arm.
     back = {t.name: t for t in read_targets(output, tf.format).targets}
     worst_mm = worst_deg = 0.0
@@ -226,7 +229,7 @@ def compensate(
         before.append(miss)
         typer.echo(f"{t.name:<16}{c.shift_mm:11.4f}{c.shift_deg:10.5f}{miss:25.4f}")
         written = target_pose(tf.format, back[t.name].values)
-        sols = comp.controller_solutions(written).q
+        sols = comp.controller_solutions(written, c.arm_angle).q
         q = sols[int(np.argmin(np.max(np.abs(sols - c.joints), axis=1)))] if len(sols) else c.joints
         dp, dw = pose_error(pose, comp.true_pose(q))
         worst_mm = max(worst_mm, float(np.linalg.norm(dp)))

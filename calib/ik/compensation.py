@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calib.ik.ik import solve_all
+from calib.ik.ik import arm_angle_of, solve_all
 from calib.robot.calibrated import Calibrated
 from calib.robot.kinematics import Chain
 from calib.robot.model import RobotModel
@@ -73,13 +73,17 @@ def calibrated_joints(arm: Calibrated, flange_target: np.ndarray, q0: np.ndarray
 class Compensated:
     """One target: ``corrected`` (4, 4) mm to give the controller, ``joints`` (n,) rad the
     controller angles it will reach (the joint target), ``nominal_joints`` (n,) rad where the
-    controller would have gone uncompensated, ``shift_mm`` / ``shift_deg`` the correction's size."""
+    controller would have gone uncompensated, ``shift_mm`` / ``shift_deg`` the correction's size;
+    ``arm_angle`` (7-axis arms, rad): the arm angle ψ (``calib.ik.ik.arm_angle_of``) the controller
+    must hold for ``corrected`` to come back to ``joints`` — a redundant arm reaches a pose in a
+    continuum of configurations, so the pose alone does not fix them; None for 6 axes."""
 
     corrected: np.ndarray
     joints: np.ndarray
     nominal_joints: np.ndarray
     shift_mm: float
     shift_deg: float
+    arm_angle: float | None = None
 
 
 class Compensator:
@@ -96,9 +100,10 @@ class Compensator:
         self._tool_inv = invert(self.tool)
         self._chain = Chain(nominal)
 
-    def controller_solutions(self, target: np.ndarray):
-        """The controller's own IK of the TCP pose ``target`` (``calib.ik.ik.IkSolutions``, within limits)."""
-        return solve_all(self.nominal, target @ self._tool_inv)
+    def controller_solutions(self, target: np.ndarray, arm_angle: float | None = None):
+        """The controller's own IK of the TCP pose ``target`` (``calib.ik.ik.IkSolutions``, within
+        limits); 7-axis arms at ``arm_angle`` (rad; None: the solver picks one)."""
+        return solve_all(self.nominal, target @ self._tool_inv, arm_angle=arm_angle)
 
     def controller_pose(self, q: np.ndarray) -> np.ndarray:
         """The TCP pose (..., 4, 4) the controller's nominal kinematics gives for angles q."""
@@ -116,8 +121,9 @@ class Compensator:
             raise CompensationError("the compensated joints leave the joint limits (the target is at the edge of the range)")
         corrected = self.controller_pose(q)
         dp, dw = pose_error(corrected, target)
+        psi = float(arm_angle_of(self.nominal, q)) if self.nominal.n_joints == 7 else None
         return Compensated(corrected, q, np.asarray(nominal_joints, dtype=float), float(np.linalg.norm(dp)),
-                           float(np.degrees(np.linalg.norm(dw))))
+                           float(np.degrees(np.linalg.norm(dw))), psi)
 
     def calibrated_solutions(self, target: np.ndarray) -> tuple[np.ndarray, str]:
         """Every configuration (k, n) rad, within the joint limits, at which the calibrated arm's TCP

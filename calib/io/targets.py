@@ -139,14 +139,19 @@ def _read_csv(path: Path, text: str) -> TargetFile:
     return TargetFile(path, "csv", targets, n_joints_columns=len(qcols))
 
 
-def write_csv(path: Path, rows: list[tuple[str, tuple[float, ...], list[float] | None, float]], joint_names: list[str]) -> None:
-    """rows: (name, (x, y, z, a, b, c), joint targets deg or None, shift mm)."""
-    head = ["name", *_CSV_POSE, *[f"q{i + 1}" for i in range(len(joint_names))], "shift_mm"]
+def write_csv(path: Path, rows: list[tuple], joint_names: list[str]) -> None:
+    """rows: (name, (x, y, z, a, b, c), joint targets deg or None, shift mm[, arm angle rad or None]);
+    an ``arm_angle_deg`` column when a row has an arm angle (7-axis arms)."""
+    with_psi = any(len(r) > 4 and r[4] is not None for r in rows)
+    head = ["name", *_CSV_POSE, *[f"q{i + 1}" for i in range(len(joint_names))], "shift_mm"] + (["arm_angle_deg"] if with_psi else [])
     lines = [",".join(head)]
-    for name, pose, joints, shift in rows:
+    for row in rows:
+        name, pose, joints, shift = row[:4]
         cells = [name] + [f"{v:.6f}" for v in pose]
         cells += [f"{v:.6f}" for v in joints] if joints is not None else [""] * len(joint_names)
         cells.append(f"{shift:.6f}")
+        if with_psi:
+            cells.append("" if len(row) < 5 or row[4] is None else f"{math.degrees(row[4]):.6f}")
         lines.append(",".join(cells))
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
 

@@ -148,3 +148,27 @@ def test_the_entered_offsets_assumption_is_said_and_can_be_overridden(tmp_path, 
     assert res.exit_code == 0 and "no offsets entered since (--entered none)" in res.output
     a, n = (np.array(read_targets(p).targets[0].values) for p in (auto, none))
     assert np.linalg.norm(a[:3] - n[:3]) > 0.1  # 0.1° on A2 moves the TCP by about a millimetre
+
+
+def test_a_seven_axis_arm_gets_its_arm_angle_with_each_corrected_pose(tmp_path):
+    """A redundant arm reaches a pose in a continuum of configurations: the corrected pose lands
+    only with the arm angle written beside it, and the read-back holds the controller to it."""
+    iiwa = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
+    doc = full_result(iiwa, seed=2)
+    result = tmp_path / "result.json"
+    result.write_text(json.dumps(doc))
+    src = tmp_path / "t.csv"
+    rows = ["name,x,y,z,a,b,c"]
+    for i, q in enumerate([[10, 40, 5, -70, 10, 50, 0], [-30, 60, -10, -50, 20, -40, 30]]):
+        t = Chain(iiwa).fk(np.radians(q))
+        rows.append(",".join([f"p{i}", *(f"{v:.6f}" for v in (*t[:3, 3], *np.degrees(matrix_to_euler_zyx(t[:3, :3]))))]))
+    src.write_text("\n".join(rows) + "\n")
+    out = tmp_path / "out.csv"
+    res = run("compensate", src, "--robot", ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml", "--result", result, "-o", out)
+    assert res.exit_code == 0, res.output
+    assert out.read_text().splitlines()[0].endswith(",shift_mm,arm_angle_deg") and "(ok; tolerance" in res.output
+    dat = tmp_path / "t.dat"
+    dat.write_text("DECL E6POS XP1={X 600,Y 0,Z 500,A 0,B 90,C 0,S 2,T 0}\n")
+    res = run("compensate", dat, "--robot", ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml", "--result", result,
+              "-o", tmp_path / "o.dat")
+    assert res.exit_code == 2 and "give the targets as CSV" in " ".join(res.output.replace("│", " ").split())
