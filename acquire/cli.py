@@ -48,6 +48,7 @@ COMMANDS: dict[str, CommandSpec] = {
     "token": CommandSpec("acquire.commands.token", "Make a control client's token (mode 0600) and print the daemon's configuration lines."),
     "watch": CommandSpec("acquire.commands.watch", "Show a live run or daemon (found on the bus by itself): progress, last sample, warnings."),
     "examples": CommandSpec("acquire.commands.examples", "List the packaged example plans, robot models, simulated cells and Foxglove layout (or copy a plan)."),
+    "compensate": CommandSpec("acquire.commands.compensate", "Pre-correct Cartesian targets so the controller's nominal arm lands where the calibrated model says."),
     "model": CommandSpec("acquire.commands.model", "Robot models in and out of URDF (import a vendor URDF, export a calibrated model)."),
 }
 

@@ -10,7 +10,8 @@ Start-up (``Daemon.run``):
    ``fake`` the simulated cell ``acquire daemon`` started and handed over (a ``CellSource``),
    with a commander exchanging real-time packets with its controller; announce each with a liveliness token
    ``remaster/<cell>/device/<name>`` (and the daemon itself as ``remaster/<cell>/daemon``);
-3. serve the control queries (``acquire.control``) and tell systemd ``READY=1``.
+3. serve the control queries (``acquire.control``) — on Zenoh and, with ``control_socket``, on
+   the operators' Unix socket (``acquire.control_socket``) — and tell systemd ``READY=1``.
 
 Then, every ``tick`` (half the systemd watchdog interval, or ``status_interval_s``), a health
 check (``HealthMonitor``): the commander's measured state is fresh and its late real-time
@@ -161,6 +162,7 @@ class Daemon:
         self.bus = None
         self.live = None  # acquire.live.LiveServer when cfg.live.enabled
         self.control: ControlServer | None = None
+        self.control_socket = None  # acquire.control_socket.ControlSocketServer with cfg.control_socket
         self.controller = None
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -239,6 +241,12 @@ class Daemon:
         self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))
         authorizer = Authorizer(cfg.auth, self._link_subject)
         self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer, site=cfg.site)
+        if cfg.control_socket is not None:
+            from acquire.control_socket import ControlSocketServer
+
+            cs = cfg.control_socket
+            self.control_socket = ControlSocketServer(cs.path, cs.group, cs.allow, self.control.perform,
+                                                      throttle=authorizer.throttle)
         with self._lock:
             self._state = "ready"
         self._healthy = self._check_health()
@@ -337,6 +345,9 @@ class Daemon:
         log.info("stopping")
         if ctl is not None:
             self._stop_run(ctl)
+        if self.control_socket is not None:
+            self.control_socket.close()
+            self.control_socket = None
         if self.control is not None:
             self.control.close()
             self.control = None

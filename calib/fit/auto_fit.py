@@ -72,7 +72,7 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
     the candidates (the run's end-of-run fit, whose summary is the offsets')."""
     from calib.robot.kinematics import Chain
     from calib.fit.metrics import accuracy_metrics
-    from calib.fit.result import result_dict
+    from calib.fit.result import registration_statistics, result_dict
 
     base = replace(base, method="laplace", compliance=False)
     choice = choose_model(model, cal, base, force=force, k=k, link_tolerance=link_tolerance,
@@ -101,6 +101,8 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
                                result.applied_sigma_mm, validation=val, n_random=n_random, seed=base.seed,
                                markers_mm=result.fitted_markers_mm)
     doc = result_dict(result, cal, metrics=metrics)
+    # the registration seed's spatial correlation (scipy.stats; the default path has scipy loaded)
+    doc["registration_statistics"] = registration_statistics(result)
     if result.posterior.attitude is not None:  # 6-DoF rows: the paper's position and attitude metrics
         from calib.fit.attitude import pose_metrics
 

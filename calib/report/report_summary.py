@@ -52,6 +52,11 @@ def warnings(doc: dict) -> list[str]:
     for c in ident.get("directions", []):
         if c.get("verdict") in ("weakly determined", "not determined"):
             out.append(f"At the estimate, the combination {c['combination']} is {c['verdict']} ({c.get('why', '')}).")
+    for s, c in (doc.get("registration_statistics") or {}).items():
+        if c.get("significant") and c.get("r", 0) > 0:
+            out.append(f"Sensor {s}: the position error grows with the distance from the sensor (r = {c['r']:.2f}, "
+                       f"p = {c['p_value']:.2g}; the registration seed's spatial correlation): a registration or scale "
+                       "error, or a sensor less accurate at range — the offsets' intervals assume independent errors.")
     sag = d.get("gravity_sag")
     if sag and sag.get("significant"):
         out.append(f"The residuals follow the joints' gravity torques (p = {sag['p_value']:.1g}): the arm sags; "

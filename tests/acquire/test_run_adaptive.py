@@ -13,9 +13,9 @@ import pytest
 from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import dataset_from_run, read_run
 
-from run_helpers import aborted_run, fake_controller, resumed_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import RUN_TIMEOUT_S, aborted_run, fake_controller, resumed_run, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
-pytestmark = pytest.mark.timeout(240)
+pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 
 FAST = {"samples": 5, "settle_window_s": 0.2}
 
@@ -35,7 +35,7 @@ def test_the_run_stops_when_every_offsets_interval_is_as_narrow_as_the_plan_asks
     n_plan = len(resolve_configurations(lp))
     rc = fake_controller(lp, fit=False)
     rc.start()
-    summary = rc.wait(200)
+    summary = wait_for_run(rc)
     assert summary.state == "finished", summary.reason
     run = read_run(summary.log_path)
     stop = [e for e in run.events if e["kind"] == "adaptive_stop"][-1]
