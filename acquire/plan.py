@@ -1289,8 +1289,6 @@ def resolve_candidate_pool(lp: LoadedPlan) -> list[PlannedConfig]:
     aimed pose, joint limits less the larger of the plan's and the commander's margin,
     ``min_solutions``; then the commander's margin again). Ids ``x07-b1`` (extra pose 7, its second
     branch), pose group ``x07``: seeded, so a resumed run finds the same ones. Deterministic."""
-    from calib.plan.poses import PoseRanges, plan_poses
-
     ad = lp.plan.adaptive
     pool = ad.candidates if ad is not None else None
     if pool is None:
@@ -1298,26 +1296,41 @@ def resolve_candidate_pool(lp: LoadedPlan) -> list[PlannedConfig]:
     g = lp.plan.poses.generated if lp.plan.poses is not None else None
     assert g is not None, "load_plan refuses a pool without poses.generated"
     seed = g.seed + 1 if pool.seed is None else pool.seed
+    return region_configurations(lp, pool.extra_poses, seed, "x", ("adaptive", "candidates"), "candidate")
+
+
+def region_configurations(lp: LoadedPlan, n: int, seed: int, prefix: str, loc: tuple = ("poses", "generated"),
+                          what: str = "configuration") -> list[PlannedConfig]:
+    """``n`` more poses of the plan's generated region (``poses.generated``: its ranges, sensor,
+    arm angles and ``min_solutions``) with another ``seed``, every feasible IK branch, through the
+    checks of the plan's own configurations; ids ``<prefix>07-b1``, pose groups ``<prefix>07``.
+    Deterministic. Raises ConfigError at ``loc`` when the region cannot be sampled so."""
+    from calib.plan.poses import PoseRanges, plan_poses
+
+    g = lp.plan.poses.generated if lp.plan.poses is not None else None
+    if g is None:
+        raise lp.error(("poses",), f"fresh configurations come from the plan's generated region (given a "
+                                   f"{lp.plan.poses.kind if lp.plan.poses is not None else 'socket'} plan; allowed: "
+                                   "a plan with poses.generated)")
     ranges = PoseRanges(radius_mm=g.radius_mm, height_mm=g.height_mm,
                         angle_rad=(math.radians(g.angle_deg[0]), math.radians(g.angle_deg[1])),
                         roll_rad=(math.radians(g.roll_deg[0]), math.radians(g.roll_deg[1])))
     margin = lp.commander_margin_rad
     try:
-        pp = plan_poses(lp.model, g.sensor_origin_mm, n=pool.extra_poses, seed=seed, ranges=ranges,
+        pp = plan_poses(lp.model, g.sensor_origin_mm, n=n, seed=seed, ranges=ranges,
                         extra_arm_angles_rad=[math.radians(a) for a in (g.arm_angles_deg or [])],
                         min_solutions=g.min_solutions, limit_margin_rad=max(math.radians(g.limit_margin_deg), margin))
     except ValueError as exc:
-        raise lp.error(("adaptive", "candidates"), f"cannot generate these candidates: {exc}") from exc
-    width = max(2, len(str(pool.extra_poses - 1)))
+        raise lp.error(loc, f"cannot generate these {what}s: {exc}") from exc
+    width = max(2, len(str(n - 1)))
     out: list[PlannedConfig] = []
     within: dict[int, int] = {}
     for c in pp.configurations:
         b = within[c.pose] = within.get(c.pose, -1) + 1
-        group = f"x{c.pose:0{width}d}"
+        group = f"{prefix}{c.pose:0{width}d}"
         out.append(PlannedConfig(f"{group}-b{b}", group, c.branch, _frozen(c.q)))
     refused = [c for c in out if not lp.model.within_limits(c.q_rad, margin)]
     if refused:  # the same safety net as the plan's own configurations (resolve_plan)
-        raise lp.error(("adaptive", "candidates"), f"{len(refused)} generated candidate(s) lie within the commander's "
-                                                   f"{math.degrees(margin):g}° margin of a joint limit (given "
-                                                   f"{refused[0].config_id}; allowed: inside the limits less the margin)")
+        raise lp.error(loc, f"{len(refused)} generated {what}(s) lie within the commander's {math.degrees(margin):g}° margin of "
+                            f"a joint limit (given {refused[0].config_id}; allowed: inside the limits less the margin)")
     return out

@@ -317,35 +317,18 @@ def run(
     controller.bus = bus
     controller.on_progress = on_progress
     controller.live = server
-    interrupted = threading.Event()
-
-    def on_signal(signum, frame):  # noqa: ARG001
-        name = signal.Signals(signum).name
-        if interrupted.is_set():
-            log.warning("%s again: still stopping safely", name)
-            return
-        interrupted.set()
-        log.warning("%s: stopping safely (the robot decelerates, the log is closed)", name)
-        threading.Thread(target=controller.abort, args=(f"interrupted ({name})",), daemon=True).start()
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    signals = StopSafelyOnSignals(controller).install()
     sim = truth = sag = None
     try:
         if fake:  # "start the simulated cell, then run": the run gets its description, as of any cell
             sim = _start_simulated_cell(lp, controller)
         controller.start()
-        while True:
-            try:
-                summary = controller.wait(0.2)
-                break
-            except TimeoutError:
-                continue
+        summary = wait_for_end(controller)
         if sim is not None:  # the cell's truth beside the fit: a property of the simulated cell
             truth = sim.truth_offsets_deg()
             sag = sim.mean_sag_deg(np.stack([c.q_rad for c in configs]))
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        signals.restore()
         progress.close()
         if sim is not None:
             sim.close()
@@ -367,6 +350,43 @@ def run(
             typer.echo(f"every configuration was visited; measure more (a larger plan) or fit the log yourself: "
                        f"acquire fit {display_path(summary.log_path)} --robot {lp.model_path}")
         raise typer.Exit(summary.exit_code)
+
+
+class StopSafelyOnSignals:
+    """While installed, SIGINT and SIGTERM stop ``controller``'s run safely (the robot decelerates,
+    the log is closed): the first one aborts it, a second one only says it is still stopping."""
+
+    def __init__(self, controller) -> None:
+        self.controller = controller
+        self.interrupted = threading.Event()
+        self._old: dict = {}
+
+    def _on_signal(self, signum, frame) -> None:  # noqa: ARG002
+        name = signal.Signals(signum).name
+        if self.interrupted.is_set():
+            log.warning("%s again: still stopping safely", name)
+            return
+        self.interrupted.set()
+        log.warning("%s: stopping safely (the robot decelerates, the log is closed)", name)
+        threading.Thread(target=self.controller.abort, args=(f"interrupted ({name})",), daemon=True).start()
+
+    def install(self) -> "StopSafelyOnSignals":
+        self._old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def restore(self) -> None:
+        for s, h in self._old.items():
+            signal.signal(s, h)
+        self._old = {}
+
+
+def wait_for_end(controller):
+    """The run's ``RunSummary`` once it has ended (waiting in short steps: a signal is handled at once)."""
+    while True:
+        try:
+            return controller.wait(0.2)
+        except TimeoutError:
+            continue
 
 
 def _start_simulated_cell(lp, controller):
