@@ -136,6 +136,16 @@ class HealthMonitor:
         return []
 
 
+def open_control_socket(section, control: ControlServer, authorizer: Authorizer):
+    """The operators' Unix control socket (``acquire.control_socket``) serving ``control``'s
+    operations, or None when the configuration has no ``control_socket`` section."""
+    if section is None:
+        return None
+    from acquire.control_socket import ControlSocketServer
+
+    return ControlSocketServer(section.path, section.group, section.allow, control.perform, throttle=authorizer.throttle)
+
+
 class Daemon:
     """The service (see the module docstring). ``run()`` blocks until ``request_stop()``.
 
@@ -241,12 +251,7 @@ class Daemon:
         self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))
         authorizer = Authorizer(cfg.auth, self._link_subject)
         self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer, site=cfg.site)
-        if cfg.control_socket is not None:
-            from acquire.control_socket import ControlSocketServer
-
-            cs = cfg.control_socket
-            self.control_socket = ControlSocketServer(cs.path, cs.group, cs.allow, self.control.perform,
-                                                      throttle=authorizer.throttle)
+        self.control_socket = open_control_socket(cfg.control_socket, self.control, authorizer)
         with self._lock:
             self._state = "ready"
         self._healthy = self._check_health()
