@@ -98,14 +98,15 @@ MAX_SIGMA_OVER_NOISE = 10.0
 MIN_SIGMA_GUARD_MM = 1.0
 
 
-def do_not_enter_reasons(doc: dict) -> list[str]:
+def do_not_enter_reasons(doc: dict, *, sandwich: bool = True) -> list[str]:
     """Why the offsets of a fit result (``result.json``) must not be entered; [] when none.
 
     R-hat above ``MAX_RHAT`` (the chains disagree), a sandwich/posterior std ratio above
     ``MAX_SANDWICH_RATIO`` (the intervals are far too narrow for the errors seen), or a fitted σ
     above ``MIN_SIGMA_GUARD_MM`` and more than ``MAX_SIGMA_OVER_NOISE`` × the sensor noise measured
     in the samples' spread (the model does not describe the data: wrong marker or tool position,
-    wrong robot model, units).
+    wrong robot model, units). ``sandwich`` False: no refusal on the sandwich ratio (for offsets
+    whose stds were widened by it, ``calib.fit.entered``).
     """
     reasons = []
     d = doc.get("diagnostics", {})
@@ -113,7 +114,7 @@ def do_not_enter_reasons(doc: dict) -> list[str]:
     if rhat is not None and rhat > MAX_RHAT:
         reasons.append(f"the sampler has not converged (R-hat {rhat:.2f} > {MAX_RHAT})")
     ratios = [j["sandwich_std_ratio"] for j in doc.get("joint_offsets", []) if j.get("sandwich_std_ratio")]
-    if ratios and max(ratios) > MAX_SANDWICH_RATIO:
+    if sandwich and ratios and max(ratios) > MAX_SANDWICH_RATIO:
         reasons.append(f"a model-robust (sandwich) std is {max(ratios):.1f}× the posterior's (> {MAX_SANDWICH_RATIO}): "
                        "the errors are not what the model assumes and the intervals are too narrow")
     for sensor, b in d.get("error_budget", {}).items():
@@ -145,6 +146,8 @@ def _noise_mm(doc: dict) -> tuple[float, str] | None:
         return None
     rows = np.array([b.get("n_rows", 1) for b in budget], dtype=float)
     noise = float(np.sqrt(np.sum(rows * np.array([b["noise_mm"] for b in budget]) ** 2) / rows.sum()))
+    if doc.get("noise_estimate"):
+        return noise, "the noise estimated from the data (no spreads in the file; calib.fit.noise)"
     spread = [b.get("sample_spread_mm") for b in budget]
     averaged = all(sp is not None and sp > noise * 1.05 for sp in spread)
     return noise, ("the noise of the averaged measurement, the samples' spread / √n" if averaged
