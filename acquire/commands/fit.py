@@ -130,6 +130,9 @@ def format_summary(doc: dict, controller_text: str, choice_text: str | None = No
             f"sensor {s}: σ = {sig['value']:.3f} ± {sig['std']:.3f} mm; registration correction "
             + ", ".join(f"{k} {v['value']:+.3f}" for k, v in corr.items())
         )
+    weight = doc.get("attitude_weight")
+    if weight:
+        lines.append(f"attitude rows weighted {weight['median_mm_per_rad']:.0f} mm/rad (median): {weight['how']}")
     tool = doc.get("tool") or {}
     for t in tool.get("markers") or []:
         lines.append(
@@ -411,6 +414,8 @@ def fit(
     )
     metrics["notes"] = metric_notes(result) + metrics.get("notes", [])
     doc = result_dict(result, cal, metrics=metrics)
+    if result.posterior.attitude is not None:
+        doc["attitude_weight"] = result.posterior.attitude.weight_info
     if noise is not None:
         doc["noise_estimate"] = noise
     model_refused = apply_guards(doc)

@@ -16,13 +16,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+import numpy as np
+
 from calib.robot.controller import apply_guards, earned_reasons
 from calib.measure.dataset import Dataset
 from calib.fit.offsets import FitOptions, FitResult, fit_offsets
 from calib.robot.model import RobotModel
 from calib.fit.model_choice import ModelChoice, choose_model, interval_factor, options_for, parse_candidate
 from calib.fit.heldout_misfit import scale_offset_intervals
-from calib.fit.entered import as_found_markers, attach, fitted_arm, for_controller, identified_arm
+from calib.fit.entered import as_found_markers, attach, fitted_arm, for_controller, identified_arm, refused_document
 
 
 def ident_joint_offsets(doc: dict, model: RobotModel) -> list[dict]:
@@ -132,8 +134,11 @@ def _enter_for_controller(model: RobotModel, cal: Dataset, val: Dataset | None, 
     names = {s.name for s in choice.scores}
     misfit = choice.score("offsets+tool").misfit if "offsets+tool" in names else None
     full_cv = None if chosen.failed else dict(zip(chosen.configs.tolist(), chosen.errors_mm.tolist()))
-    entered, _ = for_controller(model, cal, val, base, full_arm=full_arm, full_folds=full_cv, fitted_model=choice.chosen,
-                                std_factor=interval_factor(misfit), k=k)
+    try:
+        entered, _ = for_controller(model, cal, val, base, full_arm=full_arm, full_folds=full_cv,
+                                    fitted_model=choice.chosen, std_factor=interval_factor(misfit), k=k)
+    except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:  # e.g. too few configurations for offsets+tool
+        entered = refused_document(model, str(exc), "validation" if val is not None else "cross-validation")
     if full_cv is None and val is None:
         entered["reasons"].append(f"the chosen model ({choice.chosen}) could not be scored held out")
         entered["verdict"] = "do not enter"

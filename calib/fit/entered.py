@@ -213,8 +213,10 @@ def fit_entered(model: RobotModel, cal: Dataset, base: FitOptions, *, std_factor
         dropped = {o["index"] - 1: o["reason"] for o in offsets if not o["significant"]}
         result = fit_offsets(model, cal, replace(options, joints=joints))
         again = _axis_entries(result, std_factor, dropped)
-        for o in again:  # an axis that lost significance with the others refitted stays in; say so
-            if o["index"] in joints and not o["significant"] and o["value_deg"] is not None:
+        for o, first in zip(again, offsets):
+            if o["index"] - 1 in dropped:  # left unchanged: its value and std as first fitted, for the record
+                o.update(value_deg=first["value_deg"], std_deg=first["std_deg"])
+            elif not o["significant"] and o["value_deg"] is not None:  # lost significance with the others refitted
                 o["reason"] += " (after the others were left unchanged)"
         offsets = again
     return EnteredFit(result, offsets, std_factor)
@@ -222,6 +224,10 @@ def fit_entered(model: RobotModel, cal: Dataset, base: FitOptions, *, std_factor
 
 # --- held-out scores ---------------------------------------------------------------------------
 ROBOTS = ("as_found", "entered", "full_model")
+
+
+class HeldoutError(ValueError):
+    """The robots could not be scored held out (too few configurations to fit on the other folds)."""
 
 
 @dataclass
@@ -243,16 +249,21 @@ class Heldout:
         return float(d.mean()), float(d.mean() - Z95 * se), float(d.mean() + Z95 * se)
 
     def to_dict(self) -> dict:
+        """The ``heldout`` document; statistics None where nothing was scored."""
         out: dict = {"scored_on": self.scored_on, "how": self.how}
         for name in ROBOTS:
-            e = self.errors[name]
-            out[name] = {"rms_mm": float(np.sqrt(np.mean(e**2))), "mean_mm": float(e.mean()), "max_mm": float(e.max()),
-                         "n": int(e.size)}
-        value, lo, hi = self.improvement()
-        out["improvement_mm"] = {"value": value, "ci95": [lo, hi],
+            e = self.errors.get(name, np.zeros(0))
+            out[name] = {"rms_mm": _stat(np.sqrt(np.mean(e**2)) if e.size else math.nan), "mean_mm": _stat(e.mean() if e.size else math.nan),
+                         "max_mm": _stat(e.max() if e.size else math.nan), "n": int(e.size)}
+        value, lo, hi = self.improvement() if self.errors else (math.nan, math.nan, math.nan)
+        out["improvement_mm"] = {"value": _stat(value), "ci95": [_stat(lo), _stat(hi)],
                                  "test": "paired per-configuration differences (as found − offsets entered): mean ± "
                                          f"{Z95} standard errors"}
         return out
+
+
+def _stat(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
 
 
 def heldout_on_validation(chain: Chain, arms: dict[str, Arm], val: Dataset, *, free_tool: bool = True) -> Heldout:
@@ -287,7 +298,10 @@ def heldout_by_folds(model: RobotModel, data: Dataset, options: FitOptions, ente
         test = test.subset(ok)
         arms = {"as_found": nominal_arm(chain)}
         if entered_joints:
-            mf = fit_mode(model, train, options, tol=CV_TOL)
+            try:
+                mf = fit_mode(model, train, options, tol=CV_TOL)
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                raise HeldoutError(f"fold {f + 1}: the offsets could not be fitted on the other folds: {exc}") from exc
             arms["entered"] = nominal_arm(chain, mf.post.full_vector(mf.theta)[: chain.n])
         else:
             arms["entered"] = arms["as_found"]
@@ -318,6 +332,9 @@ def verdict_reasons(entered: EnteredFit, heldout: Heldout, guards: list[str]) ->
     reasons = list(guards)
     if not entered.joints:
         reasons.append("no axis's offset is determined and significantly different from zero: nothing to enter")
+        return reasons
+    if not heldout.errors:
+        reasons.append(f"the robots could not be scored held out ({heldout.how})")
         return reasons
     value, lo, hi = heldout.improvement()
     if not lo > 0.0:
@@ -366,22 +383,28 @@ def format_heldout(doc: dict) -> str:
              "full_model": f"full model ({doc.get('full_model', 'chosen')}; via compensation)"}
     for name in ROBOTS:
         s = h[name]
+        if not s["n"]:
+            lines.append(f"  {label[name]:<44}{'—':>10}{'—':>11}{'—':>10}{0:>7}")
+            continue
         lines.append(f"  {label[name]:<44}{s['rms_mm']:>10.4f}{s['mean_mm']:>11.4f}{s['max_mm']:>10.4f}{s['n']:>7}")
     imp = h["improvement_mm"]
-    lines.append(f"  improvement as found → entered: {imp['value']:+.4f} mm mean, 95 % [{imp['ci95'][0]:+.4f}, "
-                 f"{imp['ci95'][1]:+.4f}] ({imp['test']})")
+    if imp["value"] is not None:
+        lines.append(f"  improvement as found → entered: {imp['value']:+.4f} mm mean, 95 % [{imp['ci95'][0]:+.4f}, "
+                     f"{imp['ci95'][1]:+.4f}] ({imp['test']})")
     lines.append(f"  verdict: {doc['verdict'].upper()}" + ("" if not doc["reasons"] else " — " + "; ".join(doc["reasons"])))
     return "\n".join(lines)
 
 
 def guards(entered: EnteredFit, cal: Dataset) -> list[str]:
     """The verdict machinery of ``calib.robot.controller`` that applies to the offsets fitted for the
-    controller: convergence and a σ far above the sensor's noise. (A sandwich std above the
-    posterior's is not a refusal here: it already widened the stds the significance test uses.)"""
+    controller: convergence, a σ far above the sensor's noise, a tool far outside its prior. (A
+    sandwich std above the posterior's is not a refusal here: it already widened the stds the
+    significance test uses.)"""
     from calib.fit.result import result_dict
-    from calib.robot.controller import do_not_enter_reasons
+    from calib.robot.controller import do_not_enter_reasons, tool_reasons
 
-    return do_not_enter_reasons(result_dict(entered.result, cal), sandwich=False)
+    doc = result_dict(entered.result, cal)
+    return do_not_enter_reasons(doc, sandwich=False) + tool_reasons(doc)
 
 
 def for_controller(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOptions, *,
@@ -405,11 +428,26 @@ def for_controller(model: RobotModel, cal: Dataset, val: Dataset | None, base: F
         arms["full_model"] = full_arm if full_arm is not None else arms["entered"]
         heldout = heldout_on_validation(chain, arms, val, free_tool=free_tool)
     else:
-        heldout = heldout_by_folds(model, cal, fold_options, entered.joints, k=k, full_model=full_folds,
-                                   free_tool=free_tool)
+        try:
+            heldout = heldout_by_folds(model, cal, fold_options, entered.joints, k=k, full_model=full_folds,
+                                       free_tool=free_tool)
+        except HeldoutError as exc:
+            heldout = Heldout("cross-validation", f"not scored: {exc}", np.zeros(0, dtype=str), {})
     refusals = guards(entered, cal)
     refusals += [r for r in more_guards if r not in refusals]
     return entered_document(model, entered, heldout, refusals, fitted_model=fitted_model), entered
+
+
+def refused_document(model: RobotModel, reason: str, scored_on: str) -> dict:
+    """The ``"entered"`` document when the offsets for the controller could not be fitted at all:
+    "do not enter", every axis left unchanged, nothing scored."""
+    heldout = Heldout(scored_on, "not scored", np.zeros(0, dtype=str), {}).to_dict()
+    why = f"the offsets for the controller's nominal arm could not be fitted: {reason}"
+    offsets = [{"joint": ax, "index": i + 1, "value_deg": None, "std_deg": None, "enter": False, "reason": why}
+               for i, ax in enumerate(model.axis_names)]
+    return {"controller": model.controller, "verdict": "do not enter", "reasons": [why], "offsets": offsets,
+            "heldout": heldout, "fitted_for": "the controller's nominal arm (links at nominal; registration and tool "
+            "fitted; no compliance)", "full_model": None, "std_factor": 1.0}
 
 
 def as_found_markers(model: RobotModel, cal: Dataset) -> dict[str, np.ndarray]:
