@@ -253,8 +253,11 @@ class Heldout:
         out: dict = {"scored_on": self.scored_on, "how": self.how}
         for name in ROBOTS:
             e = self.errors.get(name, np.zeros(0))
-            out[name] = {"rms_mm": _stat(np.sqrt(np.mean(e**2)) if e.size else math.nan), "mean_mm": _stat(e.mean() if e.size else math.nan),
-                         "max_mm": _stat(e.max() if e.size else math.nan), "n": int(e.size)}
+            if not e.size:
+                out[name] = {"rms_mm": None, "mean_mm": None, "max_mm": None, "n": 0}
+                continue
+            out[name] = {"rms_mm": float(np.sqrt(np.mean(e**2))), "mean_mm": float(e.mean()), "max_mm": float(e.max()),
+                         "n": int(e.size)}
         value, lo, hi = self.improvement() if self.errors else (math.nan, math.nan, math.nan)
         out["improvement_mm"] = {"value": _stat(value), "ci95": [_stat(lo), _stat(hi)],
                                  "test": "paired per-configuration differences (as found − offsets entered): mean ± "

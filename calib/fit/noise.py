@@ -5,15 +5,17 @@ the weight of attitude rows against position rows (``calib.fit.attitude``: σ_po
 and the noise the held-out error is checked against ("enter" is earned, ``calib.robot.controller``).
 A file without std columns (a plain CSV, an IPA series without ``measurement_std_*``) gets them here:
 
-per sensor and per kind (position, attitude), the rms residual per axis of the richest geometric
-offsets model — zero-offsets, registration, tool and every link parameter under a wide prior
-(``LINK_PRIOR``: 1 mm, 0.1°) — with the free parameters' share of the degrees of freedom taken out:
-σ² = Σ r² / (3·rows − p·rows/all rows). The attitude weight depends on the estimate and the
-estimate on the fit, so the two are iterated (``ROUNDS``; the weight settles within a few per cent).
+per sensor and per kind (position, attitude), the rms residual per axis of the richest offsets
+model — zero-offsets, registration, tool, every link parameter under a wide prior (``LINK_PRIOR``:
+1 mm, 0.1°) and, where the robot model gives link masses, the joints' compliance — with the free
+parameters' share of the degrees of freedom taken out: σ² = Σ r² / (3·rows − p·rows/all rows).
+The attitude weight depends on the estimate and the estimate on the fit, so the two are iterated
+(``ROUNDS``; the weight settles within a few per cent).
 
-What the estimate is: an **upper bound** on the sensor's noise — it also holds robot error that model
-does not describe (gravity sag, backlash, temperature). It is printed with the fit and written to
-``result.json`` (``noise_estimate``), and the rows carry it as their spread (``count`` 1).
+What the estimate is: an **upper bound** on the sensor's noise — it also holds robot error that
+model does not describe (backlash, temperature, sag beyond one compliance per joint). It is printed
+with the fit and written to ``result.json`` (``noise_estimate``), and the rows carry it as their
+spread (``count`` 1).
 """
 
 from __future__ import annotations
@@ -89,14 +91,15 @@ def estimate_noise(model: RobotModel, data: Dataset, base: FitOptions = FitOptio
     "rows", "attitude_rows"?}}, "attitude_weight_mm_per_rad"?}."""
     if not needs_estimate(data):
         return None
-    options = replace(base, method="laplace", link_tolerance=LINK_PRIOR, compliance=False)
+    options = replace(base, method="laplace", link_tolerance=LINK_PRIOR, compliance=model.has_dynamics)
     current = data
     sigma: dict[str, dict] = {}
     for _ in range(ROUNDS):
         mf = fit_mode(model, current, options, tol=1e-8)
         sigma = _per_sensor(mf.post, mf.theta)
         current = _with_spreads(data, sigma, data)
-    doc = {"how": (f"estimated from the data: per sensor and kind, the rms residual per axis of the offsets+tool+links fit "
+    model_name = "offsets+tool+links" + ("+compliance" if model.has_dynamics else "")
+    doc = {"how": (f"estimated from the data: per sensor and kind, the rms residual per axis of the {model_name} fit "
                    f"(link prior ±{LINK_PRIOR[0]:g} mm, ±{LINK_PRIOR[1]:g}°; degrees of freedom of its free parameters "
                    "taken out) — an upper bound on the sensor's noise (robot error no model describes is in it)"),
            "sensors": {s: {k: (math.degrees(v) if k == "attitude_rad" else v) for k, v in e.items()} for s, e in sigma.items()}}

@@ -177,6 +177,9 @@ def summary_html(doc: dict) -> str:
     acc = accuracy_table(doc)
     if acc:
         parts.append(acc)
+        if held:
+            parts.append("<p class=small>before: the robot as found (zero offsets, its tool fitted); after: the fitted "
+                         "model's own offsets on the nominal arm — not what is entered (the held-out table above is).</p>")
     choice = model_choice_table(doc)
     if choice:
         parts.append(choice)

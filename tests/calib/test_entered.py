@@ -149,3 +149,17 @@ def test_fit_entered_leaves_insignificant_axes_unchanged_and_refits_the_others()
             assert abs(o["value_deg"]) >= 1.96 * o["std_deg"]
     assert set(entered.result.posterior.mask.offsets.nonzero()[0] + 1) == set(entered.joints)
     assert np.count_nonzero(entered.offsets_rad) == len(entered.joints)
+
+
+def test_validation_points_of_another_mounting_are_not_judged_with_the_calibrations_registration():
+    from calib.robot.controller import earned_reasons
+
+    def doc(before: float, after: float, rereg_before: float) -> dict:
+        return {"metrics": {"validation_absolute": {"before": {"mean": before}, "after": {"mean": after}},
+                            "validation_absolute_reregistered": {"before": {"mean": rereg_before},
+                                                                 "after": {"mean": rereg_before}}}}
+
+    # Same mounting: the offsets that make the validation points worse are refused.
+    assert any("get no better" in r for r in earned_reasons(doc(1.025, 1.129, 1.02)))
+    # Series B calibrated, series D validated (the tracker moved: 3.6 m off with B's registration).
+    assert earned_reasons(doc(3623.578, 3623.653, 1.02)) == []

@@ -26,6 +26,7 @@ OPTIONS = FitOptions(method="laplace", n_draws=500)
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)
 @pytest.mark.parametrize("name", ["B", "D"])
 def test_real_ur10_entered_offsets_judged_against_the_robot_as_found_held_out(name):
     path = SERIES[name]
@@ -48,13 +49,14 @@ def test_real_ur10_entered_offsets_judged_against_the_robot_as_found_held_out(na
           "full model's offsets on the nominal arm:", round(float(theirs.errors["entered"].mean()), 4),
           doc["verdict"], doc["reasons"])
     assert h["scored_on"] == "validation" and h["as_found"]["n"] == len(val)
-    # The robot as found has its tool fitted: ~1 mm, not the drawing tool's several mm.
-    assert 0.8 < h["as_found"]["mean_mm"] < 1.3
+    # The robot as found has its tool fitted: 0.7–1 mm, not the drawing tool's several mm.
+    assert 0.5 < h["as_found"]["mean_mm"] < 1.3
     # The full model is what compensation could deliver (0.37 mm on B, measured 2026-12).
     assert h["full_model"]["mean_mm"] < 0.5 * h["as_found"]["mean_mm"]
     # On both series the offsets fitted for the nominal arm beat the robot as found beyond their
     # interval (CLI, 2026-12: B 1.022 → 0.996 mm, D 0.718 → 0.653 mm mean), and do at least as well
-    # as the full model's own offsets typed into the same controller.
+    # as the full model's own offsets typed into the same controller (on D here: 0.720 → 0.658 mm
+    # entered, 0.726 mm with the full model's offsets — worse than as found).
     assert doc["verdict"] == "enter" and h["improvement_mm"]["ci95"][0] > 0, doc["reasons"]
     assert h["entered"]["mean_mm"] < h["as_found"]["mean_mm"]
     assert h["entered"]["mean_mm"] <= theirs.errors["entered"].mean()
