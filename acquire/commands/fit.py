@@ -613,8 +613,10 @@ def _estimate_noise(model: RobotModel, cal: Dataset, base) -> tuple[Dataset, dic
 
     try:
         found = estimate_noise(model, cal, base)
-    except ValueError as exc:
-        raise typer.BadParameter(f"the noise of data without spreads could not be estimated: {exc}", param_hint="DATA") from exc
+    except ValueError as exc:  # too little data for the estimate's model: the fit says what it needs
+        typer.echo(f"noise: the data state no spreads, and too few to estimate them ({exc}); no held-out check "
+                   "against the noise, attitude rows (if any) at a fixed weight\n")
+        return None
     if found is not None:
         typer.echo(format_estimate(found[1]) + "\n")
     return found
