@@ -152,8 +152,15 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
             lines.append(format_table(choice))
             if summary.fit.get("model_file"):
                 lines.append(f"corrected model (full identification): {display_path(Path(summary.fit['model_file']))}")
+        entered = summary.fit.get("entered")
+        if entered:  # what the controller gets: offsets for its nominal arm, judged held out (calib.fit.entered)
+            from calib.fit.entered import format_heldout
+
+            lines.append(format_heldout(entered))
+            lines += [f"  enter {o['joint']}: δ = {o['value_deg']:+.4f}° ± {o['std_deg']:.4f}°"
+                      for o in entered["offsets"] if o["enter"]]
         for reason in summary.fit.get("do_not_enter") or []:
-            lines.append(f"DO NOT ENTER: {reason}")
+            lines.append(f"DO NOT ENTER: {reason}" if not entered else f"the fitted model, not for compensation: {reason}")
         diag = summary.fit.get("diagnostics", {})
         fitted_compliance = diag.get("compliance") or summary.fit.get("compliance") or []
         for c in fitted_compliance:

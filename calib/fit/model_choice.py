@@ -352,7 +352,7 @@ def format_table(mc: dict) -> str:
     return "\n".join(lines)
 
 
-def _config_errors(data: Dataset, dist: np.ndarray) -> np.ndarray:
+def config_errors(data: Dataset, dist: np.ndarray) -> np.ndarray:
     """Per configuration of ``data``, the rms of ``dist`` (rows,) over its rows."""
     _, inv = np.unique(data.config, return_inverse=True)
     inv = inv.ravel()
@@ -417,8 +417,8 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
         if not ok.any():
             continue
         test = test.subset(ok)
-        names.append(np.unique(test.config))  # the order of _config_errors
-        nominal_parts.append(_config_errors(test, _nominal_distances(model, train, test)))
+        names.append(np.unique(test.config))  # the order of config_errors
+        nominal_parts.append(config_errors(test, _nominal_distances(model, train, test)))
         tol, why = link_tolerance, None
         if tol is None and any(c.kind == "offsets+tool+links" for c in cands):
             try:  # the fold's own scale: its held-out configurations never inform it
@@ -445,7 +445,7 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
             scores[i].n_params = n_params if scores[i].n_params is None else max(scores[i].n_params, n_params)
             scores[i].chi2 += chi2
             scores[i].n_chi2 += n_chi2
-            per[i].append(_config_errors(test, dist))
+            per[i].append(config_errors(test, dist))
     all_names = np.concatenate(names) if names else np.zeros(0, dtype=str)
     for s, parts in zip(scores, per):
         if parts and not s.failed:
