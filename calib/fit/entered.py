@@ -259,7 +259,7 @@ class Heldout:
             out[name] = {"rms_mm": float(np.sqrt(np.mean(e**2))), "mean_mm": float(e.mean()), "max_mm": float(e.max()),
                          "n": int(e.size)}
         value, lo, hi = self.improvement() if self.errors else (math.nan, math.nan, math.nan)
-        out["improvement_mm"] = {"value": _stat(value), "ci95": [_stat(lo), _stat(hi)],
+        out["improvement_mm"] = {"value": _stat(value), "ci95": [_stat(lo), _stat(hi)], "metric": "mean_mm",
                                  "test": "paired per-configuration differences (as found − offsets entered): mean ± "
                                          f"{Z95} standard errors"}
         return out

@@ -51,10 +51,11 @@ class EnteredValues:
 
 
 def _axis(entry: dict) -> EnteredAxis | None:
-    """An axis from a ``joint_offsets``-like entry (value_deg) or a controller-values one (delta_deg)."""
+    """An axis from an ``entered.offsets`` entry (value_deg, ``enter``), a ``joint_offsets`` one
+    (value_deg, status) or a controller-values one (delta_deg, action); None when it is not entered."""
     value = entry.get("delta_deg", entry.get("value_deg"))
-    enter = entry.get("action", "enter") == "enter" and entry.get("status", "fitted") == "fitted" \
-        and entry.get("identifiable", True)
+    enter = entry.get("enter", True) and entry.get("action", "enter") == "enter" \
+        and entry.get("status", "fitted") == "fitted" and entry.get("identifiable", True)
     if value is None or not enter:
         return None
     d = wrap_deg(float(value))
@@ -69,8 +70,9 @@ def entered_values(doc: dict) -> EnteredValues:
     refused = list(doc.get("do_not_enter") or [])
     entered = doc.get("entered")
     if isinstance(entered, dict):
-        rows = entered.get("joint_offsets") or (entered.get("controller") or {}).get("axes") or entered.get("axes") or []
-        refused += [r for r in entered.get("do_not_enter") or [] if r not in refused]
+        rows = entered.get("offsets") or []  # calib.fit.entered writes [{joint, index, value_deg, std_deg, enter, reason}]
+        if entered.get("verdict", "enter") != "enter":
+            refused += [r for r in entered.get("reasons") or [] if r not in refused] or ["the result says: do not enter"]
         return EnteredValues([a for a in map(_axis, rows) if a is not None], "entered", entered.get("heldout"), refused)
     return EnteredValues([a for a in map(_axis, doc["joint_offsets"]) if a is not None], "joint_offsets", None, refused)
 

@@ -25,10 +25,17 @@ def test_an_older_result_enters_its_fitted_offsets_and_predicts_nothing():
 def test_the_entered_section_wins_with_its_prediction():
     heldout = {"as_found": {"rms_mm": 2.0, "mean_mm": 1.8, "max_mm": 4.0, "n": 30},
                "improvement_mm": {"value": 1.2, "ci95": [1.0, 1.4]}}
-    entered = {"joint_offsets": [{"joint": "A3", "index": 3, "value_deg": 0.05, "status": "fitted"}],
-               "heldout": heldout}
+    # the shape calib.fit.entered writes: every axis listed, only those with enter: true entered
+    entered = {"verdict": "enter", "reasons": [], "heldout": heldout,
+               "offsets": [{"joint": "A2", "index": 2, "value_deg": 0.25, "std_deg": 0.01, "enter": False,
+                            "reason": "not significant"},
+                           {"joint": "A3", "index": 3, "value_deg": 0.05, "std_deg": 0.001, "enter": True, "reason": ""}]}
     v = entered_values({"joint_offsets": OFFSETS, "entered": entered})
     assert [a.axis for a in v.axes] == ["A3"] and v.source == "entered" and v.heldout is heldout
+    assert v.refused == []
+    refused = entered_values({"joint_offsets": OFFSETS, "entered": {**entered, "verdict": "do not enter",
+                                                                     "reasons": ["no better than as found"]}})
+    assert refused.refused == ["no better than as found"]
 
 
 def test_not_a_result_is_refused():
