@@ -213,23 +213,20 @@ def apply_result(model: RobotModel, doc: dict, where: str = "result") -> Calibra
 
 
 def entered_offsets(doc: dict, model: RobotModel, where: str = "result") -> np.ndarray | None:
-    """The zero-offsets (n,) rad a result records as entered in the controller
-    (``doc["entered"]["offsets"]``: entries with ``joint``, ``value_deg`` and ``enter: true``), or
-    None when it records no entry (``entered`` absent)."""
-    record = doc.get("entered")
-    if record is None:
+    """The zero-offsets (n,) rad a result records as entered in the controller (its ``entered``
+    section, read by ``calib.robot.entered.entered_values``), or None when it records no entry."""
+    from calib.robot.entered import entered_values
+
+    if doc.get("entered") is None:
         return None
-    entries = record.get("offsets") if isinstance(record, dict) else None
-    if not isinstance(entries, list):
+    if not isinstance(doc["entered"], dict) or not isinstance(doc["entered"].get("offsets"), list):
         raise ResultError(f"{where}: 'entered' must be an object with a list 'offsets' "
                           "([{joint, value_deg, enter}, …]), as `acquire fit` writes it")
     out = np.zeros(model.n_joints)
-    for k, entry in enumerate(entries):
-        axis = entry.get("joint") if isinstance(entry, dict) else None
-        if axis not in model.axis_names:
-            raise ResultError(f"{where}: entered.offsets[{k}] names axis {axis!r}; the model's axes are {model.axis_names}")
-        if entry.get("enter") and entry.get("value_deg") is not None:
-            out[model.axis_names.index(axis)] = math.radians(float(entry["value_deg"]))
+    for axis in entered_values(doc).axes:
+        if axis.axis not in model.axis_names:
+            raise ResultError(f"{where}: entered offsets name axis {axis.axis!r}; the model's axes are {model.axis_names}")
+        out[model.axis_names.index(axis.axis)] = math.radians(axis.delta_deg)
     return out
 
 

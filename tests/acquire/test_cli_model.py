@@ -83,7 +83,9 @@ def full_fit(tmp_path_factory):
 def test_calibrated_export_has_the_identified_kinematics_in_yourdfpy_and_on_reimport(tmp_path, full_fit):
     doc = json.loads(full_fit.read_text())
     out = tmp_path / "iiwa_cal.urdf"
-    res = run("model", "export", IIWA, "--result", full_fit, "-o", out, "--check", "50")
+    # --entered none: the arm as it was measured (the default, auto, describes it after the
+    # result's controller offsets are entered: tests/calib/test_calibrated.py)
+    res = run("model", "export", IIWA, "--result", full_fit, "-o", out, "--check", "50", "--entered", "none")
     assert res.exit_code == 0, res.output
     assert "FK check of the URDF read by yourdfpy, 50 configurations" in res.output
     assert "FK check of the URDF re-imported, 50 configurations" in res.output
@@ -111,7 +113,7 @@ def test_offset_fit_export_applies_offsets_links_and_tool_and_says_which_stay_no
     assert res.exit_code == 0, res.output
     doc = json.loads(fit_out.read_text())
     out = tmp_path / "iiwa_off.urdf"
-    res = run("model", "export", IIWA, "--result", fit_out, "-o", out, "--check", "30")
+    res = run("model", "export", IIWA, "--result", fit_out, "-o", out, "--check", "30", "--entered", "none")
     assert res.exit_code == 0, res.output
     fitted = {e["joint"]: e["value_deg"] for e in doc["joint_offsets"] if e["status"] == "fitted"}
     kept = [e["joint"] for e in doc["joint_offsets"] if e["status"] != "fitted"]
