@@ -115,7 +115,8 @@ def test_summary_and_report_say_why_it_stopped_intervals_against_configurations_
     slow = "\n".join(adaptive_summary_lines(summ, summ["estimated_seconds"] * 1.3))
     assert "+30%" in slow and "took longer than estimated" in slow
     html = "\n".join(adaptive_section(summ))
-    assert "Adaptive run" in html and summ["reason"].split(":")[0] in html and html.count("<tr>") == len(chosen) + 2
+    history = html.split("<h3>The stop decision")[0]
+    assert "Adaptive run" in html and summ["reason"].split(":")[0] in html and history.count("<tr>") == len(chosen) + 2
     assert adaptive_section(None) == []
 
 

@@ -120,7 +120,7 @@ def test_max_configurations_and_exhaustion_stop():
 
 
 def test_bad_rules_are_refused():
-    with pytest.raises(ValueError, match="interval_deg, workspace_within_pct or held_out"):
+    with pytest.raises(ValueError, match="a stop rule needs one of interval_deg, region_error_mm"):
         StopRule()
     with pytest.raises(ValueError, match="max_configurations"):
         StopRule(interval_deg=0.1, min_configurations=5, max_configurations=4)
