@@ -516,6 +516,7 @@ class AdaptiveRun:
                 "min_configurations": rule.min_configurations, "max_configurations": rule.max_configurations,
                 "candidates": len(o.plan_configs), **o.pool_fields(), "measured_before": self.resumed_n,
                 "determinable": list(o.design.model.offset_names), "noise_mm": o.noise_mm,
+                "sigma_per_configuration_mm": round(o.plan_sigma_mm, 6),
                 "predicted_configurations": len(self.predicted) + self.resumed_n,
                 "predicted_seconds": round(o.visited_seconds(self.predicted, self.start_q), 1),
                 "full_plan_seconds": round(o.full_plan_seconds(self.start_q), 1)}
