@@ -236,13 +236,15 @@ class AdaptiveOrder:
     def use_sigma(self, upto: int) -> None:
         """Predict with the noise of the first ``upto`` records: σ their fast fit's (what the data
         say the model leaves, misfit included) once it is determined, else the spread of their
-        readings (``spread_sigma``); the misfit sqrt(max(0, σ_fit² − σ_spread²)) — error the model
-        does not explain, which the predicted model errors count and no configuration reduces."""
+        readings (``spread_sigma``) — never less than the spread: a fit of few degrees of freedom
+        that leaves less than the sensor's own noise has fitted some of it; the misfit
+        sqrt(max(0, σ_fit² − σ_spread²)) — error the model does not explain, which the predicted
+        model errors count and no configuration reduces."""
         fitted = self.fitted_sigma(upto)
         spread = self.spread_sigma(upto)
         self._sigma_n = upto
         self.fitted_sigma_mm, self.spread_sigma_mm = fitted, spread
-        sigma = spread if fitted is None else fitted
+        sigma = spread if fitted is None else max(fitted, spread)
         misfit = 0.0 if fitted is None else math.sqrt(max(0.0, fitted**2 - spread**2))
         if (sigma, misfit) != (self.design.sigma_mm, self.design.misfit_mm):
             self.design.set_noise(sigma, misfit)

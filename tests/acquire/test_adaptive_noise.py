@@ -86,7 +86,8 @@ def test_sigma_of_a_configuration_is_its_readings_spread_over_root_count_then_th
         order.mark(cfg.config_id, cell.record(cfg))
     order.update_sigma()
     fitted = order.fitted_sigma_mm
-    assert fitted is not None and order.design.sigma_mm == fitted  # the fit's σ once it is determined
+    # the fit's σ once it is determined, never below the readings' own spread
+    assert fitted is not None and order.design.sigma_mm == max(fitted, order.spread_sigma_mm)
     assert 0.5 < fitted / (0.05 / math.sqrt(5)) < 1.5
     assert order.design.misfit_mm == pytest.approx(math.sqrt(max(0.0, fitted**2 - order.spread_sigma_mm**2)))
 
@@ -125,7 +126,8 @@ def test_the_stop_decision_is_reported_with_what_backs_it_predicted_and_found(ce
     dec = summ["decision"]
     assert [c["criterion"] for c in dec["checks"]] == list(RULE) and all(c["met"] for c in dec["checks"])
     assert dec["checks"][0]["predicted"] == pytest.approx(ad.final.max_half_width_deg, abs=1e-6)
-    assert dec["noise"]["fitted_mm"] is not None and dec["noise"]["used_mm"] == dec["noise"]["fitted_mm"]
+    n = dec["noise"]
+    assert n["fitted_mm"] is not None and n["used_mm"] == max(n["fitted_mm"], n["spread_mm"])
     p = dec["predicted"]
     assert p["max_half_width_deg"] <= 0.015 and p["full_max_half_width_deg"] < p["max_half_width_deg"]
     assert p["full_joint_space_mm"] < p["joint_space_mm"]
