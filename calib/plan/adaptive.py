@@ -1,4 +1,4 @@
-"""Sequential design: which configuration to measure next, and when to stop (issue 27).
+"""Sequential design: which configuration to measure next, and when to stop (issues 27, 35).
 
 The fit is linear enough about the nominal robot that its posterior covariance after a set of
 configurations is, to first order, the inverse of the information they carry:
@@ -12,7 +12,11 @@ weak priors on the parameters the fit leaves flat so that Σ exists before the f
 configuration) and σ the measurement noise per axis (mm). Σ does not depend on the measured
 values, only on where the robot was and on σ — so the design needs no fit beyond σ.
 
-Two quantities a metrologist states a stop rule in (``StopRule``):
+The quantities a stop rule is stated in (``StopRule``; ``CRITERIA``) — absolute, in the operator's
+terms: the offsets' half-widths, the model error at new poses of the plan's region and over the
+robot's working joint space (``DesignModel.joint_space``), each model error with the misfit the
+fit's σ shows beyond the sensor's spread (``SequentialDesign.misfit_mm``: error no configuration
+reduces); relative, against what the full plan would reach:
 
 * the half-width of every determinable offset's 95 % interval, ``T · sqrt(Σ_kk)`` (degrees;
   T = 2.228, the 97.5 % quantile of the Student t with 10 degrees of freedom that the Laplace
