@@ -115,7 +115,7 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
     if noise_estimate:
         doc["noise_estimate"] = noise_estimate
     if result.posterior.attitude is not None:  # 6-DoF rows: the paper's position and attitude metrics
-        from calib.fit.attitude import pose_metrics
+        from calib.fit.pose_scoring import pose_metrics
 
         post = result.posterior
         doc["pose_metrics"] = pose_metrics(post, result.mode[: post.dim], result.base2sensor0, cal, val)

@@ -581,7 +581,7 @@ class ModeFit:
     def predict_residuals(self, data: Dataset) -> np.ndarray:
         """measured − predicted (k, 3) mm for other rows ``data`` with this fit's parameters and its
         own registration (the same sensors; markers the fit did not measure keep the model's place).
-        Positions only: attitude rows, where measured, are scored by ``calib.fit.attitude.pose_metrics``."""
+        Positions only: attitude rows, where measured, are scored by ``calib.fit.pose_scoring.pose_metrics``."""
         other = OffsetPosterior(self.post.chain, data, self.b2s0, self.mask, error=self.post.error, nu=self.post.nu,
                                 link_prior=self.link_prior, compliance=bool(self.post.C), sag_params=self.sag_params,
                                 orientation=False)

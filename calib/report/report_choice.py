@@ -5,19 +5,7 @@ for socket data), the chosen one, the rule, and the link prior scales the eviden
 from __future__ import annotations
 
 from calib.report.report_format import esc
-from calib.report.report_summary import model_choice_table
-
-
-def link_scale_lines(mc: dict) -> list[str]:
-    """One line per link prior of ``mc`` ("lengths ±… mm, angles ±…°" and how it was set)."""
-    scales = mc.get("link_scale") or {}
-    if "length_mm" in scales:  # tracker/mocap: one links candidate
-        scales = {"offsets+tool+links": scales}
-    out = []
-    for name, sc in scales.items():
-        how = "given" if sc.get("given") else "empirical Bayes: the maximum of the Laplace evidence"
-        out.append(f"link prior of {name} ({how}): lengths ±{sc['length_mm']:g} mm, angles ±{sc['angle_deg']:g}°")
-    return out
+from calib.report.report_summary import link_scale_lines, model_choice_table
 
 
 def model_choice_section(doc: dict) -> list[str]:

@@ -190,8 +190,6 @@ def summary_html(doc: dict) -> str:
         parts.append(choice)
         parts.append(f"<p class=small>model: {esc(doc['model_choice']['chosen'])} — {esc(doc['model_choice']['rule'])}; each "
                      "model fitted on the other folds, held-out configurations scored with that fit's registration.</p>")
-        from calib.report.report_choice import link_scale_lines  # that module builds on this one's table
-
         parts += [f"<p class=small>{esc(line)}</p>" for line in link_scale_lines(doc["model_choice"])]
     sig = ", ".join(f"{esc(s)} σ = {num(v['value'], 3)} mm" for s, v in doc.get("sigma_mm", {}).items())
     if sig:
@@ -223,4 +221,16 @@ def entered_section(doc: dict) -> list[str]:
     if refused:
         out.append("<ul class=bad>" + "".join(f"<li>{esc(r)}</li>" for r in refused) + "</ul>")
     out += [offsets_table(doc), heldout_table(doc), "</div>"]
+    return out
+
+
+def link_scale_lines(mc: dict) -> list[str]:
+    """One line per link prior of ``mc`` ("lengths ±… mm, angles ±…°" and how it was set)."""
+    scales = mc.get("link_scale") or {}
+    if "length_mm" in scales:  # tracker/mocap: one links candidate
+        scales = {"offsets+tool+links": scales}
+    out = []
+    for name, sc in scales.items():
+        how = "given" if sc.get("given") else "empirical Bayes: the maximum of the Laplace evidence"
+        out.append(f"link prior of {name} ({how}): lengths ±{sc['length_mm']:g} mm, angles ±{sc['angle_deg']:g}°")
     return out

@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 from calib.fit.identification import (IdentOptions, attitude_errors, corrected_model, estimated_tool_frames,  # noqa: E402
                                       identify, pose_errors)
-from calib.fit.attitude import fitted_frames, held_out_pose_errors  # noqa: E402
+from calib.fit.pose_scoring import fitted_frames, held_out_pose_errors  # noqa: E402
 from calib.fit.metrics import registrations  # noqa: E402
 from calib.fit.model_choice import choose_model, options_for, parse_candidate  # noqa: E402
 from calib.fit.offsets import FitOptions, fit_mode  # noqa: E402

@@ -65,7 +65,7 @@ def test_with_a_known_target_frame_orientation_identifies_the_last_offset_from_o
 
 
 def test_pose_metrics_of_a_zero_offset_fit_score_held_out_attitude_without_refitting():
-    from calib.fit.attitude import pose_metrics
+    from calib.fit.pose_scoring import pose_metrics
 
     frame = exp_so3(np.radians([3.0, -2.0, 40.0]))
     data, _ = cell_data(TX60, frame, 60, 7)
