@@ -51,7 +51,8 @@ def test_station_once_archives_a_cells_run_end_to_end(tmp_path):
         server = ControlServer(bus.session, "c1", daemon, Authorizer(auth), site="s1")
         bus.liveliness_token(bus.key("daemon"))
         (tmp_path / "station.yaml").write_text(
-            f"archive: archive\ntoken_file: station.token\nzenoh: {{mode: peer, listen: [], connect: {json.dumps(bus.locators)}}}\n")
+            f"archive: archive\ntoken_file: station.token\ncells: {{s1/c1: {{robot_serial: R1}}}}\n"
+            f"zenoh: {{mode: peer, listen: [], connect: {json.dumps(bus.locators)}}}\n")
         try:
             out = _acquire("station", "--config", str(tmp_path / "station.yaml"), "--once", "--wait", "4")
         finally:
@@ -63,4 +64,5 @@ def test_station_once_archives_a_cells_run_end_to_end(tmp_path):
 
 def test_the_shipped_example_configuration_loads():
     cfg = load_station_config(ROOT / "systemd" / "station.yaml.example")
-    assert cfg.zenoh.mode == "router" and cfg.drift.policy().accuracy_limit_mm == 0.5
+    assert cfg.zenoh.mode == "client" and cfg.drift.policy().accuracy_limit_mm is None
+    assert cfg.cell("plant-a", "c7").robot_serial == "KR6-0815" and cfg.cell("plant-a", "c9") is None
