@@ -15,7 +15,7 @@ from typing import Optional
 import typer
 
 fleet_app = typer.Typer(add_completion=False, invoke_without_command=True,
-                        help="Show every robot of the archive: cell state, last calibration, drift.")
+                        help="Show every robot of the archive and its state; write the fleet's pages.")
 
 _ARCHIVE = typer.Option(..., "--archive", help="The station's archive folder.")
 
@@ -27,7 +27,7 @@ def fleet(
     as_json: bool = typer.Option(False, "--json", help="The rows as JSON."),
     html: Optional[Path] = typer.Option(None, "--html", help="Write <serial>.html per robot into this folder."),
 ) -> None:
-    """Show every robot of the archive: cell state, last calibration, drift."""
+    """Show every robot of the archive and its state; write the fleet's pages."""
     if ctx.invoked_subcommand is not None:
         return
     from acquire.station.fleet import fleet_rows, needs_action, render_table, write_pages

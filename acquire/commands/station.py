@@ -19,7 +19,7 @@ from typing import Optional
 import typer
 
 station_app = typer.Typer(add_completion=False, invoke_without_command=True,
-                          help="Keep every cell's finished runs: discover, pull, verify, store, confirm; check drift.")
+                          help="Keep every cell's finished runs: pull, verify, store, confirm; scrub the archive; robot states.")
 
 
 def _config(config: Optional[Path]):
@@ -45,7 +45,7 @@ def station(
     wait: float = typer.Option(5.0, "--wait", help="With --once: seconds to discover cells first."),
     verbose: bool = typer.Option(False, "-v", "--verbose", help="Debug logging."),
 ) -> None:
-    """Keep every cell's finished runs: discover, pull, verify, store, confirm; check drift."""
+    """Keep every cell's finished runs: pull, verify, store, confirm; scrub the archive; robot states."""
     if ctx.invoked_subcommand is not None:
         return
     import logging

@@ -191,3 +191,51 @@ def test_a_cell_that_answers_late_and_an_announced_run_are_archived_without_wait
             station.request_stop()
             loop.join(30)
             cell.close()
+
+
+def test_the_station_is_a_client_of_the_sites_router_and_its_restart_leaves_the_cells_reachable(tmp_path):
+    """``acquire router`` (its own process) routes; the station and a cell are its clients. With the
+    station stopped, an operator still reaches the cell through the router."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    from daemon_harness import free_port
+
+    from acquire.bus import Bus
+    from acquire.control import ControlClient
+
+    port = free_port()
+    (tmp_path / "router.yaml").write_text(f"listen: [tcp/127.0.0.1:{port}]\n")
+    root = Path(__file__).resolve().parents[3]
+    router = subprocess.Popen([sys.executable, "-m", "acquire", "router", "--config", str(tmp_path / "router.yaml")],
+                              env=dict(os.environ, PYTHONPATH=str(root)), stderr=subprocess.PIPE, text=True)
+    endpoint = [f"tcp/127.0.0.1:{port}"]
+    cfg = station_config(tmp_path, zenoh={"mode": "client", "listen": [], "connect": endpoint})
+    try:
+        _until(lambda: _router_up(endpoint), 60, "the router to accept a client", poll=0.2)
+        cell = Cell(tmp_path, endpoint, "plant-a", "c1", "KR6-0001")
+        try:
+            write_run(cell.state_dir, "r1", result_doc(np.zeros(6), STD, 40), 10_000, 1.7e9)
+            with Station(cfg, token=TOKEN) as station:
+                wait_cells(station, 1)
+                sync_until(station, "plant-a", "c1", 1)
+            with Bus("operator", config={"mode": "client", "connect": endpoint}) as op:
+                client = ControlClient(op.session, "c1", site="plant-a", client="station", token=TOKEN)
+                assert client.call("archive-list", timeout=20.0)["runs"] == []   # confirmed, through the router
+        finally:
+            cell.close()
+    finally:
+        router.terminate()
+        _, err = router.communicate(timeout=30)
+        assert router.returncode == 0, err
+
+
+def _router_up(endpoint) -> bool:
+    from acquire.bus import Bus, BusError
+
+    try:
+        with Bus("probe", config={"mode": "client", "connect": endpoint}):
+            return True
+    except BusError:
+        return False
