@@ -56,6 +56,8 @@ DAEMON_TOKENS = (f"{ROOT}/*/daemon", f"{ROOT}/*/*/daemon")
 #: What a daemon puts when one of its runs has ended (a hint: the listing is authenticated).
 ANNOUNCEMENTS = (f"{ROOT}/*/archive/ready", f"{ROOT}/*/*/archive/ready")
 _FIRST_RETRY_S = 0.25
+#: Seconds between the robot-state checks the loop makes by itself (after each archived run too).
+STATES_EVERY_S = 600.0
 
 
 def parse_daemon_key(key: str) -> tuple[str, str] | None:
@@ -168,7 +170,7 @@ class Station:
         archive every ``scrub_hours`` until stopped. ``on_tick()``: called each loop (watchdog)."""
         next_scrub = time.monotonic() + 3600.0 * self.cfg.scrub_hours if self.cfg.scrub_hours else None
         scrubber: threading.Thread | None = None
-        last_write = 0.0
+        last_write = last_states = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             with self._lock:
@@ -182,6 +184,9 @@ class Station:
             if now - last_write > 1.0:
                 self.write_cells()
                 last_write = now
+            if now - last_states > STATES_EVERY_S:   # "check due" comes with time alone
+                self.check_states()
+                last_states = now
             if on_tick is not None:
                 on_tick()
             self._wake.wait(0.5)
@@ -225,9 +230,19 @@ class Station:
                 return running
             state = self.cells.setdefault(ident, CellState(site, cell))
             state.due = float("inf")   # set again when the sync ends
-            fut = self._pool.submit(self.sync_cell, site, cell)
+            fut = self._pool.submit(self._sync_job, state)
             self._running[ident] = fut
             return fut
+
+    def _sync_job(self, state: CellState) -> int:
+        """``sync_cell`` on a worker: whatever happens, the cell is due again after ``poll_s``."""
+        try:
+            return self.sync_cell(state.site, state.cell)
+        except Exception:  # noqa: BLE001 - a defect, not the cell's fault: logged with its traceback, retried
+            log.exception("cell %s: sync failed", _name(state.site, state.cell))
+            with self._lock:
+                state.due = time.monotonic() + self.cfg.poll_s
+            return 0
 
     def sync_all(self) -> int:
         """Sync every live cell once, concurrently, and wait; returns how many runs were archived."""

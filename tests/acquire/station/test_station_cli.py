@@ -66,3 +66,28 @@ def test_the_shipped_example_configuration_loads():
     cfg = load_station_config(ROOT / "systemd" / "station.yaml.example")
     assert cfg.zenoh.mode == "client" and cfg.drift.policy().accuracy_limit_mm is None
     assert cfg.cell("plant-a", "c7").robot_serial == "KR6-0815" and cfg.cell("plant-a", "c9") is None
+
+
+def test_station_verify_reports_and_quarantines_a_damaged_file_and_exits_3(tmp_path):
+    import hashlib
+
+    from acquire.station.archive import Archive, RunRef
+
+    content = {"r1.mcap": bytes(range(256)) * 100, "result.json": b'{"offset": 0.0123}'}
+    archive = Archive(tmp_path / "archive")
+    t = archive.begin(RunRef("s1", "c1", "r1", "R1"),
+                      [{"name": n, "bytes": len(b), "sha256": hashlib.sha256(b).hexdigest()} for n, b in content.items()],
+                      "2026-11-26T10:00:00+00:00")
+    for name, data in content.items():
+        t.write(name, 0, data)
+    folder = archive.folder(t.finish())
+    (tmp_path / "station.yaml").write_text("archive: archive\ntoken_file: station.token\n")
+    clean = _acquire("station", "verify", "--config", str(tmp_path / "station.yaml"))
+    assert clean.returncode == 0 and "1 intact, 0 damaged now" in clean.stdout, clean.stdout + clean.stderr
+    (folder / "result.json").write_bytes(b'{"offset": 0.0128}')
+    out = _acquire("station", "verify", "--config", str(tmp_path / "station.yaml"))
+    assert out.returncode == 3, out.stderr
+    assert "DAMAGED s1~c1~r1: result.json: content does not match the manifest's sha256" in out.stdout
+    assert not (folder / "result.json").exists()
+    assert [p.read_bytes() for p in (tmp_path / "archive" / ".quarantine").rglob("result.json.*")] == [
+        b'{"offset": 0.0128}']
