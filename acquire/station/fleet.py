@@ -124,7 +124,8 @@ def deltas(hist: list[dict]) -> list[dict]:
     return out
 
 
-def _offset_figure(hist: list[dict], rows: list[dict], days: np.ndarray, xlim, joints: list[str]) -> tuple[str, list[str]]:
+def _offset_figure(hist: list[dict], rows: list[dict], days: np.ndarray, xlim, joints: list[str],
+                   xlabel: str) -> tuple[str, list[str]]:
     """The Δ plots of the axes that have something to plot; the sentences for those that have not."""
     plotted, words = [], []
     for name in joints:
@@ -157,7 +158,7 @@ def _offset_figure(hist: list[dict], rows: list[dict], days: np.ndarray, xlim, j
             ax.line([x, x], [a["delta"] - 2 * a["sigma"], a["delta"] + 2 * a["sigma"]], color=colour)
             ax.marker(x, a["delta"], color=colour, size=6)
         ax.frame(title=f"{name}: Δ from the entered reference (deg, ± 2σ; red ticks: drift threshold ± 3 combined σ)",
-                 xlabel="days" if k == len(plotted) - 1 else "", ylabel="Δ deg")
+                 xlabel=xlabel if k == len(plotted) - 1 else "", ylabel="Δ deg")
     legend = ("green: the entered reference (Δ 0 by definition); blue: a calibration not entered; orange: a check; "
               "red: beyond the threshold")
     return fig.svg("offsets as Δ from the entered reference over time") + f"<p>{esc(legend)}</p>", words
@@ -175,20 +176,22 @@ def robot_page(archive_root: Path, serial: str, policy: Policy | None = None, no
     pad = max(1.0, 0.05 * float(days.max() - days.min()))
     xlim = (float(days.min()) - pad, float(days.max()) + pad)
     rows = deltas(hist)
-    offsets_svg, words = _offset_figure(hist, rows, days, xlim, hist[-1]["joints"])
+    since = f"days since {hist[0]['finished'][:10]}"
+    offsets_svg, words = _offset_figure(hist, rows, days, xlim, hist[-1]["joints"], since)
     before_ref = [e["run_id"] for e, r in zip(hist, rows) if r["reference"] is None]
     acc_b = np.array([e["accuracy_mm"]["before"] if e["accuracy_mm"]["before"] is not None else np.nan for e in hist])
     acc_a = np.array([e["accuracy_mm"]["after"] if e["accuracy_mm"]["after"] is not None else np.nan for e in hist])
     afig = Figure(760, 230)
-    finite = np.concatenate([acc_b, acc_a, [0.0]] + ([[st["accuracy_limit_mm"]]] if st["accuracy_limit_mm"] else []))
-    ax = afig.axes((70, 25, 660, 150), xlim, data_limits(finite[np.isfinite(finite)], 0.1))
+    values = np.concatenate([acc_b, acc_a] + ([[st["accuracy_limit_mm"]]] if st["accuracy_limit_mm"] else []))
+    top = float(np.nanmax(values)) if np.isfinite(values).any() else 1.0
+    ax = afig.axes((70, 25, 660, 150), xlim, (0.0, 1.4 * top))   # headroom: the legend sits above the data
     ax.scatter(days, acc_b, color=TAB10[3], size=6, label="before correction (as it runs)")
     ax.scatter(days, acc_a, color=TAB10[2], size=6, label="after correction")
     if st["accuracy_limit_mm"]:
         ax.hline(st["accuracy_limit_mm"], color=TAB10[3])
     ax.frame(title="mean absolute error" + (f" (line: limit {st['accuracy_limit_mm']:.3f} mm)"
                                             if st["accuracy_limit_mm"] else ""),
-             xlabel=f"days since {hist[0]['finished'][:10]}", ylabel="mm")
+             xlabel=since, ylabel="mm")
     ax.legend("upper left")
     joints = hist[-1]["joints"]
     head = "".join(f"<th>Δ {esc(j)} (deg)</th>" for j in joints)
