@@ -6,6 +6,7 @@
      "entered": bool, "joints": [names], "offsets_deg": [value or null per joint],
      "std_deg": [σ or null], "ci95_deg": [[lo, hi] or null],
      "accuracy_mm": {"before": mean absolute error or null, "after": … },
+     "do_not_enter": [the fit's reasons not to enter its offsets], "n_configurations",
      "drift": the drift verdict against the reference (acquire.station.drift) or null}
 
 ``kind``: a run with at most ``check_max_configurations`` measured configurations is a *check*
@@ -49,6 +50,7 @@ def entry_from_result(result: dict, *, run_id: str, finished: str, site: str, ce
         "ci95_deg": [o.get("ci95_deg") if f else None for o, f in zip(offsets, fitted)],
         "accuracy_mm": {"before": (absolute.get("before") or {}).get("mean"),
                         "after": (absolute.get("after") or {}).get("mean")},
+        "do_not_enter": [str(r) for r in result.get("do_not_enter") or []],
         "drift": None,
     }
 

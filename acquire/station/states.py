@@ -64,8 +64,9 @@ def reference_problem(entry: dict, policy: Policy) -> str | None:
         return (f"run {entry['run_id']} measured {n} configurations; a reference needs at least "
                 f"{policy.check_max_configurations + 1} (drift.check_max_configurations + 1): it is a check")
     if not usable_axes(entry):
+        why = "; ".join(entry.get("do_not_enter") or [])
         return (f"run {entry['run_id']} has no offset that can be entered: every offset is undetermined or "
-                "'do not enter'")
+                "'do not enter'" + (f" (the fit says: {why})" if why else ""))
     return None
 
 

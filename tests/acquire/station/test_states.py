@@ -84,9 +84,11 @@ def test_states_are_recomputed_when_the_reference_changes(tmp_path):
 
 def test_enter_refuses_a_check_and_a_run_without_usable_offsets(tmp_path):
     add_entry(tmp_path, "R1", _entry("chk", 2, n_conf=12))
-    add_entry(tmp_path, "R1", _entry("dne", 3, offsets=[None] * 6, std=[None] * 6, entered=False))
+    add_entry(tmp_path, "R1", _entry("dne", 3, offsets=[None] * 6, std=[None] * 6, entered=False)
+              | {"do_not_enter": ["held-out error 2.1 mm over the limit"]})
     with pytest.raises(ValueError, match="measured 12 configurations; a reference needs at least 13"):
         mark_entered(tmp_path, "R1", "chk")
-    with pytest.raises(ValueError, match="no offset that can be entered: every offset is undetermined or 'do not enter'"):
+    with pytest.raises(ValueError, match="no offset that can be entered: every offset is undetermined or 'do not enter' "
+                                         r"\(the fit says: held-out error 2.1 mm over the limit\)"):
         mark_entered(tmp_path, "R1", "dne")
     assert not any(e["entered"] for e in load_history(tmp_path, "R1"))
