@@ -331,6 +331,7 @@ class Archive:
         already = sum((partial / f"{f['name']}.part").stat().st_size for f in checked
                       if (partial / f"{f['name']}.part").is_file())
         self._check_limits(ref, checked, already)
+        self._destination(ref, checked, finished)   # a folder held by another run: refused before any byte
         return self._open(Transfer(self, ref, checked, finished))
 
     def _open(self, transfer: Transfer) -> Transfer:
@@ -338,29 +339,40 @@ class Archive:
             self._transfers[transfer.folder.name] = transfer
         return transfer
 
+    def _destination(self, ref: RunRef, files: list[dict], finished: str) -> tuple[Path, int, dict | None]:
+        """(folder, version, stored manifest) a run with these files would be stored in; ArchiveRefused
+        when that folder already holds another run (it is never removed or written into)."""
+        stored = self.manifest(ref)
+        version = 1 if stored is None else (stored.get("version", 1) if stored["files"] == files
+                                            else stored.get("version", 1) + 1)
+        dest = self.folder({"run_id": ref.run_id, "finished": finished, "robot_serial": ref.robot_serial,
+                            "version": version})
+        held = _read_json(dest / "manifest.json") if dest.exists() else None
+        if dest.exists() and not (held is not None and RunRef.of(held) == ref and held["files"] == files):
+            who = f"run {held['run_id']} of cell {held['site'] or '-'}/{held['cell']}" if held else "other files"
+            log.error("refused run %s of cell %s: %s already holds %s; an archived run is never replaced",
+                      ref.run_id, _cell_name(ref), dest, who)
+            raise ArchiveRefused(f"{dest} already holds {who}; an archived run is never replaced "
+                                 f"(run {ref.run_id} of cell {_cell_name(ref)} refused, nothing changed)")
+        return dest, version, stored
+
     def _commit(self, transfer: Transfer, manifest: dict) -> dict:
         ref = transfer.ref
         with self._lock:
-            stored = self.manifest(ref)
-            if stored is not None:
-                if stored["files"] == manifest["files"]:
-                    shutil.rmtree(transfer.folder, ignore_errors=True)
-                    return stored
-                manifest["version"] = stored.get("version", 1) + 1  # kept beside the earlier copy
-            dest = self.folder(manifest)
-            if dest.exists():
-                held = _read_json(dest / "manifest.json")
-                same = held is not None and RunRef.of(held) == ref and held["files"] == manifest["files"]
-                if not same:
-                    shutil.rmtree(transfer.folder, ignore_errors=True)
-                    who = f"run {held['run_id']} of cell {held['site'] or '-'}/{held['cell']}" if held else "other files"
-                    log.error("refused run %s of cell %s: %s already holds %s; an archived run is never replaced",
-                              ref.run_id, ref.cell, dest, who)
-                    raise ArchiveRefused(f"{dest} already holds {who}; an archived run is never replaced "
-                                         f"(run {ref.run_id} of cell {ref.cell} refused, nothing changed)")
-                shutil.rmtree(transfer.folder, ignore_errors=True)   # a commit interrupted before its index
+            try:
+                dest, version, stored = self._destination(ref, manifest["files"], manifest["finished"])
+            except ArchiveRefused:
+                shutil.rmtree(transfer.folder, ignore_errors=True)
+                raise
+            if stored is not None and stored["files"] == manifest["files"]:
+                shutil.rmtree(transfer.folder, ignore_errors=True)   # a re-send of what is stored
+                return stored
+            if version > 1:
+                manifest["version"] = version   # kept beside the earlier copy
+            if dest.exists():   # this very run, moved in before its index was written: finish that
+                shutil.rmtree(transfer.folder, ignore_errors=True)
                 self._write_index(ref, {"folder": str(dest.relative_to(self.root))})
-                return held
+                return json.loads((dest / "manifest.json").read_text())
             dest.parent.mkdir(parents=True, exist_ok=True)
             tmp = transfer.folder
             (tmp / "announced.json").unlink()
@@ -451,6 +463,10 @@ class Archive:
             folder = self.root / json.loads(idx.read_text())["folder"]
             out.append(json.loads((folder / "manifest.json").read_text()))
         return sorted(out, key=lambda m: (m["finished"], m["run_id"]))
+
+
+def _cell_name(ref: RunRef) -> str:
+    return f"{ref.site}/{ref.cell}" if ref.site else ref.cell
 
 
 def _read_json(path: Path) -> dict | None:

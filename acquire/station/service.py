@@ -170,7 +170,7 @@ class Station:
         archive every ``scrub_hours`` until stopped. ``on_tick()``: called each loop (watchdog)."""
         next_scrub = time.monotonic() + 3600.0 * self.cfg.scrub_hours if self.cfg.scrub_hours else None
         scrubber: threading.Thread | None = None
-        last_write = last_states = 0.0
+        last_write, last_states = 0.0, float("-inf")
         while not self._stop.is_set():
             now = time.monotonic()
             with self._lock:

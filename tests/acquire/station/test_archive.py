@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import shutil
 
 import pytest
 
@@ -110,8 +111,13 @@ def test_a_folder_holding_another_run_is_never_replaced(tmp_path, caplog):
     before = {p.name: p.read_bytes() for p in folder.iterdir()}
     other = RunRef("plant-a", "c2", "r1", "KR6-0815")   # same serial, day and run id, another cell
     evil = {"r1.mcap": b"not the robot's log", "result.json": b'{"joint_offsets": []}'}
+    with pytest.raises(ArchiveRefused, match="never replaced"):   # refused when announced: no byte fetched
+        archive.begin(other, _files(evil), "2026-11-26T11:00:00+00:00")
+    # A folder taken between announcement and commit (another transfer won the race): refused at commit.
+    shutil.move(folder, tmp_path / "aside")
     t = archive.begin(other, _files(evil), "2026-11-26T11:00:00+00:00")
     _send(t, evil)
+    shutil.move(tmp_path / "aside", folder)
     with pytest.raises(ArchiveRefused, match="never replaced"):
         t.finish()
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
