@@ -91,3 +91,37 @@ def test_station_verify_reports_and_quarantines_a_damaged_file_and_exits_3(tmp_p
     assert not (folder / "result.json").exists()
     assert [p.read_bytes() for p in (tmp_path / "archive" / ".quarantine").rglob("result.json.*")] == [
         b'{"offset": 0.0128}']
+
+
+@pytest.mark.parametrize("service", ["station", "router"])
+def test_the_station_and_the_router_tell_systemd_they_are_ready_and_alive_and_stop_cleanly(tmp_path, service):
+    """``Type=notify`` and ``WatchdogSec=``: READY=1 once serving, WATCHDOG=1 while the loop runs,
+    STOPPING=1 and exit 0 on SIGTERM (a NOTIFY_SOCKET stand-in; the station as its own router here)."""
+    import signal
+
+    from daemon_harness import NotifySocket, free_port
+
+    write_token_file(tmp_path / "station.token", new_token())
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    if service == "station":
+        (tmp_path / "cfg.yaml").write_text(
+            f"archive: archive\ntoken_file: station.token\nzenoh: {{mode: router, listen: ['{endpoint}'], connect: []}}\n")
+    else:
+        (tmp_path / "cfg.yaml").write_text(f"listen: ['{endpoint}']\n")
+    notify = NotifySocket()
+    env = dict(os.environ, PYTHONPATH=str(ROOT), NOTIFY_SOCKET=notify.name, WATCHDOG_USEC="2000000")
+    env.pop("WATCHDOG_PID", None)
+    proc = subprocess.Popen([sys.executable, "-m", "acquire", service, "--config", str(tmp_path / "cfg.yaml")],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        notify.wait_for(lambda f: f.get("READY") == "1", 90)
+        notify.wait_for(lambda f: f.get("WATCHDOG") == "1", 30)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err
+        notify.wait_for(lambda f: f.get("STOPPING") == "1", 5)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        notify.close()
