@@ -96,6 +96,7 @@ class CellState:
     bytes: int = 0
     pending: int = 0
     due: float = 0.0                       # time.monotonic() of its next sync
+    again: bool = False                    # announced a run while being synced: sync once more
     retry_s: float = _FIRST_RETRY_S
     timings_s: list[float] = field(default_factory=list)   # run listed → confirmed, per run
 
@@ -216,7 +217,7 @@ class Station:
             return
         state = self._cell(ident)
         with self._lock:
-            state.due = 0.0
+            state.due, state.again = 0.0, True
         log.debug("cell %s announced a finished run", _name(*ident))
         self._wake.set()
 
@@ -310,7 +311,9 @@ class Station:
                 state.last_error = errors[-1]
             else:
                 state.last_error = None
-            state.due = now + self.cfg.poll_s
+            # A run announced while this sync was under way may have missed its listing: once more.
+            state.due = now if state.again else now + self.cfg.poll_s
+            state.again = False
 
     def _refused(self, site: str, cell: str, exc: Exception) -> None:
         state = self._cell((site, cell))

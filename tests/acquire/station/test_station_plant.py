@@ -39,6 +39,13 @@ def _until(cond, timeout: float, what: str, poll: float = 0.05):
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
 
 
+def _answered_error(station: Station, site: str, cell: str) -> str | None:
+    """Sync a cell once; its error once it has answered (before, a just-joined cell may not reply yet)."""
+    assert station.sync_cell(site, cell) == 0
+    state = next(c for c in station.cell_states() if (c.site, c.cell) == (site, cell))
+    return state.last_error if state.answered else None
+
+
 def _alert_command(path) -> list[str]:
     """An alert hook that appends each event (JSON on stdin) as one line to ``path``."""
     return [sys.executable, "-c", f"import sys; open({str(path)!r}, 'a').write(sys.stdin.read() + '\\n')"]
@@ -57,9 +64,7 @@ def test_a_cell_claiming_another_robots_serial_is_refused_and_that_robots_run_st
             sync_until(station, "plant-b", "c1", 1)
             (stored,) = station.archive.manifests()
             before = {p.name: p.read_bytes() for p in station.archive.folder(stored).iterdir()}
-            err = _until(lambda: (station.sync_cell("plant-a", "c1") == 0 and
-                                  next(c for c in station.cell_states() if c.site == "plant-a").last_error), 20,
-                         "the liar's listing")
+            err = _until(lambda: _answered_error(station, "plant-a", "c1"), 20, "the liar's listing")
             assert "reports robot 'KR6-0002', but the station's configuration binds it to 'KR6-0001'" in err
             assert station.archive.manifests() == [stored]
             assert {p.name: p.read_bytes() for p in station.archive.folder(stored).iterdir()} == before
@@ -92,8 +97,7 @@ def test_a_one_tebibyte_announcement_is_refused_before_any_chunk(tmp_path, stati
     cell = Cell(tmp_path, station.bus.locators, "plant-a", "c9", "TX60-9", daemon_cls=HugeRunDaemon)
     try:
         wait_cells(station, 1)
-        err = _until(lambda: (station.sync_cell("plant-a", "c9") == 0 and station.cell_states()[0].last_error), 20,
-                     "the refusal")
+        err = _until(lambda: _answered_error(station, "plant-a", "c9"), 20, "the refusal")
         assert "1099511627776 bytes, over limits.max_file_bytes" in err and "before any byte" in err
         assert HugeRunDaemon.chunks == 0 and station.archive.manifests() == []
         assert not any((station.archive.root / ".incoming").iterdir())
@@ -172,9 +176,25 @@ def test_a_frozen_cell_does_not_delay_the_others(tmp_path):
             ok.close()
 
 
+class HookedDaemon(Daemon):
+    """A daemon that runs ``on_confirm()`` once, inside its first ``archive-confirm`` (while the
+    station's sync of this cell is still under way)."""
+
+    on_confirm = None
+
+    def archive_confirm(self, request, identity):
+        reply = super().archive_confirm(request, identity)
+        hook, self.on_confirm = self.on_confirm, None
+        if hook is not None:
+            hook()
+        return reply
+
+
 def test_a_cell_that_answers_late_and_an_announced_run_are_archived_without_waiting_for_the_poll(tmp_path):
+    """Late answers are retried quickly; a run announced while the cell is being synced (after its
+    listing) is fetched by one more sync, not by the 600 s poll."""
     with Station(station_config(tmp_path, poll_s=600), token=TOKEN) as station:
-        cell = Cell(tmp_path, station.bus.locators, "plant-a", "c1", "KR6-0001", serve=False)
+        cell = Cell(tmp_path, station.bus.locators, "plant-a", "c1", "KR6-0001", serve=False, daemon_cls=HookedDaemon)
         loop = threading.Thread(target=station.run, daemon=True)
         try:
             write_run(cell.state_dir, "r1", result_doc(np.zeros(6), STD, 40), 10_000, 1.7e9)
@@ -182,11 +202,12 @@ def test_a_cell_that_answers_late_and_an_announced_run_are_archived_without_wait
             wait_cells(station, 1)
             time.sleep(0.5)   # its token is up, its queries are not: the station keeps asking, briefly
             assert station.archive.manifests() == []
+            cell.daemon.on_confirm = lambda: (
+                write_run(cell.state_dir, "r2", result_doc(np.zeros(6), STD, 8), 10_000, 1.7e9 + 3600),
+                cell.announce("r2"))
             cell.serve()
             _until(lambda: station.archive.manifests(), 30, "the first run once the cell answers")
-            write_run(cell.state_dir, "r2", result_doc(np.zeros(6), STD, 8), 10_000, 1.7e9 + 3600)
-            cell.announce("r2")   # the 600 s poll is far away: the announcement brings it
-            _until(lambda: len(station.archive.manifests()) == 2, 30, "the announced run")
+            _until(lambda: len(station.archive.manifests()) == 2, 30, "the run announced during the sync")
         finally:
             station.request_stop()
             loop.join(30)
