@@ -9,8 +9,10 @@ from datetime import datetime, timezone
 from html.parser import HTMLParser
 from pathlib import Path
 
+import pytest
+
 from acquire.station.fleet import fleet_rows, index_page, robot_page
-from acquire.station.history import add_entry
+from acquire.station.history import add_entry, mark_entered
 
 ROOT = Path(__file__).resolve().parents[3]
 JOINTS = ["A1", "A2", "A7"]
@@ -130,7 +132,7 @@ def test_enter_makes_a_run_the_reference_and_refuses_unknown_runs_and_checks(tmp
     add_entry(tmp_path, "R-1", _entry("cal3", 25, [0.2, 0.0, None]) | {"entered": False})
     assert _acquire("fleet", "enter", "R-1", "cal3", "--archive", str(tmp_path)).returncode == 0
     assert fleet_rows(tmp_path, now=NOW)[0]["reference"]["run_id"] == "cal3"
-    bad = _acquire("fleet", "enter", "R-1", "nope", "--archive", str(tmp_path))
-    assert bad.returncode == 2 and "has no run 'nope'" in bad.stderr
+    with pytest.raises(ValueError, match="has no run 'nope'"):
+        mark_entered(tmp_path, "R-1", "nope")
     check = _acquire("fleet", "enter", "R-1", "chk1", "--archive", str(tmp_path))
     assert check.returncode == 2 and "measured 8 configurations; a reference needs at least 13" in check.stderr
