@@ -15,14 +15,20 @@ log = logging.getLogger(__name__)
 
 def record_run(archive: Archive, manifest: dict, policy: Policy = Policy()) -> dict | None:
     """Add an archived run with a ``result.json`` to its robot's history and recompute the drift
-    verdicts; returns the entry (None: the run has no result)."""
+    verdicts; returns the entry (None: the run has no result, or one that is not a fit result)."""
     if not any(f["name"] == "result.json" for f in manifest["files"]):
         return None
-    result = json.loads((archive.folder(manifest) / "result.json").read_text())
     serial = manifest["robot_serial"]
-    entry = entry_from_result(result, run_id=manifest["run_id"], finished=manifest["finished"],
-                              site=manifest["site"], cell=manifest["cell"],
-                              check_max_configurations=policy.check_max_configurations, auto_enter=policy.auto_enter)
+    path = archive.folder(manifest) / "result.json"
+    try:
+        entry = entry_from_result(json.loads(path.read_text()), run_id=manifest["run_id"],
+                                  finished=manifest["finished"], site=manifest["site"], cell=manifest["cell"],
+                                  check_max_configurations=policy.check_max_configurations,
+                                  auto_enter=policy.auto_enter)
+    except (OSError, ValueError, TypeError, AttributeError) as exc:   # archived as sent; no history entry
+        log.warning("run %s (robot %s): %s is not a result the history can use (%s); archived without a "
+                    "history entry", manifest["run_id"], serial, path, exc)
+        return None
     add_entry(archive.root, serial, entry)
     entries = recompute(load_history(archive.root, serial), policy)
     write_history(archive.root, serial, entries)

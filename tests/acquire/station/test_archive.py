@@ -152,3 +152,17 @@ def test_the_free_space_reserve_is_kept_when_announced_and_while_streaming(tmp_p
     with pytest.raises(ArchiveFull, match="reserve_free_bytes"):
         t.write("r1.mcap", 1000, CONTENT["r1.mcap"][1000:2000])
     assert t.offset("r1.mcap") == 1000
+
+
+def test_a_run_whose_result_is_not_a_fit_is_archived_without_a_history_entry(tmp_path, caplog):
+    from acquire.station.history import load_history
+    from acquire.station.intake import record_run
+
+    archive = Archive(tmp_path)
+    bad = {"r1.mcap": b"log", "result.json": b"{not json"}
+    t = archive.begin(REF, _files(bad), "2026-11-26T10:00:00+00:00")
+    _send(t, bad)
+    manifest = t.finish()
+    assert record_run(archive, manifest) is None
+    assert load_history(tmp_path, "KR6-0815") == [] and archive.verify(manifest) == []
+    assert "is not a result the history can use" in caplog.text
