@@ -3,7 +3,8 @@
 Rows (one per robot in the archive): serial, site/cell, the cell's state as the station last saw
 it (``<archive>/.station/cells.json``: ``up`` / ``down`` / ``error``), the robot's state
 (``acquire.station.states``, computed now with the station's policy ``.station/policy.json``),
-its reference (the entered calibration) and the last run.
+its reference (the entered calibration), the last run, and archived files the scrub found
+damaged and not yet repaired.
 
 Pages (``write_pages``): ``index.html`` — every robot with its state and why; ``<serial>.html`` —
 per axis the offsets as Δ from the entered reference (the reference itself at 0 with its ± 2σ,
@@ -49,10 +50,22 @@ def read_policy(archive_root: Path) -> Policy:
     return Policy.from_dict(json.loads(p.read_text())) if p.exists() else Policy()
 
 
+def damaged_runs(archive_root: Path) -> dict[str, list[str]]:
+    """Per robot serial, the archived runs the scrub found damaged and not yet repaired."""
+    out: dict[str, list[str]] = {}
+    for idx in sorted((Path(archive_root) / ".index").glob("*.json")):
+        entry = json.loads(idx.read_text())
+        if entry.get("damaged"):
+            serial, _, run = Path(entry["folder"]).parts[:3]
+            out.setdefault(serial, []).append(f"{run}: {', '.join(entry['damaged'])}")
+    return out
+
+
 def fleet_rows(archive_root: Path, policy: Policy | None = None, now: datetime | None = None) -> list[dict]:
     """One row per robot (see the module docstring); plain JSON values."""
     policy = policy or read_policy(archive_root)
     cells = read_cells(archive_root)
+    damaged = damaged_runs(archive_root)
     rows = []
     for serial in robots(archive_root):
         hist = load_history(archive_root, serial)
@@ -70,6 +83,7 @@ def fleet_rows(archive_root: Path, policy: Policy | None = None, now: datetime |
                 "run_id": ref["run_id"], "finished": ref["finished"], "accuracy_after_mm": ref["accuracy_mm"]["after"]},
             "last_run": {"run_id": last["run_id"], "finished": last["finished"], "kind": last["kind"]},
             "accuracy_mm": st["accuracy_mm"], "accuracy_limit_mm": st["accuracy_limit_mm"], "runs": len(hist),
+            "damaged": damaged.get(serial, []),
         })
     return rows
 
@@ -88,7 +102,8 @@ def render_table(rows: list[dict]) -> str:
         lines.append((r["robot_serial"], "/".join(p for p in (r["site"], r["cell"]) if p), r["cell_state"],
                       f"{ref['run_id']} {ref['finished'][:10]}" if ref else "none",
                       f"{r['last_run']['kind']} {r['last_run']['finished'][:10]}",
-                      f"{r['state']}: " + "; ".join(r["reasons"])))
+                      f"{r['state']}: " + "; ".join(r["reasons"])
+                      + (f"; archive: {len(r['damaged'])} damaged copy(ies) awaiting the cell" if r["damaged"] else "")))
     widths = [max(len(str(line[i])) for line in lines) for i in range(len(head) - 1)]
     return "\n".join("  ".join(str(v).ljust(w) for v, w in zip(line, widths)) + "  " + str(line[-1])
                      for line in lines)
@@ -246,13 +261,15 @@ def index_page(archive_root: Path, policy: Policy | None = None, now: datetime |
         f"<td class='state s-{r['state'].replace(' ', '-')}'>{esc(r['state'])}</td>"
         f"<td>{esc('; '.join(r['reasons']))}</td><td>{esc(r['reference']['run_id'] if r['reference'] else 'none')}</td>"
         f"<td>{esc(r['last_run']['run_id'])} ({esc(r['last_run']['finished'][:10])})</td>"
-        f"<td>{esc(r['cell_state'])}</td></tr>"
+        f"<td>{esc(r['cell_state'])}</td>"
+        f"<td class='archive'>{esc('; '.join(r['damaged']) + ' (awaiting a copy from the cell)' if r['damaged'] else 'ok')}"
+        "</td></tr>"
         for r in sorted(rows, key=lambda r: (order.get(r["state"], 9), r["robot_serial"])))
     counts = {s: sum(r["state"] == s for r in rows) for s in order}
     summary = ", ".join(f"{n} {s}" for s, n in counts.items() if n)
     return (_HEAD.format(title="remaster fleet") + f"<h1>Robots ({len(rows)})</h1><p id='summary'>{esc(summary)}</p>"
             "<table id='robots'><tr><th>robot</th><th>site/cell</th><th>state</th><th>why</th><th>reference</th>"
-            f"<th>last run</th><th>cell</th></tr>{body}</table></body></html>")
+            f"<th>last run</th><th>cell</th><th>archive</th></tr>{body}</table></body></html>")
 
 
 def write_pages(archive_root: Path, out_dir: Path, policy: Policy | None = None) -> list[Path]:

@@ -100,11 +100,15 @@ def test_the_table_gives_each_robot_its_state_and_exits_3_when_one_needs_action(
 def test_the_index_lists_every_robot_with_its_state_worst_first(tmp_path):
     _archive(tmp_path)
     add_entry(tmp_path, "R-3", _entry("x1", 2, [None, None, None], "check", std=(None, None, None)))
+    (tmp_path / ".index").mkdir()   # what the scrub leaves for a damaged copy (acquire.station.archive)
+    (tmp_path / ".index" / "plant-a~c1~cal2.json").write_text(
+        json.dumps({"folder": "R-2/2026-02-01/cal2", "damaged": ["cal2.mcap"]}))
     page = Tables(index_page(tmp_path, now=NOW))
     rows = page.tables["robots"][1:]
     assert [(r[0], r[2]) for r in rows] == [("R-1", "drifted"), ("R-3", "never calibrated"), ("R-2", "calibrated")]
     assert "A1 +0.2000°" in rows[0][3]
     assert page.by_id["summary"] == "1 drifted, 1 never calibrated, 1 calibrated"
+    assert rows[2][7] == "cal2: cal2.mcap (awaiting a copy from the cell)" and rows[0][7] == "ok"
 
 
 def test_a_robot_page_plots_offsets_as_delta_from_the_reference_and_says_what_is_undetermined(tmp_path):
