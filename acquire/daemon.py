@@ -184,7 +184,8 @@ class Daemon:
         self.pings = 0
         self._last_status = ""
         self.runs_dir = cfg.state_dir / "runs"
-        self.cell_runs = CellRuns(self.runs_dir, cfg.robot_serial or cfg.cell)
+        self._run_logfile = None  # acquire.console.RunLogFile of the current run
+        self.cell_runs = CellRuns(self.runs_dir, cfg.robot_serial or cfg.cell, cfg.archive_keep_days)
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -270,6 +271,7 @@ class Daemon:
         log.info("devices up: %s", ", ".join(names))
 
     def _tick(self) -> None:
+        self._open_run_log()
         self._after_run()
         health = self._check_health()
         if health.ok != self._healthy.ok:
@@ -323,6 +325,35 @@ class Daemon:
                         self._tokens.pop(name).undeclare()
         with self._lock:
             self.controller = None
+        self._close_run_log()
+        import zenoh
+
+        from acquire.bus import BusError
+
+        try:  # a hint for the plant's station: list this cell now (the listing itself is authenticated)
+            self.bus.publish(self.bus.key("archive", "ready"), {"run_id": st["run_id"], "state": st["state"]})
+        except (BusError, zenoh.ZError) as exc:  # a lost hint costs the station one poll
+            log.debug("archive/ready not announced: %s", exc)
+
+    def _open_run_log(self) -> None:
+        """Start the run's text log ``<run>.log`` beside its MCAP once the run has a log path."""
+        with self._lock:
+            ctl, logfile = self.controller, self._run_logfile
+        if ctl is None or logfile is None or logfile.path is not None:
+            return
+        path = ctl.status().get("log")
+        if path:
+            try:
+                logfile.open(path)
+            except OSError as exc:
+                log.warning("no text log beside %s: %s", path, exc)
+                self._run_logfile = None
+                logfile.close()
+
+    def _close_run_log(self) -> None:
+        logfile, self._run_logfile = self._run_logfile, None
+        if logfile is not None:
+            logfile.close(logging.CRITICAL + 1)
 
     def _status(self, text: str) -> None:
         self.notifier.status(text)
@@ -350,6 +381,7 @@ class Daemon:
         log.info("stopping")
         if ctl is not None:
             self._stop_run(ctl)
+        self._close_run_log()
         if self.control_socket is not None:
             self.control_socket.close()
             self.control_socket = None
@@ -482,6 +514,10 @@ class Daemon:
             factory = self._factory
             if factory is None:
                 from acquire.run import RunController as factory
+            from acquire.console import RunLogFile
+
+            self._close_run_log()
+            self._run_logfile = RunLogFile(logging.INFO)
             # Hand the devices over: the run opens the plan's drivers at the same ports.
             self.health.forget(self.devices.commander)
             self.devices.close()
@@ -491,6 +527,7 @@ class Daemon:
                               out_dir=self.runs_dir, **extra)
                 run_id = ctl.start()
             except (OSError, ValueError, RuntimeError, DriverError) as exc:
+                self._close_run_log()
                 log.error("run did not start: %s", exc)
                 self._bring_up_devices()
                 from acquire.run import RunError
@@ -501,6 +538,7 @@ class Daemon:
             self.controller = ctl
         log.info("run %s started by %s from %s%s", run_id, identity.describe(), path,
                  f" (resuming {resume})" if resume else "")
+        self._open_run_log()
         return {"run_id": run_id, "plan": str(path), "state": ctl.status()["state"]}
 
     def _active(self, verb: str):
@@ -543,7 +581,7 @@ class Daemon:
         return self.cell_runs.chunk(request, self._active_run_id())
 
     def archive_confirm(self, request: dict, identity: Identity) -> dict:
-        return self.cell_runs.confirm(request, identity.describe())
+        return self.cell_runs.confirm(request, identity.describe(), self._active_run_id())
 
 
 def init_zenoh_log() -> None:

@@ -9,11 +9,18 @@ Operations (``acquire.control``, permission ``archive``, each one SCRAM-authenti
                      is kept). ``finished``: the newest file's modification time, ISO 8601 UTC.
 ``archive-chunk``    ``{"run_id", "name", "offset", "size"}`` → ``{"data": base64, "offset", "eof"}``
                      at most ``MAX_CHUNK_BYTES``.
-``archive-confirm``  ``{"run_id", "files"}`` → ``{"confirmed": true}`` when ``files`` (what the
-                     station stored) equals the run's current listing; the run is then marked
-                     ``<run>/.archived`` (JSON: when, the files) and no longer offered — unless its
-                     files change later (a resumed run), then it is offered again. Nothing is
-                     deleted here: a retention policy may remove confirmed runs.
+``archive-confirm``  ``{"run_id", "files", "verified"?}`` → ``{"confirmed": true}`` when ``files``
+                     (what the station stored) equals the run's current listing; the run is then
+                     marked ``<run>/.archived`` (JSON: station, at, the files) and no longer offered
+                     — unless its files change later (a resumed run), then it is offered again.
+                     ``"verified": true`` is sent later, once the station's scrub has read its
+                     copy back intact: the mark gets ``verified_at``.
+
+**Retention** (``archive_keep_days`` in the daemon's configuration; default: keep every run): a
+run is deleted from the cell only when the station has confirmed it *and* re-verified its copy
+(``verified_at``), its files are still those the station holds, and it was confirmed at least
+``keep_days`` ago (``CellRuns.prune``, run after each confirmation). Until then the station can
+fetch any file of it again (``archive-chunk`` serves confirmed runs too) to repair its copy.
 
 sha256 of each file is cached in ``<run>/.sha256.json`` by (name, size, mtime).
 """
@@ -23,6 +30,7 @@ from __future__ import annotations
 import base64
 import json
 import logging
+import shutil
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -41,9 +49,10 @@ _CACHE = ".sha256.json"
 class CellRuns:
     """The runs folder seen by the station. ``robot_serial``: the serial the runs are filed under."""
 
-    def __init__(self, runs_dir: Path, robot_serial: str) -> None:
+    def __init__(self, runs_dir: Path, robot_serial: str, keep_days: float | None = None) -> None:
         self.runs_dir = Path(runs_dir)
         self.robot_serial = robot_serial
+        self.keep_days = keep_days
 
     def _folder(self, run_id: object) -> Path:
         if not isinstance(run_id, str) or "/" in run_id or run_id in ("", ".", "..") or run_id.startswith("."):
@@ -91,11 +100,15 @@ class CellRuns:
         return {"robot_serial": self.robot_serial, "runs": runs}
 
     @staticmethod
-    def _confirmed(folder: Path) -> list | None:
+    def _mark(folder: Path) -> dict | None:
         try:
-            return json.loads((folder / _MARK).read_text())["files"]
-        except (OSError, ValueError, KeyError, TypeError):
+            mark = json.loads((folder / _MARK).read_text())
+            return mark if isinstance(mark, dict) else None
+        except (OSError, ValueError):
             return None
+
+    def _confirmed(self, folder: Path) -> list | None:
+        return (self._mark(folder) or {}).get("files")
 
     def chunk(self, request: dict, current: str | None) -> dict:
         """The ``archive-chunk`` reply."""
@@ -114,7 +127,7 @@ class CellRuns:
         return {"run_id": folder.name, "name": name, "offset": offset, "data": base64.b64encode(data).decode(),
                 "eof": eof}
 
-    def confirm(self, request: dict, station: str) -> dict:
+    def confirm(self, request: dict, station: str, current: str | None = None) -> dict:
         """The ``archive-confirm`` reply; marks the run archived when the station's files match."""
         folder = self._folder(request.get("run_id"))
         stored = request.get("files")
@@ -122,7 +135,40 @@ class CellRuns:
         if stored != have:
             raise Conflict(f"run {folder.name}: the files the station stored do not match the cell's "
                            "(changed since they were listed?); fetch it again")
-        mark = {"station": station, "at": datetime.now(timezone.utc).isoformat(timespec="seconds"), "files": have}
-        (folder / _MARK).write_text(json.dumps(mark))
-        log.info("run %s confirmed archived by %s", folder.name, station)
+        now = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        before = self._mark(folder)
+        if request.get("verified") is True:
+            if before is None or before.get("files") != have:
+                raise Conflict(f"run {folder.name} was not confirmed with these files; confirm it first")
+            mark = {**before, "verified_at": now}
+            log.info("run %s re-verified by %s", folder.name, station)
+        else:
+            mark = {"station": station, "at": now, "files": have}
+            log.info("run %s confirmed archived by %s", folder.name, station)
+        tmp = folder / f"{_MARK}.tmp"
+        tmp.write_text(json.dumps(mark))
+        tmp.replace(folder / _MARK)
+        self.prune(current=current)
         return {"run_id": folder.name, "confirmed": True}
+
+    def prune(self, now: datetime | None = None, current: str | None = None) -> list[str]:
+        """Delete the runs the retention policy allows (module docstring); their ids."""
+        if self.keep_days is None or not self.runs_dir.is_dir():
+            return []
+        now = now or datetime.now(timezone.utc)
+        gone = []
+        for folder in sorted(p for p in self.runs_dir.iterdir() if p.is_dir() and p.name != current):
+            mark = self._mark(folder)
+            if not mark or not mark.get("verified_at"):
+                continue
+            try:
+                age = (now - datetime.fromisoformat(mark["at"])).total_seconds() / 86400.0
+            except (KeyError, TypeError, ValueError):
+                continue
+            if age < self.keep_days or mark.get("files") != self.files(folder):
+                continue
+            shutil.rmtree(folder)
+            gone.append(folder.name)
+            log.info("run %s deleted: archived by %s and re-verified %s, kept %.0f days (archive_keep_days %g)",
+                     folder.name, mark.get("station"), mark["verified_at"], age, self.keep_days)
+        return gone

@@ -10,7 +10,9 @@ Sections:
 - ``site`` (optional): the plant site, ``[a-z0-9_-]+``, for a cell on a plant's router — key
   expressions are then ``remaster/<site>/<cell>/…`` (``acquire.bus``).
 - ``robot_serial`` (optional): the serial number of the cell's robot; the station files this
-  cell's runs under it (default: the cell id).
+  cell's runs under it (default: the cell id); the station checks it against its own ``cells:``.
+- ``archive_keep_days`` (optional): delete a run from ``state_dir`` this many days after the
+  station confirmed it, once the station re-verified its copy (``acquire.daemon_archive``).
 - ``state_dir``: where runs are written (one folder per run; the systemd unit's StateDirectory).
 - ``plan_dirs``: folders a ``start`` query may name a plan from (anything else is refused);
   inline plans are written to ``<state_dir>/plans/``.
@@ -418,6 +420,9 @@ class DaemonConfig(_Strict, CrossFieldChecked):
     shutdown: ShutdownSection = ShutdownSection()
     live: LiveSection = LiveSection()
     status_interval_s: float = Field(1.0, gt=0, le=60, description="health check / STATUS period without a watchdog")
+    archive_keep_days: float | None = Field(None, ge=0, description=(
+        "delete a run this many days after the station confirmed it, once the station re-verified its copy "
+        "(acquire.daemon_archive); default: keep every run"))
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         """Checks between fields, reported at the right line by ``load_validated``."""

@@ -1,8 +1,10 @@
-"""``acquire fleet --archive DIR [--json] [--html OUT]``: the plant's robots, their cells, last
-calibration and drift flags (``acquire.station.fleet``); ``--html`` writes a page per robot with
-its history plotted. ``enter SERIAL RUN`` marks a run's offsets as entered into the controller
-(the reference for later drift checks). Exit 0; 2 for a missing archive or unknown robot/run;
-3 when any robot is flagged as drifted (for a cron job or a monitoring check)."""
+"""``acquire fleet --archive DIR [--json] [--html OUT]``: the plant's robots, their cells, and each
+robot's state — calibrated, drifted, out of tolerance, never calibrated, check due
+(``acquire.station.states``); ``--html`` writes ``index.html`` and a page per robot. ``enter SERIAL
+RUN`` marks a run's offsets as entered into the controller (the reference for later drift checks;
+refused for a run that cannot be one). Exit 0; 2 for a missing archive, an unknown robot/run or a
+refused reference; 3 when any robot is drifted or out of tolerance (for a cron job or a monitoring
+check)."""
 
 from __future__ import annotations
 
@@ -13,7 +15,7 @@ from typing import Optional
 import typer
 
 fleet_app = typer.Typer(add_completion=False, invoke_without_command=True,
-                        help="Show every robot of the archive: cell state, last calibration, drift.")
+                        help="Show every robot of the archive and its state; write the fleet's pages.")
 
 _ARCHIVE = typer.Option(..., "--archive", help="The station's archive folder.")
 
@@ -25,10 +27,10 @@ def fleet(
     as_json: bool = typer.Option(False, "--json", help="The rows as JSON."),
     html: Optional[Path] = typer.Option(None, "--html", help="Write <serial>.html per robot into this folder."),
 ) -> None:
-    """Show every robot of the archive: cell state, last calibration, drift."""
+    """Show every robot of the archive and its state; write the fleet's pages."""
     if ctx.invoked_subcommand is not None:
         return
-    from acquire.station.fleet import fleet_rows, render_table, write_pages
+    from acquire.station.fleet import fleet_rows, needs_action, render_table, write_pages
 
     if archive is None or not archive.is_dir():
         typer.echo(f"error: --archive {archive}: no such folder (the station's `archive:` setting)", err=True)
@@ -38,7 +40,7 @@ def fleet(
     if html is not None:
         for p in write_pages(archive, html):
             typer.echo(f"wrote {p}", err=True)
-    if any(r["drifted"] for r in rows):
+    if needs_action(rows):
         raise typer.Exit(3)
 
 
@@ -50,10 +52,11 @@ def enter(
     undo: bool = typer.Option(False, "--undo", help="Mark it as not entered."),
 ) -> None:
     """Mark a run's offsets as entered into the controller: the reference for later drift checks."""
+    from acquire.station.fleet import read_policy
     from acquire.station.history import mark_entered
 
     try:
-        mark_entered(archive, serial, run_id, not undo)
+        mark_entered(archive, serial, run_id, not undo, read_policy(archive))
     except ValueError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2)

@@ -1,8 +1,6 @@
-"""Has a robot drifted since its last entered calibration?
+"""Have a robot's offsets moved since its last entered calibration?
 
-Two tests, either flags the robot:
-
-1. **Offsets.** After a calibration is entered, the controller's zeros are that calibration's
+After a calibration is entered, the controller's zeros are that calibration's
    estimate, so a later measurement (a short check or a full run) should find offsets of zero
    up to the uncertainty of both: the entered values' error (σ_ref, per joint) and the new
    measurement's (σ_new). With Δ the new offsets (or, for a reference *not* in the controller,
@@ -15,8 +13,8 @@ Two tests, either flags the robot:
    conservative or liberal by the size of the correlation). The robot is flagged when D exceeds
    the χ²(k) quantile 1 − α: with α = ``FALSE_ALARM`` = 1 % a stable robot is flagged in 1 %
    of checks. The joints with |Δ_j| / √(σ_ref,j² + σ_new,j²) > 3 are named.
-2. **Accuracy.** The new measurement's mean absolute error *before* its own correction (the robot
-   as it stands, with the entered zeros) exceeds ``accuracy_limit_mm``.
+
+Accuracy over a limit is another state (``out of tolerance``, ``acquire.station.states``).
 """
 
 from __future__ import annotations
@@ -32,7 +30,7 @@ FALSE_ALARM = 0.01
 
 @dataclass
 class DriftVerdict:
-    """The outcome of a drift check; ``drifted`` if either test flags."""
+    """The outcome of a drift check; ``drifted`` when the offsets moved."""
 
     drifted: bool
     reference: str | None               # run id of the reference calibration
@@ -42,8 +40,6 @@ class DriftVerdict:
     p_value: float | None = None
     alpha: float = FALSE_ALARM
     joints: list[str] = field(default_factory=list)   # joints beyond 3 combined σ
-    accuracy_mm: float | None = None
-    accuracy_limit_mm: float | None = None
     reasons: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -51,20 +47,19 @@ class DriftVerdict:
 
 
 def check_drift(reference: dict | None, new: dict, *, alpha: float = FALSE_ALARM,
-                accuracy_limit_mm: float | None = None, reference_in_controller: bool = True) -> DriftVerdict:
+                reference_in_controller: bool = True) -> DriftVerdict:
     """The drift verdict of history entry ``new`` against ``reference`` (see the module docstring).
 
     Entries are ``acquire.station.history`` entries (offsets_deg, std_deg per joint, degrees).
     """
     if not 0 < alpha < 1:
         raise ValueError(f"alpha (false-alarm rate) must be in (0, 1), given {alpha}")
-    verdict = DriftVerdict(False, reference["run_id"] if reference else None, alpha=alpha,
-                           accuracy_limit_mm=accuracy_limit_mm)
+    verdict = DriftVerdict(False, reference["run_id"] if reference else None, alpha=alpha)
     if reference is not None:
         if reference["joints"] != new["joints"]:
             raise ValueError(f"run {new['run_id']} has joints {new['joints']}, its reference "
                              f"{reference['run_id']} {reference['joints']}: not the same robot model")
-        stat, names = 0.0, []
+        stat, names, details = 0.0, [], []
         for j, name in enumerate(new["joints"]):
             vals = (new["offsets_deg"][j], new["std_deg"][j], reference["offsets_deg"][j], reference["std_deg"][j])
             if any(v is None for v in vals) or vals[1] <= 0 or vals[3] <= 0:
@@ -75,6 +70,7 @@ def check_drift(reference: dict | None, new: dict, *, alpha: float = FALSE_ALARM
             verdict.dof += 1
             if z2 > 9.0:
                 names.append(name)
+                details.append(f"{name} {delta:+.4f}° (3σ {3 * math.sqrt(vals[1] ** 2 + vals[3] ** 2):.4f}°)")
         if verdict.dof:
             verdict.statistic = stat
             verdict.threshold = float(chi2.ppf(1 - alpha, verdict.dof))
@@ -84,10 +80,5 @@ def check_drift(reference: dict | None, new: dict, *, alpha: float = FALSE_ALARM
                 verdict.drifted = True
                 verdict.reasons.append(
                     f"offsets moved: χ² = {stat:.1f} > {verdict.threshold:.1f} (k = {verdict.dof}, α = {alpha:g}, "
-                    f"p = {verdict.p_value:.2g})" + (f"; beyond 3σ: {', '.join(names)}" if names else ""))
-    acc = (new.get("accuracy_mm") or {}).get("before")
-    verdict.accuracy_mm = acc
-    if accuracy_limit_mm is not None and acc is not None and math.isfinite(acc) and acc > accuracy_limit_mm:
-        verdict.drifted = True
-        verdict.reasons.append(f"accuracy {acc:.3f} mm worse than the limit {accuracy_limit_mm:g} mm")
+                    f"p = {verdict.p_value:.2g})" + (f"; beyond 3 combined σ: {', '.join(details)}" if names else ""))
     return verdict

@@ -1,14 +1,17 @@
-"""Scale of the plant station: N cells behind one router, one station archiving all of them.
+"""Scale of the plant station: N cells behind the site's router, one station archiving all of them.
 
     python tests/bench/bench_station.py [--cells 10] [--runs 2] [--mcap-kb 512] [--iterations 4096]
 
-The station runs as its own process (``acquire station --config …``, the router, on a fixed
-loopback port so a restarted station is found again); the cells are peer sessions in this
+The router (``acquire router``) and the station (``acquire station --config …``, a client of the
+router) run as processes of their own; the cells are peer sessions of the router in this
 process, each with its daemon's control queries (``acquire.daemon.Daemon``, not started: no
-devices) and liveliness token. A "run" is a run folder written on the cell (MCAP-sized random
-bytes, a result.json, a report) — the fit is not what is measured here. Mid-way the station is
-killed (SIGKILL) and restarted, and one cell's session is closed and reopened (its link cut and
-restored). Printed: runs archived vs. written, bytes, seconds from a run written to confirmed
+devices), liveliness token and the announcement a daemon puts when a run ends (the station's
+sweep is every 30 s: runs come in by announcement). A "run" is a run folder written on the cell
+(MCAP-sized random bytes, a result.json, a report) — the fit is not what is measured here.
+Mid-way the station is killed (SIGKILL) and restarted, one cell's session is closed and reopened
+(its link cut and restored), one archived MCAP is corrupted (the station's scrub, every ~20 s
+here, must find it and fetch it again from its cell), and cell 1 freezes (its listing hangs
+for 40 s). Printed: runs archived vs. written, bytes, seconds from a run written to confirmed
 (median, max), duplicates in the archive, every stored file re-verified, the station's peak RSS.
 """
 
@@ -45,15 +48,33 @@ def _result(rng) -> dict:
             "metrics": {"absolute": {"before": {"mean": 0.4}, "after": {"mean": 0.1}}}, "std": std.tolist()}
 
 
+def _frozen_daemon(seconds: float):
+    """A daemon class whose listing hangs ``seconds`` once ``freeze`` is set (a frozen cell PC)."""
+    import threading
+
+    from acquire.daemon import Daemon
+
+    class Frozen(Daemon):
+        freeze = threading.Event()
+
+        def archive_list(self) -> dict:
+            if self.freeze.is_set():
+                self.freeze.clear()
+                time.sleep(seconds)
+            return super().archive_list()
+
+    return Frozen
+
+
 class BenchCell:
-    def __init__(self, tmp: Path, i: int, router: str, creds) -> None:
+    def __init__(self, tmp: Path, i: int, router: str, creds, daemon_cls=None) -> None:
         from acquire.daemon import Daemon
         from acquire.daemon_config import DaemonConfig
 
         self.name = f"c{i:03d}"
         self.state_dir = tmp / "cells" / self.name
-        self.daemon = Daemon(DaemonConfig(cell=self.name, site="bench", robot_serial=f"R{i:03d}", fake=True,
-                                          state_dir=self.state_dir))
+        self.daemon = (daemon_cls or Daemon)(DaemonConfig(cell=self.name, site="bench", robot_serial=f"R{i:03d}",
+                                                          fake=True, state_dir=self.state_dir))
         self.router, self.creds = router, creds
         self.bus = self.server = None
         self.connect()
@@ -79,6 +100,8 @@ class BenchCell:
         (folder / f"{folder.name}.mcap").write_bytes(rng.bytes(kb * 1024))
         (folder / "result.json").write_text(json.dumps(_result(rng)))
         (folder / "report.html").write_text("<html>report</html>")
+        if not self.bus.closed:   # a cut-off cell announces nothing: the station's sweep finds it
+            self.bus.publish(self.bus.key("archive", "ready"), {"run_id": folder.name})
         return folder, time.monotonic()
 
 
@@ -111,10 +134,16 @@ def main() -> None:
     creds = control_auth.derive_credentials(token, iterations=args.iterations)
     port = _free_port()
     router = f"tcp/127.0.0.1:{port}"
+    (tmp / "router.yaml").write_text(f"listen: ['{router}']\n")
+    cells_cfg = "".join(f"  bench/c{i:03d}: {{robot_serial: R{i:03d}}}\n" for i in range(args.cells))
     (tmp / "station.yaml").write_text(
-        f"archive: archive\ntoken_file: station.token\npoll_s: 1\nchunk_bytes: 1048576\n"
-        f"zenoh: {{mode: router, listen: ['{router}']}}\n")
+        f"archive: archive\ntoken_file: station.token\npoll_s: 30\nchunk_bytes: 1048576\nscrub_hours: 0.006\n"
+        f"cell_timeout_s: 60\nlimits: {{reserve_free_bytes: 0}}\n"
+        f"zenoh: {{mode: client, listen: [], connect: ['{router}']}}\ncells:\n{cells_cfg}")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    router_proc = subprocess.Popen([sys.executable, "-m", "acquire", "router", "--config", str(tmp / "router.yaml")],
+                                   env=env, stdout=subprocess.DEVNULL, stderr=open(tmp / "router.log", "a"))
+    time.sleep(3)
 
     def start_station() -> subprocess.Popen:
         return subprocess.Popen([sys.executable, "-m", "acquire", "station", "--config", str(tmp / "station.yaml")],
@@ -123,7 +152,8 @@ def main() -> None:
     station = start_station()
     time.sleep(2)
     rng = np.random.default_rng(1)
-    cells = [BenchCell(tmp, i, router, creds) for i in range(args.cells)]
+    frozen_cls = _frozen_daemon(40.0)
+    cells = [BenchCell(tmp, i, router, creds, frozen_cls if i == 1 else None) for i in range(args.cells)]
     written: dict[Path, float] = {}
     confirmed: dict[Path, float] = {}
     peak = 0
@@ -150,6 +180,14 @@ def main() -> None:
     peak_first, peak = peak, 0
     cells[0].disconnect()
     print(f"station killed after {len(confirmed)}/{len(written)} runs confirmed; cell {cells[0].name} cut off")
+    archive = Archive(tmp / "archive")
+    victim = archive.manifests()[0]
+    mcap = next(f["name"] for f in victim["files"] if f["name"].endswith(".mcap"))
+    with open(archive.folder(victim) / mcap, "r+b") as f:
+        f.truncate(1000)
+    print(f"archived {victim['run_id']}/{mcap} truncated to 1000 bytes; cell c001 frozen for 40 s")
+    if args.cells > 1:
+        frozen_cls.freeze.set()
     for c in cells:
         for k in range(half, args.runs):
             f, t = c.write_run(k, args.mcap_kb, rng)
@@ -161,13 +199,18 @@ def main() -> None:
     while len(confirmed) < len(written) and time.monotonic() - t_start < args.timeout:
         poll()
         time.sleep(0.2)
+    while archive.verify(victim) and time.monotonic() - t_start < args.timeout:
+        time.sleep(0.5)
+    print(f"corrupted copy {'repaired' if not archive.verify(victim) else 'NOT repaired'} at "
+          f"{time.monotonic() - t_start:.1f} s")
     elapsed = time.monotonic() - t_start
     station.terminate()
     station.wait(timeout=30)
     for c in cells:
         c.disconnect()
+    router_proc.terminate()
+    router_proc.wait(timeout=30)
 
-    archive = Archive(tmp / "archive")
     manifests = archive.manifests()
     ids = [m["run_id"] for m in manifests]
     lat = np.array(sorted(confirmed.values()))

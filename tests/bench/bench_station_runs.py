@@ -130,9 +130,10 @@ def main() -> None:
     token = new_token()
     write_token_file(tmp / "station.token", token)
     router = f"tcp/127.0.0.1:{free_port()}"
+    cells_cfg = "".join(f"  {SITE}/c{i:03d}: {{robot_serial: R{i:03d}}}\n" for i in range(args.cells))
     (tmp / "station.yaml").write_text(
         f"archive: archive\ntoken_file: station.token\npoll_s: 1\nchunk_bytes: 1048576\n"
-        f"zenoh: {{mode: router, listen: ['{router}']}}\n")
+        f"zenoh: {{mode: router, listen: ['{router}'], connect: []}}\ncells:\n{cells_cfg}")
     plan_text = small_plan(tmp, n=args.poses, name="short.yaml").read_text()
     env = dict(os.environ, PYTHONPATH=str(ROOT))
 

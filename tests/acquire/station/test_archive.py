@@ -2,10 +2,11 @@
 
 import hashlib
 import json
+import shutil
 
 import pytest
 
-from acquire.station.archive import Archive, ArchiveError, RunRef
+from acquire.station.archive import Archive, ArchiveError, ArchiveFull, ArchiveRefused, Limits, RunRef
 
 
 def _files(contents: dict[str, bytes]) -> list[dict]:
@@ -34,7 +35,7 @@ def test_a_run_is_stored_by_serial_and_date_with_a_verified_manifest(tmp_path):
     assert json.loads((folder / "manifest.json").read_text())["files"] == sorted(_files(CONTENT), key=lambda f: f["name"])
     assert archive.verify(manifest) == []
     (folder / "report.html").write_bytes(b"<html>tampered")
-    assert archive.verify(manifest) == [f"{folder / 'report.html'}: content does not match the manifest's sha256"]
+    assert archive.verify(manifest) == [f"{folder / 'report.html'}: 14 bytes, the manifest says 7"]
 
 
 def test_an_interrupted_transfer_resumes_at_its_offset_without_loss_or_duplicate(tmp_path):
@@ -97,3 +98,71 @@ def test_a_run_that_changed_after_it_was_archived_is_kept_beside_the_first_copy(
     assert second["version"] == 2 and archive.folder(second).name == "r1.v2"
     assert archive.verify(first) == [] and archive.verify(second) == []
     assert archive.manifest(REF)["version"] == 2
+
+
+def test_a_folder_holding_another_run_is_never_replaced(tmp_path, caplog):
+    """A cell files a run whose folder (serial/day/run-id) already holds another cell's run: refused,
+    logged, the stored run byte for byte as it was (before: rmtree of the existing folder)."""
+    archive = Archive(tmp_path)
+    t = archive.begin(REF, _files(CONTENT), "2026-11-26T10:00:00+00:00")
+    _send(t, CONTENT)
+    first = t.finish()
+    folder = archive.folder(first)
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    other = RunRef("plant-a", "c2", "r1", "KR6-0815")   # same serial, day and run id, another cell
+    evil = {"r1.mcap": b"not the robot's log", "result.json": b'{"joint_offsets": []}'}
+    with pytest.raises(ArchiveRefused, match="never replaced"):   # refused when announced: no byte fetched
+        archive.begin(other, _files(evil), "2026-11-26T11:00:00+00:00")
+    # A folder taken between announcement and commit (another transfer won the race): refused at commit.
+    shutil.move(folder, tmp_path / "aside")
+    t = archive.begin(other, _files(evil), "2026-11-26T11:00:00+00:00")
+    _send(t, evil)
+    shutil.move(tmp_path / "aside", folder)
+    with pytest.raises(ArchiveRefused, match="never replaced"):
+        t.finish()
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert archive.verify(first) == [] and archive.manifest(other) is None
+    assert "never replaced" in caplog.text
+    assert archive.expected_bytes() == 0   # the refused transfer no longer counts
+
+
+def test_a_one_tebibyte_announcement_is_refused_before_any_byte(tmp_path):
+    archive = Archive(tmp_path, Limits(max_file_bytes=1 << 30, max_run_bytes=2 << 30, reserve_free_bytes=0))
+    huge = [{"name": "r1.mcap", "bytes": 1 << 40, "sha256": "0" * 64}]
+    with pytest.raises(ArchiveFull, match="over limits.max_file_bytes .* before any byte"):
+        archive.begin(REF, huge, "2026-11-26T10:00:00+00:00")
+    many = [{"name": f"r1.{i}.mcap", "bytes": 1 << 29, "sha256": "0" * 64} for i in range(5)]
+    with pytest.raises(ArchiveFull, match="over limits.max_run_bytes"):
+        archive.begin(REF, many, "2026-11-26T10:00:00+00:00")
+    assert not any((tmp_path / ".incoming").iterdir())   # nothing was opened
+
+
+def test_the_free_space_reserve_is_kept_when_announced_and_while_streaming(tmp_path):
+    archive = Archive(tmp_path, Limits(reserve_free_bytes=0))
+    free = archive.free_bytes()
+    big = [{"name": "r1.mcap", "bytes": free + (1 << 30), "sha256": "0" * 64}]
+    with pytest.raises(ArchiveFull, match="reserve_free_bytes"):
+        Archive(tmp_path, Limits(max_file_bytes=1 << 62, max_run_bytes=1 << 62, reserve_free_bytes=0)).begin(
+            REF, big, "2026-11-26T10:00:00+00:00")
+    # Announced within the reserve, then the disk fills up (the reserve grows under it): the next chunk is refused.
+    archive = Archive(tmp_path, Limits(reserve_free_bytes=0))
+    t = archive.begin(REF, _files(CONTENT), "2026-11-26T10:00:00+00:00")
+    t.write("r1.mcap", 0, CONTENT["r1.mcap"][:1000])
+    archive.limits = Limits(reserve_free_bytes=archive.free_bytes())
+    with pytest.raises(ArchiveFull, match="reserve_free_bytes"):
+        t.write("r1.mcap", 1000, CONTENT["r1.mcap"][1000:2000])
+    assert t.offset("r1.mcap") == 1000
+
+
+def test_a_run_whose_result_is_not_a_fit_is_archived_without_a_history_entry(tmp_path, caplog):
+    from acquire.station.history import load_history
+    from acquire.station.intake import record_run
+
+    archive = Archive(tmp_path)
+    bad = {"r1.mcap": b"log", "result.json": b"{not json"}
+    t = archive.begin(REF, _files(bad), "2026-11-26T10:00:00+00:00")
+    _send(t, bad)
+    manifest = t.finish()
+    assert record_run(archive, manifest) is None
+    assert load_history(tmp_path, "KR6-0815") == [] and archive.verify(manifest) == []
+    assert "is not a result the history can use" in caplog.text

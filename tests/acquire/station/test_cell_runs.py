@@ -43,3 +43,23 @@ def test_chunks_are_read_at_an_offset_and_bad_requests_say_what_is_allowed(tmp_p
         cell.chunk({"run_id": "..", "name": "r1.mcap", "offset": 0}, current=None)
     with pytest.raises(Conflict, match="still active"):
         cell.chunk({"run_id": "r1", "name": "r1.mcap", "offset": 0}, current="r1")
+
+
+def test_retention_deletes_a_run_only_once_the_station_re_verified_it_and_it_is_old_enough(tmp_path):
+    from datetime import datetime, timedelta, timezone
+
+    cell = CellRuns(tmp_path, "R1", keep_days=7)
+    for run_id in ("old", "young", "changed", "unverified"):
+        _run(tmp_path, run_id)
+        files = cell.pending(None)["runs"][0]["files"]
+        cell.confirm({"run_id": run_id, "files": files}, "station")
+        if run_id != "unverified":
+            cell.confirm({"run_id": run_id, "files": files, "verified": True}, "station")
+    (tmp_path / "changed" / "changed.resume1.mcap").write_bytes(b"resumed since")   # not what the station holds
+    later = datetime.now(timezone.utc) + timedelta(days=8)
+    assert cell.prune(now=later, current="young") == ["old"]   # the active run is never touched
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["changed", "unverified", "young"]
+    assert cell.prune(now=datetime.now(timezone.utc)) == []    # too young
+    with pytest.raises(Conflict, match="was not confirmed with these files"):
+        cell.confirm({"run_id": "changed", "files": cell.files(tmp_path / "changed"), "verified": True}, "station")
+    assert CellRuns(tmp_path, "R1").prune(now=later) == []     # no retention configured: keep everything

@@ -8,97 +8,16 @@ started: no devices) answering the control queries.
 
 from __future__ import annotations
 
-import json
 import time
 
 import numpy as np
-import pytest
+from station_harness import Cell, result_doc, station, sync_until, wait_cells, write_run  # noqa: F401
 
 from acquire import control_auth
-from acquire.bus import Bus
-from acquire.control import Authorizer, ControlServer
 from acquire.daemon import Daemon
-from acquire.daemon_config import AuthSection, DaemonConfig
 from acquire.station.archive import RunRef
-from acquire.station.config import StationConfig
 from acquire.station.history import load_history
-from acquire.station.service import Station
 from acquire.tokens import new_token
-
-TOKEN = new_token()
-CREDS = control_auth.derive_credentials(TOKEN, iterations=control_auth.MIN_ITERATIONS)
-JOINTS = [f"A{i}" for i in range(1, 7)]
-
-
-def _result(offsets_deg, std_deg, n_conf, acc_before=0.4) -> dict:
-    return {"format": "remaster.fit/1", "data": {"n_configurations": n_conf},
-            "joint_offsets": [{"joint": j, "value_deg": float(v), "std_deg": float(s), "identifiable": True,
-                               "ci95_deg": [float(v - 2 * s), float(v + 2 * s)]}
-                              for j, v, s in zip(JOINTS, offsets_deg, std_deg)],
-            "metrics": {"absolute": {"before": {"mean": acc_before}, "after": {"mean": 0.1}}}}
-
-
-def _write_run(state_dir, run_id, result: dict | None, mcap_bytes: int, mtime: float) -> None:
-    import os
-
-    folder = state_dir / "runs" / run_id
-    folder.mkdir(parents=True)
-    (folder / f"{run_id}.mcap").write_bytes(np.random.default_rng(len(run_id)).bytes(mcap_bytes))
-    files = [folder / f"{run_id}.mcap"]
-    if result is not None:
-        (folder / "result.json").write_text(json.dumps(result))
-        (folder / "report.html").write_text("<html><body>report</body></html>")
-        files += [folder / "result.json", folder / "report.html"]
-    for f in files:
-        os.utime(f, (mtime, mtime))
-
-
-class Cell:
-    """A cell PC: its daemon's control queries and liveliness token on a peer session."""
-
-    def __init__(self, tmp_path, router: list[str], site: str, cell: str, serial: str, creds=CREDS,
-                 daemon_cls=Daemon) -> None:
-        self.state_dir = tmp_path / f"{site}-{cell}"
-        self.cfg = DaemonConfig(cell=cell, site=site, robot_serial=serial, fake=True, state_dir=self.state_dir)
-        self.daemon = daemon_cls(self.cfg)
-        self.bus = Bus(cell, site=site, config={"listen": [], "connect": router})
-        auth = AuthSection.model_validate({"clients": [{"name": "station", "scram": creds.config(),
-                                                        "allow": ["observe", "archive"]}]})
-        self.server = ControlServer(self.bus.session, cell, self.daemon, Authorizer(auth), site=site)
-        self.bus.liveliness_token(self.bus.key("daemon"))
-
-    def close(self) -> None:
-        self.server.close()
-        self.bus.close()
-
-
-@pytest.fixture()
-def station(tmp_path):
-    cfg = StationConfig(archive=tmp_path / "archive", token_file=tmp_path / "unused",
-                        zenoh={"mode": "router", "listen": ["tcp/127.0.0.1:0"]}, chunk_bytes=64 * 1024, poll_s=0.2)
-    with Station(cfg, token=TOKEN) as st:
-        yield st
-
-
-def _wait_cells(st: Station, n: int, timeout: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if sum(c.alive for c in st.cell_states()) >= n:
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"{n} cells not discovered: {st.cell_states()}")
-
-
-def _sync_until(st: Station, site: str, cell: str, want: int, timeout: float = 30.0) -> None:
-    """Routes to a just-connected cell may take a moment: sync until ``want`` runs are archived."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        st.sync_cell(site, cell)
-        state = next(c for c in st.cell_states() if (c.site, c.cell) == (site, cell))
-        if state.archived >= want and state.pending == 0:
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"cell {site}/{cell}: {state}")
 
 
 def test_cells_are_discovered_through_the_router_and_runs_archived_once(tmp_path, station):
@@ -106,14 +25,14 @@ def test_cells_are_discovered_through_the_router_and_runs_archived_once(tmp_path
     c1 = Cell(tmp_path, station.bus.locators, "plant-a", "c1", "KR6-0001")
     c2 = Cell(tmp_path, station.bus.locators, "plant-b", "c1", "KR6-0002")  # same cell id, other site
     try:
-        _write_run(c1.state_dir, "c1-cal", _result(np.zeros(6), std, 40), 200_000, 1.7e9)
-        _write_run(c1.state_dir, "c1-chk", _result([0, 0, 0.1, 0, 0, 0], 2 * std, 8), 30_000, 1.7e9 + 86400)
-        _write_run(c2.state_dir, "c2-cal", _result(np.zeros(6), std, 40), 150_000, 1.7e9)
-        _write_run(c2.state_dir, "c2-chk", _result(np.full(6, 0.004), 2 * std, 8), 30_000, 1.7e9 + 86400)
-        _write_run(c2.state_dir, "c2-aborted", None, 5_000, 1.7e9 + 2 * 86400)  # no result: kept all the same
-        _wait_cells(station, 2)
-        _sync_until(station, "plant-a", "c1", 2)
-        _sync_until(station, "plant-b", "c1", 3)
+        write_run(c1.state_dir, "c1-cal", result_doc(np.zeros(6), std, 40), 200_000, 1.7e9)
+        write_run(c1.state_dir, "c1-chk", result_doc([0, 0, 0.1, 0, 0, 0], 2 * std, 8), 30_000, 1.7e9 + 86400)
+        write_run(c2.state_dir, "c2-cal", result_doc(np.zeros(6), std, 40), 150_000, 1.7e9)
+        write_run(c2.state_dir, "c2-chk", result_doc(np.full(6, 0.004), 2 * std, 8), 30_000, 1.7e9 + 86400)
+        write_run(c2.state_dir, "c2-aborted", None, 5_000, 1.7e9 + 2 * 86400)  # no result: kept all the same
+        wait_cells(station, 2)
+        sync_until(station, "plant-a", "c1", 2)
+        sync_until(station, "plant-b", "c1", 3)
         manifests = station.archive.manifests()
         assert sorted(m["run_id"] for m in manifests) == ["c1-cal", "c1-chk", "c2-aborted", "c2-cal", "c2-chk"]
         assert all(station.archive.verify(m) == [] for m in manifests)
@@ -153,8 +72,8 @@ class FlakyDaemon(Daemon):
 def test_an_interrupted_transfer_resumes_without_loss_or_duplicate(tmp_path, station):
     cell = Cell(tmp_path, station.bus.locators, "plant-a", "c9", "TX60-9", daemon_cls=FlakyDaemon)
     try:
-        _write_run(cell.state_dir, "r1", _result(np.zeros(6), np.full(6, 0.01), 40), 5 * 64 * 1024 + 123, 1.7e9)
-        _wait_cells(station, 1)
+        write_run(cell.state_dir, "r1", result_doc(np.zeros(6), np.full(6, 0.01), 40), 5 * 64 * 1024 + 123, 1.7e9)
+        wait_cells(station, 1)
         deadline = time.monotonic() + 30
         while not cell.daemon.chunks and time.monotonic() < deadline:
             station.sync_cell("plant-a", "c9")
@@ -163,7 +82,7 @@ def test_an_interrupted_transfer_resumes_without_loss_or_duplicate(tmp_path, sta
         assert station.archive.manifests() == []
         assert [r["run_id"] for r in cell.daemon.archive_list()["runs"]] == ["r1"]  # kept: not confirmed
         cell.daemon.cut_after = None  # the link is back
-        _sync_until(station, "plant-a", "c9", 1)
+        sync_until(station, "plant-a", "c9", 1)
         mcap = [off for name, off in cell.daemon.chunks if name == "r1.mcap"]
         assert mcap == sorted(set(mcap)) and mcap == [i * 64 * 1024 for i in range(6)]  # each chunk once
         (m,) = station.archive.manifests()
@@ -177,8 +96,8 @@ def test_a_cell_without_the_station_credentials_cannot_publish_into_the_archive(
     other = control_auth.derive_credentials(new_token(), iterations=control_auth.MIN_ITERATIONS)
     rogue = Cell(tmp_path, station.bus.locators, "plant-a", "rogue", "KR6-0666", creds=other)
     try:
-        _write_run(rogue.state_dir, "evil", _result(np.full(6, 5.0), np.full(6, 0.01), 40), 10_000, 1.7e9)
-        _wait_cells(station, 1)
+        write_run(rogue.state_dir, "evil", result_doc(np.full(6, 5.0), np.full(6, 0.01), 40), 10_000, 1.7e9)
+        wait_cells(station, 1)
         deadline = time.monotonic() + 15
         while time.monotonic() < deadline:
             assert station.sync_cell("plant-a", "rogue") == 0

@@ -1,6 +1,7 @@
 """End to end: a real ``acquire daemon`` (simulated cell) on site ``plant-a`` runs the example plan;
-its keys carry the site; the station finds it by liveliness, archives the run (MCAP log,
-result.json, report) and enters it into the robot's history; the cell then offers it no more."""
+its keys carry the site; the station finds it by liveliness, is told the run ended, archives the
+run (MCAP log, the run's text log, result.json, report) and enters it into the robot's history;
+the cell then offers it no more."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from daemon_harness import (CELL, OPERATOR_TOKEN, DaemonProcess, NotifySocket, free_port,  # noqa: E402
                             scram, wait_until, write_config)
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(480)]  # a whole run of the example plan
 
 
 def test_a_sited_daemons_run_is_archived_by_the_station(tmp_path):
@@ -35,7 +36,8 @@ def test_a_sited_daemons_run_is_archived_by_the_station(tmp_path):
     config.write_text(yaml.safe_dump(cfg, sort_keys=False))
     notify = NotifySocket()
     proc = DaemonProcess(config, notify)
-    scfg = StationConfig(archive=tmp_path / "archive", token_file=tmp_path / "unused", poll_s=0.5,
+    scfg = StationConfig(archive=tmp_path / "archive", token_file=tmp_path / "unused", poll_s=600,
+                         cells={f"plant-a/{CELL}": {"robot_serial": "IIWA-42"}},
                          zenoh={"mode": "peer", "listen": [], "connect": [f"tcp/127.0.0.1:{port}"]})
     try:
         proc.wait_ready(60)
@@ -47,18 +49,21 @@ def test_a_sited_daemons_run_is_archived_by_the_station(tmp_path):
             bus.subscribe(f"remaster/plant-a/{CELL}/run/*/event", lambda k, p: events.append(k))
             op = ControlClient(bus.session, CELL, site="plant-a", client="operator", token=OPERATOR_TOKEN)
             wait_until(lambda: _try(op), 20, "the daemon's control queries with the site in their keys")
+            loop = threading.Thread(target=station.run, daemon=True)
+            loop.start()   # its first sync finds nothing; the next comes from the run's announcement (poll 600 s)
+            wait_until(lambda: station.cell_states()[0].last_sync, 30, "the station's first sync")
             run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
             wait_until(lambda: op.call("status")["run"] is None, 240, "the run to end", poll=0.5)
             assert any(f"/run/{run_id}/event" in k for k in events)
-            loop = threading.Thread(target=station.run, daemon=True)
-            loop.start()
             history = wait_until(lambda: load_history(station.archive.root, "IIWA-42"), 60, "the run in the history",
                                  poll=0.5)
             station.request_stop()
             loop.join(30)
         (manifest,) = station.archive.manifests()
         names = {f["name"] for f in manifest["files"]}
-        assert {f"{run_id}.mcap", "result.json", "report.html"} <= names
+        assert {f"{run_id}.mcap", f"{run_id}.log", "result.json", "report.html"} <= names
+        text_log = (station.archive.folder(manifest) / f"{run_id}.log").read_text()
+        assert f"run {run_id} started by" in text_log
         assert station.archive.verify(manifest) == []
         assert history[0]["run_id"] == run_id and history[0]["kind"] == "calibration"
         assert (tmp_path / "state" / "runs" / run_id / ".archived").exists()

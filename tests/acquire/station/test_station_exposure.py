@@ -89,7 +89,7 @@ def test_zenoh_user_password_auth_keeps_a_session_without_credentials_off_the_st
     users.chmod(0o600)
     port = free_port()
     cfg = StationConfig(archive=tmp_path / "a", token_file=tmp_path / "t", zenoh={
-        "listen": [f"tcp/0.0.0.0:{port}"],
+        "mode": "router", "listen": [f"tcp/0.0.0.0:{port}"], "connect": [],
         "zenoh": {"transport/auth/usrpwd": {"user": "station", "password": "station-password-Zt55",
                                             "dictionary_file": str(users)}}})
 
