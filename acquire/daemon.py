@@ -46,7 +46,7 @@ from acquire.control import Authorizer, BadRequest, Conflict, ControlServer, Ide
 from acquire.daemon_archive import CellRuns
 from acquire.daemon_config import DaemonConfig
 from acquire.daemon_devices import CellSource, DeviceHost, cell_for_plan  # noqa: F401 (DeviceHost: acquire.daemon's API)
-from acquire.daemon_runs import list_runs, plan_path, run_log
+from acquire.daemon_runs import RunTextLog, announce_run_end, list_runs, plan_path, run_log
 from acquire.sdnotify import SdNotifier
 from drivers.errors import DeviceTimeoutError, DriverError
 
@@ -136,6 +136,32 @@ class HealthMonitor:
         return []
 
 
+def stop_run_on_shutdown(ctl, sd, notifier, say: Callable[[str], None]) -> None:
+    """A stopping daemon's run: pause it (finish the current configuration) or abort it, as the
+    ``shutdown`` section ``sd`` says, then abort and wait for its log within ``sd.timeout_s``;
+    ``notifier`` extends systemd's stop timeout, ``say`` sets the status line."""
+    st = ctl.status()
+    if st["state"] in ("finished", "aborted", "failed"):
+        return
+    notifier.extend_timeout(sd.timeout_s + 10)
+    deadline = time.monotonic() + sd.timeout_s
+    if sd.on_sigterm == "pause" and st["state"] in ("starting", "running", "suspended"):
+        say(f"stopping: finishing configuration {st.get('current')} of run {st['run_id']}")
+        log.info("stopping: pausing run %s after its current configuration", st["run_id"])
+        ctl.pause()
+        while time.monotonic() < deadline and ctl.status()["state"] not in ("paused",) + ("finished", "aborted", "failed"):
+            time.sleep(0.05)
+    say(f"stopping: aborting run {st['run_id']}")
+    ctl.abort("daemon stopping (SIGTERM)")
+    try:
+        ctl.wait(max(1.0, deadline - time.monotonic()))
+    except TimeoutError:
+        log.error("run %s did not stop within %g s", st["run_id"], sd.timeout_s)
+    else:
+        st = ctl.status()
+        log.info("run %s %s; log %s closed", st["run_id"], st["state"], st.get("log"))
+
+
 def open_control_socket(section, control: ControlServer, authorizer: Authorizer):
     """The operators' Unix control socket (``acquire.control_socket``) serving ``control``'s
     operations, or None when the configuration has no ``control_socket`` section."""
@@ -184,7 +210,7 @@ class Daemon:
         self.pings = 0
         self._last_status = ""
         self.runs_dir = cfg.state_dir / "runs"
-        self._run_logfile = None  # acquire.console.RunLogFile of the current run
+        self.run_text_log = RunTextLog()
         self.cell_runs = CellRuns(self.runs_dir, cfg.robot_serial or cfg.cell, cfg.archive_keep_days)
 
     # ------------------------------------------------------------------ lifecycle
@@ -271,7 +297,9 @@ class Daemon:
         log.info("devices up: %s", ", ".join(names))
 
     def _tick(self) -> None:
-        self._open_run_log()
+        with self._lock:
+            ctl = self.controller
+        self.run_text_log.open_beside(ctl)
         self._after_run()
         health = self._check_health()
         if health.ok != self._healthy.ok:
@@ -325,35 +353,8 @@ class Daemon:
                         self._tokens.pop(name).undeclare()
         with self._lock:
             self.controller = None
-        self._close_run_log()
-        import zenoh
-
-        from acquire.bus import BusError
-
-        try:  # a hint for the plant's station: list this cell now (the listing itself is authenticated)
-            self.bus.publish(self.bus.key("archive", "ready"), {"run_id": st["run_id"], "state": st["state"]})
-        except (BusError, zenoh.ZError) as exc:  # a lost hint costs the station one poll
-            log.debug("archive/ready not announced: %s", exc)
-
-    def _open_run_log(self) -> None:
-        """Start the run's text log ``<run>.log`` beside its MCAP once the run has a log path."""
-        with self._lock:
-            ctl, logfile = self.controller, self._run_logfile
-        if ctl is None or logfile is None or logfile.path is not None:
-            return
-        path = ctl.status().get("log")
-        if path:
-            try:
-                logfile.open(path)
-            except OSError as exc:
-                log.warning("no text log beside %s: %s", path, exc)
-                self._run_logfile = None
-                logfile.close()
-
-    def _close_run_log(self) -> None:
-        logfile, self._run_logfile = self._run_logfile, None
-        if logfile is not None:
-            logfile.close(logging.CRITICAL + 1)
+        self.run_text_log.close()
+        announce_run_end(self.bus, st)
 
     def _status(self, text: str) -> None:
         self.notifier.status(text)
@@ -380,8 +381,8 @@ class Daemon:
         self.notifier.stopping("stopping")
         log.info("stopping")
         if ctl is not None:
-            self._stop_run(ctl)
-        self._close_run_log()
+            stop_run_on_shutdown(ctl, self.cfg.shutdown, self.notifier, self._status)
+        self.run_text_log.close()
         if self.control_socket is not None:
             self.control_socket.close()
             self.control_socket = None
@@ -401,30 +402,6 @@ class Daemon:
         log.info("stopped")
         self.notifier.status("stopped")
         self.notifier.close()
-
-    def _stop_run(self, ctl) -> None:
-        """Pause (finish the current configuration) or abort, then abort and wait for the log."""
-        sd = self.cfg.shutdown
-        st = ctl.status()
-        if st["state"] in ("finished", "aborted", "failed"):
-            return
-        self.notifier.extend_timeout(sd.timeout_s + 10)
-        deadline = time.monotonic() + sd.timeout_s
-        if sd.on_sigterm == "pause" and st["state"] in ("starting", "running", "suspended"):
-            self._status(f"stopping: finishing configuration {st.get('current')} of run {st['run_id']}")
-            log.info("stopping: pausing run %s after its current configuration", st["run_id"])
-            ctl.pause()
-            while time.monotonic() < deadline and ctl.status()["state"] not in ("paused",) + ("finished", "aborted", "failed"):
-                time.sleep(0.05)
-        self._status(f"stopping: aborting run {st['run_id']}")
-        ctl.abort("daemon stopping (SIGTERM)")
-        try:
-            ctl.wait(max(1.0, deadline - time.monotonic()))
-        except TimeoutError:
-            log.error("run %s did not stop within %g s", st["run_id"], sd.timeout_s)
-        else:
-            st = ctl.status()
-            log.info("run %s %s; log %s closed", st["run_id"], st["state"], st.get("log"))
 
     def _link_subject(self, zid: str) -> str | None:
         bus = self.bus
@@ -514,10 +491,7 @@ class Daemon:
             factory = self._factory
             if factory is None:
                 from acquire.run import RunController as factory
-            from acquire.console import RunLogFile
-
-            self._close_run_log()
-            self._run_logfile = RunLogFile(logging.INFO)
+            self.run_text_log.begin()
             # Hand the devices over: the run opens the plan's drivers at the same ports.
             self.health.forget(self.devices.commander)
             self.devices.close()
@@ -527,7 +501,7 @@ class Daemon:
                               out_dir=self.runs_dir, **extra)
                 run_id = ctl.start()
             except (OSError, ValueError, RuntimeError, DriverError) as exc:
-                self._close_run_log()
+                self.run_text_log.close()
                 log.error("run did not start: %s", exc)
                 self._bring_up_devices()
                 from acquire.run import RunError
@@ -538,7 +512,9 @@ class Daemon:
             self.controller = ctl
         log.info("run %s started by %s from %s%s", run_id, identity.describe(), path,
                  f" (resuming {resume})" if resume else "")
-        self._open_run_log()
+        with self._lock:
+            ctl = self.controller
+        self.run_text_log.open_beside(ctl)
         return {"run_id": run_id, "plan": str(path), "state": ctl.status()["state"]}
 
     def _active(self, verb: str):

@@ -4,11 +4,14 @@ plan file a ``start`` request means (``plan`` inside ``plan_dirs``, or ``plan_te
 
 from __future__ import annotations
 
+import logging
 from datetime import datetime, timezone
 from pathlib import Path
 
 from acquire.control import BadRequest
 from acquire.recorder import base_path
+
+log = logging.getLogger("acquire.daemon")
 
 
 def list_runs(runs_dir: Path, current: str | None) -> list[dict]:
@@ -71,3 +74,51 @@ def plan_path(cfg, request: dict) -> Path:
     if not p.is_file():
         raise BadRequest(f"plan {str(p)!r} does not exist")
     return p
+
+
+class RunTextLog:
+    """The current run's text log ``<run>.log`` beside its MCAP (``acquire.console.RunLogFile``,
+    archived with the run): begun when a run starts, opened once the run knows its log path,
+    closed when the run ends or fails to start."""
+
+    def __init__(self) -> None:
+        self._file = None
+
+    def begin(self) -> None:
+        """Collect the log lines of a run about to start (until ``open_beside`` finds its path)."""
+        from acquire.console import RunLogFile
+
+        self.close()
+        self._file = RunLogFile(logging.INFO)
+
+    def open_beside(self, ctl) -> None:
+        """Open the file beside ``ctl``'s MCAP log once it has one (no-op before, or when open)."""
+        logfile = self._file
+        if ctl is None or logfile is None or logfile.path is not None:
+            return
+        path = ctl.status().get("log")
+        if path:
+            try:
+                logfile.open(path)
+            except OSError as exc:
+                log.warning("no text log beside %s: %s", path, exc)
+                self._file = None
+                logfile.close()
+
+    def close(self) -> None:
+        logfile, self._file = self._file, None
+        if logfile is not None:
+            logfile.close(logging.CRITICAL + 1)
+
+
+def announce_run_end(bus, status: dict) -> None:
+    """A hint for the plant's station that this cell has a finished run to list now (the listing
+    itself is authenticated); a lost hint costs the station one poll."""
+    import zenoh
+
+    from acquire.bus import BusError
+
+    try:
+        bus.publish(bus.key("archive", "ready"), {"run_id": status["run_id"], "state": status["state"]})
+    except (BusError, zenoh.ZError) as exc:
+        log.debug("archive/ready not announced: %s", exc)
