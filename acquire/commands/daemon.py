@@ -31,15 +31,17 @@ from typing import Optional
 
 import typer
 
+from acquire.console import ConsoleFormatter
+
 log = logging.getLogger(__name__)
 
 #: syslog priorities for the ``<N>`` prefix journald understands (sd-daemon(3)).
 _PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
 
 
-class JournalFormatter(logging.Formatter):
+class JournalFormatter(ConsoleFormatter):
     """``<N>level name: message`` — journald reads the ``<N>`` prefix as the line's priority;
-    every line of a multi-line message (tracebacks) carries it."""
+    every line of a multi-line message (tracebacks) carries it; a foreseen failure is one line."""
 
     def format(self, record: logging.LogRecord) -> str:
         text = super().format(record)
