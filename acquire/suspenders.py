@@ -27,7 +27,8 @@ suspends the run the same way, with one line, and waits for every device to be r
 allowance for the device that faulted (``robot_fault_wait_s`` / ``sensor_fault_wait_s``, counted
 from the first fault at the configuration); once they are, and again after ``settle_after_s``,
 the run goes back to the configuration's move. A fault that outlasts its allowance fails the
-configuration; one that was over before the first probe counts as a retry (``retries``).
+configuration; one that was over before the first probe is retried (the plan's ``retries``, and
+for as long as the longest allowance lasts since the first fault at the configuration).
 
 Units: mm (tracker frame), s (injected clock).
 """
@@ -244,7 +245,8 @@ class LostTargetSuspender:
         if self.settle_after_s:
             self.sleep(self.settle_after_s)
         dt = self.clock() - t0
-        self.event("resumed", config_id=config_id, sensor=sensor.name, how=how, seconds=round(dt, 4))
+        self.event("resumed", config_id=config_id, cause="lost_target", sensor=sensor.name, how=how,
+                   seconds=round(dt, 4))
         log.info("resumed at %s: %s after %.2f s", config_id, how, dt)
         return Recovery("resume", how, dt)
 
@@ -283,13 +285,15 @@ class DeviceFaultSuspender:
 
     @staticmethod
     def not_ready(probes: list[Probe]) -> list[tuple[Probe, str]]:
-        """The probes that fail now, each with its reason."""
+        """The probes that fail now, each with its reason (prefixed with the device's name
+        unless the driver's message already starts with it)."""
         out = []
         for p in probes:
             try:
                 p.check()
             except DriverError as exc:
-                out.append((p, str(exc)))
+                text = str(exc)
+                out.append((p, text if text.startswith(f"{p.device}:") else f"{p.device}: {text}"))
         return out
 
     def recover(self, config_id: str, reason: str, probes: list[Probe], since: float | None = None,
@@ -314,9 +318,9 @@ class DeviceFaultSuspender:
         if on_suspend is not None:
             on_suspend()
         self.event("suspended", config_id=config_id, cause="device_fault", device=names, reason=reason,
-                   not_ready=[f"{p.device}: {why}" for p, why in down], allowance_s=allowance)
+                   not_ready=[why for _, why in down], allowance_s=allowance)
         log.warning("suspended at %s: %s — waiting up to %.0f s for %s", config_id, reason,
-                    max(deadline - t0, 0.0), names)
+                    max(deadline - t0, 0.0), "; ".join(why for _, why in down))
         last = down
         while True:
             while last and self.clock() < deadline:
@@ -332,7 +336,7 @@ class DeviceFaultSuspender:
                 log.info("resumed at %s: %s ready again after %.2f s", config_id, names, dt)
                 return Recovery("resume", "devices ready", dt)
             if self.clock() >= deadline:
-                why = "; ".join(f"{p.device}: {w}" for p, w in last)
+                why = "; ".join(w for _, w in last)
                 dt = self.clock() - t0
                 return Recovery("fail", f"{reason}; still not ready after {self.clock() - since:.1f} s "
                                 f"(allowed {allowance:g} s): {why}", dt)

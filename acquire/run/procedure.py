@@ -100,7 +100,7 @@ class ConfigurationRunner:
         t_start = time.time()
         self._lost = 0
         first_fault: Optional[float] = None
-        passed = 0  # faults that were over by the first probe: the plan's retries
+        passed = 0  # faults over by the first probe: retried ``retries`` times, and for as long as an allowance
         while True:
             if self.aborting:
                 return "abort"
@@ -114,10 +114,11 @@ class ConfigurationRunner:
                     return self.skip(cfg, f"{step[0]} refused: {exc}", kind="failed")
                 first_fault = self.clock() if first_fault is None else first_fault
                 action = self._wait_out(cfg, step[0], exc, first_fault)
-                if action == "retry":
+                if action == "retry":  # over before the first probe: retried while within an allowance
                     passed += 1
-                    if passed > self.settings.retries:
-                        return self.skip(cfg, f"{step[0]} failed {passed} times: {exc}", kind="failed")
+                    if passed > self.settings.retries and self.clock() - first_fault >= self._allowance_s():
+                        return self.skip(cfg, f"{step[0]} failed {passed} times in {self.clock() - first_fault:.1f} s: "
+                                         f"{exc}", kind="failed")
                     self.pub.event("retry", config_id=cfg.config_id, step=step[0], reason=str(exc))
                 elif action != "resume":
                     return action
@@ -155,6 +156,10 @@ class ConfigurationRunner:
                 if action != "resume":
                     return action
 
+    def _allowance_s(self) -> float:
+        """The longest device-fault allowance of the plan (s)."""
+        return max(self.settings.robot_fault_wait_s, self.settings.sensor_fault_wait_s)
+
     def probes(self) -> list[Probe]:
         """What ``DeviceFaultSuspender`` checks: the commander (``ready()``: a move could start)
         and every position sensor (it answers a read), each with the plan's allowance."""
@@ -169,11 +174,17 @@ class ConfigurationRunner:
     def _wait_out(self, cfg, step: str, exc: DriverError, since: float) -> str:
         """Wait out a device fault at ``cfg``: resume | retry | failed | abort (see ``measure``)."""
         reason = f"{step}: {exc}"
-        rec = self.faults.recover(cfg.config_id, reason, self.probes(), since,
-                                  on_suspend=lambda: self.state.set("suspended", f"{cfg.config_id}: {reason}"))
+        suspended = []
+
+        def suspend() -> None:
+            suspended.append(True)
+            self.state.set("suspended", f"{cfg.config_id}: {reason}")
+
+        rec = self.faults.recover(cfg.config_id, reason, self.probes(), since, on_suspend=suspend)
         if self.aborting:
             return "abort"
-        self.state.set("running")
+        if suspended:
+            self.state.set("running")
         if rec.action == "fail":
             return self.skip(cfg, rec.reason, kind="failed")
         return rec.action

@@ -51,6 +51,7 @@ def read_ipa_series(path: str | Path, *, marker: str = "tmac", sensor: str = "tr
         raise DatasetError(f"{path}: no header and data")
     head_no, head = lines[0]
     header = csvdialect.split(head, ";")
+    csvdialect.check_unique(header, str(path), head_no, DatasetError)
     need = [*JOINTS, *POSITION, *ANGLES, *(f"measurement_std_{c}" for c in ("x", "y", "z", "rx", "ry", "rz"))]
     missing = [c for c in need if c not in header]
     if missing:
