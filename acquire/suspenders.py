@@ -319,8 +319,9 @@ class DeviceFaultSuspender:
             on_suspend()
         self.event("suspended", config_id=config_id, cause="device_fault", device=names, reason=reason,
                    not_ready=[why for _, why in down], allowance_s=allowance)
+        waiting_for = "; ".join(p.device if why[:25] in reason else why for p, why in down)  # no reason twice
         log.warning("suspended at %s: %s — waiting up to %.0f s for %s", config_id, reason,
-                    max(deadline - t0, 0.0), "; ".join(why for _, why in down))
+                    max(deadline - t0, 0.0), waiting_for)
         last = down
         while True:
             while last and self.clock() < deadline:

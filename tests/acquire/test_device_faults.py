@@ -218,7 +218,8 @@ def test_drives_off_for_a_while_suspends_the_run_then_moves_again_once_they_are_
     suspended = [f for k, f in events if k == "suspended"]
     assert len(suspended) == 1 and "drives not ACTIVE" in suspended[0]["reason"]
     lines = [r.getMessage() for r in caplog.records if "suspended at p1" in r.getMessage()]
-    assert len(lines) == 1 and "waiting up to 30 s for fri: drives not ACTIVE" in lines[0]
+    assert len(lines) == 1 and lines[0].endswith("— waiting up to 30 s for fri")
+    assert lines[0].count("drives not ACTIVE") == 1  # the reason once
 
 
 def test_a_sensor_stall_during_settling_is_waited_out_within_the_sensor_allowance():
@@ -291,3 +292,25 @@ def test_faults_that_pass_at_once_are_retried_within_the_allowance_then_fail_the
     (failed,) = [f for k, f in events if k == "failed"]
     assert re.match(r"move failed 1[01] times in 10\.\d s: fri: controller stopped sending", failed["reason"])
     assert 10.0 <= clock.now() < 12.5  # the first fault came 1 s in; retried for the 10 s allowance
+
+
+def test_the_run_controller_logs_a_foreseen_failure_for_the_console_to_show_in_one_line(tmp_path, caplog):
+    from acquire.plan import load_plan
+    from acquire.run import RunController
+    from acquire.run.summary import RunError
+
+    from run_helpers import small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+
+    rc = RunController(load_plan(small_plan(tmp_path)), fit=False)
+
+    def three_in_a_row():
+        raise RunError("3 configurations failed in a row (last: move refused); the cell is not usable")
+
+    rc._run = three_in_a_row
+    with caplog.at_level(logging.ERROR, logger="acquire.run"):
+        rc.start()
+        summary = rc.wait(30)
+    assert summary.state == "failed" and "3 configurations failed in a row" in summary.reason
+    (rec,) = [r for r in caplog.records if r.name == "acquire.run" and r.levelno == logging.ERROR]
+    assert rec.getMessage().startswith("run ") and "failed: 3 configurations failed in a row" in rec.getMessage()
+    assert rec.exc_info is not None and getattr(rec, "foreseen", False)  # traceback for the text log only
