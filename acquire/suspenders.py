@@ -271,17 +271,20 @@ class DeviceFaultSuspender:
 
     clock / sleep: the run's time (simulated seconds under ``--fake``); event: the run's event
     sink; settle_after_s: how long the devices must stay ready before the run moves again (≥ 0,
-    they are checked again after it); poll_s: time between probes (> 0).
+    they are checked again after it); poll_s: time between probes (> 0); stopping: True once
+    the run is aborting (the wait ends at once with ``Recovery("abort", …)``).
     """
 
     def __init__(self, *, clock: Callable[[], float], sleep: Callable[[float], None], event: Callable[..., None],
-                 settle_after_s: float = 0.2, poll_s: float = 0.05) -> None:
+                 settle_after_s: float = 0.2, poll_s: float = 0.05,
+                 stopping: Callable[[], bool] = lambda: False) -> None:
         for name, v, low_ok in (("settle_after_s", settle_after_s, True), ("poll_s", poll_s, False)):
             if not (isinstance(v, (int, float)) and math.isfinite(v) and (v >= 0 if low_ok else v > 0)):
                 raise ValueError(f"{name} must be a {'non-negative' if low_ok else 'positive'} number, got {v!r}")
         self.clock, self.sleep, self.event = clock, sleep, event
         self.settle_after_s = float(settle_after_s)
         self.poll_s = float(poll_s)
+        self.stopping = stopping
 
     @staticmethod
     def not_ready(probes: list[Probe]) -> list[tuple[Probe, str]]:
@@ -325,6 +328,8 @@ class DeviceFaultSuspender:
         last = down
         while True:
             while last and self.clock() < deadline:
+                if self.stopping():
+                    return Recovery("abort", f"{reason}; the run is stopping", self.clock() - t0)
                 self.sleep(self.poll_s)
                 last = self.not_ready(probes)
             if not last and self.settle_after_s:

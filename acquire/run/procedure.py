@@ -81,10 +81,12 @@ class ConfigurationRunner:
             seq.on_lost_target, wait_s=float(seq.lost_target_wait_s), predictor=predictor, clock=clock,
             sleep=sleep, event=pub.event, ask=ask,
         )
-        self.faults = DeviceFaultSuspender(clock=clock, sleep=sleep, event=pub.event)
+        self.faults = DeviceFaultSuspender(clock=clock, sleep=sleep, event=pub.event,
+                                           stopping=lambda: self.aborting)
         self.proc = ConfigProcedure(commander, sensors, settings, clock=clock, sleep=sleep, event=pub.event,
                                     on_reading=pub.reading)
         self.last_record: Optional[dict] = None  # the last sample record written
+        self._lost = 0  # lost-target suspensions at the current configuration
 
     @property
     def aborting(self) -> bool:

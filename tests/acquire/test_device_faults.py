@@ -314,3 +314,12 @@ def test_the_run_controller_logs_a_foreseen_failure_for_the_console_to_show_in_o
     (rec,) = [r for r in caplog.records if r.name == "acquire.run" and r.levelno == logging.ERROR]
     assert rec.getMessage().startswith("run ") and "failed: 3 configurations failed in a row" in rec.getMessage()
     assert rec.exc_info is not None and getattr(rec, "foreseen", False)  # traceback for the text log only
+
+
+def test_an_abort_during_the_wait_ends_it_at_once():
+    clock, events = ManualClock(), []
+    aborting = []
+    sus = DeviceFaultSuspender(clock=clock.now, sleep=lambda dt: (clock.sleep(dt), aborting.append(clock.now() > 1.0)),
+                               event=lambda kind, **f: events.append(kind), stopping=lambda: any(aborting))
+    rec = sus.recover("p1", "drives off", [Probe("fri", down_until(clock, 100.0), 30.0)])
+    assert rec.action == "abort" and 1.0 < clock.now() < 1.2
