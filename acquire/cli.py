@@ -64,7 +64,7 @@ def configure_logging(verbose: bool = False) -> None:
     from acquire.console import ConsoleFormatter
 
     for handler in logging.getLogger().handlers:
-        handler.setFormatter(ConsoleFormatter(fmt))  # a foreseen failure: one line, no traceback
+        handler.setFormatter(ConsoleFormatter(fmt, tracebacks=verbose))  # a foreseen failure: one line unless -v
 
 
 def plain_switches(command: Any, ctx: Any) -> None:

@@ -54,10 +54,15 @@ FORESEEN = {"foreseen": True}
 
 
 class ConsoleFormatter(logging.Formatter):
-    """The console's formatter: a record marked ``FORESEEN`` is shown without its traceback."""
+    """The console's formatter: a record marked ``FORESEEN`` is shown without its traceback,
+    unless ``tracebacks`` (``-vv``: whoever debugs wants them where they look)."""
+
+    def __init__(self, fmt: str | None = None, *, tracebacks: bool = False) -> None:
+        super().__init__(fmt)
+        self.tracebacks = tracebacks
 
     def format(self, record: logging.LogRecord) -> str:
-        if not (getattr(record, "foreseen", False) and record.exc_info):
+        if self.tracebacks or not (getattr(record, "foreseen", False) and record.exc_info):
             return super().format(record)
         saved = record.exc_info, record.exc_text
         record.exc_info, record.exc_text = None, None
@@ -85,7 +90,7 @@ def configure_console(verbose: int) -> ConsoleHandler:
     tty = sys.stderr.isatty()
     handler = ConsoleHandler()
     fmt = "%(levelname)s %(name)s: %(message)s"
-    handler.setFormatter(ConsoleFormatter(("%(asctime)s " + fmt) if tty else fmt))
+    handler.setFormatter(ConsoleFormatter(("%(asctime)s " + fmt) if tty else fmt, tracebacks=verbose >= 2))
     handler.setLevel(console_level(verbose, tty))
     root = logging.getLogger()
     for old in list(root.handlers):

@@ -31,17 +31,16 @@ from typing import Optional
 
 import typer
 
-from acquire.console import ConsoleFormatter
-
 log = logging.getLogger(__name__)
 
 #: syslog priorities for the ``<N>`` prefix journald understands (sd-daemon(3)).
 _PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3, logging.CRITICAL: 2}
 
 
-class JournalFormatter(ConsoleFormatter):
+class JournalFormatter(logging.Formatter):
     """``<N>level name: message`` — journald reads the ``<N>`` prefix as the line's priority;
-    every line of a multi-line message (tracebacks) carries it; a foreseen failure is one line."""
+    every line of a multi-line message (tracebacks) carries it. The journal is the daemon's text
+    log: it keeps the traceback of a foreseen failure too (a terminal shows it in one line)."""
 
     def format(self, record: logging.LogRecord) -> str:
         text = super().format(record)

@@ -99,3 +99,19 @@ def test_a_foreseen_run_failure_is_one_console_line_and_its_traceback_stays_in_t
     assert shown[1] == "ERROR acquire.run: run r1 failed" and "Traceback (most recent call last):" in shown[2]
     text = (tmp_path / "r1" / "r1.log").read_text()
     assert text.count("Traceback (most recent call last):") == 2 and "acquire.run.summary.RunError: 3 configurations" in text
+
+
+def test_with_vv_the_console_shows_the_traceback_of_a_foreseen_failure_too():
+    from acquire.console import ConsoleFormatter, FORESEEN
+
+    try:
+        raise ValueError("boom")
+    except ValueError:
+        import sys
+
+        record = logging.LogRecord("acquire.run", logging.ERROR, __file__, 1, "run r1 failed: boom", None,
+                                   sys.exc_info())
+    record.__dict__.update(FORESEEN)
+    assert ConsoleFormatter("%(message)s").format(record) == "run r1 failed: boom"
+    assert "Traceback (most recent call last):" in ConsoleFormatter("%(message)s", tracebacks=True).format(record)
+    assert record.exc_info is not None  # left for the text log's handler
