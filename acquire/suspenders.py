@@ -259,7 +259,7 @@ class LostTargetSuspender:
 @dataclass(frozen=True)
 class Probe:
     """One device's readiness check: ``check()`` returns when ready and raises DriverError saying
-    why not; ``allowance_s``: how long the plan waits for this device (s, > 0 on the run's clock)."""
+    why not; ``allowance_s``: how long the plan waits for this device (s ≥ 0, the run's clock)."""
 
     device: str
     check: Callable[[], object]
