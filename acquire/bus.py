@@ -349,8 +349,9 @@ class Bus:
             closer = getattr(ent, "close", None) or getattr(ent, "undeclare")
             try:
                 closer()
-            except zenoh.ZError as exc:
-                log.debug("undeclaring %r: %s", ent, exc)
+            except zenoh.ZError as exc:  # e.g. a token its owner undeclared already
+                # (named by its type: an undeclared zenoh entity raises in its own repr)
+                log.debug("undeclaring a %s: %s", type(ent).__name__, exc)
         self._session.close()
         log.debug("bus for cell %s closed", self.cell)
 

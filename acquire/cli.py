@@ -64,6 +64,10 @@ def configure_logging(verbose: bool = False) -> None:
     if sys.stderr.isatty():
         fmt = "%(asctime)s " + fmt
     logging.basicConfig(level=level, format=fmt, stream=sys.stderr, force=True)
+    from acquire.console import ConsoleFormatter
+
+    for handler in logging.getLogger().handlers:
+        handler.setFormatter(ConsoleFormatter(fmt, tracebacks=verbose))  # a foreseen failure: one line unless -v
 
 
 def plain_switches(command: Any, ctx: Any) -> None:

@@ -4,6 +4,8 @@
   when inside it, else absolute; never ``plans/../../runs/…``.
 - :func:`console_level`: on a terminal only warnings reach the console unless ``-v`` (INFO) or
   ``-vv`` (DEBUG); off a terminal (journald, CI, a pipe) INFO goes to stderr as before.
+- :class:`ConsoleFormatter`: a failure the product foresees (logged with ``extra=FORESEEN``) is
+  one line on the console; its traceback goes only to the text log.
 - :class:`RunLogFile`: every log record of the run (INFO and up, DEBUG with ``-vv``) into
   ``<run-id>.log`` beside the run's MCAP log. Records from before the log's folder exists (device
   connection) are held in memory and written first; if the run never gets a folder they are
@@ -45,6 +47,31 @@ def console_level(verbose: int, tty: bool) -> int:
     return logging.WARNING
 
 
+#: ``log.error(..., exc_info=exc, extra=FORESEEN)``: a failure the product foresees (too many
+#: configurations failed, a device that never answered): one line on a console, the traceback
+#: in the run's text log only.
+FORESEEN = {"foreseen": True}
+
+
+class ConsoleFormatter(logging.Formatter):
+    """The console's formatter: a record marked ``FORESEEN`` is shown without its traceback,
+    unless ``tracebacks`` (``-vv``: whoever debugs wants them where they look)."""
+
+    def __init__(self, fmt: str | None = None, *, tracebacks: bool = False) -> None:
+        super().__init__(fmt)
+        self.tracebacks = tracebacks
+
+    def format(self, record: logging.LogRecord) -> str:
+        if self.tracebacks or not (getattr(record, "foreseen", False) and record.exc_info):
+            return super().format(record)
+        saved = record.exc_info, record.exc_text
+        record.exc_info, record.exc_text = None, None
+        try:
+            return super().format(record)
+        finally:
+            record.exc_info, record.exc_text = saved
+
+
 class ConsoleHandler(logging.StreamHandler):
     """A stderr handler that looks ``sys.stderr`` up on every record, so a live display that
     redirects stderr (rich) prints log lines above itself instead of through it."""
@@ -63,7 +90,7 @@ def configure_console(verbose: int) -> ConsoleHandler:
     tty = sys.stderr.isatty()
     handler = ConsoleHandler()
     fmt = "%(levelname)s %(name)s: %(message)s"
-    handler.setFormatter(logging.Formatter(("%(asctime)s " + fmt) if tty else fmt))
+    handler.setFormatter(ConsoleFormatter(("%(asctime)s " + fmt) if tty else fmt, tracebacks=verbose >= 2))
     handler.setLevel(console_level(verbose, tty))
     root = logging.getLogger()
     for old in list(root.handlers):

@@ -49,6 +49,8 @@ def warning_text(ev: dict) -> str | None:
         return f"{kind}{at}: {ev.get('reason', '')}"
     if kind == "retry":
         return f"retry{at} ({ev.get('step', '?')}): {ev.get('reason', '')}"
+    if kind == "suspended" and ev.get("cause") == "device_fault":
+        return f"suspended{at}: {ev.get('reason', '')} (waiting up to {ev.get('allowance_s', '?')} s for {ev.get('device', '?')})"
     if kind == "suspended":
         return f"suspended{at}: {ev.get('sensor', '')}/{ev.get('marker', '')} {ev.get('reason', '')}".rstrip()
     if kind == "searched" and not ev.get("found", True):

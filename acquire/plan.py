@@ -86,7 +86,9 @@ commented example)::
       measure_timeout_s: 10          # [10]
       retries: 2                     # re-tries of a failed configuration [2]
       on_lost_target: reacquire      # wait | reacquire | ask | skip [reacquire]
-      lost_target_wait_s: 30         # how long "wait" (and re-acquisition) may take [30]
+      lost_target_wait_s: 30         # how long "wait" (and re-acquisition; "skip": the target's own return) may take [30]
+      robot_fault_wait_s: 30         # drives off, session dropped, controller restart, stale state: waited out this long [30]
+      sensor_fault_wait_s: 30        # a sensor not answering or disconnected: waited out this long [30]
     output:
       folder: runs                   # where RUN.mcap, result.json and report.html go [runs]
     fit:
@@ -352,7 +354,14 @@ class SequencingSpec(_Strict):
     on_lost_target: OnLostTarget = Field(
         "reacquire", description="On a lost target: wait for it, re-acquire (aim + search), ask the operator, or skip."
     )
-    lost_target_wait_s: float = Field(30.0, ge=0, le=3600, description="How long waiting / re-acquiring may take, s.")
+    lost_target_wait_s: float = Field(30.0, ge=0, le=3600, description="How long waiting / re-acquiring may take, s "
+                                      "(skip: how long a lost target may come back by itself first).")
+    robot_fault_wait_s: float = Field(
+        30.0, ge=0, le=3600, description="How long a robot fault at a configuration (drives off, safety stop, session "
+        "dropped, controller restarted, stale joint state) is waited out before the configuration fails, s.")
+    sensor_fault_wait_s: float = Field(
+        30.0, ge=0, le=3600, description="How long a sensor that stopped answering or dropped its connection is "
+        "waited out at a configuration before the configuration fails, s.")
 
 
 class OutputSpec(_Strict):

@@ -200,6 +200,8 @@ class SequencingSettings:
     move_timeout_s: float
     measure_timeout_s: float
     retries: int = 1
+    robot_fault_wait_s: float = 30.0
+    sensor_fault_wait_s: float = 30.0
 
 
 class JointSampler:

@@ -13,10 +13,22 @@ tries to get the target back and says what the run does next:
    ``wait`` — wait up to ``lost_target_wait_s`` for the target to come back by itself;
    ``reacquire`` — as 1 with a wider search, then wait, aiming and searching again; ``ask`` — ask the operator on a TTY
    (retry / skip / abort), without a TTY treated as ``skip`` with the reason logged;
-   ``skip`` — skip the configuration with the reason.
+   ``skip`` — wait up to ``lost_target_wait_s`` for the target to come back by itself (someone
+   walked through the line of sight; nothing is aimed or searched), then skip the configuration
+   with the reason (``lost_target_wait_s: 0`` skips at once).
 
 After a recovery the suspender waits ``settle_after_s`` (the resume settle delay) before the
 run re-measures the configuration. Every step is reported through ``event(kind, **fields)``.
+
+A device fault (``DeviceFaultSuspender``) — drives off, a session that dropped, a controller
+that restarted, a stale joint state, a sensor that stopped answering or closed its connection —
+suspends the run the same way, with one line, and waits for every device to be ready again
+(``ready`` probes: the commander's ``ready()``, each sensor answering a read) within the plan's
+allowance for the device that faulted (``robot_fault_wait_s`` / ``sensor_fault_wait_s``, counted
+from the first fault at the configuration); once they are, and again after ``settle_after_s``,
+the run goes back to the configuration's move. A fault that outlasts its allowance fails the
+configuration; one that was over before the first probe is retried (the plan's ``retries``, and
+for as long as the longest allowance lasts since the first fault at the configuration).
 
 Units: mm (tracker frame), s (injected clock).
 """
@@ -31,7 +43,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from calib.fit.registration import register_least_squares
-from drivers.errors import DeviceTimeoutError, TargetLostError
+from drivers.errors import DeviceTimeoutError, DriverError, TargetLostError
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +111,7 @@ class ReflectorPredictor:
 class LostTargetSuspender:
     """Suspend on a lost target; try to re-acquire; otherwise follow the plan's policy.
 
-    policy: one of ``POLICIES``. wait_s: how long ``wait`` waits (s, > 0). search_radius_mm:
+    policy: one of ``POLICIES``. wait_s: how long ``wait`` and ``skip`` wait (s, ≥ 0). search_radius_mm:
     spiral radius after an aim (> 0). settle_after_s: delay after a recovery (≥ 0).
     ask: callable(question) → "retry" | "skip" | "abort", or None when there is no TTY.
     """
@@ -120,7 +132,7 @@ class LostTargetSuspender:
     ) -> None:
         if policy not in POLICIES:
             raise ValueError(f"on_lost_target must be one of {', '.join(POLICIES)}, got {policy!r}")
-        for name, v, low_ok in (("wait_s", wait_s, False), ("search_radius_mm", search_radius_mm, False),
+        for name, v, low_ok in (("wait_s", wait_s, True), ("search_radius_mm", search_radius_mm, False),
                                 ("search_timeout_s", search_timeout_s, False), ("settle_after_s", settle_after_s, True)):
             if not (isinstance(v, (int, float)) and math.isfinite(v) and (v >= 0 if low_ok else v > 0)):
                 raise ValueError(f"{name} must be a {'non-negative' if low_ok else 'positive'} number, got {v!r}")
@@ -143,9 +155,10 @@ class LostTargetSuspender:
     def recover(self, sensor, marker: str, config_id: str, q_rad, reason: str) -> Recovery:
         """Handle one lost target at configuration ``config_id`` (robot standing at ``q_rad``)."""
         t0 = self.clock()
-        self.event("suspended", config_id=config_id, sensor=sensor.name, marker=marker, reason=reason,
-                   policy=self.policy)
-        log.warning("suspended at %s: %s (policy %s)", config_id, reason, self.policy)
+        self.event("suspended", config_id=config_id, cause="lost_target", sensor=sensor.name, marker=marker,
+                   reason=reason, policy=self.policy)
+        waits = f"; waiting up to {self.wait_s:g} s" if self.policy != "ask" and self.wait_s > 0 else ""
+        log.warning("suspended at %s: %s (policy %s%s)", config_id, reason, self.policy, waits)
         retry = None
         if self.can_reacquire(sensor) and self.policy != "skip":
             radius = self.search_radius_mm * (2.0 if self.policy == "reacquire" else 1.0)
@@ -157,8 +170,8 @@ class LostTargetSuspender:
                 def retry() -> bool:
                     return self._reacquire(sensor, marker, config_id, q_rad, radius,
                                            timeout=max(deadline - self.clock(), 0.1))
-        if self.policy in ("wait", "reacquire"):
-            if self._wait_visible(sensor, marker, config_id, retry):
+        if self.policy in ("wait", "reacquire", "skip"):
+            if self.wait_s > 0 and self._wait_visible(sensor, marker, config_id, retry):
                 how = "re-acquired" if retry is not None and self._retried else "target visible again"
                 return self._resumed(config_id, sensor, how, t0)
             return self._give_up("skip", config_id, sensor,
@@ -173,7 +186,7 @@ class LostTargetSuspender:
             if answer == "abort":
                 return self._give_up("abort", config_id, sensor, f"{reason}; operator aborted", t0)
             return self._give_up("skip", config_id, sensor, f"{reason}; operator skipped", t0)
-        return self._give_up("skip", config_id, sensor, f"{reason} (policy skip)", t0)
+        raise AssertionError(f"policy {self.policy!r} not handled")  # pragma: no cover - checked in __init__
 
     # ------------------------------------------------------------------ steps
     def _reacquire(self, sensor, marker: str, config_id: str, q_rad, radius: float,
@@ -232,7 +245,8 @@ class LostTargetSuspender:
         if self.settle_after_s:
             self.sleep(self.settle_after_s)
         dt = self.clock() - t0
-        self.event("resumed", config_id=config_id, sensor=sensor.name, how=how, seconds=round(dt, 4))
+        self.event("resumed", config_id=config_id, cause="lost_target", sensor=sensor.name, how=how,
+                   seconds=round(dt, 4))
         log.info("resumed at %s: %s after %.2f s", config_id, how, dt)
         return Recovery("resume", how, dt)
 
@@ -240,3 +254,95 @@ class LostTargetSuspender:
         dt = self.clock() - t0
         log.warning("%s at %s: %s", action, config_id, reason)
         return Recovery(action, reason, dt)
+
+
+@dataclass(frozen=True)
+class Probe:
+    """One device's readiness check: ``check()`` returns when ready and raises DriverError saying
+    why not; ``allowance_s``: how long the plan waits for this device (s ≥ 0, the run's clock)."""
+
+    device: str
+    check: Callable[[], object]
+    allowance_s: float
+
+
+class DeviceFaultSuspender:
+    """Suspend on a device fault; wait for the devices to be ready; resume or fail.
+
+    clock / sleep: the run's time (simulated seconds under ``--fake``); event: the run's event
+    sink; settle_after_s: how long the devices must stay ready before the run moves again (≥ 0,
+    they are checked again after it); poll_s: time between probes (> 0); stopping: True once
+    the run is aborting (the wait ends at once with ``Recovery("abort", …)``).
+    """
+
+    def __init__(self, *, clock: Callable[[], float], sleep: Callable[[float], None], event: Callable[..., None],
+                 settle_after_s: float = 0.2, poll_s: float = 0.05,
+                 stopping: Callable[[], bool] = lambda: False) -> None:
+        for name, v, low_ok in (("settle_after_s", settle_after_s, True), ("poll_s", poll_s, False)):
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and (v >= 0 if low_ok else v > 0)):
+                raise ValueError(f"{name} must be a {'non-negative' if low_ok else 'positive'} number, got {v!r}")
+        self.clock, self.sleep, self.event = clock, sleep, event
+        self.settle_after_s = float(settle_after_s)
+        self.poll_s = float(poll_s)
+        self.stopping = stopping
+
+    @staticmethod
+    def not_ready(probes: list[Probe]) -> list[tuple[Probe, str]]:
+        """The probes that fail now, each with its reason (prefixed with the device's name
+        unless the driver's message already starts with it)."""
+        out = []
+        for p in probes:
+            try:
+                p.check()
+            except DriverError as exc:
+                text = str(exc)
+                out.append((p, text if text.startswith(f"{p.device}:") else f"{p.device}: {text}"))
+        return out
+
+    def recover(self, config_id: str, reason: str, probes: list[Probe], since: float | None = None,
+                on_suspend: Callable[[], None] | None = None) -> Recovery:
+        """Handle one device fault (``reason``) at ``config_id``.
+
+        since: clock time of the first fault at this configuration (None: now); each device's
+        allowance runs from there. Returns ``Recovery("resume" | "retry" | "fail", reason, s)``:
+        resume — a device was not ready and is again (verified twice, ``settle_after_s`` apart);
+        retry — every device was ready at once (the fault had passed: the caller counts retries);
+        fail — a device was still not ready when its allowance ended. ``on_suspend()`` is called
+        once a device is found not ready, before the wait.
+        """
+        t0 = self.clock()
+        since = t0 if since is None else since
+        down = self.not_ready(probes)
+        if not down:
+            return Recovery("retry", f"{reason}; every device ready again at once", 0.0)
+        allowance = max(p.allowance_s for p, _ in down)
+        deadline = since + allowance
+        names = ", ".join(dict.fromkeys(p.device for p, _ in down))
+        if on_suspend is not None:
+            on_suspend()
+        self.event("suspended", config_id=config_id, cause="device_fault", device=names, reason=reason,
+                   not_ready=[why for _, why in down], allowance_s=allowance)
+        waiting_for = "; ".join(p.device if why[:25] in reason else why for p, why in down)  # no reason twice
+        log.warning("suspended at %s: %s — waiting up to %.0f s for %s", config_id, reason,
+                    max(deadline - t0, 0.0), waiting_for)
+        last = down
+        while True:
+            while last and self.clock() < deadline:
+                if self.stopping():
+                    return Recovery("abort", f"{reason}; the run is stopping", self.clock() - t0)
+                self.sleep(self.poll_s)
+                last = self.not_ready(probes)
+            if not last and self.settle_after_s:
+                self.sleep(self.settle_after_s)  # ready for a while, then verified again
+                last = self.not_ready(probes)
+            if not last:
+                dt = self.clock() - t0
+                self.event("resumed", config_id=config_id, cause="device_fault", device=names,
+                           how="devices ready", seconds=round(dt, 4))
+                log.info("resumed at %s: %s ready again after %.2f s", config_id, names, dt)
+                return Recovery("resume", "devices ready", dt)
+            if self.clock() >= deadline:
+                why = "; ".join(w for _, w in last)
+                dt = self.clock() - t0
+                return Recovery("fail", f"{reason}; still not ready after {self.clock() - since:.1f} s "
+                                f"(allowed {allowance:g} s): {why}", dt)

@@ -14,7 +14,7 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from drivers.errors import DeviceTimeoutError, LimitError, TargetLostError
+from drivers.errors import DeviceTimeoutError, LimitError, NotReadyError, TargetLostError
 from drivers.protocols import JointLimits, JointState, MarkerMeasurement, MarkerSample
 
 Clock = Callable[[], float]
@@ -198,11 +198,17 @@ class CommanderBase(DeviceBase):
             raise LimitError(f"{self.name}: measured joint state is not finite: {q}")
         age = self.clock() - state.host_time
         if age > self.max_state_age_s:
-            raise LimitError(
+            raise NotReadyError(
                 f"{self.name}: measured joint state is {age * 1e3:.0f} ms old "
                 f"(allowed {self.max_state_age_s * 1e3:.0f} ms); is the controller streaming?"
             )
         return state
+
+    def ready(self) -> JointState:
+        """The measured state when a move could start now (the state a move checks, without a
+        target); else the reason as NotReadyError (DeviceTimeoutError while nothing arrives). A
+        driver adds its own device's conditions (drives, session, a move still ending)."""
+        return self.check_state(self.joint_state())
 
     def check_target(self, target_rad: np.ndarray, speed: float) -> np.ndarray:
         """Validate a move before anything moves; returns the target as a float array."""

@@ -39,6 +39,13 @@ class LimitError(DriverError, ValueError):
     """A command was refused before anything moved: outside limits, too fast, bad state."""
 
 
+class NotReadyError(LimitError):
+    """A move refused before anything moved because the device's state does not allow one *now*
+    (drives off, a session not commanding, a stale joint state, the last move still ending, the
+    robot not yet at rest). Unlike a target outside the limits, it may clear by itself: a run
+    waits for the device within its allowance, verifies it again, then moves."""
+
+
 
 class DistanceLostError(TargetLostError):
     """A laser tracker's beam is locked but its distance is not valid (interferometer distance

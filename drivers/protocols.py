@@ -164,7 +164,13 @@ class PositionSensor(Protocol):
 
 @runtime_checkable
 class JointCommander(Protocol):
-    """Streams measured joint positions and moves the robot safely to joint targets."""
+    """Streams measured joint positions and moves the robot safely to joint targets.
+
+    Optional: ``ready() -> JointState`` — the measured state when a move could start now, else
+    ``NotReadyError`` saying why (``CommanderBase`` has one; a run waiting out a device fault
+    probes it, falling back to ``joint_state()``). A refusal that may clear by itself (drives
+    off, session not commanding, stale state) is a ``NotReadyError``, a ``LimitError`` subclass.
+    """
 
     name: str
     limits: JointLimits

@@ -43,7 +43,8 @@ _PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERRO
 
 class JournalFormatter(logging.Formatter):
     """``<N>level name: message`` — journald reads the ``<N>`` prefix as the line's priority;
-    every line of a multi-line message (tracebacks) carries it."""
+    every line of a multi-line message (tracebacks) carries it. The journal is the daemon's text
+    log: it keeps the traceback of a foreseen failure too (a terminal shows it in one line)."""
 
     def format(self, record: logging.LogRecord) -> str:
         text = super().format(record)

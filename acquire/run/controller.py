@@ -36,6 +36,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from acquire.console import FORESEEN
 from acquire.logstorage import StorageError
 from acquire.run import prepare
 from acquire.run.devices import RunDevices, plan_cell
@@ -201,6 +202,9 @@ class RunController:
             if runlog is not None:
                 runlog.close()
             self.state.fail(str(exc))
+        except (RunError, DriverError) as exc:  # foreseen: one line on a console, the traceback in the text log
+            log.error("run %s failed: %s", self.run_id, exc, exc_info=exc, extra=FORESEEN)
+            self.state.fail(f"{type(exc).__name__}: {exc}")
         except BaseException as exc:  # noqa: BLE001 - the thread must always report how it ended
             log.exception("run %s failed", self.run_id)
             self.state.fail(f"{type(exc).__name__}: {exc}")

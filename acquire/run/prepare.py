@@ -31,6 +31,8 @@ def plan_settings(plan) -> SequencingSettings:
         move_timeout_s=float(s.move_timeout_s),
         measure_timeout_s=float(s.measure_timeout_s),
         retries=int(s.retries),
+        robot_fault_wait_s=float(s.robot_fault_wait_s),
+        sensor_fault_wait_s=float(s.sensor_fault_wait_s),
     )
 
 

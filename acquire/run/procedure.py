@@ -3,8 +3,10 @@ lost-target suspension and the registration estimate that aims a tracker back at
 
 ``ConfigurationRunner.measure(cfg)`` returns what became of one configuration: ``measured``
 (one sample record in the log), ``skipped`` (the plan's or the operator's decision), ``failed``
-(a refused or faulted move, repeated timeouts) or ``abort`` (the run is stopping; the
-configuration is not done, a resume measures it).
+(a move refused for its target, a device fault that outlasted the plan's allowance, faults that
+kept passing at once more than ``retries`` times) or ``abort`` (the run is stopping; the
+configuration is not done, a resume measures it). A device fault suspends the run and is waited
+out (``acquire.suspenders.DeviceFaultSuspender``); then the configuration starts again at its move.
 
 The first registration for re-acquisition is the same for every cell (``initial_registration``):
 the plan's approximate sensor placement where it gives one; from three measured configurations
@@ -20,9 +22,9 @@ from typing import Optional
 
 import numpy as np
 
-from acquire.sequencer import ConfigProcedure, SensorSpec
-from acquire.suspenders import LostTargetSuspender, ReflectorPredictor
-from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError, LimitError, TargetLostError
+from acquire.sequencer import ConfigProcedure, SensorSpec, is_joint_sensor
+from acquire.suspenders import DeviceFaultSuspender, LostTargetSuspender, Probe, ReflectorPredictor
+from drivers.errors import DriverError, LimitError, NotReadyError, TargetLostError
 
 log = logging.getLogger(__name__)
 
@@ -79,61 +81,69 @@ class ConfigurationRunner:
             seq.on_lost_target, wait_s=float(seq.lost_target_wait_s), predictor=predictor, clock=clock,
             sleep=sleep, event=pub.event, ask=ask,
         )
+        self.faults = DeviceFaultSuspender(clock=clock, sleep=sleep, event=pub.event,
+                                           stopping=lambda: self.aborting)
         self.proc = ConfigProcedure(commander, sensors, settings, clock=clock, sleep=sleep, event=pub.event,
                                     on_reading=pub.reading)
         self.last_record: Optional[dict] = None  # the last sample record written
+        self._lost = 0  # lost-target suspensions at the current configuration
 
     @property
     def aborting(self) -> bool:
         return self.state.aborting.is_set()
 
     def measure(self, cfg) -> str:
-        """Move, settle, measure, record ``cfg``; returns measured | skipped | failed | abort."""
+        """Move, settle, measure, record ``cfg``; returns measured | skipped | failed | abort.
+
+        A device fault anywhere on the way (``DriverError`` other than a refusal for the target
+        and a lost target) suspends the run: it waits for the devices within the plan's
+        allowances (``DeviceFaultSuspender``), then goes back to this configuration's move, which
+        checks the robot's state again before anything moves."""
         t_start = time.time()
-        moved = self._move(cfg)
-        if moved is not None:
-            return moved
+        self._lost = 0
+        first_fault: Optional[float] = None
+        passed = 0  # faults over by the first probe: retried ``retries`` times, and for as long as an allowance
+        while True:
+            if self.aborting:
+                return "abort"
+            step = ["move"]
+            try:
+                return self._visit(cfg, t_start, step)
+            except DriverError as exc:
+                if self.aborting:
+                    return "abort"
+                if isinstance(exc, LimitError) and not isinstance(exc, NotReadyError):
+                    return self.skip(cfg, f"{step[0]} refused: {exc}", kind="failed")
+                first_fault = self.clock() if first_fault is None else first_fault
+                action = self._wait_out(cfg, step[0], exc, first_fault)
+                if action == "retry":  # over before the first probe: retried while within an allowance
+                    passed += 1
+                    if passed > self.settings.retries and self.clock() - first_fault >= self._allowance_s():
+                        return self.skip(cfg, f"{step[0]} failed {passed} times in {self.clock() - first_fault:.1f} s: "
+                                         f"{exc}", kind="failed")
+                    self.pub.event("retry", config_id=cfg.config_id, step=step[0], reason=str(exc))
+                elif action != "resume":
+                    return action
+
+    # ------------------------------------------------------------------ steps
+    def _visit(self, cfg, t_start: float, step: list[str]) -> str:
+        """One try at ``cfg``: move, settle, measure, record; ``step[0]`` says where it is.
+        Raises the DriverError of a device fault (``measure`` waits it out)."""
+        self.proc.move(cfg)
+        step[0] = "settle"
         record = self._settle_and_measure(cfg, t_start)
         if isinstance(record, str):
             return record
-        written = self._record(cfg, record)
-        if written is not None:
-            return written
+        self._record(cfg, record)
         for mk in record["markers"]:
             self.predictor.add(mk["sensor"], mk["marker"], np.radians(record["q_measured_deg"]), mk["mean_mm"])
         self.show_registration()
         return "measured"
 
-    # ------------------------------------------------------------------ steps
-    def _move(self, cfg) -> Optional[str]:
-        """Move to ``cfg`` with the plan's retries; None when there, else the outcome."""
-        s = self.settings
-        for attempt in range(s.retries + 1):
-            try:
-                self.proc.move(cfg)
-                return None
-            except LimitError as exc:
-                return self.skip(cfg, f"move refused: {exc}", kind="failed")
-            except DriverError as exc:
-                if self.aborting:
-                    return "abort"
-                if attempt == s.retries:
-                    return self.skip(cfg, f"move failed {attempt + 1} times: {exc}", kind="failed")
-                self.pub.event("retry", config_id=cfg.config_id, step="move", reason=str(exc))
-                if isinstance(exc, DeviceFaultError):  # e.g. the FRI session dropped: wait it out
-                    self.state.set("suspended", f"{cfg.config_id}: {exc}")
-                    self.wait_ready()
-                    if self.aborting:
-                        return "abort"
-                    self.state.set("running")
-                else:
-                    self.wait_ready()
-        return None
-
     def _settle_and_measure(self, cfg, t_start: float):
-        """The sample record of ``cfg``, or the outcome (str) when there is none."""
+        """The sample record of ``cfg``, or the outcome (str) when a lost target ended it."""
         s = self.settings
-        attempts = timeouts = suspensions = 0
+        attempts = 0
         while True:
             if self.aborting:
                 return "abort"
@@ -141,18 +151,45 @@ class ConfigurationRunner:
             try:
                 return self.proc.settle_and_measure(cfg, attempts, t_start)
             except TargetLostError as exc:
-                suspensions += 1
-                if suspensions > s.retries + 1:
-                    return self.skip(cfg, f"target lost {suspensions} times at this configuration: {exc}")
+                self._lost += 1
+                if self._lost > s.retries + 1:
+                    return self.skip(cfg, f"target lost {self._lost} times at this configuration: {exc}")
                 action = self._recover(cfg, exc)
                 if action != "resume":
                     return action
-            except DeviceTimeoutError as exc:
-                timeouts += 1
-                if timeouts > s.retries:
-                    return self.skip(cfg, f"gave up after {timeouts} timeouts: {exc}", kind="failed")
-                self.pub.event("retry", config_id=cfg.config_id, step="settle", reason=str(exc))
-                self.wait_ready()
+
+    def _allowance_s(self) -> float:
+        """The longest device-fault allowance of the plan (s)."""
+        return max(self.settings.robot_fault_wait_s, self.settings.sensor_fault_wait_s)
+
+    def probes(self) -> list[Probe]:
+        """What ``DeviceFaultSuspender`` checks: the commander (``ready()``: a move could start)
+        and every position sensor (it answers a read), each with the plan's allowance."""
+        s, cmd = self.settings, self.commander
+        ready = getattr(cmd, "ready", None) or cmd.joint_state
+        out = [Probe(getattr(cmd, "name", "commander"), ready, s.robot_fault_wait_s)]
+        for sp in self.sensors:
+            if not is_joint_sensor(sp.sensor):
+                out.append(Probe(sp.sensor.name, _answers(sp.sensor), s.sensor_fault_wait_s))
+        return out
+
+    def _wait_out(self, cfg, step: str, exc: DriverError, since: float) -> str:
+        """Wait out a device fault at ``cfg``: resume | retry | failed | abort (see ``measure``)."""
+        reason = f"{step}: {exc}"
+        suspended = []
+
+        def suspend() -> None:
+            suspended.append(True)
+            self.state.set("suspended", f"{cfg.config_id}: {reason}")
+
+        rec = self.faults.recover(cfg.config_id, reason, self.probes(), since, on_suspend=suspend)
+        if self.aborting:
+            return "abort"
+        if suspended:
+            self.state.set("running")
+        if rec.action == "fail":
+            return self.skip(cfg, rec.reason, kind="failed")
+        return rec.action
 
     def _recover(self, cfg, exc: TargetLostError) -> str:
         """Suspend on a lost target and follow the suspender: resume | skipped | abort."""
@@ -175,8 +212,8 @@ class ConfigurationRunner:
             return "abort"
         return self.skip(cfg, rec.reason)
 
-    def _record(self, cfg, record: dict) -> Optional[str]:
-        """Write the sample record; None when written.
+    def _record(self, cfg, record: dict) -> None:
+        """Write the sample record.
 
         RECORDING ERRORS: a ``acquire.logstorage.StorageError`` (disk full, I/O error; the log is
         sealed at its last complete record) is not caught here: it ends the loop with the robot
@@ -184,7 +221,6 @@ class ConfigurationRunner:
         """
         self.pub.sample(record)
         self.last_record = record  # an adaptive run's design reads it (acquire.run.adaptive)
-        return None
 
     # ------------------------------------------------------------------ helpers
     def show_registration(self) -> None:
@@ -203,25 +239,6 @@ class ConfigurationRunner:
         except (OSError, ValueError, RuntimeError) as exc:
             log.warning("Foxglove view not updated: %s", exc)
 
-    def wait_ready(self) -> None:
-        """After a failed move: wait for the controller to stream again (a fresh joint state,
-        up to ``move_timeout_s``) and the robot to come to rest before the next attempt."""
-        s = self.settings
-        deadline = self.clock() + s.move_timeout_s
-        while not self.aborting:
-            try:
-                self.commander.joint_state()
-                break
-            except DriverError as exc:
-                if self.clock() > deadline:
-                    log.warning("controller not streaming after a failed move: %s", exc)
-                    return
-                self.sleep(0.05)
-        try:
-            self.commander.wait_settled(s.settle_tolerance_rad, s.settle_window_s, s.move_timeout_s)
-        except DriverError as exc:
-            log.warning("robot not at rest after a failed move: %s", exc)
-
     def sensor_of(self, exc: BaseException) -> Optional[SensorSpec]:
         text = str(exc)
         for sp in self.sensors:
@@ -235,3 +252,15 @@ class ConfigurationRunner:
         with self.state.lock:
             self.state.skip_reasons[cfg.config_id] = reason
         return kind
+
+
+#: How long a sensor probe waits for a reading (s, the run's clock).
+PROBE_READ_S = 0.5
+
+
+def _answers(sensor):
+    """A probe that passes when ``sensor`` answers a read (visible or not: a lost target is the
+    lost-target suspender's); DriverError (timeout, closed connection) while it does not."""
+    def check() -> None:
+        sensor.read(PROBE_READ_S)
+    return check

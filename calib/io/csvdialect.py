@@ -70,6 +70,19 @@ def split(line: str, separator: str) -> list[str]:
     return [c.strip() for c in next(csv.reader([line], delimiter=separator))]
 
 
+def check_unique(header: Sequence[str], source: str, lineno: int, error: type[Exception] = ValueError) -> None:
+    """Refuse a header that names a column twice (a spreadsheet export with a pasted column):
+    which value is meant cannot be known, so nothing is read."""
+    seen: dict[str, list[int]] = {}
+    for i, name in enumerate(header, start=1):
+        seen.setdefault(name, []).append(i)
+    twice = {name: cols for name, cols in seen.items() if len(cols) > 1}
+    if twice:
+        what = "; ".join(f"{name!r} in columns {', '.join(map(str, cols))}" for name, cols in twice.items())
+        raise error(f"{source}:{lineno}: the header names a column more than once ({what}); "
+                    "allowed: each column once — delete or rename the extra one")
+
+
 def split_header(line: str) -> list[str]:
     """Header cells with the separator the header itself uses (for format detection)."""
     used = [s for s in SEPARATORS if s in line]

@@ -199,6 +199,7 @@ def parse_csv(text: str, model: RobotModel, *, source: str = "<csv>") -> Dataset
     sep = csvdialect.sniff_separator(header_text, source, header_line, DatasetError)
     rows: list[tuple[int, list[str]]] = [(no, csvdialect.split(line, sep)) for no, line in lines]
     header = rows[0][1]
+    csvdialect.check_unique(header, source, header_line, DatasetError)
     qcols = sorted((h for h in header if h[:1] == "q" and h[1:].isdigit()), key=lambda h: int(h[1:]))
     n = model.n_joints
     if [int(h[1:]) for h in qcols] != list(range(1, len(qcols) + 1)):

@@ -67,6 +67,7 @@ def read_ipa_series(path: str | Path, *, marker: str = "tmac", sensor: str = "tr
         raise DatasetError(f"{path}: no header and data")
     head_no, head = lines[0]
     header = csvdialect.split(head, ";")
+    csvdialect.check_unique(header, str(path), head_no, DatasetError)
     spreads = [f"measurement_std_{c}" for c in ("x", "y", "z", "rx", "ry", "rz")]
     has_spread = all(c in header for c in spreads)
     need = [*JOINTS, *POSITION, *ANGLES, *(spreads if has_spread else ())]

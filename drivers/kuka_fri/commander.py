@@ -44,10 +44,10 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, Clock, CommanderBase
-from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError
+from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError, NotReadyError
 from drivers.kuka_fri.link import FriLink, enum_name
 from drivers.kuka_fri.messages import IOType, SessionState
-from drivers.kuka_fri.session import N_JOINTS, MotionStoppedError, SessionSnapshot, joint_state_of
+from drivers.kuka_fri.session import N_JOINTS, MotionStoppedError, SessionSnapshot, check_ready, joint_state_of
 from drivers.kuka_fri.session_view import SessionView
 from drivers.protocols import JointLimits, JointState, LinkStats
 
@@ -305,6 +305,21 @@ class FriCommander(CommanderBase):
         shared = ", ".join(repr(io.name) for io in snap.io) or "none"
         raise DriverError(f"{self.name}: the controller shares no IO named {name!r} over FRI (it shares: {shared}); "
                           "register it in the robot application's FRI configuration, or correct the name")
+
+    def ready(self) -> JointState:
+        """The measured state when a move could start now: a fresh state, the session
+        COMMANDING_ACTIVE with drives ACTIVE and normal safety, a command held, no move still
+        ending (``plan_move``'s checks without a target); else NotReadyError saying why."""
+        state = super().ready()
+        snap = self.session.snapshot()
+        if snap is None:
+            raise NotReadyError(f"{self.name}: no monitoring message received yet; is the controller sending?")
+        check_ready(snap, self.limits, self.session.expect_major, self.name)
+        if self.session.motion_active():
+            raise NotReadyError(f"{self.name}: the last move is still ending")
+        if self.session.held_position() is None:
+            raise NotReadyError(f"{self.name}: no command held yet in COMMANDING_ACTIVE")
+        return state
 
     def _wait_commanding(self) -> None:
         """A session that left COMMANDING_ACTIVE (a drop under load, a controller restart) comes

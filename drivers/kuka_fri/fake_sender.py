@@ -56,8 +56,10 @@ class SendLoop:
             return
         try:  # pid 0: this thread (Linux)
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.rt_priority))
-        except PermissionError as exc:
-            log.info("fake Sunrise: SCHED_FIFO %d not permitted (%s); normal priority", self.rt_priority, exc)
+            log.info("fake Sunrise: its cycle runs at SCHED_FIFO %d", self.rt_priority)
+        except OSError as exc:
+            log.warning("fake Sunrise: SCHED_FIFO %d not permitted (%s); normal priority: its send period may "
+                        "stretch on a loaded host", self.rt_priority, exc.strerror or exc)
 
     def _run(self) -> None:
         self._set_realtime()

@@ -37,7 +37,7 @@ from typing import Optional
 
 import numpy as np
 
-from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError, LimitError
+from drivers.errors import DeviceFaultError, DeviceTimeoutError, DriverError, LimitError, NotReadyError
 from drivers.kuka_fri.messages import (
     COMMAND_MESSAGE_ID,
     CommandData,
@@ -179,7 +179,7 @@ class FriClientSession:
         COMMANDING_ACTIVE or the held position changed; LimitError when a move is running."""
         with self._lock:
             if self._motion is not None:
-                raise LimitError(f"{name}: a move is already in progress; stop() it first")
+                raise NotReadyError(f"{name}: a move is already in progress; stop() it first")
             # both transient (nothing moved): device faults the run waits out and retries
             if self._snapshot is None or self._snapshot.session_state != SessionState.COMMANDING_ACTIVE:
                 raise DeviceFaultError(f"{name}: the session left COMMANDING_ACTIVE while planning")
@@ -361,15 +361,15 @@ def plan_move(snap: Optional[SessionSnapshot], hold: Optional[np.ndarray], busy:
     ``hold`` (shape (7,), rad; None when nothing is held yet) and plan it; ``busy``: a move is
     running. LimitError (nothing moved) when it is not allowed. Pure: touches no session."""
     if snap is None:
-        raise LimitError(f"{name}: no monitoring message received yet; is the controller sending?")
+        raise NotReadyError(f"{name}: no monitoring message received yet; is the controller sending?")
     check_ready(snap, limits, expect_major, name)
     if busy:
-        raise LimitError(f"{name}: a move is already in progress; stop() it first")
+        raise NotReadyError(f"{name}: a move is already in progress; stop() it first")
     if hold is None:
-        raise LimitError(f"{name}: no command held yet in COMMANDING_ACTIVE; wait one cycle")
+        raise NotReadyError(f"{name}: no command held yet in COMMANDING_ACTIVE; wait one cycle")
     gap = float(np.max(np.abs(snap.measured_rad - hold)))
     if gap > start_tolerance_rad:
-        raise LimitError(
+        raise NotReadyError(
             f"{name}: measured position is {math.degrees(gap):.3f}° from the commanded one "
             f"(allowed {math.degrees(start_tolerance_rad):.3f}°); wait until settled"
         )
@@ -380,9 +380,10 @@ def plan_move(snap: Optional[SessionSnapshot], hold: Optional[np.ndarray], busy:
 
 
 def check_ready(snap: SessionSnapshot, limits: JointLimits, expect_major: Optional[int], name: str) -> None:
-    """Refuse a move (LimitError) the latest monitoring message ``snap`` does not allow."""
+    """Refuse a move (LimitError) the latest monitoring message ``snap`` does not allow: a
+    NotReadyError for what may clear by itself (session not commanding, safety stop, drives off)."""
     if snap.session_state != SessionState.COMMANDING_ACTIVE:
-        raise LimitError(
+        raise NotReadyError(
             f"{name}: session is {snap.session_state.name}; a move needs COMMANDING_ACTIVE "
             "(start the FRI joint-position overlay in the robot application)"
         )
@@ -407,10 +408,10 @@ def check_ready(snap: SessionSnapshot, limits: JointLimits, expect_major: Option
         if not np.all(np.isfinite(arr)):
             raise LimitError(f"{name}: {what} joint position is not finite: {arr}")
     if snap.safety_state is not None and snap.safety_state != SafetyState.NORMAL_OPERATION:
-        raise LimitError(f"{name}: safety state is {_name(SafetyState, snap.safety_state)}")
+        raise NotReadyError(f"{name}: safety state is {_name(SafetyState, snap.safety_state)}")
     bad = [i + 1 for i, d in enumerate(snap.drive_state) if d != DriveState.ACTIVE]
     if bad or len(snap.drive_state) not in (0, N_JOINTS):
-        raise LimitError(f"{name}: drives not ACTIVE on axes {bad or snap.drive_state}")
+        raise NotReadyError(f"{name}: drives not ACTIVE on axes {bad or snap.drive_state}")
     if snap.receive_period_s is None:
         raise LimitError(f"{name}: controller reports no sendPeriod/receiveMultiplier")
 

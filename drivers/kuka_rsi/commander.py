@@ -38,7 +38,7 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from drivers.base import DEFAULT_LIMIT_MARGIN_RAD, CommanderBase, check_timeout
-from drivers.errors import DeviceTimeoutError, DriverError, LimitError
+from drivers.errors import DeviceTimeoutError, DriverError, LimitError, NotReadyError
 from drivers.kuka_rsi.link import RsiLink
 from drivers.kuka_rsi.motion import plan_move
 from drivers.protocols import JointLimits, JointState, LinkStats
@@ -263,6 +263,17 @@ class RsiCommander(CommanderBase):
         stamp (wall-clock s, ``time.time`` scale) and the answer latency (s) — to place late
         answers in time (benches poll it to keep more than the ring holds)."""
         return self._link.answer_log()
+
+    def ready(self) -> JointState:
+        """The measured state when a move could start now: a fresh packet, the RSI session not
+        ended with the Stop flag, no motion running; else NotReadyError saying why."""
+        state = super().ready()
+        snap = self._link.snapshot()
+        if snap is not None and snap["session_ended"][0]:
+            raise NotReadyError(f"{self.name}: the RSI session was ended with the Stop flag; restart the RSI program")
+        if self._link.busy():
+            raise NotReadyError(f"{self.name}: a motion is still running")
+        return state
 
     # -- motion -------------------------------------------------------------------------------
 

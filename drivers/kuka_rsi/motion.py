@@ -6,7 +6,8 @@ the Stop flag, no motion running, measured and commanded positions within
 ``max_deviation_rad``), the jerk-limited trajectory from the commanded position must fit in the
 timeout, and it is sampled once per cycle into ``RSI_ON(#ABSOLUTE)`` corrections ``AK``:
 degrees from the session reference ``ASPos``, the last row exactly the target.
-Every refusal is a LimitError (DeviceTimeoutError before the first packet): nothing moved.
+Every refusal is a LimitError (DeviceTimeoutError before the first packet): nothing moved. A refusal
+for the state (session ended, a motion running, not at rest) is a NotReadyError: it may clear by itself.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import DeviceTimeoutError, LimitError
+from drivers.errors import DeviceTimeoutError, LimitError, NotReadyError
 from drivers.protocols import JointLimits
 from drivers.trajectory import JointTrajectory, scaled_limits
 
@@ -42,15 +43,15 @@ def plan_move(snap: dict | None, busy: bool, start_rad: np.ndarray, target_rad: 
     if snap is None:
         raise DeviceTimeoutError(f"{name}: no packet from the controller yet (call connect())")
     if snap["session_ended"][0]:
-        raise LimitError(f"{name}: the RSI session was ended with the Stop flag; restart the RSI program")
+        raise NotReadyError(f"{name}: the RSI session was ended with the Stop flag; restart the RSI program")
     if busy:
-        raise LimitError(f"{name}: a motion is already running")
+        raise NotReadyError(f"{name}: a motion is already running")
     ref = snap["ref"]
     commanded = np.radians(ref + snap["cmd"])
     deviation = np.abs(start_rad - commanded)
     if np.max(deviation) > max_deviation_rad:
         i = int(np.argmax(deviation))
-        raise LimitError(
+        raise NotReadyError(
             f"{name}: measured and commanded positions disagree by {math.degrees(deviation[i]):.3f}° "
             f"on axis {i + 1} (allowed {math.degrees(max_deviation_rad):.3f}°); wait until settled"
         )

@@ -23,7 +23,9 @@ changes them on the real one; the fake controller reports and commands axis angl
 Every fake reads from or writes to the same cell, so a commander that moves the fake
 controller moves the markers the fake sensors see. ``addresses`` says where each one is;
 ``close()`` (or leaving the ``with`` block) stops them all. Controllers stop by themselves
-after ``max_runtime_s``.
+after ``max_runtime_s``. A real controller never starves: the fake controller's cycle runs at
+SCHED_FIFO ``controller_rt_priority`` where the host permits it (as the commander's exchange
+does; one log line says which), so a loaded host does not stretch its send period.
 
 The cell has the people and programs a real cell has: the fake Sunrise runs the robot
 application we ship (``drivers/kuka_fri/controller/``: it starts its FRI overlay motion when
@@ -126,6 +128,10 @@ def _bone_name() -> str:
     return BONE_NAME
 
 
+#: SCHED_FIFO priority of a fake controller's cycle (below the commander exchange's 50, so on one
+#: host the client still answers first; 0: normal priority).
+CONTROLLER_RT_PRIORITY = 30
+
 class SimLaunch:
     """The fakes of one cell. Parameters:
 
@@ -145,6 +151,8 @@ class SimLaunch:
     and ``"emscon"`` (default ``("line",)``). A sensor served by both has its emScon address
     under ``"<name>-emscon"``. None (or a sensor not named): the cell file's ``protocols``.
     fault_timeline: fire the cell file's ``faults:`` (wall s after ``start()``).
+    controller_rt_priority: SCHED_FIFO priority of the fake controller's cycle where permitted
+    (0: normal priority); below the commander exchange's default (50).
     """
 
     def __init__(
@@ -163,7 +171,11 @@ class SimLaunch:
         tracker_protocols: dict[str, tuple[str, ...]] | None = None,
         mocap_asset: str | None = None,
         fault_timeline: bool = True,
+        controller_rt_priority: int = CONTROLLER_RT_PRIORITY,
     ) -> None:
+        if not (isinstance(controller_rt_priority, int) and 0 <= controller_rt_priority <= 99):
+            raise ValueError(f"controller_rt_priority must be an integer in [0, 99], got {controller_rt_priority!r}")
+        self.controller_rt_priority = controller_rt_priority
         for name, port in (("fri_port", fri_port), ("rsi_port", rsi_port)):
             if not (isinstance(port, int) and 1 <= port <= 65535):
                 raise ValueError(f"{name} must be a UDP port 1..65535, got {port!r}")
@@ -353,7 +365,8 @@ class SimLaunch:
             fake = FakeSunrise(
                 ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.robot_view,
                 clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
-                application=True, fri_version=self.fri_version, inputs=inputs, record_commands=False, **period,
+                application=True, fri_version=self.fri_version, inputs=inputs, record_commands=False,
+                rt_priority=self.controller_rt_priority, **period,
             )
             fake.start()
             host, port = fake.address
@@ -384,7 +397,7 @@ class SimLaunch:
 
         fake = FakeKrc4(
             ("127.0.0.1", self.rsi_port), n_axes=self.cell.model.n_joints, scene=self.robot_view, clock=self.cell.clock,
-            seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
+            seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s, rt_priority=self.controller_rt_priority,
         )
         fake.start()
         return fake

@@ -128,3 +128,28 @@ def resumed_run(lp, log_path):
     rc = fake_controller(lp, resume=log_path, fit=False)
     rc.start()
     return wait_for_run(rc)
+
+
+def faulted_run(lp, fault: str, device: str | None = None, duration_s: float | None = None,
+                probability: float | None = None, *, at: str = "moved", nth: int = 1):
+    """A fake run of ``lp`` (no fit) with one fault injected through the simulated cell's fault
+    API (``SimLaunch.inject``, as ``acquire sim``'s stdin does) the ``nth`` time the run logs an
+    event of kind ``at`` (``moved``: the robot has just arrived, settling starts). Returns
+    ``(summary, contents of the run log, devices hit)``."""
+    from acquire.recorder import read_run
+
+    rc = fake_controller(lp, fit=False)
+    seen, hit = [0], []
+    publish = rc.pub.event
+
+    def event(kind: str, **fields) -> None:
+        publish(kind, **fields)
+        if kind == at:
+            seen[0] += 1
+            if seen[0] == nth:
+                hit.extend(rc.sim.launch.inject(fault, device, duration_s, probability))
+
+    rc.pub.event = event  # the run's own event sink: the fault lands at a known step of the run
+    rc.start()
+    summary = wait_for_run(rc)
+    return summary, read_run(summary.log_path), hit

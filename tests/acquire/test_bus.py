@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 import threading
@@ -298,3 +299,31 @@ def test_release_drops_the_cached_publishers_of_a_prefix(pair):
     # Publishing on a released key declares afresh.
     server.publish(key("cell1", "run", "r1", "event"), {"kind": "again"})
     assert key("cell1", "run", "r1", "event") in server._publishers
+
+
+def test_closing_a_bus_whose_token_was_undeclared_logs_cleanly_at_debug():
+    """A daemon undeclares its liveliness token before it closes the bus: the close used to log
+    the token with ``%r``, which raises for an undeclared zenoh entity — at DEBUG every clean
+    stop wrote ``--- Logging error ---`` blocks."""
+    records: list[str] = []
+
+    class Formatting(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            records.append(self.format(record))  # raises as a real handler's formatting would
+
+        def handleError(self, record: logging.LogRecord) -> None:
+            raise AssertionError(f"logging error for {record.msg!r}")
+
+    handler = Formatting(logging.DEBUG)
+    bus_log = logging.getLogger("acquire.bus")
+    old = bus_log.level
+    bus_log.addHandler(handler)
+    bus_log.setLevel(logging.DEBUG)
+    try:
+        bus = Bus("cell1", config=EPHEMERAL)
+        bus.liveliness_token("remaster/cell1/daemon/alive").undeclare()
+        bus.close()
+    finally:
+        bus_log.removeHandler(handler)
+        bus_log.setLevel(old)
+    assert any("undeclaring a LivelinessToken" in r for r in records), records

@@ -63,3 +63,55 @@ def test_run_without_a_folder_prints_what_the_console_did_not_show(tmp_path, qui
     assert "the run made no log folder" in err
     assert "session IDLE -> MONITORING_WAIT" in err and "connection refused" not in err
     assert not list(tmp_path.iterdir())
+
+
+def test_a_foreseen_run_failure_is_one_console_line_and_its_traceback_stays_in_the_text_log(tmp_path, quiet_root):
+    """Seen: "3 configurations failed in a row" printed a Python traceback on the console. A
+    failure the product foresees (a RunError, a DriverError) is one line there; the run's text
+    log keeps the traceback for whoever debugs it."""
+    import io
+
+    from acquire.console import ConsoleFormatter, FORESEEN
+    from acquire.run.summary import RunError
+
+    console = io.StringIO()
+    handler = logging.StreamHandler(console)
+    handler.setFormatter(ConsoleFormatter("%(levelname)s %(name)s: %(message)s"))
+    handler.setLevel(logging.WARNING)
+    quiet_root.addHandler(handler)
+    logfile = RunLogFile(logging.INFO)
+    mcap = tmp_path / "r1" / "r1.mcap"
+    mcap.parent.mkdir()
+    logfile.open(mcap)
+    run_log = logging.getLogger("acquire.run")
+    try:
+        raise RunError("3 configurations failed in a row (last: move refused); the cell is not usable")
+    except RunError as exc:
+        run_log.error("run r1 failed: %s", exc, exc_info=exc, extra=FORESEEN)
+    try:
+        raise KeyError("a bug")
+    except KeyError:
+        run_log.exception("run r1 failed")  # not foreseen: the traceback on the console too
+    logfile.close()
+    shown = console.getvalue().splitlines()
+    assert shown[0] == ("ERROR acquire.run: run r1 failed: 3 configurations failed in a row (last: move refused); "
+                        "the cell is not usable")
+    assert shown[1] == "ERROR acquire.run: run r1 failed" and "Traceback (most recent call last):" in shown[2]
+    text = (tmp_path / "r1" / "r1.log").read_text()
+    assert text.count("Traceback (most recent call last):") == 2 and "acquire.run.summary.RunError: 3 configurations" in text
+
+
+def test_with_vv_the_console_shows_the_traceback_of_a_foreseen_failure_too():
+    from acquire.console import ConsoleFormatter, FORESEEN
+
+    try:
+        raise ValueError("boom")
+    except ValueError:
+        import sys
+
+        record = logging.LogRecord("acquire.run", logging.ERROR, __file__, 1, "run r1 failed: boom", None,
+                                   sys.exc_info())
+    record.__dict__.update(FORESEEN)
+    assert ConsoleFormatter("%(message)s").format(record) == "run r1 failed: boom"
+    assert "Traceback (most recent call last):" in ConsoleFormatter("%(message)s", tracebacks=True).format(record)
+    assert record.exc_info is not None  # left for the text log's handler

@@ -154,8 +154,8 @@ def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     assert summary.state == "finished", summary.reason
     contents = read_run(summary.log_path)
     events = contents.events
-    suspended = [e for e in events if e["kind"] == "suspended"]
-    resumed = [e for e in events if e["kind"] == "resumed"]
+    suspended = [e for e in events if e["kind"] == "suspended" and e.get("cause") == "lost_target"]
+    resumed = [e for e in events if e["kind"] == "resumed" and e.get("cause") == "lost_target"]
     assert broken == [2, 5]
     assert len(suspended) >= 2 and len(resumed) >= 2
     assert all(e["reason"] and e["sensor"] == "tracker" for e in suspended)
@@ -233,8 +233,8 @@ def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     assert server.url.startswith("emscon://127.0.0.1:")
     contents = read_run(summary.log_path)
     events = contents.events
-    suspended = [e for e in events if e["kind"] == "suspended"]
-    resumed = [e for e in events if e["kind"] == "resumed"]
+    suspended = [e for e in events if e["kind"] == "suspended" and e.get("cause") == "lost_target"]
+    resumed = [e for e in events if e["kind"] == "resumed" and e.get("cause") == "lost_target"]
     assert broken == [2, 5]
     assert len(suspended) >= 2 and len(resumed) >= 2
     assert all(e["reason"] and e["sensor"] == "tracker" for e in suspended)

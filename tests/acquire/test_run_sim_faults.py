@@ -43,7 +43,7 @@ def test_scripted_beam_breaks_in_the_cell_file_are_seen_by_a_fake_run(tmp_path):
     assert summary.state == "finished", summary.reason
     contents = read_run(summary.log_path)
     events = contents.events
-    suspended = [e for e in events if e["kind"] == "suspended"]
+    suspended = [e for e in events if e["kind"] == "suspended" and e.get("cause") == "lost_target"]
     assert suspended, f"no beam break seen by the run; events: {[e['kind'] for e in events]}"
     # a break seen before the measurement ("not visible") or during it (the tracker refuses AVG:
     # "beam not locked") — both are the beam break, and both suspend on the tracker

@@ -21,7 +21,7 @@ from acquire.cli import app
 from acquire.plan import load_plan
 from acquire.recorder import read_run
 
-from run_helpers import ROOT, acquire_cmd, simulated_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import ROOT, acquire_cmd, simulated_run, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(400)]
 ROBOT = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
@@ -71,7 +71,7 @@ def test_entered_offsets_improve_the_simulated_robot_as_predicted(tmp_path):
     lp = load_plan(plan)
     with simulated_run(lp, fit=False) as (rc, sim):  # the calibration run
         rc.start()
-        cal = rc.wait(200)
+        cal = wait_for_run(rc)
     assert cal.state == "finished" and cal.measured >= 12, cal.reason
     result = cal.log_path.with_name("result.json")
     fit = CliRunner().invoke(app, ["fit", str(cal.log_path), "--robot", str(ROBOT), "--method", "fast",

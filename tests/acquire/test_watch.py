@@ -103,6 +103,9 @@ def test_helpers_name_cells_samples_and_warnings():
         "search: tracker did not find the target within 20 mm")
     assert warning_text({"kind": "searched", "found": True}) is None
     assert warning_text({"kind": "retry", "config_id": "c", "step": "move", "reason": "late"}) == "retry c (move): late"
+    assert warning_text({"kind": "suspended", "config_id": "c", "cause": "device_fault", "device": "fri",
+                         "reason": "move: fri: drives not ACTIVE", "allowance_s": 30.0}) == (
+        "suspended c: move: fri: drives not ACTIVE (waiting up to 30.0 s for fri)")
     assert "mocap/sir" in sample_text(SAMPLE) and "± 0.020" in sample_text(SAMPLE)
 
 

@@ -182,3 +182,25 @@ def test_socket_files_with_mixed_decimal_marks_are_refused(tmp_path):
     path.write_text("\n".join(text) + "\n")
     with pytest.raises(SocketDataError, match=r"mixed decimal marks: line 3 has a decimal comma .* line 4 a decimal point"):
         read_socket_csv(path, 7)
+
+
+@pytest.mark.parametrize("column", ["x", "qw"])
+def test_a_header_naming_a_column_twice_is_refused_with_file_line_and_columns(tmp_path, column):
+    """A spreadsheet column pasted twice (``x``, or an orientation column) was fitted silently with
+    the last one: which value is meant cannot be known, so nothing is read."""
+    lines = [ln for ln in CAL.read_text().splitlines()]
+    head = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#"))
+    header = lines[head].split(",")
+    extra = [column] if column in header else ["qw", "qx", "qy", "qz", column]
+    lines[head] = ",".join(header + extra)
+    for i in range(head + 1, len(lines)):
+        if lines[i] and not lines[i].startswith("#"):
+            lines[i] = ",".join(lines[i].split(",") + ["1.0" if c == "qw" else "0.0" for c in extra])
+    path = tmp_path / "twice.csv"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError) as info:
+        read_csv(path, IIWA)
+    text = str(info.value)
+    assert text.startswith(f"{path}:{head + 1}: the header names a column more than once")
+    first = header.index(column) + 1 if column in header else len(header) + 1
+    assert f"'{column}' in columns {first}, {len(header) + len(extra)}" in text

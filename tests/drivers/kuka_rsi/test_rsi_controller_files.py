@@ -48,7 +48,7 @@ def test_the_krl_program_and_the_notes_name_the_shipped_files():
     notes = (CONTROLLER / "README.md").read_text()
     assert re.search(r"RSI_ON\(#ABSOLUTE, #IPO_FAST\)", src)  # absolute AK from ASPos, 4 ms
     assert "RSI_MOVECORR()" in src and "RSI_OFF()" in src
-    assert SHIPPED.name in notes and "Out7" in notes and "STOP" in notes
+    assert SHIPPED.name in notes and "Out7" in notes and "STOP1" in notes
 
 
 def _config(tmp_path: Path, *, sen_type="ImFree", stop=True) -> RsiEthernetConfig:
@@ -115,48 +115,137 @@ def test_a_broken_configuration_is_refused_with_its_file_and_element(tmp_path):
 
 
 RSIX = CONTROLLER / "remaster_rsi.rsix"
+RSI3 = CONTROLLER / "remaster_rsi.rsi.xml"
+RSI3_MODEL = CONTROLLER / "remaster_rsi.rsi"
+#: The namespaces of a context RSIVisual (WorkVisual, RSI 4.x/5.x) writes.
+NS = {"ctx": "RsiContext", "drv": "RsiDriver", "con": "RsiConstruct"}
+#: Object type ids of the RSI toolbox (the same in RSI 3.x and 4.x/5.x contexts).
+TYPE_IDS = {"ETHERNET": "64", "AXISCORR": "33", "AXISCORRMON": "82", "STOP": "18"}
+#: STOP's modes, in the toolbox's order: the value is the index.
+STOP_MODES = ("InfoMessage", "PathNormal", "Velocity", "PathFast", "ExitMoveCorr")
 
 
-def _rsix_objects():
+def _rsix():
+    """(objects by id, construct inputs {(object, port): (source object, source port)}) of the
+    RSI 4.x/5.x context."""
     root = ET.parse(RSIX).getroot()
-    assert root.tag == "RsiContext"
-    return {o.get("ObjId"): o for o in root.find("RsiObjects")}, root
+    assert root.tag == "{RsiContext}RsiContext" and root.get("SchemaVersion") == "2.0.0"
+    objects = {o.get("ObjId"): o for o in root.find("drv:RsiObjects", NS).findall("drv:RsiObject", NS)}
+    links = {}
+    for con in root.find("con:Constructs", NS).findall("con:Construct", NS):
+        for i in con.iter("{RsiConstruct}Input"):
+            links[(con.get("Name"), i.get("Name"))] = (i.get("SourceObject"), i.get("SourcePort"))
+    return objects, links
 
 
-def test_the_rsi_context_reads_the_shipped_ethernet_configuration():
-    objects, _ = _rsix_objects()
-    eth = [o for o in objects.values() if o.get("ObjType") == "Ethernet"]
-    assert len(eth) == 1
-    params = {p.get("Name"): p.get("ParamValue") for p in eth[0].iter("Parameter")}
-    assert params["ConfigFile"] == SHIPPED.name  # the file RSI_CREATE's context loads
+def _rsi3():
+    """Objects by id of the RSI 3.x object list (the file the KSS 8.3 controller loads)."""
+    root = ET.parse(RSI3).getroot()
+    assert root.tag == "RSIObjects"
+    return {o.get("ObjID"): o for o in root.findall("RSIObject")}
+
+
+def _of_type(objects: dict, kind: str, attr: str = "ObjType"):
+    (obj,) = [o for o in objects.values() if o.get(attr).upper() == kind]
+    return obj
+
+
+def _params(obj, ns: str = "", pid: str = "ParamId") -> dict:
+    return {p.get("Name"): (int(p.get(pid)), p.get("ParamValue")) for p in obj.iter(f"{ns}Parameter")}
+
+
+def _inputs(obj, ns: str = "", out: str = "OutObjId") -> dict:
+    return {int(i.get("InIdx")): (i.get(out), int(i.get("OutIdx"))) for i in obj.iter(f"{ns}Input")}
+
+
+def test_both_contexts_read_the_shipped_ethernet_configuration_and_the_program_loads_them():
+    objects, _ = _rsix()
+    eth = _of_type(objects, "ETHERNET")
+    assert eth.get("ObjTypeId") == TYPE_IDS["ETHERNET"]
+    assert _params(eth, "{RsiDriver}")["ConfigFile"] == (0, SHIPPED.name)  # the file RSI_CREATE's context loads
+    eth3 = _of_type(_rsi3(), "ETHERNET")
+    assert eth3.get("ObjTypeID") == TYPE_IDS["ETHERNET"]
+    assert _params(eth3, pid="ParamID")["ConfigFile"] == (1, SHIPPED.name)
     src = (CONTROLLER / "remaster_rsi.src").read_text()
-    assert f'RSI_CREATE("{RSIX.name}"' in src
+    assert 'RSI_CREATE("remaster_rsi", CONTID, TRUE)' in src  # RSI 4.x/5.x add .rsix
+    assert 'RSI_CREATE("remaster_rsi.rsi", CONTID, TRUE)' in src  # the KSS 8.3 line, named in the notes
+    notes = (CONTROLLER / "README.md").read_text()
+    for f in (RSIX, RSI3, RSI3_MODEL, SHIPPED):
+        assert f"`{f.name}`" in notes
 
 
 def test_every_axis_correction_the_codec_sends_reaches_axiscorr_on_its_own_axis():
     """The codec sends AK.A1..A6; the ethernet configuration maps each to channel INDX n, which
-    the Ethernet object outputs as Out<n> (input index n-1): the context must route Out<n> of
-    AK.An to AxisCorr's CorrAn, in both the object list and the editor's links."""
+    the Ethernet object outputs as Out<n>: RSI 4.x/5.x number it OutIdx n-1 (0-based), RSI 3.x
+    OutIdx n. Each context must route AK.An to AXISCORR's CorrAn — in the objects the controller
+    runs and (RSI 4.x/5.x) in the editor's view — within ±20° of the start."""
     cfg = RsiEthernetConfig.load()
     sen = ET.fromstring(SenFormatter(6, 0, cfg.sen_type).format([0.5] * 6, True, 1))
     sent_axes = [f"AK.{k}" for k in sen.find("AK").attrib]
-    objects, root = _rsix_objects()
-    eth_id = next(k for k, o in objects.items() if o.get("ObjType") == "Ethernet")
-    corr = next(o for o in objects.values() if o.get("ObjType") == "AxisCorr")
-    inputs = {int(i.get("InIdx")): (i.get("OutObjId"), int(i.get("OutIdx"))) for i in corr.iter("Input")}
-    links = {(ln.get("From"), ln.get("FromPort")): (ln.get("To"), ln.get("ToPort")) for ln in root.iter("Link")}
+    objects, links = _rsix()
+    eth_id = _of_type(objects, "ETHERNET").get("ObjId")
+    corr = _of_type(objects, "AXISCORR")
+    rsi3 = _rsi3()
+    corr3 = _of_type(rsi3, "AXISCORR")
+    eth3_id = _of_type(rsi3, "ETHERNET").get("ObjID")
     for tag in sent_axes:
-        axis = int(tag[-1])
-        channel = cfg.receive[tag]
-        assert inputs[axis - 1] == (eth_id, channel - 1), tag
-        assert links[(eth_id, f"Out{channel}")] == (corr.get("ObjId"), f"CorrA{axis}"), tag
-    limits = {p.get("Name"): float(p.get("ParamValue")) for p in corr.iter("Parameter")}
-    for a in range(1, 7):
-        assert -20 <= limits[f"LowerLimA{a}"] < 0 < limits[f"UpperLimA{a}"] <= 20
-    # Stop (channel 7) goes to the STOP object the README has the integrator add
-    notes = (CONTROLLER / "README.md").read_text()
-    assert f"Out{cfg.receive['Stop']}" in notes and "STOP" in notes
-    assert (eth_id, f"Out{cfg.receive['Stop']}") not in links or links[(eth_id, "Out7")][0].startswith("Stop")
+        axis, channel = int(tag[-1]), cfg.receive[tag]
+        assert _inputs(corr, "{RsiDriver}")[axis - 1] == (eth_id, channel - 1), tag
+        assert links[(corr.get("ObjId"), f"CorrA{axis}")] == (eth_id, f"Out{channel}"), tag
+        assert _inputs(corr3, out="OutObjID")[axis] == (eth3_id, channel), tag
+    # parameter ids: RSI 4.x/5.x LowerLimA1..A6 = 0..5, UpperLimA1..A6 = 6..11; RSI 3.x
+    # LowerLimA1..A6 = 1..6, UpperLimA1..A6 = 13..18 (7..12 are the external axes')
+    for obj, ns, pid, lower1, upper1 in ((corr, "{RsiDriver}", "ParamId", 0, 6), (corr3, "", "ParamID", 1, 13)):
+        limits = _params(obj, ns, pid)
+        for a in range(1, 7):
+            (i_lo, lo), (i_hi, hi) = limits[f"LowerLimA{a}"], limits[f"UpperLimA{a}"]
+            assert -20 <= float(lo) < 0 < float(hi) <= 20
+            assert (i_lo, i_hi) == (lower1 + a - 1, upper1 + a - 1)
+
+
+def test_the_stop_flag_the_commander_sends_ends_rsi_movecorr_in_both_contexts():
+    """``RsiCommander.stop()`` sends <Stop>1</Stop>; the ethernet configuration puts it on a
+    channel; that channel must feed a STOP object in ExitMoveCorr mode (RSI_MOVECORR returns and
+    the program goes on to RSI_OFF), or the move never ends from our side."""
+    cfg = RsiEthernetConfig.load()
+    sen = ET.fromstring(SenFormatter(6, 0, cfg.sen_type).format([0.0] * 6, True, 1))
+    assert sen.find("Stop").text == "1"
+    channel = cfg.receive["Stop"]
+    objects, links = _rsix()
+    stop = _of_type(objects, "STOP")
+    eth_id = _of_type(objects, "ETHERNET").get("ObjId")
+    assert stop.get("ObjTypeId") == TYPE_IDS["STOP"]
+    assert _inputs(stop, "{RsiDriver}") == {0: (eth_id, channel - 1)}
+    assert links[(stop.get("ObjId"), "In1")] == (eth_id, f"Out{channel}")
+    params = _params(stop, "{RsiDriver}")
+    assert STOP_MODES[int(params["Mode"][1])] == "ExitMoveCorr" and params["Channel"] == (1, "0")
+    rsi3 = _rsi3()
+    stop3 = _of_type(rsi3, "STOP")
+    assert stop3.get("ObjTypeID") == TYPE_IDS["STOP"]
+    assert _inputs(stop3, out="OutObjID") == {1: (_of_type(rsi3, "ETHERNET").get("ObjID"), channel)}
+    params3 = _params(stop3, pid="ParamID")
+    assert STOP_MODES[int(params3["Mode"][1])] == "ExitMoveCorr" and params3["Channel"] == (2, "0")
+    src = (CONTROLLER / "remaster_rsi.src").read_text()
+    assert src.index("RSI_MOVECORR()") < src.index("RSI_OFF()")
+
+
+def test_the_rsi3_model_rsi_visual_edits_matches_the_object_list_the_controller_loads():
+    ns = "{http://schemas.microsoft.com/dsltools/RSIVisual}"
+    model = ET.parse(RSI3_MODEL).getroot()
+    assert model.tag == f"{ns}rSIModel"
+    elements = {e.get("name"): e for e in model.iter(f"{ns}rSIElement")}
+    rsi3 = _rsi3()
+    assert {k: e.get("objTypeID") for k, e in elements.items()} == {k: o.get("ObjTypeID") for k, o in rsi3.items()}
+    for name, obj in rsi3.items():
+        want = {p.get("Name"): (int(p.get("ParamID")), p.get("ParamValue")) for p in obj.iter("Parameter")}
+        got = {p.get("name"): (int(p.get("index")), p.get("value")) for p in elements[name].iter(f"{ns}rSIParameter")}
+        if name.startswith("STOP"):  # the model names the enum value, the object list its number
+            got["Mode"] = (got["Mode"][0], str(STOP_MODES.index(got["Mode"][1])))
+        assert got == want, name
+        for i in obj.iter("Input"):
+            port = elements[name].findall(f"{ns}rSIInPorts/{ns}rSIInPort")[int(i.get("InIdx")) - 1]
+            (src,) = port.iter(f"{ns}rSIOutPortMoniker")
+            assert src.get("name") == f"//{i.get('OutObjID')}/Out{i.get('OutIdx')}", name
 
 
 def test_the_krl_program_is_written_as_a_kuka_integrator_writes_it():

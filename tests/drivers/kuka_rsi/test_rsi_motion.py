@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from drivers.errors import DeviceTimeoutError, LimitError
+from drivers.errors import DeviceTimeoutError, LimitError, NotReadyError
 from drivers.kuka_rsi.motion import plan_move
 from drivers.trajectory import default_jerk
 
@@ -42,16 +42,17 @@ def test_a_planned_move_steps_within_the_scaled_speed_and_ends_exactly_on_target
 
 @pytest.mark.parametrize("change, error, words", [
     (dict(snap=None), DeviceTimeoutError, "no packet from the controller"),
-    (dict(ended=True), LimitError, "ended with the Stop flag"),
-    (dict(busy=True), LimitError, "already running"),
-    (dict(start_offset_deg=3.0), LimitError, "disagree by 3.000° on axis 2"),
-    (dict(timeout=0.2), LimitError, "longer than the timeout"),
+    (dict(ended=True), NotReadyError, "ended with the Stop flag"),  # the program restarts: a run waits for it
+    (dict(busy=True), NotReadyError, "already running"),
+    (dict(start_offset_deg=3.0), NotReadyError, "disagree by 3.000° on axis 2"),
+    (dict(timeout=0.2), LimitError, "longer than the timeout"),  # not a state: the plan's timeout is too short
 ])
 def test_an_unverified_state_or_a_too_long_move_is_refused(limits, change, error, words):
     ref = np.zeros(6)
     snap = None if "snap" in change else _snap(ref, ended=change.get("ended", False))
     start = np.radians(ref)
     start[1] += math.radians(change.get("start_offset_deg", 0.0))
-    with pytest.raises(error, match=words):
+    with pytest.raises(error, match=words) as refused:
         _plan(limits, snap, start, np.radians([20.0, 0, 0, 0, 0, 0]), busy=change.get("busy", False),
               timeout=change.get("timeout", 30.0))
+    assert isinstance(refused.value, NotReadyError) == (error is NotReadyError)

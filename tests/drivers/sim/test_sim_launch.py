@@ -150,7 +150,8 @@ def test_an_rsi_commander_moves_the_robot_the_sensors_see():
     assert np.all(moved > 10.0)
 
 
-@pytest.mark.parametrize("bad", [{"fri_port": 0}, {"rsi_port": 70000}, {"max_runtime_s": 0}])
+@pytest.mark.parametrize("bad", [{"fri_port": 0}, {"rsi_port": 70000}, {"max_runtime_s": 0},
+                                 {"controller_rt_priority": -1}, {"controller_rt_priority": 100}])
 def test_launch_refuses_bad_settings(bad):
     cell = SimCell.from_yaml(DEFAULT_CONFIG_PATH)
     with pytest.raises(ValueError, match=next(iter(bad))):
@@ -205,3 +206,42 @@ def test_a_tracker_can_answer_emscon_and_the_line_protocol_at_once():
     assert not np.allclose(a, b, atol=1e-6)  # two measurements, not one copied
     with pytest.raises(ValueError, match="allowed: line, emscon"):
         SimLaunch(cell, controller=False, tracker_protocols={"tracker": ("leica",)})
+
+
+
+def _fifo_permitted() -> bool:
+    """Whether this host lets a thread of ours run at SCHED_FIFO (tried on a throw-away thread)."""
+    import os
+    import threading
+
+    result = []
+
+    def probe() -> None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            result.append(True)
+        except OSError:
+            result.append(False)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    return result[0]
+
+
+def test_the_fake_controller_keeps_its_cycle_at_sched_fifo_where_the_host_permits_it():
+    """At load 15–30 the fake Sunrise at normal priority stretched its 5 ms send period to 14–22 ms
+    and missed its watchdogs (tests/bench/bench_sim_cycle.py measures it under four CPU hogs): its
+    cycle runs at SCHED_FIFO where permitted, as the commander's exchange does, else at normal
+    priority with a warning."""
+    import os
+    import threading
+
+    cell = SimCell.from_yaml(DEFAULT_CONFIG_PATH)
+    with udp_listener() as fri_client:
+        with SimLaunch(cell, fri_port=fri_client.getsockname()[1], max_runtime_s=30) as launch:
+            assert launch.controller_rt_priority == 30
+            fri_client.recv(65536)  # the cycle runs
+            (sender,) = [t for t in threading.enumerate() if t.name == "fake-sunrise"]
+            policy = os.sched_getscheduler(sender.native_id)
+    assert policy == (os.SCHED_FIFO if _fifo_permitted() else os.SCHED_OTHER)
