@@ -14,9 +14,9 @@ import yaml
 
 from acquire.plan import load_plan, resolve_configurations
 
-from run_helpers import ROOT, faulted_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import ROOT, RUN_TIMEOUT_S, faulted_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
-pytestmark = pytest.mark.timeout(200)
+pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 
 #: The example plan's robot (FRI, a fake Sunrise) and bar (NatNet, a fake Motive), 3× real time.
 SEQUENCING = {"samples": 5, "settle_window_s": 0.2, "lost_target_wait_s": 5, "robot_fault_wait_s": 30,
