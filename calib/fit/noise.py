@@ -82,7 +82,7 @@ def _with_spreads(data: Dataset, sigma: dict[str, dict], keep: Dataset) -> Datas
         for s, e in sigma.items():
             if "attitude_rad" in e:
                 att[gap & (keep.sensor == s)] = e["attitude_rad"]
-    return replace(data, std_mm=std, count=count, att_std_rad=att)
+    return replace(data, std_mm=std, count=count, att_std_rad=att, spreads_estimated=True)
 
 
 def estimate_noise(model: RobotModel, data: Dataset, base: FitOptions = FitOptions()) -> tuple[Dataset, dict] | None:

@@ -72,6 +72,9 @@ class Dataset:
     source: str = ""
     rot: np.ndarray | None = None
     att_std_rad: np.ndarray | None = None
+    #: True when ``std_mm`` / ``att_std_rad`` were estimated from the data's residuals
+    #: (``calib.fit.noise``), not stated by the sensor: no guard may judge a model against them.
+    spreads_estimated: bool = False
 
     def __len__(self) -> int:
         return int(self.q_rad.shape[0])

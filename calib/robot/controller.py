@@ -118,7 +118,9 @@ def do_not_enter_reasons(doc: dict, *, sandwich: bool = True) -> list[str]:
         reasons.append(f"a model-robust (sandwich) std is {max(ratios):.1f}× the posterior's (> {MAX_SANDWICH_RATIO}): "
                        "the errors are not what the model assumes and the intervals are too narrow")
     for sensor, b in d.get("error_budget", {}).items():
-        noise, sigma = b.get("noise_mm") or 0.0, b.get("sigma_mm")
+        # a noise estimated from the residuals (calib.fit.noise) grows with the misfit: the absolute floor alone judges
+        noise = 0.0 if doc.get("noise_estimate") else b.get("noise_mm") or 0.0
+        sigma = b.get("sigma_mm")
         if sigma is not None and sigma > max(MAX_SIGMA_OVER_NOISE * noise, MIN_SIGMA_GUARD_MM):
             seen = f", {sigma / noise:.0f}× the sensor noise ({noise:.3g} mm)" if noise else ""
             reasons.append(f"sensor {sensor}: the fit leaves σ = {sigma:.3g} mm{seen}: the model does not describe the "

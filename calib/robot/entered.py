@@ -59,7 +59,7 @@ def _axis(entry: dict) -> EnteredAxis | None:
     if value is None or not enter:
         return None
     d = wrap_deg(float(value))
-    return EnteredAxis(str(entry.get("joint", entry.get("axis"))), int(entry["index"]), d, -d)
+    return EnteredAxis(str(entry.get("joint", entry.get("axis"))), int(entry.get("index") or 0), d, -d)
 
 
 def entered_values(doc: dict) -> EnteredValues:

@@ -37,15 +37,15 @@ def result_json(tmp_path_factory):
 
 def test_enter_a_result_then_save_the_cell_with_its_mastering(result_json, tmp_path):
     values = read_entered(result_json)
-    fitted = [j for j in json.loads(result_json.read_text())["joint_offsets"] if j["status"] == "fitted"]
-    assert values.source == "joint_offsets" and len(values.axes) == len(fitted) >= 4
+    chosen = [e["joint"] for e in json.loads(result_json.read_text())["entered"]["offsets"] if e["enter"]]
+    assert values.source == "entered" and [a.axis for a in values.axes] == chosen and len(chosen) >= 4
     cell = SimCell.from_yaml(DEFAULT_CONFIG_PATH, clock=SimClock(4.0))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as fri_client:
         fri_client.bind(("127.0.0.1", 0))
         with SimLaunch(cell, fri_port=fri_client.getsockname()[1], max_runtime_s=60) as launch:
             first = launch.controller
             answer = _answer(launch, f"enter {result_json}", DEFAULT_CONFIG_PATH)
-            assert answer.startswith(f"entered from {result_json} (joint_offsets)"), answer
+            assert answer.startswith(f"entered from {result_json} (entered)"), answer
             assert launch.controller is not first
             expected = np.zeros(7)
             for a in values.axes:
@@ -71,6 +71,11 @@ def test_verify_scores_a_given_log_against_a_prediction_made_from_the_calibratio
     from run_helpers import small_plan
 
     plan = small_plan(tmp_path, n=6)
+    older = tmp_path / "older.json"  # as `acquire fit` wrote it before results recorded what the controller gets
+    doc = json.loads(result_json.read_text())
+    del doc["entered"]
+    older.write_text(json.dumps(doc))
+    result_json = older
     val = tmp_path / "val.csv"
     val.write_bytes((ROOT / "fixtures" / "datasets" / "iiwa14_sim_val.csv").read_bytes())
     res = CliRunner().invoke(app, ["verify", str(plan), "--result", str(result_json), "--log", str(val), "--out", str(tmp_path)])

@@ -170,7 +170,7 @@ def test_entered_offsets_move_the_arm_into_the_controllers_new_angles():
     q_old = random_configurations(KR6_SAGGING, 20, seed=5)
     np.testing.assert_allclose(after.fk(q_old + entered), cal.fk(q_old), atol=1e-9)  # the same physical arm
     assert entered_offsets(full_result(KR6_SAGGING), KR6_SAGGING) is None
-    with pytest.raises(ResultError, match="entered.offsets\\[0\\] names axis 'J9'"):
+    with pytest.raises(ResultError, match="entered offsets name axis 'J9'"):
         entered_offsets({"entered": {"offsets": [{"joint": "J9", "value_deg": 1, "enter": True}]}}, KR6_SAGGING)
 
 
