@@ -218,7 +218,8 @@ def fit(
     model_name: Optional[str] = typer.Option(
         None, "--model",
         help="auto: force this candidate (offsets, offsets+tool, offsets+tool+links, full; socket data: offsets, "
-        "offsets+ball, offsets+ball+links, full; +compliance with link masses) — the table is still printed.",
+        "offsets+ball, offsets+ball+links, full; +compliance with link masses): only this model is fitted; its held-out error against the nominal "
+        "model is still scored and printed.",
     ),
     joints: Optional[str] = typer.Option(None, "--joints", help="Axes to fit, e.g. 2,3,4,5,6,7 (default: all)."),
     fix_registration: bool = typer.Option(False, "--fix-registration", help="Keep the initial registration (no T* correction)."),

@@ -469,13 +469,13 @@ def one_se_choice(scores: list[Score]) -> str:
 def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions(), *, force: str | None = None,
                  k: int = 5, include_full: bool = True, link_tolerance: tuple[float, float] | None = None,
                  compliance_only: bool = False) -> ModelChoice:
-    """Score every candidate (``--model NAME`` in ``force``: still scored and shown, but chosen);
-    ``link_tolerance`` given: that link scale instead of the empirical Bayes one."""
+    """Score every candidate and choose; ``force`` (``--model NAME``): that candidate only — it is
+    fitted on the folds and scored against the nominal model (its held-out misfit still widens its
+    intervals, ``interval_factor``), and no other candidate is fitted. ``link_tolerance`` given:
+    that link scale instead of the empirical Bayes one."""
     cands = candidates(model, include_full=include_full, compliance_only=compliance_only)
     if force is not None:
-        forced = parse_candidate(force, model)
-        if forced not in cands:
-            cands.append(forced)
+        cands = [parse_candidate(force, model)]
     scale = None
     if link_tolerance is None and any(c.kind == "offsets+tool+links" for c in cands):
         scale = empirical_link_scale(model, data, replace(base, compliance=False))
@@ -492,7 +492,9 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
     except ValueError:  # too few configurations to fit any model on four folds: the simplest, unvalidated
         chosen = min(cands, key=lambda c: c.rank).name
     excluded = None
-    if not include_full:
+    if force is not None:
+        excluded = "the other candidates: --model chose this one, so only it was fitted"
+    elif not include_full:
         excluded = "full: left out by the caller"
     elif compliance_only:
         excluded = ("full: full identification is compared without compliance, and only the compliance models "
