@@ -380,13 +380,13 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, *, tol: float = 1e-12, max_it
 
 
 def _mode(post: OffsetPosterior, error: str, nu: float, tol: float = 1e-12,
-          theta0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+          theta0: np.ndarray | None = None, sigma0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Posterior mode: θ (dim,) and log σ (S,); ``tol``: relative step/cost change that ends a solve;
-    ``theta0``: where to start (zeros: the nominal model)."""
+    ``theta0``, ``sigma0`` (S,) mm: where to start (zeros and 1 mm: the nominal model)."""
     s_idx = post.sensor_index
     n_s = post.rows_per_sensor
     theta = np.zeros(post.dim) if theta0 is None else np.asarray(theta0, dtype=float).copy()
-    sigma = np.ones(post.S)
+    sigma = np.ones(post.S) if sigma0 is None else np.asarray(sigma0, dtype=float).copy()
     weights = np.ones(post.n_rows)
     link_pos, link_sd = post.link_free()
     prior_rows = np.zeros((link_pos.size, post.dim))
@@ -484,7 +484,7 @@ def _sample_sigma_marginalised(post: OffsetPosterior, theta: np.ndarray, log_sig
 
 
 def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray,
-                    options: FitOptions) -> tuple[Chains, dict]:
+                    options: FitOptions, progress=None) -> tuple[Chains, dict]:
     """Draws of (θ, log σ) by the Laplace Gaussian checked with PSIS, or a random walk in the Laplace-whitened coordinates where k̂ ≥ 0.7
     (``calib.fit.laplace_sampling``). Gaussian errors: the target is θ's marginal with σ integrated
     out (as ``_sample_sigma_marginalised``), each draw's σ drawn from its conditional; Student-t:
@@ -515,11 +515,12 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
                 return target(x)
 
     chains, info = laplace_importance(target, start, cov, n_chains=options.n_chains, n_draws=options.n_draws,
-                                      seed=options.seed, exact_target=exact_target)
+                                      seed=options.seed, exact_target=exact_target, progress=progress)
+    del info["mean"], info["covariance"]  # (the random walk whitens by the Laplace covariance and re-whitens itself)
     info["fallback"] = None
     if chains is None:
         use = exact_target if info["predictor"] == "exact" and exact_target is not None else target
-        chains = random_walk(use, start, cov, seed=options.seed)
+        chains = random_walk(use, start, cov, seed=options.seed, progress=progress)
         info["fallback"] = "random-walk Metropolis"
         info["walk"] = chains.diagnostics
     if options.error == "gaussian":
@@ -578,6 +579,11 @@ class ModeFit:
     #: The chain vector (P,) the compliance sag is taken at (the first mode's arm), or None.
     sag_params: np.ndarray | None = None
 
+    def registrations(self) -> dict[str, np.ndarray]:
+        """Sensor name → fitted base2sensor (4, 4): the initial registration with the mode's correction."""
+        rot, trans = self.post.corrections(self.post.full_vector(self.theta))
+        return {s: _compose(rot[k], trans[k], self.post.b2s0[k]) for k, s in enumerate(self.post.sensors)}
+
     def predict_residuals(self, data: Dataset) -> np.ndarray:
         """measured − predicted (k, 3) mm for other rows ``data`` with this fit's parameters and its
         own registration (the same sensors; markers the fit did not measure keep the model's place).
@@ -604,13 +610,27 @@ def _check_data(model: RobotModel, data: Dataset, options: FitOptions) -> None:
                          "(joints[].mass_kg, com_mm)")
 
 
-def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(), *, tol: float = 1e-12) -> ModeFit:
+def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(), *, tol: float = 1e-12,
+             start: ModeFit | None = None) -> ModeFit:
     """The posterior mode of ``fit_offsets``'s model (same parameters, priors and fixed
     combinations), without sampling: the cheap fit for cross-validation folds. ``tol``: relative
-    change that ends the Levenberg–Marquardt solves (1e-8 is ample for prediction)."""
+    change that ends the Levenberg–Marquardt solves (1e-8 is ample for prediction).
+
+    ``start``: a mode of the same model on other data of the same cell (the cross-validation folds
+    start from the fit of all the data): the solves start at its parameters, σ and fitted
+    registration (the initial registration of this fit), so they take a few steps instead of
+    the whole way from the nominal model. Where the two models do not match (another set of free
+    parameters), the fit starts from the nominal model. The mode is the same either way, to ``tol``,
+    wherever the posterior has one mode (the least squares of these models do: the staged,
+    multi-start solves of ``calib.fit.identification`` found no second one on the UR10 and iiwa data)."""
     _check_data(model, data, options)
     chain = Chain(model)
-    b2s0 = initial_registrations(chain, data, options.initial_registration, options.seed)
+    warm = start is not None and not options.registration and set(start.b2s0) == set(data.sensors)
+    same = warm and start.post.data is data  # the start's own data: its initial registration too
+    if warm:
+        b2s0 = dict(start.b2s0) if same else start.registrations()
+    else:
+        b2s0 = initial_registrations(chain, data, options.initial_registration, options.seed)
     if options.registration:
         missing = set(data.sensors) - set(options.registration)
         if missing:
@@ -668,7 +688,17 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     mask = _resolve_rigid_links(factory, mask)
     mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
-    theta, log_sigma = _mode(post, options.error, options.nu, tol)
+    theta0 = sigma0 = None
+    if warm and np.array_equal(start.mask.full, mask.full) and start.post.sensors == post.sensors:
+        full0 = start.post.full_vector(start.theta)
+        if not same:
+            full0[post.n: post.n + 6 * post.S] = 0.0  # the start's fitted registration is this fit's initial one
+        theta0, sigma0 = full0[post.free], np.exp(start.log_sigma)
+        if options.compliance and start.sag_params is not None:  # the sag at the start's arm: one solve
+            post = factory(mask, start.sag_params)
+            theta, log_sigma = _mode(post, options.error, options.nu, tol, theta0=theta0, sigma0=sigma0)
+            return ModeFit(post, mask, theta, log_sigma, b2s0, link_prior, ident0, lever, start.sag_params)
+    theta, log_sigma = _mode(post, options.error, options.nu, tol, theta0=theta0, sigma0=sigma0)
     sag_params = None
     if options.compliance:
         # The sag's torques and levers at the fitted arm (offsets, links, tool), not the nominal one:
@@ -680,10 +710,13 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     return ModeFit(post, mask, theta, log_sigma, b2s0, link_prior, ident0, lever, sag_params)
 
 
-def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptions()) -> FitResult:
-    """Fit joint zero-offsets (and registration corrections and σ) to ``data``."""
+def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(), *, start: ModeFit | None = None,
+                progress=None) -> FitResult:
+    """Fit joint zero-offsets (and registration corrections and σ) to ``data``. ``start``: where the
+    mode's solves start (``fit_mode``); ``progress``: told what the sampler is doing
+    (``calib.fit.progress.Progress``, laplace method)."""
     t_start = time.perf_counter()
-    mf = fit_mode(model, data, options)
+    mf = fit_mode(model, data, options, start=start)
     post, mask, theta, log_sigma = mf.post, mf.mask, mf.theta, mf.log_sigma
     ident0, lever, n, chain = mf.identifiability_start, mf.lever_mm, model.n_joints, mf.post.chain
     mode = np.concatenate([theta, log_sigma])
@@ -698,7 +731,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         post.linearise_links(theta)  # paper: only the tool is in it, which the linear form carries exactly
     importance = None
     if options.method == "laplace":
-        chains, importance = _sample_laplace(post, theta, log_sigma, options)
+        chains, importance = _sample_laplace(post, theta, log_sigma, options, progress)
     elif options.method == "fast" and options.error == "gaussian":
         chains = _sample_sigma_marginalised(post, theta, log_sigma, options)
     elif options.method == "fast":

@@ -201,7 +201,7 @@ def test_a_posterior_the_laplace_gaussian_misses_goes_to_the_random_walk():
     def target(x):
         return -0.5 * np.einsum("...i,ij,...j->...", x, prec, x)
 
-    chains, diag = laplace_importance(target, np.zeros(2), np.eye(2), n_chains=4, n_draws=2000, seed=0)
+    chains, diag = laplace_importance(target, np.zeros(2), np.eye(2), n_chains=4, n_draws=2000, seed=0, adapt=0)
     assert chains is None and diag["k_hat"] >= 0.7
     draws = random_walk(target, np.zeros(2), np.eye(2), seed=0)
     np.testing.assert_allclose(np.cov(draws.flat.T), cov, rtol=0.2, atol=0.15)
