@@ -59,7 +59,7 @@ import numpy as np
 from calib.measure.dataset import Dataset
 from calib.robot.kinematics import Chain, offset_kinematics
 from calib.fit.offset_expansion import OffsetExpansion, expand_offsets
-from calib.robot.transforms import apply, euler_zyx_to_matrix
+from calib.robot.transforms import apply, cross, euler_zyx_to_matrix
 
 REG_NAMES = ("x", "y", "z", "alpha", "beta", "gamma")
 #: The expanded predictor (``OffsetPosterior.expand``) must agree with the chain walk it stands for
@@ -169,7 +169,8 @@ class OffsetPosterior:
             start = chain.marker_slice().start
             col = {int(i) - start: k for k, i in enumerate(self.link_idx[self.is_tool])}
             n_t = int(self.is_tool.sum())
-            self._row_tool = np.array([[col.get(3 * m + c, n_t) for c in range(3)] for m in self.marker_index], dtype=int)
+            per_marker = np.array([[col.get(3 * m + c, n_t) for c in range(3)] for m in range(chain.m)], dtype=int)
+            self._row_tool = per_marker[self.marker_index]
         if self.C:
             from calib.robot.gravity import gravity_torques
 
@@ -409,9 +410,9 @@ class OffsetPosterior:
             rows_s = s == k_s
             col = self.n + 6 * k_s
             j[rows_s, :, col : col + 3] = np.eye(3)
-            j[rows_s, :, col + 3] = np.cross(ez, rp[rows_s])
-            j[rows_s, :, col + 4] = np.cross(ey_rot[k_s], rp[rows_s])
-            j[rows_s, :, col + 5] = np.cross(ex_rot[k_s], rp[rows_s])
+            j[rows_s, :, col + 3] = cross(ez, rp[rows_s])
+            j[rows_s, :, col + 4] = cross(ey_rot[k_s], rp[rows_s])
+            j[rows_s, :, col + 5] = cross(ex_rot[k_s], rp[rows_s])
         if self.attitude is not None:
             j = np.concatenate([j, self.attitude.jacobian(self, full)])
         return j.reshape(self.n_rows * 3, -1)[:, self.free]
