@@ -30,7 +30,9 @@ LogTarget = Callable[[np.ndarray], np.ndarray]  # (b, d) -> (b,)
 Told = Callable[..., None]
 
 
-def _evaluate(log_target: LogTarget, x: np.ndarray, batch: int = 1024) -> np.ndarray:
+def _evaluate(log_target: LogTarget, x: np.ndarray, batch: int = 256) -> np.ndarray:
+    """log_target at x (N, d) in batches: 256 proposals × a few hundred rows keep the walk's arrays in
+    cache (1024 were a third slower per proposal on the UR10 data)."""
     return np.concatenate([np.asarray(log_target(x[i: i + batch]), dtype=float) for i in range(0, len(x), batch)])
 
 

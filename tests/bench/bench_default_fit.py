@@ -13,9 +13,10 @@ and the same repetitions for both; the table prints the medians and the ratio de
 (issue 33's target: ≤ 3) and the default's peak resident memory (``ru_maxrss`` of the children:
 the largest child so far, so the cases run largest last).
 
-``--tree DIR`` runs the command line of another checkout (``/work/main`` for the "before" column);
-``--keep DIR`` keeps the CSVs and each run's result.json there (the answers' comparison:
-``tests/bench/compare_fits.py``).
+``--tree DIR`` runs the command line of another checkout; ``--before DIR`` adds that checkout's
+default fit as a "before" column, run interleaved with this one's (``/work/main``: the speed-ups'
+before and after at the same load); ``--keep DIR`` keeps the CSVs and each run's result.json there
+(``before/`` and ``after/``: the answers' comparison, ``tests/bench/compare_fits.py``).
 """
 
 from __future__ import annotations
@@ -90,33 +91,41 @@ def run_fit(tree: Path, data: Path, robot: Path, method: str | None, result: Pat
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tree", type=Path, default=ROOT, help="checkout whose `acquire fit` runs (default: this one)")
+    ap.add_argument("--before", type=Path, default=None, help="another checkout's default fit, interleaved")
     ap.add_argument("--repeat", type=int, default=1, help="runs of each method per case, alternating")
     ap.add_argument("--only", default=None, help="only the cases whose name contains this")
     ap.add_argument("--keep", type=Path, default=None, help="keep the CSVs and result.json files here")
     args = ap.parse_args()
     keep = args.keep
+    # (label, tree, method) in the order they run, per repetition
+    runs = ([("before", args.before, None)] if args.before else []) + [("after", args.tree, None), ("full", args.tree, "full")]
     with tempfile.TemporaryDirectory() as tmp:
         out = keep or Path(tmp)
-        out.mkdir(parents=True, exist_ok=True)
-        print(f"tree {args.tree}; {os.cpu_count()} cores; load {os.getloadavg()[0]:.1f} at start")
-        print(f"{'case':<34}{'default CPU s':>14}{'full CPU s':>12}{'ratio':>7}{'default wall s':>16}{'load':>6}{'exit':>6}")
+        for label, _, _ in runs:
+            (out / label).mkdir(parents=True, exist_ok=True)
+        print(f"tree {args.tree}{f', before {args.before}' if args.before else ''}; {os.cpu_count()} cores; "
+              f"load {os.getloadavg()[0]:.1f} at start; CPU s = the child's user + system time, median of {args.repeat}")
+        head = f"{'case':<34}" + (f"{'before CPU s':>13}" if args.before else "") + f"{'CPU s':>8}{'full CPU s':>12}"
+        head += (f"{'before ÷ full':>14}" if args.before else "") + f"{'÷ full':>8}{'wall s':>8}{'load':>6}{'exit':>6}"
+        print(head)
         for name, data, robot in cases(out):
             if args.only and args.only not in name:
                 continue
-            times: dict[str | None, list[tuple[float, float]]] = {None: [], "full": []}
+            times: dict[str, list[tuple[float, float]]] = {label: [] for label, _, _ in runs}
             codes = []
-            for i in range(args.repeat):
-                for method in (None, "full"):
-                    res = out / f"{data.stem}.{method or 'default'}.json" if keep else None
-                    cpu, wall, code, _ = run_fit(args.tree, data, robot, method, res)
-                    times[method].append((cpu, wall))
-                    if method is None:
+            for _ in range(args.repeat):
+                for label, tree, method in runs:
+                    res = out / label / f"{data.stem}.{method or 'default'}.json" if keep else None
+                    cpu, wall, code, _ = run_fit(tree, data, robot, method, res)
+                    times[label].append((cpu, wall))
+                    if label == "after":
                         codes.append(code)
-            d_cpu = statistics.median(t[0] for t in times[None])
-            f_cpu = statistics.median(t[0] for t in times["full"])
-            d_wall = statistics.median(t[1] for t in times[None])
-            print(f"{name:<34}{d_cpu:>14.1f}{f_cpu:>12.1f}{d_cpu / f_cpu:>7.1f}{d_wall:>16.1f}{os.getloadavg()[0]:>6.1f}"
-                  f"{','.join(map(str, codes)):>6}", flush=True)
+            med = {label: statistics.median(t[0] for t in v) for label, v in times.items()}
+            wall = statistics.median(t[1] for t in times["after"])
+            row = f"{name:<34}" + (f"{med['before']:>13.1f}" if args.before else "") + f"{med['after']:>8.1f}{med['full']:>12.1f}"
+            row += (f"{med['before'] / med['full']:>14.1f}" if args.before else "")
+            row += f"{med['after'] / med['full']:>8.1f}{wall:>8.1f}{os.getloadavg()[0]:>6.1f}{','.join(map(str, codes)):>6}"
+            print(row, flush=True)
         peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
         print(f"largest child's peak resident memory: {peak:.0f} MB")
 
