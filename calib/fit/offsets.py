@@ -493,11 +493,20 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
 
     link_pos, link_sd = post.link_free()
     cov_full = _laplace_covariance(post, theta, log_sigma)
+    # Each proposal's sums of squares (S,), by predictor (exact or not), kept while the importance
+    # check runs: the σ of a resampled draw is drawn from them instead of walking the chain again.
+    sse_of: dict[bool, dict[bytes, np.ndarray]] | None = {False: {}, True: {}}
+    walking_exact = [False]
     if options.error == "gaussian":
         half_dof = 0.5 * (3 * post.rows_per_sensor + 1)
 
         def target(t: np.ndarray) -> np.ndarray:
-            out = -(half_dof * np.log(post.sse(t))).sum(axis=-1)
+            e = post.sse(t)
+            if sse_of is not None:
+                kept = sse_of[walking_exact[0]]
+                for row, e_row in zip(t, e):
+                    kept[row.tobytes()] = e_row
+            out = -(half_dof * np.log(e)).sum(axis=-1)
             if link_pos.size:
                 out = out - 0.5 * np.sum((t[..., link_pos] / link_sd) ** 2, axis=-1)
             return out
@@ -511,21 +520,32 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
     exact_target = None
     if post.expanded:
         def exact_target(x: np.ndarray) -> np.ndarray:
-            with post.exact():
-                return target(x)
+            walking_exact[0] = True
+            try:
+                with post.exact():
+                    return target(x)
+            finally:
+                walking_exact[0] = False
 
     chains, info = laplace_importance(target, start, cov, n_chains=options.n_chains, n_draws=options.n_draws,
                                       seed=options.seed, exact_target=exact_target, progress=progress)
     del info["mean"], info["covariance"]  # (the random walk whitens by the Laplace covariance and re-whitens itself)
     info["fallback"] = None
+    known = sse_of[info["predictor"] == "exact" and exact_target is not None]
+    sse_of = None  # (the walk's steps are not kept)
     if chains is None:
+        known = {}
         use = exact_target if info["predictor"] == "exact" and exact_target is not None else target
         chains = random_walk(use, start, cov, seed=options.seed, progress=progress)
         info["fallback"] = "random-walk Metropolis"
         info["walk"] = chains.diagnostics
     if options.error == "gaussian":
         rng = np.random.default_rng(options.seed + 7919)
-        e = np.concatenate([post.sse(b) for b in np.array_split(chains.flat, max(1, chains.flat.shape[0] // 1024))])
+        rows = [known.get(row.tobytes()) for row in chains.flat]
+        if all(r is not None for r in rows):
+            e = np.array(rows).reshape(-1, post.S)
+        else:
+            e = np.concatenate([post.sse(b) for b in np.array_split(chains.flat, max(1, chains.flat.shape[0] // 1024))])
         u = rng.gamma(half_dof, 2.0 / e)  # 1/σ² draws, (N, S)
         flat = np.concatenate([chains.flat, -0.5 * np.log(u)], axis=-1)
         chains = Chains(flat.reshape(*chains.samples.shape[:2], -1), chains.acceptance, chains.seconds, chains.method)

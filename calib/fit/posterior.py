@@ -164,6 +164,7 @@ class OffsetPosterior:
         #: many batches fell back to the walk (``expand``).
         self.expansion_check = {"max_error_mm": 0.0, "checked": 0, "walked_batches": 0}
         self._tool_fk = None  # offset kinematics at 4 points per row (marker, marker + e_x, e_y, e_z)
+        self._flange_walked: tuple[np.ndarray, np.ndarray] | None = None  # (full vector(s), flange rotations)
         if self.is_tool.any():
             # Per row, the entries of the tool vector holding its marker's x, y, z (T: "not free").
             start = chain.marker_slice().start
@@ -342,11 +343,24 @@ class OffsetPosterior:
             if self._link_jac is not None:
                 p_base = p_base + ((links[..., ~self.is_tool] - self._link_ref) @ self._link_jac_t).reshape(p_base.shape)  # one BLAS product
         elif self.L:
-            pos = self.chain.marker_positions(self.data.q_rad, self.chain_params(full))  # (..., k, m, 3)
+            params = self.chain_params(full)
+            rot, flange = self.chain.flange_pose(self.data.q_rad, params)  # (..., k, 3, 3), (..., k, 3)
+            if self.attitude is not None:  # the attitude rows turn with the same walk (``flange_rotation``)
+                self._flange_walked = (full, rot)
+            markers = self.chain._markers_param(params, flange.ndim - 1)  # (..., 1, m, 3)
+            pos = flange[..., None, :] + np.einsum("...ij,...mj->...mi", rot, markers)  # (..., k, m, 3)
             p_base = pos[..., np.arange(self.k_pos), self.marker_index, :]
         else:
             p_base = self._offset_fk.positions(full[..., : self.n])  # (..., k, 3)
         return p_base
+
+    def flange_rotation(self, full: np.ndarray) -> np.ndarray | None:
+        """The flange rotations (..., k, 3, 3) of every dataset row at full vector(s) ``full``
+        where the last exact walk of the positions was at the same vector(s), else None."""
+        walked = self._flange_walked
+        if walked is None or walked[0].shape != full.shape or not np.array_equal(walked[0], full):
+            return None
+        return walked[1]
 
     def predict(self, theta: np.ndarray) -> np.ndarray:
         """Predicted marker positions in each row's sensor frame: (..., k, 3) mm."""
