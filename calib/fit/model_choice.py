@@ -502,11 +502,13 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
     own = [c for c in cands if c.kind != "full"]
     if progress is not None:
         progress.begin("fit of all the data", len(own))
-    for c in own:
+    previous = None
+    for c in own:  # simplest first, each from the one before it
         if progress is not None:
             progress.step(f"fit of all the data: {c.name}")
         try:
-            starts[c.name] = fit_mode(model, data, options_for(c, base, link_tolerance), tol=CV_TOL)
+            starts[c.name] = previous = fit_mode(model, data, options_for(c, base, link_tolerance), tol=CV_TOL,
+                                                 start=previous)
         except (ValueError, RuntimeError, np.linalg.LinAlgError):
             pass  # its folds start from the nominal model, and say why they fail where they do
     n_folds_max = min(k, np.unique(data.pose if np.all(data.pose != "") else data.config).size)

@@ -636,13 +636,14 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     combinations), without sampling: the cheap fit for cross-validation folds. ``tol``: relative
     change that ends the Levenberg–Marquardt solves (1e-8 is ample for prediction).
 
-    ``start``: a mode of the same model on other data of the same cell (the cross-validation folds
-    start from the fit of all the data): the solves start at its parameters, σ and fitted
-    registration (the initial registration of this fit), so they take a few steps instead of
-    the whole way from the nominal model. Where the two models do not match (another set of free
-    parameters), the fit starts from the nominal model. The mode is the same either way, to ``tol``,
-    wherever the posterior has one mode (the least squares of these models do: the staged,
-    multi-start solves of ``calib.fit.identification`` found no second one on the UR10 and iiwa data)."""
+    ``start``: a mode of this model or a simpler one (fewer free terms) on this data or other data
+    of the same cell (the cross-validation folds start from the fit of all the data, the
+    candidates on all the data from the one before them): the solves start at its parameters
+    (by name; the others at nominal), σ and — on other data — its fitted registration as this
+    fit's initial one, so they take a few steps instead of the whole way from the nominal model.
+    The mode is the same either way, to ``tol``, wherever the posterior has one mode (the least
+    squares of these models do: the staged, multi-start solves of ``calib.fit.identification``
+    found no second one on the UR10 and iiwa data)."""
     _check_data(model, data, options)
     chain = Chain(model)
     warm = start is not None and not options.registration and set(start.b2s0) == set(data.sensors)
@@ -709,11 +710,12 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
     theta0 = sigma0 = None
-    if warm and np.array_equal(start.mask.full, mask.full) and start.post.sensors == post.sensors:
+    if warm and start.post.sensors == post.sensors:
         full0 = start.post.full_vector(start.theta)
         if not same:
-            full0[post.n: post.n + 6 * post.S] = 0.0  # the start's fitted registration is this fit's initial one
-        theta0, sigma0 = full0[post.free], np.exp(start.log_sigma)
+            full0[start.post.n: start.post.n + 6 * start.post.S] = 0.0  # its fitted registration is this fit's initial one
+        value = dict(zip(start.post.names, full0))  # by name: the start may be another model (fewer terms)
+        theta0, sigma0 = np.array([value.get(name, 0.0) for name in post.free_names]), np.exp(start.log_sigma)
         if options.compliance and start.sag_params is not None:  # the sag at the start's arm: one solve
             post = factory(mask, start.sag_params)
             theta, log_sigma = _mode(post, options.error, options.nu, tol, theta0=theta0, sigma0=sigma0)
