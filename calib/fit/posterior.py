@@ -113,7 +113,12 @@ class OffsetPosterior:
         compliance: bool = False,
         sag_params: np.ndarray | None = None,
         orientation: bool = True,
+        zero_jacobian: dict | None = None,
     ) -> None:
+        """``zero_jacobian``: a dict shared by posteriors of the same data, registration, priors and
+        sag that differ only in their masks (``calib.fit.offsets.fit_mode`` tries several): the
+        Jacobian of every entry at the nominal model is the same for all of them, computed once."""
+        self._zero_jacobian = zero_jacobian
         if error not in ("gaussian", "student"):
             raise ValueError(f"error model {error!r} not known; use 'gaussian' or 'student'")
         if error == "student" and not nu > 2:
@@ -393,7 +398,15 @@ class OffsetPosterior:
 
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
         """∂ predicted / ∂ θ_free for one θ: (n_rows·3, dim), positions then attitude rows."""
-        full = self.full_vector(theta)
+        theta = np.asarray(theta, dtype=float)
+        if self._zero_jacobian is not None and not theta.any():  # the nominal model: shared between masks
+            if "full" not in self._zero_jacobian:
+                self._zero_jacobian["full"] = self._jacobian_full(self.full_vector(theta))
+            return self._zero_jacobian["full"][:, self.free]
+        return self._jacobian_full(self.full_vector(theta))[:, self.free]
+
+    def _jacobian_full(self, full: np.ndarray) -> np.ndarray:
+        """∂ predicted / ∂ (full vector) at one full vector: (n_rows·3, n_full)."""
         params = self.chain_params(full)
         pos, jac = self.chain.marker_jacobian(self.data.q_rad, params)  # (k, m, 3), (k, m, 3, P)
         rows = np.arange(self.k_pos)
@@ -429,7 +442,7 @@ class OffsetPosterior:
             j[rows_s, :, col + 5] = cross(ex_rot[k_s], rp[rows_s])
         if self.attitude is not None:
             j = np.concatenate([j, self.attitude.jacobian(self, full)])
-        return j.reshape(self.n_rows * 3, -1)[:, self.free]
+        return j.reshape(self.n_rows * 3, -1)
 
     # --- densities ---------------------------------------------------------------------
     def log_posterior(self, theta: np.ndarray, log_sigma: np.ndarray) -> np.ndarray:
