@@ -33,6 +33,7 @@ COMMANDS: dict[str, CommandSpec] = {
     "fit": CommandSpec("acquire.commands.fit", "Fit the joint zero-offsets (and the sensor registration and σ) to measured marker positions."),
     "select": CommandSpec("acquire.commands.select", "Choose m configurations from a candidate set with the IOOPS exchange algorithm."),
     "sim": CommandSpec("acquire.commands.sim", "Run the fake devices of a simulated cell on 127.0.0.1 until Ctrl-C; inject faults on demand."),
+    "verify": CommandSpec("acquire.commands.verify", "Measure fresh configurations after the offsets were entered; compare with the prediction."),
     "move": CommandSpec("acquire.commands.move", "Move the robot to one joint target, safely, and print where it settled."),
     "daemon": CommandSpec("acquire.commands.daemon", "Run the cell's service: Zenoh router, devices, control queries, systemd notification."),
     "status": CommandSpec("acquire.commands.daemon", "Show the daemon's and the current run's state."),
@@ -47,6 +48,7 @@ COMMANDS: dict[str, CommandSpec] = {
     "token": CommandSpec("acquire.commands.token", "Make a control client's token (mode 0600) and print the daemon's configuration lines."),
     "watch": CommandSpec("acquire.commands.watch", "Show a live run or daemon (found on the bus by itself): progress, last sample, warnings."),
     "examples": CommandSpec("acquire.commands.examples", "List the packaged example plans, robot models, simulated cells and Foxglove layout (or copy a plan)."),
+    "compensate": CommandSpec("acquire.commands.compensate", "Pre-correct Cartesian targets so the controller's nominal arm lands where the calibrated model says."),
     "model": CommandSpec("acquire.commands.model", "Robot models in and out of URDF (import a vendor URDF, export a calibrated model)."),
 }
 

@@ -22,9 +22,12 @@ archive-*  archive     the plant's station: ``archive-list`` (finished runs not 
                        (stored: keep no longer pending) — ``acquire.daemon_archive``
 =========  ==========  ===========================================================
 
-Two lines of defence. First, Zenoh itself: loopback-only listeners by default; remote
-listeners need mTLS or an access-control block (see ``daemon_config``), so the router drops a
-query from a subject the ACL does not allow before it reaches us. Second, this module checks
+Operators on the cell PC do not come this way: they use the control socket
+(``acquire.control_socket``), where the kernel authenticates them and ``ControlServer.perform``
+acts for them. On Zenoh, two lines of defence. First, Zenoh itself: loopback-only listeners by
+default; remote listeners need mTLS or an access-control block (see ``daemon_config``), so the
+router drops a query from a subject the ACL does not allow before it reaches us, and it sends
+no control query to any session but ours (``daemon_config.control_guard``). Second, this module checks
 every query in its handler. An authenticated operation is one SCRAM-SHA-256 exchange
 (``acquire.control_auth``) over two queries on the operation's key: the first's attachment is a
 client-first, answered with a server-first carrying a fresh nonce of this daemon instance; the
@@ -180,9 +183,9 @@ class Authorizer:
         for source, n in self.throttle.drain().items():
             log.warning("[%d similar lines from %s suppressed, not logged before the close]", n, source)
 
-    def open_exchange(self, message: str) -> str:
-        """The server-first answering a SCRAM client-first (ProofError if malformed)."""
-        server_first, _ = self.exchanges.first(message)
+    def open_exchange(self, message: str, source: str | None = None) -> str:
+        """The server-first answering a SCRAM client-first from ``source`` (ProofError if malformed)."""
+        server_first, _ = self.exchanges.first(message, source)
         return server_first
 
     def identify(self, attachment: bytes | None, source_zid: str | None, *, cell: str = "", op: str = "",
@@ -325,6 +328,15 @@ class ControlServer:
             except Exception:  # noqa: BLE001 - the query may be gone; nothing more to say
                 log.debug("control/%s: could not reply", op, exc_info=True)
 
+    def perform(self, op: str, payload: bytes | None, identity: Identity) -> dict:
+        """Perform ``op`` for a caller another transport already identified (the control
+        socket: the kernel's peer credentials); raises ControlError."""
+        if op not in OPERATIONS:
+            raise BadRequest(f"unknown operation {clip(op, 40)!r}; allowed: {', '.join(OPERATIONS)}")
+        if payload is not None and len(payload) > MAX_REQUEST_BYTES:
+            raise BadRequest(f"payload of {len(payload)} bytes is too large (limit {MAX_REQUEST_BYTES})")
+        return self._perform(op, identity, None, payload, identity.client)
+
     def dispatch(self, op: str, payload: bytes | None, attachment: bytes | None,
                  source_zid: str | None) -> tuple[dict, tuple[bytes, str] | None]:
         """Authorise and perform ``op``; returns the reply body and the (key, server-final) to
@@ -339,7 +351,7 @@ class ControlServer:
         first = _client_first(attachment)
         if first is not None:
             try:
-                return {"v": control_auth.VERSION, "server_first": self.authorizer.open_exchange(first)}, None
+                return {"v": control_auth.VERSION, "server_first": self.authorizer.open_exchange(first, source_zid)}, None
             except control_auth.ProofError as exc:
                 raise BadRequest(str(exc)) from None
         identity, problem, key = self.authorizer.identify(attachment, source_zid, cell=self.cell, op=op,
@@ -442,7 +454,7 @@ class ControlClient:
         if (client is None) != (token is None):
             raise ValueError("give both client and token, or neither")
         if token is not None:
-            check_token(token)
+            check_token(token, (client or "", cell))
         self.session = session
         self.cell = cell
         self.site = site
@@ -484,7 +496,7 @@ class ControlClient:
             for body in self._get(op, payload, responder.final_attachment(), timeout):
                 if responder.verify(body):
                     self.last_reply_verified = True
-                    return _outcome(body)
+                    return outcome(body)
                 unverified.append(body)
         if unverified:
             self.rejected_replies += len(unverified)
@@ -507,7 +519,7 @@ class ControlClient:
             )
         distinct = {control_auth.canonical(b) for b in bodies}
         if len(distinct) == 1:
-            return _outcome(bodies[0])
+            return outcome(bodies[0])
         self.rejected_replies += len(bodies)
         raise Unverified(f"{len(bodies)} different replies to control/{op} from more than one responder on "
                          f"cell {self.cell!r}; without credentials none can be attributed to the daemon — give "
@@ -548,7 +560,7 @@ def _reply_body(data: bytes) -> dict | None:
     return body if isinstance(body, dict) else None
 
 
-def _outcome(body: dict) -> dict:
+def outcome(body: dict) -> dict:
     """The reply body of a success (without its MAC); raise the matching ControlError otherwise."""
     body = {k: v for k, v in body.items() if k not in ("mac", "scram")}
     if body.get("ok"):

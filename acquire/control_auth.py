@@ -20,7 +20,8 @@ One operation is one exchange of two query round trips on ``remaster/<cell>/cont
    payload are part of the SCRAM AuthMessage, so the ClientProof covers them. The daemon
    answers with the client's salt and iteration count and a server nonce of its own: this
    daemon instance's random id (drawn at start-up) between ``@`` and ``.``, and 24 random characters. It keeps
-   the exchange pending for ``EXCHANGE_TTL_S`` seconds (at most ``MAX_PENDING`` at once).
+   the exchange pending for ``EXCHANGE_TTL_S`` seconds (at most ``MAX_PENDING_PER_SOURCE`` per
+   source and ``MAX_PENDING`` at once).
 2. client-final (attachment, with the payload) → the reply. The daemon takes the pending
    exchange out of its table (single use: a second client-final with the same nonce finds
    nothing), checks that the operation and payload hash to what the client nonce says, and
@@ -41,10 +42,13 @@ iteration count (≥ ``MIN_ITERATIONS``), StoredKey = H(ClientKey) and ServerKey
 token offline from a captured exchange costs one PBKDF2 of ``iterations`` rounds per candidate,
 and tokens are 256 random bits (``acquire.tokens``). Per RFC 5802 §9, whoever reads
 StoredKey and ServerKey can impersonate the *daemon* to clients (compute ServerSignature and
-reply MACs) but cannot log in as a client — unless they also see one client-final message
-(any local process can, by declaring the control keys) or get a client to talk to them, which
-reveals ClientKey. **So the daemon's configuration must be readable by root and the daemon
-only**; ``daemon_config.load_daemon_config`` refuses a file other users may read.
+reply MACs) but cannot log in as a client — unless they also see one client-final message or
+get a client to talk to them, which reveals ClientKey. Hence: the daemon's router forwards no
+control query to any other session (``daemon_config.control_guard``: nobody but the daemon sees a
+client-final, whatever it declares), remote clients come over TLS with the daemon's certificate
+pinned (a stand-in cannot answer them), local operators use the control socket, which carries no
+secret at all (``acquire.control_socket``), and the configuration is readable by root and the
+daemon's group only (``daemon_config.load_daemon_config`` refuses a file others may read).
 
 Anonymous queries (no attachment) keep observe-only access; their replies cannot be
 authenticated and the client says so.
@@ -56,14 +60,16 @@ later one (``tests/bench/bench_control_auth.py``), with fresh nonces and a proof
 
 Limits, by design: an exchange lives ``EXCHANGE_TTL_S`` = 10 s because the client may compute
 PBKDF2 between the two round trips — ~0.7 s at 600 000 iterations on an idle cell PC, several
-seconds on a loaded one. Whoever can reach the control keys can still deny
-service: flood client-firsts (the oldest of ``MAX_PENDING`` pending exchanges is dropped), or
+seconds on a loaded one. Whoever can reach the control keys can still delay SCRAM clients: flood
+client-firsts (bounded per source: a flood from one source id evicts only its own exchanges; one
+that forges a new source id for each query shares ``MAX_PENDING`` with everyone — the operators'
+abort goes over the control socket, which holds no such table), or
 answer as a stand-in with server-firsts the client then spends up to ``MAX_RESPONDERS`` PBKDF2s
 of at most ``MAX_CLIENT_ITERATIONS`` on. Neither makes anything happen that the operator did
-not ask for, nor lets the client report a success the daemon did not sign. A client-final is
-delivered to every matching queryable, so a local process may race it to the daemon: the daemon
-then performs the operation the client asked for, once, and the client's own copy is refused
-as used (the client reports that it could not attribute a reply, exit 3).
+not ask for, nor lets the client report a success the daemon did not sign. (Without the
+router's guard — a daemon that is a peer of a plant router it does not run — a client-final is
+delivered to every matching queryable there; a process that races it to the daemon makes it
+perform what the client asked, once, and the client's own copy is refused as used, exit 3.)
 """
 
 from __future__ import annotations
@@ -100,8 +106,12 @@ MAX_CLIENT_ITERATIONS = 2_000_000
 #: Seconds an exchange stays pending after its server-first.
 EXCHANGE_TTL_S = 10.0
 
-#: Most exchanges pending at once (the oldest is dropped beyond).
+#: Most exchanges pending at once; beyond, the oldest of the source holding the most is dropped.
 MAX_PENDING = 256
+
+#: Most exchanges pending at once per source (the query's source Zenoh id); beyond, that
+#: source's oldest is dropped — a flood from one source never evicts another's exchange.
+MAX_PENDING_PER_SOURCE = 8
 
 #: Most responders a client completes an exchange with, per operation.
 MAX_RESPONDERS = 4
@@ -261,7 +271,7 @@ class ClientExchange:
     a daemon cost HMACs only."""
 
     def __init__(self, token: str, client: str, cell: str, op: str, payload: bytes | None) -> None:
-        self._token = check_token(token)
+        self._token = check_token(token, (client, cell))
         self._client = client
         self.nonce = f"{secrets.token_urlsafe(18)}.{request_digest(cell, op, payload)}"
         self._first = ScramClient([MECHANISM], client, token, c_nonce=self.nonce).get_client_first()
@@ -322,6 +332,7 @@ class _Pending:
     client_nonce: str
     known: bool            # a configured client (False: decoy credentials, the proof fails)
     deadline: float
+    source: str            # who sent the client-first (source Zenoh id, or "unknown")
 
 
 @dataclass(frozen=True)
@@ -352,7 +363,8 @@ class ExchangeTable:
         #: This daemon instance's id: the head of every server nonce it issues.
         self.instance = secrets.token_hex(8)
         self._decoy_secret = secrets.token_bytes(32)
-        self._pending: dict[str, _Pending] = {}
+        self._pending: dict[str, _Pending] = {}  # nonce → exchange, oldest first
+        self._per_source: dict[str, int] = {}     # source → its pending exchanges
         self._lock = threading.Lock()
         self._mech = ScramMechanism(MECHANISM)
 
@@ -363,8 +375,9 @@ class ExchangeTable:
         salt = hmac.new(self._decoy_secret, name.encode(), hashlib.sha256).digest()[:16]
         return (salt, secrets.token_bytes(32), secrets.token_bytes(32), self.decoy_iterations), False
 
-    def first(self, client_first: str) -> tuple[str, str]:
-        """(server-first, client name) for a client-first; the exchange is then pending."""
+    def first(self, client_first: str, source: str | None = None) -> tuple[str, str]:
+        """(server-first, client name) for a client-first from ``source``; the exchange is then
+        pending (bounded per source: ``MAX_PENDING_PER_SOURCE``, and in all: ``max_pending``)."""
         found: dict = {}
 
         def auth_fn(name: str):
@@ -381,16 +394,34 @@ class ExchangeTable:
         nonce = str(scram.nonce)
         c_nonce = nonce[: -len(str(scram.s_nonce))]
         now = self._clock()
+        source = source or "unknown"
         with self._lock:
             self._expire(now)
-            while len(self._pending) >= self.max_pending:
-                self._pending.pop(next(iter(self._pending)))
-            self._pending[nonce] = _Pending(scram, found["name"], c_nonce, found["known"], now + self.ttl_s)
+            if self._per_source.get(source, 0) >= MAX_PENDING_PER_SOURCE:
+                self._drop_oldest(source)
+            if len(self._pending) >= self.max_pending:
+                self._drop_oldest(max(self._per_source, key=self._per_source.__getitem__))
+            self._pending[nonce] = _Pending(scram, found["name"], c_nonce, found["known"], now + self.ttl_s, source)
+            self._per_source[source] = self._per_source.get(source, 0) + 1
         return server_first, found["name"]
+
+    def _take(self, nonce: str) -> _Pending | None:
+        """Remove and return the exchange of ``nonce`` (None if unknown); lock held."""
+        pending = self._pending.pop(nonce, None)
+        if pending is not None:
+            left = self._per_source[pending.source] - 1
+            if left:
+                self._per_source[pending.source] = left
+            else:
+                del self._per_source[pending.source]
+        return pending
+
+    def _drop_oldest(self, source: str) -> None:
+        self._take(next(n for n, p in self._pending.items() if p.source == source))
 
     def _expire(self, now: float) -> None:
         for nonce in [n for n, p in self._pending.items() if p.deadline < now]:
-            del self._pending[nonce]
+            self._take(nonce)
 
     def pending(self) -> int:
         with self._lock:
@@ -406,7 +437,7 @@ class ExchangeTable:
             raise ProofError("malformed SCRAM client-final (no nonce)")
         now = self._clock()
         with self._lock:
-            pending = self._pending.pop(nonce, None)
+            pending = self._take(nonce)
             self._expire(now)
         if pending is None:
             mine = f"@{self.instance}." in nonce

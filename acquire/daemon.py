@@ -10,7 +10,8 @@ Start-up (``Daemon.run``):
    ``fake`` the simulated cell ``acquire daemon`` started and handed over (a ``CellSource``),
    with a commander exchanging real-time packets with its controller; announce each with a liveliness token
    ``remaster/<cell>/device/<name>`` (and the daemon itself as ``remaster/<cell>/daemon``);
-3. serve the control queries (``acquire.control``) and tell systemd ``READY=1``.
+3. serve the control queries (``acquire.control``) — on Zenoh and, with ``control_socket``, on
+   the operators' Unix socket (``acquire.control_socket``) — and tell systemd ``READY=1``.
 
 Then, every ``tick`` (half the systemd watchdog interval, or ``status_interval_s``), a health
 check (``HealthMonitor``): the commander's measured state is fresh and its late real-time
@@ -135,6 +136,16 @@ class HealthMonitor:
         return []
 
 
+def open_control_socket(section, control: ControlServer, authorizer: Authorizer):
+    """The operators' Unix control socket (``acquire.control_socket``) serving ``control``'s
+    operations, or None when the configuration has no ``control_socket`` section."""
+    if section is None:
+        return None
+    from acquire.control_socket import ControlSocketServer
+
+    return ControlSocketServer(section.path, section.group, section.allow, control.perform, throttle=authorizer.throttle)
+
+
 class Daemon:
     """The service (see the module docstring). ``run()`` blocks until ``request_stop()``.
 
@@ -161,6 +172,7 @@ class Daemon:
         self.bus = None
         self.live = None  # acquire.live.LiveServer when cfg.live.enabled
         self.control: ControlServer | None = None
+        self.control_socket = None  # acquire.control_socket.ControlSocketServer with cfg.control_socket
         self.controller = None
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -239,6 +251,7 @@ class Daemon:
         self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))
         authorizer = Authorizer(cfg.auth, self._link_subject)
         self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer, site=cfg.site)
+        self.control_socket = open_control_socket(cfg.control_socket, self.control, authorizer)
         with self._lock:
             self._state = "ready"
         self._healthy = self._check_health()
@@ -337,6 +350,9 @@ class Daemon:
         log.info("stopping")
         if ctl is not None:
             self._stop_run(ctl)
+        if self.control_socket is not None:
+            self.control_socket.close()
+            self.control_socket = None
         if self.control is not None:
             self.control.close()
             self.control = None

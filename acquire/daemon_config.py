@@ -24,9 +24,16 @@ Sections:
 - ``zenoh``: the session. ``mode`` router (the daemon is the cell's router) or peer;
   ``listen`` endpoints (loopback by default); ``connect``; ``tls`` (server certificate, client
   CA, ``enable_mtls``); ``access_control`` (Zenoh's own ACL block: rules, subjects with
-  ``cert_common_names`` or ``usernames``, policies) passed through unchanged. Listening on
+  ``cert_common_names`` or ``usernames``, policies) passed through, plus one rule the daemon
+  always adds (``control_guard``): the router forwards no query on the control keys to any
+  other session, so only the daemon ever sees a client's SCRAM messages. Listening on
   anything but loopback is refused unless every remote endpoint is ``tls/``/``quic/`` with
   mTLS, or access control is enabled with ``default_permission: deny``.
+- ``control_socket`` (optional; the shipped example sets it): ``{path, group, allow}`` — the
+  local control plane, a Unix socket (``acquire.control_socket``) of mode 0660 owned by
+  ``group``: its members (and root) act with the permissions ``allow`` (default: observe, read,
+  control, motion) as the kernel reports them (SO_PEERCRED), with no token at all; nobody else
+  can connect. Local operators use it; ``auth`` is for clients over the network.
 - ``auth``: the clients allowed to act, by name: their SCRAM-SHA-256 keys (``scram``: salt,
   iterations ≥ 4096, StoredKey, ServerKey — never the token; ``acquire token new`` prints
   them), optional TLS common names, and the permissions they hold: ``observe`` (status, runs),
@@ -98,6 +105,55 @@ def endpoint_is_loopback(endpoint: str) -> bool:
         return False  # a host name other than localhost: reachable from elsewhere
 
 
+#: The daemon's control keys, with and without a site (``acquire.bus.control_key``).
+CONTROL_KEY_EXPRS = ("remaster/*/control/**", "remaster/*/*/control/**")
+
+_GUARD_RULE = "remaster: only the daemon answers control queries"
+_EVERY_SESSION = "remaster: every session"
+
+
+def control_guard(acl: dict[str, Any] | None) -> dict[str, Any]:
+    """Zenoh's ``access_control`` block ``acl`` (None: none configured, everything allowed) with
+    one more rule for every session: no ``query`` on the control keys leaves the router
+    (egress), whatever the session declared (``**`` included). The daemon's queryables are in
+    the router's own process, which Zenoh's ACL does not filter: it alone receives the control
+    queries — a local account or a station can neither read a client's SCRAM client-final nor
+    answer in the daemon's place. (A rule denying ``declare_queryable`` would not do: Zenoh
+    matches a declaration against a rule only when the rule's key expression includes it.)"""
+    base = dict(acl) if acl else {"enabled": True, "default_permission": "allow"}
+    if not base.get("enabled", False):
+        base = {**base, "enabled": True, "default_permission": "allow", "rules": [], "subjects": [], "policies": []}
+    rule = {"id": _GUARD_RULE, "permission": "deny", "flows": ["egress"], "messages": ["query"],
+            "key_exprs": list(CONTROL_KEY_EXPRS)}
+    return {**base,
+            "rules": [*base.get("rules", []), rule],
+            "subjects": [*base.get("subjects", []), {"id": _EVERY_SESSION}],  # no property: matches every session
+            "policies": [*base.get("policies", []), {"rules": [_GUARD_RULE], "subjects": [_EVERY_SESSION]}]}
+
+
+def _guard_overridden(acl: dict[str, Any]) -> list[int]:
+    """Indexes of the rules of an enabled ``default_permission: allow`` ACL that would override
+    ``control_guard`` (Zenoh lets an allow rule win over a deny rule when the default is allow):
+    allow rules for egress queries on keys that meet the control keys."""
+    import zenoh
+
+    if not acl.get("enabled") or acl.get("default_permission") != "allow":
+        return []
+    out = []
+    for i, rule in enumerate(acl.get("rules") or []):
+        if not isinstance(rule, dict) or rule.get("permission") != "allow":
+            continue
+        if "egress" not in (rule.get("flows") or ["ingress", "egress"]) or "query" not in (rule.get("messages") or []):
+            continue
+        try:
+            keys = [zenoh.KeyExpr(k) for k in rule.get("key_exprs") or []]
+        except Exception:  # noqa: BLE001 - zenoh reports a bad key expression when the session opens
+            continue
+        if any(k.intersects(zenoh.KeyExpr(c)) for k in keys for c in CONTROL_KEY_EXPRS):
+            out.append(i)
+    return out
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -164,6 +220,11 @@ class ZenohSection(_Strict):
         problems = []
         if self.access_control is not None and not isinstance(self.access_control.get("enabled", False), bool):
             problems.append((("zenoh", "access_control", "enabled"), "must be true or false"))
+        for i in _guard_overridden(self.access_control or {}):
+            problems.append((("zenoh", "access_control", "rules", i), (
+                "with default_permission: allow, this allow rule for egress queries on the control keys would let "
+                f"other sessions receive the daemon's control queries; allowed: key expressions outside "
+                f"{list(CONTROL_KEY_EXPRS)}, or default_permission: deny")))
         remote = self.remote_endpoints
         if not remote or self.acl_enforcing:
             return problems
@@ -196,9 +257,19 @@ class ZenohSection(_Strict):
                 "listen_private_key": str(self.tls.listen_private_key),
                 "enable_mtls": self.tls.enable_mtls,
             }}}
-        if self.access_control is not None:
-            cfg["access_control"] = dict(self.access_control)
+        cfg["access_control"] = control_guard(self.access_control)
         return cfg
+
+
+class ControlSocketSection(_Strict):
+    """The local control plane (``acquire.control_socket``): a Unix socket only ``group`` (and
+    root) can connect to; the kernel tells the daemon who connected (SO_PEERCRED)."""
+
+    path: Path = Field(Path("/run/remaster/control.sock"), description="the socket (systemd RuntimeDirectory=remaster)")
+    group: str = Field("remaster-operators", min_length=1,
+                       description="the operators' group (name or number): the socket's group, mode 0660")
+    allow: list[Permission] = Field(default_factory=lambda: ["observe", "read", "control", "motion"], min_length=1,
+                                    description="what a member of the group may do")
 
 
 class ScramCredentials(_Strict):
@@ -341,6 +412,7 @@ class DaemonConfig(_Strict, CrossFieldChecked):
     commander: DeviceSpec | None = None
     sensors: list[DeviceSpec] = Field(default_factory=list)
     zenoh: ZenohSection = ZenohSection()
+    control_socket: ControlSocketSection | None = None
     auth: AuthSection = AuthSection()
     health: HealthSection = HealthSection()
     shutdown: ShutdownSection = ShutdownSection()
@@ -389,6 +461,8 @@ class DaemonConfig(_Strict, CrossFieldChecked):
                 "listen_private_key": fix(t.listen_private_key),
             })
             update["zenoh"] = self.zenoh.model_copy(update={"tls": tls})
+        if self.control_socket is not None:
+            update["control_socket"] = self.control_socket.model_copy(update={"path": fix(self.control_socket.path)})
         return self.model_copy(update=update)
 
     def client(self, name: str) -> Client | None:

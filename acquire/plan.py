@@ -62,13 +62,20 @@ commented example)::
     adaptive:                        # optional: measure until the answer is good enough (issue 27)
       stop_when:                     # every criterion given must hold (acquire/run/adaptive.py)
         interval_deg: 0.01           # every determinable offset's 95 % half-width ≤ this, deg
+        region_error_mm: 0.05        # predicted model error at new poses of the plan's region ≤ this, mm
+        joint_space_error_mm: 0.1    # the same over the working joint space (joint_space below), mm
         workspace_within_pct: 10     # predicted workspace error within this % of the full plan's
         held_out_within_pct: 5       # predicted held-out error (model + sensor noise) within this %
+        joint_space_within_pct: 30   # predicted joint-space model error within this % of the full plan's
       min_configurations: null       # never stop before [null: twice what the fit needs, ≥ 12]
       max_configurations: null       # stop here anyway [null: the plan's size]
       candidates:                    # optional: generated candidates beyond the plan's (poses.generated only)
         extra_poses: 300             # further poses of the plan's generator, every feasible IK branch
         seed: null                   # their seed, not the plan's [null: the plan's seed + 1]
+      joint_space:                   # optional: the robot's working joint space (joint_space_* criteria)
+        ranges_deg: null             # [low, high] per joint [null: the model's limits less the margin]
+        samples: 200                 # configurations drawn (Latin hypercube) [200]
+        seed: 0                      # [0]
     sequencing:
       speed: 0.3                     # fraction (0, 1] of the model's joint speeds [0.3]
       settle_window_s: 0.5           # robot still and sensor stable this long [0.5]
@@ -426,6 +433,24 @@ class StopWhenSpec(_Strict):
                                                "model's uncertainty) within this many % of what the full plan would reach.")
     held_out_within_pct: float | None = Field(None, ge=0, le=1000, description="Predicted held-out error (the model's "
                                               "uncertainty and the sensor's noise) within this many % of the full plan's.")
+    region_error_mm: float | None = Field(None, gt=0, le=100, description="Predicted model error (rms, 3-D: the "
+                                          "calibrated model's uncertainty and misfit, no sensor noise) at new poses of "
+                                          "the plan's region at most this, mm.")
+    joint_space_error_mm: float | None = Field(None, gt=0, le=100, description="The same over the robot's working "
+                                               "joint space (adaptive.joint_space) at most this, mm.")
+    joint_space_within_pct: float | None = Field(None, ge=0, le=1000, description="Predicted model error over the "
+                                                 "working joint space within this many % of the full plan's.")
+
+
+class JointSpaceSpec(_Strict):
+    """The robot's working joint space, where ``joint_space_error_mm`` and ``joint_space_within_pct``
+    average the predicted model error: configurations drawn uniformly (Latin hypercube) within
+    ``ranges_deg``."""
+
+    ranges_deg: list[Range] | None = Field(None, description="[low, high] per joint, degrees, within the model's "
+                                           "limits [null: the model's joint limits less the commander's margin].")
+    samples: int = Field(200, ge=10, le=5000, description="How many configurations to draw.")
+    seed: int = Field(0, ge=0, description="Seed of the draw.")
 
 
 class CandidatePoolSpec(_Strict):
@@ -453,14 +478,17 @@ class AdaptiveSpec(_Strict):
                                            "is not met [null: the plan's size].")
     candidates: CandidatePoolSpec | None = Field(None, description="A pool of generated configurations beyond the "
                                                  "plan's for the design to choose from [null: the plan's only].")
+    joint_space: JointSpaceSpec | None = Field(None, description="The robot's working joint space the joint-space "
+                                               "errors average over [null: the model's limits less the margin].")
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         errors: list[tuple[tuple, str]] = []
         w = self.stop_when
-        if w.interval_deg is None and w.workspace_within_pct is None and w.held_out_within_pct is None:
+        if all(v is None for v in w.model_dump().values()):
             errors.append((("adaptive", "stop_when"), "a stop rule needs a criterion (given none; allowed any of "
-                                                      "interval_deg: (0, 1], workspace_within_pct: [0, 1000], "
-                                                      "held_out_within_pct: [0, 1000])"))
+                                                      "interval_deg: (0, 1], region_error_mm: (0, 100], "
+                                                      "joint_space_error_mm: (0, 100], workspace_within_pct: [0, 1000], "
+                                                      "held_out_within_pct: [0, 1000], joint_space_within_pct: [0, 1000])"))
         lo, hi = self.min_configurations, self.max_configurations
         if lo is not None and hi is not None and hi < lo:
             errors.append((("adaptive", "max_configurations"), f"fewer than min_configurations (given {hi}; "
@@ -981,6 +1009,7 @@ def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
         errors += _joints_file_errors(p.joints, model, folder, plan.selection, margin, driver)
     errors += plan_units_errors(plan, model)
     errors += confirm_input_errors(plan)
+    errors += _joint_space_errors(plan, model)
 
     if plan.fit.joints is not None:
         for i, j in enumerate(plan.fit.joints):
@@ -991,6 +1020,26 @@ def model_errors(plan: Plan, model: RobotModel, folder: Path) -> list[tuple[tupl
     if out.exists() and not out.is_dir():
         errors.append((("output", "folder"), f"exists and is not a folder (given {plan.output.folder!r} → {out}; "
                                              "allowed: a folder, created if missing)"))
+    return errors
+
+
+def _joint_space_errors(plan: Plan, model: RobotModel) -> list[tuple[tuple, str]]:
+    """``adaptive.joint_space.ranges_deg``: one [low, high] per joint, low < high, within the model's limits."""
+    spec = plan.adaptive.joint_space if plan.adaptive is not None else None
+    if spec is None or spec.ranges_deg is None:
+        return []
+    loc, n = ("adaptive", "joint_space", "ranges_deg"), model.n_joints
+    if len(spec.ranges_deg) != n:
+        return [(loc, f"{model.name} has {n} joints (given {len(spec.ranges_deg)} ranges; allowed one [low, high] "
+                      f"per joint: {', '.join(model.axis_names)})")]
+    errors = []
+    lo_lim, hi_lim = np.degrees(model.lower_limits_rad), np.degrees(model.upper_limits_rad)
+    for i, (lo, hi) in enumerate(spec.ranges_deg):
+        if not lo < hi:
+            errors.append(((*loc, i), f"low must be below high (given [{lo:g}, {hi:g}]; allowed [low, high], low < high)"))
+        elif lo < lo_lim[i] - 1e-9 or hi > hi_lim[i] + 1e-9:
+            errors.append(((*loc, i), f"outside {model.axis_names[i]}'s limits (given [{lo:g}, {hi:g}]; allowed within "
+                                      f"[{lo_lim[i]:g}, {hi_lim[i]:g}] degrees)"))
     return errors
 
 
@@ -1289,8 +1338,6 @@ def resolve_candidate_pool(lp: LoadedPlan) -> list[PlannedConfig]:
     aimed pose, joint limits less the larger of the plan's and the commander's margin,
     ``min_solutions``; then the commander's margin again). Ids ``x07-b1`` (extra pose 7, its second
     branch), pose group ``x07``: seeded, so a resumed run finds the same ones. Deterministic."""
-    from calib.plan.poses import PoseRanges, plan_poses
-
     ad = lp.plan.adaptive
     pool = ad.candidates if ad is not None else None
     if pool is None:
@@ -1298,26 +1345,41 @@ def resolve_candidate_pool(lp: LoadedPlan) -> list[PlannedConfig]:
     g = lp.plan.poses.generated if lp.plan.poses is not None else None
     assert g is not None, "load_plan refuses a pool without poses.generated"
     seed = g.seed + 1 if pool.seed is None else pool.seed
+    return region_configurations(lp, pool.extra_poses, seed, "x", ("adaptive", "candidates"), "candidate")
+
+
+def region_configurations(lp: LoadedPlan, n: int, seed: int, prefix: str, loc: tuple = ("poses", "generated"),
+                          what: str = "configuration") -> list[PlannedConfig]:
+    """``n`` more poses of the plan's generated region (``poses.generated``: its ranges, sensor,
+    arm angles and ``min_solutions``) with another ``seed``, every feasible IK branch, through the
+    checks of the plan's own configurations; ids ``<prefix>07-b1``, pose groups ``<prefix>07``.
+    Deterministic. Raises ConfigError at ``loc`` when the region cannot be sampled so."""
+    from calib.plan.poses import PoseRanges, plan_poses
+
+    g = lp.plan.poses.generated if lp.plan.poses is not None else None
+    if g is None:
+        raise lp.error(("poses",), f"fresh configurations come from the plan's generated region (given a "
+                                   f"{lp.plan.poses.kind if lp.plan.poses is not None else 'socket'} plan; allowed: "
+                                   "a plan with poses.generated)")
     ranges = PoseRanges(radius_mm=g.radius_mm, height_mm=g.height_mm,
                         angle_rad=(math.radians(g.angle_deg[0]), math.radians(g.angle_deg[1])),
                         roll_rad=(math.radians(g.roll_deg[0]), math.radians(g.roll_deg[1])))
     margin = lp.commander_margin_rad
     try:
-        pp = plan_poses(lp.model, g.sensor_origin_mm, n=pool.extra_poses, seed=seed, ranges=ranges,
+        pp = plan_poses(lp.model, g.sensor_origin_mm, n=n, seed=seed, ranges=ranges,
                         extra_arm_angles_rad=[math.radians(a) for a in (g.arm_angles_deg or [])],
                         min_solutions=g.min_solutions, limit_margin_rad=max(math.radians(g.limit_margin_deg), margin))
     except ValueError as exc:
-        raise lp.error(("adaptive", "candidates"), f"cannot generate these candidates: {exc}") from exc
-    width = max(2, len(str(pool.extra_poses - 1)))
+        raise lp.error(loc, f"cannot generate these {what}s: {exc}") from exc
+    width = max(2, len(str(n - 1)))
     out: list[PlannedConfig] = []
     within: dict[int, int] = {}
     for c in pp.configurations:
         b = within[c.pose] = within.get(c.pose, -1) + 1
-        group = f"x{c.pose:0{width}d}"
+        group = f"{prefix}{c.pose:0{width}d}"
         out.append(PlannedConfig(f"{group}-b{b}", group, c.branch, _frozen(c.q)))
     refused = [c for c in out if not lp.model.within_limits(c.q_rad, margin)]
     if refused:  # the same safety net as the plan's own configurations (resolve_plan)
-        raise lp.error(("adaptive", "candidates"), f"{len(refused)} generated candidate(s) lie within the commander's "
-                                                   f"{math.degrees(margin):g}° margin of a joint limit (given "
-                                                   f"{refused[0].config_id}; allowed: inside the limits less the margin)")
+        raise lp.error(loc, f"{len(refused)} generated {what}(s) lie within the commander's {math.degrees(margin):g}° margin of "
+                            f"a joint limit (given {refused[0].config_id}; allowed: inside the limits less the margin)")
     return out

@@ -10,9 +10,13 @@ Examples::
     acquire runs --cell lab1
     acquire status --site plant-a --cell c7 --connect tls/router.plant-a:7447 --tls-ca …   # a cell with `site:`
 
-The clients connect to the daemon's Zenoh router (``--connect``, default
-``tcp/127.0.0.1:7447``); a remote daemon needs ``tls/host:7447`` with ``--tls-ca``,
-``--tls-cert`` and ``--tls-key`` (mTLS). Credentials: ``--client NAME`` and the token from
+On the cell PC, without ``--client`` or ``--connect``, a client talks to the daemon's control
+socket (``--socket``, default ``$REMASTER_CONTROL_SOCKET`` or ``/run/remaster/control.sock``;
+``acquire.control_socket``): the OS lets only the operators' group in and tells the daemon who
+asks, so no token is needed (``acquire abort`` is all it takes). Otherwise they connect to the
+daemon's Zenoh router (``--connect``, default ``tcp/127.0.0.1:7447``); a remote daemon needs
+``tls/host:7447`` with ``--tls-ca``, ``--tls-cert`` and ``--tls-key`` (mTLS). Credentials:
+``--client NAME`` and the token from
 ``--token-file`` (made by ``acquire token new``; refused when the group or others may read it, as
 ssh refuses an unprotected key) or the environment (``REMASTER_CLIENT``, ``REMASTER_TOKEN``); a
 weak token is refused. Each operation is a SCRAM-SHA-256 exchange (``acquire.control_auth``) in
@@ -95,7 +99,11 @@ def daemon(
 
 
 # ---------------------------------------------------------------------------------- clients
-_CONNECT = typer.Option("tcp/127.0.0.1:7447", "--connect", help="The daemon's Zenoh endpoint.")
+_CONNECT = typer.Option(None, "--connect", help="The daemon's Zenoh endpoint (default with --client: "
+                        "tcp/127.0.0.1:7447; without --client and --connect: the control socket).")
+_SOCKET = typer.Option(None, "--socket", help="The daemon's control socket (default: $REMASTER_CONTROL_SOCKET, "
+                       "else /run/remaster/control.sock); used unless --client or --connect is given.")
+DEFAULT_SOCKET = "/run/remaster/control.sock"
 _CELL = typer.Option(None, "--cell", help="Cell id (default: $REMASTER_CELL).")
 _SITE = typer.Option(None, "--site", help="The cell's plant site, for a daemon with `site:` (keys "
                      "remaster/<site>/<cell>/…; default: $REMASTER_SITE, else none).")
@@ -113,10 +121,45 @@ def _fail(message: str, code: int) -> None:
     raise typer.Exit(code)
 
 
-def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], site: Optional[str],
+def _call(op: str, request: dict | None, *, connect: Optional[str], cell: Optional[str], site: Optional[str],
           client: Optional[str],
           token_file: Optional[Path], tls_ca: Optional[Path], tls_cert: Optional[Path], tls_key: Optional[Path],
-          timeout: float, as_json: bool) -> dict:
+          timeout: float, as_json: bool, socket: Optional[Path] = None) -> dict:
+    client = client or os.environ.get("REMASTER_CLIENT")
+    if connect is None and client is None and token_file is None:
+        reply = _call_socket(op, request, socket or Path(os.environ.get("REMASTER_CONTROL_SOCKET") or DEFAULT_SOCKET),
+                             timeout)
+    else:
+        reply = _call_zenoh(op, request, connect=connect or "tcp/127.0.0.1:7447", cell=cell, site=site,
+                            client=client, token_file=token_file, tls_ca=tls_ca, tls_cert=tls_cert,
+                            tls_key=tls_key, timeout=timeout)
+    if as_json:
+        typer.echo(json.dumps(reply, indent=2, sort_keys=True))
+    else:
+        _print_reply(op, reply)
+    return reply
+
+
+def _call_socket(op: str, request: dict | None, path: Path, timeout: float) -> dict:
+    from acquire.control import BadRequest, Conflict, ControlError, NoReply, Refused
+    from acquire.control_socket import SocketClient
+
+    try:
+        return SocketClient(path).call(op, request, timeout=timeout)
+    except Refused as exc:
+        _fail(str(exc), 3)
+    except NoReply as exc:
+        _fail(f"{exc} (or give --connect / --client to use Zenoh)", 4)
+    except (BadRequest, Conflict) as exc:
+        _fail(str(exc), 2)
+    except (ControlError, OSError) as exc:
+        _fail(str(exc), 1)
+    raise AssertionError("unreachable")
+
+
+def _call_zenoh(op: str, request: dict | None, *, connect: str, cell: Optional[str], site: Optional[str],
+                client: Optional[str], token_file: Optional[Path], tls_ca: Optional[Path],
+                tls_cert: Optional[Path], tls_key: Optional[Path], timeout: float) -> dict:
     from acquire.bus import Bus, BusError, is_loopback_endpoint
     from acquire.control import BadRequest, Conflict, ControlClient, ControlError, NoReply, Refused, Unverified
 
@@ -130,27 +173,31 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], s
         key(cell, "x", site=site)  # validates the cell and site ids
     except BusConfigError as exc:
         _fail(f"--cell/--site: {exc}", 2)
-    client = client or os.environ.get("REMASTER_CLIENT")
     from acquire.tokens import TokenFileError, WeakToken, check_token, read_token_file
 
-    token = None
+    token, source = None, "REMASTER_TOKEN"
     if token_file is not None:
+        source = "--token-file"
         try:
             token = read_token_file(token_file)
         except TokenFileError as exc:
             _fail(f"--token-file: {exc}", 2)
     else:
         token = os.environ.get("REMASTER_TOKEN")
-        if token:
-            try:
-                check_token(token)
-            except WeakToken as exc:
-                _fail(f"REMASTER_TOKEN: {exc}", 2)
+    if token:
+        try:
+            check_token(token, (client or "", cell))  # the client's name and the cell are known words too
+        except WeakToken as exc:
+            _fail(f"{source}: {exc}", 2)
     if client and not token:
         _fail(f"client {client!r} needs a token (--token-file or REMASTER_TOKEN; make one with "
               "`acquire token new`)", 2)
     if token and not client:
         _fail("a token needs --client (or REMASTER_CLIENT)", 2)
+    if token and connect.split("/", 1)[0] not in ("tls", "quic"):
+        typer.echo(f"note: SCRAM over plain {connect.split('/', 1)[0]}: if the daemon is down, whatever answers on "
+                   "that address gets a proof that, with a leaked daemon configuration, acts as you; on the cell PC "
+                   "use the control socket (no --client), from elsewhere tls/ with --tls-ca", err=True)
     tls = {}
     if tls_ca is not None:
         tls = {"root_ca_certificate": str(tls_ca)}
@@ -177,10 +224,6 @@ def _call(op: str, request: dict | None, *, connect: str, cell: Optional[str], s
     if not cc.last_reply_verified:
         typer.echo("note: reply not authenticated (no credentials given): it may not come from the daemon",
                    err=True)
-    if as_json:
-        typer.echo(json.dumps(reply, indent=2, sort_keys=True))
-    else:
-        _print_reply(op, reply)
     return reply
 
 
@@ -210,7 +253,7 @@ def _print_reply(op: str, reply: dict) -> None:
         typer.echo(" ".join(f"{k} {v}" for k, v in reply.items() if k != "ok"))
 
 
-def status(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+def status(connect: Optional[str] = _CONNECT, socket: Optional[Path] = _SOCKET, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
            client: Optional[str] = _CLIENT,
            token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
            tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
@@ -218,7 +261,7 @@ def status(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[
     _call("status", None, **locals())
 
 
-def runs(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+def runs(connect: Optional[str] = _CONNECT, socket: Optional[Path] = _SOCKET, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
            client: Optional[str] = _CLIENT,
          token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
          tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
@@ -230,7 +273,7 @@ def start(
     plan: Optional[str] = typer.Argument(None, help="Plan path ON THE CELL PC (inside the daemon's plan_dirs)."),
     inline: Optional[Path] = typer.Option(None, "--inline", help="Send this local plan file's text instead."),
     resume: Optional[str] = typer.Option(None, "--resume", help="Run id to resume (its log in the state folder)."),
-    connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+    connect: Optional[str] = _CONNECT, socket: Optional[Path] = _SOCKET, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
            client: Optional[str] = _CLIENT,
     token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
     tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON,
@@ -246,11 +289,11 @@ def start(
             _fail(f"cannot read --inline {inline}: {exc.strerror or exc}", 2)
     if resume:
         request["resume"] = resume
-    _call("start", request, connect=connect, cell=cell, site=site, client=client, token_file=token_file, tls_ca=tls_ca,
+    _call("start", request, connect=connect, socket=socket, cell=cell, site=site, client=client, token_file=token_file, tls_ca=tls_ca,
           tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
 
 
-def pause(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+def pause(connect: Optional[str] = _CONNECT, socket: Optional[Path] = _SOCKET, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
            client: Optional[str] = _CLIENT,
           token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
           tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
@@ -258,7 +301,7 @@ def pause(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[s
     _call("pause", None, **locals())
 
 
-def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+def resume(connect: Optional[str] = _CONNECT, socket: Optional[Path] = _SOCKET, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
            client: Optional[str] = _CLIENT,
            token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
            tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
@@ -267,16 +310,16 @@ def resume(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[
 
 
 def abort(reason: str = typer.Option("aborted by operator", "--reason", help="Why (goes into the log)."),
-          connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+          connect: Optional[str] = _CONNECT, socket: Optional[Path] = _SOCKET, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
            client: Optional[str] = _CLIENT,
           token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
           tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:
     """Stop the run safely now; its log is closed."""
-    _call("abort", {"reason": reason}, connect=connect, cell=cell, site=site, client=client, token_file=token_file,
+    _call("abort", {"reason": reason}, connect=connect, socket=socket, cell=cell, site=site, client=client, token_file=token_file,
           tls_ca=tls_ca, tls_cert=tls_cert, tls_key=tls_key, timeout=timeout, as_json=as_json)
 
 
-def confirm(connect: str = _CONNECT, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
+def confirm(connect: Optional[str] = _CONNECT, socket: Optional[Path] = _SOCKET, cell: Optional[str] = _CELL, site: Optional[str] = _SITE,
            client: Optional[str] = _CLIENT,
             token_file: Optional[Path] = _TOKEN_FILE, tls_ca: Optional[Path] = _CA, tls_cert: Optional[Path] = _CERT,
             tls_key: Optional[Path] = _KEY, timeout: float = _TIMEOUT, as_json: bool = _JSON) -> None:

@@ -34,9 +34,18 @@ Loader = Callable[[Path, "RobotModel"], "Dataset"]
 
 
 def dataset_from_csv(path: Path, model: RobotModel) -> Dataset:
-    """A CSV of ``calib.measure.dataset``'s format as a dataset."""
-    from calib.measure.dataset import read_csv
+    """A CSV of ``calib.measure.dataset``'s format as a dataset, or an IPA tracker series as it comes
+    (``calib.measure.ipa_tracker``: recognised by its header — UR joint names and ``measurement_*``)."""
+    from calib.measure.dataset import DatasetError, read_csv
+    from calib.measure.ipa_tracker import JOINTS, is_ipa_series, read_ipa_series
 
+    if is_ipa_series(path):
+        if model.n_joints != len(JOINTS):
+            raise DatasetError(f"{path}: an IPA tracker series of a 6-axis UR ({', '.join(JOINTS)}); the model "
+                               f"{model.name!r} has {model.n_joints} axes")
+        marker = model.marker_names[0]
+        log.info("%s: read as an IPA tracker series (';', decimal comma, radians, Euler XYZ degrees); marker %s", path, marker)
+        return read_ipa_series(path, marker=marker, sensor="tracker")
     return read_csv(path, model)
 
 
@@ -124,6 +133,9 @@ def format_summary(doc: dict, controller_text: str, choice_text: str | None = No
             f"sensor {s}: σ = {sig['value']:.3f} ± {sig['std']:.3f} mm; registration correction "
             + ", ".join(f"{k} {v['value']:+.3f}" for k, v in corr.items())
         )
+    weight = doc.get("attitude_weight")
+    if weight:
+        lines.append(f"attitude rows weighted {weight['median_mm_per_rad']:.0f} mm/rad (median): {weight['how']}")
     tool = doc.get("tool") or {}
     for t in tool.get("markers") or []:
         lines.append(
@@ -288,7 +300,8 @@ def fit(
     # no numpy and no fitter.
     import numpy as np
 
-    from calib.robot.controller import apply_guards, controller_values
+    from calib.robot.controller import apply_guards
+    from calib.fit.entered import as_found_markers, attach, for_controller
     from calib.io.csvdialect import is_socket_csv
     from calib.measure.dataset import DatasetError
     from calib.fit.offsets import FitOptions, fit_offsets
@@ -337,6 +350,12 @@ def fit(
         ds = load_dataset(data, model)
     except DatasetError as exc:
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
+    from calib.measure.ipa_tracker import is_ipa_series
+
+    for path in (data, validate):
+        if path is not None and is_ipa_series(path):
+            typer.echo(f"note: {path} read as an IPA tracker series (';', decimal comma, joints in radians, T-Mac position "
+                       f"mm and X-Y-Z Euler angles deg), marker {model.marker_names[0]!r}")
     val = None
     if validate is not None:
         try:
@@ -354,19 +373,25 @@ def fit(
     if not (math.isfinite(tool_prior_mm) and 0 <= tool_prior_mm <= 100):
         raise typer.BadParameter(f"expected 0 ≤ MM ≤ 100 (0: the markers' positions are exact), given {tool_prior_mm}",
                                  param_hint="--tool-prior-mm")
+    noise = _estimate_noise(model, cal, FitOptions(joints=_joints(joints, model.n_joints), fix_registration=fix_registration,
+                                                   seed=seed, tool_prior_mm=tool_prior_mm))
+    if noise is not None:
+        cal, noise = noise
     if method == "auto":
         _fit_auto(model, cal, val, FitOptions(joints=_joints(joints, model.n_joints), fix_registration=fix_registration,
                                               error=error, seed=seed, n_draws=draws, tool_prior_mm=tool_prior_mm),
                   model_name, None if fixed_link_tolerance is None else _link_tolerance(fixed_link_tolerance),
                   n_random, starts or 6, _full_exclusions(model, cal, _joints(joints, model.n_joints), fix_registration),
-                  output, model_out, report, compliance)
+                  output, model_out, report, compliance, noise=noise)
         return
     if method == "full":
         from calib.fit.identification import IdentOptions  # the identification loads only for --method full
 
         options = IdentOptions(compliance=compliance, tool_prior_mm=tool_prior_mm, seed=seed, n_starts=starts or 6,
                                exclude_reasons=_full_exclusions(model, cal, _joints(joints, model.n_joints), fix_registration))
-        _fit_full(model, cal, val, output, model_out, report, options)
+        _fit_full(model, cal, val, output, model_out, report, options,
+                  entered_base=FitOptions(method="laplace", joints=_joints(joints, model.n_joints), seed=seed,
+                                          fix_registration=fix_registration, tool_prior_mm=tool_prior_mm), noise=noise)
         return
     options = FitOptions(
         link_tolerance=_link_tolerance(link_tolerance),
@@ -389,13 +414,19 @@ def fit(
     metrics = accuracy_metrics(
         Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad, result.applied_sigma_mm,
         validation=val, n_random=n_random, seed=seed, markers_mm=result.fitted_markers_mm,
+        before_markers_mm=as_found_markers(model, cal),
     )
     metrics["notes"] = metric_notes(result) + metrics.get("notes", [])
     doc = result_dict(result, cal, metrics=metrics)
-    refused = apply_guards(doc)
-    values = controller_values(model, doc["joint_offsets"])
-    doc["controller"] = values.to_dict()
-    text = values.format()
+    if result.posterior.attitude is not None:
+        doc["attitude_weight"] = result.posterior.attitude.weight_info
+    if noise is not None:
+        doc["noise_estimate"] = noise
+    model_refused = apply_guards(doc)
+    # An offsets-only fit: the controller's offsets are the fit's own; scored against the robot as found.
+    entered, _ = for_controller(model, cal, val, options, full_arm=None, full_folds=None, fitted_model=method, own=result,
+                                more_guards=model_refused)
+    refused, text = attach(model, doc, entered)
     typer.echo(format_summary(doc, text))
     if output is not None:
         write_result(output, doc)
@@ -405,8 +436,7 @@ def fit(
 
         write_report(report, result, cal, doc, text)
         typer.echo(f"wrote {report}")
-    if refused:
-        typer.echo("DO NOT ENTER these offsets: " + "; ".join(refused), err=True)
+    _verdict_lines(refused, [], method)
     if refused or not math.isfinite(result.pooled_sigma_mm):
         raise typer.Exit(1)
 
@@ -452,21 +482,33 @@ def _full_exclusions(model: RobotModel, cal: Dataset, joints: tuple[int, ...] | 
 
 
 def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path | None, model_out: Path | None,
-              report: Path | None, options, *, done=None) -> None:
+              report: Path | None, options, *, done=None, entered_base=None, noise: dict | None = None) -> None:
     """``--method full``: Levenberg–Marquardt identification (``options``: ``calib.fit.identification.IdentOptions``),
-    corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report.report_ident``).
+    corrected model YAML, EACPE/EMCPE, and with ``report`` an HTML report (``calib.report.report_ident``); the
+    offsets fitted for the controller's nominal arm (``entered_base``: their options; ``calib.fit.entered``),
+    scored held out beside the identified model (without ``--validate``: each fold identified on its own).
     ``done``: a ``calib.fit.auto_fit.AutoFit`` that chose and identified the full model already."""
+    from dataclasses import replace
+
+    from calib.fit.entered import attach, for_controller, identified_arm
     from calib.fit.identification import corrected_model, ident_result_dict, identify, locate_unseen_markers, write_model_yaml
     from calib.fit.result import write_result
 
     if done is not None:
         result, doc = done.ident, done.doc
+        refused, model_refused, entered_text = done.refused, done.model_refused, done.controller_text
     else:
         try:
             result = identify(model, cal, options)
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="DATA") from exc
         doc = ident_result_dict(result, cal, val)
+        entered, _ = for_controller(model, cal, val, entered_base, full_arm=identified_arm(result), fitted_model="full",
+                                    full_folds=lambda train: identified_arm(identify(model, train, replace(options, n_starts=1))))
+        refused, entered_text = attach(model, doc, entered)
+        model_refused = list(result.do_not_use)
+    if noise is not None:
+        doc["noise_estimate"] = noise
     lines = ([done.choice.format(), ""] if done is not None else []) + [f"full identification of {model.name}: {len(result.free_names)} parameters from {len(cal)} measurements",
              f"rms residual {doc['rms_mm']:.4f} mm, scaled condition number {doc['condition_number']:.3g}"]
     lines += [f"warning: {w}" for w in result.warnings]
@@ -509,8 +551,11 @@ def _fit_full(model: RobotModel, cal: Dataset, val: Dataset | None, output: Path
 
         write_ident_report(report, result, cal, doc)
         typer.echo(f"wrote {report}")
+    typer.echo("\n" + entered_text)
     if result.do_not_use:
         typer.echo("DO NOT USE this identified model: " + "; ".join(result.do_not_use), err=True)
+    _verdict_lines(refused, [], "full")
+    if model_refused or refused:
         raise typer.Exit(1)
 
 
@@ -540,7 +585,7 @@ def fit_progress():
 
 def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force: str | None,
               link_tolerance: tuple[float, float] | None, n_random: int, n_starts: int, exclusions, output: Path | None,
-              model_out: Path | None, report: Path | None, compliance_only: bool = False) -> None:
+              model_out: Path | None, report: Path | None, compliance_only: bool = False, noise: dict | None = None) -> None:
     """The default: the data choose the model (``calib.fit.auto_fit``); the table, the fit, and "enter"
     only where earned (``calib.robot.controller.earned_reasons``)."""
     from calib.fit.auto_fit import auto_fit
@@ -557,7 +602,7 @@ def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force:
         with fit_progress() as progress:
             done = auto_fit(model, cal, val, base, force=force, link_tolerance=link_tolerance, n_random=n_random,
                             n_starts=n_starts, ident_exclusions=exclusions, compliance_only=compliance_only,
-                            progress=progress)
+                            noise_estimate=noise, progress=progress)
     except ValueError as exc:  # DatasetError, or data a registration cannot use (e.g. collinear points)
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
     if done.result is None:
@@ -582,7 +627,31 @@ def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force:
 
         write_report(report, done.result, cal, doc, done.controller_text)
         typer.echo(f"wrote {report}")
-    if done.refused:
-        typer.echo("DO NOT ENTER these offsets: " + "; ".join(done.refused), err=True)
+    _verdict_lines(done.refused, done.model_refused, done.choice.chosen)
     if done.refused or not math.isfinite(done.result.pooled_sigma_mm):
         raise typer.Exit(1)
+
+
+def _estimate_noise(model: RobotModel, cal: Dataset, base) -> tuple[Dataset, dict] | None:
+    """The data's noise where they state no spreads (``calib.fit.noise``), printed; None when they do."""
+    from calib.fit.noise import estimate_noise, format_estimate
+
+    try:
+        found = estimate_noise(model, cal, base)
+    except ValueError as exc:  # too little data for the estimate's model: the fit says what it needs
+        typer.echo(f"noise: the data state no spreads, and too few to estimate them ({exc}); no held-out check "
+                   "against the noise, attitude rows (if any) at a fixed weight\n")
+        return None
+    if found is not None:
+        typer.echo(format_estimate(found[1]) + "\n")
+    return found
+
+
+def _verdict_lines(refused: list[str], model_refused: list[str], model_name: str) -> None:
+    """The verdict on the offsets the controller gets (``result.json`` ``entered``), and apart from it the
+    guards of the fitted model (what export and compensation would use)."""
+    if model_refused:
+        typer.echo(f"the fitted model ({model_name}) is not to be used for compensation or export: "
+                   + "; ".join(model_refused), err=True)
+    if refused:
+        typer.echo("DO NOT ENTER these offsets: " + "; ".join(refused), err=True)

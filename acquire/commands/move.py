@@ -4,6 +4,13 @@ Example::
 
     acquire move --robot fixtures/robots/kuka_kr6_r900_2.yaml \\
         --commander rsi://0.0.0.0:49152 --to 0,-90,90,0,45,0 --speed 0.1
+    acquire move --robot fixtures/robots/kuka_kr6_r900_2.yaml --result result.json \\
+        --commander rsi://0.0.0.0:49152 --pose 500,0,600,0,90,0 --tool 0,0,150,0,0,0
+
+``--pose X,Y,Z,A,B,C`` (mm, ZYX Euler degrees; the TCP ``--tool`` in the robot's base frame)
+instead of ``--to``: the joint target is the calibrated arm's inverse kinematics (``--result``:
+offsets, links, tool, gravity sag; without it the nominal model, said so) in the branch nearest
+the measured joints; a pose no branch reaches within the limits is refused before anything moves.
 
 Connects (waits for the controller's packets), shows the link's state and timing (cycle,
 jitter, answer latency, measured position), checks the target against the model's limits,
@@ -21,6 +28,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
+from typing import Optional
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -75,7 +83,14 @@ def move(
     commander: str = typer.Option(
         "rsi://0.0.0.0:49152", "--commander", help="Commander URL, e.g. rsi://0.0.0.0:49152?cycle_ms=4."
     ),
-    to: str = typer.Option(..., "--to", help="Target J1,…,Jn in degrees (controller convention)."),
+    to: Optional[str] = typer.Option(None, "--to", help="Target J1,…,Jn in degrees (controller convention)."),
+    pose: Optional[str] = typer.Option(None, "--pose", help="Target TCP pose X,Y,Z,A,B,C (mm, ZYX Euler degrees) in the "
+                                                            "robot's base frame, reached with the calibrated model (--result)."),
+    result: Optional[Path] = typer.Option(None, "--result", help="--pose: the fit's result.json (the calibrated arm)."),
+    tool: Optional[str] = typer.Option(None, "--tool", help="--pose: the TCP in the flange frame X,Y,Z,A,B,C (mm, degrees); "
+                                                            "default the flange."),
+    entered: str = typer.Option("auto", "--entered", help="--pose: offsets entered in the controller since the measurement "
+                                                         "(auto, result, none; see acquire compensate)."),
     speed: float = typer.Option(0.1, "--speed", help="Fraction (0, 1] of the model's speed; acceleration scales with its square."),
     yes: bool = typer.Option(False, "--yes", "-y", help="Do not ask for confirmation."),
     tolerance: float = typer.Option(0.01, "--tolerance", help="Settled when every axis stays within this many degrees."),
@@ -97,7 +112,12 @@ def move(
         raise typer.BadParameter(str(exc), param_hint="--robot") from exc
     limits = JointLimits.from_model(model)
     names = limits.names or tuple(f"J{i + 1}" for i in range(limits.n_axes))
-    target = _target(to, limits.n_axes)
+    if (to is None) == (pose is None):
+        raise typer.BadParameter("give exactly one target: --to J1,…,Jn (degrees) or --pose X,Y,Z,A,B,C", param_hint="--to/--pose")
+    if pose is None and (result is not None or tool is not None):
+        raise typer.BadParameter("--result and --tool apply to --pose", param_hint="--result/--tool")
+    target = _target(to, limits.n_axes) if to is not None else None
+    solver = _pose_solver(model, pose, result, tool, entered) if pose is not None else None
     if not 0 < speed <= 1:
         raise typer.BadParameter(f"must be in (0, 1], given {speed}", param_hint="--speed")
     if tolerance <= 0 or window <= 0 or timeout <= window:
@@ -119,6 +139,8 @@ def move(
         typer.echo(f"robot: {model.name} ({limits.n_axes} axes), commander {commander}")
         typer.echo(_link_report(cmd, names))
         start = cmd.joint_state().position_rad
+        if solver is not None:
+            target = solver(start)
         checked = cmd.check_target(target, speed)  # refuse before asking
         v, a, j = scaled_limits(limits.max_velocity_rad_s, limits.max_acceleration_rad_s2, speed)
         duration = motion_time(start, checked, v, a, j)
@@ -149,6 +171,35 @@ def move(
         raise typer.Exit(2) from exc
     finally:
         cmd.close()
+
+
+def _pose_solver(model, pose_text: str, result: Optional[Path], tool_text: Optional[str], entered: str):
+    """A function current joints (n,) rad → the joint target (n,) rad that puts the calibrated arm's
+    TCP on ``--pose``: the branch nearest the current joints. Exits 2 (before anything moves) when
+    no branch reaches the pose within the limits."""
+    from acquire.commands.compensate import parse_pose  # noqa: PLC0415
+    from acquire.commands.model import calibrated_arm  # noqa: PLC0415
+    from calib.ik.compensation import Compensator, pose_error  # noqa: PLC0415
+
+    target = parse_pose(pose_text, "--pose")
+    tool = parse_pose(tool_text, "--tool") if tool_text is not None else np.eye(4)
+    arm = calibrated_arm(model, result, entered)
+    if result is None:
+        typer.echo("no --result: the pose is reached with the nominal model (uncalibrated)")
+    comp = Compensator(model, arm, tool)
+    rows, why = comp.calibrated_solutions(target)
+    if not len(rows):
+        raise typer.BadParameter(f"{pose_text}: refused, no configuration reaches it within the joint limits ({why})",
+                                 param_hint="--pose")
+
+    def solve(current: np.ndarray) -> np.ndarray:
+        best = rows[int(np.argmin(np.max(np.abs(rows - current), axis=1)))]
+        dp, dw = pose_error(target, comp.true_pose(best))
+        typer.echo(f"pose {pose_text}: {len(rows)} configuration(s) reach it; nearest the measured joints chosen "
+                   f"(calibrated arm on the pose within {np.linalg.norm(dp):.2g} mm, {np.degrees(np.linalg.norm(dw)):.2g}°)")
+        return best
+
+    return solve
 
 
 def register(app: typer.Typer) -> None:

@@ -166,6 +166,7 @@ def adaptive_dry_run_lines(lp, configs, limits, speed: float, per_config_s: floa
     whole plan. Raises ConfigError when the stop rule cannot be followed (min_configurations)."""
     from acquire.run.adaptive import AdaptiveOrder, simulate
     from acquire.run.controller import candidate_pool
+    from calib.plan.adaptive import WORDING
 
     order = AdaptiveOrder(lp, configs, limits, speed, per_config_s, candidate_pool(lp))
     chosen, st = simulate(order, start)
@@ -174,27 +175,33 @@ def adaptive_dry_run_lines(lp, configs, limits, speed: float, per_config_s: floa
     full = order.full_plan_seconds(start)
     most = rule.max_configurations or len(configs)
     high = order.visited_seconds(simulate(order, start, to_the_end=True)[0], start)
-    lines = ["", f"adaptive: the order is chosen as the run goes; stop rule: " + ", ".join(
-        x for x in [f"every determinable offset's 95 % half-width ≤ {rule.interval_deg:g}°" if rule.interval_deg else "",
-                    f"predicted workspace error within {rule.workspace_within_pct:g} % of the full plan's"
-                    if rule.workspace_within_pct is not None else "",
-                    f"predicted held-out error within {rule.held_out_within_pct:g} % of the full plan's"
-                    if rule.held_out_within_pct is not None else ""] if x)
-             + f"; at least {rule.min_configurations}, at most {most} configurations",
-             f"  determinable offsets: {', '.join(order.design.model.offset_names)}",
-             f"  if the noise is the plan's ({order.noise_mm:g} mm): stops after {len(chosen)} configurations, "
-             f"{low:.0f} s ({st.reason})",
-             f"  the full plan would reach: largest half-width "
-             f"{max(order.design.half_widths_deg(order.design.covariance(range(len(configs)))).values()):.4f}°, "
-             f"workspace error {st.full_workspace_mm:.4f} mm, held-out error {st.full_held_out_mm:.4f} mm",
+    d = order.design
+    full_hw = max(d.half_widths_deg(d.covariance(range(len(configs)))).values(), default=0.0)
+    stated = "; ".join(f"{WORDING[k][0]} ≤ {v:g}{WORDING[k][1]}" for k, v in rule.criteria.items())
+    lines = ["", f"adaptive: the order is chosen as the run goes; stop rule: {stated}"
+             f"; at least {rule.min_configurations}, at most {most} configurations",
+             f"  determinable offsets: {', '.join(d.model.offset_names)}",
+             f"  noise: the plan's {order.noise_mm:g} mm per reading, {order.samples} readings averaged: "
+             f"σ {order.plan_sigma_mm:.4f} mm per configuration (the run measures it: the readings' spread, "
+             "then the fit's σ and the model's misfit)",
+             f"  if the noise is the plan's: stops after {len(chosen)} configurations, {low:.0f} s ({st.reason})",
+             f"  predicted at that stop: largest half-width {st.max_half_width_deg:.4f}°, model error "
+             f"{st.region_mm:.4f} mm (plan's region), {_mm(st.joint_space_mm)} (working joint space), held-out "
+             f"{st.held_out_mm:.4f} mm",
+             f"  the full plan would reach: largest half-width {full_hw:.4f}°, model error {st.full_region_mm:.4f} mm "
+             f"(plan's region), {_mm(st.full_joint_space_mm)} (working joint space), held-out {st.full_held_out_mm:.4f} mm",
              f"estimated cell time range: {low:.0f}–{high:.0f} s ({low / 60:.1f}–{high / 60:.1f} min; the full plan "
-             f"{full:.0f} s); more noise than the plan says means more configurations",
+             f"{full:.0f} s); more noise or misfit than the plan says means more configurations",
              "  first choices: " + " ".join(c.config_id for c in chosen[:12]) + (" …" if len(chosen) > 12 else "")]
     if len(order.configs) > len(configs):
         n_gen = sum(1 for c in chosen if c.config_id not in {p.config_id for p in configs})
         lines.insert(3, f"  candidates: the plan's {len(configs)} and {len(order.configs) - len(configs)} generated "
                         f"(adaptive.candidates; the full plan is the plan's); {n_gen} generated chosen")
     return lines
+
+
+def _mm(value: float | None) -> str:
+    return "–" if value is None else f"{value:.4f} mm"
 
 
 def _initial_q(lp, fake) -> np.ndarray:
@@ -317,35 +324,18 @@ def run(
     controller.bus = bus
     controller.on_progress = on_progress
     controller.live = server
-    interrupted = threading.Event()
-
-    def on_signal(signum, frame):  # noqa: ARG001
-        name = signal.Signals(signum).name
-        if interrupted.is_set():
-            log.warning("%s again: still stopping safely", name)
-            return
-        interrupted.set()
-        log.warning("%s: stopping safely (the robot decelerates, the log is closed)", name)
-        threading.Thread(target=controller.abort, args=(f"interrupted ({name})",), daemon=True).start()
-
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    signals = StopSafelyOnSignals(controller).install()
     sim = truth = sag = None
     try:
         if fake:  # "start the simulated cell, then run": the run gets its description, as of any cell
             sim = _start_simulated_cell(lp, controller)
         controller.start()
-        while True:
-            try:
-                summary = controller.wait(0.2)
-                break
-            except TimeoutError:
-                continue
+        summary = wait_for_end(controller)
         if sim is not None:  # the cell's truth beside the fit: a property of the simulated cell
             truth = sim.truth_offsets_deg()
             sag = sim.mean_sag_deg(np.stack([c.q_rad for c in configs]))
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        signals.restore()
         progress.close()
         if sim is not None:
             sim.close()
@@ -367,6 +357,43 @@ def run(
             typer.echo(f"every configuration was visited; measure more (a larger plan) or fit the log yourself: "
                        f"acquire fit {display_path(summary.log_path)} --robot {lp.model_path}")
         raise typer.Exit(summary.exit_code)
+
+
+class StopSafelyOnSignals:
+    """While installed, SIGINT and SIGTERM stop ``controller``'s run safely (the robot decelerates,
+    the log is closed): the first one aborts it, a second one only says it is still stopping."""
+
+    def __init__(self, controller) -> None:
+        self.controller = controller
+        self.interrupted = threading.Event()
+        self._old: dict = {}
+
+    def _on_signal(self, signum, frame) -> None:  # noqa: ARG002
+        name = signal.Signals(signum).name
+        if self.interrupted.is_set():
+            log.warning("%s again: still stopping safely", name)
+            return
+        self.interrupted.set()
+        log.warning("%s: stopping safely (the robot decelerates, the log is closed)", name)
+        threading.Thread(target=self.controller.abort, args=(f"interrupted ({name})",), daemon=True).start()
+
+    def install(self) -> "StopSafelyOnSignals":
+        self._old = {s: signal.signal(s, self._on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def restore(self) -> None:
+        for s, h in self._old.items():
+            signal.signal(s, h)
+        self._old = {}
+
+
+def wait_for_end(controller):
+    """The run's ``RunSummary`` once it has ended (waiting in short steps: a signal is handled at once)."""
+    while True:
+        try:
+            return controller.wait(0.2)
+        except TimeoutError:
+            continue
 
 
 def _start_simulated_cell(lp, controller):

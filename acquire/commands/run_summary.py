@@ -51,6 +51,7 @@ def adaptive_summary_lines(ad: dict, cell_seconds: float | None = None) -> list[
                          f"{h.get('held_out_mm', float('nan')):.4f}")
         lines.append(f"  (the full plan would reach {hist[-1]['full_workspace_mm']:.4f} / "
                      f"{hist[-1].get('full_held_out_mm', float('nan')):.4f} mm; σ used {ad['sigma_mm']:.4f} mm)")
+    lines += decision_lines(ad)
     saved = ad.get("saved_seconds")
     if saved is not None:
         comp = ad.get("compute_seconds")
@@ -66,6 +67,40 @@ def adaptive_summary_lines(ad: dict, cell_seconds: float | None = None) -> list[
                 lines.append("  (moves, settling or measuring took longer than estimated: a simulated cell at "
                              "fake.time_scale > 1 falls behind its clock on a busy host — time a plan at "
                              "time_scale 1; on a real cell, check the speed override and the settle window)")
+    return lines
+
+
+def _num(v, fmt: str = ".4f", unit: str = "") -> str:
+    return "–" if v is None else f"{v:{fmt}}{unit}"
+
+
+def decision_lines(ad: dict) -> list[str]:
+    """What backs the stop: each criterion (limit, predicted), the noise it was judged with, the
+    predicted errors against the full plan's, and what the fit found after the fact."""
+    dec = ad.get("decision")
+    if not dec:
+        return []
+    unit = {"interval_deg": "°", "region_error_mm": " mm", "joint_space_error_mm": " mm"}
+    lines = ["  the stop decision: " + "; ".join(
+        f"{c['criterion']} {'≤' if c['met'] else '>'} {c['limit']:g}{unit.get(c['criterion'], ' %')} "
+        f"(predicted {c['predicted']:.4g}{unit.get(c['criterion'], ' %')})" for c in dec["checks"])]
+    n = dec["noise"]
+    lines.append(f"  noise: plan {n['plan_per_reading_mm']:g} mm per reading / √{n['samples']} = "
+                 f"{_num(n['plan_per_configuration_mm'])} mm per configuration; measured spread "
+                 f"{_num(n['spread_mm'])} mm, fit's σ {_num(n['fitted_mm'])} mm, misfit {_num(n['misfit_mm'])} mm; "
+                 f"σ used {_num(n['used_mm'])} mm")
+    p = dec["predicted"]
+    lines.append(f"  predicted at the stop (full plan): largest half-width {_num(p['max_half_width_deg'])}° "
+                 f"({_num(p['full_max_half_width_deg'])}°), model error {_num(p['region_mm'])} mm "
+                 f"({_num(p['full_region_mm'])}) in the plan's region, {_num(p['joint_space_mm'])} mm "
+                 f"({_num(p['full_joint_space_mm'])}) over the working joint space, held-out {_num(p['held_out_mm'])} mm "
+                 f"({_num(p['full_held_out_mm'])})")
+    f = ad.get("found")
+    if f:
+        lines.append(f"  found by the fit: largest half-width {_num(f['max_half_width_deg'])}° (predicted "
+                     f"{_num(f['predicted_max_half_width_deg'])}°; {f['determined']} of {f['of']} offsets determined), "
+                     f"σ {_num(f['sigma_mm'])} mm (predicted {_num(f['predicted_sigma_mm'])}), misfit "
+                     f"{_num(f['misfit_mm'])} mm (predicted {_num(f['predicted_misfit_mm'])})")
     return lines
 
 
@@ -152,8 +187,15 @@ def format_run_summary(summary, lp, truth: list | None = None, sag: list | None 
             lines.append(format_table(choice))
             if summary.fit.get("model_file"):
                 lines.append(f"corrected model (full identification): {display_path(Path(summary.fit['model_file']))}")
+        entered = summary.fit.get("entered")
+        if entered:  # what the controller gets: offsets for its nominal arm, judged held out (calib.fit.entered)
+            from calib.fit.entered import format_heldout
+
+            lines.append(format_heldout(entered))
+            lines += [f"  enter {o['joint']}: δ = {o['value_deg']:+.4f}° ± {o['std_deg']:.4f}°"
+                      for o in entered["offsets"] if o["enter"]]
         for reason in summary.fit.get("do_not_enter") or []:
-            lines.append(f"DO NOT ENTER: {reason}")
+            lines.append(f"DO NOT ENTER: {reason}" if not entered else f"the fitted model, not for compensation: {reason}")
         diag = summary.fit.get("diagnostics", {})
         fitted_compliance = diag.get("compliance") or summary.fit.get("compliance") or []
         for c in fitted_compliance:

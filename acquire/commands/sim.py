@@ -23,6 +23,15 @@ Faults on demand (``drivers/sim/faults.py``): the cell file's ``faults:`` timeli
 itself; on a terminal one key injects a fault (the keys are printed at start); with stdin not a
 terminal (a pipe) every line ``FAULT [DEVICE|all] [DURATION_S] [PROBABILITY]`` is one fault,
 answered on stdout with ``fault FAULT on DEVICE, ...`` or ``error: ...``.
+
+The controller's mastering (``drivers/sim/mastering.py``), entered as on the real controller
+(with no run commanding the robot; the controller restarts with it): a line ``master AXIS
+CORRECTION_DEG`` (``master A2 -0.0123``: the axis zero shifts by the correction, KSS ``$MAMES[2] =
+$MAMES[2] -0.0123``, which is also taken as written), ``enter RESULT.json`` (every correction the
+result tells the operator to enter), ``mastering`` (show the table) or ``save CELL.yaml`` (a copy
+of the cell file with the mastering: the cell a later ``--fake`` run starts with, as a controller
+keeps its mastering through a restart); on a terminal, key ``m`` asks for such a line. The answer
+is the new table, or ``error: ...``.
 """
 
 from __future__ import annotations
@@ -125,17 +134,18 @@ def sim(
             typer.echo("fault timeline: " + "; ".join(
                 f"{f.fault} on {f.device or 'all'} at {at:g} s" for at, f in launch.timeline.steps))
         interactive = sys.stdin is not None and sys.stdin.isatty()
-        typer.echo(KEY_HELP if interactive else
-                   "faults: one line on stdin 'FAULT [DEVICE|all] [DURATION_S] [PROBABILITY]'")
+        typer.echo(KEY_HELP + "; m: enter mastering" if interactive else
+                   "faults: one line on stdin 'FAULT [DEVICE|all] [DURATION_S] [PROBABILITY]'; mastering: "
+                   "'master AXIS CORRECTION_DEG', 'enter RESULT.json', 'mastering', 'save CELL.yaml'")
         try:
             with _sigterm_as_interrupt():
-                (_keys if interactive else _lines)(launch, time.monotonic() + duration)
+                (_keys if interactive else _lines)(launch, time.monotonic() + duration, Path(config))
         except KeyboardInterrupt:
             typer.echo("stopping")
     finally:
         launch.close()
-    q = np.degrees(cell.joint_positions())
-    typer.echo(f"stopped; final joints (deg) {np.round(q, 3).tolist()}")
+    q = np.degrees(launch.robot_view.joint_positions())
+    typer.echo(f"stopped; final joints as the controller reports them (deg) {np.round(q, 3).tolist()}")
 
 
 class _sigterm_as_interrupt:
@@ -168,8 +178,59 @@ def _running(deadline: float) -> None:
     sys.stdout.flush()
 
 
-def _lines(launch: SimLaunch, deadline: float) -> None:
-    """stdin is a pipe (or closed): one fault per line until the deadline (EOF: just wait)."""
+#: The first words of a stdin line that speaks to the controller's mastering, not a fault.
+MASTERING_WORDS = ("master", "enter", "mastering", "save")
+
+
+def _mastering(launch: SimLaunch, line: str, source: Path | None = None) -> str:
+    """Do one mastering line (``master AXIS C``, ``$MAMES[i] = $MAMES[i] ±C``, ``enter RESULT.json``,
+    ``mastering``, ``save CELL.yaml`` — a copy of the cell file ``source`` with the mastering); the
+    answer to print: the table after it, or ``error: …``."""
+    from calib.robot.entered import read_entered
+    from drivers.sim.config import save_with_mastering
+    from drivers.sim.mastering import MasteringEntry, MasteringError, parse_entry
+
+    words = line.split()
+    try:
+        if words == ["mastering"]:
+            return "\n".join(["mastering:"] + launch.mastering.lines())
+        if words[0] == "save":
+            if len(words) != 2:
+                raise MasteringError(f"give 'save CELL.yaml'; given {line.strip()!r}")
+            path = save_with_mastering(source, words[1], launch.mastering.corrections_deg, seed=launch.cell.config.seed)
+            return f"saved {path}: this cell with the controller's mastering (--config it, or a plan's fake.sim_config)"
+        if words[0] == "enter":
+            if len(words) != 2:
+                raise MasteringError(f"give 'enter RESULT.json'; given {line.strip()!r}")
+            values = read_entered(words[1])
+            if not values.axes:
+                why = "; ".join(values.refused) or "no axis has a value to enter"
+                raise MasteringError(f"{words[1]} enters nothing ({why})")
+            entries = [MasteringEntry(a.axis, a.correction_deg) for a in values.axes]
+            what = f"entered from {words[1]} ({values.source}): " + ", ".join(
+                f"{e.axis} {e.correction_deg:+.4f}°" for e in entries)
+        else:
+            entries = parse_entry(line)
+            what = "entered: " + ", ".join(f"{e.axis} {e.correction_deg:+.4f}°" for e in entries)
+        launch.enter_mastering(entries)
+    except (ValueError, OSError) as exc:  # MasteringError, ConfigError, a file that cannot be read or written
+        return f"error: {exc}"
+    return "\n".join([what, "mastering (the controller restarted with it):"] + launch.mastering.lines())
+
+
+def _answer(launch: SimLaunch, line: str, source: Path | None = None) -> str:
+    """What one stdin line does: a mastering entry (``source``: the cell file) or a fault."""
+    if line.split()[0] in MASTERING_WORDS or line.lstrip().startswith("$MAMES"):
+        return _mastering(launch, line, source)
+    try:
+        f = parse_command(line)
+    except FaultError as exc:
+        return f"error: {exc} (or a mastering line: 'master AXIS CORRECTION_DEG', 'enter RESULT.json', 'mastering')"
+    return _inject(launch, f.fault, f.device, f.duration_s, f.probability)
+
+
+def _lines(launch: SimLaunch, deadline: float, source: Path | None = None) -> None:
+    """stdin is a pipe (or closed): one fault or mastering line at a time until the deadline (EOF: just wait)."""
     done = threading.Event()
 
     def read() -> None:
@@ -178,12 +239,7 @@ def _lines(launch: SimLaunch, deadline: float) -> None:
                 return
             if not line.strip():
                 continue
-            try:
-                f = parse_command(line)
-            except FaultError as exc:
-                print(f"error: {exc}", flush=True)
-                continue
-            print(_inject(launch, f.fault, f.device, f.duration_s, f.probability), flush=True)
+            print(_answer(launch, line, source), flush=True)
 
     threading.Thread(target=read, name="sim-stdin", daemon=True).start()
     _running(deadline)
@@ -194,7 +250,7 @@ def _lines(launch: SimLaunch, deadline: float) -> None:
         done.set()
 
 
-def _keys(launch: SimLaunch, deadline: float) -> None:
+def _keys(launch: SimLaunch, deadline: float, source: Path | None = None) -> None:
     """stdin is a terminal: single keys (no Enter) inject faults; ``q`` quits."""
     import termios
     import tty
@@ -214,8 +270,17 @@ def _keys(launch: SimLaunch, deadline: float) -> None:
                 return
             if key in KEYS:
                 typer.echo(_inject(launch, KEYS[key], None, None, DEFAULT_LOSS))
+            elif key == "m":  # a whole line: the terminal reads it cooked, then single keys again
+                termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+                try:
+                    line = input("mastering ('master AXIS CORRECTION_DEG', 'enter RESULT.json', 'mastering'): ")
+                finally:
+                    tty.setcbreak(fd)
+                if line.strip():
+                    typer.echo(_mastering(launch, line if line.split()[0] in MASTERING_WORDS or
+                                          line.lstrip().startswith("$MAMES") else f"master {line}", source))
             elif key in ("h", "?"):
-                typer.echo(KEY_HELP)
+                typer.echo(KEY_HELP + "; m: enter mastering")
     finally:
         termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 

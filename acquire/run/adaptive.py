@@ -4,12 +4,15 @@ the stated quantities per second of motion, settling and measuring from where th
 and the run stops when the plan's stop rule holds.
 
 ``AdaptiveOrder`` holds the design over the plan's configurations (``calib.fit.design``: the
-fit's own parameters and priors, linearised at the nominal robot), the σ it predicts with
-(the plan's ``noise_mm``, or the fast fit's σ of the configurations measured when that is
-larger — unbiased for the effective number of parameters it fitted, used once it has
-``MIN_SIGMA_DOF`` degrees of freedom; the choice after n records uses the fit at the schedule's
-last count before the newest record, ``sigma_count``, so that it can be computed while that
-record is measured: ``acquire.run.lookahead``),
+fit's own parameters and priors, linearised at the nominal robot), the noise it predicts with
+(``use_sigma``: σ of a configuration's averaged coordinates as measured — the spread of its
+readings over √count, pooled over the records with the plan's ``noise_mm``/√samples as
+``PLAN_SIGMA_DOF`` degrees of freedom — and, once the fast fit of the records has
+``MIN_SIGMA_DOF`` degrees of freedom, the fit's σ, unbiased for the effective number of
+parameters it fitted; the misfit is what the fit's σ has beyond the spread: error the model does
+not explain; the choice after n records uses the fit at the schedule's last count before the
+newest record, ``sigma_count``, so that it can be computed while that record is measured:
+``acquire.run.lookahead``), the working joint space the plan declares (``joint_space_samples``),
 and the history (predicted intervals and workspace error against the number of
 configurations) that the summary shows. Nothing here moves the robot: the run's
 ``ConfigurationRunner`` does, with every check it always makes.
@@ -38,6 +41,9 @@ log = logging.getLogger(__name__)
 
 #: Degrees of freedom (coordinates less effective parameters) before the fast fit's σ is used.
 MIN_SIGMA_DOF = 10
+#: The plan's σ of a configuration (noise_mm / √samples) counts as this many degrees of freedom
+#: beside the spread of the readings measured (each record gives count − 1 per axis).
+PLAN_SIGMA_DOF = 6
 #: σ is refitted once the records have grown by this fraction (and before every stop decision):
 #: a fast fit of 60 configurations costs ~0.1 s (in the look-ahead worker while the robot moves,
 #: except before a stop decision), and σ changes little from one configuration to the next.
@@ -71,8 +77,30 @@ def stop_rule(lp, n_configs: int) -> StopRule:
         raise lp.error(("adaptive", "min_configurations"), f"fewer than the fit needs (given {lo}; allowed "
                                                            f"{need}…{n_configs})")
     hi = ad.max_configurations
-    return StopRule(interval_deg=ad.stop_when.interval_deg, workspace_within_pct=ad.stop_when.workspace_within_pct,
-                    held_out_within_pct=ad.stop_when.held_out_within_pct, min_configurations=lo, max_configurations=None if hi is None else min(hi, n_configs))
+    w = ad.stop_when
+    return StopRule(interval_deg=w.interval_deg, workspace_within_pct=w.workspace_within_pct,
+                    held_out_within_pct=w.held_out_within_pct, region_error_mm=w.region_error_mm,
+                    joint_space_error_mm=w.joint_space_error_mm, joint_space_within_pct=w.joint_space_within_pct,
+                    min_configurations=lo, max_configurations=None if hi is None else min(hi, n_configs))
+
+
+def joint_space_samples(lp, *, seed: int | None = None, n: int | None = None) -> np.ndarray:
+    """(n, n_joints) rad: configurations drawn uniformly (Latin hypercube per joint) from the
+    robot's working joint space as the plan declares it (``adaptive.joint_space``: its ranges,
+    or the model's joint limits less the commander's margin; its ``samples`` and ``seed`` unless
+    given) — where the predicted joint-space error averages."""
+    spec = lp.plan.adaptive.joint_space if lp.plan.adaptive is not None else None
+    n = int(n if n is not None else (spec.samples if spec is not None else 200))
+    seed = int(seed if seed is not None else (spec.seed if spec is not None else 0))
+    if spec is not None and spec.ranges_deg is not None:
+        lo, hi = (np.radians([r[k] for r in spec.ranges_deg]) for k in (0, 1))
+    else:
+        margin = lp.commander_margin_rad
+        lo = np.asarray(lp.model.lower_limits_rad, dtype=float) + margin
+        hi = np.asarray(lp.model.upper_limits_rad, dtype=float) - margin
+    rng = np.random.default_rng(seed)
+    u = (np.argsort(rng.random((len(lo), n)), axis=1).T + rng.random((n, len(lo)))) / n  # (n, J) in [0, 1)
+    return lo + u * (hi - lo)
 
 
 def fit_options(lp):
@@ -106,18 +134,23 @@ class AdaptiveOrder:
         self.lp, self.model, self.configs = lp, lp.model, self.plan_configs + pool
         self.index = {c.config_id: i for i, c in enumerate(self.configs)}
         self.limits, self.speed, self.per_config_s = limits, float(speed), float(per_config_s)
-        self.noise_mm = max(float(s.noise_mm) for s in lp.plan.sensors)
+        self.noise_mm = max(float(s.noise_mm) for s in lp.plan.sensors)  # per reading
+        self.samples = int(lp.plan.sequencing.samples)
+        self.plan_sigma_mm = self.noise_mm / math.sqrt(self.samples)  # of a configuration's mean, as planned
         self.options = fit_options(lp)
         q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
         sensors = {s.name: list(s.markers) for s in lp.plan.sensors}
         n_plan = len(self.plan_configs)
-        self.design = SequentialDesign(design_model(lp.model, q, sensors, self.options,
-                                                    plan_size=n_plan if pool else None),
-                                       stop_rule(lp, n_plan), self.noise_mm)
+        model = design_model(lp.model, q, sensors, self.options, plan_size=n_plan if pool else None,
+                             joint_space_q=joint_space_samples(lp))
+        self.design = SequentialDesign(model, stop_rule(lp, n_plan), self.plan_sigma_mm)
+        self.require_fit = True  # a rule's stop waits for the fit's σ (``simulate`` assumes the plan's)
+        self.held_for_fit = False  # the last status met the rule but waited for the fit's σ
         self.dropped: set[int] = set()  # skipped or failed: not chosen again in this run
         self.records: list[dict] = []
         self.history: list[dict] = []
         self.fitted_sigma_mm: float | None = None
+        self.spread_sigma_mm: float | None = None
         self._sigma_n = 0  # records when σ was last fitted
         self._fits: dict[int, float | None] = {}  # fast-fit σ by record count (records only grow)
 
@@ -141,7 +174,7 @@ class AdaptiveOrder:
 
         other = copy.copy(self)
         d = self.design
-        other.design = SequentialDesign(d.model, d.rule, d.sigma_mm, measured=list(d.measured))
+        other.design = SequentialDesign(d.model, d.rule, d.sigma_mm, measured=list(d.measured), misfit_mm=d.misfit_mm)
         other.dropped, other.records, other.history = set(self.dropped), list(self.records), []
         other._fits = dict(self._fits)
         other._between = self.between_seconds()
@@ -183,16 +216,38 @@ class AdaptiveOrder:
             self._fits[upto] = self.fast_fit_sigma(upto) if upto > 0 else None
         return self._fits[upto]
 
+    def spread_sigma(self, upto: int | None = None) -> float:
+        """σ of a configuration's averaged coordinates as the first ``upto`` records measured it
+        (mm per axis): each marker's reading spread per axis (``std_mm``, ddof 1) over √count,
+        pooled by degrees of freedom (count − 1) with the plan's noise_mm / √samples as
+        ``PLAN_SIGMA_DOF`` of them (the plan's alone before a record has a spread)."""
+        var, dof = PLAN_SIGMA_DOF * self.plan_sigma_mm**2, float(PLAN_SIGMA_DOF)
+        for rec in self.records[:upto]:
+            for m in rec.get("markers", []):
+                std, count = m.get("std_mm"), m.get("count")
+                if std is None or count is None or int(count) < 2:
+                    continue
+                s2 = np.asarray(std, dtype=float) ** 2 / int(count)
+                s2 = s2[np.isfinite(s2)]
+                var += float(np.sum(s2)) * (int(count) - 1)
+                dof += len(s2) * (int(count) - 1)
+        return math.sqrt(var / dof)
+
     def use_sigma(self, upto: int) -> None:
-        """Predict with σ of the first ``upto`` records: the larger of the plan's ``noise_mm`` and
-        their fast fit's σ (the plan's while there is no fit) — the design never predicts a better
-        instrument than the plan states, and a worse one as soon as the data show it."""
+        """Predict with the noise of the first ``upto`` records: σ their fast fit's (what the data
+        say the model leaves, misfit included) once it is determined, else the spread of their
+        readings (``spread_sigma``) — never less than the spread: a fit of few degrees of freedom
+        that leaves less than the sensor's own noise has fitted some of it; the misfit
+        sqrt(max(0, σ_fit² − σ_spread²)) — error the model does not explain, which the predicted
+        model errors count and no configuration reduces."""
         fitted = self.fitted_sigma(upto)
+        spread = self.spread_sigma(upto)
         self._sigma_n = upto
-        self.fitted_sigma_mm = fitted
-        sigma = self.noise_mm if fitted is None else max(self.noise_mm, fitted)
-        if sigma != self.design.sigma_mm:
-            self.design.set_sigma(sigma)
+        self.fitted_sigma_mm, self.spread_sigma_mm = fitted, spread
+        sigma = spread if fitted is None else max(fitted, spread)
+        misfit = 0.0 if fitted is None else math.sqrt(max(0.0, fitted**2 - spread**2))
+        if (sigma, misfit) != (self.design.sigma_mm, self.design.misfit_mm):
+            self.design.set_noise(sigma, misfit)
 
     def update_sigma(self, upto: int | None = None) -> None:
         """σ of every record so far (or of the first ``upto``): ``use_sigma``."""
@@ -202,7 +257,7 @@ class AdaptiveOrder:
         """What a choice depends on: the measured (in order) and dropped candidates, σ and where
         the robot stands. A choice computed ahead is used only when its key is the state's."""
         return (tuple(int(i) for i in self.design.measured), tuple(sorted(int(i) for i in self.dropped)),
-                float(self.design.sigma_mm), tuple(float(x) for x in np.asarray(here_q_rad, dtype=float).ravel()))
+                float(self.design.sigma_mm), float(self.design.misfit_mm), tuple(float(x) for x in np.asarray(here_q_rad, dtype=float).ravel()))
 
     def fast_fit_sigma(self, upto: int | None = None) -> float | None:
         """The fitted σ (mm, largest over sensors) of the posterior mode on the records, or None
@@ -232,17 +287,25 @@ class AdaptiveOrder:
         # with MIN_SIGMA_DOF degrees of freedom left.
         n_coord = 3 * len(data)
         fitted = sorted({self.index[c] for c in cid if c in self.index})
-        p_eff = self.design.effective_parameters(fitted, self.noise_mm)
+        p_eff = self.design.effective_parameters(fitted, self.spread_sigma(upto))
         if n_coord - p_eff < MIN_SIGMA_DOF:
             return None
         sigma = float(np.max(np.exp(mf.log_sigma))) * math.sqrt(n_coord / (n_coord - p_eff))
         return sigma if math.isfinite(sigma) and sigma > 0 else None
 
     def status(self) -> Status:
+        """The design's status; a rule met before the fit's σ is determined does not stop the run
+        (the spread alone cannot tell what the model leaves unexplained) unless ``require_fit``
+        is off (``simulate``: the plan's noise assumed)."""
+        from dataclasses import replace
+
         st = self.design.status()
+        self.held_for_fit = (st.stop and self.require_fit and self.fitted_sigma_mm is None
+                             and st.reason.startswith("stop rule met"))
+        if self.held_for_fit:
+            st = replace(st, stop=False, reason="")
         if not st.stop and not self._choosable().size:
-            st = Status(st.n_measured, st.half_width_deg, st.workspace_mm, st.full_workspace_mm, True,
-                        f"plan exhausted: {st.n_measured} measured, the rest skipped or failed")
+            st = replace(st, stop=True, reason=f"plan exhausted: {st.n_measured} measured, the rest skipped or failed")
         return st
 
     def _choosable(self) -> np.ndarray:
@@ -302,12 +365,33 @@ class AdaptiveOrder:
 
     def record_status(self, st: Status) -> dict:
         """One history row (also the ``adaptive_status`` event's fields)."""
+        r6 = lambda v: None if v is None else round(v, 6)  # noqa: E731
         row = {"n": st.n_measured, "max_half_width_deg": round(st.max_half_width_deg, 6),
                "workspace_mm": round(st.workspace_mm, 6), "full_workspace_mm": round(st.full_workspace_mm, 6),
                "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),
-               "sigma_mm": round(self.design.sigma_mm, 5)}
+               "region_mm": round(st.region_mm, 6), "joint_space_mm": r6(st.joint_space_mm),
+               "full_joint_space_mm": r6(st.full_joint_space_mm),
+               "sigma_mm": round(self.design.sigma_mm, 5), "misfit_mm": round(self.design.misfit_mm, 5),
+               "sigma_from": "fit" if self.fitted_sigma_mm is not None else "spread"}
         self.history.append(row)
         return row
+
+    def decision(self, st: Status) -> dict:
+        """What backs a stop decision: every stated criterion (limit, predicted, met), the noise
+        it was judged with (the plan's per reading and per configuration, the readings' spread, the
+        fit's σ, the misfit, the σ used) and the predicted errors against the full plan's."""
+        r6 = lambda v: None if v is None else round(float(v), 6)  # noqa: E731
+        d = self.design
+        return {"checks": [c.to_dict() for c in st.checks],
+                "noise": {"plan_per_reading_mm": self.noise_mm, "samples": self.samples,
+                          "plan_per_configuration_mm": r6(self.plan_sigma_mm), "spread_mm": r6(self.spread_sigma_mm),
+                          "fitted_mm": r6(self.fitted_sigma_mm), "misfit_mm": r6(d.misfit_mm), "used_mm": r6(d.sigma_mm)},
+                "predicted": {"max_half_width_deg": r6(st.max_half_width_deg),
+                              "full_max_half_width_deg": r6(max(d.half_widths_deg(d.covariance(
+                                  range(d.model.n_plan))).values(), default=0.0)),
+                              "region_mm": r6(st.region_mm), "full_region_mm": r6(st.full_region_mm),
+                              "joint_space_mm": r6(st.joint_space_mm), "full_joint_space_mm": r6(st.full_joint_space_mm),
+                              "held_out_mm": r6(st.held_out_mm), "full_held_out_mm": r6(st.full_held_out_mm)}}
 
     # ------------------------------------------------------------------ cell time
     def full_plan_seconds(self, start_q_rad: np.ndarray) -> float:
@@ -323,6 +407,27 @@ class AdaptiveOrder:
 
         return float(move_times(list(visited), start_q_rad, self.limits, self.speed).sum()
                      + len(visited) * self.per_config_s)
+
+
+def found_after_the_fact(ad: dict, fit: dict) -> dict:
+    """What the run's fit found, beside what the stop was predicted with (``AdaptiveRun.summary``'s
+    ``decision``): the largest 95 % half-width (deg) of the offsets the design called determinable
+    that the fit determined, the fit's σ (mm, largest over sensors) and, with it, the misfit over
+    the readings' spread; and the predicted values they stand against. ``fit``: result.json's document."""
+    names = {n.split(".")[0] for n in ad.get("half_width_deg", {})}
+    widths = [(e["ci95_deg"][1] - e["ci95_deg"][0]) / 2 for e in fit.get("joint_offsets", [])
+              if e.get("joint") in names and e.get("ci95_deg")]
+    sigmas = [v["value"] for v in (fit.get("sigma_mm") or {}).values() if v and v.get("value") is not None]
+    sigma = max(sigmas) if sigmas else None
+    noise = (ad.get("decision") or {}).get("noise", {})
+    spread = noise.get("spread_mm")
+    misfit = None if sigma is None or spread is None else math.sqrt(max(0.0, sigma**2 - spread**2))
+    pred = (ad.get("decision") or {}).get("predicted", {})
+    return {"max_half_width_deg": round(max(widths), 6) if widths else None,
+            "determined": len(widths), "of": len(names),
+            "predicted_max_half_width_deg": pred.get("max_half_width_deg"),
+            "sigma_mm": None if sigma is None else round(sigma, 6), "predicted_sigma_mm": noise.get("used_mm"),
+            "misfit_mm": None if misfit is None else round(misfit, 6), "predicted_misfit_mm": noise.get("misfit_mm")}
 
 
 def admissible_pool(pool, limits, margin_rad: float) -> list:
@@ -349,11 +454,13 @@ def simulate(order: AdaptiveOrder, start_q_rad: np.ndarray, *, to_the_end: bool 
     to_the_end: ignore the criteria, choose until ``max_configurations`` or the plan's end (the
     longest the run can take)."""
     order = order.copy()
+    order.require_fit = False
     if to_the_end:
         from dataclasses import replace
 
         order.design.rule = replace(order.design.rule, interval_deg=1e-12, workspace_within_pct=None,
-                                    held_out_within_pct=None)
+                                    held_out_within_pct=None, region_error_mm=None, joint_space_error_mm=None,
+                                    joint_space_within_pct=None)
     here = np.asarray(start_q_rad, dtype=float)
     chosen = []
     st = order.status()
@@ -411,6 +518,7 @@ class AdaptiveRun:
                 "min_configurations": rule.min_configurations, "max_configurations": rule.max_configurations,
                 "candidates": len(o.plan_configs), **o.pool_fields(), "measured_before": self.resumed_n,
                 "determinable": list(o.design.model.offset_names), "noise_mm": o.noise_mm,
+                "sigma_per_configuration_mm": round(o.plan_sigma_mm, 6),
                 "predicted_configurations": len(self.predicted) + self.resumed_n,
                 "predicted_seconds": round(o.visited_seconds(self.predicted, self.start_q), 1),
                 "full_plan_seconds": round(o.full_plan_seconds(self.start_q), 1)}
@@ -436,7 +544,7 @@ class AdaptiveRun:
         o = self.order
         o.use_sigma(o.sigma_count())
         st = o.status()
-        if st.stop and o.sigma_stale():
+        if (st.stop or o.held_for_fit) and o.sigma_stale():
             o.use_sigma(len(o.records))
             st = o.status()
         return st
@@ -506,6 +614,7 @@ class AdaptiveRun:
                 "held_out_mm": round(st.held_out_mm, 6), "full_held_out_mm": round(st.full_held_out_mm, 6),
                 "sigma_mm": round(o.design.sigma_mm, 5),
                 "fitted_sigma_mm": None if o.fitted_sigma_mm is None else round(o.fitted_sigma_mm, 5),
+                "decision": o.decision(st),
                 "history": o.history, "estimated_seconds": round(spent, 1),
                 "compute_seconds": round(self.compute_s, 1), "full_plan_seconds": round(full, 1),
                 **({"lookahead": self.lookahead.stats()} if self.lookahead is not None else {}),

@@ -94,6 +94,9 @@ def _add_adaptive(summary) -> None:
     intervals against the number of configurations, the cell time saved against the full plan."""
     from calib.fit.result import write_result
 
+    from acquire.run.adaptive import found_after_the_fact
+
+    summary.adaptive["found"] = found_after_the_fact(summary.adaptive, summary.fit)
     summary.fit["adaptive"] = summary.adaptive
     if summary.result_path is not None:
         write_result(summary.result_path, summary.fit)

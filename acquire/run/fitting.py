@@ -27,7 +27,8 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500, progress=None) -> tu
     if getattr(lp.plan, "socket", None) is not None:
         return fit_socket_run_log(log_path, lp)
     from acquire.recorder import dataset_from_run
-    from calib.robot.controller import apply_guards, controller_values
+    from calib.robot.controller import apply_guards
+    from calib.fit.entered import as_found_markers, attach, for_controller
     from calib.fit.offsets import FitOptions, fit_offsets
     from calib.robot.kinematics import Chain
     from calib.fit.metrics import accuracy_metrics
@@ -63,11 +64,12 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500, progress=None) -> tu
     result = fit_offsets(model, cal, options)
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
                                result.applied_sigma_mm, validation=val, n_random=n_random, seed=0,
-                               markers_mm=result.fitted_markers_mm)
+                               markers_mm=result.fitted_markers_mm, before_markers_mm=as_found_markers(model, cal))
     doc = result_dict(result, cal, metrics=metrics)
-    apply_guards(doc)
-    values = controller_values(model, doc["joint_offsets"])
-    doc["controller"] = values.to_dict()
+    # An offsets-only fit: its offsets are the controller's, judged against the robot as found held out.
+    entered, _ = for_controller(model, cal, val, options, full_arm=None, full_folds=None, fitted_model=options.method,
+                                own=result, more_guards=apply_guards(doc))
+    _, text = attach(model, doc, entered)
     result_path = base.with_name("result.json")
     write_result(result_path, doc)
     report_path = None
@@ -75,7 +77,7 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500, progress=None) -> tu
         from calib.report.html import write_report
 
         report_path = base.with_name("report.html")
-        write_report(report_path, result, cal, doc, values.format())
+        write_report(report_path, result, cal, doc, text)
     except (ImportError, ValueError, RuntimeError, OSError) as exc:
         log.warning("report not written (use `acquire fit %s`): %s", log_path, exc)
         report_path = None

@@ -310,6 +310,7 @@ def accuracy_metrics(
     *,
     validation: Dataset | None = None,
     markers_mm: dict[str, np.ndarray] | None = None,
+    before_markers_mm: dict[str, np.ndarray] | None = None,
     n_random: int = 1000,
     n_draws: int = THEORETICAL_DRAWS,
     mc_se_mm: float | None = MC_SE_MM,
@@ -329,7 +330,9 @@ def accuracy_metrics(
     ``validation_relative`` / ``validation_absolute`` of Table VIII — the latter scored with the
     registration of the calibration data (``validation_scores``), with the optimistic
     ``validation_absolute_reregistered`` beside it. ``markers_mm``: fitted marker positions
-    (flange frame, mm) that belong to the "after" model. ``notes``: caveats. Plus ``offsets_share``:
+    (flange frame, mm) that belong to the "after" model; ``before_markers_mm``: those of the robot as
+    found (zero offsets, its tool fitted: ``calib.fit.entered.as_found_markers``; None: the model's
+    drawing, a before nobody has). ``notes``: caveats. Plus ``offsets_share``:
     mean error from the offsets alone ÷ mean error with σ, over the workspace (the paper's
     "95 % before, 15 % after"), and ``settings`` (n_random, n_draws, σ, seed).
 
@@ -344,7 +347,8 @@ def accuracy_metrics(
     zero = np.zeros(chain.n)
     applied = np.asarray(applied_offsets_rad, dtype=float)
     out: dict = {}
-    before, after = predicted_base(chain, data, zero), predicted_base(chain, data, applied, markers_mm=markers_mm)
+    before = predicted_base(chain, data, zero, markers_mm=before_markers_mm)
+    after = predicted_base(chain, data, applied, markers_mm=markers_mm)
     rel_b, rel_a = relative_errors(data, before), relative_errors(data, after)
     if rel_b.size:
         out["relative"] = _pair(rel_b, rel_a)
@@ -363,7 +367,7 @@ def accuracy_metrics(
     ws, wo = out["theoretical_workspace"], out["theoretical_workspace_offsets_only"]
     out["offsets_share"] = {k: (wo[k]["mean"] / ws[k]["mean"] if ws[k]["mean"] > 0 else float("nan")) for k in ("before", "after")}
     if validation is not None and len(validation):
-        vb = predicted_base(chain, validation, zero)
+        vb = predicted_base(chain, validation, zero, markers_mm=before_markers_mm)
         va = predicted_base(chain, validation, applied, markers_mm=markers_mm)
         vrel_b, vrel_a = relative_errors(validation, vb), relative_errors(validation, va)
         if vrel_b.size:

@@ -78,6 +78,10 @@ class Candidate:
         return self.kinds.index(self.kind) + (0.5 if self.compliance else 0.0)
 
 
+#: The model of the offsets a controller is given (``calib.fit.entered``).
+ENTERED = Candidate("offsets+tool")
+
+
 def candidates(model: RobotModel, *, include_full: bool = True, compliance_only: bool = False) -> list[Candidate]:
     """Every candidate for ``model``: the compliance variants only with link masses
     (``compliance_only``: only those — ``--compliance``)."""
@@ -357,7 +361,7 @@ def format_table(mc: dict) -> str:
     return "\n".join(lines)
 
 
-def _config_errors(data: Dataset, dist: np.ndarray) -> np.ndarray:
+def config_errors(data: Dataset, dist: np.ndarray) -> np.ndarray:
     """Per configuration of ``data``, the rms of ``dist`` (rows,) over its rows."""
     _, inv = np.unique(data.config, return_inverse=True)
     inv = inv.ravel()
@@ -426,8 +430,8 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
         if not ok.any():
             continue
         test = test.subset(ok)
-        names.append(np.unique(test.config))  # the order of _config_errors
-        nominal_parts.append(_config_errors(test, _nominal_distances(model, train, test)))
+        names.append(np.unique(test.config))  # the order of config_errors
+        nominal_parts.append(config_errors(test, _nominal_distances(model, train, test)))
         tol, why = link_tolerance, None
         if tol is None and any(c.kind == "offsets+tool+links" for c in cands):
             try:  # the fold's own scale: its held-out configurations never inform it
@@ -457,7 +461,7 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
             scores[i].n_params = n_params if scores[i].n_params is None else max(scores[i].n_params, n_params)
             scores[i].chi2 += chi2
             scores[i].n_chi2 += n_chi2
-            per[i].append(_config_errors(test, dist))
+            per[i].append(config_errors(test, dist))
     all_names = np.concatenate(names) if names else np.zeros(0, dtype=str)
     for s, parts in zip(scores, per):
         if parts and not s.failed:
@@ -481,17 +485,21 @@ def one_se_choice(scores: list[Score]) -> str:
 def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions(), *, force: str | None = None,
                  k: int = 5, include_full: bool = True, link_tolerance: tuple[float, float] | None = None,
                  compliance_only: bool = False, progress: Progress | None = None) -> ModelChoice:
-    """Score every candidate and choose; ``force`` (``--model NAME``): that candidate only — it is
+    """Score every candidate and choose; ``force`` (``--model NAME``): that candidate — it is
     fitted on the folds and scored against the nominal model (its held-out misfit still widens its
     intervals, ``interval_factor``), and no other candidate is fitted. ``link_tolerance`` given:
-    that link scale instead of the empirical Bayes one. ``progress``: told of each fit.
+    that link scale instead of the empirical Bayes one. ``progress``: told of each fit. A forced model
+    other than offsets+tool is scored beside offsets+tool, the model of the offsets to enter
+    (``calib.fit.entered``), whose held-out misfit widens their intervals.
 
     Each candidate (but full identification) is first fitted on all the data; its fold fits start
     there (``fit_mode``'s ``start``), and ``ModelChoice.starts`` keeps these fits for the chosen
     model's own (``calib.fit.auto_fit``)."""
     cands = candidates(model, include_full=include_full, compliance_only=compliance_only)
-    if force is not None:
+    if force is not None:  # that model, and offsets+tool: its held-out misfit scales the controller's offsets
         cands = [parse_candidate(force, model)]
+        if cands[0] != ENTERED:
+            cands = sorted(cands + [ENTERED], key=lambda c: c.rank)
     scale = None
     if link_tolerance is None and any(c.kind == "offsets+tool+links" for c in cands):
         scale = empirical_link_scale(model, data, replace(base, compliance=False))
@@ -526,7 +534,8 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
         chosen = min(cands, key=lambda c: c.rank).name
     excluded = None
     if force is not None:
-        excluded = "the other candidates: --model chose this one, so only it was fitted"
+        excluded = ("the other candidates: --model chose this one, so only it was fitted (and offsets+tool, the "
+                    "model of the offsets to enter, whose held-out misfit scales their intervals)")
     elif not include_full:
         excluded = "full: left out by the caller"
     elif compliance_only:

@@ -145,6 +145,29 @@ def diagnostics(result: FitResult) -> dict:
     return d
 
 
+def registration_statistics(result: FitResult, alpha: float = 0.05) -> dict:
+    """Per sensor, the registration seed's spatial correlation (``calib.fit.regstats``, Sec. IV-A):
+    Pearson r between each row's position error at the posterior mode (mm) and its distance from
+    the sensor's origin (mm). A significant positive r says the error grows across the sensor's
+    volume — a registration or scale error, or a sensor that loses accuracy with range — which the
+    offsets' intervals (independent errors) do not describe. Sensors with fewer than 3 rows or
+    constant distances are left out."""
+    from calib.fit.regstats import spatial_correlation
+
+    post = result.posterior
+    dim = post.dim
+    errors = np.linalg.norm(post.position_residuals(result.mode[:dim]), axis=-1)
+    out = {}
+    for s in post.sensors:
+        rows = post.data.sensor == s
+        try:
+            c = spatial_correlation(errors[rows], post.data.xyz_mm[rows], alpha=alpha)
+        except ValueError:
+            continue
+        out[s] = {"r": c.r, "p_value": c.p_value, "n": c.n, "significant": c.significant, "decision": c.decision}
+    return out
+
+
 def graded(ident: Identifiability, result: FitResult) -> dict:
     """``ident.to_dict()`` with each direction graded against the fit's σ (``calib.plan.identifiability.verdicts``):
     verdict, why, std_mm (scaled mm: angles × the lever arm), condition (s_max / s)."""

@@ -8,7 +8,10 @@ Files (``../shared/fixtures/ur10-ipa-tracker-6dof/``, MIT; Landgraf et al., IEEE
 ``measurement_x/y/z``                       the T-Mac's origin in the tracker frame, mm
 ``measurement_rx/ry/rz``                    its orientation, **degrees**, intrinsic X-Y-Z Euler
                                             angles: R_tracker←T-Mac = Rx(rx)·Ry(ry)·Rz(rz)
-``measurement_std_*``                       per-axis standard deviations of the samples (mm, °)
+``measurement_std_*``                       per-axis standard deviations of the samples (mm, °);
+                                            optional: without them the rows carry no spread (NaN),
+                                            and ``acquire fit`` estimates the noise from the data
+                                            (``calib.fit.noise``)
 
 The attitude spread of a row is the RMS of its three angle deviations (for these small, near
 orthogonal angles a fair per-axis figure for the rotation vector). ``Timestamp`` lost its
@@ -18,6 +21,7 @@ precision in a spreadsheet and is not used.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +40,18 @@ def euler_xyz_intrinsic(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray) -> np.nd
     return rot_x(rx) @ rot_y(ry) @ rot_z(rz)
 
 
+def is_ipa_series(path: str | Path) -> bool:
+    """Whether the first line of ``path`` is an IPA series header (';'-separated, the UR joint and
+    ``measurement_*`` columns): ``acquire fit`` then reads it with ``read_ipa_series``."""
+    try:
+        with open(path, "rb") as f:
+            head = f.readline(4096).decode("utf-8-sig", errors="replace")
+    except OSError:
+        return False
+    cells = [c.strip() for c in head.strip().split(";")]
+    return all(c in cells for c in (*JOINTS, *POSITION))
+
+
 def read_ipa_series(path: str | Path, *, marker: str = "tmac", sensor: str = "tracker", prefix: str = "") -> Dataset:
     """Every row of one IPA series as a pose dataset (configuration ids ``{prefix}c{row}``).
 
@@ -51,11 +67,13 @@ def read_ipa_series(path: str | Path, *, marker: str = "tmac", sensor: str = "tr
         raise DatasetError(f"{path}: no header and data")
     head_no, head = lines[0]
     header = csvdialect.split(head, ";")
-    need = [*JOINTS, *POSITION, *ANGLES, *(f"measurement_std_{c}" for c in ("x", "y", "z", "rx", "ry", "rz"))]
+    spreads = [f"measurement_std_{c}" for c in ("x", "y", "z", "rx", "ry", "rz")]
+    has_spread = all(c in header for c in spreads)
+    need = [*JOINTS, *POSITION, *ANGLES, *(spreads if has_spread else ())]
     missing = [c for c in need if c not in header]
     if missing:
         raise DatasetError(f"{path}:{head_no}: missing column(s) {missing}; this reader expects the IPA series format "
-                           "(';'-separated, decimal comma)")
+                           "(';'-separated, decimal comma; the measurement_std_* columns all or none)")
     col = {h: i for i, h in enumerate(header)}
     rows = []
     for no, line in lines[1:]:
@@ -78,7 +96,11 @@ def read_ipa_series(path: str | Path, *, marker: str = "tmac", sensor: str = "tr
         raise DatasetError(f"{path}: joint angles up to {np.abs(q).max():.1f}: the series gives radians (±2π)")
     xyz = a[:, 6:9]
     rot = euler_xyz_intrinsic(*np.radians(a[:, 9:12]).T)
-    std_mm = np.sqrt(np.mean(a[:, 12:15] ** 2, axis=1))
-    att = np.radians(np.sqrt(np.mean(a[:, 15:18] ** 2, axis=1)))
-    return from_arrays(q, xyz, marker=marker, sensor=sensor, config=np.array([f"{prefix}c{i}" for i in range(len(a))]),
-                       std_mm=std_mm, count=np.ones(len(a), int), rot=rot, att_std_rad=att)
+    if has_spread:
+        std_mm = np.sqrt(np.mean(a[:, 12:15] ** 2, axis=1))
+        att = np.radians(np.sqrt(np.mean(a[:, 15:18] ** 2, axis=1)))
+    else:
+        std_mm = att = np.full(len(a), np.nan)
+    ds = from_arrays(q, xyz, marker=marker, sensor=sensor, config=np.array([f"{prefix}c{i}" for i in range(len(a))]),
+                     std_mm=std_mm, count=np.full(len(a), 1 if has_spread else 0), rot=rot, att_std_rad=att)
+    return replace(ds, source=str(path))

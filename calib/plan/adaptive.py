@@ -1,4 +1,4 @@
-"""Sequential design: which configuration to measure next, and when to stop (issue 27).
+"""Sequential design: which configuration to measure next, and when to stop (issues 27, 35).
 
 The fit is linear enough about the nominal robot that its posterior covariance after a set of
 configurations is, to first order, the inverse of the information they carry:
@@ -12,7 +12,11 @@ weak priors on the parameters the fit leaves flat so that Σ exists before the f
 configuration) and σ the measurement noise per axis (mm). Σ does not depend on the measured
 values, only on where the robot was and on σ — so the design needs no fit beyond σ.
 
-Two quantities a metrologist states a stop rule in (``StopRule``):
+The quantities a stop rule is stated in (``StopRule``; ``CRITERIA``) — absolute, in the operator's
+terms: the offsets' half-widths, the model error at new poses of the plan's region and over the
+robot's working joint space (``DesignModel.joint_space``), each model error with the misfit the
+fit's σ shows beyond the sensor's spread (``SequentialDesign.misfit_mm``: error no configuration
+reduces); relative, against what the full plan would reach:
 
 * the half-width of every determinable offset's 95 % interval, ``T · sqrt(Σ_kk)`` (degrees;
   T = 2.228, the 97.5 % quantile of the Student t with 10 degrees of freedom that the Laplace
@@ -58,9 +62,18 @@ T95 = 2.2281388519649385
 class StopRule:
     """When a sequential run stops (every stated criterion must hold, after ``min_configurations``).
 
+    In the operator's terms (absolute):
     interval_deg: every determinable offset's 95 % interval half-width ≤ this (deg), or None.
+    region_error_mm: the predicted model error (rms, 3-D, mm; the model's uncertainty and its
+    misfit, no sensor noise) at new poses of the plan's region ≤ this, or None.
+    joint_space_error_mm: the same over the robot's working joint space as the plan declares it
+    (``DesignModel.joint_space``), or None.
+
+    Against the full plan (relative):
     workspace_within_pct: predicted workspace error ≤ (1 + pct/100) × the full plan's, or None.
     held_out_within_pct: predicted held-out error ≤ (1 + pct/100) × the full plan's, or None.
+    joint_space_within_pct: predicted joint-space error ≤ (1 + pct/100) × the full plan's, or None.
+
     min_configurations: never stop before this many measured configurations.
     max_configurations: stop at this many even if the criteria are not met (None: the plan's size).
     """
@@ -70,13 +83,17 @@ class StopRule:
     held_out_within_pct: float | None = None
     min_configurations: int = 1
     max_configurations: int | None = None
+    region_error_mm: float | None = None
+    joint_space_error_mm: float | None = None
+    joint_space_within_pct: float | None = None
 
     def __post_init__(self) -> None:
-        if self.interval_deg is None and self.workspace_within_pct is None and self.held_out_within_pct is None:
-            raise ValueError("a stop rule needs interval_deg, workspace_within_pct or held_out_within_pct")
-        if self.interval_deg is not None and not self.interval_deg > 0:
-            raise ValueError(f"interval_deg must be > 0, given {self.interval_deg}")
-        for name in ("workspace_within_pct", "held_out_within_pct"):
+        if not self.criteria:
+            raise ValueError("a stop rule needs one of " + ", ".join(CRITERIA))
+        for name in ("interval_deg", "region_error_mm", "joint_space_error_mm"):
+            if getattr(self, name) is not None and not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, given {getattr(self, name)}")
+        for name in ("workspace_within_pct", "held_out_within_pct", "joint_space_within_pct"):
             if getattr(self, name) is not None and not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be ≥ 0, given {getattr(self, name)}")
         if self.min_configurations < 1:
@@ -84,6 +101,20 @@ class StopRule:
         if self.max_configurations is not None and self.max_configurations < self.min_configurations:
             raise ValueError(f"max_configurations ({self.max_configurations}) must be ≥ min_configurations "
                              f"({self.min_configurations})")
+
+    @property
+    def criteria(self) -> dict[str, float]:
+        """The stated criteria, name → limit (the names of ``CRITERIA``)."""
+        return {k: float(getattr(self, k)) for k in CRITERIA if getattr(self, k) is not None}
+
+    @property
+    def needs_joint_space(self) -> bool:
+        return self.joint_space_error_mm is not None or self.joint_space_within_pct is not None
+
+
+#: The stop rule's criteria, in the order they are reported.
+CRITERIA = ("interval_deg", "region_error_mm", "joint_space_error_mm", "workspace_within_pct",
+            "held_out_within_pct", "joint_space_within_pct")
 
 
 @dataclass(frozen=True)
@@ -100,6 +131,8 @@ class DesignModel:
     workspace_from_candidates: A is the mean of the plan's candidates' own JᵀJ per 3 rows (as
     ``calib.fit.design`` builds it): the predicted errors are then those at new configurations
     like the plan's (``SequentialDesign.new_pose_workspace_mm``), not at the measured ones.
+    joint_space: (L, L) the same matrix over configurations drawn from the robot's working joint
+    space as the plan declares it (none of them a candidate: no leave-one-out), or None.
     """
 
     rows: np.ndarray
@@ -110,6 +143,7 @@ class DesignModel:
     names: tuple[str, ...] = ()
     plan_size: int | None = None
     workspace_from_candidates: bool = False
+    joint_space: np.ndarray | None = None
 
     @property
     def n_candidates(self) -> int:
@@ -122,9 +156,26 @@ class DesignModel:
 
 
 @dataclass(frozen=True)
+class Check:
+    """One criterion of the stop rule as judged: its name (``CRITERIA``), the limit stated, the
+    value predicted (deg, mm, or % over the full plan's) and whether it holds."""
+
+    name: str
+    limit: float
+    predicted: float
+    met: bool
+
+    def to_dict(self) -> dict:
+        return {"criterion": self.name, "limit": self.limit, "predicted": round(self.predicted, 6), "met": self.met}
+
+
+@dataclass(frozen=True)
 class Status:
     """What the measured configurations predict: half-widths (deg) by offset name, the predicted
-    workspace and held-out errors (mm) and the full plan's, and the stop decision with its reason."""
+    workspace and held-out errors (mm) and the full plan's, the model error at new poses of the
+    plan's region and over the working joint space (mm, misfit included; the latter None without
+    a joint space), each stated criterion as judged (``checks``; ``unmet`` their names where the
+    prediction falls short), and the stop decision with its reason."""
 
     n_measured: int
     half_width_deg: dict[str, float]
@@ -134,17 +185,29 @@ class Status:
     reason: str
     held_out_mm: float = 0.0
     full_held_out_mm: float = 0.0
+    region_mm: float = 0.0
+    full_region_mm: float = 0.0
+    joint_space_mm: float | None = None
+    full_joint_space_mm: float | None = None
+    checks: tuple[Check, ...] = ()
 
     @property
     def max_half_width_deg(self) -> float:
         return max(self.half_width_deg.values()) if self.half_width_deg else 0.0
 
+    @property
+    def unmet(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.checks if not c.met)
+
     def to_dict(self) -> dict:
+        r6 = lambda v: None if v is None else round(v, 6)  # noqa: E731
         return {"n_measured": self.n_measured, "max_half_width_deg": round(self.max_half_width_deg, 6),
                 "half_width_deg": {k: round(v, 6) for k, v in self.half_width_deg.items()},
                 "workspace_mm": round(self.workspace_mm, 6), "full_workspace_mm": round(self.full_workspace_mm, 6),
                 "held_out_mm": round(self.held_out_mm, 6), "full_held_out_mm": round(self.full_held_out_mm, 6),
-                "stop": self.stop, "reason": self.reason}
+                "region_mm": round(self.region_mm, 6), "full_region_mm": round(self.full_region_mm, 6),
+                "joint_space_mm": r6(self.joint_space_mm), "full_joint_space_mm": r6(self.full_joint_space_mm),
+                "checks": [c.to_dict() for c in self.checks], "stop": self.stop, "reason": self.reason}
 
 
 @dataclass(frozen=True)
@@ -188,13 +251,18 @@ class Route:
 class SequentialDesign:
     """The design's state: which candidates are measured, the information so far.
 
-    sigma_mm: measurement noise per axis (mm); ``set_sigma`` updates it (e.g. from the fast fit).
+    sigma_mm: σ of a configuration's measured coordinates, per axis (mm): the noise of the
+    averaged readings and, once a fit tells, what the model leaves unexplained (the fit's σ);
+    misfit_mm: the part of σ the sensor's spread does not explain, per axis (mm): the model's
+    systematic error, which more configurations do not reduce — counted in the model errors the
+    rule predicts at new poses. ``set_noise`` updates both (``acquire.run.adaptive``).
     """
 
     model: DesignModel
     rule: StopRule
     sigma_mm: float
     measured: list[int] = field(default_factory=list)
+    misfit_mm: float = 0.0
 
     def __post_init__(self) -> None:
         if not self.sigma_mm > 0:
@@ -203,13 +271,20 @@ class SequentialDesign:
         self._blocks = np.einsum("nri,nrj->nij", r, r)  # (N, L, L), mm² per unit²
         self._all = self._blocks[: self.model.n_plan].sum(axis=0)  # the full plan: the plan's own
         self._full_ws: float | None = None
+        self._full_js: float | None = None
 
     # ------------------------------------------------------------------ state
     def set_sigma(self, sigma_mm: float) -> None:
+        self.set_noise(sigma_mm, self.misfit_mm)
+
+    def set_noise(self, sigma_mm: float, misfit_mm: float = 0.0) -> None:
+        """σ and the misfit (mm per axis) the design predicts with (see the class docstring)."""
         if not (math.isfinite(sigma_mm) and sigma_mm > 0):
             raise ValueError(f"sigma_mm must be a finite number > 0, given {sigma_mm}")
-        self.sigma_mm = float(sigma_mm)
-        self._full_ws = None
+        if not (math.isfinite(misfit_mm) and misfit_mm >= 0):
+            raise ValueError(f"misfit_mm must be a finite number ≥ 0, given {misfit_mm}")
+        self.sigma_mm, self.misfit_mm = float(sigma_mm), float(misfit_mm)
+        self._full_ws = self._full_js = None
 
     def add(self, index: int) -> None:
         """Record candidate ``index`` as measured (once)."""
@@ -278,8 +353,27 @@ class SequentialDesign:
         return math.sqrt(max(float(var.mean()) / r * 3, 0.0))
 
     def held_out_mm(self, workspace_mm: float) -> float:
-        """Predicted rms 3-D error of a held-out measurement: the model's and the sensor's."""
+        """Predicted rms 3-D error of a held-out measurement: the model's and the sensor's (σ, the
+        fit's once it tells, holds the misfit too)."""
         return math.sqrt(3 * self.sigma_mm**2 + workspace_mm**2)
+
+    def model_error_mm(self, uncertainty_mm: float) -> float:
+        """Predicted rms 3-D model error at new poses (no sensor noise): the calibrated model's
+        uncertainty there (mm) and its misfit (per axis, in each of the three)."""
+        return math.sqrt(uncertainty_mm**2 + 3 * self.misfit_mm**2)
+
+    def joint_space_uncertainty_mm(self, cov: np.ndarray) -> float | None:
+        """sqrt(trace(A_js Σ)) over the working joint space (mm), None without one."""
+        a = self.model.joint_space
+        return None if a is None else math.sqrt(max(float(np.sum(a * cov)), 0.0))
+
+    def full_joint_space_mm(self) -> float | None:
+        """The joint-space uncertainty with every configuration of the plan measured (mm)."""
+        if self.model.joint_space is None:
+            return None
+        if self._full_js is None:
+            self._full_js = self.joint_space_uncertainty_mm(_inv_sym(self.model.prior + self._all / self.sigma_mm**2))
+        return self._full_js
 
     def predicted_workspace_mm(self, indices, cov: np.ndarray) -> float:
         """The workspace error the stop rule and the reports use after measuring ``indices``:
@@ -310,38 +404,40 @@ class SequentialDesign:
         hw = self.half_widths_deg(cov)
         ws, full = self.predicted_workspace_mm(idx, cov), self.full_workspace_mm()
         held, full_held = self.held_out_mm(ws), self.held_out_mm(full)
+        region, full_region = self.model_error_mm(ws), self.model_error_mm(full)
+        js_w, full_js_w = self.joint_space_uncertainty_mm(cov), self.full_joint_space_mm()
+        js = None if js_w is None else self.model_error_mm(js_w)
+        full_js = None if full_js_w is None else self.model_error_mm(full_js_w)
+        pct = lambda a, b: 100.0 * (a / b - 1.0) if b > 0 else 0.0  # noqa: E731 - % over the full plan's
+        predicted = {"interval_deg": max(hw.values()) if hw else 0.0, "region_error_mm": region,
+                     "joint_space_error_mm": js, "workspace_within_pct": pct(ws, full),
+                     "held_out_within_pct": pct(held, full_held),
+                     "joint_space_within_pct": None if js is None else pct(js, full_js)}
+        checks = []
+        for name, limit in self.rule.criteria.items():
+            value = predicted[name]
+            if value is None:
+                raise ValueError(f"the stop rule's {name} needs the working joint space in the design model")
+            checks.append(Check(name, limit, float(value), bool(value <= limit)))
         n, rule = len(idx), self.rule
         stop, reason = False, ""
         if n >= self.model.n_candidates:
             stop, reason = True, f"plan exhausted: all {n} configurations measured"
         elif rule.max_configurations is not None and n >= rule.max_configurations:
             stop, reason = True, f"max_configurations reached ({n})"
-        if n >= rule.min_configurations:
-            met = []
-            ok = True
-            if rule.interval_deg is not None:
-                worst = max(hw.values()) if hw else 0.0
-                ok &= worst <= rule.interval_deg
-                met.append(f"every determinable offset's 95 % half-width ≤ {rule.interval_deg:g}° "
-                           f"(largest {worst:.4g}°)")
-            if rule.workspace_within_pct is not None:
-                limit = full * (1 + rule.workspace_within_pct / 100)
-                ok &= ws <= limit
-                met.append(f"predicted workspace error {ws:.4g} mm within {rule.workspace_within_pct:g} % of the "
-                           f"full plan's {full:.4g} mm")
-            if rule.held_out_within_pct is not None:
-                ok &= held <= full_held * (1 + rule.held_out_within_pct / 100)
-                met.append(f"predicted held-out error {held:.4g} mm within {rule.held_out_within_pct:g} % of the "
-                           f"full plan's {full_held:.4g} mm")
-            if ok:
-                stop, reason = True, "stop rule met: " + "; ".join(met)
-        return Status(n, hw, ws, full, stop, reason, held, full_held)
+        if n >= rule.min_configurations and all(c.met for c in checks):
+            stop, reason = True, "stop rule met: " + "; ".join(describe(c) for c in checks)
+        return Status(n, hw, ws, full, stop, reason, held, full_held, region, full_region, js, full_js, tuple(checks))
 
     # ------------------------------------------------------------------ the choice
-    def gains(self, candidates: np.ndarray, planned=(), cov: np.ndarray | None = None) -> dict[str, np.ndarray]:
-        """Expected relative reduction of each stated quantity's trace, per candidate (len(candidates),),
+    def gains(self, candidates: np.ndarray, planned=(), cov: np.ndarray | None = None,
+              criteria=None) -> dict[str, np.ndarray]:
+        """Expected relative reduction of each stated quantity, per candidate (len(candidates),),
         after the measured configurations and ``planned`` ones (candidate indices); ``cov``: their
-        covariance when the caller has it."""
+        covariance when the caller has it; ``criteria``: the names (``CRITERIA``) to weigh [the
+        rule's]. The model errors' reductions are relative to the error with the misfit, which no
+        configuration reduces: a cell whose model leaves more unexplained gains less per
+        configuration there and measures more for an absolute limit."""
         if cov is None:
             cov = self.covariance(list(self.measured) + [int(i) for i in planned])
         rows = self.model.rows[candidates]  # (c, r, L)
@@ -349,19 +445,25 @@ class SequentialDesign:
         s = mt @ np.swapaxes(rows, 1, 2) + self.sigma_mm**2 * np.eye(rows.shape[1])  # (c, r, r)
         w = np.linalg.inv(s) @ mt  # S⁻¹ J Σ: (c, r, L); S is r × r and well conditioned (σ² I + …), and a
         # batched inverse then a product is ~3× faster than a batched solve (pools of hundreds of candidates)
+        stated = self.rule.criteria if criteria is None else criteria
+        kinds = {GAIN_OF[name] for name in stated}
         out = {}
-        if self.rule.interval_deg is not None:
+        if "interval" in kinds:
             k = self.model.offsets
             now = float(np.trace(cov[np.ix_(k, k)])) or 1.0
             out["interval"] = np.sum(mt[:, :, k] * w[:, :, k], axis=(1, 2)) / now
-        if self.rule.workspace_within_pct is not None or self.rule.held_out_within_pct is not None:
+        if kinds & {"workspace", "held_out", "region"}:
             a = self.model.workspace
             trace = float(np.sum(a * cov))
             drop = np.sum((mt @ a) * w, axis=(1, 2))  # trace(A Σ Jᵀ S⁻¹ J Σ), A symmetric
-            if self.rule.workspace_within_pct is not None:
-                out["workspace"] = drop / (trace or 1.0)
-            if self.rule.held_out_within_pct is not None:
-                out["held_out"] = drop / (trace + 3 * self.sigma_mm**2)
+            for kind, rest in (("workspace", 0.0), ("region", 3 * self.misfit_mm**2),
+                               ("held_out", 3 * self.sigma_mm**2)):
+                if kind in kinds:
+                    out[kind] = drop / ((trace + rest) or 1.0)
+        if "joint_space" in kinds:
+            a = self.model.joint_space
+            trace = float(np.sum(a * cov))
+            out["joint_space"] = np.sum((mt @ a) * w, axis=(1, 2)) / ((trace + 3 * self.misfit_mm**2) or 1.0)
         return out
 
     def plan_route(self, here_s: np.ndarray, between_s: np.ndarray, per_config_s: float, exclude=()) -> Route:
@@ -402,9 +504,10 @@ class SequentialDesign:
             path, batch, left, info = [0], [], list(left0), info0.copy()
             while left:
                 cov = _inv_sym(info)
-                if self.status_of(self.measured + batch, cov).stop:
-                    break
-                g = sum(self.gains(np.array(left), cov=cov).values())
+                st = self.status_of(self.measured + batch, cov)
+                if st.stop and batch:  # (a first one even when the rule holds: the caller goes on, e.g.
+                    break  # until the fit's σ is determined)
+                g = sum(self.gains(np.array(left), cov=cov, criteria=st.unmet or None).values())
                 if timed:
                     extra, pos = insertion_costs(path, cost, np.array(left) + 1)
                     k = int(np.argmax(g / (extra + per)))
@@ -465,6 +568,27 @@ class SequentialDesign:
         return Choice(int(left[best]), {k: float(v[best]) for k, v in g.items()}, float(secs[best]),
                       float(score[best]), None if second is None else int(left[second]),
                       0.0 if second is None else float(score[second]))
+
+
+#: Which gain (``SequentialDesign.gains``) serves each criterion of the stop rule.
+GAIN_OF = {"interval_deg": "interval", "region_error_mm": "region", "workspace_within_pct": "workspace",
+           "held_out_within_pct": "held_out", "joint_space_error_mm": "joint_space",
+           "joint_space_within_pct": "joint_space"}
+
+#: How each criterion reads in a stop reason: (what, unit).
+WORDING = {"interval_deg": ("every determinable offset's 95 % half-width", "°"),
+           "region_error_mm": ("predicted model error at new poses of the plan's region", " mm"),
+           "joint_space_error_mm": ("predicted model error over the working joint space", " mm"),
+           "workspace_within_pct": ("predicted workspace error over the full plan's", " %"),
+           "held_out_within_pct": ("predicted held-out error over the full plan's", " %"),
+           "joint_space_within_pct": ("predicted joint-space error over the full plan's", " %")}
+
+
+def describe(check: Check) -> str:
+    """A criterion as judged, in words: what, the limit and the prediction."""
+    what, unit = WORDING[check.name]
+    largest = "largest " if check.name == "interval_deg" else ""
+    return (f"{what} {'≤' if check.met else '>'} {check.limit:g}{unit} ({largest}{check.predicted:.4g}{unit})")
 
 
 def _inv_sym(a: np.ndarray) -> np.ndarray:

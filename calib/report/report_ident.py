@@ -20,6 +20,7 @@ from calib.fit.identification import IdentResult, pose_errors
 from calib.report.report_choice import model_choice_section
 from calib.report.report_compliance import compliance_section
 from calib.report.report_format import CSS, Html, esc, num, table
+from calib.report.report_summary import entered_section
 
 
 def _outcome(doc: dict) -> list[str]:
@@ -118,7 +119,7 @@ def render_ident_report(result: IdentResult, cal: Dataset, doc: dict) -> str:
              f"<h1>Full identification: {name}</h1>",
              f"<p class=small>{len(cal)} calibration measurements; tool prior ±{num(doc['tool_prior_mm'], 3)} mm per "
              f"coordinate; {doc['evaluations']} evaluations</p>"]
-    parts += _outcome(doc) + model_choice_section(doc) + _starts(doc) + _parameters(doc) + compliance_section(doc.get("compliance"))
+    parts += _outcome(doc) + entered_section(doc) + model_choice_section(doc) + _starts(doc) + _parameters(doc) + compliance_section(doc.get("compliance"))
     parts += _accuracy(doc) + _error_figure(result, cal)
     parts.append("</body></html>")
     return "\n".join(parts)

@@ -26,8 +26,37 @@ SUMMARY_METRICS = {
 
 
 def refusal_reasons(doc: dict) -> list[str]:
-    """Why the offsets must not be entered (the guards' reasons, as written in the document)."""
+    """Why the offsets must not be entered: the verdict on the offsets fitted for the controller
+    (``doc["entered"]``, ``calib.fit.entered``) where the document has one, else the guards' reasons."""
+    entered = doc.get("entered")
+    if entered:
+        return list(entered["reasons"]) if entered["verdict"] != "enter" else []
     return list(doc.get("do_not_enter") or do_not_enter_reasons(doc))
+
+
+#: Rows of the held-out table: ``entered.heldout`` key → label.
+HELDOUT_ROBOTS = {"as_found": "as found (zero offsets; registration and tool fitted)",
+                  "entered": "offsets entered on the controller's nominal arm",
+                  "full_model": "full model (via compensation)"}
+
+
+def heldout_table(doc: dict) -> Html | None:
+    """The three robots held out side by side (``doc["entered"]["heldout"]``), or None."""
+    entered = doc.get("entered")
+    if not entered:
+        return None
+    h = entered["heldout"]
+    rows = []
+    for key, label in HELDOUT_ROBOTS.items():
+        e = h[key]
+        name = label if key != "full_model" else f"full model ({entered.get('full_model', 'chosen')}; via compensation)"
+        cell = Html(f"<b>{fixed(e['rms_mm'], 4)}</b>") if key == "entered" else Html(fixed(e["rms_mm"], 4))
+        rows.append([name, cell, Html(fixed(e["mean_mm"], 4)), Html(fixed(e["max_mm"], 4)), e["n"]])
+    imp = h["improvement_mm"]
+    note = (f"improvement as found → entered {fixed(imp['value'], 4, sign=True)} mm, 95 % "
+            f"[{fixed(imp['ci95'][0], 4, sign=True)}, {fixed(imp['ci95'][1], 4, sign=True)}] ({imp['test']}); "
+            f"scored on {h['scored_on']}: {h['how']}")
+    return table([f"held out ({h['scored_on']}), mm", "rms", "mean", "max", "n"], rows, notes=[None, None, note])
 
 
 def warnings(doc: dict) -> list[str]:
@@ -52,6 +81,11 @@ def warnings(doc: dict) -> list[str]:
     for c in ident.get("directions", []):
         if c.get("verdict") in ("weakly determined", "not determined"):
             out.append(f"At the estimate, the combination {c['combination']} is {c['verdict']} ({c.get('why', '')}).")
+    for s, c in (doc.get("registration_statistics") or {}).items():
+        if c.get("significant") and c.get("r", 0) > 0:
+            out.append(f"Sensor {s}: the position error grows with the distance from the sensor (r = {c['r']:.2f}, "
+                       f"p = {c['p_value']:.2g}; the registration seed's spatial correlation): a registration or scale "
+                       "error, or a sensor less accurate at range — the offsets' intervals assume independent errors.")
     sag = d.get("gravity_sag")
     if sag and sag.get("significant"):
         out.append(f"The residuals follow the joints' gravity torques (p = {sag['p_value']:.1g}): the arm sags; "
@@ -142,9 +176,15 @@ def summary_html(doc: dict) -> str:
         parts.append("<p class=small>to type on the controller (sign UNVERIFIED — see the convention below):</p>")
         parts.append("<pre class=wrap>" + "\n".join(esc(line) for line in ctrl["lines"]) + "</pre>")
     parts.append("</div><div>")
+    held = heldout_table(doc)
+    if held:
+        parts.append(held)
     acc = accuracy_table(doc)
     if acc:
         parts.append(acc)
+        if held:
+            parts.append("<p class=small>before: the robot as found (zero offsets, its tool fitted); after: the fitted "
+                         "model's own offsets on the nominal arm — not what is entered (the held-out table above is).</p>")
     choice = model_choice_table(doc)
     if choice:
         parts.append(choice)
@@ -167,3 +207,20 @@ def summary_html(doc: dict) -> str:
                  "<a href='#accuracy'>accuracy</a> · <a href='#identifiability'>identifiability</a> · "
                  "<a href='#tcp'>TCP cloud</a></p></section>")
     return "\n".join(parts)
+
+
+def entered_section(doc: dict) -> list[str]:
+    """What the controller gets, on its own (the identification's report): the verdict on the offsets
+    fitted for its nominal arm, the three robots held out, and the values (``doc["entered"]``)."""
+    entered = doc.get("entered")
+    if not entered:
+        return []
+    refused = refusal_reasons(doc)
+    cls = "summary stop" if refused else "summary ok"
+    banner = ("<span class=bad>DO NOT ENTER offsets on the controller.</span>" if refused else
+              "<span class=good>Enter the offsets below on the controller</span> (the others: leave unchanged).")
+    out = [f"<div class='{cls}'><h2 id=controller>What the controller gets</h2><p class=banner>{banner}</p>"]
+    if refused:
+        out.append("<ul class=bad>" + "".join(f"<li>{esc(r)}</li>" for r in refused) + "</ul>")
+    out += [offsets_table(doc), heldout_table(doc), "</div>"]
+    return out

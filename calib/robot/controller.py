@@ -98,14 +98,15 @@ MAX_SIGMA_OVER_NOISE = 10.0
 MIN_SIGMA_GUARD_MM = 1.0
 
 
-def do_not_enter_reasons(doc: dict) -> list[str]:
+def do_not_enter_reasons(doc: dict, *, sandwich: bool = True) -> list[str]:
     """Why the offsets of a fit result (``result.json``) must not be entered; [] when none.
 
     R-hat above ``MAX_RHAT`` (the chains disagree), a sandwich/posterior std ratio above
     ``MAX_SANDWICH_RATIO`` (the intervals are far too narrow for the errors seen), or a fitted σ
     above ``MIN_SIGMA_GUARD_MM`` and more than ``MAX_SIGMA_OVER_NOISE`` × the sensor noise measured
     in the samples' spread (the model does not describe the data: wrong marker or tool position,
-    wrong robot model, units).
+    wrong robot model, units). ``sandwich`` False: no refusal on the sandwich ratio (for offsets
+    whose stds were widened by it, ``calib.fit.entered``).
     """
     reasons = []
     d = doc.get("diagnostics", {})
@@ -113,7 +114,7 @@ def do_not_enter_reasons(doc: dict) -> list[str]:
     if rhat is not None and rhat > MAX_RHAT:
         reasons.append(f"the sampler has not converged (R-hat {rhat:.2f} > {MAX_RHAT})")
     ratios = [j["sandwich_std_ratio"] for j in doc.get("joint_offsets", []) if j.get("sandwich_std_ratio")]
-    if ratios and max(ratios) > MAX_SANDWICH_RATIO:
+    if sandwich and ratios and max(ratios) > MAX_SANDWICH_RATIO:
         reasons.append(f"a model-robust (sandwich) std is {max(ratios):.1f}× the posterior's (> {MAX_SANDWICH_RATIO}): "
                        "the errors are not what the model assumes and the intervals are too narrow")
     for sensor, b in d.get("error_budget", {}).items():
@@ -145,6 +146,8 @@ def _noise_mm(doc: dict) -> tuple[float, str] | None:
         return None
     rows = np.array([b.get("n_rows", 1) for b in budget], dtype=float)
     noise = float(np.sqrt(np.sum(rows * np.array([b["noise_mm"] for b in budget]) ** 2) / rows.sum()))
+    if doc.get("noise_estimate"):
+        return noise, "the noise estimated from the data (no spreads in the file; calib.fit.noise)"
     spread = [b.get("sample_spread_mm") for b in budget]
     averaged = all(sp is not None and sp > noise * 1.05 for sp in spread)
     return noise, ("the noise of the averaged measurement, the samples' spread / √n" if averaged
@@ -180,6 +183,12 @@ def _unexplained(mc: dict) -> str:
             "candidates describes")
 
 
+#: Validation points the calibration's registration misses by this factor over their own registration
+#: (and by more than ``FOREIGN_FRAME_MM``) are in another frame: another mounting, not a worse robot.
+FOREIGN_FRAME_FACTOR = 10.0
+FOREIGN_FRAME_MM = 10.0
+
+
 def earned_reasons(doc: dict) -> list[str]:
     """Why "enter" is not earned, one line each ([] when it is): the model choice
     (``doc["model_choice"]``, ``calib.fit.model_choice``) found no model, or the chosen one does not
@@ -211,6 +220,12 @@ def earned_reasons(doc: dict) -> list[str]:
             elif per_axis > MIN_SIGMA_GUARD_MM:
                 reasons.append(f"held-out error {per_axis:.2f} mm per axis (above {MIN_SIGMA_GUARD_MM:g} mm)")
     val = doc.get("metrics", {}).get("validation_absolute")
+    rereg = doc.get("metrics", {}).get("validation_absolute_reregistered")
+    if (isinstance(val, dict) and isinstance(rereg, dict) and isinstance(rereg.get("before"), dict)
+            and val["before"]["mean"] > max(FOREIGN_FRAME_FACTOR * rereg["before"]["mean"], FOREIGN_FRAME_MM)):
+        # Another mounting (the tracker or the robot moved): the calibration's registration does not hold
+        # there, and only figures that register each robot on those points (``entered.heldout``) mean anything.
+        val = None
     if isinstance(val, dict) and isinstance(val.get("after"), dict):
         # The controller is told the offsets only: the validation points carry what the offsets
         # alone do (link errors of a richer model stay). They must improve, and stay below the guard.
@@ -220,13 +235,7 @@ def earned_reasons(doc: dict) -> list[str]:
         elif after / math.sqrt(3.0) > MIN_SIGMA_GUARD_MM:
             reasons.append(f"validation error after the correction {after:.3f} mm (mean), above {MIN_SIGMA_GUARD_MM:g} mm per "
                            "axis: the model does not describe the validation points (tool, markers, robot model?)")
-    tool = doc.get("tool") or {}
-    for t in tool.get("markers") or []:
-        off = np.abs(np.subtract(t["value_mm"], t["nominal_mm"]))
-        if t.get("prior_mm") and off.max() > MAX_TOOL_PRIOR_SIGMAS * t["prior_mm"]:
-            reasons.append(f"marker {t['marker']} fitted {np.linalg.norm(np.subtract(t['value_mm'], t['nominal_mm'])):.1f} mm "
-                           f"from the model's place, outside its prior (±{t['prior_mm']:g} mm): the tool drawing is wrong — "
-                           "measure the markers on the flange, correct the model and fit again")
+    reasons += tool_reasons(doc)
     d = doc.get("diagnostics", {})
     imp = d.get("importance")
     ess = d.get("ess_min")
@@ -239,6 +248,19 @@ def earned_reasons(doc: dict) -> list[str]:
         reasons.append(f"the Laplace approximation failed its check (Pareto k̂ {imp['k_hat']:.2f} ≥ {imp['k_hat_max']}) and the "
                        f"fallback sampler has only {ess:.0f} effective draws (< {MIN_ESS:g})")
     return reasons
+
+
+def tool_reasons(doc: dict) -> list[str]:
+    """A fitted marker more than ``MAX_TOOL_PRIOR_SIGMAS`` prior standard deviations from the model's
+    place (``doc["tool"]``): the tool drawing is wrong, and the prior's pull may have moved the offsets."""
+    out = []
+    for t in (doc.get("tool") or {}).get("markers") or []:
+        off = np.abs(np.subtract(t["value_mm"], t["nominal_mm"]))
+        if t.get("prior_mm") and off.max() > MAX_TOOL_PRIOR_SIGMAS * t["prior_mm"]:
+            out.append(f"marker {t['marker']} fitted {np.linalg.norm(np.subtract(t['value_mm'], t['nominal_mm'])):.1f} mm "
+                       f"from the model's place, outside its prior (±{t['prior_mm']:g} mm): the tool drawing is wrong — "
+                       "measure the markers on the flange, correct the model and fit again")
+    return out
 
 
 def apply_guards(doc: dict) -> list[str]:

@@ -193,6 +193,7 @@ class SimCell:
             compliance_rad_per_nm=_frozen(self._compliance.copy()),
         )
 
+        _per_joint(config.controller.mastering_deg, n, "controller.mastering_deg")  # the controller's (SimLaunch)
         q0 = _per_joint(config.initial_joint_positions_deg, n, "initial_joint_positions_deg")
         q0 = np.zeros(n) if q0 is None else np.radians(q0)
         self._q = self._validated_q(q0)

@@ -20,7 +20,8 @@ defaults this module applies (see ``fixtures/sim/default.yaml`` for a documented
                natnet: {version: "3.0", asset: rigid_body, asset_name: tool, multicast: false},  # mocap
                protocols: [line]}]                  # tracker: line and/or emscon
     allowances: {silence_ms: 300, state_age_ms: 300}   # the commander's timing allowances, wall ms
-    controller: {fri_version: "1.15"}  # the fake Sunrise's FRI layout: 1.15, 2.5 or 2.7
+    controller: {fri_version: "1.15",  # the fake Sunrise's FRI layout: 1.15, 2.5 or 2.7
+                 mastering_deg: null}  # the controller's zero corrections (drivers/sim/mastering.py)
     faults:                       # scripted faults (drivers/sim/faults.py), wall s after the cell starts
       - {at_s: 12, fault: beam_break, device: tracker, duration_s: 3}
 
@@ -255,6 +256,17 @@ class ControllerServe(_Strict):
     """How the cell's fake controller speaks (the controller kind comes from the robot model)."""
 
     fri_version: Literal["1.15", "2.5", "2.7"] = Field("1.15", description="FRI layout of a fake Sunrise.")
+    mastering_deg: list[float] | None = Field(
+        None, description="The controller's mastering at start: one zero correction per axis, deg, relative to the "
+                          "mastering the arm was built with (drivers/sim/mastering.py; KSS: the change of $MAMES[i]). "
+                          "Entering a fit's corrections here is entering them on the controller. None: all zero.")
+
+    @field_validator("mastering_deg")
+    @classmethod
+    def _sane_corrections(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and any(not abs(x) <= 180.0 for x in v):
+            raise ValueError(f"corrections must be numbers within ±180°, got {v}")
+        return v
 
     _text = field_validator("fri_version", mode="before")(lambda cls, v: _version_text(v))
 
@@ -355,3 +367,36 @@ def load_sim_config(path: str | Path) -> SimConfig:
     if not robot.is_absolute():
         robot = (path.resolve().parent / robot).resolve()
     return config.model_copy(update={"robot": str(robot)})
+
+
+def save_with_mastering(source: str | Path, target: str | Path, mastering_deg, *, seed: int | None = None) -> Path:
+    """Write a copy of the cell file ``source`` to ``target`` with ``controller.mastering_deg`` set
+    (n values, deg): the cell the next ``--fake`` run starts with — a controller keeps its mastering
+    through a restart. A relative robot path is made absolute when the folder changes. The copy is
+    checked by loading it (ConfigError naming the line otherwise); ``target`` is written only then.
+    ``seed``: the seed the cell runs with, when it was overridden."""
+    import yaml
+
+    from calib.io.yamlfile import load_yaml_with_marks
+
+    source, target = Path(source), Path(target)
+    data, _ = load_yaml_with_marks(source)
+    controller = dict(data.get("controller") or {})
+    controller["mastering_deg"] = [round(float(v), 9) for v in mastering_deg]
+    data["controller"] = controller
+    if seed is not None:
+        data["seed"] = int(seed)
+    robot = Path(str(data.get("robot", "")))
+    if not robot.is_absolute() and source.resolve().parent != target.resolve().parent:
+        data["robot"] = str((source.resolve().parent / robot).resolve())
+    text = ("# " + f"{source.name} with the controller's mastering entered (acquire sim 'save')\n"
+            + yaml.safe_dump(data, sort_keys=False))
+    tmp = target.with_name(f".{target.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    try:
+        load_sim_config(tmp)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    tmp.replace(target)
+    return target

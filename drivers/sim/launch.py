@@ -16,6 +16,10 @@ a tracker's ``protocols:``, ``controller.fri_version``) unless the constructor s
 Faults on demand: ``inject(fault, device, duration_s)`` (``drivers.sim.faults``) through the
 fakes' own hooks; the cell file's ``faults:`` timeline fires by itself once started.
 
+The controller keeps its own mastering (``drivers.sim.mastering``): per-axis zero corrections,
+from the cell file's ``controller.mastering_deg``, changed by ``enter_mastering`` as an operator
+changes them on the real one; the fake controller reports and commands axis angles through it.
+
 Every fake reads from or writes to the same cell, so a commander that moves the fake
 controller moves the markers the fake sensors see. ``addresses`` says where each one is;
 ``close()`` (or leaving the ``with`` block) stops them all. Controllers stop by themselves
@@ -32,11 +36,13 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from drivers.sim.cell import SimCell
+from drivers.sim.mastering import MasteredScene, Mastering
 from drivers.sim.scene import MarkerObservation
 
 log = logging.getLogger(__name__)
@@ -46,6 +52,8 @@ FRI_CLIENT_PORT = 30200
 RSI_CLIENT_PORT = 49152
 #: How often the simulated operator looks at the KR C4 (wall s).
 OPERATOR_POLL_S = 0.1
+#: How long a KR C4 is watched for a commander's answers before a mastering is entered (wall s).
+COMMANDING_WATCH_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -191,6 +199,11 @@ class SimLaunch:
         self.want_fault_timeline = fault_timeline
         self.faults = None  # drivers.sim.faults.FaultInjector once started
         self.timeline = None  # drivers.sim.faults.FaultTimeline of the cell file's faults
+        #: The controller's own mastering (``drivers.sim.mastering``): the fake controller sees the
+        #: arm through it; ``enter_mastering`` changes it as an operator does.
+        self.mastering = Mastering(cell.model.axis_names, cell.model.controller, cell.config.controller.mastering_deg)
+        self.robot_view = MasteredScene(cell, self.mastering)
+        self._controller_lock = threading.RLock()
         self._closers: list = []
 
     # --- lifecycle ----------------------------------------------------------------------
@@ -320,6 +333,15 @@ class SimLaunch:
             )
 
     def _start_controller(self) -> None:
+        fake = self._new_controller()
+        if fake is None:
+            return
+        self.controller = fake
+        self._closers.append(("controller", self._close_controller))
+
+    def _new_controller(self):
+        """Start the fake controller the robot model names, seeing the arm through the mastering;
+        None (with a warning) for a controller without a fake."""
         kind = self.cell.model.controller
         if kind == "sunrise":
             from drivers.kuka_fri.fake import FakeSunrise
@@ -329,7 +351,7 @@ class SimLaunch:
             sockets = self.cell.config.sockets
             inputs = (sockets.confirm_input,) if sockets is not None and sockets.confirm_input else ()
             fake = FakeSunrise(
-                ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.cell,
+                ("127.0.0.1", self.fri_port), limits=JointLimits.from_model(self.cell.model), scene=self.robot_view,
                 clock=self.cell.clock, seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
                 application=True, fri_version=self.fri_version, inputs=inputs, record_commands=False, **period,
             )
@@ -348,9 +370,8 @@ class SimLaunch:
             )
         else:
             log.warning("no fake controller for a %r controller; the robot stays where the cell put it", kind)
-            return
-        self.controller = fake
-        self._closers.append(("controller", self._close_controller))
+            return None
+        return fake
 
     def _close_controller(self) -> None:
         """Stop whichever fake controller runs now (the operator may have replaced it)."""
@@ -362,7 +383,7 @@ class SimLaunch:
         from drivers.kuka_rsi.fake import FakeKrc4
 
         fake = FakeKrc4(
-            ("127.0.0.1", self.rsi_port), n_axes=self.cell.model.n_joints, scene=self.cell, clock=self.cell.clock,
+            ("127.0.0.1", self.rsi_port), n_axes=self.cell.model.n_joints, scene=self.robot_view, clock=self.cell.clock,
             seed=self.cell.config.seed, max_runtime_s=self.max_runtime_s,
         )
         fake.start()
@@ -397,25 +418,70 @@ class SimLaunch:
             log.warning("the cell has sockets but its %s controller cannot be hand-guided: the simulated operator "
                         "guides an iiwa (FRI) only", self.cell.model.controller)
             return
-        self.socket_operator = SocketOperator(self.cell, self.controller, seed=self.cell.config.seed).start()
+        self.socket_operator = SocketOperator(self.cell, self.controller, seed=self.cell.config.seed,
+                                              mastering=self.mastering).start()
         self._closers.append(("socket operator", self.socket_operator.close))
 
     def restart_stopped_rsi(self) -> bool:
         """Start a new fake KR C4 (same ports, from the cell's current pose) if the RSI session
         of the running one has ended (late answers, Stop flag). True if it did."""
-        fake = self.controller
-        if fake is None or self.cell.model.controller != "kss" or not fake.wait_stopped(0):
-            return False
-        reason = fake.stats().stopped_reason
-        fake.close()
-        self.controller = self._new_krc4()
+        with self._controller_lock:
+            fake = self.controller
+            if fake is None or self.cell.model.controller != "kss" or not fake.wait_stopped(0):
+                return False
+            reason = fake.stats().stopped_reason
+            fake.close()
+            self.controller = self._new_krc4()
         log.info("fake KR C4 restarted after: %s (now from %s)", reason, self.controller.address)
         return True
 
+    # --- the controller's mastering -------------------------------------------------------
+    def commanding(self) -> bool:
+        """Whether a client commands the robot now (an FRI overlay session, RSI answers in time)."""
+        fake = self.controller
+        if fake is None:
+            return False
+        if self.cell.model.controller == "sunrise":
+            from drivers.kuka_fri.messages import SessionState
+
+            return fake.session_state in (SessionState.COMMANDING_WAIT, SessionState.COMMANDING_ACTIVE)
+        before = fake.stats()
+        if before.running and before.answers_on_time > 0 and before.late_consecutive == 0:
+            return True
+        time.sleep(COMMANDING_WATCH_S)  # a commander answering now: its on-time answers grow
+        after = fake.stats()
+        return bool(after.running and after.answers_on_time > before.answers_on_time)
+
+    def enter_mastering(self, entries) -> np.ndarray:
+        """Enter zero corrections on the controller (``drivers.sim.mastering.MasteringEntry`` list,
+        added to the table in order) as an operator does on the real one: only with no client
+        commanding the robot; the controller restarts with the new table, from where the arm
+        stands (it does not move). Returns the new table (n,) deg. Raises ``MasteringError``."""
+        from drivers.sim.mastering import MasteringError
+
+        table = self.mastering.after(list(entries))
+        with self._controller_lock:
+            if self.commanding():
+                raise MasteringError("a client commands the robot (an FRI motion / RSI program runs): a controller takes "
+                                     "a new mastering only at standstill with no program running; end the run first")
+            if self.controller is None:
+                self.mastering.set(table)
+            else:
+                self._close_controller()
+                self.mastering.set(table)
+                self.controller = self._new_controller()
+                if self.socket_operator is not None:  # the operator hand-guides the controller now running
+                    self.socket_operator.controller = self.controller
+        log.info("mastering entered; the controller restarted: %s", "; ".join(self.mastering.lines()))
+        return self.mastering.corrections_deg
+
     def describe(self) -> list[str]:
         """One line per device, for a person."""
-        q = np.degrees(self.cell.joint_positions())
+        q = np.degrees(self.robot_view.joint_positions())
         lines = [f"cell: {self.cell.model.name}, seed {self.cell.config.seed}, "
-                 f"time scale {self.cell.clock.time_scale:g}, joints (deg) {np.round(q, 2).tolist()}"]
+                 f"time scale {self.cell.clock.time_scale:g}, joints as the controller reports them (deg) "
+                 f"{np.round(q, 2).tolist()}"]
+        if np.any(self.mastering.corrections_deg):
+            lines.append("controller mastering: " + "; ".join(self.mastering.lines()))
         lines += [f"{a.name:<14} {a.url:<28} {a.note}" for a in self.addresses.values()]
         return lines

@@ -42,11 +42,14 @@ PRESS_S = 0.3
 class SocketOperator:
     """Guides the ball into the nearest socket of ``cell.config.sockets``; see the module docstring."""
 
-    def __init__(self, cell: SimCell, controller, *, seed: int = 0) -> None:
+    def __init__(self, cell: SimCell, controller, *, seed: int = 0, mastering=None) -> None:
+        """``mastering``: the controller's (``drivers.sim.mastering.Mastering``): its angles are the
+        arm's less the corrections; None: the arm's own."""
         spec = cell.config.sockets
         if spec is None:
             raise ValueError("the cell has no sockets section")
         self.cell, self.controller, self.spec = cell, controller, spec
+        self.to_arm = mastering.cell_position if mastering is not None else (lambda q: np.asarray(q, dtype=float))
         self.chain = cell.chain
         params = np.array(cell.truth.params, dtype=float)
         ms = self.chain.marker_slice()
@@ -62,7 +65,8 @@ class SocketOperator:
         self._thread: threading.Thread | None = None
 
     def ball(self, q: np.ndarray) -> np.ndarray:
-        """True ball centre (3,) mm in the base frame at measured joint angles q (n,), with sag."""
+        """True ball centre (3,) mm in the base frame at the controller's joint angles q (n,), with sag."""
+        q = self.to_arm(q)
         qa = q + self.cell.deflection(q)
         return self.chain.marker_positions(qa[None], self.params)[0, 0]
 
@@ -73,7 +77,8 @@ class SocketOperator:
             err = self.ball(q) - target
             if np.max(np.abs(err)) < 1e-7:
                 break
-            qa = q + self.cell.deflection(q)
+            arm = self.to_arm(q)
+            qa = arm + self.cell.deflection(arm)
             _, jac = self.chain.marker_jacobian(qa[None], self.params)
             q = q - np.linalg.pinv(jac[0, 0, :, : self.chain.n]) @ err
         return q

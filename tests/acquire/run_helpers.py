@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -83,7 +84,34 @@ def fake_controller(lp, **kwargs):
     return rc
 
 
-def aborted_run(lp, after: int, timeout_s: float = 120.0):
+# A whole run is judged by whether it moves on, not by a wall-clock guess of its length: on a loaded
+# machine (six test workers on two cores) a fake run can take several times as long as on an idle
+# one. STALL_S is how long a run may show no progress before the test calls it stuck; RUN_TIMEOUT_S
+# is the pytest-timeout backstop for the modules that run whole fake runs.
+STALL_S = 120.0
+RUN_TIMEOUT_S = 900
+
+
+def wait_for_run(rc, *, stall_s: float = STALL_S):
+    """The run's summary, waited for as long as the run makes progress.
+
+    Raises TimeoutError only when the run's status (state, configurations done, measured, failed,
+    skipped, the current one) has not changed for ``stall_s`` seconds (the end-of-run fit counts
+    as one step, so ``stall_s`` must cover the fit on a loaded machine)."""
+    last, since = None, time.monotonic()
+    while True:
+        try:
+            return rc.wait(1.0)
+        except TimeoutError:
+            s = rc.status()
+            key = (s["state"], s["done"], s["measured"], s["failed"], s["skipped"], s["current"])
+            if key != last:
+                last, since = key, time.monotonic()
+            elif time.monotonic() - since > stall_s:
+                raise TimeoutError(f"run {s['run_id']} made no progress for {stall_s:.0f} s: {s}") from None
+
+
+def aborted_run(lp, after: int):
     """A fake run of ``lp`` (no fit) aborted by the operator once ``after`` configurations are
     measured; its summary (state "aborted" unless the run ended first)."""
     def abort_once_measured(status):
@@ -92,11 +120,11 @@ def aborted_run(lp, after: int, timeout_s: float = 120.0):
 
     rc = fake_controller(lp, on_progress=abort_once_measured, fit=False)
     rc.start()
-    return rc.wait(timeout_s)
+    return wait_for_run(rc)
 
 
-def resumed_run(lp, log_path, timeout_s: float = 200.0):
+def resumed_run(lp, log_path):
     """The fake run of ``lp`` (no fit) resuming the log ``log_path``, to its end; its summary."""
     rc = fake_controller(lp, resume=log_path, fit=False)
     rc.start()
-    return rc.wait(timeout_s)
+    return wait_for_run(rc)

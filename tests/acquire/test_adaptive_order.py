@@ -115,7 +115,8 @@ def test_summary_and_report_say_why_it_stopped_intervals_against_configurations_
     slow = "\n".join(adaptive_summary_lines(summ, summ["estimated_seconds"] * 1.3))
     assert "+30%" in slow and "took longer than estimated" in slow
     html = "\n".join(adaptive_section(summ))
-    assert "Adaptive run" in html and summ["reason"].split(":")[0] in html and html.count("<tr>") == len(chosen) + 2
+    history = html.split("<h3>The stop decision")[0]
+    assert "Adaptive run" in html and summ["reason"].split(":")[0] in html and history.count("<tr>") == len(chosen) + 2
     assert adaptive_section(None) == []
 
 
@@ -143,7 +144,7 @@ def test_the_stop_is_judged_with_the_sigma_of_every_measured_configuration(plan)
     assert fitted is not None and fitted > 0.05  # the data show the noisier sensor
     # the σ the stop was judged with is the fit of all n records (refitted now it agrees, up to the
     # effective-parameter count's dependence on σ itself)
-    assert ad.order.design.sigma_mm == max(0.03, ad.order.fitted_sigma_mm)
+    assert ad.order.design.sigma_mm == max(ad.order.spread_sigma_mm, ad.order.fitted_sigma_mm)
     assert ad.order.fitted_sigma_mm == pytest.approx(fitted, rel=0.02)
     assert ad.summary()["sigma_mm"] > 0.05 and n == ad.summary()["measured"]
     assert sorted(refit_counts(30))[:8] == [1, 2, 3, 4, 5, 6, 7, 9]

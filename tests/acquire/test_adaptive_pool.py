@@ -180,7 +180,7 @@ def test_a_pooled_run_on_the_simulated_cell_logs_its_generated_choices_and_resum
                               fake={"time_scale": 6.0},
                               adaptive={**RULE, "candidates": {"extra_poses": 16}}))
 
-    first = aborted_run(lp, 4, 150)
+    first = aborted_run(lp, 4)
     assert first.state == "aborted", first.reason
     before = [s["config_id"] for s in read_run(first.log_path).samples]
     second = resumed_run(lp, first.log_path)

@@ -23,7 +23,7 @@ from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import read_run
 from acquire.run import RunController
 
-from run_helpers import ROOT, simulated_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import ROOT, RUN_TIMEOUT_S, simulated_run, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 #: Event kinds of the run loop itself (not retries or link figures, which a loaded host may vary).
 LOOP_KINDS = ("run_started", "moved", "settled", "measured", "skipped", "failed", "run_finished")
@@ -52,7 +52,7 @@ def _loop(log: Path) -> tuple[list, list]:
     return [s["config_id"] for s in contents.samples], events
 
 
-@pytest.mark.timeout(400)
+@pytest.mark.timeout(RUN_TIMEOUT_S)
 def test_a_separately_started_simulated_cell_and_fake_run_the_same_loop(tmp_path):
     from drivers.sim.cell import SimCell
     from drivers.sim.clock import SimClock
@@ -75,7 +75,7 @@ def test_a_separately_started_simulated_cell_and_fake_run_the_same_loop(tmp_path
         lp = load_plan(plan)
         separate = RunController(lp, fit=False)  # no cell given: the plan's own URLs, the host's clock
         separate.start()
-        first = separate.wait(300)
+        first = wait_for_run(separate)
     assert first.state == "finished", first.reason
     assert read_run(first.log_path).metadata.get("cell_source") == "plan"
 
@@ -85,7 +85,7 @@ def test_a_separately_started_simulated_cell_and_fake_run_the_same_loop(tmp_path
     lp_fake = load_plan(plan)
     with simulated_run(lp_fake, fit=False) as (rc, _sim):
         rc.start()
-        second = rc.wait(300)
+        second = wait_for_run(rc)
     assert second.state == "finished", second.reason
     assert read_run(second.log_path).metadata.get("cell_source") == "simulated"
 

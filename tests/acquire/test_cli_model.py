@@ -83,7 +83,9 @@ def full_fit(tmp_path_factory):
 def test_calibrated_export_has_the_identified_kinematics_in_yourdfpy_and_on_reimport(tmp_path, full_fit):
     doc = json.loads(full_fit.read_text())
     out = tmp_path / "iiwa_cal.urdf"
-    res = run("model", "export", IIWA, "--result", full_fit, "-o", out, "--check", "50")
+    # --entered none: the arm as it was measured (the default, auto, describes it after the
+    # result's controller offsets are entered: tests/calib/test_calibrated.py)
+    res = run("model", "export", IIWA, "--result", full_fit, "-o", out, "--check", "50", "--entered", "none")
     assert res.exit_code == 0, res.output
     assert "FK check of the URDF read by yourdfpy, 50 configurations" in res.output
     assert "FK check of the URDF re-imported, 50 configurations" in res.output
@@ -105,22 +107,33 @@ def test_calibrated_export_has_the_identified_kinematics_in_yourdfpy_and_on_reim
     assert fk_difference(Chain(load_robot_model(again)).fk(q), fitted)[0] < 1e-6
 
 
-def test_offset_fit_export_applies_the_fitted_offsets_and_says_which_stay_nominal(tmp_path):
+def test_offset_fit_export_applies_offsets_links_and_tool_and_says_which_stay_nominal(tmp_path):
     fit_out = tmp_path / "fast.json"
-    res = run("fit", CAL, "--robot", IIWA, "--draws", "300", "--random-configs", "100", "-o", fit_out)
+    res = run("fit", CAL, "--robot", IIWA, "--method", "fast", "--draws", "300", "--random-configs", "100", "-o", fit_out)
     assert res.exit_code == 0, res.output
     doc = json.loads(fit_out.read_text())
     out = tmp_path / "iiwa_off.urdf"
-    res = run("model", "export", IIWA, "--result", fit_out, "-o", out, "--check", "30")
+    res = run("model", "export", IIWA, "--result", fit_out, "-o", out, "--check", "30", "--entered", "none")
     assert res.exit_code == 0, res.output
     fitted = {e["joint"]: e["value_deg"] for e in doc["joint_offsets"] if e["status"] == "fitted"}
     kept = [e["joint"] for e in doc["joint_offsets"] if e["status"] != "fitted"]
     assert fitted and all(f"{ax}.offset kept nominal" in res.output for ax in kept)
     nominal = load_robot_model(IIWA)
-    delta = np.radians([fitted.get(ax, 0.0) for ax in nominal.axis_names])
+    chain = Chain(nominal)
+    # The fit's own arm, from result.json: offsets, the link terms it estimated alongside them
+    # (--method fast marginalises a link prior) and the fitted marker.
+    params = chain.nominal.copy()
+    params[:nominal.n_joints] = np.radians([fitted.get(ax, 0.0) for ax in nominal.axis_names])
+    links = doc["diagnostics"]["link_prior"]["parameters"]
+    assert links
+    for name, entry in links.items():
+        kind = name.rsplit(".", 1)[1]
+        params[chain.param_names.index(name)] += np.radians(entry["mean"]) if kind in ("alpha", "beta") else entry["mean"]
     q = random_configurations(nominal, 30, seed=11)
     in_urdf = urdf_fk(load_urdf(out), nominal.axis_names, "base_link", "flange", q)
-    assert fk_difference(in_urdf, Chain(nominal).fk(q + delta))[0] < 1e-6
+    assert fk_difference(in_urdf, chain.fk(q, params))[0] < 1e-6
+    offsets_only = chain.fk(q + params[:nominal.n_joints])
+    assert fk_difference(in_urdf, offsets_only)[0] > 0.05  # the link terms are in it, not only the offsets
 
 
 def test_export_of_a_result_on_the_wrong_model_is_refused(tmp_path, full_fit):
@@ -149,3 +162,36 @@ def test_import_of_a_malformed_urdf_exits_non_zero_and_writes_nothing(tmp_path):
     assert res.stderr.startswith(f"error: {urdf}:10:") and "Opening and ending tag mismatch" in res.stderr
     assert "Traceback" not in res.stderr and "Using different parsing approach" not in res.stderr
     assert not out.exists()
+
+
+UR10 = ROOT / "fixtures" / "robots" / "ur10.yaml"
+
+
+@pytest.mark.parametrize("fmt,name", [("ur", "ur10_calibration.yaml"), ("urdf", "ur10.urdf"), ("model", "ur10_cal.yaml")])
+def test_export_of_a_compliance_fit_writes_the_sag_beside_the_kinematics_and_checks_both(tmp_path, fmt, name):
+    from calib.robot.calibrated import apply_result
+    from calib.robot.sag_file import read_sag_file
+    from tests.calib.calibrated_sim import full_result
+
+    nominal = load_robot_model(UR10)
+    doc = full_result(nominal, seed=5)
+    result = tmp_path / "result.json"
+    result.write_text(json.dumps(doc))
+    out = tmp_path / name
+    res = run("model", "export", UR10, "--result", result, "--format", fmt, "-o", out, "--check", "40")
+    assert res.exit_code == 0, res.output
+    sag = out.with_name(out.stem + ".sag.yaml")
+    assert f"the gravity sag cannot be in a {fmt} file: wrote it as data to {sag}" in res.output
+    assert "with the sag of" in res.output and "FAILED" not in res.output
+    assert "J2.a" in res.output and "J3.compliance" in res.output  # links and compliance applied, and said so
+    truth = apply_result(nominal, doc)
+    back = read_sag_file(sag)
+    q = random_configurations(nominal, 30, seed=3)
+    assert fk_difference(back.fk(q), truth.fk(q))[0] < 1e-6
+    if fmt == "ur":
+        assert "the model's flange is wrist_3_link" in res.output
+
+
+def test_export_needs_a_format_it_can_tell(tmp_path):
+    res = run("model", "export", UR10, "-o", tmp_path / "x.yaml")
+    assert res.exit_code == 2 and "--format" in res.output and "x.yaml" in res.output and not (tmp_path / "x.yaml").exists()

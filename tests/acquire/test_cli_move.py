@@ -60,7 +60,11 @@ def test_move_with_yes_reports_the_link_moves_settles_and_ends_the_session(app, 
     result = run(app, port, "--to", "10,-80,80,5,50,-20", "--speed", "0.5", "--yes", "--tolerance", "0.001")
     assert result.exit_code == 0, result.output
     out = result.output
-    assert "cycle 4.0" in out and "latency p50" in out and "measured (deg): A1=   0.0000  A2= -90.0000" in out
+    assert "latency p50" in out and "measured (deg): A1=   0.0000  A2= -90.0000" in out
+    # the controller sends every 4 ms; the link check reports the period it measured, which a
+    # loaded test machine stretches (5.5 ms seen beside other workers) but never shortens
+    cycle_ms = float(re.search(r"cycle (\d+\.\d+)", out).group(1))
+    assert 3.9 <= cycle_ms < 20.0, out
     settled = [line for line in out.splitlines() if line.startswith("settled")][0]
     values = [float(v) for v in re.findall(r"A\d=\s*(-?[\d.]+)", settled)]
     np.testing.assert_allclose(values, [10, -80, 80, 5, 50, -20], atol=2e-3)
@@ -193,3 +197,59 @@ def test_an_iiwa_that_does_not_move_exits_non_zero_with_the_residual_per_axis(ap
     line = [x for x in result.output.splitlines() if "settled off target" in x][0]
     assert "A1 -1.0000°" in line and "A2 -1.0000°" in line and "A4 +1.0000°" in line
     assert "A3" not in line and "allowed ±0.1° per axis" in line
+
+
+def _calibrated_kr6(tmp_path):
+    """A result for the KR 6 (link errors and offsets, no sag: its model has no masses)."""
+    import json
+
+    from calib.robot.model import load_robot_model
+    from tests.calib.calibrated_sim import full_result
+
+    doc = full_result(load_robot_model(KR6), seed=6, compliance=False)
+    path = tmp_path / "result.json"
+    path.write_text(json.dumps(doc))
+    return path, doc
+
+
+def test_move_to_a_pose_goes_to_the_calibrated_arms_joints_nearest_the_robot(app, controller, tmp_path):
+    from calib.ik.compensation import Compensator, pose_error
+    from calib.robot.calibrated import apply_result
+    from calib.robot.kinematics import Chain
+    from calib.robot.model import load_robot_model
+    from calib.robot.transforms import matrix_to_euler_zyx, pose_to_matrix
+
+    port, fake = controller
+    result_path, doc = _calibrated_kr6(tmp_path)
+    model = load_robot_model(KR6)
+    tool = pose_to_matrix(np.array([0.0, 0.0, 100.0]), np.zeros(3))
+    near = np.radians([8.0, -82.0, 95.0, 3.0, 48.0, -15.0])
+    target = Chain(model).fk(near) @ tool
+    pose = ",".join(f"{v:.6f}" for v in (*target[:3, 3], *np.degrees(matrix_to_euler_zyx(target[:3, :3]))))
+    result = run(app, port, "--pose", pose, "--result", str(result_path), "--tool", "0,0,100,0,0,0",
+                 "--speed", "0.5", "--yes", "--tolerance", "0.001")
+    assert result.exit_code == 0, result.output
+    assert "configuration(s) reach it; nearest the measured joints chosen" in result.output
+    reached = np.radians(fake.actual_deg())
+    arm = Compensator(model, apply_result(model, doc), tool)
+    # the real (calibrated) arm's TCP is on the pose; the nominal arm's is not
+    assert np.linalg.norm(pose_error(target, arm.true_pose(reached))[0]) < 0.01
+    assert np.linalg.norm(pose_error(target, Chain(model).fk(reached) @ tool)[0]) > 0.3
+    np.testing.assert_allclose(reached, near, atol=np.radians(1.0))  # the branch nearest the robot (HOME)
+
+
+def test_a_pose_out_of_reach_is_refused_before_connecting(app, tmp_path):
+    result_path, _ = _calibrated_kr6(tmp_path)
+    result = CliRunner().invoke(app, ["move", "--robot", str(KR6), "--commander", "rsi://127.0.0.1:9",
+                                      "--pose", "3000,0,500,0,0,0", "--result", str(result_path)])
+    assert result.exit_code == 2 and "refused, no configuration reaches it" in _flat(result.output)
+
+
+def test_to_and_pose_together_are_a_usage_error(app):
+    result = CliRunner().invoke(app, ["move", "--robot", str(KR6), "--to", "0,0,0,0,0,0", "--pose", "1,2,3,0,0,0"])
+    assert result.exit_code == 2 and "exactly one target" in _flat(result.output)
+
+
+def _flat(text: str) -> str:
+    """Output with the error box's borders and line wrapping taken out."""
+    return " ".join(text.replace("│", " ").split())

@@ -22,7 +22,17 @@ def test_a_valid_adaptive_section(tmp_path):
 
 
 @pytest.mark.parametrize("adaptive, field, allowed", [
-    ({"stop_when": {}}, "adaptive.stop_when", "interval_deg: (0, 1], workspace_within_pct"),
+    ({"stop_when": {}}, "adaptive.stop_when", "interval_deg: (0, 1], region_error_mm: (0, 100]"),
+    ({"stop_when": {"region_error_mm": 0}}, "adaptive.stop_when.region_error_mm", "allowed (0, 100]"),
+    ({"stop_when": {"joint_space_within_pct": -5}}, "adaptive.stop_when.joint_space_within_pct", "allowed [0, 1000]"),
+    ({"stop_when": {"joint_space_error_mm": 0.1}, "joint_space": {"ranges_deg": [[-90, 90] for _ in range(6)]}},
+     "adaptive.joint_space.ranges_deg", "has 7 joints (given 6 ranges; allowed one [low, high] per joint"),
+    ({"stop_when": {"joint_space_error_mm": 0.1}, "joint_space": {"ranges_deg": [[-90, 90] for _ in range(6)] + [[-200, 90]]}},
+     "adaptive.joint_space.ranges_deg.6", "allowed within [-175, 175] degrees"),
+    ({"stop_when": {"joint_space_error_mm": 0.1}, "joint_space": {"ranges_deg": [[-90, 90] for _ in range(6)] + [[10, 10]]}},
+     "adaptive.joint_space.ranges_deg.6", "allowed [low, high], low < high"),
+    ({"stop_when": {"joint_space_error_mm": 0.1}, "joint_space": {"samples": 3}}, "adaptive.joint_space.samples",
+     "allowed [10, 5000]"),
     ({"stop_when": {"interval_deg": -1}}, "adaptive.stop_when.interval_deg", "allowed (0, 1]"),
     ({"stop_when": {"interval_deg": 0.01}, "max_configurations": 0}, "adaptive.max_configurations", "allowed [1, 10000]"),
     ({"stop_when": {"interval_deg": 0.01}, "min_configurations": 20, "max_configurations": 10},

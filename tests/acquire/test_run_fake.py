@@ -16,9 +16,9 @@ from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import read_run
 from drivers.tracker.codec import Aim
 
-from run_helpers import popen, run_logs, simulated_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import RUN_TIMEOUT_S, popen, run_logs, simulated_run, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
-pytestmark = pytest.mark.timeout(150)
+pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 
 
 def test_complete_fake_run_logs_every_configuration_and_fits_near_the_truth(tmp_path):
@@ -28,7 +28,7 @@ def test_complete_fake_run_logs_every_configuration_and_fits_near_the_truth(tmp_
     statuses = []
     with simulated_run(lp, on_progress=statuses.append) as (rc, sim):
         rc.start()
-        summary = rc.wait(140)
+        summary = wait_for_run(rc)
         truth = np.array(sim.truth_offsets_deg())
     assert summary.state == "finished", summary.reason
     assert summary.exit_code == 0
@@ -150,7 +150,7 @@ def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
 
     with simulated_run(lp, on_progress=break_beam, fit=False) as (rc, sim):
         rc.start()
-        summary = rc.wait(140)
+        summary = wait_for_run(rc)
     assert summary.state == "finished", summary.reason
     contents = read_run(summary.log_path)
     events = contents.events
@@ -174,7 +174,7 @@ def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(400)
+@pytest.mark.timeout(RUN_TIMEOUT_S)
 def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compliance_model(tmp_path):
     """The README's main job: the simulated cell sags under gravity; with fit.compliance the
     fitted offsets land within 3σ of the cell's hidden truth and the loaded axes' compliances
@@ -183,7 +183,7 @@ def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compli
     assert lp.plan.fit.compliance
     with simulated_run(lp, out_dir=tmp_path) as (rc, sim):
         rc.start()
-        summary = rc.wait(380)
+        summary = wait_for_run(rc)
         truth = sim.truth_offsets_deg()
     assert summary.state == "finished", summary.reason
     fitted = [j for j in summary.fit["joint_offsets"] if j["identifiable"]]
@@ -200,7 +200,7 @@ def test_readme_example_recovers_every_offset_within_three_sigma_with_the_compli
 
 
 @pytest.mark.slow  # long run; the run loop's suspend/re-acquire path is test_run_sim_faults.py's, emScon's re-acquisition is covered in tests/drivers/emscon
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(RUN_TIMEOUT_S)
 def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     from drivers.emscon import codec as es
 
@@ -223,7 +223,7 @@ def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
     with simulated_run(lp, on_progress=break_beam, fit=False) as (rc, sim):
         seen["launch"] = sim.launch
         rc.start()
-        summary = rc.wait(280)  # time_scale 3: slower than the line-protocol test, kinder to a loaded machine
+        summary = wait_for_run(rc)  # time_scale 3: slower than the line-protocol test, kinder to a loaded machine
     assert summary.state == "finished", summary.reason
     # the plan's air and reflector reached the simulated tracker through emScon packets
     tracker, server = seen["launch"].trackers["tracker"]

@@ -15,9 +15,9 @@ from acquire.cli import app
 from acquire.plan import load_plan, resolve_configurations
 from acquire.run import RunController, RunError
 
-from run_helpers import ROOT, fake_controller, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import ROOT, RUN_TIMEOUT_S, fake_controller, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
-pytestmark = pytest.mark.timeout(150)
+pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 
 
 @pytest.fixture
@@ -136,7 +136,7 @@ def test_the_controller_reports_a_run_too_small_for_the_fit_as_failed(tmp_path):
     lp = load_plan(two_configuration_plan(tmp_path))
     ctl = fake_controller(lp)
     ctl.start()
-    summary = ctl.wait(140)
+    summary = wait_for_run(ctl)
     assert summary.state == "failed" and summary.exit_code == 1
     assert summary.reason.startswith("no result:"), summary.reason
     assert summary.measured + summary.skipped + summary.failed == 2

@@ -12,9 +12,9 @@ import pytest
 from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import RunLogError, read_run
 
-from run_helpers import aborted_run, fake_controller, popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import RUN_TIMEOUT_S, aborted_run, fake_controller, popen, run_logs, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
-pytestmark = pytest.mark.timeout(170)
+pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 
 
 def outcomes(contents) -> tuple[Counter, set]:
@@ -104,12 +104,12 @@ def test_resume_after_an_abort_continues_and_refuses_another_plan(tmp_path):
     other = small_plan(tmp_path, n=5, name="other.yaml")
     rc_other = fake_controller(load_plan(other), resume=first.log_path, fit=False)
     rc_other.start()
-    refused = rc_other.wait(60)
+    refused = wait_for_run(rc_other)
     assert refused.state == "failed" and "different plan" in refused.reason
 
     rc2 = fake_controller(lp, resume=first.log_path, fit=False)
     rc2.start()
-    second = rc2.wait(120)
+    second = wait_for_run(rc2)
     assert second.state == "finished", second.reason
     contents = read_run(first.log_path)
     counts, ended = outcomes(contents)
@@ -144,7 +144,7 @@ def test_an_fri_drop_is_waited_out_and_failed_configurations_are_measured_again_
 
     rc = fake_controller(lp, on_progress=faults, fit=False)
     rc.start()
-    first = rc.wait(150)
+    first = wait_for_run(rc)
     assert first.state == "failed" and "fix it and resume the run" in first.reason, first.reason
     contents = read_run(first.log_path)
     kinds = [e["kind"] for e in contents.events]
@@ -159,7 +159,7 @@ def test_an_fri_drop_is_waited_out_and_failed_configurations_are_measured_again_
 
     rc2 = fake_controller(lp, resume=first.log_path, fit=False)
     rc2.start()
-    second = rc2.wait(150)
+    second = wait_for_run(rc2)
     assert second.state == "finished", second.reason
     contents = read_run(first.log_path)
     counts, _ = outcomes(contents)

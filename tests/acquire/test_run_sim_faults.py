@@ -11,9 +11,9 @@ import yaml
 from acquire.plan import load_plan
 from acquire.recorder import read_run
 
-from run_helpers import fake_controller, ROOT, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import ROOT, RUN_TIMEOUT_S, fake_controller, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
-pytestmark = pytest.mark.timeout(150)
+pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 
 CONFIGS = [[5, 20, 0, -90, 0, -30, 0], [0, 25, 0, -85, 0, -30, 10], [-5, 20, 5, -90, 0, -35, 0]]
 
@@ -39,7 +39,7 @@ def test_scripted_beam_breaks_in_the_cell_file_are_seen_by_a_fake_run(tmp_path):
     plan.write_text(yaml.safe_dump(doc, sort_keys=False))
     rc = fake_controller(load_plan(plan), fit=False)
     rc.start()
-    summary = rc.wait(140)
+    summary = wait_for_run(rc)
     assert summary.state == "finished", summary.reason
     contents = read_run(summary.log_path)
     events = contents.events

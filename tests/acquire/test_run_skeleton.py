@@ -14,9 +14,9 @@ from acquire.plan import load_plan
 from acquire.recorder import read_run
 from drivers.sim.cell import SimCell
 
-from run_helpers import fake_controller, ROOT, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import ROOT, RUN_TIMEOUT_S, fake_controller, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
-pytestmark = pytest.mark.timeout(150)
+pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 
 #: Three infrared markers on a plate around the paper plate's SIR position, and the plate's
 #: centre (where Motive puts the bone: the centroid of its markers) as a tool point to fit.
@@ -59,7 +59,7 @@ def test_a_skeleton_bone_plan_runs_under_fake(tmp_path, version, asset):
     lp = load_plan(plan)
     rc = fake_controller(lp, fit=False)
     rc.start()
-    summary = rc.wait(140)
+    summary = wait_for_run(rc)
     assert summary.state == "finished", summary.reason
     samples = read_run(summary.log_path).samples
     assert len(samples) == len(CONFIGS), f"only {len(samples)} configurations measured"

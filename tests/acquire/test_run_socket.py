@@ -18,11 +18,11 @@ from acquire.plan import load_plan, resolve_configurations
 from acquire.recorder import read_run
 from drivers.sim.cell import SimCell
 
-from run_helpers import fake_controller  # noqa: E402 - tests/acquire is on sys.path under pytest
+from run_helpers import RUN_TIMEOUT_S, fake_controller, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 
 
 def socket_plan(tmp_path: Path, **overrides) -> Path:
@@ -50,14 +50,14 @@ def test_socket_run_interrupted_resumed_and_fitted_recovers_the_hidden_offsets(t
     while first.status()["measured"] < 8 and time.monotonic() < deadline and first.status()["state"] not in ("finished", "failed"):
         time.sleep(0.2)
     first.abort("test: stop halfway")
-    part = first.wait(120)
+    part = wait_for_run(first)
     assert part.state == "aborted"
     done_before = {s["config_id"] for s in read_run(part.log_path).samples}
     assert 8 <= len(done_before) < len(configs)
 
     rc = fake_controller(lp, resume=part.log_path)
     rc.start()
-    summary = rc.wait(360)
+    summary = wait_for_run(rc)
     assert summary.state == "finished", summary.reason
     contents = read_run(summary.log_path)
     ids = [s["config_id"] for s in contents.samples]
@@ -140,7 +140,7 @@ def test_socket_run_confirmed_by_the_button_on_the_flange(tmp_path):
     assert len(configs) == 8
     rc = fake_controller(lp, fit=False)
     rc.start()
-    summary = rc.wait(240)
+    summary = wait_for_run(rc)
     assert summary.state == "finished", summary.reason
     contents = read_run(summary.log_path)
     ids = [s["config_id"] for s in contents.samples]

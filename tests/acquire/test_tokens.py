@@ -82,7 +82,7 @@ def test_an_unprotected_or_weak_token_file_is_refused_like_ssh_refuses_a_key(tmp
     assert res.exit_code == 2 and re.search(r"token too short: 10 characters.*acquire token new", res.output)
     res = CliRunner().invoke(app, ["pause", "--cell", "lab1", "--client", "operator"],
                              env={"REMASTER_TOKEN": "operator-secret-token"})
-    assert res.exit_code == 2 and "REMASTER_TOKEN: token too short" in res.output
+    assert res.exit_code == 2 and "REMASTER_TOKEN: token too weak" in res.output
 
 
 def test_write_token_file_never_creates_a_readable_file(tmp_path):
@@ -117,3 +117,18 @@ def test_throttle_drain_returns_what_is_still_owed_once():
     throttle.admit("zid-b")
     assert throttle.drain() == {"zid-a": 5}  # zid-b had nothing dropped
     assert throttle.drain() == {}
+
+
+def test_a_token_made_of_the_cell_and_client_names_is_refused_where_they_are_known():
+    from acquire.control import ControlClient
+    from acquire.tokens import WeakToken, check_token, guesses_log10, new_token
+
+    token = "hallb-cell7-welder-2026-hallb-cell7"
+    assert check_token(token) == token  # strangers' words: zxcvbn rates it above 10^20…
+    with pytest.raises(WeakToken, match="too weak"):  # …but the client's name and the cell id are no secret
+        ControlClient(None, "hallb-cell7", client="welder", token=token)
+    res = CliRunner().invoke(app, ["status", "--cell", "hallb-cell7", "--client", "welder"], env={"REMASTER_TOKEN": token})
+    assert res.exit_code == 2 and "REMASTER_TOKEN: token too weak" in res.output, res.output
+    generated = new_token()
+    assert guesses_log10(generated, ("welder", "hallb-cell7")) >= 40  # 43 random characters
+    assert ControlClient(None, "hallb-cell7", client="welder", token=generated)

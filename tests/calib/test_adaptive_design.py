@@ -120,7 +120,7 @@ def test_max_configurations_and_exhaustion_stop():
 
 
 def test_bad_rules_are_refused():
-    with pytest.raises(ValueError, match="interval_deg, workspace_within_pct or held_out"):
+    with pytest.raises(ValueError, match="a stop rule needs one of interval_deg, region_error_mm"):
         StopRule()
     with pytest.raises(ValueError, match="max_configurations"):
         StopRule(interval_deg=0.1, min_configurations=5, max_configurations=4)
@@ -270,3 +270,59 @@ def test_with_a_pool_the_new_pose_error_and_the_full_plan_stay_the_plans():
     assert d.full_workspace_mm() == pytest.approx(brute(list(range(n_plan))), rel=1e-9)
     # measuring the pool as well would predict better than the plan alone: not what the rule compares with
     assert brute(list(range(n))) < d.full_workspace_mm()
+
+
+# --- issue 35: criteria in the operator's terms, the misfit ------------------------------------
+def test_the_region_error_counts_a_misfit_that_no_configuration_reduces():
+    # Model error at new poses = sqrt(w² + 3 m²): w falls with every configuration, the misfit m
+    # (per axis) does not — a cell whose model leaves more unexplained measures more, and one whose
+    # misfit alone exceeds the limit never meets it.
+    rows = [[1, 0], [0, 1]] * 20
+    limit = 0.5
+
+    def run(misfit):
+        d = SequentialDesign(toy(rows), StopRule(region_error_mm=limit), sigma_mm=1.0, misfit_mm=misfit)
+        while not d.status().stop:
+            d.add(d.choose(np.ones(40)).index)
+        return d.status()
+
+    clean, some, much = run(0.0), run(0.2), run(0.3)
+    assert clean.reason.startswith("stop rule met") and clean.region_mm <= limit
+    assert clean.region_mm == pytest.approx(clean.workspace_mm)  # no misfit: the model's uncertainty alone
+    assert some.reason.startswith("stop rule met") and some.n_measured > clean.n_measured
+    assert some.region_mm == pytest.approx(math.sqrt(some.workspace_mm**2 + 3 * 0.2**2))
+    assert much.reason.startswith("plan exhausted") and much.region_mm > limit  # √3 · 0.3 > 0.5: never met
+    assert much.checks[0].name == "region_error_mm" and not much.checks[0].met
+
+
+def test_joint_space_criteria_average_over_the_declared_joint_space():
+    # The joint space sees only the second parameter: its error is sqrt(Σ22 + 3m²), the design
+    # chooses what informs it, and the relative criterion compares with the full plan's.
+    model = toy([[1, 0], [0, 1], [1, 0], [0, 1], [0.2, 1]])
+    model = DesignModel(**{**model.__dict__, "joint_space": np.diag([0.0, 1.0])})
+    d = SequentialDesign(model, StopRule(joint_space_error_mm=0.9), sigma_mm=1.0, misfit_mm=0.1)
+    first = d.choose(np.ones(5))
+    assert first.index in (1, 3, 4) and set(first.gain) == {"joint_space"}
+    d.add(first.index)
+    st = d.status()
+    assert st.joint_space_mm == pytest.approx(math.sqrt(d.covariance()[1, 1] + 3 * 0.1**2))
+    full = math.sqrt(np.linalg.inv(model.prior + model.rows[:, 0, :].T @ model.rows[:, 0, :])[1, 1] + 0.03)
+    assert st.full_joint_space_mm == pytest.approx(full)
+    rel = SequentialDesign(model, StopRule(joint_space_within_pct=10), sigma_mm=1.0, measured=[1, 3, 4])
+    check = rel.status().checks[0]
+    assert check.predicted == pytest.approx(100 * (rel.status().joint_space_mm / full_without_misfit(model) - 1))
+    with pytest.raises(ValueError, match="needs the working joint space"):
+        SequentialDesign(toy([[1, 0]]), StopRule(joint_space_error_mm=1.0), sigma_mm=1.0).status()
+
+
+def full_without_misfit(model):
+    return math.sqrt(np.linalg.inv(model.prior + model.rows[:, 0, :].T @ model.rows[:, 0, :])[1, 1])
+
+
+def test_the_batch_weighs_only_the_criteria_not_yet_met():
+    model = toy([[1, 0], [0, 1]])
+    model = DesignModel(**{**model.__dict__, "joint_space": np.diag([1.0, 0.0])})
+    d = SequentialDesign(model, StopRule(interval_deg=1.0, joint_space_error_mm=0.5), sigma_mm=1.0)
+    assert set(d.gains(np.array([0, 1]))) == {"interval", "joint_space"}
+    only = d.gains(np.array([0, 1]), criteria=["joint_space_error_mm"])
+    assert set(only) == {"joint_space"} and only["joint_space"][0] > 0 and only["joint_space"][1] == 0

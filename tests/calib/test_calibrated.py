@@ -114,3 +114,66 @@ def test_a_socket_result_applies_its_kinematic_parameters_but_not_the_ball():
     assert "A4.offset kept nominal (do not enter)" in cal.notes and "A6.offset kept nominal (undetermined: not determined by this data)" in cal.notes
     assert cal.model.tool == KR6.tool and cal.model.joints[2].a == pytest.approx(-24.6)
     assert cal.model.joints[1].theta == pytest.approx(KR6.joints[1].theta + 0.31)
+
+
+# --- everything the fit found: link terms, compliance, entered offsets ---------------------------
+from calib.robot.gravity import gravity_torques  # noqa: E402
+from tests.calib.calibrated_sim import COMPLIANCE, full_result, offsets_result, with_masses  # noqa: E402
+
+KR6_SAGGING = with_masses(KR6)
+
+
+def _truth(model, doc):
+    """The arm a synthetic result describes, computed here from its numbers: chain vector (P,)."""
+    chain = Chain(model)
+    params = chain.nominal.copy()
+    if doc.get("method") == "full":
+        for e in doc["parameters"]:
+            i = chain.param_names.index(e["name"])
+            params[i] = math.radians(e["value"]) if e["unit"] == "deg" else e["value"]
+    else:
+        for e in doc["joint_offsets"]:
+            params[chain.param_names.index(f"{e['joint']}.offset")] = math.radians(e["value_deg"])
+        for name, e in doc["diagnostics"]["link_prior"]["parameters"].items():
+            i = chain.param_names.index(name)
+            params[i] += math.radians(e["mean"]) if name.rsplit(".", 1)[1] in ("alpha", "beta") else e["mean"]
+    return params
+
+
+@pytest.mark.parametrize("make", [full_result, offsets_result], ids=["full", "offsets+tool+links+compliance"])
+def test_links_and_sag_of_every_result_kind_are_applied(make):
+    doc = make(KR6_SAGGING)
+    cal = apply_result(KR6_SAGGING, doc)
+    assert {"A2.a", "A3.alpha", "A4.d", "A2.compliance"} <= set(cal.applied)
+    chain = Chain(KR6_SAGGING)
+    params = _truth(KR6_SAGGING, doc)
+    q = random_configurations(KR6_SAGGING, 50, seed=4)
+    sag = chain.sign * COMPLIANCE * gravity_torques(chain, q, params)
+    assert np.abs(np.degrees(sag)).max() > 0.005  # the sag is there to be seen
+    np.testing.assert_allclose(cal.fk(q), chain.fk(q + sag, params), atol=1e-9)
+    rigid = apply_result(KR6_SAGGING, make(KR6_SAGGING, compliance=False))
+    assert rigid.compliance is None and np.abs(rigid.fk(q)[:, :3, 3] - cal.fk(q)[:, :3, 3]).max() > 0.05
+
+
+def test_entered_offsets_move_the_arm_into_the_controllers_new_angles():
+    doc = full_result(KR6_SAGGING)
+    cal = apply_result(KR6_SAGGING, doc)
+    doc["entered"] = {"verdict": "enter", "offsets": [
+        {"joint": "A2", "index": 2, "value_deg": 0.12, "enter": True},
+        {"joint": "A3", "index": 3, "value_deg": -0.2, "enter": False},
+        {"joint": "A5", "index": 5, "value_deg": None, "enter": True}]}
+    from calib.robot.calibrated import entered_offsets
+
+    entered = entered_offsets(doc, KR6_SAGGING)
+    np.testing.assert_allclose(np.degrees(entered), [0, 0.12, 0, 0, 0, 0])
+    after = cal.after_entering(entered)
+    q_old = random_configurations(KR6_SAGGING, 20, seed=5)
+    np.testing.assert_allclose(after.fk(q_old + entered), cal.fk(q_old), atol=1e-9)  # the same physical arm
+    assert entered_offsets(full_result(KR6_SAGGING), KR6_SAGGING) is None
+    with pytest.raises(ResultError, match="entered.offsets\\[0\\] names axis 'J9'"):
+        entered_offsets({"entered": {"offsets": [{"joint": "J9", "value_deg": 1, "enter": True}]}}, KR6_SAGGING)
+
+
+def test_a_compliance_result_on_a_model_without_masses_is_refused():
+    with pytest.raises(ResultError, match="no link masses"):
+        apply_result(KR6, full_result(KR6_SAGGING) | {"robot": KR6.name})
