@@ -568,7 +568,7 @@ def register(app: typer.Typer) -> None:
 def fit_progress():
     """A ``calib.fit.progress.Progress`` for the default fit: on a terminal a live line on stderr
     (what the fit is doing, the time left in that stage, the time so far); otherwise its lines go
-    to the log at INFO (``-v``), never a control character."""
+    to the log at INFO, one every 2 s at most, never a control character."""
     from acquire.progress import format_eta
     from calib.fit.progress import Progress
 
