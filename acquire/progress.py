@@ -55,6 +55,8 @@ def status_line(st: dict) -> str:
         parts.append(state)
     if st.get("current"):
         parts.append(f"at {st['current']}")
+    if st.get("fit"):  # the end-of-run fit (``acquire.run.state.RunState.fitting``)
+        parts.append(f"fit: {st['fit']['doing']} (ETA {format_eta(st['fit'].get('eta_s'))})")
     return "  ".join(parts)
 
 

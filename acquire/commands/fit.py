@@ -13,8 +13,11 @@ adding its loader here. Bad input exits non-zero with the file, line and column.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Optional
 
@@ -230,7 +233,8 @@ def fit(
     model_name: Optional[str] = typer.Option(
         None, "--model",
         help="auto: force this candidate (offsets, offsets+tool, offsets+tool+links, full; socket data: offsets, "
-        "offsets+ball, offsets+ball+links, full; +compliance with link masses) — the table is still printed.",
+        "offsets+ball, offsets+ball+links, full; +compliance with link masses): only this model is fitted; its held-out error against the nominal "
+        "model is still scored and printed.",
     ),
     joints: Optional[str] = typer.Option(None, "--joints", help="Axes to fit, e.g. 2,3,4,5,6,7 (default: all)."),
     fix_registration: bool = typer.Option(False, "--fix-registration", help="Keep the initial registration (no T* correction)."),
@@ -560,6 +564,25 @@ def register(app: typer.Typer) -> None:
     app.command("fit")(fit)
 
 
+@contextlib.contextmanager
+def fit_progress():
+    """A ``calib.fit.progress.Progress`` for the default fit: on a terminal a live line on stderr
+    (what the fit is doing, the time left in that stage, the time so far); otherwise its lines go
+    to the log at INFO, one every 2 s at most, never a control character."""
+    from acquire.progress import format_eta
+    from calib.fit.progress import Progress
+
+    t0 = time.monotonic()
+    if not sys.stderr.isatty():
+        yield Progress(lambda text, eta: log.info("fit: %s (ETA %s)", text, format_eta(eta)), every_s=2.0)
+        return
+    from rich.console import Console
+
+    with Console(stderr=True).status("fitting …") as status:
+        yield Progress(lambda text, eta: status.update(
+            f"{text} — ETA {format_eta(eta)}, {format_eta(time.monotonic() - t0)} so far"))
+
+
 def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force: str | None,
               link_tolerance: tuple[float, float] | None, n_random: int, n_starts: int, exclusions, output: Path | None,
               model_out: Path | None, report: Path | None, compliance_only: bool = False, noise: dict | None = None) -> None:
@@ -576,8 +599,10 @@ def _fit_auto(model: RobotModel, cal: Dataset, val: Dataset | None, base, force:
         except ValueError as exc:
             raise typer.BadParameter(str(exc), param_hint="--model") from exc
     try:
-        done = auto_fit(model, cal, val, base, force=force, link_tolerance=link_tolerance, n_random=n_random,
-                        n_starts=n_starts, ident_exclusions=exclusions, compliance_only=compliance_only, noise_estimate=noise)
+        with fit_progress() as progress:
+            done = auto_fit(model, cal, val, base, force=force, link_tolerance=link_tolerance, n_random=n_random,
+                            n_starts=n_starts, ident_exclusions=exclusions, compliance_only=compliance_only,
+                            noise_estimate=noise, progress=progress)
     except ValueError as exc:  # DatasetError, or data a registration cannot use (e.g. collinear points)
         raise typer.BadParameter(str(exc), param_hint="DATA") from exc
     if done.result is None:

@@ -69,7 +69,10 @@ def finish(ctl, cell_seconds: float):
                       f"({state.skipped} skipped, {state.failed} failed)")
         else:
             try:
-                summary.fit, summary.result_path, summary.report_path = fit_run_log(state.log_path, ctl.lp)
+                from calib.fit.progress import Progress
+
+                summary.fit, summary.result_path, summary.report_path = fit_run_log(
+                    state.log_path, ctl.lp, progress=Progress(state.fitting, every_s=1.0))
             except (ValueError, RuntimeError, ArithmeticError) as exc:
                 reason = f"no result: the fit of {state.measured} measured configuration(s) failed: {exc}"
             if summary.fit is not None and summary.adaptive is not None:

@@ -17,11 +17,12 @@ def _link_tolerance(fit) -> tuple[float, float] | None:
     return None if mm is None or deg is None else (float(mm), float(deg))
 
 
-def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path, Path | None]:
+def fit_run_log(log_path: Path, lp, *, n_random: int = 500, progress=None) -> tuple[dict, Path, Path | None]:
     """Fit the zero-offsets from a run log; write ``result.json`` and ``report.html`` beside it.
 
     Returns (result document, result path, report path). The plan's ``fit`` section chooses
-    the method, joints, error model, registration handling and validation fraction.
+    the method, joints, error model, registration handling and validation fraction. ``progress``:
+    a ``calib.fit.progress.Progress`` the default fit tells what it is doing (the run's status).
     """
     if getattr(lp.plan, "socket", None) is not None:
         return fit_socket_run_log(log_path, lp)
@@ -59,7 +60,7 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     )
     base = Path(log_path)
     if options.method == "auto":
-        return _fit_run_auto(base, model, cal, val, options, fit, n_random)
+        return _fit_run_auto(base, model, cal, val, options, fit, n_random, progress)
     result = fit_offsets(model, cal, options)
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
                                result.applied_sigma_mm, validation=val, n_random=n_random, seed=0,
@@ -83,7 +84,8 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500) -> tuple[dict, Path,
     return doc, result_path, report_path
 
 
-def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> tuple[dict, Path, Path | None]:
+def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int,
+                  progress=None) -> tuple[dict, Path, Path | None]:
     """The plan's ``fit.method: auto``: ``calib.fit.auto_fit`` (the data choose the model, full
     identification among the candidates; a link scale set in the plan is used instead of the
     empirical Bayes one; ``fit.compliance``: only the candidates with compliance, which leaves full
@@ -97,7 +99,8 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int) -> t
     given = getattr(fit, "model_fields_set", set()) & {"link_tolerance_mm", "link_tolerance_deg"}
     done = auto_fit(model, cal, val, replace(options, method="laplace", compliance=False),
                     link_tolerance=_link_tolerance(fit) if given else None, n_random=n_random,
-                    force=getattr(fit, "model", None), compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics)
+                    force=getattr(fit, "model", None), compliance_only=bool(getattr(fit, "compliance", False)) and model.has_dynamics,
+                    progress=progress)
     if done.ident is not None:
         from calib.fit.identification import corrected_model, write_model_yaml
 

@@ -40,6 +40,8 @@ class RunState:
         self.wall0 = time.monotonic()
         self.time_scale = float(time_scale)
         self.skip_reasons: dict[str, str] = {}
+        #: The end-of-run fit while it runs: {"doing": what, "eta_s": seconds left in that stage or None}.
+        self.fit: Optional[dict] = None
         self.aborting = threading.Event()
         self.unpaused = threading.Event()
         self.unpaused.set()
@@ -51,6 +53,7 @@ class RunState:
                 "state": self.state, "run_id": self.run_id, "done": self.done, "total": self.total,
                 "measured": self.measured, "failed": self.failed, "skipped": self.skipped, "eta_s": self.eta(),
                 "current": self.current, "log": str(self.log_path) if self.log_path else None, "reason": self.reason,
+                "fit": self.fit,
             }
 
     def eta(self) -> float | None:
@@ -74,6 +77,12 @@ class RunState:
     # ------------------------------------------------------------------ changing
     def progress(self) -> None:
         self.pub.progress(self.status())
+
+    def fitting(self, doing: str, eta_s: float | None) -> None:
+        """The end-of-run fit's progress (``calib.fit.progress.Progress``'s sink): a status."""
+        with self.lock:
+            self.fit = {"doing": doing, "eta_s": eta_s}
+        self.progress()
 
     def set(self, state: str, reason: str = "") -> None:
         """Enter ``state`` (with ``reason``): logged, an event ``state``, a status."""

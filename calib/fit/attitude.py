@@ -94,8 +94,11 @@ class AttitudeRows:
     # --- prediction ----------------------------------------------------------------------
     def _sensor_flange(self, post, full: np.ndarray) -> np.ndarray:
         """A = sensor-from-base rotation · flange rotation, (..., ko, 3, 3)."""
-        params = post.chain_params(full)
-        r_f, _ = self.chain.flange_pose(self.q, params)  # (..., ko, 3, 3)
+        walked = post.flange_rotation(full)  # the positions' walk at the same vector(s), if it was one
+        if walked is not None:
+            r_f = walked[..., self.rows, :, :]
+        else:
+            r_f, _ = self.chain.flange_pose(self.q, post.chain_params(full))  # (..., ko, 3, 3)
         if self.sag_w is not None:
             comp = full[..., post.n_full - post.C:]
             r_f = exp_so3(np.einsum("kjn,...n->...kj", self.sag_w, comp)) @ r_f

@@ -71,20 +71,22 @@ class AutoFit:
 def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOptions = FitOptions(), *,
              force: str | None = None, link_tolerance: tuple[float, float] | None = None, n_random: int = 1000,
              n_starts: int = 6, ident_exclusions: tuple[tuple[str, str], ...] = (), k: int = 5,
-             include_full: bool = True, compliance_only: bool = False, noise_estimate: dict | None = None) -> AutoFit:
+             include_full: bool = True, compliance_only: bool = False, noise_estimate: dict | None = None,
+             progress=None) -> AutoFit:
     """Choose the model by cross-validation (``force``: a candidate's name, ``--model``), fit it on
     all of ``cal``, score ``val`` and apply the guards. ``base``: the user's options (joints,
     registration, error model, tool prior, seed, draws); ``link_tolerance``: a fixed link scale
     instead of the empirical Bayes one; ``include_full``: False leaves full identification out of
     the candidates (the run's end-of-run fit, whose summary is the offsets'); ``noise_estimate``: how the
-    rows' spreads were estimated where the data state none (``calib.fit.noise``), for the document."""
+    rows' spreads were estimated where the data state none (``calib.fit.noise``), for the document;
+    ``progress``: a ``calib.fit.progress.Progress`` told what the fit is doing."""
     from calib.robot.kinematics import Chain
     from calib.fit.metrics import accuracy_metrics
     from calib.fit.result import registration_statistics, result_dict
 
     base = replace(base, method="laplace", compliance=False)
     choice = choose_model(model, cal, base, force=force, k=k, link_tolerance=link_tolerance,
-                          include_full=include_full, compliance_only=compliance_only)
+                          include_full=include_full, compliance_only=compliance_only, progress=progress)
     candidate = parse_candidate(choice.chosen, model)
     if candidate.kind == "full":
         from calib.fit.identification import IdentOptions, ident_result_dict, identify
@@ -105,7 +107,9 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
     scale = choice.link_scale
     tolerance = (scale["length_mm"], scale["angle_deg"]) if scale else None
     options = options_for(candidate, base, tolerance)
-    result = fit_offsets(model, cal, options)
+    if progress is not None:
+        progress.begin(f"posterior of {choice.chosen}")
+    result = fit_offsets(model, cal, options, start=choice.starts.get(choice.chosen), progress=progress)
     metrics = accuracy_metrics(Chain(model), cal, result.applied_offsets_rad, result.offset_samples_rad,
                                result.applied_sigma_mm, validation=val, n_random=n_random, seed=base.seed,
                                markers_mm=result.fitted_markers_mm, before_markers_mm=as_found_markers(model, cal))

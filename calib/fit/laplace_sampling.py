@@ -16,6 +16,7 @@ checked by importance sampling, with a random walk in its whitened coordinates w
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Callable
 
@@ -25,9 +26,13 @@ from calib.fit.psis import KHAT_MAX, psis
 from calib.fit.sampling import Chains
 
 LogTarget = Callable[[np.ndarray], np.ndarray]  # (b, d) -> (b,)
+#: Told what a sampler is doing: (a line, the fraction of its work done or None).
+Told = Callable[..., None]
 
 
-def _evaluate(log_target: LogTarget, x: np.ndarray, batch: int = 1024) -> np.ndarray:
+def _evaluate(log_target: LogTarget, x: np.ndarray, batch: int = 256) -> np.ndarray:
+    """log_target at x (N, d) in batches: 256 proposals × a few hundred rows keep the walk's arrays in
+    cache (1024 were a third slower per proposal on the UR10 data)."""
     return np.concatenate([np.asarray(log_target(x[i: i + batch]), dtype=float) for i in range(0, len(x), batch)])
 
 
@@ -37,54 +42,169 @@ MAX_PREDICTOR_LOGP_STD = 0.05
 N_PREDICTOR_CHECK = 256
 
 
+def _t_logpdf(x: np.ndarray, mean: np.ndarray, chol: np.ndarray, df: float | None) -> np.ndarray:
+    """Log density (b,) of the multivariate t (None: Gaussian) with ``mean`` (d,) and scale
+    ``chol`` @ ``chol``ᵀ at points x (b, d), up to the constant shared by every t of this ``df``
+    and dimension (the weights are normalised, and the stages of one fit share their df)."""
+    from scipy.linalg import solve_triangular
+
+    z = solve_triangular(chol, (x - mean).T, lower=True).T
+    log_det = float(np.sum(np.log(np.abs(np.diag(chol)))))
+    q2 = np.sum(z * z, axis=1)
+    if df is None:
+        return -0.5 * q2 - log_det
+    return -0.5 * (df + mean.size) * np.log1p(q2 / df) - log_det
+
+
+def _t_constant(df: float | None, d: int) -> float:
+    """The log normalising constant ``_t_logpdf`` leaves out: needed where stages of different df mix."""
+    from calib.fit.sampling import student_t_logpdf_constant
+
+    return -0.5 * d * math.log(2 * math.pi) if df is None else student_t_logpdf_constant(df, d)
+
+
+def _t_draws(rng: np.random.Generator, mean: np.ndarray, chol: np.ndarray, df: float | None, n: int) -> np.ndarray:
+    """n draws (n, d) of the multivariate t (None: Gaussian) with ``mean`` and scale ``chol`` @ ``chol``ᵀ."""
+    z = rng.standard_normal((n, mean.size))
+    if df is not None:
+        z = z / np.sqrt(rng.chisquare(df, n) / df)[:, None]
+    return mean + z @ chol.T
+
+
+#: The importance check draws its proposals in chunks of this many (at least ``n_chains × n_draws``)
+#: and judges the weights after each.
+CHUNK = 4000
+#: The Laplace stage stops before ``min_proposals`` where k̂ is below ``EARLY_KHAT`` — finite-variance
+#: weights, far from the 0.7 limit (a few thousand draws can under-estimate k̂: on UR10 series D 4 000
+#: draws gave 0.53 where 16 000 gave 0.74) — with ``EARLY_MIN_ESS`` effective draws: means to a few
+#: hundredths of a standard deviation.
+EARLY_KHAT = 0.3
+EARLY_MIN_ESS = 1000.0
+#: A stage whose k̂ is ≥ 0.7 after this many of its own draws gives way to an adapted one.
+STAGE_MIN_DRAWS = 8000
+#: Adapted stages of the importance check (``laplace_importance``) before the random walk: the
+#: proposal moved to the weighted draws' mean and covariance, every stage's draws kept.
+ADAPT_STAGES = 2
+#: An adapted stage needs this many effective draws per parameter before it: fewer cannot say
+#: where the mass is (its covariance would be noise).
+ADAPT_MIN_ESS_PER_DIM = 2.0
+#: The adapted proposals' scale: the weighted covariance, this much wider (their tails must not
+#: fall under the target's).
+ADAPT_INFLATE = 1.1
+
+
+def _weighted_moments(x: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (d,) and covariance (d, d) of draws x (N, d) under normalised weights w (N,)."""
+    mean = w @ x
+    dev = x - mean
+    cov = dev.T @ (dev * w[:, None])
+    return mean, 0.5 * (cov + cov.T)
+
+
+def _agrees(mean: np.ndarray, cov: np.ndarray, ref_mean: np.ndarray, ref_cov: np.ndarray) -> bool:
+    """Whether weighted moments are those an adapted stage was drawn with: every mean within a
+    tenth of a standard deviation, every standard deviation within 10 % (else the adaptation has
+    not settled: adapt again)."""
+    sd, ref_sd = np.sqrt(np.maximum(np.diag(cov), 0.0)), np.sqrt(np.diag(ref_cov))
+    return bool(np.all(np.abs(mean - ref_mean) <= 0.1 * ref_sd) and np.all(np.abs(sd / ref_sd - 1.0) <= 0.1))
+
+
 def laplace_importance(log_target: LogTarget, mode: np.ndarray, cov: np.ndarray, *, n_chains: int = 4,
                        n_draws: int = 1000, seed: int = 0, oversample: int = 2,
-                       min_proposals: int = 16000, df: float = 10.0,
-                       exact_target: LogTarget | None = None) -> tuple[Chains | None, dict]:
+                       min_proposals: int = 16000, df: float = 10.0, adapt: int = ADAPT_STAGES,
+                       adapt_df: float = 5.0, exact_target: LogTarget | None = None,
+                       progress: Told | None = None) -> tuple[Chains | None, dict]:
     """Importance sampling of ``log_target`` with the Laplace approximation as the proposal: mean
     ``mode`` (d,), covariance ``cov`` (d, d), as a multivariate Student t with ``df`` degrees of
     freedom (None: the Gaussian itself). With σ integrated out the posterior of θ has t-like tails
     (∝ E(θ)^(−(3n+1)/2)); the Gaussian's lighter tails under-weight them and push k̂ up (0.65–0.71
     on the README's example run), a t with 10 dof covers them (k̂ ≈ −0.1, ESS 7000 of 16000).
 
+    The proposals come in chunks (``CHUNK``) and the PSIS weights are judged after each: the check
+    passes with k̂ < 0.7 on at least ``min_proposals`` draws, or earlier with k̂ < ``EARLY_KHAT``
+    and ``EARLY_MIN_ESS`` effective draws. Where k̂ is ≥ 0.7 after ``STAGE_MIN_DRAWS`` draws of a
+    stage — a posterior whose mean is a fraction of a standard deviation off the mode, or whose
+    tails curve away from the Laplace Gaussian's — up to ``adapt`` further stages draw from a t
+    with ``adapt_df`` degrees of freedom at the current weighted mean and covariance
+    (×``ADAPT_INFLATE``²), and every draw of every stage is weighted by the target over the mixture
+    of all the stages' proposals in proportion to their draws (the deterministic mixture, or
+    balance heuristic, of multiple importance sampling: Veach & Guibas 1995, Owen & Zhou 2000; the
+    adaptation is that of adaptive multiple importance sampling, Cornuet et al. 2012). The mixture
+    keeps the Laplace proposal, so no region it covered is lost; PSIS judges the final weights as it
+    judged the first. On real UR10 data (series D, 120 configurations, 29 parameters) the Laplace
+    stage gave k̂ 0.74 and one adapted stage 0.60, where the random walk had needed 32 chains ×
+    26 000 steps.
+
     ``exact_target``: the same density without ``log_target``'s shortcuts (an expansion of the
-    kinematics). It is evaluated on ``N_PREDICTOR_CHECK`` of the proposals; where the two differ
-    by more than ``MAX_PREDICTOR_LOGP_STD`` nats (std), every proposal is weighted by the exact one
-    (the expansion's neglected terms matter where link and offset directions are nearly degenerate).
+    kinematics). It is evaluated on ``N_PREDICTOR_CHECK`` of the first proposals; where the two
+    differ by more than ``MAX_PREDICTOR_LOGP_STD`` nats (std), every proposal is weighted by the
+    exact one (the expansion's neglected terms matter where link and offset directions are nearly
+    degenerate). ``progress``: told what the check is doing (stage, draws, k̂) and its fraction done.
 
     Returns (draws or None, diagnostics): draws as ``Chains`` (n_chains, n_draws, d) resampled by
-    the PSIS weights when k̂ < 0.7, else None. Diagnostics: ``k_hat``, ``ess`` (of the weights),
-    ``n_proposals``, ``seconds``, ``predictor`` ("expansion" or "exact") and ``predictor_logp_std``.
-    At least ``min_proposals`` draws: the tail fit needs them."""
+    the PSIS weights when the check passes, else None. Diagnostics: ``k_hat`` (of the final
+    weights), ``k_hat_stages`` (at the end of each stage), ``ess`` (of the weights),
+    ``n_proposals`` (all stages), ``stages``, ``seconds``, ``predictor`` ("expansion" or "exact"),
+    ``predictor_logp_std``, and ``mean``/``covariance`` (d,)/(d, d): the weighted moments."""
     t0 = time.perf_counter()
     mode = np.asarray(mode, dtype=float)
+    d = mode.size
     rng = np.random.default_rng(seed)
     n = max(oversample * n_chains * n_draws, min_proposals)  # k̂ of a few thousand weights is noisy
-    chol = np.linalg.cholesky(cov + 1e-300 * np.eye(mode.size))
-    z = rng.standard_normal((n, mode.size))
-    if df is None:
-        log_q = -0.5 * np.sum(z * z, axis=1)  # up to a constant: the weights are normalised
-    else:
-        z = z / np.sqrt(rng.chisquare(df, n) / df)[:, None]
-        log_q = -0.5 * (df + mode.size) * np.log1p(np.sum(z * z, axis=1) / df)
-    x = mode + z @ chol.T
-    log_p = _evaluate(log_target, x)
-    predictor, spread = "exact" if exact_target is None else "expansion", None
-    if exact_target is not None:
-        sub = rng.choice(n, size=min(N_PREDICTOR_CHECK, n), replace=False)
-        diff = _evaluate(exact_target, x[sub]) - log_p[sub]
-        spread = float(np.std(diff)) if np.all(np.isfinite(diff)) else float("inf")
-        if spread > MAX_PREDICTOR_LOGP_STD:
-            log_p, predictor = _evaluate(exact_target, x), "exact"
-    res = psis(np.where(np.isfinite(log_p), log_p - log_q, -np.inf))
-    diag = {"k_hat": res.k_hat, "k_hat_max": KHAT_MAX, "ess": res.ess, "n_proposals": n, "proposal_df": df,
-            "predictor": predictor, "predictor_logp_std": spread, "seconds": time.perf_counter() - t0}
+    chunk = min(n, max(n_chains * n_draws, CHUNK))
+    stages = [(mode, np.linalg.cholesky(cov + 1e-300 * np.eye(d)), df)]
+    counts = [0]
+    x, log_p = np.zeros((0, d)), np.zeros(0)
+    predictor, spread, k_stages = "exact" if exact_target is None else "expansion", None, []
+    limit = n * (1 + adapt)
+    while True:
+        m, c, f = stages[-1]
+        new = _t_draws(rng, m, c, f, chunk)
+        lp_new = _evaluate(log_target, new)
+        if exact_target is not None and spread is None:  # the predictor's check, on the first chunk
+            sub = rng.choice(chunk, size=min(N_PREDICTOR_CHECK, chunk), replace=False)
+            diff = _evaluate(exact_target, new[sub]) - lp_new[sub]
+            spread = float(np.std(diff)) if np.all(np.isfinite(diff)) else float("inf")
+            if spread > MAX_PREDICTOR_LOGP_STD:
+                lp_new, predictor, log_target = _evaluate(exact_target, new), "exact", exact_target
+        x, log_p = np.concatenate([x, new]), np.concatenate([log_p, lp_new])
+        counts[-1] += chunk
+        total = x.shape[0]
+        # Every draw against the mixture of the stages' proposals, each in proportion to its draws.
+        log_q = np.logaddexp.reduce([math.log(k / total) + _t_logpdf(x, sm, sc, sf) + _t_constant(sf, d)
+                                     for (sm, sc, sf), k in zip(stages, counts)], axis=0)
+        res = psis(np.where(np.isfinite(log_p), log_p - log_q, -np.inf))
+        if progress is not None:
+            what = "Laplace proposal" if len(stages) == 1 else f"adapted stage {len(stages) - 1} of at most {adapt}"
+            progress(f"importance check: {what}, {total} draws, Pareto k̂ {res.k_hat:.2f}, {res.ess:.0f} effective",
+                     min(total / limit, 1.0))
+        if len(stages) == 1 and res.k_hat < EARLY_KHAT and res.ess >= EARLY_MIN_ESS:
+            break
+        mean, wcov = _weighted_moments(x, res.weights)
+        settled = len(stages) == 1 or _agrees(mean, wcov, m, c @ c.T / ADAPT_INFLATE**2)
+        if (total >= n and res.reliable and settled) or total >= limit:
+            break
+        if (not res.reliable or not settled) and counts[-1] >= STAGE_MIN_DRAWS:
+            k_stages.append(res.k_hat)
+            if len(stages) > adapt or res.ess < ADAPT_MIN_ESS_PER_DIM * d:
+                break
+            try:
+                stages.append((mean, np.linalg.cholesky(wcov * ADAPT_INFLATE**2), adapt_df))
+            except np.linalg.LinAlgError:
+                break
+            counts.append(0)
+    k_stages.append(res.k_hat)
+    mean, wcov = _weighted_moments(x, res.weights)
+    diag = {"k_hat": res.k_hat, "k_hat_max": KHAT_MAX, "k_hat_stages": k_stages, "stages": len(stages),
+            "ess": res.ess, "n_proposals": int(x.shape[0]), "proposal_df": df, "predictor": predictor,
+            "predictor_logp_std": spread, "seconds": time.perf_counter() - t0, "mean": mean, "covariance": wcov}
     if not res.reliable:
         return None, diag
-    pick = rng.choice(n, size=n_chains * n_draws, replace=True, p=res.weights)
-    draws = x[pick].reshape(n_chains, n_draws, mode.size)
+    pick = rng.choice(x.shape[0], size=n_chains * n_draws, replace=True, p=res.weights)
+    draws = x[pick].reshape(n_chains, n_draws, d)
     diag["seconds"] = time.perf_counter() - t0
-    return Chains(draws, np.full(n_chains, res.ess / n), diag["seconds"], "laplace + PSIS importance sampling",
+    how = "laplace + PSIS importance sampling" + (f" ({len(stages) - 1} adapted stage(s))" if len(stages) > 1 else "")
+    return Chains(draws, np.full(n_chains, res.ess / x.shape[0]), diag["seconds"], how,
                   pick.reshape(n_chains, n_draws)), diag
 
 
@@ -120,7 +240,8 @@ WALK_STORE_EVERY = 10
 
 
 def random_walk(log_target: LogTarget, mode: np.ndarray, cov: np.ndarray, *, n_chains: int = 32,
-                burn_in: int = 2000, block: int = 2000, max_steps: int = WALK_MAX_STEPS, seed: int = 0) -> Chains:
+                burn_in: int = 2000, block: int = 2000, max_steps: int = WALK_MAX_STEPS, seed: int = 0,
+                progress: Told | None = None) -> Chains:
     """Random-walk Metropolis in the coordinates the Laplace approximation whitens, x = mode + L z
     with L Lᵀ = ``cov``: ``n_chains`` chains in parallel (one batch of the target per step), each
     proposing z' = z + s·N(0, I).
@@ -192,6 +313,9 @@ def random_walk(log_target: LogTarget, mode: np.ndarray, cov: np.ndarray, *, n_c
         rhat_lp = float(split_rhat(kept_lp)[0])
         ess = float(effective_sample_size(kept).min())
         settled = max(rhat, rhat_lp) <= WALK_RHAT and ess >= WALK_MIN_ESS
+        if progress is not None:
+            progress(f"random walk: {step} of at most {max_steps} steps × {n_chains} chains, R-hat "
+                     f"{max(rhat, rhat_lp):.3f} (≤ {WALK_RHAT}), {ess:.0f} effective draws (≥ {WALK_MIN_ESS:.0f})", step / max_steps)
         if settled or step + block > max_steps:
             break
         target_steps = step + block

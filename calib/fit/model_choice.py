@@ -53,6 +53,7 @@ from calib.robot.model import RobotModel
 from calib.fit.link_scale import ANGLES_DEG, LENGTHS_MM, maximise_evidence
 from calib.fit.registration import register_least_squares
 from calib.fit.heldout_misfit import birge_ratio, heldout_chi2
+from calib.fit.progress import Progress
 
 #: Candidate kinds, simplest first (their rank orders "simplest" in the one-standard-error rule).
 KINDS = ("offsets", "offsets+tool", "offsets+tool+links", "full")
@@ -75,6 +76,10 @@ class Candidate:
     @property
     def rank(self) -> float:
         return self.kinds.index(self.kind) + (0.5 if self.compliance else 0.0)
+
+
+#: The model of the offsets a controller is given (``calib.fit.entered``).
+ENTERED = Candidate("offsets+tool")
 
 
 def candidates(model: RobotModel, *, include_full: bool = True, compliance_only: bool = False) -> list[Candidate]:
@@ -171,15 +176,17 @@ def linearised_log_evidence(mf: ModeFit):
 
 
 def empirical_link_scale(model: RobotModel, data: Dataset, base: FitOptions, lengths_mm: tuple[float, ...] = LENGTHS_MM,
-                         angles_deg: tuple[float, ...] = ANGLES_DEG) -> dict:
+                         angles_deg: tuple[float, ...] = ANGLES_DEG, *, start: ModeFit | None = None) -> dict:
     """The link prior's length (mm) and angle (deg) scales that maximise the Laplace evidence of
     the offsets+tool+links model on ``data``, each on its own grid (``calib.fit.link_scale``):
     the mode is fitted under a middle scale, every pair of the grids priced by
     ``linearised_log_evidence``, and the mode fitted again at the best pair until it stays (at most
-    three fits). {"length_mm", "angle_deg", "log_evidence": {"mm/deg": value}, "at_grid_edge", "fits"}."""
+    three fits). {"length_mm", "angle_deg", "log_evidence": {"mm/deg": value}, "at_grid_edge", "fits"}.
+    ``start``: where the mode fits start (``fit_mode``); the grid search itself always starts at
+    the middle scale."""
     ref = (lengths_mm[len(lengths_mm) // 2], angles_deg[len(angles_deg) // 2])
     for fits in range(1, 4):
-        ev = linearised_log_evidence(fit_mode(model, data, replace(base, link_tolerance=ref), tol=CV_TOL))
+        ev = linearised_log_evidence(fit_mode(model, data, replace(base, link_tolerance=ref), tol=CV_TOL, start=start))
         found = maximise_evidence(ev, lengths_mm, angles_deg, exhaustive=True)
         best = (found["length_mm"], found["angle_deg"])
         if best == ref:
@@ -266,6 +273,8 @@ class ModelChoice:
     link_scale: dict | None
     #: Candidates left out of the comparison and why (one line), or None.
     excluded: str | None = None
+    #: Candidate name → its mode on all the data (``choose_model``), where the chosen one's fit starts.
+    starts: dict[str, ModeFit] = field(default_factory=dict, repr=False)
 
     def score(self, name: str) -> Score:
         return next(s for s in self.scores if s.name == name)
@@ -386,25 +395,29 @@ def _full_fit(model: RobotModel, train: Dataset, base: FitOptions):
 
 
 def _candidate_distances(candidate: Candidate, model: RobotModel, train: Dataset, test: Dataset, base: FitOptions,
-                         link_tolerance) -> tuple[np.ndarray, int, tuple[float, int]]:
+                         link_tolerance, start: ModeFit | None = None) -> tuple[np.ndarray, int, tuple[float, int]]:
     """(held-out distances (rows of ``test``,) mm, free parameters, (Σ r²/v, coordinates) of the
-    held-out misfit — (0, 0) for full identification) of ``candidate`` fitted on ``train``."""
+    held-out misfit — (0, 0) for full identification) of ``candidate`` fitted on ``train``, its
+    solves started at ``start`` (``fit_mode``)."""
     if candidate.kind == "full":
         from calib.fit.identification import pose_errors
 
         res = _full_fit(model, train, base)
         return pose_errors(model, res.params, test, res.base2sensor), len(res.free_names), (0.0, 0)
-    mf = fit_mode(model, train, options_for(candidate, base, link_tolerance), tol=CV_TOL)
+    mf = fit_mode(model, train, options_for(candidate, base, link_tolerance), tol=CV_TOL, start=start)
     return np.linalg.norm(mf.predict_residuals(test), axis=1), mf.post.dim, heldout_chi2(mf, test)
 
 
 def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], base: FitOptions,
                    link_tolerance: tuple[float, float] | None, *, k: int = 5, seed: int = 0,
-                   fold_scales: list | None = None) -> tuple[list[Score], Score, int, str]:
+                   fold_scales: list | None = None, starts: dict[str, ModeFit] | None = None,
+                   progress: Progress | None = None) -> tuple[list[Score], Score, int, str]:
     """K-fold scores of ``cands`` and of the nominal model on ``data`` (see the module's docstring).
     ``link_tolerance`` None with a links candidate: each fold's link scale by empirical Bayes on its
     training configurations, appended to ``fold_scales`` (a list, when given) as (mm, deg) or None
-    where it could not be estimated."""
+    where it could not be estimated. ``starts``: candidate name → its mode on all the data, where
+    that candidate's fold fits start (``fit_mode``); ``progress``: told of each fold fit."""
+    starts = starts or {}
     labels, grouping = fold_labels(data, k, seed)
     n_folds = int(labels.max()) + 1
     scores = [Score(c.name, c.rank, None) for c in cands]
@@ -422,7 +435,8 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
         tol, why = link_tolerance, None
         if tol is None and any(c.kind == "offsets+tool+links" for c in cands):
             try:  # the fold's own scale: its held-out configurations never inform it
-                found = empirical_link_scale(model, train, replace(base, compliance=False))
+                found = empirical_link_scale(model, train, replace(base, compliance=False),
+                                             start=starts.get("offsets+tool+links"))
                 tol = (found["length_mm"], found["angle_deg"])
             except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
                 why = f"fold {f + 1}: the link scale could not be estimated on its training configurations: {exc}"
@@ -434,8 +448,10 @@ def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], bas
             if c.kind == "offsets+tool+links" and tol is None:
                 scores[i].failed = why
                 continue
+            if progress is not None:
+                progress.step(f"cross-validation: fold {f + 1} of {n_folds}, model {i + 1} of {len(cands)} ({c.name})")
             try:
-                dist, n_params, (chi2, n_chi2) = _candidate_distances(c, model, train, test, base, tol)
+                dist, n_params, (chi2, n_chi2) = _candidate_distances(c, model, train, test, base, tol, starts.get(c.name))
             except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
                 scores[i].failed = f"fold {f + 1}: {exc}"
                 continue
@@ -468,23 +484,48 @@ def one_se_choice(scores: list[Score]) -> str:
 
 def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions(), *, force: str | None = None,
                  k: int = 5, include_full: bool = True, link_tolerance: tuple[float, float] | None = None,
-                 compliance_only: bool = False) -> ModelChoice:
-    """Score every candidate (``--model NAME`` in ``force``: still scored and shown, but chosen);
-    ``link_tolerance`` given: that link scale instead of the empirical Bayes one."""
+                 compliance_only: bool = False, progress: Progress | None = None) -> ModelChoice:
+    """Score every candidate and choose; ``force`` (``--model NAME``): that candidate — it is
+    fitted on the folds and scored against the nominal model (its held-out misfit still widens its
+    intervals, ``interval_factor``), and no other candidate is fitted. ``link_tolerance`` given:
+    that link scale instead of the empirical Bayes one. ``progress``: told of each fit. A forced model
+    other than offsets+tool is scored beside offsets+tool, the model of the offsets to enter
+    (``calib.fit.entered``), whose held-out misfit widens their intervals.
+
+    Each candidate (but full identification) is first fitted on all the data; its fold fits start
+    there (``fit_mode``'s ``start``), and ``ModelChoice.starts`` keeps these fits for the chosen
+    model's own (``calib.fit.auto_fit``)."""
     cands = candidates(model, include_full=include_full, compliance_only=compliance_only)
-    if force is not None:
-        forced = parse_candidate(force, model)
-        if forced not in cands:
-            cands.append(forced)
+    if force is not None:  # that model, and offsets+tool: its held-out misfit scales the controller's offsets
+        cands = [parse_candidate(force, model)]
+        if cands[0] != ENTERED:
+            cands = sorted(cands + [ENTERED], key=lambda c: c.rank)
     scale = None
     if link_tolerance is None and any(c.kind == "offsets+tool+links" for c in cands):
         scale = empirical_link_scale(model, data, replace(base, compliance=False))
         link_tolerance = (scale["length_mm"], scale["angle_deg"])
     elif link_tolerance is not None:
         scale = {"length_mm": link_tolerance[0], "angle_deg": link_tolerance[1], "given": True}
+    starts: dict[str, ModeFit] = {}
+    own = [c for c in cands if c.kind != "full"]
+    if progress is not None:
+        progress.begin("fit of all the data", len(own))
+    previous = None
+    for c in own:  # simplest first, each from the one before it
+        if progress is not None:
+            progress.step(f"fit of all the data: {c.name}")
+        try:
+            starts[c.name] = previous = fit_mode(model, data, options_for(c, base, link_tolerance), tol=CV_TOL,
+                                                 start=previous)
+        except (ValueError, RuntimeError, np.linalg.LinAlgError):
+            pass  # its folds start from the nominal model, and say why they fail where they do
+    n_folds_max = min(k, np.unique(data.pose if np.all(data.pose != "") else data.config).size)
+    if progress is not None:
+        progress.begin("cross-validation", n_folds_max * len(cands))
     fold_scales: list = []
     scores, nominal, n_folds, grouping = cross_validate(model, data, cands, base, None if scale and not scale.get("given")
-                                                        else link_tolerance, k=k, seed=base.seed, fold_scales=fold_scales)
+                                                        else link_tolerance, k=k, seed=base.seed, fold_scales=fold_scales,
+                                                        starts=starts, progress=progress)
     if scale is not None and not scale.get("given"):
         scale["per_fold"] = [list(t) if t else None for t in fold_scales]
     try:
@@ -492,9 +533,12 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
     except ValueError:  # too few configurations to fit any model on four folds: the simplest, unvalidated
         chosen = min(cands, key=lambda c: c.rank).name
     excluded = None
-    if not include_full:
+    if force is not None:
+        excluded = ("the other candidates: --model chose this one, so only it was fitted (and offsets+tool, the "
+                    "model of the offsets to enter, whose held-out misfit scales their intervals)")
+    elif not include_full:
         excluded = "full: left out by the caller"
     elif compliance_only:
         excluded = ("full: full identification is compared without compliance, and only the compliance models "
                     "were asked for (--compliance / fit.compliance)")
-    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale, excluded)
+    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale, excluded, starts)

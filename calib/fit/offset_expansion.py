@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.robot.kinematics import Chain
+from calib.robot.transforms import cross
 
 
 @dataclass(frozen=True)
@@ -76,12 +77,12 @@ def expand_offsets(chain: Chain, q: np.ndarray, marker_index: np.ndarray, params
     j_off = np.moveaxis(j_rows[:, :, offsets], -1, 0)  # (f, k, 3)
     f = offsets.size
     ii, jj = np.triu_indices(f)
-    quad = np.cross(w[ii], j_off[jj]) * np.where(ii == jj, 0.5, 1.0)[:, None, None]
+    quad = cross(w[ii], j_off[jj]) * np.where(ii == jj, 0.5, 1.0)[:, None, None]
     terms = [j_off, quad, np.moveaxis(j_rows[:, :, np.asarray(links, dtype=int)], -1, 0)]
     tool = np.asarray(tool, dtype=int)
     if tool.size:
         lin = np.moveaxis(j_rows[:, :, tool], -1, 0)  # (T, k, 3): the flange rotation's columns on the row's marker
-        bilinear = np.cross(w[:, None], lin[None])  # (f, T, k, 3): ε_i Δm_t
+        bilinear = cross(w[:, None], lin[None])  # (f, T, k, 3): ε_i Δm_t
         terms += [lin, bilinear.reshape(f * tool.size, k, 3)]
     coeff = np.concatenate(terms, axis=0).reshape(-1, 3 * k)
     return OffsetExpansion(reference=p_ref.reshape(-1), coeff=np.ascontiguousarray(coeff), pairs=np.stack([ii, jj]),

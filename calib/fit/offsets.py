@@ -380,13 +380,13 @@ def _levenberg_marquardt(fun, jac, x0: np.ndarray, *, tol: float = 1e-12, max_it
 
 
 def _mode(post: OffsetPosterior, error: str, nu: float, tol: float = 1e-12,
-          theta0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+          theta0: np.ndarray | None = None, sigma0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Posterior mode: θ (dim,) and log σ (S,); ``tol``: relative step/cost change that ends a solve;
-    ``theta0``: where to start (zeros: the nominal model)."""
+    ``theta0``, ``sigma0`` (S,) mm: where to start (zeros and 1 mm: the nominal model)."""
     s_idx = post.sensor_index
     n_s = post.rows_per_sensor
     theta = np.zeros(post.dim) if theta0 is None else np.asarray(theta0, dtype=float).copy()
-    sigma = np.ones(post.S)
+    sigma = np.ones(post.S) if sigma0 is None else np.asarray(sigma0, dtype=float).copy()
     weights = np.ones(post.n_rows)
     link_pos, link_sd = post.link_free()
     prior_rows = np.zeros((link_pos.size, post.dim))
@@ -484,7 +484,7 @@ def _sample_sigma_marginalised(post: OffsetPosterior, theta: np.ndarray, log_sig
 
 
 def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndarray,
-                    options: FitOptions) -> tuple[Chains, dict]:
+                    options: FitOptions, progress=None) -> tuple[Chains, dict]:
     """Draws of (θ, log σ) by the Laplace Gaussian checked with PSIS, or a random walk in the Laplace-whitened coordinates where k̂ ≥ 0.7
     (``calib.fit.laplace_sampling``). Gaussian errors: the target is θ's marginal with σ integrated
     out (as ``_sample_sigma_marginalised``), each draw's σ drawn from its conditional; Student-t:
@@ -493,11 +493,20 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
 
     link_pos, link_sd = post.link_free()
     cov_full = _laplace_covariance(post, theta, log_sigma)
+    # Each proposal's sums of squares (S,), by predictor (exact or not), kept while the importance
+    # check runs: the σ of a resampled draw is drawn from them instead of walking the chain again.
+    sse_of: dict[bool, dict[bytes, np.ndarray]] | None = {False: {}, True: {}}
+    walking_exact = [False]
     if options.error == "gaussian":
         half_dof = 0.5 * (3 * post.rows_per_sensor + 1)
 
         def target(t: np.ndarray) -> np.ndarray:
-            out = -(half_dof * np.log(post.sse(t))).sum(axis=-1)
+            e = post.sse(t)
+            if sse_of is not None:
+                kept = sse_of[walking_exact[0]]
+                for row, e_row in zip(t, e):
+                    kept[row.tobytes()] = e_row
+            out = -(half_dof * np.log(e)).sum(axis=-1)
             if link_pos.size:
                 out = out - 0.5 * np.sum((t[..., link_pos] / link_sd) ** 2, axis=-1)
             return out
@@ -511,20 +520,32 @@ def _sample_laplace(post: OffsetPosterior, theta: np.ndarray, log_sigma: np.ndar
     exact_target = None
     if post.expanded:
         def exact_target(x: np.ndarray) -> np.ndarray:
-            with post.exact():
-                return target(x)
+            walking_exact[0] = True
+            try:
+                with post.exact():
+                    return target(x)
+            finally:
+                walking_exact[0] = False
 
     chains, info = laplace_importance(target, start, cov, n_chains=options.n_chains, n_draws=options.n_draws,
-                                      seed=options.seed, exact_target=exact_target)
+                                      seed=options.seed, exact_target=exact_target, progress=progress)
+    del info["mean"], info["covariance"]  # (the random walk whitens by the Laplace covariance and re-whitens itself)
     info["fallback"] = None
+    known = sse_of[info["predictor"] == "exact" and exact_target is not None]
+    sse_of = None  # (the walk's steps are not kept)
     if chains is None:
+        known = {}
         use = exact_target if info["predictor"] == "exact" and exact_target is not None else target
-        chains = random_walk(use, start, cov, seed=options.seed)
+        chains = random_walk(use, start, cov, seed=options.seed, progress=progress)
         info["fallback"] = "random-walk Metropolis"
         info["walk"] = chains.diagnostics
     if options.error == "gaussian":
         rng = np.random.default_rng(options.seed + 7919)
-        e = np.concatenate([post.sse(b) for b in np.array_split(chains.flat, max(1, chains.flat.shape[0] // 1024))])
+        rows = [known.get(row.tobytes()) for row in chains.flat]
+        if all(r is not None for r in rows):
+            e = np.array(rows).reshape(-1, post.S)
+        else:
+            e = np.concatenate([post.sse(b) for b in np.array_split(chains.flat, max(1, chains.flat.shape[0] // 1024))])
         u = rng.gamma(half_dof, 2.0 / e)  # 1/σ² draws, (N, S)
         flat = np.concatenate([chains.flat, -0.5 * np.log(u)], axis=-1)
         chains = Chains(flat.reshape(*chains.samples.shape[:2], -1), chains.acceptance, chains.seconds, chains.method)
@@ -578,6 +599,11 @@ class ModeFit:
     #: The chain vector (P,) the compliance sag is taken at (the first mode's arm), or None.
     sag_params: np.ndarray | None = None
 
+    def registrations(self) -> dict[str, np.ndarray]:
+        """Sensor name → fitted base2sensor (4, 4): the initial registration with the mode's correction."""
+        rot, trans = self.post.corrections(self.post.full_vector(self.theta))
+        return {s: _compose(rot[k], trans[k], self.post.b2s0[k]) for k, s in enumerate(self.post.sensors)}
+
     def predict_residuals(self, data: Dataset) -> np.ndarray:
         """measured − predicted (k, 3) mm for other rows ``data`` with this fit's parameters and its
         own registration (the same sensors; markers the fit did not measure keep the model's place).
@@ -604,13 +630,28 @@ def _check_data(model: RobotModel, data: Dataset, options: FitOptions) -> None:
                          "(joints[].mass_kg, com_mm)")
 
 
-def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(), *, tol: float = 1e-12) -> ModeFit:
+def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(), *, tol: float = 1e-12,
+             start: ModeFit | None = None) -> ModeFit:
     """The posterior mode of ``fit_offsets``'s model (same parameters, priors and fixed
     combinations), without sampling: the cheap fit for cross-validation folds. ``tol``: relative
-    change that ends the Levenberg–Marquardt solves (1e-8 is ample for prediction)."""
+    change that ends the Levenberg–Marquardt solves (1e-8 is ample for prediction).
+
+    ``start``: a mode of this model or a simpler one (fewer free terms) on this data or other data
+    of the same cell (the cross-validation folds start from the fit of all the data, the
+    candidates on all the data from the one before them): the solves start at its parameters
+    (by name; the others at nominal), σ and — on other data — its fitted registration as this
+    fit's initial one, so they take a few steps instead of the whole way from the nominal model.
+    The mode is the same either way, to ``tol``, wherever the posterior has one mode (the least
+    squares of these models do: the staged, multi-start solves of ``calib.fit.identification``
+    found no second one on the UR10 and iiwa data)."""
     _check_data(model, data, options)
     chain = Chain(model)
-    b2s0 = initial_registrations(chain, data, options.initial_registration, options.seed)
+    warm = start is not None and not options.registration and set(start.b2s0) == set(data.sensors)
+    same = warm and start.post.data is data  # the start's own data: its initial registration too
+    if warm:
+        b2s0 = dict(start.b2s0) if same else start.registrations()
+    else:
+        b2s0 = initial_registrations(chain, data, options.initial_registration, options.seed)
     if options.registration:
         missing = set(data.sensors) - set(options.registration)
         if missing:
@@ -658,9 +699,12 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
             f"measure at least {min_measurements(n_free)} configurations (more is much better)"
         )
 
+    zero_jacobian: dict = {}  # the Jacobian at the nominal model, shared by the masks tried below
+
     def factory(m: ParamMask, sag_params: np.ndarray | None = None) -> OffsetPosterior:
         return OffsetPosterior(chain, data, b2s0, m, error=options.error, nu=options.nu, link_prior=link_prior,
-                               compliance=options.compliance, sag_params=sag_params)
+                               compliance=options.compliance, sag_params=sag_params,
+                               zero_jacobian=zero_jacobian if sag_params is None else None)
 
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))
@@ -668,7 +712,18 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     mask = _resolve_rigid_links(factory, mask)
     mask = _resolve_tool(factory, mask, lever, options.tool_prior_mm)
     post = factory(mask)
-    theta, log_sigma = _mode(post, options.error, options.nu, tol)
+    theta0 = sigma0 = None
+    if warm and start.post.sensors == post.sensors:
+        full0 = start.post.full_vector(start.theta)
+        if not same:
+            full0[start.post.n: start.post.n + 6 * start.post.S] = 0.0  # its fitted registration is this fit's initial one
+        value = dict(zip(start.post.names, full0))  # by name: the start may be another model (fewer terms)
+        theta0, sigma0 = np.array([value.get(name, 0.0) for name in post.free_names]), np.exp(start.log_sigma)
+        if options.compliance and start.sag_params is not None:  # the sag at the start's arm: one solve
+            post = factory(mask, start.sag_params)
+            theta, log_sigma = _mode(post, options.error, options.nu, tol, theta0=theta0, sigma0=sigma0)
+            return ModeFit(post, mask, theta, log_sigma, b2s0, link_prior, ident0, lever, start.sag_params)
+    theta, log_sigma = _mode(post, options.error, options.nu, tol, theta0=theta0, sigma0=sigma0)
     sag_params = None
     if options.compliance:
         # The sag's torques and levers at the fitted arm (offsets, links, tool), not the nominal one:
@@ -680,10 +735,13 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
     return ModeFit(post, mask, theta, log_sigma, b2s0, link_prior, ident0, lever, sag_params)
 
 
-def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptions()) -> FitResult:
-    """Fit joint zero-offsets (and registration corrections and σ) to ``data``."""
+def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(), *, start: ModeFit | None = None,
+                progress=None) -> FitResult:
+    """Fit joint zero-offsets (and registration corrections and σ) to ``data``. ``start``: where the
+    mode's solves start (``fit_mode``); ``progress``: told what the sampler is doing
+    (``calib.fit.progress.Progress``, laplace method)."""
     t_start = time.perf_counter()
-    mf = fit_mode(model, data, options)
+    mf = fit_mode(model, data, options, start=start)
     post, mask, theta, log_sigma = mf.post, mf.mask, mf.theta, mf.log_sigma
     ident0, lever, n, chain = mf.identifiability_start, mf.lever_mm, model.n_joints, mf.post.chain
     mode = np.concatenate([theta, log_sigma])
@@ -698,7 +756,7 @@ def fit_offsets(model: RobotModel, data: Dataset, options: FitOptions = FitOptio
         post.linearise_links(theta)  # paper: only the tool is in it, which the linear form carries exactly
     importance = None
     if options.method == "laplace":
-        chains, importance = _sample_laplace(post, theta, log_sigma, options)
+        chains, importance = _sample_laplace(post, theta, log_sigma, options, progress)
     elif options.method == "fast" and options.error == "gaussian":
         chains = _sample_sigma_marginalised(post, theta, log_sigma, options)
     elif options.method == "fast":

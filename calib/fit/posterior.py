@@ -59,7 +59,7 @@ import numpy as np
 from calib.measure.dataset import Dataset
 from calib.robot.kinematics import Chain, offset_kinematics
 from calib.fit.offset_expansion import OffsetExpansion, expand_offsets
-from calib.robot.transforms import apply, euler_zyx_to_matrix
+from calib.robot.transforms import apply, cross, euler_zyx_to_matrix
 
 REG_NAMES = ("x", "y", "z", "alpha", "beta", "gamma")
 #: The expanded predictor (``OffsetPosterior.expand``) must agree with the chain walk it stands for
@@ -113,7 +113,12 @@ class OffsetPosterior:
         compliance: bool = False,
         sag_params: np.ndarray | None = None,
         orientation: bool = True,
+        zero_jacobian: dict | None = None,
     ) -> None:
+        """``zero_jacobian``: a dict shared by posteriors of the same data, registration, priors and
+        sag that differ only in their masks (``calib.fit.offsets.fit_mode`` tries several): the
+        Jacobian of every entry at the nominal model is the same for all of them, computed once."""
+        self._zero_jacobian = zero_jacobian
         if error not in ("gaussian", "student"):
             raise ValueError(f"error model {error!r} not known; use 'gaussian' or 'student'")
         if error == "student" and not nu > 2:
@@ -164,12 +169,14 @@ class OffsetPosterior:
         #: many batches fell back to the walk (``expand``).
         self.expansion_check = {"max_error_mm": 0.0, "checked": 0, "walked_batches": 0}
         self._tool_fk = None  # offset kinematics at 4 points per row (marker, marker + e_x, e_y, e_z)
+        self._flange_walked: tuple[np.ndarray, np.ndarray] | None = None  # (full vector(s), flange rotations)
         if self.is_tool.any():
             # Per row, the entries of the tool vector holding its marker's x, y, z (T: "not free").
             start = chain.marker_slice().start
             col = {int(i) - start: k for k, i in enumerate(self.link_idx[self.is_tool])}
             n_t = int(self.is_tool.sum())
-            self._row_tool = np.array([[col.get(3 * m + c, n_t) for c in range(3)] for m in self.marker_index], dtype=int)
+            per_marker = np.array([[col.get(3 * m + c, n_t) for c in range(3)] for m in range(chain.m)], dtype=int)
+            self._row_tool = per_marker[self.marker_index]
         if self.C:
             from calib.robot.gravity import gravity_torques
 
@@ -341,11 +348,24 @@ class OffsetPosterior:
             if self._link_jac is not None:
                 p_base = p_base + ((links[..., ~self.is_tool] - self._link_ref) @ self._link_jac_t).reshape(p_base.shape)  # one BLAS product
         elif self.L:
-            pos = self.chain.marker_positions(self.data.q_rad, self.chain_params(full))  # (..., k, m, 3)
+            params = self.chain_params(full)
+            rot, flange = self.chain.flange_pose(self.data.q_rad, params)  # (..., k, 3, 3), (..., k, 3)
+            if self.attitude is not None:  # the attitude rows turn with the same walk (``flange_rotation``)
+                self._flange_walked = (full, rot)
+            markers = self.chain._markers_param(params, flange.ndim - 1)  # (..., 1, m, 3)
+            pos = flange[..., None, :] + np.einsum("...ij,...mj->...mi", rot, markers)  # (..., k, m, 3)
             p_base = pos[..., np.arange(self.k_pos), self.marker_index, :]
         else:
             p_base = self._offset_fk.positions(full[..., : self.n])  # (..., k, 3)
         return p_base
+
+    def flange_rotation(self, full: np.ndarray) -> np.ndarray | None:
+        """The flange rotations (..., k, 3, 3) of every dataset row at full vector(s) ``full``
+        where the last exact walk of the positions was at the same vector(s), else None."""
+        walked = self._flange_walked
+        if walked is None or walked[0].shape != full.shape or not np.array_equal(walked[0], full):
+            return None
+        return walked[1]
 
     def predict(self, theta: np.ndarray) -> np.ndarray:
         """Predicted marker positions in each row's sensor frame: (..., k, 3) mm."""
@@ -378,7 +398,15 @@ class OffsetPosterior:
 
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
         """∂ predicted / ∂ θ_free for one θ: (n_rows·3, dim), positions then attitude rows."""
-        full = self.full_vector(theta)
+        theta = np.asarray(theta, dtype=float)
+        if self._zero_jacobian is not None and not theta.any():  # the nominal model: shared between masks
+            if "full" not in self._zero_jacobian:
+                self._zero_jacobian["full"] = self._jacobian_full(self.full_vector(theta))
+            return self._zero_jacobian["full"][:, self.free]
+        return self._jacobian_full(self.full_vector(theta))[:, self.free]
+
+    def _jacobian_full(self, full: np.ndarray) -> np.ndarray:
+        """∂ predicted / ∂ (full vector) at one full vector: (n_rows·3, n_full)."""
         params = self.chain_params(full)
         pos, jac = self.chain.marker_jacobian(self.data.q_rad, params)  # (k, m, 3), (k, m, 3, P)
         rows = np.arange(self.k_pos)
@@ -409,12 +437,12 @@ class OffsetPosterior:
             rows_s = s == k_s
             col = self.n + 6 * k_s
             j[rows_s, :, col : col + 3] = np.eye(3)
-            j[rows_s, :, col + 3] = np.cross(ez, rp[rows_s])
-            j[rows_s, :, col + 4] = np.cross(ey_rot[k_s], rp[rows_s])
-            j[rows_s, :, col + 5] = np.cross(ex_rot[k_s], rp[rows_s])
+            j[rows_s, :, col + 3] = cross(ez, rp[rows_s])
+            j[rows_s, :, col + 4] = cross(ey_rot[k_s], rp[rows_s])
+            j[rows_s, :, col + 5] = cross(ex_rot[k_s], rp[rows_s])
         if self.attitude is not None:
             j = np.concatenate([j, self.attitude.jacobian(self, full)])
-        return j.reshape(self.n_rows * 3, -1)[:, self.free]
+        return j.reshape(self.n_rows * 3, -1)
 
     # --- densities ---------------------------------------------------------------------
     def log_posterior(self, theta: np.ndarray, log_sigma: np.ndarray) -> np.ndarray:

@@ -247,14 +247,13 @@ class SocketChoice(ModelChoice):
 def choose_socket_model(model: RobotModel, ds: SocketDataset, *, force: str | None = None, k: int = 5, seed: int = 0,
                         link_tolerance: tuple[float, float] | None = None,
                         compliance_only: bool = False) -> SocketChoice:
-    """Score every candidate on ``ds`` and choose (``force``: ``--model NAME``, still scored and
-    shown); ``link_tolerance``: that (mm, deg) link prior instead of the empirical Bayes one."""
+    """Score every candidate on ``ds`` and choose (``force``: ``--model NAME``, that candidate only,
+    still scored against the nominal model); ``link_tolerance``: that (mm, deg) link prior instead of
+    the empirical Bayes one."""
     cands = socket_candidates(model, compliance_only=compliance_only)
     if force is not None:
-        forced = parse_socket_candidate(force, model)
-        if forced not in cands:
-            cands.append(forced)
-        force = forced.name
+        cands = [parse_socket_candidate(force, model)]
+        force = cands[0].name
     scales: dict[bool, tuple[float, float] | None] = {}
     shown: dict[str, dict] = {}
     for c in cands:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calib.robot.model import RobotModel
-from calib.robot.transforms import homogeneous, rot_x, rot_y, rot_z
+from calib.robot.transforms import cross, homogeneous, rot_x, rot_y, rot_z
 
 KINDS = ("offset", "d", "a", "alpha", "beta")
 
@@ -295,11 +295,11 @@ class Chain:
         sign = self.sign
         jp = np.concatenate(
             [
-                np.cross(z_prev, tip - o_prev, axis=-2) * sign,
+                cross(z_prev, tip - o_prev, axis=-2) * sign,
                 z_prev,
                 x_new,
-                np.cross(x_new, tip - o_new, axis=-2),
-                np.cross(y_new, tip - o_new, axis=-2),
+                cross(x_new, tip - o_new, axis=-2),
+                cross(y_new, tip - o_new, axis=-2),
                 no_markers,
             ],
             -1,
@@ -316,7 +316,7 @@ class Chain:
         positions = fj.position[..., None, :] + arm
         # d(R·mk)/dξ = ω_ξ × (R·mk) for every kinematic parameter ξ.
         jw = fj.jw[..., None, :, :]  # (..., 1, 3, P)
-        j = fj.jp[..., None, :, :] + np.cross(jw, arm[..., :, :, None], axis=-2)
+        j = fj.jp[..., None, :, :] + cross(jw, arm[..., :, :, None], axis=-2)
         ms = self.marker_slice()
         for k in range(self.m):
             j[..., k, :, ms.start + 3 * k : ms.start + 3 * k + 3] = fj.rotation

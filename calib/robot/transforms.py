@@ -100,6 +100,18 @@ def rotation_angle(r: np.ndarray) -> np.ndarray:
     return np.arctan2(sin, np.clip(cos, -1.0, 1.0))
 
 
+def cross(a: np.ndarray, b: np.ndarray, axis: int = -1) -> np.ndarray:
+    """a × b with the vectors along ``axis`` (a negative axis; length 3), broadcast as ``np.cross``
+    — which moves both axes last and back on every call: on the fit's Jacobians (thousands of calls
+    on (k, 3, P) arrays) that bookkeeping cost more than the products."""
+    if axis >= 0:
+        raise ValueError(f"cross takes a negative axis, given {axis}")
+    tail = (slice(None),) * (-axis - 1)
+    a0, a1, a2 = (a[(Ellipsis, i) + tail] for i in range(3))
+    b0, b1, b2 = (b[(Ellipsis, i) + tail] for i in range(3))
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=axis)
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
     v = np.asarray(v, dtype=float)

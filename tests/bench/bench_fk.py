@@ -15,10 +15,14 @@ Figures, each best of a few repeats:
 - 173 configurations (the paper's plan) × {1, 100} parameter sets: evaluations per second, ours
   batched vs pybotics in a loop (it has no batched FK);
 - the parameter Jacobian of the marker positions: ours analytic and batched vs forward
-  differences through pybotics' FK, one ``Robot`` updated in place per column as pybotics'
-  optimiser does (``OptimizationHandler.apply_optimization_vector``), every configuration on
-  both sides — which is how pybotics' own calibration example gets its
-  Jacobian (``scipy.optimize.least_squares`` with a 2-point Jacobian over the chain vector).
+  differences through pybotics' FK as pybotics' own calibration example gets its Jacobian
+  (``scipy.optimize.least_squares`` with a 2-point Jacobian over the chain vector): one ``Robot``
+  updated in place once per column (``OptimizationHandler.apply_optimization_vector``), then
+  the FK of every configuration at that column — P + 1 updates, not P per configuration.
+
+Both sides of every figure are timed the same way (issue 33): the same clock
+(``time.perf_counter``), the same number of repetitions, interleaved (ours, peer, ours, peer, …),
+best of each.
 """
 
 from __future__ import annotations
@@ -70,13 +74,15 @@ def pybotics_update(robot, chain: Chain, params: np.ndarray) -> None:
     robot.tool.matrix = tool
 
 
-def best_time(fn, repeats: int = 3) -> float:
-    best = math.inf
+def best_times(ours, peer, repeats: int = 3) -> tuple[float, float]:
+    """Best wall time (s) of ``ours`` and of ``peer`` over ``repeats`` interleaved calls of each."""
+    best = [math.inf, math.inf]
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
+        for k, fn in enumerate((ours, peer)):
+            t0 = time.perf_counter()
+            fn()
+            best[k] = min(best[k], time.perf_counter() - t0)
+    return best[0], best[1]
 
 
 def main() -> None:
@@ -113,49 +119,50 @@ def main() -> None:
 
     n_calls = 2000
     x, r0 = q[0], robots[0]
-    ours_t = best_time(lambda: [chain.fk(x) for _ in range(n_calls)]) / n_calls
-    theirs_t = best_time(lambda: [r0.fk(sq[0]) for _ in range(n_calls)]) / n_calls
+    ours_t, theirs_t = (t / n_calls for t in best_times(lambda: [chain.fk(x) for _ in range(n_calls)],
+                                                         lambda: [r0.fk(sq[0]) for _ in range(n_calls)]))
     print(f"{'FK, one configuration (µs per call)':<44} {ours_t * 1e6:>14.1f} {theirs_t * 1e6:>14.1f} "
           f"{theirs_t / ours_t:>7.1f}x")
-    ours_t = best_time(lambda: [chain.marker_positions(x) for _ in range(n_calls)]) / n_calls
+    ours_t = best_times(lambda: [chain.marker_positions(x) for _ in range(n_calls)], lambda: None)[0] / n_calls
     print(f"{'marker positions, one configuration (µs)':<44} {ours_t * 1e6:>14.1f} {'—':>14} {'':>8}")
 
     for k in (1, 100):
         params = all_params[:k]
-        t = best_time(lambda: chain.fk(q, params))
-        sub = robots[:k] if k == 1 else robots[:5]
-        tp = best_time(lambda: [r.fk(v) for r in sub for v in sq], repeats=2)
+        sub = robots[:k]
+        t, tp = best_times(lambda: chain.fk(q, params), lambda: [r.fk(v) for r in sub for v in sq])
         ours_rate, peer_rate = len(q) * k / t, len(q) * len(sub) / tp
         print(f"{f'FK batched, {k} parameter set(s) (evals/s)':<44} {ours_rate:>14.3e} {peer_rate:>14.3e} "
               f"{ours_rate / peer_rate:>7.1f}x")
 
-    # Parameter Jacobian of one marker: analytic vs 2-point differences through pybotics' FK,
-    # one robot updated in place per column as pybotics' optimiser does; both sides get every
-    # configuration.
-    sub_j = q
+    # Parameter Jacobian of one marker: analytic vs 2-point differences through pybotics' FK as
+    # least_squares takes them: the robot updated once per column, every configuration at it.
     peer = pybotics_robot(chain, chain.nominal)
     mk = chain.nominal[chain.marker_slice()].reshape(chain.m, 3)[0]
     h = 1e-7
+    sq_all = q * chain.sign
 
-    def peer_jacobian() -> np.ndarray:
-        out = np.zeros((len(sub_j), 3, 4 * chain.n))
-        for j, v in enumerate(sub_j * chain.sign):
-            pybotics_update(peer, chain, chain.nominal)
-            base = peer.fk(v)
-            p0 = base[:3, :3] @ mk + base[:3, 3]
-            for kk in range(4 * chain.n):  # offset, d, a, α of every joint
-                pp = chain.nominal.copy()
-                pp[kk] += h
-                pybotics_update(peer, chain, pp)
-                t = peer.fk(v)
-                out[j, :, kk] = (t[:3, :3] @ mk + t[:3, 3] - p0) / h
+    def peer_markers() -> np.ndarray:
+        out = np.empty((len(q), 3))
+        for j, v in enumerate(sq_all):
+            t = peer.fk(v)
+            out[j] = t[:3, :3] @ mk + t[:3, 3]
         return out
 
-    tpj = best_time(peer_jacobian, repeats=1)
-    ours_j = chain.marker_jacobian(sub_j, chain.nominal)[1][:, 0, :, :4 * chain.n]
+    def peer_jacobian() -> np.ndarray:
+        out = np.zeros((len(q), 3, 4 * chain.n))
+        pybotics_update(peer, chain, chain.nominal)
+        p0 = peer_markers()
+        for kk in range(4 * chain.n):  # offset, d, a, α of every joint
+            pp = chain.nominal.copy()
+            pp[kk] += h
+            pybotics_update(peer, chain, pp)
+            out[:, :, kk] = (peer_markers() - p0) / h
+        return out
+
+    ours_j = chain.marker_jacobian(q, chain.nominal)[1][:, 0, :, :4 * chain.n]
     np.testing.assert_allclose(ours_j, peer_jacobian(), atol=1e-3)
-    tj = best_time(lambda: chain.marker_jacobian(q, chain.nominal))
-    ours_rate, peer_rate = len(q) / tj, len(sub_j) / tpj
+    tj, tpj = best_times(lambda: chain.marker_jacobian(q, chain.nominal), peer_jacobian)
+    ours_rate, peer_rate = len(q) / tj, len(q) / tpj
     print(f"{'marker Jacobian (configs/s)':<44} {ours_rate:>14.3e} {peer_rate:>14.3e} {ours_rate / peer_rate:>7.1f}x")
     print("(ratio = pybotics time / our time; > 1 means we are faster)")
 

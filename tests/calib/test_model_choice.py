@@ -201,7 +201,7 @@ def test_a_posterior_the_laplace_gaussian_misses_goes_to_the_random_walk():
     def target(x):
         return -0.5 * np.einsum("...i,ij,...j->...", x, prec, x)
 
-    chains, diag = laplace_importance(target, np.zeros(2), np.eye(2), n_chains=4, n_draws=2000, seed=0)
+    chains, diag = laplace_importance(target, np.zeros(2), np.eye(2), n_chains=4, n_draws=2000, seed=0, adapt=0)
     assert chains is None and diag["k_hat"] >= 0.7
     draws = random_walk(target, np.zeros(2), np.eye(2), seed=0)
     np.testing.assert_allclose(np.cov(draws.flat.T), cov, rtol=0.2, atol=0.15)
@@ -319,3 +319,35 @@ def test_each_fold_estimates_the_link_scale_on_its_training_configurations_only(
         assert held_out and not train & held_out and train | held_out == everything
     assert all(t is not None and t[0] in (0.01, 0.03, 0.1, 0.3, 1.0, 3.0) for t in choice.link_scale["per_fold"])
     assert "each fold its own (on its training configurations)" in choice.format()
+
+
+def test_a_forced_model_is_the_only_one_fitted_and_still_scored_on_held_out_configurations(monkeypatch):
+    """``--model offsets+tool``: no other candidate is fitted (no fold fits of them, no link-scale
+    search for the links model), and the forced one is still cross-validated, so its held-out error
+    and misfit stand beside the nominal model's. Another forced model is scored beside offsets+tool
+    only: the offsets to enter are that model's, and its misfit widens their intervals."""
+    import calib.fit.model_choice as mc
+
+    model, _, cal = cell(4, k=20)
+    fitted: list[str] = []
+    real = mc._candidate_distances
+
+    def spy(candidate, *args, **kwargs):
+        fitted.append(candidate.name)
+        return real(candidate, *args, **kwargs)
+
+    def no_scale(*args, **kwargs):
+        raise AssertionError("the link scale is searched only for a links model")
+
+    monkeypatch.setattr(mc, "_candidate_distances", spy)
+    monkeypatch.setattr(mc, "empirical_link_scale", no_scale)
+    choice = choose_model(model, cal, FitOptions(), force="offsets+tool")
+    assert choice.chosen == "offsets+tool" and choice.forced
+    assert [s.name for s in choice.scores] == ["offsets+tool"] and set(fitted) == {"offsets+tool"}
+    assert len(fitted) == choice.folds == 5
+    forced = choice.score("offsets+tool")
+    assert not forced.failed and forced.mean_mm < choice.nominal.mean_mm and forced.misfit is not None
+    assert "only it was fitted" in choice.format() and "← chosen (--model)" in choice.format()
+    fitted.clear()
+    other = choose_model(model, cal, FitOptions(), force="offsets")  # … beside offsets+tool, the controller's model
+    assert [s.name for s in other.scores] == ["offsets", "offsets+tool"] and set(fitted) == {"offsets", "offsets+tool"}
