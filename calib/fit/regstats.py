@@ -31,7 +31,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +82,14 @@ def correlation(x: np.ndarray, y: np.ndarray, alpha: float = 0.05, what: str = "
     for name, v in (("x", a), ("y", b)):
         if np.ptp(v) == 0.0:
             raise ValueError(f"{name} is constant ({v[0]!r}); a correlation with a constant is undefined")
-    res = stats.pearsonr(a, b)
-    r, p = float(res.statistic), float(res.pvalue)
+    # Pearson's r and its two-sided p from Student's t with n − 2 dof (what scipy.stats.pearsonr
+    # computes; scipy.special alone, so the default fit does not load scipy.stats for it)
+    from scipy.special import stdtr
+
+    r = float(np.clip(np.corrcoef(a, b)[0, 1], -1.0, 1.0))
+    dof = a.size - 2
+    t = r * math.sqrt(dof / max(1.0 - r * r, 1e-300))
+    p = float(min(1.0, 2.0 * stdtr(dof, -abs(t))))
     sig = p < alpha
     decision = (
         f"{what} are correlated (r = {r:.3f}, p = {p:.3g} < {alpha:g}) at {_pct(alpha)} confidence"
@@ -137,6 +142,8 @@ def ks_two_sample(a: np.ndarray, b: np.ndarray, alpha: float = 0.05) -> KSResult
     """
     alpha = _alpha(alpha)
     x, y = _sample("a", a, 2), _sample("b", b, 2)
+    from scipy import stats
+
     res = stats.ks_2samp(x, y)
     d, p = float(res.statistic), float(res.pvalue)
     sig = p < alpha
@@ -177,6 +184,8 @@ def brown_forsythe_levene(*samples: np.ndarray, alpha: float = 0.05) -> LeveneRe
             "every sample's absolute deviations from its median are identical within the sample; "
             "the Brown–Forsythe statistic is undefined (0/0 or ∞)"
         )
+    from scipy import stats
+
     res = stats.levene(*groups, center="median")
     w, p = float(res.statistic), float(res.pvalue)
     n_total = sum(g.size for g in groups)
@@ -225,6 +234,8 @@ def mean_difference_test(
         lev = brown_forsythe_levene(x, y, alpha=alpha)
         lev_p = lev.p_value
         equal_var = not lev.significant
+    from scipy import stats
+
     res = stats.ttest_ind(x, y, equal_var=equal_var)
     t, p = float(res.statistic), float(res.pvalue)
     if equal_var:
@@ -322,6 +333,8 @@ def success_probability_bound(
     required: optional target probability in (0, 1); the decision then says whether the data
     demonstrate P(success) > required at alpha = 1 − CL (exact binomial test).
     """
+    from scipy import stats
+
     if int(trials) != trials or trials < 1:
         raise ValueError(f"trials must be a positive integer; got {trials!r}")
     if int(successes) != successes or not 0 <= successes <= trials:
