@@ -11,12 +11,12 @@ the commands the table names for it, with the table's help as their first docstr
 from __future__ import annotations
 
 import importlib
-import logging
-import sys
 from typing import Any, NamedTuple
 
 import typer
 from typer.core import TyperCommand, TyperGroup, TyperOption
+
+from acquire.live.console import configure_logging
 
 
 class CommandSpec(NamedTuple):
@@ -55,19 +55,6 @@ COMMANDS: dict[str, CommandSpec] = {
 
 #: The command modules, in table order (each once).
 COMMAND_MODULES = list(dict.fromkeys(spec.module for spec in COMMANDS.values()))
-
-
-def configure_logging(verbose: bool = False) -> None:
-    """One line per event; colour-free when not on a terminal (journald friendly)."""
-    level = logging.DEBUG if verbose else logging.INFO
-    fmt = "%(levelname)s %(name)s: %(message)s"
-    if sys.stderr.isatty():
-        fmt = "%(asctime)s " + fmt
-    logging.basicConfig(level=level, format=fmt, stream=sys.stderr, force=True)
-    from acquire.console import ConsoleFormatter
-
-    for handler in logging.getLogger().handlers:
-        handler.setFormatter(ConsoleFormatter(fmt, tracebacks=verbose))  # a foreseen failure: one line unless -v
 
 
 def plain_switches(command: Any, ctx: Any) -> None:

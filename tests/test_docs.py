@@ -77,9 +77,9 @@ def test_the_cli_reference_is_generated_from_the_program(site):
 
 
 @pytest.mark.parametrize("page, module, cls", [
-    ("plan", "acquire.plan", "Plan"),
+    ("plan", "acquire.plan.schema", "Plan"),
     ("cell-file", "drivers.sim.config", "SimConfig"),
-    ("daemon-config", "acquire.daemon_config", "DaemonConfig"),
+    ("daemon-config", "acquire.daemon.config", "DaemonConfig"),
     ("robot-model", "calib.robot.model", "RobotModel"),
 ])
 def test_file_references_list_every_field_of_their_schema(site, page, module, cls):

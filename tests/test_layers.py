@@ -104,6 +104,44 @@ def test_wing_checker_sees_a_reversed_order() -> None:
     assert wing_violations(ROOT / "calib", tuple(reversed(CALIB_WINGS)))
 
 
+# acquire's wings, lowest first: a wing may import only the wings before it (and itself);
+# cli.py, entry.py and __main__.py sit above them all. docs/contributing.md states the same order.
+ACQUIRE_WINGS = ("plan", "record", "live", "run", "daemon", "station", "commands")
+
+
+def acquire_wings_imported(path: Path) -> set[str]:
+    """The acquire wings (or top-level modules) that the module at ``path`` imports."""
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    mods: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            mods.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            assert node.level == 0, f"{path}: relative import (use acquire.<wing>.<module>)"
+            if node.module == "acquire":
+                mods.update(f"acquire.{a.name}" for a in node.names)
+            elif node.module:
+                mods.add(node.module)
+    return {m.split(".")[1] for m in mods if m.startswith("acquire.")}
+
+
+def test_acquire_wings_import_one_way() -> None:
+    acquire = ROOT / "acquire"
+    assert {p.name for p in acquire.iterdir() if (p / "__init__.py").is_file()} == set(ACQUIRE_WINGS)
+    top = {p.name for p in acquire.glob("*.py")}
+    assert top == {"__init__.py", "__main__.py", "cli.py", "entry.py"}, f"acquire/ holds only wings and its entry points: {top}"
+    rank = {w: i for i, w in enumerate(ACQUIRE_WINGS)}
+    bad = {}
+    for f in sorted(acquire.rglob("*.py")):
+        rel = f.relative_to(acquire)
+        if len(rel.parts) < 2:
+            continue
+        wrong = sorted(w for w in acquire_wings_imported(f) if w not in rank or rank[w] > rank[rel.parts[0]])
+        if wrong:
+            bad[str(rel)] = wrong
+    assert not bad, f"acquire wing imports a wing above it (order {ACQUIRE_WINGS}): {bad}"
+
+
 def module_graph(package: str) -> dict[str, set[str]]:
     """Module → the modules of ``package`` it imports anywhere in its body (function-level too)."""
     root = ROOT / package

@@ -12,14 +12,14 @@ Examples::
 
 On the cell PC, without ``--client`` or ``--connect``, a client talks to the daemon's control
 socket (``--socket``, default ``$REMASTER_CONTROL_SOCKET`` or ``/run/remaster/control.sock``;
-``acquire.control_socket``): the OS lets only the operators' group in and tells the daemon who
+``acquire.daemon.control_socket``): the OS lets only the operators' group in and tells the daemon who
 asks, so no token is needed (``acquire abort`` is all it takes). Otherwise they connect to the
 daemon's Zenoh router (``--connect``, default ``tcp/127.0.0.1:7447``); a remote daemon needs
 ``tls/host:7447`` with ``--tls-ca``, ``--tls-cert`` and ``--tls-key`` (mTLS). Credentials:
 ``--client NAME`` and the token from
 ``--token-file`` (made by ``acquire token new``; refused when the group or others may read it, as
 ssh refuses an unprotected key) or the environment (``REMASTER_CLIENT``, ``REMASTER_TOKEN``); a
-weak token is refused. Each operation is a SCRAM-SHA-256 exchange (``acquire.control_auth``) in
+weak token is refused. Each operation is a SCRAM-SHA-256 exchange (``acquire.daemon.control_auth``) in
 which the daemon proves itself before its reply is believed. Replies are printed
 as JSON with ``--json``, otherwise as a few readable lines. Exit status: 0 done, 2 bad usage or
 bad request, 3 refused, 4 no daemon answered, 1 other failures.
@@ -53,9 +53,9 @@ class JournalFormatter(logging.Formatter):
 
 
 def configure_daemon_logging(verbose: bool) -> None:
-    """The CLI's logging (acquire.cli.configure_logging) plus journald priorities when stderr
+    """The CLI's logging (acquire.live.console.configure_logging) plus journald priorities when stderr
     is connected to the journal (``JOURNAL_STREAM`` set). ``REMASTER_LOG_LEVEL`` overrides."""
-    from acquire.cli import configure_logging
+    from acquire.live.console import configure_logging
 
     configure_logging(verbose)
     level = os.environ.get("REMASTER_LOG_LEVEL")
@@ -73,8 +73,8 @@ def daemon(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Debug logging."),
 ) -> None:
     """Run the cell's service: Zenoh router, devices, control queries, systemd notification."""
-    from acquire.daemon import run_daemon
-    from acquire.daemon_config import ConfigError, load_daemon_config
+    from acquire.daemon.service import run_daemon
+    from acquire.daemon.config import ConfigError, load_daemon_config
 
     configure_daemon_logging(verbose)
     try:
@@ -142,8 +142,8 @@ def _call(op: str, request: dict | None, *, connect: Optional[str], cell: Option
 
 
 def _call_socket(op: str, request: dict | None, path: Path, timeout: float) -> dict:
-    from acquire.control import BadRequest, Conflict, ControlError, NoReply, Refused
-    from acquire.control_socket import SocketClient
+    from acquire.daemon.control import BadRequest, Conflict, ControlError, NoReply, Refused
+    from acquire.daemon.control_socket import SocketClient
 
     try:
         return SocketClient(path).call(op, request, timeout=timeout)
@@ -161,20 +161,20 @@ def _call_socket(op: str, request: dict | None, path: Path, timeout: float) -> d
 def _call_zenoh(op: str, request: dict | None, *, connect: str, cell: Optional[str], site: Optional[str],
                 client: Optional[str], token_file: Optional[Path], tls_ca: Optional[Path],
                 tls_cert: Optional[Path], tls_key: Optional[Path], timeout: float) -> dict:
-    from acquire.bus import Bus, BusError, is_loopback_endpoint
-    from acquire.control import BadRequest, Conflict, ControlClient, ControlError, NoReply, Refused, Unverified
+    from acquire.live.bus import Bus, BusError, is_loopback_endpoint
+    from acquire.daemon.control import BadRequest, Conflict, ControlClient, ControlError, NoReply, Refused, Unverified
 
     cell = cell or os.environ.get("REMASTER_CELL")
     if not cell:
         _fail("give --cell (or set REMASTER_CELL)", 2)
     site = site or os.environ.get("REMASTER_SITE") or None
-    from acquire.bus import BusConfigError, key
+    from acquire.live.bus import BusConfigError, key
 
     try:
         key(cell, "x", site=site)  # validates the cell and site ids
     except BusConfigError as exc:
         _fail(f"--cell/--site: {exc}", 2)
-    from acquire.tokens import TokenFileError, WeakToken, check_token, read_token_file
+    from acquire.daemon.tokens import TokenFileError, WeakToken, check_token, read_token_file
 
     token, source = None, "REMASTER_TOKEN"
     if token_file is not None:

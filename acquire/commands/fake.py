@@ -85,7 +85,7 @@ DAEMON_CELL_RUNTIME_S = 30 * 24 * 3600.0
 
 def daemon_cell(fake_cfg) -> SimulatedCell:
     """The (not yet started) simulated cell of a daemon configuration's ``fake`` section
-    (``acquire.daemon_config.FakeCell``): it lives as long as the daemon, and every run the
-    daemon starts is described by it (``acquire.daemon_devices.cell_for_plan``)."""
+    (``acquire.daemon.config.FakeCell``): it lives as long as the daemon, and every run the
+    daemon starts is described by it (``acquire.daemon.devices.cell_for_plan``)."""
     return SimulatedCell(fake_cfg.sim_config or DEFAULT_CONFIG_PATH, seed=fake_cfg.seed,
                          time_scale=fake_cfg.time_scale, max_runtime_s=DAEMON_CELL_RUNTIME_S)

@@ -19,9 +19,11 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
+
+from acquire.record.datasets import load_dataset
 
 if TYPE_CHECKING:  # the fit's modules load when it runs, not for `acquire fit --help`
     from calib.measure.dataset import Dataset
@@ -30,44 +32,6 @@ if TYPE_CHECKING:  # the fit's modules load when it runs, not for `acquire fit -
 
 log = logging.getLogger(__name__)
 
-Loader = Callable[[Path, "RobotModel"], "Dataset"]
-
-
-def dataset_from_csv(path: Path, model: RobotModel) -> Dataset:
-    """A CSV of ``calib.measure.dataset``'s format as a dataset, or an IPA tracker series as it comes
-    (``calib.measure.ipa_tracker``: recognised by its header — UR joint names and ``measurement_*``)."""
-    from calib.measure.dataset import DatasetError, read_csv
-    from calib.measure.ipa_tracker import JOINTS, is_ipa_series, read_ipa_series
-
-    if is_ipa_series(path):
-        if model.n_joints != len(JOINTS):
-            raise DatasetError(f"{path}: an IPA tracker series of a 6-axis UR ({', '.join(JOINTS)}); the model "
-                               f"{model.name!r} has {model.n_joints} axes")
-        marker = model.marker_names[0]
-        log.info("%s: read as an IPA tracker series (';', decimal comma, radians, Euler XYZ degrees); marker %s", path, marker)
-        return read_ipa_series(path, marker=marker, sensor="tracker")
-    return read_csv(path, model)
-
-
-def dataset_from_run(path: Path, model: RobotModel) -> Dataset:
-    """A run's MCAP log as a dataset (``acquire.recorder``, imported only for .mcap input)."""
-    from acquire.recorder import dataset_from_run as load
-
-    return load(path, model)
-
-
-#: Input loaders by lower-case file suffix; each imports its reader when called.
-LOADERS: dict[str, Loader] = {".csv": dataset_from_csv, ".mcap": dataset_from_run}
-
-
-def load_dataset(path: Path, model: RobotModel) -> Dataset:
-    """Read ``path`` with the loader for its suffix; DatasetError on unknown suffixes."""
-    from calib.measure.dataset import DatasetError
-
-    loader = LOADERS.get(path.suffix.lower())
-    if loader is None:
-        raise DatasetError(f"{path}: no loader for {path.suffix or 'files without a suffix'!r}; known: {sorted(LOADERS)}")
-    return loader(path, model)
 
 
 def _link_tolerance(text: str) -> tuple[float, float] | None:
@@ -317,7 +281,7 @@ def fit(
         raise typer.BadParameter(str(exc), param_hint="--robot") from exc
     socket_run = None
     if data.suffix.lower() == ".mcap" and data.is_file():
-        from acquire.commands.socket_fit import SocketDataError, read_socket_run  # the socket fit only for its data
+        from acquire.run.socket_fit import SocketDataError, read_socket_run  # the socket fit only for its data
 
         try:
             socket_run = read_socket_run(data, model.n_joints, distance_mm=socket_distance)
@@ -569,7 +533,7 @@ def fit_progress():
     """A ``calib.fit.progress.Progress`` for the default fit: on a terminal a live line on stderr
     (what the fit is doing, the time left in that stage, the time so far); otherwise its lines go
     to the log at INFO, one every 2 s at most, never a control character."""
-    from acquire.progress import format_eta
+    from acquire.live.progress import format_eta
     from calib.fit.progress import Progress
 
     t0 = time.monotonic()

@@ -18,9 +18,9 @@ def router(
     import logging
     import threading
 
-    from acquire.bus import BusError
-    from acquire.cli import configure_logging
-    from acquire.sdnotify import SdNotifier
+    from acquire.live.bus import BusError
+    from acquire.live.console import configure_logging
+    from acquire.daemon.sdnotify import SdNotifier
     from acquire.station.router import load_router_config, serve
     from calib.io.yamlfile import ConfigError
 

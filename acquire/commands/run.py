@@ -38,11 +38,11 @@ import numpy as np
 import typer
 
 from calib.io.resources import foxglove_layout_hint
-from acquire.console import display_path
+from acquire.live.console import display_path
 
 log = logging.getLogger(__name__)
 
-#: Default bus endpoint of a run (acquire.bus.DEFAULT_ENDPOINT; not imported: zenoh loads on use).
+#: Default bus endpoint of a run (acquire.live.bus.DEFAULT_ENDPOINT; not imported: zenoh loads on use).
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 
 
@@ -84,7 +84,7 @@ def plan_argument(plan: Path) -> tuple[Path, bool]:
 def _load(plan: Path, fake: bool = False):
     """The plan and its configurations, resolved once for the whole command (exit 2 on a bad
     plan; with ``fake`` its ``fake`` section is checked too)."""
-    from acquire.plan import load_plan, resolve_configurations
+    from acquire.plan.schema import load_plan, resolve_configurations
 
     try:
         lp = load_plan(plan)
@@ -125,7 +125,7 @@ def too_few_for_the_fit(lp, configs) -> str | None:
 def dry_run_text(lp, configs) -> str:
     """What ``--dry-run`` prints: configurations in order and the estimated cell time."""
     from acquire.run import SENSOR_RATE_HZ, plan_settings
-    from acquire.sequencer import estimate_measure_s, estimate_settle_s, move_times, order_configurations
+    from acquire.run.sequencer import estimate_measure_s, estimate_settle_s, move_times, order_configurations
     from drivers.protocols import JointLimits
 
     plan = lp.plan
@@ -247,7 +247,7 @@ def run(
     PLAN is a plan file or the name of a packaged example (`acquire examples`); a packaged
     example writes its run to ./runs unless --out says otherwise.
     """
-    from acquire.console import configure_console
+    from acquire.live.console import configure_console
 
     console = configure_console(verbose)
     given = plan
@@ -267,8 +267,8 @@ def run(
     if resume is not None and not resume.is_file():
         typer.echo(f"error: --resume {resume}: no such file", err=True)
         raise typer.Exit(2)
-    from acquire.console import RunLogFile
-    from acquire.progress import make_progress
+    from acquire.live.console import RunLogFile
+    from acquire.live.progress import make_progress
     from acquire.run import RunController, RunError
 
     controller = RunController(lp, configs=configs, resume=resume, bus=None, out_dir=out, fit=not no_fit,
@@ -281,7 +281,7 @@ def run(
     logfile = RunLogFile(logging.DEBUG if verbose >= 2 else logging.INFO)
     bus = None
     if not no_bus:
-        from acquire.bus import Bus, BusConfigError
+        from acquire.live.bus import Bus, BusConfigError
 
         try:
             if listen == DEFAULT_LISTEN:
@@ -296,8 +296,8 @@ def run(
             bus = None
     server = None
     if live:
-        from acquire.live import LiveServer, LiveServerError
-        from acquire.recorder import advertise_run_channels
+        from acquire.live.foxglove_server import LiveServer, LiveServerError
+        from acquire.record.recorder import advertise_run_channels
 
         try:
             server = LiveServer(live_host, live_port, name=f"remaster {lp.plan.cell}")

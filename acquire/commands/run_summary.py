@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from acquire.console import display_path
+from acquire.live.console import display_path
 
 
 def socket_summary_lines(doc: dict) -> list[str]:
@@ -121,7 +121,7 @@ def _attitude_metrics(node, label: str = "", depth: int = 0) -> list[tuple[str, 
 def _oriented_configurations(log_path) -> int:
     """How many measured configurations of the run log carry a 6-DoF target's orientation."""
     try:
-        from acquire.recorder import read_run
+        from acquire.record.recorder import read_run
 
         samples = read_run(Path(log_path)).samples
     except Exception:  # noqa: BLE001 - a summary line must never fail the summary

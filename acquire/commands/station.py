@@ -51,11 +51,11 @@ def station(
     import logging
     import time
 
-    from acquire.bus import BusError
-    from acquire.cli import configure_logging
-    from acquire.sdnotify import SdNotifier
+    from acquire.live.bus import BusError
+    from acquire.live.console import configure_logging
+    from acquire.daemon.sdnotify import SdNotifier
     from acquire.station.service import Station
-    from acquire.tokens import TokenFileError, WeakToken
+    from acquire.daemon.tokens import TokenFileError, WeakToken
 
     configure_logging(verbose)
     log = logging.getLogger("acquire.station")
@@ -90,7 +90,7 @@ def verify(
 ) -> None:
     """Read every archived file back against its sha256; quarantine what differs (the running
     station fetches it again from its cell). Exit 3 when anything is damaged or awaits repair."""
-    from acquire.cli import configure_logging
+    from acquire.live.console import configure_logging
     from acquire.station.archive import Archive
     from acquire.station.scrub import scrub
 

@@ -9,7 +9,7 @@ Examples::
 ``new`` writes 256 random bits (43 URL-safe characters) to the file with mode 0600 — refusing to
 overwrite it without ``--force`` — and prints the ``scram:`` lines to paste under the client in
 the daemon's configuration (``auth.clients``): salt, iterations, StoredKey and ServerKey, as an
-RFC 5802 server stores them (acquire.control_auth). The token itself is never printed. Exit
+RFC 5802 server stores them (acquire.daemon.control_auth). The token itself is never printed. Exit
 status 0 done, 2 bad input (existing file, iterations too low).
 """
 
@@ -35,8 +35,8 @@ def new(
     """Write a new random token with mode 0600 and print the lines for the daemon's configuration."""
     import re
 
-    from acquire.control_auth import DEFAULT_ITERATIONS, MIN_ITERATIONS, derive_credentials
-    from acquire.tokens import DEFAULT_TOKEN_PATH, new_token, write_token_file
+    from acquire.daemon.control_auth import DEFAULT_ITERATIONS, MIN_ITERATIONS, derive_credentials
+    from acquire.daemon.tokens import DEFAULT_TOKEN_PATH, new_token, write_token_file
 
     iterations = DEFAULT_ITERATIONS if iterations is None else iterations
     if iterations < MIN_ITERATIONS:

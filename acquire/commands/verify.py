@@ -33,7 +33,7 @@ from typing import Optional
 
 import typer
 
-from acquire.console import display_path
+from acquire.live.console import display_path
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ def _calibration_q(result: Path, lp):
         cal_log = calibration_log(result, doc)
         if cal_log is None:
             return None
-        from acquire.commands.fit import load_dataset
+        from acquire.record.datasets import load_dataset
 
         return load_dataset(cal_log, lp.model).q_rad
     except (ValueError, OSError) as exc:
@@ -68,8 +68,8 @@ def _calibration_q(result: Path, lp):
 def _measure(lp, configs, *, fake: bool, out: Optional[Path], resume: Optional[Path], verbose: int):
     """Run ``configs`` without a fit (``acquire run``'s procedure); the run's summary."""
     from acquire.commands.run import StopSafelyOnSignals, _start_simulated_cell, wait_for_end
-    from acquire.console import configure_console
-    from acquire.progress import make_progress
+    from acquire.live.console import configure_console
+    from acquire.live.progress import make_progress
     from acquire.run import RunController, RunError
 
     configure_console(verbose)
@@ -96,7 +96,7 @@ def _measure(lp, configs, *, fake: bool, out: Optional[Path], resume: Optional[P
 
 def _load_only(plan: Path):
     """The plan without resolving its configurations (``--log`` moves nothing); exit 2 when bad."""
-    from acquire.plan import load_plan
+    from acquire.plan.schema import load_plan
 
     try:
         return load_plan(plan)
@@ -109,7 +109,7 @@ def _with_cell(lp, cell: Path, fake: bool):
     from dataclasses import replace
 
     from acquire.commands.fake import check_fake_section
-    from acquire.plan import FakeSpec
+    from acquire.plan.schema import FakeSpec
 
     if not fake:
         _fail("--cell is the simulated cell of --fake; given --cell without --fake")

@@ -38,7 +38,7 @@ import typer
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CONNECT = "tcp/127.0.0.1:7447"  # acquire.bus.DEFAULT_ENDPOINT (zenoh is loaded on use)
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"  # acquire.live.bus.DEFAULT_ENDPOINT (zenoh is loaded on use)
 #: Seconds without any connection before saying so (once).
 NOT_CONNECTED_AFTER_S = 2.0
 #: Seconds connected without seeing a cell before saying so (once).
@@ -47,7 +47,7 @@ NO_CELL_AFTER_S = 5.0
 
 def format_line(key_str: str, payload: bytes) -> str:
     """``<key> <compact JSON>``, or ``<key> <n> bytes: <hex…>`` for a non-JSON payload."""
-    from acquire.jsonpayload import PayloadError, decode_json
+    from acquire.record.jsonpayload import PayloadError, decode_json
 
     try:
         obj = decode_json(payload)
@@ -77,7 +77,7 @@ def watch(
     duration: float = typer.Option(0.0, "--duration", help="Exit after this many seconds (0: no limit)."),
 ) -> None:
     """Show a live run or daemon (found on the bus by itself): progress, last sample, warnings."""
-    from acquire.bus import ROOT, Bus, BusConfigError, BusError, check_key_expr, key
+    from acquire.live.bus import ROOT, Bus, BusConfigError, BusError, check_key_expr, key
 
     if count < 0:
         raise typer.BadParameter(f"must be >= 0, given {count}", param_hint="--count")
@@ -124,7 +124,7 @@ class _Session:
 
     def __init__(self, bus, cell: Optional[str], *, site: Optional[str] = None, raw: bool, until_done: bool, count: int, duration: float,
                  connect: list[str], explicit_expr: bool) -> None:
-        from acquire.livestatus import CellView
+        from acquire.live.status import CellView
 
         self.bus = bus
         self.site_prefix = f"remaster/{site}/" if site else None
@@ -143,7 +143,7 @@ class _Session:
 
     # -------------------------------------------------------------------- discovery
     def _choose(self, cell: str) -> None:
-        from acquire.livestatus import CellView
+        from acquire.live.status import CellView
 
         self.view = CellView(cell)
         typer.echo(f"found cell {cell} via {', '.join(self.connect)}", err=True)
@@ -160,7 +160,7 @@ class _Session:
 
     # -------------------------------------------------------------------- loop
     def loop(self, inbox: "queue.Queue") -> None:
-        from acquire.livestatus import cell_of
+        from acquire.live.status import cell_of
 
         while self.count == 0 or self.received < self.count:
             now = time.monotonic()

@@ -20,7 +20,7 @@ configurations) that the summary shows. Nothing here moves the robot: the run's
 A resumed run rebuilds the design from the log's samples (``mark``) and continues choosing among
 the configurations no sample has: nothing is measured twice.
 
-A plan's ``adaptive.candidates`` adds generated configurations (``acquire.plan.resolve_candidate_pool``:
+A plan's ``adaptive.candidates`` adds generated configurations (``acquire.plan.schema.resolve_candidate_pool``:
 the plan's own pose generator, another seed, the same checks) after the plan's: the design may
 choose them (``admissible_pool`` keeps those inside the open commander's limits less its margin;
 each chosen one is logged with its joint angles), while the workspace the rule's errors average
@@ -122,7 +122,7 @@ class AdaptiveOrder:
 
     limits: the commander's ``JointLimits``; speed: the plan's speed override; per_config_s:
     expected settle + measure seconds per configuration; pool: generated candidates beyond the
-    plan (``acquire.plan.resolve_candidate_pool``), chosen like the plan's but never part of the
+    plan (``acquire.plan.schema.resolve_candidate_pool``), chosen like the plan's but never part of the
     full plan the rule compares with (``admissible_pool`` keeps those the commander accepts).
     """
 
@@ -325,7 +325,7 @@ class AdaptiveOrder:
     def between_seconds(self) -> np.ndarray:
         """(N, N) move seconds between the plan's configurations (computed once)."""
         if getattr(self, "_between", None) is None:
-            from acquire.sequencer import motion_cost_matrix
+            from acquire.run.sequencer import motion_cost_matrix
 
             q = np.stack([np.asarray(c.q_rad, dtype=float) for c in self.configs])
             self._between = motion_cost_matrix(q, self.limits, self.speed)
@@ -396,14 +396,14 @@ class AdaptiveOrder:
     # ------------------------------------------------------------------ cell time
     def full_plan_seconds(self, start_q_rad: np.ndarray) -> float:
         """Estimated cell time of the whole plan in the run's usual order from ``start_q_rad``."""
-        from acquire.sequencer import move_times, order_configurations
+        from acquire.run.sequencer import move_times, order_configurations
 
         order = order_configurations(self.plan_configs, start_q_rad, self.limits, self.speed)
         return float(move_times(order, start_q_rad, self.limits, self.speed).sum() + len(order) * self.per_config_s)
 
     def visited_seconds(self, visited, start_q_rad: np.ndarray) -> float:
         """Estimated cell time of the configurations ``visited`` (in that order) from ``start_q_rad``."""
-        from acquire.sequencer import move_times
+        from acquire.run.sequencer import move_times
 
         return float(move_times(list(visited), start_q_rad, self.limits, self.speed).sum()
                      + len(visited) * self.per_config_s)

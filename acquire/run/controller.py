@@ -36,8 +36,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from acquire.console import FORESEEN
-from acquire.logstorage import StorageError
+from acquire.live.console import FORESEEN
+from acquire.record.logstorage import StorageError
 from acquire.run import prepare
 from acquire.run.devices import RunDevices, plan_cell
 from acquire.run.ending import finish
@@ -46,7 +46,7 @@ from acquire.run.publish import RunPublisher
 from acquire.run.state import RunState
 from acquire.run.summary import RunError, RunSummary
 from acquire.run.tap import JointStateTap
-from acquire.sequencer import estimate_measure_s, estimate_settle_s, move_times, order_configurations
+from acquire.run.sequencer import estimate_measure_s, estimate_settle_s, move_times, order_configurations
 from drivers.cell import CellDescription
 from drivers.errors import DriverError
 
@@ -69,11 +69,11 @@ def _tty_ask(question: str) -> str:
 class RunController:
     """One measurement run (see the module docstring). Thread-safe.
 
-    lp: the loaded plan (``acquire.plan.load_plan``). cell: the cell's description (default: the
+    lp: the loaded plan (``acquire.plan.schema.load_plan``). cell: the cell's description (default: the
     plan's own URLs, ``plan_cell``). configs: the plan's resolved configurations when the caller
     has them (else resolved here, once). resume: a run log to continue. out_dir: the runs
     folder (default the plan's ``output.folder``). fit: fit at the end. skip_failed: on resume,
-    do not measure failed configurations again. live: an ``acquire.live.LiveServer``.
+    do not measure failed configurations again. live: an ``acquire.live.foxglove_server.LiveServer``.
     """
 
     def __init__(self, lp, *, cell: CellDescription | None = None, configs=None, resume: Path | None = None,
@@ -138,7 +138,7 @@ class RunController:
             self.check_output()
             st.state = "starting"
             if self.resume_path is not None:
-                from acquire.recorder import read_run
+                from acquire.record.recorder import read_run
 
                 self._resumed = read_run(self.resume_path)
                 st.run_id = self._resumed.run_id
@@ -229,7 +229,7 @@ class RunController:
         self.pub.close_log()
 
     def _run(self) -> RunSummary:
-        from acquire.plan import resolve_configurations
+        from acquire.plan.schema import resolve_configurations
 
         lp, s, st, cell = self.lp, self.settings, self.state, self.cell
         configs = self.configs if self.configs is not None else resolve_configurations(lp)
@@ -305,7 +305,7 @@ class RunController:
 
     def _runner(self, cmd, sensors) -> ConfigurationRunner:
         """The per-configuration procedure, its registration estimate and the robot's view."""
-        from acquire.foxglove_view import RobotView
+        from acquire.record.foxglove_view import RobotView
         from calib.robot.kinematics import Chain
 
         chain = Chain(self.lp.model)
@@ -322,9 +322,9 @@ class RunController:
 
 def candidate_pool(lp) -> list:
     """The generated candidates an adaptive plan's design may choose beyond the plan's own
-    (``adaptive.candidates``; ``acquire.plan.resolve_candidate_pool``), [] for any other plan."""
+    (``adaptive.candidates``; ``acquire.plan.schema.resolve_candidate_pool``), [] for any other plan."""
     if lp.plan.adaptive is None or lp.plan.adaptive.candidates is None:
         return []
-    from acquire.plan import resolve_candidate_pool
+    from acquire.plan.schema import resolve_candidate_pool
 
     return resolve_candidate_pool(lp)

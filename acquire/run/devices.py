@@ -12,9 +12,9 @@ from __future__ import annotations
 import inspect
 import logging
 
-from acquire.plan import JOINT_SENSOR_DRIVERS
+from acquire.plan.schema import JOINT_SENSOR_DRIVERS
 from acquire.run.summary import RunError
-from acquire.sequencer import SensorSpec
+from acquire.run.sequencer import SensorSpec
 from drivers.cell import CellDescription
 from drivers.errors import DriverError
 from drivers.protocols import JointLimits
@@ -89,7 +89,7 @@ def open_sensor(spec, *, url: str | None = None, commander=None, **extra):
 
 
 class RunDevices:
-    """The run's commander and sensors (``acquire.sequencer.SensorSpec`` each), opened at the
+    """The run's commander and sensors (``acquire.run.sequencer.SensorSpec`` each), opened at the
     cell's URLs on the cell's clock. ``open()`` returns (commander, sensors); ``close()`` stops
     the commander (it decelerates) and closes everything, idempotently."""
 

@@ -26,7 +26,7 @@ def fit_run_log(log_path: Path, lp, *, n_random: int = 500, progress=None) -> tu
     """
     if getattr(lp.plan, "socket", None) is not None:
         return fit_socket_run_log(log_path, lp)
-    from acquire.recorder import dataset_from_run
+    from acquire.record.recorder import dataset_from_run
     from calib.robot.controller import apply_guards
     from calib.fit.entered import as_found_markers, attach, for_controller
     from calib.fit.offsets import FitOptions, fit_offsets
@@ -126,13 +126,13 @@ def _fit_run_auto(base: Path, model, cal, val, options, fit, n_random: int,
 
 
 def fit_socket_run_log(log_path: Path, lp) -> tuple[dict, Path, Path | None]:
-    """Fit a socket run (``acquire.commands.socket_fit.run_socket_fit``; held-out placements with
+    """Fit a socket run (``acquire.run.socket_fit.run_socket_fit``; held-out placements with
     three or more): ``result.json``, ``report.html`` (``calib.report.report_socket``) and the
     corrected model ``model.yaml`` beside the log; returns (document, result path, report path). The
     plan's ``fit.method`` auto (the default) lets the data choose the model (a link prior set in the
     plan fixes its scale), fast uses the link prior (``link_tolerance_*``), paper/full identify
     without it."""
-    from acquire.commands.socket_fit import read_socket_run, run_socket_fit, write_socket_model
+    from acquire.run.socket_fit import read_socket_run, run_socket_fit, write_socket_model
     from calib.fit.result import write_result
 
     model, fit = lp.model, lp.plan.fit

@@ -11,7 +11,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from acquire.run.summary import RunError
-from acquire.sequencer import SequencingSettings
+from acquire.run.sequencer import SequencingSettings
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +95,7 @@ def open_run_log(lp, *, run_id: str, out_dir: Path, resumed_path: Path | None, n
                  cell_metadata: dict, live=None):
     """The run's MCAP log: appended to on resume, else ``<out>/<run-id>/<run-id>.mcap`` with
     the plan and model texts and the cell's own metadata. Returns (RunLog, path)."""
-    from acquire.recorder import RunLog
+    from acquire.record.recorder import RunLog
 
     out_dir.mkdir(parents=True, exist_ok=True)
     if resumed_path is not None:

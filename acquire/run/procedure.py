@@ -6,11 +6,11 @@ lost-target suspension and the registration estimate that aims a tracker back at
 (a move refused for its target, a device fault that outlasted the plan's allowance, faults that
 kept passing at once more than ``retries`` times) or ``abort`` (the run is stopping; the
 configuration is not done, a resume measures it). A device fault suspends the run and is waited
-out (``acquire.suspenders.DeviceFaultSuspender``); then the configuration starts again at its move.
+out (``acquire.run.suspenders.DeviceFaultSuspender``); then the configuration starts again at its move.
 
 The first registration for re-acquisition is the same for every cell (``initial_registration``):
 the plan's approximate sensor placement where it gives one; from three measured configurations
-on, a least-squares registration of the samples so far (``acquire.suspenders.ReflectorPredictor``);
+on, a least-squares registration of the samples so far (``acquire.run.suspenders.ReflectorPredictor``);
 before that, with no placement, a lost beam is found by the tracker's spiral search.
 """
 
@@ -22,8 +22,8 @@ from typing import Optional
 
 import numpy as np
 
-from acquire.sequencer import ConfigProcedure, SensorSpec, is_joint_sensor
-from acquire.suspenders import DeviceFaultSuspender, LostTargetSuspender, Probe, ReflectorPredictor
+from acquire.run.sequencer import ConfigProcedure, SensorSpec, is_joint_sensor
+from acquire.run.suspenders import DeviceFaultSuspender, LostTargetSuspender, Probe, ReflectorPredictor
 from drivers.errors import DriverError, LimitError, NotReadyError, TargetLostError
 
 log = logging.getLogger(__name__)
@@ -65,7 +65,7 @@ class ConfigurationRunner:
 
     state: the run's ``RunState``; pub: its ``RunPublisher``; commander / sensors (``SensorSpec``
     list): the open devices; settings: ``SequencingSettings``; clock / sleep: the cell's time;
-    predictor: ``ReflectorPredictor``; view: ``acquire.foxglove_view.RobotView`` (or None);
+    predictor: ``ReflectorPredictor``; view: ``acquire.record.foxglove_view.RobotView`` (or None);
     ask: the operator's terminal (``ask`` policy) or None; abort: the run's ``abort(reason)``.
     """
 
@@ -215,7 +215,7 @@ class ConfigurationRunner:
     def _record(self, cfg, record: dict) -> None:
         """Write the sample record.
 
-        RECORDING ERRORS: a ``acquire.logstorage.StorageError`` (disk full, I/O error; the log is
+        RECORDING ERRORS: a ``acquire.record.logstorage.StorageError`` (disk full, I/O error; the log is
         sealed at its last complete record) is not caught here: it ends the loop with the robot
         held where it settled, and ``RunController`` fails the run with its one line.
         """
@@ -229,7 +229,7 @@ class ConfigurationRunner:
         viewer that connects mid-run sees them)."""
         if self.view is None or self.pub.runlog is None:
             return
-        from acquire.foxglove_view import nominal_markers_scene
+        from acquire.record.foxglove_view import nominal_markers_scene
 
         try:  # the view must never stop a run
             for spec in self.lp.plan.sensors:

@@ -14,8 +14,8 @@ log = logging.getLogger(__name__)
 
 
 class RunPublisher:
-    """The run's outputs. ``runlog``: the open ``acquire.recorder.RunLog`` (None before it is
-    created and after it is closed); ``bus``: an ``acquire.bus.Bus`` or None; ``on_progress``:
+    """The run's outputs. ``runlog``: the open ``acquire.record.recorder.RunLog`` (None before it is
+    created and after it is closed); ``bus``: an ``acquire.live.bus.Bus`` or None; ``on_progress``:
     called with every status dict (the terminal's progress bar)."""
 
     def __init__(self, cell_id: str, bus=None, on_progress: Optional[Callable[[dict], None]] = None) -> None:
@@ -31,7 +31,7 @@ class RunPublisher:
         if self.bus is None:
             return
         try:
-            from acquire.bus import key
+            from acquire.live.bus import key
 
             # The bus's own key when it serves this cell: it carries the cell's site, if any.
             k = self.bus.key(*parts) if self.bus.cell == self.cell_id else key(self.cell_id, *parts)
@@ -92,7 +92,7 @@ class RunPublisher:
         if self.bus is None or not self.run_id or self.bus_released:
             return
         self.bus_released = True
-        from acquire.bus import key
+        from acquire.live.bus import key
 
         try:
             same = self.bus.cell == self.cell_id

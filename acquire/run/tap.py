@@ -21,7 +21,7 @@ class JointStateTap:
 
     def __init__(self, commander, runlog, bus, cell: str, names, period_s: float = 0.04, view=None) -> None:
         self.commander, self.runlog, self.bus, self.cell = commander, runlog, bus, cell
-        self.view = view  # acquire.foxglove_view.RobotView: /tf from each joint state
+        self.view = view  # acquire.record.foxglove_view.RobotView: /tf from each joint state
         self.names = list(names)
         self.period_s = period_s
         self.device = getattr(commander, "name", "robot")
@@ -31,7 +31,7 @@ class JointStateTap:
 
     def start(self) -> "JointStateTap":
         if self.bus is not None:
-            from acquire.bus import key
+            from acquire.live.bus import key
 
             same = getattr(self.bus, "cell", None) == self.cell
             self._key = self.bus.key(self.device, "joint_state") if same else key(self.cell, self.device, "joint_state")

@@ -43,7 +43,7 @@ def fresh_configurations(lp, *, poses: int | None = None, seed: int | None = Non
     every feasible IK branch, less those within ``SAME_Q_RAD`` of a row of ``exclude_q_rad`` (k, n).
     Raises ConfigError (at the plan's poses) for a plan without a generated region or a seed that is
     the plan's own."""
-    from acquire.plan import region_configurations
+    from acquire.plan.schema import region_configurations
 
     g = lp.plan.poses.generated if lp.plan.poses is not None else None
     if g is not None and seed is not None and seed == g.seed:
@@ -83,7 +83,7 @@ def prediction_for(result_path: Path, doc: dict, values: EnteredValues, model) -
     cal_log = calibration_log(result_path, doc)
     if cal_log is None:
         return None, "none: the result has no held-out prediction and its calibration log is not at hand"
-    from acquire.commands.fit import load_dataset
+    from acquire.record.datasets import load_dataset
     from calib.fit.as_running import predict_entry
 
     tool_prior = (doc.get("tool") or {}).get("prior_mm") or 10.0
@@ -101,7 +101,7 @@ def verify_log(log_path: Path, lp, result_path: Path, *, out_dir: Path | None = 
     ``verify.json`` and ``verify.html`` beside the log (or into ``out_dir``). Returns (document,
     json path, report path). Raises ValueError (DatasetError) for a log or a result that cannot be
     used, OSError for a folder that cannot be written."""
-    from acquire.commands.fit import load_dataset
+    from acquire.record.datasets import load_dataset
     from calib.fit.result import write_result
     from calib.fit.verification import verify_entry
 

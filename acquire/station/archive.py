@@ -34,7 +34,6 @@ byte is fetched, and again before each chunk is written (``ArchiveFull``).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
@@ -44,6 +43,8 @@ import threading
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+
+from acquire.record.digest import sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +70,6 @@ def _check_name(what: str, value: str) -> str:
     if not isinstance(value, str) or not _NAME_RE.match(value) or value in (".", ".."):
         raise ArchiveError(f"{what} {value!r} is not allowed: use letters, digits, '_', '.', '-'")
     return value
-
-
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file's content."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _now() -> str:

@@ -57,7 +57,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 import re
 
-from acquire.daemon_archive import MAX_CHUNK_BYTES
+from acquire.daemon.archive import MAX_CHUNK_BYTES
 from acquire.station.archive import Limits
 from acquire.station.states import Policy
 from calib.io.yamlfile import load_validated
@@ -94,7 +94,7 @@ class StationZenoh(_Strict):
 
     def security_problems(self) -> list[tuple[tuple, str]]:
         """(field path, message) per non-loopback listen endpoint that Zenoh would serve to anyone."""
-        from acquire.bus import is_loopback_endpoint
+        from acquire.live.bus import is_loopback_endpoint
 
         if self.allow_unauthenticated_listen:
             return []

@@ -25,7 +25,7 @@ from typing import Callable, Literal
 
 from pydantic import Field
 
-from acquire.bus import Bus, is_loopback_endpoint
+from acquire.live.bus import Bus, is_loopback_endpoint
 from acquire.station.config import StationZenoh
 from calib.io.yamlfile import load_validated
 

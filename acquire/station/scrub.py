@@ -5,7 +5,7 @@
 
 - an intact run gets ``verified_at`` in its index entry — the station then tells its cell
   (``archive-confirm`` with ``"verified": true``), and only a run the station re-verified may be
-  deleted by the cell's retention policy (``acquire.daemon_archive``);
+  deleted by the cell's retention policy (``acquire.daemon.archive``);
 - a missing, truncated or altered file is reported, moved to ``.quarantine/`` (never deleted:
   it is evidence) and marked ``damaged`` in the index; the station fetches it again from the
   cell that sent it on its next sync with that cell (``Station.sync_cell``), verifies it against

@@ -23,7 +23,7 @@ Cells are synced concurrently (``sync_workers`` threads), each operation bounded
 just appeared is retried quickly (0.25 s, doubling up to ``poll_s``) until it first answers —
 its liveliness token is declared before its control queries are.
 
-Every operation is a SCRAM-SHA-256 exchange (``acquire.control.ControlClient``) with the cell's
+Every operation is a SCRAM-SHA-256 exchange (``acquire.daemon.control.ControlClient``) with the cell's
 own token when ``cells`` gives one: the station believes a reply only when it carries the cell's
 ServerSignature and MAC for this exchange.
 """
@@ -38,8 +38,8 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
-from acquire.bus import ROOT, Bus
-from acquire.control import BadRequest, ControlClient, ControlError
+from acquire.live.bus import ROOT, Bus
+from acquire.daemon.control import BadRequest, ControlClient, ControlError
 from acquire.station.alerts import Alerter
 from acquire.station.archive import Archive, ArchiveError, ArchiveFull, ArchiveRefused, RunRef, Transfer
 from acquire.station.config import StationConfig
@@ -47,7 +47,7 @@ from acquire.station.history import load_history, robots
 from acquire.station.intake import record_run
 from acquire.station.scrub import ScrubReport, scrub
 from acquire.station.states import robot_state
-from acquire.tokens import read_token_file
+from acquire.daemon.tokens import read_token_file
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +131,7 @@ class Station:
         z = self.cfg.zenoh
         problems = z.security_problems()
         if problems:
-            from acquire.bus import BusConfigError
+            from acquire.live.bus import BusConfigError
 
             raise BusConfigError("; ".join(f"zenoh.{'.'.join(map(str, loc[1:]))}: {msg}" for loc, msg in problems))
         # Zenoh's shared-memory transport maps a segment per local peer that sends large payloads
@@ -451,6 +451,6 @@ class Station:
 
 
 def _loopback(endpoint: str) -> bool:
-    from acquire.bus import is_loopback_endpoint
+    from acquire.live.bus import is_loopback_endpoint
 
     return is_loopback_endpoint(endpoint)

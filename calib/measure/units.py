@@ -1,7 +1,7 @@
 """Unit mix-ups in joint angles: a list of degrees that is really radians.
 
 One heuristic, used by every reader of joint angles in degrees: plan joint targets and
-configuration files (``acquire.plan_guards``) and measurement CSVs (``calib.measure.dataset``).
+configuration files (``acquire.plan.guards``) and measurement CSVs (``calib.measure.dataset``).
 
 Joint angles (degrees) that all lie within ±π "degrees" (±3.15°, and not all ~0) although the
 model's axes move through tens or hundreds of degrees, and that read as radians fall within

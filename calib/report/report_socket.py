@@ -1,6 +1,6 @@
 """``report.html`` of a socket (sensorless) fit, from its ``result.json`` document alone.
 
-The document is ``acquire.commands.socket_fit.socket_result_dict``'s (``kind: socket``): so the
+The document is ``acquire.run.socket_fit.socket_result_dict``'s (``kind: socket``): so the
 report and the file always agree. Sections, in the tracker report's style
 (``calib.report.report_format``, figures with ``calib.report.svg``): a summary (the verdict —
 enter / do not enter with the reasons —, which method and model of the arm ran, the values per

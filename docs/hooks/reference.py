@@ -20,11 +20,11 @@ ROOT = Path(__file__).resolve().parents[2]
 
 SCHEMAS = {
     # page: (module, class, title, what it is)
-    "reference/plan.md": ("acquire.plan", "Plan", "Plan file (`acquire run PLAN`)",
+    "reference/plan.md": ("acquire.plan.schema", "Plan", "Plan file (`acquire run PLAN`)",
                           "The measurement plan: robot, commander, sensors, poses, sequencing, fit, output."),
     "reference/cell-file.md": ("drivers.sim.config", "SimConfig", "Simulated cell file (`acquire sim --config`)",
                                "The simulated cell's hidden truth, its devices and scripted faults."),
-    "reference/daemon-config.md": ("acquire.daemon_config", "DaemonConfig", "Daemon configuration (`acquire daemon --config`)",
+    "reference/daemon-config.md": ("acquire.daemon.config", "DaemonConfig", "Daemon configuration (`acquire daemon --config`)",
                                    "The cell PC's service: cell id, devices, Zenoh, authentication, live view."),
     "reference/station-config.md": ("acquire.station.config", "StationConfig", "Station configuration (`acquire station --config`)",
                                     "The plant's archive station: cells, credentials, drift policy."),

@@ -26,7 +26,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[2]
 PLANS = REPO / "fixtures" / "plans"
 CELL = "example"  # the cell id of fixtures/plans/example.yaml
-# Strong tokens (acquire.tokens refuses weak ones), fixed so a failing test can be re-run by hand.
+# Strong tokens (acquire.daemon.tokens refuses weak ones), fixed so a failing test can be re-run by hand.
 OPERATOR_TOKEN = "op-7Qm2vX9kLp4RtZ8wYc3NbF6hJd"
 VIEWER_TOKEN = "vw-Hs5gT1qWe8RuI3oPa6SdF9jKl2"
 
@@ -36,7 +36,7 @@ TEST_ITERATIONS = 4096
 
 def scram(token: str, iterations: int = TEST_ITERATIONS) -> dict:
     """The ``scram`` mapping of a daemon-configuration client with ``token`` (as `acquire token new` prints)."""
-    from acquire.control_auth import derive_credentials
+    from acquire.daemon.control_auth import derive_credentials
 
     return derive_credentials(token, iterations).config()
 
@@ -263,7 +263,7 @@ def leak_figures(rows: list[tuple], warm_up: int) -> dict:
 def open_client(port: int, *, tls: dict | None = None, proto: str = "tcp"):
     """A client-mode Bus connected to the daemon's router, returned once the daemon's
     liveliness token is visible through it (the route is up)."""
-    from acquire.bus import Bus
+    from acquire.live.bus import Bus
 
     config = {"mode": "client", "connect": [f"{proto}/127.0.0.1:{port}"], "zenoh": {}}
     if tls:
@@ -278,7 +278,7 @@ def open_client(port: int, *, tls: dict | None = None, proto: str = "tcp"):
 
 
 def control(bus, client: str | None = None, token: str | None = None):
-    from acquire.control import ControlClient
+    from acquire.daemon.control import ControlClient
 
     return ControlClient(bus.session, CELL, client=client, token=token)
 

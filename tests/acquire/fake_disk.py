@@ -1,7 +1,7 @@
 """Run ``acquire`` on a simulated small disk: ``python fake_disk.py BUDGET_BYTES run PLAN …``.
 
 Stands in for a tiny tmpfs (not available to tests): the run log's system calls
-(``acquire.logstorage``: write, posix_fallocate, unlink) share a budget of BUDGET_BYTES. A write
+(``acquire.record.logstorage``: write, posix_fallocate, unlink) share a budget of BUDGET_BYTES. A write
 that does not fit is cut short at the budget, as the kernel does when a disk fills, and the next
 one fails with ENOSPC; removing the reserve gives its bytes back. From the moment the disk was
 first full, the run's text log fails too (its writes and flushes raise ENOSPC): another writer
@@ -14,8 +14,8 @@ import errno
 import os
 import sys
 
-import acquire.console as console
-import acquire.logstorage as storage
+import acquire.live.console as console
+import acquire.record.logstorage as storage
 
 state = {"left": 0, "sizes": {}, "full": False}
 real_write, real_fallocate, real_unlink = storage._write, storage._fallocate, storage._unlink

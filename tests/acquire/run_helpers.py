@@ -136,7 +136,7 @@ def faulted_run(lp, fault: str, device: str | None = None, duration_s: float | N
     API (``SimLaunch.inject``, as ``acquire sim``'s stdin does) the ``nth`` time the run logs an
     event of kind ``at`` (``moved``: the robot has just arrived, settling starts). Returns
     ``(summary, contents of the run log, devices hit)``."""
-    from acquire.recorder import read_run
+    from acquire.record.recorder import read_run
 
     rc = fake_controller(lp, fit=False)
     seen, hit = [0], []

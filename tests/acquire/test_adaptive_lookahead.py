@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquire.plan import load_plan, resolve_configurations
+from acquire.plan.schema import load_plan, resolve_configurations
 from acquire.run.adaptive import AdaptiveRun, refit_counts
 from calib.robot.kinematics import Chain
 

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from acquire.plan import load_plan, resolve_configurations
+from acquire.plan.schema import load_plan, resolve_configurations
 from acquire.run.adaptive import PLAN_SIGMA_DOF, AdaptiveOrder, AdaptiveRun, found_after_the_fact
 from calib.robot.kinematics import Chain
 from drivers.protocols import JointLimits

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from acquire.plan import load_plan, resolve_configurations
+from acquire.plan.schema import load_plan, resolve_configurations
 from acquire.run.adaptive import AdaptiveRun
 from calib.robot.kinematics import Chain
 from drivers.errors import DeviceTimeoutError

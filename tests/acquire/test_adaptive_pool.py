@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from acquire.plan import load_plan, resolve_candidate_pool, resolve_configurations
+from acquire.plan.schema import load_plan, resolve_candidate_pool, resolve_configurations
 from acquire.run.adaptive import AdaptiveRun, fit_options
 from calib.io.yamlfile import ConfigError
 from calib.robot.kinematics import Chain
@@ -147,7 +147,7 @@ def test_a_run_with_a_pool_stops_with_its_rule_met_against_the_plans_own_full_pl
     assert summ["full_held_out_mm"] == pytest.approx(full_held, rel=1e-3)
     assert summ["held_out_mm"] <= 1.10 * full_held + 1e-6
     # the full plan's time is the plan's configurations in the run's usual order, not the pool's
-    from acquire.sequencer import move_times, order_configurations
+    from acquire.run.sequencer import move_times, order_configurations
 
     lim, start = JointLimits.from_model(lp.model), np.zeros(lp.model.n_joints)
     tour = order_configurations(configs, start, lim, 0.5)
@@ -173,7 +173,7 @@ def test_a_resumed_run_with_a_pool_continues_its_choices_and_repeats_none(pooled
 def test_a_pooled_run_on_the_simulated_cell_logs_its_generated_choices_and_resumes(tmp_path):
     from collections import Counter
 
-    from acquire.recorder import read_run
+    from acquire.record.recorder import read_run
     from run_helpers import aborted_run, resumed_run
 
     lp = load_plan(small_plan(tmp_path, n=10, sequencing={"samples": 5, "settle_window_s": 0.2},

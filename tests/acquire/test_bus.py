@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.bus import (
+from acquire.live.bus import (
     Bus,
     BusConfigError,
     BusError,
@@ -315,7 +315,7 @@ def test_closing_a_bus_whose_token_was_undeclared_logs_cleanly_at_debug():
             raise AssertionError(f"logging error for {record.msg!r}")
 
     handler = Formatting(logging.DEBUG)
-    bus_log = logging.getLogger("acquire.bus")
+    bus_log = logging.getLogger("acquire.live.bus")
     old = bus_log.level
     bus_log.addHandler(handler)
     bus_log.setLevel(logging.DEBUG)

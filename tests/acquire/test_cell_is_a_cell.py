@@ -19,8 +19,8 @@ import numpy as np
 import pytest
 import yaml
 
-from acquire.plan import load_plan, resolve_configurations
-from acquire.recorder import read_run
+from acquire.plan.schema import load_plan, resolve_configurations
+from acquire.record.recorder import read_run
 from acquire.run import RunController
 
 from run_helpers import ROOT, RUN_TIMEOUT_S, simulated_run, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest

@@ -39,7 +39,7 @@ with open(os.environ["PROBE_OUT"], "w") as f:
 #: Never needed to print help or ask the daemon for its status. (pydantic is not listed: typer
 #: itself uses it to convert option values.)
 HEAVY_FOR_ANY = ["scipy", "scipy.stats", "matplotlib", "matplotlib.pyplot", "calib.fit.offsets", "calib.fit.identification",
-                 "calib.fit.posterior", "acquire.daemon_config", "yaml", "mcap"]
+                 "calib.fit.posterior", "acquire.daemon.config", "yaml", "mcap"]
 
 
 def _probe(tmp_path: Path, *args: str) -> tuple[dict, subprocess.CompletedProcess]:
@@ -104,7 +104,7 @@ def test_a_fast_zero_offset_fit_with_its_report_runs_without_matplotlib(tmp_path
     assert res["code"] == 0, proc.stderr
     assert (tmp_path / "r.html").stat().st_size > 0 and "calib.fit.offsets" in res["modules"]
     heavy = [m for m in res["modules"] if m.split(".")[0] in ("matplotlib", "PIL") or m.startswith("scipy.stats")
-             or m in ("calib.fit.socket", "acquire.commands.socket_fit")]
+             or m in ("calib.fit.socket", "acquire.run.socket_fit")]
     assert not heavy, heavy
 
 

@@ -1,4 +1,4 @@
-"""What a run shows on the console and keeps in its text log (acquire/console.py)."""
+"""What a run shows on the console and keeps in its text log (acquire/live/console.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import logging
 
 import pytest
 
-from acquire.console import RunLogFile, console_level, display_path
+from acquire.live.console import RunLogFile, console_level, display_path
 
 
 def test_display_path_is_normalised_and_relative_inside_the_working_folder(tmp_path):
@@ -71,7 +71,7 @@ def test_a_foreseen_run_failure_is_one_console_line_and_its_traceback_stays_in_t
     log keeps the traceback for whoever debugs it."""
     import io
 
-    from acquire.console import ConsoleFormatter, FORESEEN
+    from acquire.live.console import ConsoleFormatter, FORESEEN
     from acquire.run.summary import RunError
 
     console = io.StringIO()
@@ -102,7 +102,7 @@ def test_a_foreseen_run_failure_is_one_console_line_and_its_traceback_stays_in_t
 
 
 def test_with_vv_the_console_shows_the_traceback_of_a_foreseen_failure_too():
-    from acquire.console import ConsoleFormatter, FORESEEN
+    from acquire.live.console import ConsoleFormatter, FORESEEN
 
     try:
         raise ValueError("boom")

@@ -15,10 +15,10 @@ import secrets
 import pytest
 from pydantic import ValidationError
 
-from acquire import control_auth as auth
-from acquire.control import ControlClient
-from acquire.daemon_config import AuthSection, Client
-from acquire.tokens import WeakToken
+from acquire.daemon import control_auth as auth
+from acquire.daemon.control import ControlClient
+from acquire.daemon.config import AuthSection, Client
+from acquire.daemon.tokens import WeakToken
 
 CELL = "lab1"
 TOKEN = "Zk3-pQ9xT2mV7bN4cR8sW1yL6hJ0fG"
@@ -235,7 +235,7 @@ def test_weak_tokens_are_refused_wherever_a_token_is_accepted(weak, why):
 
 
 def test_strong_tokens_are_accepted():
-    from acquire.tokens import check_token, new_token
+    from acquire.daemon.tokens import check_token, new_token
 
     for token in (new_token(), "0f1e2d3c4b5a69788796a5b4c3d2e1f0", TOKEN):
         assert check_token(token) == token

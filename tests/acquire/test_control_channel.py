@@ -13,10 +13,10 @@ import threading
 
 import pytest
 
-from acquire import control_auth as auth
-from acquire.bus import Bus
-from acquire.control import Authorizer, ControlClient, ControlServer, Refused, Unverified
-from acquire.daemon_config import AuthSection
+from acquire.daemon import control_auth as auth
+from acquire.live.bus import Bus
+from acquire.daemon.control import Authorizer, ControlClient, ControlServer, Refused, Unverified
+from acquire.daemon.config import AuthSection
 
 CELL = "lab1"
 TOKEN = "s3cret-Operator-token-4f1b-Xq9"

@@ -32,9 +32,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from acquire import control_auth as auth
-from acquire.control import Conflict, ControlError, Refused, Unverified
-from acquire.control_socket import SocketClient
+from acquire.daemon import control_auth as auth
+from acquire.daemon.control import Conflict, ControlError, Refused, Unverified
+from acquire.daemon.control_socket import SocketClient
 
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
@@ -149,7 +149,7 @@ def _flood(port: int, stop: threading.Event, counter: list[int], rate_hz: float 
     replies ignored, until ``stop`` or ``max_s`` (it stops by itself)."""
     import zenoh
 
-    from acquire.bus import Bus
+    from acquire.live.bus import Bus
 
     with Bus(CELL, config={"mode": "client", "connect": [f"tcp/127.0.0.1:{port}"], "zenoh": {}}) as bus:
         t0 = time.monotonic()

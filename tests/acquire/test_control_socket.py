@@ -1,4 +1,4 @@
-"""The operators' control socket (``acquire.control_socket``) on its own: what it answers, what
+"""The operators' control socket (``acquire.daemon.control_socket``) on its own: what it answers, what
 it refuses, how it bounds one caller, and the CLI's use of it. A real Unix socket under
 ``tmp_path``; the daemon behind it is a recording stand-in for ``ControlServer.perform``."""
 
@@ -14,8 +14,8 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from acquire.control import Conflict, Identity, NoReply
-from acquire.control_socket import MAX_PER_UID, ControlSocketServer, SocketClient
+from acquire.daemon.control import Conflict, Identity, NoReply
+from acquire.daemon.control_socket import MAX_PER_UID, ControlSocketServer, SocketClient
 
 
 class Performed:

@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 
 from acquire.commands.daemon import JournalFormatter
-from acquire.control import BadRequest, Conflict
-from acquire.daemon import Daemon
-from acquire.daemon_config import ConfigError, DaemonConfig, endpoint_is_loopback, load_daemon_config
-from acquire.sdnotify import SdNotifier, socket_address, watchdog_interval_s
+from acquire.daemon.control import BadRequest, Conflict
+from acquire.daemon.service import Daemon
+from acquire.daemon.config import ConfigError, DaemonConfig, endpoint_is_loopback, load_daemon_config
+from acquire.daemon.sdnotify import SdNotifier, socket_address, watchdog_interval_s
 
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
@@ -179,8 +179,8 @@ def test_watchdog_interval_from_environment():
 
 def test_journal_formatter_prefixes_every_line_with_its_priority():
     fmt = JournalFormatter("%(levelname)s %(name)s: %(message)s")
-    rec = logging.LogRecord("acquire.daemon", logging.WARNING, __file__, 1, "late\nanswers", None, None)
-    assert fmt.format(rec) == "<4>WARNING acquire.daemon: late\n<4>answers"
+    rec = logging.LogRecord("acquire.daemon.service", logging.WARNING, __file__, 1, "late\nanswers", None, None)
+    assert fmt.format(rec) == "<4>WARNING acquire.daemon.service: late\n<4>answers"
     rec = logging.LogRecord("x", logging.INFO, __file__, 1, "ok", None, None)
     assert fmt.format(rec) == "<6>INFO x: ok"
 
@@ -222,7 +222,7 @@ def test_watchdog_pings_stop_when_the_controller_stops_sending(tmp_path):
 def test_device_host_brings_up_configured_real_drivers_against_the_fakes(tmp_path):
     """The non-fake path: the configured FRI commander and NatNet sensor, connected over
     loopback to the simulated cell's fake Sunrise and fake Motive, as to real devices."""
-    from acquire.daemon import DeviceHost
+    from acquire.daemon.service import DeviceHost
     from drivers.sim.cell import SimCell
     from drivers.sim.clock import SimClock
     from drivers.sim.config import DEFAULT_CONFIG_PATH
@@ -265,8 +265,8 @@ def _fresh_state(cmd):
 def test_health_monitor_flags_new_late_real_time_answers_and_a_silent_recorder(tmp_path):
     """A real RSI commander answering a fake KR C4 on loopback: healthy while it answers in
     time; unhealthy in the check after it answered late; healthy again once it keeps up."""
-    from acquire.daemon import HealthMonitor
-    from acquire.daemon_config import HealthSection
+    from acquire.daemon.service import HealthMonitor
+    from acquire.daemon.config import HealthSection
     from calib.robot.model import load_robot_model
     from drivers.kuka_rsi.commander import RsiCommander
     from drivers.kuka_rsi.fake import FakeKrc4
@@ -314,7 +314,7 @@ def test_health_monitor_flags_new_late_real_time_answers_and_a_silent_recorder(t
 
 def test_start_refuses_plans_outside_plan_dirs_and_second_runs(tmp_path):
     """The control backend's own checks, without Zenoh in between."""
-    from acquire.control import Identity
+    from acquire.daemon.control import Identity
 
     cfg = DaemonConfig(cell=CELL, fake=True, state_dir=tmp_path / "state", plan_dirs=[tmp_path / "plans"])
     d = Daemon(cfg, notifier=SdNotifier(env={}))
@@ -393,7 +393,7 @@ def test_daemon_runs_pauses_resumes_aborts_a_fake_plan_and_stops_on_sigterm(daem
         # The watchdog is fed again once the devices are back.
         wait_until(lambda: notify.count("WATCHDOG", "1") > pings_before_abort, 5, "pings after the run")
 
-    from acquire.recorder import read_run
+    from acquire.record.recorder import read_run
 
     contents = read_run(tmp_path / "state" / "runs" / run_id / f"{run_id}.mcap")
     assert contents.complete and contents.run_id == run_id
@@ -429,7 +429,7 @@ def test_sigterm_during_a_run_finishes_the_configuration_and_closes_the_log(daem
     assert f"stopping: pausing run {run_id} after its current configuration" in log
     assert f"run {run_id} aborted; log" in log
     proc.notify.wait_for(lambda f: f.get("STOPPING") == "1", 1)
-    from acquire.recorder import read_run
+    from acquire.record.recorder import read_run
 
     contents = read_run(tmp_path / "state" / "runs" / run_id / f"{run_id}.mcap")
     assert contents.complete, "the run's log was not closed cleanly"

@@ -18,8 +18,8 @@ import threading
 
 import pytest
 
-from acquire.bus import BusError
-from acquire.control import BadRequest, Conflict, ControlClient, NoReply, Refused, Unverified
+from acquire.live.bus import BusError
+from acquire.daemon.control import BadRequest, Conflict, ControlClient, NoReply, Refused, Unverified
 
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
@@ -85,7 +85,7 @@ def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tm
     finally:
         proc.kill()
     log = proc.log()
-    refusals = [line for line in log.splitlines() if line.startswith("WARNING acquire.control: refused control/")]
+    refusals = [line for line in log.splitlines() if line.startswith("WARNING acquire.daemon.control: refused control/")]
     assert len(refusals) == len(attempts) + 1 + 3, "\n".join(refusals)
     assert sum("refused control/plan" in r for r in refusals) == 3
     assert "claimed 'operator'" in log and "wrong token" in log
@@ -176,7 +176,7 @@ def test_mtls_and_access_control_refuse_strangers_and_viewers(tmp_path, notify):
     assert "(mTLS)" in log
     assert "refused control/plan: needs permission 'read'; viewer, TLS CN 'viewer'" in log
     assert "TLS CN 'viewer'" in log and "client 'operator' must connect over TLS" in log
-    ours = [line for line in log.splitlines() if "acquire.control" in line]
+    ours = [line for line in log.splitlines() if "acquire.daemon.control" in line]
     assert not any("control/start" in line and "viewer" in line for line in ours)  # never reached the daemon…
     denied = [line for line in log.splitlines() if "is unauthorized to Query" in line]
     assert any("CertCommonName(viewer)" in d and "remaster/example/control/start" in d for d in denied)  # …it was logged
@@ -323,7 +323,7 @@ def _stand_in_answer(key: str, payload: bytes | None, att: bytes | None) -> dict
 
 
 def test_a_stand_in_daemon_gets_nothing_the_real_one_accepts_and_the_client_does_not_believe_it(tmp_path, notify):
-    from acquire.bus import Bus
+    from acquire.live.bus import Bus
 
     port = free_port()
     config = write_config(tmp_path, port)
@@ -403,7 +403,7 @@ def test_a_flood_of_malformed_queries_makes_a_bounded_log_without_tracebacks(tmp
     finally:
         proc.kill()
     log = proc.log()
-    ours = [line for line in log.splitlines() if "acquire.control" in line]
+    ours = [line for line in log.splitlines() if "acquire.daemon.control" in line]
     assert "Traceback" not in log
     assert 10 <= len(ours) <= 80, f"{len(ours)} lines:\n" + "\n".join(ours[:100])
     assert len(log.encode()) < 100_000
@@ -411,6 +411,6 @@ def test_a_flood_of_malformed_queries_makes_a_bounded_log_without_tracebacks(tmp
     # spreads the flood over more admitted lines), and the close logs what is still held back:
     # their sum is every suppressed line
     suppressed = sum(int(m) for m in re.findall(r"\[(\d+) similar lines from", log))
-    print(f"2000 malformed queries: {len(ours)} acquire.control log lines, {len(log.encode())} bytes of log, "
+    print(f"2000 malformed queries: {len(ours)} acquire.daemon.control log lines, {len(log.encode())} bytes of log, "
           f"{suppressed} lines suppressed (counted)")
     assert suppressed >= 1500

@@ -1,4 +1,4 @@
-"""Device faults that pass are waited out (``acquire.suspenders.DeviceFaultSuspender`` and the
+"""Device faults that pass are waited out (``acquire.run.suspenders.DeviceFaultSuspender`` and the
 run's ``ConfigurationRunner``), on simulated time: no sleeping, no sockets.
 
 A fault suspends the run with one line, the devices are probed until ready within the plan's
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from acquire.run.procedure import ConfigurationRunner
-from acquire.sequencer import SensorSpec, SequencingSettings
-from acquire.suspenders import DeviceFaultSuspender, LostTargetSuspender, Probe
+from acquire.run.sequencer import SensorSpec, SequencingSettings
+from acquire.run.suspenders import DeviceFaultSuspender, LostTargetSuspender, Probe
 from drivers.errors import DeviceTimeoutError, LimitError, NotReadyError
 from drivers.protocols import JointLimits, JointState, MarkerMeasurement, MarkerSample
 
@@ -252,7 +252,7 @@ def test_a_target_outside_the_limits_fails_at_once_without_a_wait():
 
 @pytest.mark.parametrize("field", ["robot_fault_wait_s", "sensor_fault_wait_s"])
 def test_a_plan_with_a_negative_fault_allowance_is_refused_naming_file_line_and_field(tmp_path, field):
-    from acquire.plan import ConfigError, load_plan
+    from acquire.plan.schema import ConfigError, load_plan
 
     from run_helpers import small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
@@ -295,7 +295,7 @@ def test_faults_that_pass_at_once_are_retried_within_the_allowance_then_fail_the
 
 
 def test_the_run_controller_logs_a_foreseen_failure_for_the_console_to_show_in_one_line(tmp_path, caplog):
-    from acquire.plan import load_plan
+    from acquire.plan.schema import load_plan
     from acquire.run import RunController
     from acquire.run.summary import RunError
 

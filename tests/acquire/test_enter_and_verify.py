@@ -91,7 +91,7 @@ def test_verify_scores_a_given_log_against_a_prediction_made_from_the_calibratio
 
 
 def test_fresh_configurations_are_the_regions_and_never_the_calibrations(tmp_path):
-    from acquire.plan import load_plan, resolve_configurations
+    from acquire.plan.schema import load_plan, resolve_configurations
     from acquire.run.verify import fresh_configurations
     from calib.io.yamlfile import ConfigError
     from run_helpers import small_plan

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 from acquire.cli import app
 from acquire.commands.examples import copy_plan
 from acquire.commands.run import plan_argument
-from acquire.plan import load_plan, resolve_plan
+from acquire.plan.schema import load_plan, resolve_plan
 from calib.io import resources
 
 ROOT = Path(__file__).resolve().parents[2]

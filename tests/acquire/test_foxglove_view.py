@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from acquire import foxglove_view as fv
-from acquire.recorder import EVENT_TOPIC, SAMPLE_TOPIC, RunLog
+from acquire.record import foxglove_view as fv
+from acquire.record.recorder import EVENT_TOPIC, SAMPLE_TOPIC, RunLog
 from calib.robot.kinematics import Chain
 from calib.robot.model import load_robot_model
 from calib.robot.transforms import euler_zyx_to_matrix, homogeneous

@@ -10,7 +10,7 @@ import time
 import numpy as np
 from mcap.reader import make_reader
 
-from acquire.recorder import RunLog
+from acquire.record.recorder import RunLog
 from acquire.run import JointStateTap
 from drivers.protocols import JointState
 

@@ -25,9 +25,9 @@ pytest.importorskip("foxglove", reason="the live view needs foxglove-sdk")
 websockets_sync = pytest.importorskip("websockets.sync.client", reason="the live tests need the websockets package")
 import websockets.exceptions  # noqa: E402
 
-from acquire import foxglove_view as fv  # noqa: E402
-from acquire.live import LiveServer  # noqa: E402
-from acquire.recorder import RunLog  # noqa: E402
+from acquire.record import foxglove_view as fv  # noqa: E402
+from acquire.live.foxglove_server import LiveServer  # noqa: E402
+from acquire.record.recorder import RunLog  # noqa: E402
 from calib.robot.kinematics import Chain  # noqa: E402
 from calib.robot.model import load_robot_model  # noqa: E402
 
@@ -148,7 +148,7 @@ def test_a_runs_channels_exist_before_a_viewer_connects_and_the_log_writes_to_th
     # A channel created while a viewer connects can be advertised to it before the SDK counts it
     # as known to that viewer: the subscription is refused ("attempted to subscribe to unknown
     # channel") and the topic stays dark all run (seen with /tf on a loaded CI host).
-    from acquire.recorder import advertise_run_channels
+    from acquire.record.recorder import advertise_run_channels
 
     topics = {"/run/sample", "/run/event", "/log", "/tf", "/markers", "/joint_state", "/mocap/markers"}
     model = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
@@ -183,7 +183,7 @@ def test_a_runs_channels_exist_before_a_viewer_connects_and_the_log_writes_to_th
 
 
 def test_live_server_refuses_a_bad_port_and_a_taken_one():
-    from acquire.live import LiveServerError
+    from acquire.live.foxglove_server import LiveServerError
 
     with pytest.raises(ValueError, match="0..65535"):
         LiveServer("127.0.0.1", 70000)
@@ -263,7 +263,7 @@ def test_acquire_run_live_serves_the_robot_frames_and_the_joint_state(tmp_path):
 
 # --------------------------------------------------------------------------------- the daemon
 def test_daemon_config_live_section_binds_loopback_unless_remote_is_allowed(tmp_path):
-    from acquire.daemon_config import DaemonConfig
+    from acquire.daemon.config import DaemonConfig
 
     cfg = DaemonConfig(cell="c1", fake=True, live={"enabled": True, "port": 9000})
     assert (cfg.live.host, cfg.live.port) == ("127.0.0.1", 9000)

@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from mcap.reader import NonSeekingReader, make_reader
 
-from acquire.recorder import EVENT_TOPIC, SAMPLE_TOPIC, RunLog, read_run
+from acquire.record.recorder import EVENT_TOPIC, SAMPLE_TOPIC, RunLog, read_run
 
 HERE = Path(__file__).resolve().parent
 TS_DIR = HERE / "mcap_ts"

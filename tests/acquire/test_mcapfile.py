@@ -1,4 +1,4 @@
-"""acquire.mcapfile: chunk bounds, corrupt chunks, and logs written by the earlier unchunked RunLog."""
+"""acquire.record.mcapfile: chunk bounds, corrupt chunks, and logs written by the earlier unchunked RunLog."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from acquire.mcapfile import ChunkedWriter, McapFileError, scan
-from acquire.recorder import EVENT_SCHEMA, SAMPLE_SCHEMA, SAMPLE_TOPIC, RunLog, read_run
+from acquire.record.mcapfile import ChunkedWriter, McapFileError, scan
+from acquire.record.recorder import EVENT_SCHEMA, SAMPLE_SCHEMA, SAMPLE_TOPIC, RunLog, read_run
 
 
 def test_chunks_close_at_their_size_bound_and_the_file_reads_back():

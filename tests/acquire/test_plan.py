@@ -11,7 +11,7 @@ import pytest
 import yaml
 from pydantic import ValidationError
 
-from acquire.plan import (
+from acquire.plan.schema import (
     JointsFile,
     LoadedPlan,
     Plan,
@@ -375,7 +375,7 @@ BAD_PLANS = [
     ("wrong_controller", 4, 21, "commander.driver", ["'sunrise' controller", "given 'rsi'", "allowed fri"]),
     ("fake_sensor_not_in_cell", 6, 12, "sensors.0.name", ["given 'camera2'", "allowed mocap, tracker"]),
     ("bad_numbers", 6, 108, "sensors.0.noise_mm", ["greater than 0", "given -0.03", "allowed (0, 100]"]),
-    # inputs that would move the robot wrongly (acquire/plan_guards.py)
+    # inputs that would move the robot wrongly (acquire/plan/guards.py)
     ("sensor_origin_in_metres", 11, 23, "poses.generated.sensor_origin_mm",
      ["looks like metres", "given [2, 0, 1.3]", "allowed mm", "e.g. [2000, 0, 1300]"]),
     ("joints_in_radians", 9, 5, "poses.joints",
@@ -452,9 +452,9 @@ def test_loaded_plan_error_helper_points_at_a_field():
 
 
 def test_the_format_documented_in_the_module_docstring_is_a_valid_plan(tmp_path):
-    import acquire.plan
+    import acquire.plan.schema
 
-    block = acquire.plan.__doc__.split("commented example)::\n\n", 1)[1].split("\n\nErrors:", 1)[0]
+    block = acquire.plan.schema.__doc__.split("commented example)::\n\n", 1)[1].split("\n\nErrors:", 1)[0]
     data = yaml.safe_load("\n".join(line[4:] for line in block.splitlines()))
     # socket: the alternative to poses (socket calibration), documented commented out
     assert set(data) | {"socket"} == set(Plan.model_fields)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from acquire.plan import load_plan
+from acquire.plan.schema import load_plan
 from calib.io.yamlfile import ConfigError
 from tests.acquire.test_plan import minimal, write
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from acquire.plan import load_plan, resolve_plan
+from acquire.plan.schema import load_plan, resolve_plan
 from calib.io.yamlfile import ConfigError
 from drivers.errors import LimitError
 from drivers.kuka_fri.commander import FriCommander

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from acquire.plan import load_plan, resolve_configurations, resolve_plan
+from acquire.plan.schema import load_plan, resolve_configurations, resolve_plan
 from calib.robot.kinematics import Chain
 from calib.io.yamlfile import ConfigError
 

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from mcap.reader import NonSeekingReader, make_reader
 
-from acquire.recorder import (
+from acquire.record.recorder import (
     EVENT_TOPIC,
     SAMPLE_TOPIC,
     RunLog,
@@ -193,7 +193,7 @@ WRITER = r"""
 import sys, time
 import numpy as np
 from pathlib import Path
-from acquire.recorder import RunLog
+from acquire.record.recorder import RunLog
 path, start, n = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 lg = RunLog.create(path, run_id="k", plan_text="p", model_text="m", metadata={}) if start == 0 else RunLog.append_to(path)
 rng = np.random.default_rng(start)

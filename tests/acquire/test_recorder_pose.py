@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 
-from acquire.recorder import dataset_from_run
-from acquire.sequencer import _orientation
+from acquire.record.recorder import dataset_from_run
+from acquire.run.sequencer import _orientation
 from calib.robot.kinematics import Chain
 from calib.robot.model import load_robot_model
 from drivers.protocols import MarkerMeasurement

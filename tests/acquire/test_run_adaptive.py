@@ -10,8 +10,8 @@ from collections import Counter
 
 import pytest
 
-from acquire.plan import load_plan, resolve_configurations
-from acquire.recorder import dataset_from_run, read_run
+from acquire.plan.schema import load_plan, resolve_configurations
+from acquire.record.recorder import dataset_from_run, read_run
 
 from run_helpers import RUN_TIMEOUT_S, aborted_run, fake_controller, resumed_run, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 

@@ -1,6 +1,6 @@
 """Disk full mid-run (issue 21): one clear line, no tracebacks, the log sealed readable, resumable.
 
-The disk is simulated (``fake_disk.py``: a byte budget behind ``acquire.logstorage``'s system
+The disk is simulated (``fake_disk.py``: a byte budget behind ``acquire.record.logstorage``'s system
 calls, a text log that fails once the disk was full) because a small tmpfs is not available to
 tests. Everything else is a real ``acquire run --fake`` process.
 """
@@ -19,10 +19,10 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from acquire.console import TextLogHandler
-from acquire.logstorage import RESERVE_MIN_BYTES, RESERVE_SUFFIX, LogFile, StorageError
-from acquire.plan import load_plan, resolve_configurations
-from acquire.recorder import RunLog, read_run
+from acquire.live.console import TextLogHandler
+from acquire.record.logstorage import RESERVE_MIN_BYTES, RESERVE_SUFFIX, LogFile, StorageError
+from acquire.plan.schema import load_plan, resolve_configurations
+from acquire.record.recorder import RunLog, read_run
 
 from run_helpers import ROOT, popen, run_logs, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
@@ -84,7 +84,7 @@ def test_log_file_seals_at_the_last_complete_record_and_refuses_further_writes(t
     """The disk fills in the middle of a sample's write. Releasing the reserve makes room for the
     summary (sealed), or — ``stays_full``, another writer took it — the file is cut after its last
     complete record and the resume finishes it."""
-    import acquire.logstorage as storage
+    import acquire.record.logstorage as storage
 
     path = tmp_path / "r.mcap"
     rl = RunLog.create(path, run_id="r1", plan_text="plan: 1\n", model_text="model: 1\n", metadata={}, flush_interval_s=0)
@@ -128,7 +128,7 @@ def test_log_file_seals_at_the_last_complete_record_and_refuses_further_writes(t
 
 
 def test_log_file_refuses_to_grow_its_reserve_on_a_full_disk(tmp_path, monkeypatch):
-    import acquire.logstorage as storage
+    import acquire.record.logstorage as storage
 
     def no_room(fd, offset, size):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
@@ -168,7 +168,7 @@ def test_text_log_handler_stops_quietly_on_a_full_disk(tmp_path, capsys):
 
 
 def test_a_disk_full_but_for_the_reserve_still_closes_the_log_normally(tmp_path, monkeypatch, caplog):
-    import acquire.logstorage as storage
+    import acquire.record.logstorage as storage
     import fake_disk  # tests/acquire: the byte budget behind logstorage's system calls
 
     monkeypatch.setattr(fake_disk, "state", {"left": 10**9, "sizes": {}, "full": False})

@@ -12,8 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from acquire.plan import load_plan, resolve_configurations
-from acquire.recorder import read_run
+from acquire.plan.schema import load_plan, resolve_configurations
+from acquire.record.recorder import read_run
 from drivers.tracker.codec import Aim
 
 from run_helpers import RUN_TIMEOUT_S, popen, run_logs, simulated_run, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest

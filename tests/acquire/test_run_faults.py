@@ -12,7 +12,7 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from acquire.plan import load_plan, resolve_configurations
+from acquire.plan.schema import load_plan, resolve_configurations
 
 from run_helpers import ROOT, RUN_TIMEOUT_S, faulted_run, small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 

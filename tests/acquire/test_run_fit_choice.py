@@ -11,7 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from acquire.commands.run_summary import format_run_summary
-from acquire.plan import FitSpec
+from acquire.plan.schema import FitSpec
 from acquire.run.fitting import _fit_run_auto
 from calib.fit.offsets import FitOptions
 from calib.robot.model import load_robot_model
@@ -56,7 +56,7 @@ def test_a_plan_forcing_full_writes_the_identified_model_and_its_report(tmp_path
 def test_a_socket_runs_default_fit_chooses_the_model_and_a_plan_can_fix_the_method(tmp_path, monkeypatch):
     """The end of a socket run (``fit_socket_run_log``): the plan's default ``fit.method: auto`` lets
     the data choose (table in result.json, the chosen model named); ``fast`` keeps the fixed prior."""
-    import acquire.commands.socket_fit as socket_fit
+    import acquire.run.socket_fit as socket_fit
     from acquire.run.fitting import fit_socket_run_log
     from tests.calib.socket_sim import simulate, true_params
     from calib.robot.kinematics import Chain

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from acquire.progress import status_line
+from acquire.live.progress import status_line
 from acquire.run.state import RunState
 from calib.fit.progress import Progress
 

@@ -12,7 +12,7 @@ import yaml
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from acquire.plan import load_plan, resolve_configurations
+from acquire.plan.schema import load_plan, resolve_configurations
 from acquire.run import RunController, RunError
 
 from run_helpers import ROOT, RUN_TIMEOUT_S, fake_controller, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
@@ -28,7 +28,7 @@ def no_devices(monkeypatch):
 
     monkeypatch.setattr("acquire.run.devices.RunDevices.open", refuse)
     monkeypatch.setattr("drivers.sim.running.SimulatedCell.start", refuse)
-    monkeypatch.setattr("acquire.bus.Bus.__init__", refuse)
+    monkeypatch.setattr("acquire.live.bus.Bus.__init__", refuse)
 
 
 def test_an_output_folder_that_cannot_be_created_exits_2_before_any_device(tmp_path, no_devices):

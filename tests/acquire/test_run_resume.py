@@ -9,8 +9,8 @@ from collections import Counter
 
 import pytest
 
-from acquire.plan import load_plan, resolve_configurations
-from acquire.recorder import RunLogError, read_run
+from acquire.plan.schema import load_plan, resolve_configurations
+from acquire.record.recorder import RunLogError, read_run
 
 from run_helpers import RUN_TIMEOUT_S, aborted_run, fake_controller, popen, run_logs, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 

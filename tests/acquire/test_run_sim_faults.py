@@ -8,8 +8,8 @@ from __future__ import annotations
 import pytest
 import yaml
 
-from acquire.plan import load_plan
-from acquire.recorder import read_run
+from acquire.plan.schema import load_plan
+from acquire.record.recorder import read_run
 
 from run_helpers import ROOT, RUN_TIMEOUT_S, fake_controller, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.sequencer import (
+from acquire.run.sequencer import (
     ConfigProcedure,
     SensorSpec,
     SequencingSettings,
@@ -20,8 +20,8 @@ from acquire.sequencer import (
     order_by_proximity,
     order_configurations,
 )
-from acquire.settle import StabilityWindow, wait_settled
-from acquire.suspenders import LostTargetSuspender, ReflectorPredictor
+from acquire.run.settle import StabilityWindow, wait_settled
+from acquire.run.suspenders import LostTargetSuspender, ReflectorPredictor
 from calib.robot.kinematics import Chain
 from calib.robot.model import load_robot_model
 from drivers.errors import DeviceTimeoutError, TargetLostError

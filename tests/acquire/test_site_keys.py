@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from acquire.bus import BusConfigError, control_key, key
-from acquire.daemon_config import DaemonConfig
+from acquire.live.bus import BusConfigError, control_key, key
+from acquire.daemon.config import DaemonConfig
 
 
 def test_a_cell_without_a_site_keeps_its_keys():
@@ -72,7 +72,7 @@ def test_status_and_watch_find_a_cell_under_its_site(tmp_path):
 
 def test_watch_reads_a_sited_cells_keys_as_its_own_and_ignores_other_sites():
     from acquire.commands.watch import _Session
-    from acquire.livestatus import CellView
+    from acquire.live.status import CellView
 
     s = _Session(None, None, site="plant-a", raw=False, until_done=False, count=0, duration=0, connect=[],
                  explicit_expr=False)

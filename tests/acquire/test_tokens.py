@@ -13,11 +13,11 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from acquire import control_auth as auth
+from acquire.daemon import control_auth as auth
 from acquire.cli import app
-from acquire.daemon_config import Client
-from acquire.logthrottle import Throttle
-from acquire.tokens import TokenFileError, read_token_file, write_token_file
+from acquire.daemon.config import Client
+from acquire.live.logthrottle import Throttle
+from acquire.daemon.tokens import TokenFileError, read_token_file, write_token_file
 
 STRONG = "Zk3-pQ9xT2mV7bN4cR8sW1yL6hJ0fG"
 
@@ -120,8 +120,8 @@ def test_throttle_drain_returns_what_is_still_owed_once():
 
 
 def test_a_token_made_of_the_cell_and_client_names_is_refused_where_they_are_known():
-    from acquire.control import ControlClient
-    from acquire.tokens import WeakToken, check_token, guesses_log10, new_token
+    from acquire.daemon.control import ControlClient
+    from acquire.daemon.tokens import WeakToken, check_token, guesses_log10, new_token
 
     token = "hallb-cell7-welder-2026-hallb-cell7"
     assert check_token(token) == token  # strangers' words: zxcvbn rates it above 10^20…

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from acquire.plan import load_plan
+from acquire.plan.schema import load_plan
 from calib.io.yamlfile import ConfigError
 
 from daemon_harness import OPERATOR_TOKEN, control, open_client  # noqa: E402
@@ -54,7 +54,7 @@ def test_acquire_run_refuses_the_alias_bomb_plan_with_exit_2(tmp_path):
 
 # (the `daemon` fixture: daemon_harness.py, offered by conftest.py)
 def test_the_daemon_refuses_an_inline_alias_bomb_in_one_line_and_keeps_answering(daemon):
-    from acquire.control import BadRequest
+    from acquire.daemon.control import BadRequest
 
     proc, port, tmp_path = daemon
     proc.wait_ready()

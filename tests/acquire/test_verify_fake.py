@@ -18,8 +18,8 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from acquire.plan import load_plan
-from acquire.recorder import read_run
+from acquire.plan.schema import load_plan
+from acquire.record.recorder import read_run
 
 from run_helpers import ROOT, acquire_cmd, simulated_run, small_plan, wait_for_run  # noqa: E402 - tests/acquire is on sys.path under pytest
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from acquire.livestatus import CellView, cell_of, sample_text, warning_text
+from acquire.live.status import CellView, cell_of, sample_text, warning_text
 
 from daemon_harness import CELL, OPERATOR_TOKEN, DaemonProcess, NotifySocket, free_port, write_config  # noqa: E402
 from run_helpers import ROOT, acquire_cmd, small_plan  # noqa: E402

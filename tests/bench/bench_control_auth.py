@@ -3,7 +3,7 @@
     python tests/bench/bench_control_auth.py [--iterations 600000] [--exchanges 5]
 
 Before: every exchange computed PBKDF2 in scramp's client (what the control client did until
-the key cache). After: ``acquire.control_auth.ClientExchange`` — one PBKDF2 per process and
+the key cache). After: ``acquire.daemon.control_auth.ClientExchange`` — one PBKDF2 per process and
 (salt, iterations), then HMACs only (RFC 5802 §5.1). Both run against the daemon's
 ``ExchangeTable`` without Zenoh; every proof is verified by the table.
 """
@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from scramp import ScramClient  # noqa: E402
 
-from acquire import control_auth as auth  # noqa: E402
+from acquire.daemon import control_auth as auth  # noqa: E402
 
 TOKEN = "Zk3-pQ9xT2mV7bN4cR8sW1yL6hJ0fG"
 

@@ -49,7 +49,8 @@ def main() -> None:
     robot = root / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
     env = dict(os.environ, PYTHONPATH=str(root))
 
-    from acquire.commands.fit import _link_tolerance, load_dataset
+    from acquire.commands.fit import _link_tolerance
+    from acquire.record.datasets import load_dataset
     from calib.fit.offsets import FitOptions, fit_offsets
     from calib.robot.kinematics import Chain
     from calib.fit.metrics import accuracy_metrics

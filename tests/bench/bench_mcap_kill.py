@@ -4,7 +4,7 @@
 
 A child process writes a run's streams in real time — 240 Hz marker frames, 250 Hz joint
 states (log time = wall clock at the write), an fsync'd event + sample every 2 s — and is killed
-with SIGKILL after a random 2–4 s. The file is then read with ``acquire.mcapfile.scan`` (every
+with SIGKILL after a random 2–4 s. The file is then read with ``acquire.record.mcapfile.scan`` (every
 complete chunk with its message indexes) and the loss is ``t_kill − newest recovered log time``.
 
 Writers, same workload, same run:
@@ -32,7 +32,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from acquire.mcapfile import scan
+from acquire.record.mcapfile import scan
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -42,7 +42,7 @@ import numpy as np
 kind, path = sys.argv[1], sys.argv[2]
 rng = np.random.default_rng(0)
 if kind == "remaster":
-    from acquire.recorder import RunLog
+    from acquire.record.recorder import RunLog
     lg = RunLog.create(__import__("pathlib").Path(path), run_id="k", plan_text="p", model_text="m", metadata={})
     def markers(t): lg.record_markers("mocap", {"m1": rng.normal(0, 500, 3), "m2": rng.normal(0, 500, 3)}, log_time_ns=t)
     def joints(t): lg.record_joint_state("fri", rng.normal(size=7), log_time_ns=t)
@@ -100,7 +100,7 @@ def one_kill(kind: str, folder: Path, delay_s: float, n: int) -> tuple[float, in
 def one_run_kill(folder: Path, delay_s: float, n: int) -> tuple[float, int]:
     import os
 
-    from acquire.recorder import read_run
+    from acquire.record.recorder import read_run
 
     out = folder / f"runs-{n}"
     env = dict(os.environ, PYTHONPATH=str(ROOT))

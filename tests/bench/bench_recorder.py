@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from acquire.jsonpayload import encode_json
-from acquire.recorder import RunLog, read_run, scene_update
+from acquire.record.jsonpayload import encode_json
+from acquire.record.recorder import RunLog, read_run, scene_update
 
 MARKER_HZ = 240.0
 JOINT_HZ = 250.0

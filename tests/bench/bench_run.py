@@ -11,7 +11,7 @@ Everything is in SIMULATED CELL TIME, computed (not run) from the same pieces th
   ``drivers.kuka_fri.fake``) integrated along every trajectory; the robot window of
   ``CommanderBase.wait_settled`` (restarts whenever an axis leaves the tolerance of the window's
   first reading, polled every 4 ms) is found on that response; the sensor window runs at the
-  same time (``acquire.settle.wait_settled``) and is not restarted by noise of the plan's size;
+  same time (``acquire.run.settle.wait_settled``) and is not restarted by noise of the plan's size;
 - settle (paper): a fixed 3 s after the move ("settling time … set to 3 sec");
 - measure: ``samples`` at the sensor's rate (Motive 120 Hz, tracker averaging 1000 Hz);
 - beam breaks: the simulated cell's line-of-sight test (``SimCell.visibility``) along every
@@ -38,14 +38,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from acquire.plan import load_plan, resolve_configurations  # noqa: E402
-from acquire.sequencer import (  # noqa: E402
+from acquire.plan.schema import load_plan, resolve_configurations  # noqa: E402
+from acquire.run.sequencer import (  # noqa: E402
     move_times,
     order_by_pose_proximity,
     order_by_proximity,
     order_configurations,
 )
-from acquire.suspenders import ReflectorPredictor  # noqa: E402
+from acquire.run.suspenders import ReflectorPredictor  # noqa: E402
 from calib.robot.kinematics import Chain  # noqa: E402
 from drivers.protocols import JointLimits  # noqa: E402
 from drivers.sim.cell import SimCell  # noqa: E402

@@ -4,7 +4,7 @@
 
 The router (``acquire router``) and the station (``acquire station --config …``, a client of the
 router) run as processes of their own; the cells are peer sessions of the router in this
-process, each with its daemon's control queries (``acquire.daemon.Daemon``, not started: no
+process, each with its daemon's control queries (``acquire.daemon.service.Daemon``, not started: no
 devices), liveliness token and the announcement a daemon puts when a run ends (the station's
 sweep is every 30 s: runs come in by announcement). A "run" is a run folder written on the cell
 (MCAP-sized random bytes, a result.json, a report) — the fit is not what is measured here.
@@ -52,7 +52,7 @@ def _frozen_daemon(seconds: float):
     """A daemon class whose listing hangs ``seconds`` once ``freeze`` is set (a frozen cell PC)."""
     import threading
 
-    from acquire.daemon import Daemon
+    from acquire.daemon.service import Daemon
 
     class Frozen(Daemon):
         freeze = threading.Event()
@@ -68,8 +68,8 @@ def _frozen_daemon(seconds: float):
 
 class BenchCell:
     def __init__(self, tmp: Path, i: int, router: str, creds, daemon_cls=None) -> None:
-        from acquire.daemon import Daemon
-        from acquire.daemon_config import DaemonConfig
+        from acquire.daemon.service import Daemon
+        from acquire.daemon.config import DaemonConfig
 
         self.name = f"c{i:03d}"
         self.state_dir = tmp / "cells" / self.name
@@ -80,9 +80,9 @@ class BenchCell:
         self.connect()
 
     def connect(self) -> None:
-        from acquire.bus import Bus
-        from acquire.control import Authorizer, ControlServer
-        from acquire.daemon_config import AuthSection
+        from acquire.live.bus import Bus
+        from acquire.daemon.control import Authorizer, ControlServer
+        from acquire.daemon.config import AuthSection
 
         self.bus = Bus(self.name, site="bench", config={"listen": [], "connect": [self.router]})
         auth = AuthSection.model_validate({"clients": [{"name": "station", "scram": self.creds.config(),
@@ -124,9 +124,9 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=600)
     args = ap.parse_args()
 
-    from acquire import control_auth
+    from acquire.daemon import control_auth
     from acquire.station.archive import Archive
-    from acquire.tokens import new_token, write_token_file
+    from acquire.daemon.tokens import new_token, write_token_file
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-station-"))
     token = new_token()

@@ -121,10 +121,10 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
     args = ap.parse_args()
 
-    from acquire.bus import Bus, BusError
-    from acquire.control import BadRequest, ControlClient, ControlError, Refused
+    from acquire.live.bus import Bus, BusError
+    from acquire.daemon.control import BadRequest, ControlClient, ControlError, Refused
     from acquire.station.archive import Archive
-    from acquire.tokens import new_token, write_token_file
+    from acquire.daemon.tokens import new_token, write_token_file
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-station-runs-"))
     token = new_token()

@@ -62,7 +62,7 @@ def short_samples(rc, asked: int) -> tuple[int, int]:
 
 def full_run(op, state_dir: Path, timeout: float) -> dict:
     """Run the example plan to its end; the figures of its log."""
-    from acquire.recorder import read_run
+    from acquire.record.recorder import read_run
 
     t0 = time.monotonic()
     run_id = op.call("start", {"plan": "example.yaml"})["run_id"]

@@ -47,10 +47,10 @@ from types import SimpleNamespace
 import numpy as np
 import yaml
 
-from acquire.plan import load_plan, resolve_candidate_pool, resolve_configurations
+from acquire.plan.schema import load_plan, resolve_candidate_pool, resolve_configurations
 from acquire.run import SENSOR_RATE_HZ, plan_settings
 from acquire.run.adaptive import AdaptiveRun, fit_options
-from acquire.sequencer import (estimate_measure_s, estimate_settle_s, move_times, order_by_pose_proximity,
+from acquire.run.sequencer import (estimate_measure_s, estimate_settle_s, move_times, order_by_pose_proximity,
                                order_configurations)
 from calib.fit.offsets import fit_mode, fit_offsets
 from calib.plan.adaptive import SequentialDesign
@@ -149,8 +149,8 @@ def score(lp, cell, q, xyz, ids, q_val, xyz_val, opts, marker, xyz_true=None, co
 
 def tx60_configs(model, poses: int, seed: int, prefix: str = "p"):
     """Every IK branch of ``poses`` Latin-hypercube poses aimed at a tracker 1.8 m away (ids
-    ``<prefix>07-b1``; prefix "x" for a generated pool, as ``acquire.plan.resolve_candidate_pool``)."""
-    from acquire.plan import PlannedConfig
+    ``<prefix>07-b1``; prefix "x" for a generated pool, as ``acquire.plan.schema.resolve_candidate_pool``)."""
+    from acquire.plan.schema import PlannedConfig
     from calib.plan.poses import plan_poses
 
     pp = plan_poses(model, (1800.0, 0.0, 600.0), n=poses, seed=seed, min_solutions=2)

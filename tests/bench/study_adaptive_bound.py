@@ -35,10 +35,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import study_adaptive as S  # noqa: E402
 
-from acquire.plan import load_plan, resolve_candidate_pool, resolve_configurations  # noqa: E402
+from acquire.plan.schema import load_plan, resolve_candidate_pool, resolve_configurations  # noqa: E402
 from acquire.run import SENSOR_RATE_HZ, plan_settings  # noqa: E402
 from acquire.run.adaptive import AdaptiveOrder  # noqa: E402
-from acquire.sequencer import estimate_measure_s, estimate_settle_s, order_configurations  # noqa: E402
+from acquire.run.sequencer import estimate_measure_s, estimate_settle_s, order_configurations  # noqa: E402
 from calib.robot.model import load_robot_model  # noqa: E402
 from drivers.protocols import JointLimits  # noqa: E402
 

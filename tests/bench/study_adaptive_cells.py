@@ -42,10 +42,10 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "bench")]
 
-from acquire.plan import load_plan, resolve_configurations  # noqa: E402
+from acquire.plan.schema import load_plan, resolve_configurations  # noqa: E402
 from acquire.run import SENSOR_RATE_HZ, plan_settings  # noqa: E402
 from acquire.run.adaptive import AdaptiveRun, fit_options, joint_space_samples  # noqa: E402
-from acquire.sequencer import estimate_measure_s, estimate_settle_s, move_times, order_configurations  # noqa: E402
+from acquire.run.sequencer import estimate_measure_s, estimate_settle_s, move_times, order_configurations  # noqa: E402
 from calib.fit.offsets import fit_mode, fit_offsets  # noqa: E402
 from drivers.protocols import JointLimits  # noqa: E402
 from study_adaptive import Cell, Standing, dataset  # noqa: E402

@@ -1,4 +1,4 @@
-"""Study: the socket default (``acquire.commands.socket_fit.run_socket_fit``, ``--method auto``) on
+"""Study: the socket default (``acquire.run.socket_fit.run_socket_fit``, ``--method auto``) on
 simulated Franka Panda socket cells — which model it picks, its held-out error against the best
 candidate's, the link scales the evidence chose, and how often an offset marked "enter" misses
 the truth's 95 % interval.
@@ -17,7 +17,7 @@ import argparse
 import time
 from collections import Counter
 
-from acquire.commands.socket_fit import run_socket_fit
+from acquire.run.socket_fit import run_socket_fit
 from tests.calib.test_socket_choice import _entered_outside, _panda_cell
 
 

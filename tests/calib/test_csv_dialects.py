@@ -167,7 +167,7 @@ def test_socket_files_in_spreadsheet_dialects_read_the_same_angles(tmp_path, sep
 
 
 def test_socket_files_are_recognised_by_acquire_fit_in_any_dialect(tmp_path):
-    from acquire.commands.socket_fit import is_socket_csv
+    from calib.io.csvdialect import is_socket_csv
 
     for i, sep in enumerate([",", ";", "\t"]):
         path = tmp_path / f"s{i}.csv"

@@ -172,7 +172,7 @@ def test_a_csv_in_radians_is_refused_up_front_naming_line_and_columns(tmp_path):
 
 
 def test_the_plan_and_the_csv_share_one_radians_check():
-    from acquire import plan_guards
+    from acquire.plan import guards as plan_guards
     from calib.measure import units
 
     assert plan_guards.radians_problem is units.radians_problem

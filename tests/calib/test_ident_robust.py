@@ -199,7 +199,9 @@ def test_a_minimum_that_does_not_describe_the_data_is_refused_with_exit_status_1
                   np.random.default_rng(2), 0.03, "cal")
     swapped = cal.q_rad.copy()
     swapped[:, [1, 2]] = swapped[:, [2, 1]]
-    cal = from_arrays(swapped, cal.xyz_mm, marker=cal.marker)
+    # the tracker's stated spread (0.03 mm, one sample a row): judged against the sensor's noise, not
+    # an estimate from residuals (tests/calib/test_estimated_noise_guard.py covers data without spreads)
+    cal = from_arrays(swapped, cal.xyz_mm, marker=cal.marker, std_mm=np.full(len(cal), 0.03), count=np.ones(len(cal), int))
     write_model_yaml(cell.model, tmp_path / "robot.yaml")
     write_csv(cal, tmp_path / "cal.csv")
     out = tmp_path / "full.json"

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.commands.socket_fit import run_socket_fit
+from acquire.run.socket_fit import run_socket_fit
 from calib.fit.result import write_result
 from calib.report.report_format import fixed
 from calib.report.report_socket import render_socket_report, verdict

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire.commands.socket_fit import run_socket_fit
+from acquire.run.socket_fit import run_socket_fit
 from calib.fit.socket import read_hole_folder, socket_scores
 from calib.fit.socket_choice import (
     choose_socket_model,

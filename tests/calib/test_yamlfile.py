@@ -96,7 +96,7 @@ def test_plain_files_still_load_with_their_marks():
 
 def test_every_loader_uses_it(tmp_path):
     """Robot models, simulated cells and daemon configs refuse duplicate keys with both lines."""
-    from acquire.daemon_config import load_daemon_config
+    from acquire.daemon.config import load_daemon_config
     from calib.robot.model import load_robot_model
     from drivers.sim.config import load_sim_config
 

@@ -10,14 +10,14 @@ import time
 import numpy as np
 import pytest
 
-from acquire import control_auth
-from acquire.bus import Bus
-from acquire.control import Authorizer, ControlServer
-from acquire.daemon import Daemon
-from acquire.daemon_config import AuthSection, DaemonConfig
+from acquire.daemon import control_auth
+from acquire.live.bus import Bus
+from acquire.daemon.control import Authorizer, ControlServer
+from acquire.daemon.service import Daemon
+from acquire.daemon.config import AuthSection, DaemonConfig
 from acquire.station.config import StationConfig
 from acquire.station.service import Station
-from acquire.tokens import new_token
+from acquire.daemon.tokens import new_token
 
 TOKEN = new_token()
 CREDS = control_auth.derive_credentials(TOKEN, iterations=control_auth.MIN_ITERATIONS)

@@ -5,8 +5,8 @@ import hashlib
 
 import pytest
 
-from acquire.control import BadRequest, Conflict
-from acquire.daemon_archive import CellRuns
+from acquire.daemon.control import BadRequest, Conflict
+from acquire.daemon.archive import CellRuns
 
 
 def _run(runs, run_id, data=b"x" * 5000):

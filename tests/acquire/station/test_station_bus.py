@@ -2,7 +2,7 @@
 a drifted robot flagged through the station; a cell without credentials archives nothing.
 
 Every session is on loopback with explicit endpoints (ephemeral ports, no scouting): the station
-is the router, each cell a peer connected to it, its daemon (``acquire.daemon.Daemon``, not
+is the router, each cell a peer connected to it, its daemon (``acquire.daemon.service.Daemon``, not
 started: no devices) answering the control queries.
 """
 
@@ -13,11 +13,11 @@ import time
 import numpy as np
 from station_harness import Cell, result_doc, station, sync_until, wait_cells, write_run  # noqa: F401
 
-from acquire import control_auth
-from acquire.daemon import Daemon
+from acquire.daemon import control_auth
+from acquire.daemon.service import Daemon
 from acquire.station.archive import RunRef
 from acquire.station.history import load_history
-from acquire.tokens import new_token
+from acquire.daemon.tokens import new_token
 
 
 def test_cells_are_discovered_through_the_router_and_runs_archived_once(tmp_path, station):

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquire import control_auth
+from acquire.daemon import control_auth
 from acquire.station.config import load_station_config
-from acquire.tokens import new_token, write_token_file
+from acquire.daemon.tokens import new_token, write_token_file
 from calib.io.yamlfile import ConfigError
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -34,10 +34,10 @@ def test_a_bad_station_configuration_names_file_line_and_field(tmp_path):
 
 @pytest.mark.slow
 def test_station_once_archives_a_cells_run_end_to_end(tmp_path):
-    from acquire.bus import Bus
-    from acquire.control import Authorizer, ControlServer
-    from acquire.daemon import Daemon
-    from acquire.daemon_config import AuthSection, DaemonConfig
+    from acquire.live.bus import Bus
+    from acquire.daemon.control import Authorizer, ControlServer
+    from acquire.daemon.service import Daemon
+    from acquire.daemon.config import AuthSection, DaemonConfig
 
     token = new_token()
     write_token_file(tmp_path / "station.token", token)

@@ -19,12 +19,12 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(480)]  # a whole run of the 
 
 
 def test_a_sited_daemons_run_is_archived_by_the_station(tmp_path):
-    from acquire.bus import Bus
-    from acquire.control import ControlClient
+    from acquire.live.bus import Bus
+    from acquire.daemon.control import ControlClient
     from acquire.station.config import StationConfig
     from acquire.station.history import load_history
     from acquire.station.service import Station
-    from acquire.tokens import new_token
+    from acquire.daemon.tokens import new_token
 
     token = new_token()
     port = free_port()
@@ -73,7 +73,7 @@ def test_a_sited_daemons_run_is_archived_by_the_station(tmp_path):
 
 
 def _try(op) -> bool:
-    from acquire.control import ControlError
+    from acquire.daemon.control import ControlError
 
     try:
         return op.call("status", timeout=2.0)["daemon"] == "ready"

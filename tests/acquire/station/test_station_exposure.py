@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from acquire.bus import BusConfigError
+from acquire.live.bus import BusConfigError
 from acquire.station.config import StationConfig, flat_paths, load_station_config
 from acquire.station.service import Station
 from calib.io.yamlfile import ConfigError

@@ -20,7 +20,7 @@ import time
 import numpy as np
 from station_harness import TOKEN, Cell, result_doc, station, station_config, sync_until, wait_cells, write_run  # noqa: F401
 
-from acquire.daemon import Daemon
+from acquire.daemon.service import Daemon
 from acquire.station.archive import RunRef
 from acquire.station.history import load_history
 from acquire.station.scrub import scrub
@@ -223,8 +223,8 @@ def test_the_station_is_a_client_of_the_sites_router_and_its_restart_leaves_the_
 
     from daemon_harness import free_port
 
-    from acquire.bus import Bus
-    from acquire.control import ControlClient
+    from acquire.live.bus import Bus
+    from acquire.daemon.control import ControlClient
 
     port = free_port()
     (tmp_path / "router.yaml").write_text(f"listen: [tcp/127.0.0.1:{port}]\n")
@@ -253,7 +253,7 @@ def test_the_station_is_a_client_of_the_sites_router_and_its_restart_leaves_the_
 
 
 def _router_up(endpoint) -> bool:
-    from acquire.bus import Bus, BusError
+    from acquire.live.bus import Bus, BusError
 
     try:
         with Bus("probe", config={"mode": "client", "connect": endpoint}):

@@ -3,11 +3,11 @@
 :class:`LiveServer` wraps the Foxglove SDK's WebSocket server (PyPI ``foxglove-sdk``; the Foxglove
 WebSocket protocol, subprotocol ``foxglove.sdk.v1`` — the successor of ``foxglove.websocket.v1``
 with the same messages, which the Foxglove app speaks; viewers that only know
-``foxglove.websocket.v1``, such as older Lichtblick releases, are refused by the SDK). A :class:`acquire.recorder.RunLog` given ``live=`` hands it every
+``foxglove.websocket.v1``, such as older Lichtblick releases, are refused by the SDK). A :class:`acquire.record.recorder.RunLog` given ``live=`` hands it every
 message it writes — the same topic, schema name, JSON schema and JSON bytes as in the MCAP file —
 so what Foxglove shows live is exactly what the log holds (``/tf``, ``/markers``,
 ``/joint_state``, ``/log``, ``/run/sample``, ``/run/event``, ``/<sensor>/markers``; see
-:mod:`acquire.foxglove_view`). Open it in Foxglove with *Open connection → Foxglove WebSocket →
+:mod:`acquire.record.foxglove_view`). Open it in Foxglove with *Open connection → Foxglove WebSocket →
 ws://HOST:PORT* and load the layout ``calib/data/foxglove/remaster-layout.json`` (``acquire examples`` prints its installed path).
 
 The server binds to loopback unless told otherwise: anyone who can connect sees the run.

@@ -110,7 +110,7 @@ sensor marker the tool does not carry, joint lists of the wrong length or outsid
 limits (the joint and its limit are named), a robot or configurations file that does not exist
 (pointing at its line), a selection larger than the configurations it selects from.
 
-Inputs that would move the robot wrongly are refused too (``acquire.plan_guards``): explicit
+Inputs that would move the robot wrongly are refused too (``acquire.plan.guards``): explicit
 joint targets within the commander's margin of a limit (the driver class says how much,
 ``limit_margin_for``; the commander would refuse them mid-run), and values that look like
 metres or radians (``sensor_origin_mm`` in metres, joint targets in radians, the robot model's
@@ -158,7 +158,7 @@ from calib.robot.model import Frame, RobotModel, load_robot_model
 from calib.io.resources import default_sim_config
 from calib.io.yamlfile import (ConfigError, CrossFieldChecked, Marks, error_line, load_yaml_with_marks, locate,
                             parse_yaml_text, read_yaml_text)
-from acquire.plan_guards import (
+from acquire.plan.guards import (
     commander_margin_rad,
     confirm_input_errors,
     describe_config_rows,
@@ -878,7 +878,7 @@ def _allowed(err: dict) -> str:
         if not bounds:
             return text
         return f"{text} in {bounds}" if bounds[0] in "([" else f"{text} {bounds}"
-    return "see the plan format in acquire/plan.py"
+    return "see the plan format in acquire/plan/schema.py"
 
 
 def format_plan_errors(path: Path | str, exc: ValidationError, marks: Marks) -> list[tuple[tuple[int, int], str]]:

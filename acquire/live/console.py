@@ -119,7 +119,7 @@ class _Held(logging.Handler):
 class TextLogHandler(logging.FileHandler):
     """The run's text log file. When a write fails with an ``OSError`` (disk full, I/O error) the
     file stops there without a word: no "--- Logging error ---" traceback per record from
-    ``logging``. The run reports a storage problem itself, in one line (``acquire.logstorage``);
+    ``logging``. The run reports a storage problem itself, in one line (``acquire.record.logstorage``);
     ``failed`` keeps the error."""
 
     failed: OSError | None = None
@@ -191,3 +191,14 @@ class RunLogFile:
         if self._file is not None:
             root.removeHandler(self._file)
             self._file.close()
+
+
+def configure_logging(verbose: bool = False) -> None:
+    """One line per event; colour-free when not on a terminal (journald friendly)."""
+    level = logging.DEBUG if verbose else logging.INFO
+    fmt = "%(levelname)s %(name)s: %(message)s"
+    if sys.stderr.isatty():
+        fmt = "%(asctime)s " + fmt
+    logging.basicConfig(level=level, format=fmt, stream=sys.stderr, force=True)
+    for handler in logging.getLogger().handlers:
+        handler.setFormatter(ConsoleFormatter(fmt, tracebacks=verbose))  # a foreseen failure: one line unless -v

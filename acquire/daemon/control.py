@@ -1,6 +1,6 @@
 """Control queries of the daemon (``remaster/<cell>/control/<operation>``) and who may send them.
 
-Operations and the permission each needs (``acquire.daemon_config.PERMISSIONS``):
+Operations and the permission each needs (``acquire.daemon.config.PERMISSIONS``):
 
 =========  ==========  ===========================================================
 operation  permission  what it does
@@ -19,17 +19,17 @@ confirm    motion      socket calibration: the ball sits in the socket, record n
                        run then moves on)
 archive-*  archive     the plant's station: ``archive-list`` (finished runs not yet
                        confirmed), ``archive-chunk`` (a file's bytes), ``archive-confirm``
-                       (stored: keep no longer pending) — ``acquire.daemon_archive``
+                       (stored: keep no longer pending) — ``acquire.daemon.archive``
 =========  ==========  ===========================================================
 
 Operators on the cell PC do not come this way: they use the control socket
-(``acquire.control_socket``), where the kernel authenticates them and ``ControlServer.perform``
+(``acquire.daemon.control_socket``), where the kernel authenticates them and ``ControlServer.perform``
 acts for them. On Zenoh, two lines of defence. First, Zenoh itself: loopback-only listeners by
 default; remote listeners need mTLS or an access-control block (see ``daemon_config``), so the
 router drops a query from a subject the ACL does not allow before it reaches us, and it sends
 no control query to any session but ours (``daemon_config.control_guard``). Second, this module checks
 every query in its handler. An authenticated operation is one SCRAM-SHA-256 exchange
-(``acquire.control_auth``) over two queries on the operation's key: the first's attachment is a
+(``acquire.daemon.control_auth``) over two queries on the operation's key: the first's attachment is a
 client-first, answered with a server-first carrying a fresh nonce of this daemon instance; the
 second carries the client-final (with the payload), and only once its proof verifies does the
 daemon act. The token never travels; the operation and payload are bound to the proof; an
@@ -38,7 +38,7 @@ A client configured with ``cert_common_names`` must moreover come over a TLS lin
 certificate common name is one of them (the link of the query's source Zenoh id, as the session
 sees it). Without a valid proof the query holds only ``auth.anonymous`` (default: observe).
 Every refusal and bad request is logged as one warning line naming the operation, the claimed
-client and the reason, rate-limited per source (``acquire.logthrottle``), never a traceback.
+client and the reason, rate-limited per source (``acquire.live.logthrottle``), never a traceback.
 
 Replies are JSON objects. A success is ``{"ok": true, …}``; a failure is an error reply
 ``{"ok": false, "error": KIND, "message": …}`` with KIND one of ``refused``, ``bad-request``,
@@ -55,13 +55,13 @@ import threading
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable, Protocol
 
-from acquire import control_auth
-from acquire.bus import control_key
-from acquire.logthrottle import Throttle, clip
-from acquire.tokens import check_token
+from acquire.daemon import control_auth
+from acquire.live.bus import control_key
+from acquire.live.logthrottle import Throttle, clip
+from acquire.daemon.tokens import check_token
 
 if TYPE_CHECKING:  # pydantic and YAML stay out of the thin clients' start-up (acquire status)
-    from acquire.daemon_config import AuthSection
+    from acquire.daemon.config import AuthSection
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ class Authorizer:
 
     link_subject: source Zenoh id (hex str) → TLS certificate CN of that peer's link, or None.
     exchanges: the pending SCRAM exchanges (default: a new table, i.e. a new daemon instance).
-    throttle: limits the warnings about what clients send (``acquire.logthrottle``).
+    throttle: limits the warnings about what clients send (``acquire.live.logthrottle``).
     """
 
     def __init__(self, auth: AuthSection, link_subject: Callable[[str], str | None] | None = None, *,
@@ -443,8 +443,8 @@ class ControlClient:
     """A thin client of the control queries over an open Zenoh session.
 
     client / token: the credentials to prove (None: anonymous); a weak token is refused
-    (``acquire.tokens.WeakToken``). The token never leaves this object: each operation is one
-    SCRAM-SHA-256 exchange (``acquire.control_auth``) and only a reply carrying that exchange's
+    (``acquire.daemon.tokens.WeakToken``). The token never leaves this object: each operation is one
+    SCRAM-SHA-256 exchange (``acquire.daemon.control_auth``) and only a reply carrying that exchange's
     ServerSignature and MAC is believed. An anonymous client cannot authenticate replies;
     ``last_reply_verified`` says whether the last reply was.
     """

@@ -10,7 +10,7 @@ order, all configurations of a pose in a row); ``order_by_proximity`` is nearest
 joint-space distance.
 
 Per configuration (``ConfigProcedure.run``): move (``commander.move_to``; a refusal is fatal
-for that configuration, with its reason); wait until settled (``acquire.settle.wait_settled``:
+for that configuration, with its reason); wait until settled (``acquire.run.settle.wait_settled``:
 robot still AND sensors stable over a window); measure N samples of every marker of every
 sensor while sampling the measured joint angles (mean and std over the measurement window);
 return the sample record of ``RUN_API.md``. A lost target raises ``TargetLostError`` out of
@@ -30,7 +30,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from acquire.settle import SettleResult, wait_settled
+from acquire.run.settle import SettleResult, wait_settled
 from drivers.errors import DeviceTimeoutError
 from drivers.trajectory import motion_time, scaled_limits
 

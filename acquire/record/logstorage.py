@@ -1,6 +1,6 @@
 """The run log's file on disk: whole writes, a space reserve, and a clean stop when the disk is full.
 
-A run log (``acquire.recorder.RunLog``) writes its MCAP bytes through :class:`LogFile`, an
+A run log (``acquire.record.recorder.RunLog``) writes its MCAP bytes through :class:`LogFile`, an
 unbuffered file whose every ``write`` either reaches the OS whole or raises :class:`StorageError`
 (a short write, ENOSPC, EDQUOT, EIO, …). What happens on such an error, once:
 
@@ -8,7 +8,7 @@ unbuffered file whose every ``write`` either reaches the OS whole or raises :cla
 2. the **reserve** is released: a file ``<log>.reserve`` beside the log, allocated
    (``posix_fallocate``) at twice the size the log's MCAP summary would take (at least
    ``RESERVE_MIN_BYTES``) and grown as the log grows, so that there is room to finish the log;
-3. the log is **sealed**: read back unit by unit (``acquire.mcapfile.scan``), cut after its last
+3. the log is **sealed**: read back unit by unit (``acquire.record.mcapfile.scan``), cut after its last
    complete unit (a chunk with all its message indexes, or a record outside chunks), and given
    DataEnd + summary + Footer (``finish_truncated``) — an indexed MCAP file that every reader
    opens, holding every record that was completely written. If even that cannot be written,
@@ -30,7 +30,7 @@ import os
 import shutil
 from pathlib import Path
 
-from acquire.mcapfile import McapIndex, finish_truncated, scan
+from acquire.record.mcapfile import McapIndex, finish_truncated, scan
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Plan-time guards: inputs that would move the robot wrongly, refused before anything connects.
 
-``acquire.plan.load_plan`` calls these after the schema and the relations are checked. Each
+``acquire.plan.schema.load_plan`` calls these after the schema and the relations are checked. Each
 returns problems as ``(field path, message)`` pairs located in the plan file (or, for the robot
 model, ready-made ``file:line:col: field: message`` lines), worded ``… (given …; allowed …)``.
 

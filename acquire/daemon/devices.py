@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from typing import Protocol, Sequence
 
-from acquire.daemon_config import DaemonConfig
+from acquire.daemon.config import DaemonConfig
 from drivers.cell import CellDescription
 from drivers.errors import DriverError
 

@@ -1,6 +1,6 @@
 """The daemon's runs folder and plan requests: which runs it holds, where a run's log is, which
 plan file a ``start`` request means (``plan`` inside ``plan_dirs``, or ``plan_text`` written to
-``<state_dir>/plans``). Errors are ``acquire.control.BadRequest`` saying what is allowed."""
+``<state_dir>/plans``). Errors are ``acquire.daemon.control.BadRequest`` saying what is allowed."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import logging
 from datetime import datetime, timezone
 from pathlib import Path
 
-from acquire.control import BadRequest
-from acquire.recorder import base_path
+from acquire.daemon.control import BadRequest
+from acquire.record.recorder import base_path
 
-log = logging.getLogger("acquire.daemon")
+log = logging.getLogger("acquire.daemon.service")
 
 
 def list_runs(runs_dir: Path, current: str | None) -> list[dict]:
@@ -77,7 +77,7 @@ def plan_path(cfg, request: dict) -> Path:
 
 
 class RunTextLog:
-    """The current run's text log ``<run>.log`` beside its MCAP (``acquire.console.RunLogFile``,
+    """The current run's text log ``<run>.log`` beside its MCAP (``acquire.live.console.RunLogFile``,
     archived with the run): begun when a run starts, opened once the run knows its log path,
     closed when the run ends or fails to start."""
 
@@ -86,7 +86,7 @@ class RunTextLog:
 
     def begin(self) -> None:
         """Collect the log lines of a run about to start (until ``open_beside`` finds its path)."""
-        from acquire.console import RunLogFile
+        from acquire.live.console import RunLogFile
 
         self.close()
         self._file = RunLogFile(logging.INFO)
@@ -106,9 +106,11 @@ class RunTextLog:
                 logfile.close()
 
     def close(self) -> None:
+        """Close the file; a run that never made a folder has its held lines on stderr only where
+        the daemon's own log did not show them (below INFO: the daemon logs INFO and above)."""
         logfile, self._file = self._file, None
         if logfile is not None:
-            logfile.close(logging.CRITICAL + 1)
+            logfile.close(logging.INFO)
 
 
 def announce_run_end(bus, status: dict) -> None:
@@ -116,7 +118,7 @@ def announce_run_end(bus, status: dict) -> None:
     itself is authenticated); a lost hint costs the station one poll."""
     import zenoh
 
-    from acquire.bus import BusError
+    from acquire.live.bus import BusError
 
     try:
         bus.publish(bus.key("archive", "ready"), {"run_id": status["run_id"], "state": status["state"]})

@@ -40,14 +40,14 @@ cannot carry a valid ServerSignature, so the client reports it (exit 3) and does
 What the daemon's configuration holds per client is what an RFC 5802 server stores: salt,
 iteration count (≥ ``MIN_ITERATIONS``), StoredKey = H(ClientKey) and ServerKey. Guessing the
 token offline from a captured exchange costs one PBKDF2 of ``iterations`` rounds per candidate,
-and tokens are 256 random bits (``acquire.tokens``). Per RFC 5802 §9, whoever reads
+and tokens are 256 random bits (``acquire.daemon.tokens``). Per RFC 5802 §9, whoever reads
 StoredKey and ServerKey can impersonate the *daemon* to clients (compute ServerSignature and
 reply MACs) but cannot log in as a client — unless they also see one client-final message or
 get a client to talk to them, which reveals ClientKey. Hence: the daemon's router forwards no
 control query to any other session (``daemon_config.control_guard``: nobody but the daemon sees a
 client-final, whatever it declares), remote clients come over TLS with the daemon's certificate
 pinned (a stand-in cannot answer them), local operators use the control socket, which carries no
-secret at all (``acquire.control_socket``), and the configuration is readable by root and the
+secret at all (``acquire.daemon.control_socket``), and the configuration is readable by root and the
 daemon's group only (``daemon_config.load_daemon_config`` refuses a file others may read).
 
 Anonymous queries (no attachment) keep observe-only access; their replies cannot be
@@ -87,7 +87,7 @@ from typing import Callable
 
 from scramp import ScramClient, ScramException, ScramMechanism
 
-from acquire.tokens import check_token
+from acquire.daemon.tokens import check_token
 
 #: Protocol tag; bumping it makes old and new peers refuse each other with a clear message.
 VERSION = 3

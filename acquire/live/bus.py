@@ -16,7 +16,7 @@ router) the keys are unchanged.
 
 Build them with :func:`key`, which validates every chunk.
 
-Payload encoding: a ``dict`` is sent as compact UTF-8 JSON (:mod:`acquire.jsonpayload`: numpy
+Payload encoding: a ``dict`` is sent as compact UTF-8 JSON (:mod:`acquire.record.jsonpayload`: numpy
 arrays as lists, NaN/inf as ``null``) with Zenoh encoding ``application/json``; ``bytes`` are sent
 unchanged as ``application/octet-stream``. Query parameters travel in the selector
 (``key?name=value;…``), a query's body as JSON, an optional opaque attachment (e.g. a credential)
@@ -47,7 +47,7 @@ from typing import Any, Callable
 
 import zenoh
 
-from acquire.jsonpayload import PayloadError, decode_json, encode_json
+from acquire.record.jsonpayload import PayloadError, decode_json, encode_json
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ configurations, retries, lost targets, a restarted controller, an aborted run). 
 a rich panel (:meth:`CellView.renderable`) for a terminal, and ``feed`` returns the plain lines
 (status changes, samples, warnings) a pipe or journal gets instead.
 
-Keys (acquire/bus.py): ``remaster/<cell>/daemon`` and ``remaster/<cell>/device/<name>``
+Keys (acquire/live/bus.py): ``remaster/<cell>/daemon`` and ``remaster/<cell>/device/<name>``
 (liveliness), ``remaster/<cell>/run/<run-id>/{status,event,sample}``,
 ``remaster/<cell>/<device>/joint_state``.
 """
@@ -19,8 +19,8 @@ import time
 from collections import deque
 from typing import Any, Callable
 
-from acquire.jsonpayload import PayloadError, decode_json
-from acquire.progress import format_eta, status_line
+from acquire.record.jsonpayload import PayloadError, decode_json
+from acquire.live.progress import format_eta, status_line
 
 #: Run states after which nothing more happens in that run.
 TERMINAL_STATES = ("finished", "aborted", "failed")

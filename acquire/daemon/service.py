@@ -2,16 +2,16 @@
 
 Start-up (``Daemon.run``):
 
-1. open the Zenoh session (``acquire.bus.Bus``) — by default the cell's *router*, listening on
-   loopback only; remote listeners need mTLS or access control (``acquire.daemon_config``);
-   with ``live.enabled``, start the Foxglove live view (``acquire.live.LiveServer``), which then
+1. open the Zenoh session (``acquire.live.bus.Bus``) — by default the cell's *router*, listening on
+   loopback only; remote listeners need mTLS or access control (``acquire.daemon.config``);
+   with ``live.enabled``, start the Foxglove live view (``acquire.live.foxglove_server.LiveServer``), which then
    serves every run's log channels as they are written;
 2. bring up the cell's devices (``DeviceHost``): the configured commander and sensors, or with
    ``fake`` the simulated cell ``acquire daemon`` started and handed over (a ``CellSource``),
    with a commander exchanging real-time packets with its controller; announce each with a liveliness token
    ``remaster/<cell>/device/<name>`` (and the daemon itself as ``remaster/<cell>/daemon``);
-3. serve the control queries (``acquire.control``) — on Zenoh and, with ``control_socket``, on
-   the operators' Unix socket (``acquire.control_socket``) — and tell systemd ``READY=1``.
+3. serve the control queries (``acquire.daemon.control``) — on Zenoh and, with ``control_socket``, on
+   the operators' Unix socket (``acquire.daemon.control_socket``) — and tell systemd ``READY=1``.
 
 Then, every ``tick`` (half the systemd watchdog interval, or ``status_interval_s``), a health
 check (``HealthMonitor``): the commander's measured state is fresh and its late real-time
@@ -42,12 +42,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from acquire.control import Authorizer, BadRequest, Conflict, ControlServer, Identity
-from acquire.daemon_archive import CellRuns
-from acquire.daemon_config import DaemonConfig
-from acquire.daemon_devices import CellSource, DeviceHost, cell_for_plan  # noqa: F401 (DeviceHost: acquire.daemon's API)
-from acquire.daemon_runs import RunTextLog, announce_run_end, list_runs, plan_path, run_log
-from acquire.sdnotify import SdNotifier
+from acquire.daemon.control import Authorizer, BadRequest, Conflict, ControlServer, Identity
+from acquire.daemon.archive import CellRuns
+from acquire.daemon.config import DaemonConfig
+from acquire.daemon.devices import CellSource, DeviceHost, cell_for_plan  # noqa: F401 (DeviceHost: acquire.daemon.service's API)
+from acquire.daemon.runs import RunTextLog, announce_run_end, list_runs, plan_path, run_log
+from acquire.daemon.sdnotify import SdNotifier
 from drivers.errors import DeviceTimeoutError, DriverError
 
 log = logging.getLogger(__name__)
@@ -163,11 +163,11 @@ def stop_run_on_shutdown(ctl, sd, notifier, say: Callable[[str], None]) -> None:
 
 
 def open_control_socket(section, control: ControlServer, authorizer: Authorizer):
-    """The operators' Unix control socket (``acquire.control_socket``) serving ``control``'s
+    """The operators' Unix control socket (``acquire.daemon.control_socket``) serving ``control``'s
     operations, or None when the configuration has no ``control_socket`` section."""
     if section is None:
         return None
-    from acquire.control_socket import ControlSocketServer
+    from acquire.daemon.control_socket import ControlSocketServer
 
     return ControlSocketServer(section.path, section.group, section.allow, control.perform, throttle=authorizer.throttle)
 
@@ -196,9 +196,9 @@ class Daemon:
         self.health = HealthMonitor(cfg.health)
         self.devices = DeviceHost(cfg, cell)
         self.bus = None
-        self.live = None  # acquire.live.LiveServer when cfg.live.enabled
+        self.live = None  # acquire.live.foxglove_server.LiveServer when cfg.live.enabled
         self.control: ControlServer | None = None
-        self.control_socket = None  # acquire.control_socket.ControlSocketServer with cfg.control_socket
+        self.control_socket = None  # acquire.daemon.control_socket.ControlSocketServer with cfg.control_socket
         self.controller = None
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -245,7 +245,7 @@ class Daemon:
             self._shutdown()
 
     def _startup(self) -> None:
-        from acquire.bus import Bus
+        from acquire.live.bus import Bus
 
         cfg = self.cfg
         self.runs_dir.mkdir(parents=True, exist_ok=True)
@@ -268,8 +268,8 @@ class Daemon:
         log.info("Zenoh %s for cell %s listening on %s%s", zc.mode, cfg.cell, ", ".join(zc.listen),
                  " (mTLS)" if zc.tls and zc.tls.enable_mtls else "")
         if cfg.live.enabled:
-            from acquire.live import LiveServer
-            from acquire.recorder import advertise_run_channels
+            from acquire.live.foxglove_server import LiveServer
+            from acquire.record.recorder import advertise_run_channels
 
             self.live = LiveServer(cfg.live.host, cfg.live.port, name=f"remaster {cfg.cell}")
             advertise_run_channels(self.live)  # (each sensor's channel comes with its first run)
@@ -353,6 +353,7 @@ class Daemon:
                         self._tokens.pop(name).undeclare()
         with self._lock:
             self.controller = None
+        self.run_text_log.open_beside(ctl)  # a run that ended between two ticks still gets its text log
         self.run_text_log.close()
         announce_run_end(self.bus, st)
 
@@ -382,6 +383,7 @@ class Daemon:
         log.info("stopping")
         if ctl is not None:
             stop_run_on_shutdown(ctl, self.cfg.shutdown, self.notifier, self._status)
+            self.run_text_log.open_beside(ctl)
         self.run_text_log.close()
         if self.control_socket is not None:
             self.control_socket.close()
@@ -447,7 +449,7 @@ class Daemon:
             if ctl is None:
                 raise Conflict("no run is active; give run_id")
             return {"run_id": ctl.run_id, "plan_text": ctl.lp.text}
-        from acquire.recorder import read_run
+        from acquire.record.recorder import read_run
 
         path = self._run_log(run_id)
         return {"run_id": run_id, "plan_text": read_run(path).plan_text}
@@ -459,7 +461,7 @@ class Daemon:
         return plan_path(self.cfg, request)
 
     def start(self, request: dict, identity: Identity) -> dict:
-        from acquire.plan import load_plan
+        from acquire.plan.schema import load_plan
         from calib.io.yamlfile import ConfigError
 
         with self._lock:
@@ -544,7 +546,7 @@ class Daemon:
         waiting = ctl.confirm()
         return {"run_id": ctl.run_id, "state": ctl.status()["state"], "confirmed": waiting}
 
-    # The plant's station (acquire.daemon_archive): finished runs, their bytes, confirmation.
+    # The plant's station (acquire.daemon.archive): finished runs, their bytes, confirmation.
     def _active_run_id(self) -> str | None:
         with self._lock:
             ctl = self.controller

@@ -7,7 +7,7 @@ What is in the file (readable by ``mcap`` tooling, the TypeScript ``McapIndexedR
   configuration), ``/run/event`` (``remaster.RunEvent``: moved, settled, suspended, resumed,
   skipped, …). :meth:`RunLog.record_markers` writes ``/<sensor>/markers``
   (``remaster.MarkerFrame``, mm, sensor frame, every frame).
-- The Foxglove channels of :mod:`acquire.foxglove_view` (fixed names, one layout for every cell):
+- The Foxglove channels of :mod:`acquire.record.foxglove_view` (fixed names, one layout for every cell):
   ``/joint_state`` (:meth:`RunLog.record_joint_state`, degrees and radians), ``/tf``
   (``foxglove.FrameTransforms``, :meth:`RunLog.record_transforms`), ``/markers``
   (``foxglove.SceneUpdate``: every sensor's markers in its frame, at most ``scene_rate_hz`` per
@@ -18,7 +18,7 @@ What is in the file (readable by ``mcap`` tooling, the TypeScript ``McapIndexedR
   and ``remaster.robot_model`` (the exact texts), and the same two texts as attachments
   ``plan.yaml`` and ``robot.yaml``.
 
-Layout and crash safety (:mod:`acquire.mcapfile`): messages collect in a small uncompressed chunk
+Layout and crash safety (:mod:`acquire.record.mcapfile`): messages collect in a small uncompressed chunk
 that is written, with its message indexes, when it is ``flush_interval_s`` old (default 0.25 s;
 a background thread closes it even when no further message arrives) or ``chunk_bytes`` big, and
 before every ``sample`` and ``event``, which return only after ``flush`` + ``os.fsync``. A
@@ -27,9 +27,9 @@ scheduling delay; ``tests/bench/bench_mcap_kill.py`` measures it); a power cut k
 fsync'd. ``close`` writes the summary: schemas, channels, statistics, chunk / attachment /
 metadata indexes. :func:`read_run` reads unit by unit (a chunk counts with all its message
 indexes) and stops at the first incomplete one, so a truncated file yields exactly the complete
-records — never a partial one. JSON encoding: :mod:`acquire.jsonpayload` (NaN/inf → null).
+records — never a partial one. JSON encoding: :mod:`acquire.record.jsonpayload` (NaN/inf → null).
 
-Live view: a ``live`` publisher (:class:`acquire.live.LiveServer`) given to ``create`` /
+Live view: a ``live`` publisher (:class:`acquire.live.foxglove_server.LiveServer`) given to ``create`` /
 ``append_to`` receives every message written, on the same topics with the same schemas.
 
 Resume: :meth:`RunLog.append_to` never rewrites recorded data. It finishes the killed file (cuts
@@ -57,11 +57,11 @@ from typing import Any
 
 import numpy as np
 
-from acquire import foxglove_view as fv
-from acquire.foxglove_view import SCENE_UPDATE_SCHEMA, scene_update  # noqa: F401 - re-exported
-from acquire.logstorage import LogFile, StorageError, summary_bytes
-from acquire.mcapfile import ChunkedWriter, McapFileError, ScanResult, finish_truncated, scan
-from acquire.jsonpayload import PayloadError, decode_json, encode_json
+from acquire.record import foxglove_view as fv
+from acquire.record.foxglove_view import SCENE_UPDATE_SCHEMA, scene_update  # noqa: F401 - re-exported
+from acquire.record.logstorage import LogFile, StorageError, summary_bytes
+from acquire.record.mcapfile import ChunkedWriter, McapFileError, ScanResult, finish_truncated, scan
+from acquire.record.jsonpayload import PayloadError, decode_json, encode_json
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +199,7 @@ def schema_bytes(json_schema: dict) -> bytes:
 
 
 def advertise_run_channels(live: Any, sensors: tuple[str, ...] | list[str] = ()) -> None:
-    """Advertise on ``live`` (``acquire.live.LiveServer``) every channel a run writes — the run's
+    """Advertise on ``live`` (``acquire.live.foxglove_server.LiveServer``) every channel a run writes — the run's
     records, the Foxglove view's ``/tf``, ``/markers``, ``/joint_state``, ``/log`` and each sensor's
     ``/<sensor>/markers`` — before its address is given to anyone.
 
@@ -248,7 +248,7 @@ def segment_paths(path: str | Path) -> list[Path]:
 
 
 def _json_text(value: Any) -> str:
-    """One JSON value as text, with the conventions of acquire.jsonpayload (numpy, NaN → null)."""
+    """One JSON value as text, with the conventions of acquire.record.jsonpayload (numpy, NaN → null)."""
     return json.dumps(json.loads(encode_json({"v": value}))["v"], separators=(",", ":"))
 
 
@@ -356,7 +356,7 @@ class RunLog:
         scene_rate_hz: at most this many Foxglove scene updates per second and sensor (0: none);
         the mm marker frames are always all recorded.
         chunk_bytes: a chunk is written once it holds this many bytes, whatever its age.
-        live: a publisher (``acquire.live.LiveServer``) that receives every message as well.
+        live: a publisher (``acquire.live.foxglove_server.LiveServer``) that receives every message as well.
         """
         return cls._open(Path(path), run_id=run_id, plan_text=plan_text, model_text=model_text, metadata=metadata,
                          segment=0, extra={}, flush_interval_s=flush_interval_s, fsync=fsync, scene_rate_hz=scene_rate_hz,
@@ -508,7 +508,7 @@ class RunLog:
 
     def sample(self, record: dict) -> None:
         """Record one measured configuration (see SAMPLE_SCHEMA); returns once it is on disk, or
-        raises ``acquire.logstorage.StorageError`` (the sample is not in the log, which is sealed)."""
+        raises ``acquire.record.logstorage.StorageError`` (the sample is not in the log, which is sealed)."""
         if not isinstance(record, dict):
             raise RunLogError(f"{self.path}: a sample must be a dict, given {type(record).__name__}")
         missing = [k for k in SAMPLE_SCHEMA["required"] if k not in record]
@@ -561,7 +561,7 @@ class RunLog:
         self.write(topic, doc, log_time_ns=t)
 
     def record_transforms(self, transforms: dict, *, log_time_ns: int | None = None) -> None:
-        """Record a ``foxglove.FrameTransforms`` (see ``acquire.foxglove_view.RobotView``) on ``/tf``."""
+        """Record a ``foxglove.FrameTransforms`` (see ``acquire.record.foxglove_view.RobotView``) on ``/tf``."""
         if fv.TF_TOPIC not in self._channels:
             self.channel(fv.TF_TOPIC, *fv.CHANNELS[fv.TF_TOPIC])
         self.write(fv.TF_TOPIC, transforms, log_time_ns=log_time_ns)

@@ -1,7 +1,7 @@
 """The cell's side of the plant archive: finished runs offered to the station, read in chunks,
 kept until the station confirms it stored them.
 
-Operations (``acquire.control``, permission ``archive``, each one SCRAM-authenticated exchange):
+Operations (``acquire.daemon.control``, permission ``archive``, each one SCRAM-authenticated exchange):
 
 ``archive-list``     ``{}`` → ``{"robot_serial", "runs": [{"run_id", "finished", "files":
                      [{"name", "bytes", "sha256"}]}]}``: every run in the runs folder that is not
@@ -34,8 +34,8 @@ import shutil
 from datetime import datetime, timezone
 from pathlib import Path
 
-from acquire.control import BadRequest, Conflict
-from acquire.station.archive import sha256_file
+from acquire.daemon.control import BadRequest, Conflict
+from acquire.record.digest import sha256_file
 
 log = logging.getLogger(__name__)
 

@@ -8,11 +8,11 @@ Sections:
 
 - ``cell``: the cell id, ``[a-z0-9_-]+`` — key expressions are ``remaster/<cell>/…``.
 - ``site`` (optional): the plant site, ``[a-z0-9_-]+``, for a cell on a plant's router — key
-  expressions are then ``remaster/<site>/<cell>/…`` (``acquire.bus``).
+  expressions are then ``remaster/<site>/<cell>/…`` (``acquire.live.bus``).
 - ``robot_serial`` (optional): the serial number of the cell's robot; the station files this
   cell's runs under it (default: the cell id); the station checks it against its own ``cells:``.
 - ``archive_keep_days`` (optional): delete a run from ``state_dir`` this many days after the
-  station confirmed it, once the station re-verified its copy (``acquire.daemon_archive``).
+  station confirmed it, once the station re-verified its copy (``acquire.daemon.archive``).
 - ``state_dir``: where runs are written (one folder per run; the systemd unit's StateDirectory).
 - ``plan_dirs``: folders a ``start`` query may name a plan from (anything else is refused);
   inline plans are written to ``<state_dir>/plans/``.
@@ -32,7 +32,7 @@ Sections:
   anything but loopback is refused unless every remote endpoint is ``tls/``/``quic/`` with
   mTLS, or access control is enabled with ``default_permission: deny``.
 - ``control_socket`` (optional; the shipped example sets it): ``{path, group, allow}`` — the
-  local control plane, a Unix socket (``acquire.control_socket``) of mode 0660 owned by
+  local control plane, a Unix socket (``acquire.daemon.control_socket``) of mode 0660 owned by
   ``group``: its members (and root) act with the permissions ``allow`` (default: observe, read,
   control, motion) as the kernel reports them (SO_PEERCRED), with no token at all; nobody else
   can connect. Local operators use it; ``auth`` is for clients over the network.
@@ -43,10 +43,10 @@ Sections:
   (list finished runs, read their files, confirm them archived: the plant's station). A query with no
   or a wrong token holds only ``anonymous`` (default: observe). A file with clients must not be
   readable by other users (``check_config_mode``): its ServerKeys let a reader impersonate the
-  daemon to clients (RFC 5802 §9; ``acquire.control_auth``).
+  daemon to clients (RFC 5802 §9; ``acquire.daemon.control_auth``).
 - ``health``: the watchdog's limits. ``shutdown``: what SIGTERM does to a running run.
 - ``live``: ``{enabled, host, port, allow_remote}`` — serve every run live to the Foxglove app
-  (``acquire.live.LiveServer``, Foxglove WebSocket protocol; off by default). The server
+  (``acquire.live.foxglove_server.LiveServer``, Foxglove WebSocket protocol; off by default). The server
   binds to loopback unless ``allow_remote: true`` (it has no authentication: anyone who can
   connect watches the run).
 """
@@ -64,7 +64,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from acquire.control_auth import MIN_ITERATIONS, Credentials
+from acquire.daemon.control_auth import MIN_ITERATIONS, Credentials
 from calib.io.yamlfile import ConfigError, CrossFieldChecked, load_validated
 
 log = logging.getLogger(__name__)
@@ -107,7 +107,7 @@ def endpoint_is_loopback(endpoint: str) -> bool:
         return False  # a host name other than localhost: reachable from elsewhere
 
 
-#: The daemon's control keys, with and without a site (``acquire.bus.control_key``).
+#: The daemon's control keys, with and without a site (``acquire.live.bus.control_key``).
 CONTROL_KEY_EXPRS = ("remaster/*/control/**", "remaster/*/*/control/**")
 
 _GUARD_RULE = "remaster: only the daemon answers control queries"
@@ -264,7 +264,7 @@ class ZenohSection(_Strict):
 
 
 class ControlSocketSection(_Strict):
-    """The local control plane (``acquire.control_socket``): a Unix socket only ``group`` (and
+    """The local control plane (``acquire.daemon.control_socket``): a Unix socket only ``group`` (and
     root) can connect to; the kernel tells the daemon who connected (SO_PEERCRED)."""
 
     path: Path = Field(Path("/run/remaster/control.sock"), description="the socket (systemd RuntimeDirectory=remaster)")
@@ -422,7 +422,7 @@ class DaemonConfig(_Strict, CrossFieldChecked):
     status_interval_s: float = Field(1.0, gt=0, le=60, description="health check / STATUS period without a watchdog")
     archive_keep_days: float | None = Field(None, ge=0, description=(
         "delete a run this many days after the station confirmed it, once the station re-verified its copy "
-        "(acquire.daemon_archive); default: keep every run"))
+        "(acquire.daemon.archive); default: keep every run"))
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         """Checks between fields, reported at the right line by ``load_validated``."""
@@ -494,7 +494,7 @@ def load_daemon_config(path: str | Path) -> DaemonConfig:
 
 def check_config_mode(path: Path) -> None:
     """ConfigError unless ``path`` is unreadable to others and unwritable to group and others
-    (its ServerKey lets a reader impersonate the daemon to clients; see acquire.control_auth).
+    (its ServerKey lets a reader impersonate the daemon to clients; see acquire.daemon.control_auth).
     Group read is allowed: ``root:remaster 0640`` is the documented installation."""
     mode = stat.S_IMODE(os.stat(path).st_mode)
     if mode & (stat.S_IRWXO | stat.S_IWGRP):

@@ -40,7 +40,7 @@ import threading
 from pathlib import Path
 from typing import Any, Callable
 
-from acquire.control import (
+from acquire.daemon.control import (
     MAX_REQUEST_BYTES,
     OPERATIONS,
     BadRequest,
@@ -50,7 +50,7 @@ from acquire.control import (
     Refused,
     outcome,
 )
-from acquire.logthrottle import Throttle, clip
+from acquire.live.logthrottle import Throttle, clip
 
 log = logging.getLogger(__name__)
 
