@@ -53,22 +53,23 @@ def test_checker_sees_a_forbidden_import(tmp_path: Path) -> None:
 CALIB_WINGS = ("io", "robot", "measure", "ik", "plan", "fit", "report")
 
 
-def calib_wings_imported(path: Path) -> set[str]:
-    """The calib wings that the module at ``path`` imports (absolute imports and registry strings)."""
+def wings_imported(path: Path, package: str = "calib") -> set[str]:
+    """The wings of ``package`` that the module at ``path`` imports (absolute imports and registry
+    strings; for ``acquire``, its top-level modules too)."""
     tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
     mods: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             mods.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
-            assert node.level == 0, f"{path}: relative import (use calib.<wing>.<module>)"
-            if node.module == "calib":
-                mods.update(f"calib.{a.name}" for a in node.names)
+            assert node.level == 0, f"{path}: relative import (use {package}.<wing>.<module>)"
+            if node.module == package:
+                mods.update(f"{package}.{a.name}" for a in node.names)
             elif node.module:
                 mods.add(node.module)
         elif isinstance(node, ast.Constant) and isinstance(node.value, str) and ":" in node.value:
             mods.add(node.value.split(":")[0])
-    return {m.split(".")[1] for m in mods if m.startswith("calib.") and m.count(".") >= 1}
+    return {m.split(".")[1] for m in mods if m.startswith(f"{package}.") and m.count(".") >= 1}
 
 
 def wing_violations(root: Path, order: tuple[str, ...]) -> dict[str, list[str]]:
@@ -83,7 +84,7 @@ def wing_violations(root: Path, order: tuple[str, ...]) -> dict[str, list[str]]:
             bad[str(rel)] = [f"not in a known wing ({wing})"]
             continue
         wrong = sorted(
-            w for w in calib_wings_imported(f) if w not in rank or rank[w] > rank[wing]
+            w for w in wings_imported(f, root.name) if w not in rank or rank[w] > rank[wing]
         )
         if wrong:
             bad[str(rel)] = wrong
@@ -109,36 +110,12 @@ def test_wing_checker_sees_a_reversed_order() -> None:
 ACQUIRE_WINGS = ("plan", "record", "live", "run", "daemon", "station", "commands")
 
 
-def acquire_wings_imported(path: Path) -> set[str]:
-    """The acquire wings (or top-level modules) that the module at ``path`` imports."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
-    mods: set[str] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            mods.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            assert node.level == 0, f"{path}: relative import (use acquire.<wing>.<module>)"
-            if node.module == "acquire":
-                mods.update(f"acquire.{a.name}" for a in node.names)
-            elif node.module:
-                mods.add(node.module)
-    return {m.split(".")[1] for m in mods if m.startswith("acquire.")}
-
-
 def test_acquire_wings_import_one_way() -> None:
     acquire = ROOT / "acquire"
     assert {p.name for p in acquire.iterdir() if (p / "__init__.py").is_file()} == set(ACQUIRE_WINGS)
     top = {p.name for p in acquire.glob("*.py")}
     assert top == {"__init__.py", "__main__.py", "cli.py", "entry.py"}, f"acquire/ holds only wings and its entry points: {top}"
-    rank = {w: i for i, w in enumerate(ACQUIRE_WINGS)}
-    bad = {}
-    for f in sorted(acquire.rglob("*.py")):
-        rel = f.relative_to(acquire)
-        if len(rel.parts) < 2:
-            continue
-        wrong = sorted(w for w in acquire_wings_imported(f) if w not in rank or rank[w] > rank[rel.parts[0]])
-        if wrong:
-            bad[str(rel)] = wrong
+    bad = wing_violations(acquire, ACQUIRE_WINGS)
     assert not bad, f"acquire wing imports a wing above it (order {ACQUIRE_WINGS}): {bad}"
 
 

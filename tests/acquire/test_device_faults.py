@@ -22,18 +22,7 @@ from acquire.run.suspenders import DeviceFaultSuspender, LostTargetSuspender, Pr
 from drivers.errors import DeviceTimeoutError, LimitError, NotReadyError
 from drivers.protocols import JointLimits, JointState, MarkerMeasurement, MarkerSample
 
-
-class ManualClock:
-    """Simulated seconds that advance only when something sleeps."""
-
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def now(self) -> float:
-        return self.t
-
-    def sleep(self, dt: float) -> None:
-        self.t += max(dt, 0.0)
+from test_sequencer import ManualClock  # noqa: E402 - the sequencer tests' simulated clock (tests/acquire on sys.path)
 
 
 def down_until(clock: ManualClock, t_back: float, what: str = "drives not ACTIVE"):
