@@ -162,6 +162,7 @@ def _flood(port: int, stop: threading.Event, counter: list[int], rate_hz: float 
             time.sleep(max(0.0, t0 + counter[0] / rate_hz - time.monotonic()))
 
 
+@pytest.mark.slow  # ~25 s: a daemon, a run and a 5 s flood; the per-source bound is tested without one
 def test_abort_and_pause_get_through_a_flood_of_unauthenticated_client_firsts(tmp_path, notify, socket_dir):
     port = free_port()
     sock = socket_dir / "control.sock"

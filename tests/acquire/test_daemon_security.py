@@ -263,6 +263,7 @@ def _replay(bus, op: str, captured: dict) -> list[dict]:
     return raw_query(bus, op, *captured["client-final"])  # …which the captured proof is not for
 
 
+@pytest.mark.slow  # ~30 s: two daemon starts; replay against one daemon is test_a_stand_in_daemon's
 def test_a_captured_start_is_refused_after_a_restart_and_by_the_same_daemon(tmp_path, notify):
     port = free_port()
     config = write_config(tmp_path, port)

@@ -456,8 +456,10 @@ def test_acquire_fit_reads_a_run_log_like_the_same_measurements_in_csv(tmp_path,
     np.testing.assert_allclose(got.xyz_mm, ds.xyz_mm[idx], atol=1e-9)
     assert got.marker.tolist() == ds.marker[idx].tolist() and got.sensor.tolist() == ds.sensor[idx].tolist()
 
-    # The fit command picks its loader by suffix; this is the one-line wiring it needs.
-    monkeypatch.setitem(fit_command.LOADERS, ".mcap", dataset_from_run)
+    # The fit command picks its loader by suffix (acquire.record.datasets); this is the one-line wiring it needs.
+    from acquire.record import datasets
+
+    monkeypatch.setitem(datasets.LOADERS, ".mcap", dataset_from_run)
     app = typer.Typer()
     app.callback()(lambda: None)
     fit_command.register(app)

@@ -36,6 +36,7 @@ def _mcap_messages(path: Path) -> Counter:
         return Counter(channel.topic for _, channel, _ in make_reader(f).iter_messages())
 
 
+@pytest.mark.slow  # ~70 s: two whole fake runs; the storage faults themselves are tests/acquire/test_logstorage.py's
 def test_a_full_disk_stops_the_run_in_one_line_with_the_log_readable_and_resume_completes_it(tmp_path):
     plan = small_plan(tmp_path, n=8, sequencing={"samples": 5, "settle_window_s": 0.2}, fake={"time_scale": 6.0})
     configs = {c.config_id for c in resolve_configurations(load_plan(plan))}

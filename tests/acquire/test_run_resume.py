@@ -120,6 +120,7 @@ def test_resume_after_an_abort_continues_and_refuses_another_plan(tmp_path):
     assert not set(started[-1]["order"]) & done_before  # nothing recorded was measured again
 
 
+@pytest.mark.slow  # ~50 s: waiting faults out is test_run_faults.py's drives-off run (default), resuming test_resume_after_an_abort's
 def test_an_fri_drop_is_waited_out_and_failed_configurations_are_measured_again_on_resume(tmp_path):
     """The kill/fault study of issue 11: the FRI session drops mid-run (the robot application
     restarts its overlay) → the run suspends, retries and measures that configuration; the

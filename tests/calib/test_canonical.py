@@ -5,6 +5,7 @@ reaching the best minimum and reported as such."""
 import math
 
 import numpy as np
+import pytest
 
 from calib.robot.canonical import canonical_params, wrap_angle, wrap_deg
 from calib.robot.controller import controller_values
@@ -152,6 +153,7 @@ def test_controller_values_are_wrapped():
     assert abs(values.axes[4].delta_deg + 1.10) < 1e-9 and abs(values.axes[4].correction_deg - 1.10) < 1e-9
 
 
+@pytest.mark.slow  # ~30 s: the CLI over the identification whose wrapping the default tests above check directly
 def test_acquire_fit_full_reports_the_half_turned_zero_wrapped(tmp_path):
     """The same through the command: result.json, the console line and the corrected model."""
     import json

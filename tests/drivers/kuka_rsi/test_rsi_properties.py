@@ -8,6 +8,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from drivers.trajectory import motion_time
@@ -36,6 +37,7 @@ def scenarios(draw):
     }
 
 
+@pytest.mark.slow  # ~35 s of 25 real-time streams (near its timeout on a loaded host); the clamp itself is unit-tested beside it
 @settings(max_examples=25, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 @given(scenarios())
 def test_command_stream_never_exceeds_limits(sc):
