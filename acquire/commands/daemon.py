@@ -13,9 +13,15 @@ Examples::
 On the cell PC, without ``--client`` or ``--connect``, a client talks to the daemon's control
 socket (``--socket``, default ``$REMASTER_CONTROL_SOCKET`` or ``/run/remaster/control.sock``;
 ``acquire.daemon.control_socket``): the OS lets only the operators' group in and tells the daemon who
-asks, so no token is needed (``acquire abort`` is all it takes). Otherwise they connect to the
-daemon's Zenoh router (``--connect``, default ``tcp/127.0.0.1:7447``); a remote daemon needs
-``tls/host:7447`` with ``--tls-ca``, ``--tls-cert`` and ``--tls-key`` (mTLS). Credentials:
+asks, so no token is needed (``acquire abort`` is all it takes); the client checks first that the
+daemon's account is listening there (``SO_PEERCRED``). Otherwise they connect to the daemon's Zenoh
+router (``--connect``, default with ``--client``: ``unixsock-stream//run/remaster/zenoh.sock``); a
+remote daemon needs ``tls/host:7447`` with ``--tls-ca``, ``--tls-cert`` and ``--tls-key`` (mTLS).
+A client sends credentials, and any operation beyond ``status`` and ``runs``, only to a listener
+it has authenticated (``acquire.daemon.local_sockets.credential_endpoint_problem``): a Unix socket
+that only root or the daemon's account (``REMASTER_DAEMON_USER``, default ``remaster``) can have
+made, or TLS with the CA that signed the daemon's certificate — never plain ``tcp/``, where any
+local process can listen while the daemon is down. Credentials:
 ``--client NAME`` and the token from
 ``--token-file`` (made by ``acquire token new``; refused when the group or others may read it, as
 ssh refuses an unprotected key) or the environment (``REMASTER_CLIENT``, ``REMASTER_TOKEN``); a
@@ -101,7 +107,8 @@ def daemon(
 
 # ---------------------------------------------------------------------------------- clients
 _CONNECT = typer.Option(None, "--connect", help="The daemon's Zenoh endpoint (default with --client: "
-                        "tcp/127.0.0.1:7447; without --client and --connect: the control socket).")
+                        "unixsock-stream//run/remaster/zenoh.sock; without --client and --connect: the control "
+                        "socket). Plain tcp/ is for status and runs without credentials only.")
 _SOCKET = typer.Option(None, "--socket", help="The daemon's control socket (default: $REMASTER_CONTROL_SOCKET, "
                        "else /run/remaster/control.sock); used unless --client or --connect is given.")
 DEFAULT_SOCKET = "/run/remaster/control.sock"
@@ -131,7 +138,9 @@ def _call(op: str, request: dict | None, *, connect: Optional[str], cell: Option
         reply = _call_socket(op, request, socket or Path(os.environ.get("REMASTER_CONTROL_SOCKET") or DEFAULT_SOCKET),
                              timeout)
     else:
-        reply = _call_zenoh(op, request, connect=connect or "tcp/127.0.0.1:7447", cell=cell, site=site,
+        from acquire.daemon.local_sockets import DEFAULT_LOCAL_ENDPOINT
+
+        reply = _call_zenoh(op, request, connect=connect or DEFAULT_LOCAL_ENDPOINT, cell=cell, site=site,
                             client=client, token_file=token_file, tls_ca=tls_ca, tls_cert=tls_cert,
                             tls_key=tls_key, timeout=timeout)
     if as_json:
@@ -142,12 +151,12 @@ def _call(op: str, request: dict | None, *, connect: Optional[str], cell: Option
 
 
 def _call_socket(op: str, request: dict | None, path: Path, timeout: float) -> dict:
-    from acquire.daemon.control import BadRequest, Conflict, ControlError, NoReply, Refused
+    from acquire.daemon.control import BadRequest, Conflict, ControlError, NoReply, Refused, Unverified
     from acquire.daemon.control_socket import SocketClient
 
     try:
         return SocketClient(path).call(op, request, timeout=timeout)
-    except Refused as exc:
+    except (Refused, Unverified) as exc:
         _fail(str(exc), 3)
     except NoReply as exc:
         _fail(f"{exc} (or give --connect / --client to use Zenoh)", 4)
@@ -195,10 +204,15 @@ def _call_zenoh(op: str, request: dict | None, *, connect: str, cell: Optional[s
               "`acquire token new`)", 2)
     if token and not client:
         _fail("a token needs --client (or REMASTER_CLIENT)", 2)
-    if token and connect.split("/", 1)[0] not in ("tls", "quic"):
-        typer.echo(f"note: SCRAM over plain {connect.split('/', 1)[0]}: if the daemon is down, whatever answers on "
-                   "that address gets a proof that, with a leaked daemon configuration, acts as you; on the cell PC "
-                   "use the control socket (no --client), from elsewhere tls/ with --tls-ca", err=True)
+    from acquire.daemon.control import OPERATIONS
+    from acquire.daemon.local_sockets import credential_endpoint_problem, socket_path_of, trusted_uids
+
+    problem = credential_endpoint_problem(connect, tls_ca=tls_ca, trusted=trusted_uids())
+    if problem and (token or OPERATIONS[op] != "observe"):  # before a byte is sent
+        what = "credentials" if token else f"{op} (its reply could come from anyone)"
+        path = socket_path_of(connect)
+        _fail(f"--connect {connect}: not sending {what}: {problem}; nothing was sent",
+              4 if path and not os.path.lexists(path) else 2)
     tls = {}
     if tls_ca is not None:
         tls = {"root_ca_certificate": str(tls_ca)}

@@ -24,7 +24,11 @@ Sections:
   watchdog watches the commander's real-time exchange) and hands them over to a run, which
   opens the drivers its plan names at the same addresses; they come back when the run ends.
 - ``zenoh``: the session. ``mode`` router (the daemon is the cell's router) or peer;
-  ``listen`` endpoints (loopback by default); ``connect``; ``tls`` (server certificate, client
+  ``listen`` endpoints (loopback by default; on a cell PC the Unix socket
+  ``unixsock-stream//run/remaster/zenoh.sock``, the one endpoint a client on the cell PC sends
+  credentials to, after checking that only the daemon's account can listen there:
+  ``acquire.daemon.local_sockets``); ``socket_group``: the group whose members may connect to
+  those Unix sockets (mode 0660; none: the daemon's user only); ``connect``; ``tls`` (server certificate, client
   CA, ``enable_mtls``); ``access_control`` (Zenoh's own ACL block: rules, subjects with
   ``cert_common_names`` or ``usernames``, policies) passed through, plus one rule the daemon
   always adds (``control_guard``): the router forwards no query on the control keys to any
@@ -65,6 +69,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from acquire.daemon.control_auth import MIN_ITERATIONS, Credentials
+from acquire.daemon.local_sockets import socket_path_of
 from calib.io.yamlfile import ConfigError, CrossFieldChecked, load_validated
 
 log = logging.getLogger(__name__)
@@ -193,7 +198,13 @@ class ZenohSection(_Strict):
     """The daemon's Zenoh session."""
 
     mode: Literal["router", "peer"] = "router"
-    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], description=(
+        "endpoints to listen on; on a cell PC unixsock-stream//run/remaster/zenoh.sock (the one a client on the "
+        "cell PC trusts with credentials: acquire.daemon.local_sockets); tcp/ on loopback only for observers "
+        "without credentials"))
+    socket_group: str | None = Field(None, min_length=1, description=(
+        "the group (name or number) of the unixsock-stream listeners' sockets, mode 0660: its members and root "
+        "may connect; none: mode 0600, the daemon's user only"))
     connect: list[str] = Field(default_factory=list)
     multicast_scouting: bool = Field(False, description="off by default: nothing announced on the LAN")
     tls: ZenohTls | None = None
@@ -205,6 +216,11 @@ class ZenohSection(_Strict):
         for ep in value:
             endpoint_is_loopback(ep)  # raises on a malformed endpoint
         return value
+
+    @property
+    def socket_paths(self) -> list[Path]:
+        """The socket files of the ``unixsock-stream`` listen endpoints."""
+        return [Path(p) for p in map(socket_path_of, self.listen) if p is not None]
 
     @property
     def remote_endpoints(self) -> list[str]:
@@ -227,6 +243,11 @@ class ZenohSection(_Strict):
                 "with default_permission: allow, this allow rule for egress queries on the control keys would let "
                 f"other sessions receive the daemon's control queries; allowed: key expressions outside "
                 f"{list(CONTROL_KEY_EXPRS)}, or default_permission: deny")))
+        for i, ep in enumerate(self.listen):
+            path = socket_path_of(ep)
+            if path is not None and not Path(path).is_absolute():
+                problems.append((("zenoh", "listen", i), f"the socket of {ep!r} must be an absolute path, e.g. "
+                                 "unixsock-stream//run/remaster/zenoh.sock"))
         remote = self.remote_endpoints
         if not remote or self.acl_enforcing:
             return problems

@@ -12,6 +12,11 @@ nothing of our own design:
   gid; ``SO_PEERGROUPS``: the supplementary groups at ``connect()``), checked again by the daemon:
   a caller must be root, the daemon's own user, or hold the group — a socket someone made wider
   by hand still lets nobody else in.
+- **Who listens**: the client checks the kernel's peer credentials too — the uid of the process
+  that listens at the path (``SO_PEERCRED``) must be root, the client's own or the daemon's
+  account (``acquire.daemon.local_sockets``) — before it sends its request, so a socket another
+  account put at a path an operator was given (``--socket``) neither reads a request nor
+  answers one that is believed.
 - **No secret**: nothing travels that a reader could reuse and nothing is stored in the daemon's
   configuration for local callers, so a configuration reader has nothing to act with; and a
   stream socket is point to point: no other account sees a request.
@@ -28,14 +33,11 @@ refusal is one warning line, rate-limited per uid.
 
 from __future__ import annotations
 
-import grp
 import json
 import logging
 import os
-import pwd
 import socket
 import stat
-import struct
 import threading
 from pathlib import Path
 from typing import Any, Callable
@@ -48,7 +50,19 @@ from acquire.daemon.control import (
     Identity,
     NoReply,
     Refused,
+    Unverified,
     outcome,
+)
+from acquire.daemon.local_sockets import (
+    UntrustedPeer,
+    check_listener,
+    check_socket_folder,
+    group_name,
+    hand_to_group,
+    peer_credentials,
+    resolve_group,
+    trusted_uids,
+    user_name,
 )
 from acquire.live.logthrottle import Throttle, clip
 
@@ -60,44 +74,8 @@ MAX_PER_UID = 4
 MAX_CONNECTIONS = 64
 #: Seconds a caller has to send its request.
 READ_TIMEOUT_S = 5.0
-#: Linux's SO_PEERGROUPS (socket(7), since 4.13); Python's socket module does not name it.
-_SO_PEERGROUPS = getattr(socket, "SO_PEERGROUPS", 59)
-
 #: What the server calls to perform an operation: (op, payload bytes or None, identity) → reply body.
 Perform = Callable[[str, "bytes | None", Identity], dict]
-
-
-def resolve_group(group: str | int) -> int:
-    """The gid of ``group`` (a name or a number); ValueError naming it when it does not exist."""
-    if isinstance(group, int) or str(group).isdigit():
-        return int(group)
-    try:
-        return grp.getgrnam(str(group)).gr_gid
-    except KeyError:
-        raise ValueError(f"control_socket.group: no group {group!r} on this host; create it "
-                         f"(groupadd --system {group}) and add the operators to it") from None
-
-
-def peer_credentials(conn: socket.socket) -> tuple[int, int, int, frozenset[int]]:
-    """(pid, uid, gid, supplementary gids) of the process at the other end of ``conn``, as the
-    kernel recorded them at ``connect()``."""
-    pid, uid, gid = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i")))
-    try:
-        raw = conn.getsockopt(socket.SOL_SOCKET, _SO_PEERGROUPS, 1024)  # 256 groups: Python's largest buffer
-        groups = frozenset(struct.unpack(f"{len(raw) // 4}I", raw))
-    except OSError:  # more than 256 groups, or a kernel before 4.13: the account's groups instead
-        try:
-            groups = frozenset(os.getgrouplist(pwd.getpwuid(uid).pw_name, gid))
-        except KeyError:
-            groups = frozenset()
-    return pid, uid, gid, groups | {gid}
-
-
-def _user_name(uid: int) -> str:
-    try:
-        return pwd.getpwuid(uid).pw_name
-    except KeyError:
-        return str(uid)
 
 
 class ControlSocketServer:
@@ -125,18 +103,10 @@ class ControlSocketServer:
         log.info("control socket %s (group %s, mode 0660): %s", self.path, self._group_name(), sorted(self.allow))
 
     def _group_name(self) -> str:
-        try:
-            return grp.getgrgid(self.gid).gr_name
-        except KeyError:
-            return str(self.gid)
+        return group_name(self.gid)
 
     def _bind(self) -> socket.socket:
-        folder = self.path.parent
-        if not folder.is_dir():
-            raise OSError(f"control socket folder {folder} does not exist (systemd makes it: RuntimeDirectory=remaster)")
-        if stat.S_IMODE(folder.stat().st_mode) & stat.S_IWOTH:
-            raise OSError(f"control socket folder {folder} is writable by others: anyone could replace the socket; "
-                          f"chmod o-w {folder}")
+        check_socket_folder(self.path)
         self._remove_stale()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         old = os.umask(0o177)  # born 0600: nobody but us until it has its group
@@ -145,13 +115,11 @@ class ControlSocketServer:
         finally:
             os.umask(old)
         try:
-            os.chown(self.path, -1, self.gid)
-            os.chmod(self.path, 0o660)
-        except OSError as exc:
+            hand_to_group(self.path, self.gid)
+        except OSError:
             sock.close()
             self.path.unlink(missing_ok=True)
-            raise OSError(f"cannot give control socket {self.path} to group {self._group_name()}: "
-                          f"{exc.strerror or exc} (the daemon's user must be in that group: SupplementaryGroups=)") from exc
+            raise
         sock.listen(32)
         return sock
 
@@ -204,7 +172,7 @@ class ControlSocketServer:
 
     def _admit(self, conn: socket.socket) -> None:
         pid, uid, gid, groups = peer_credentials(conn)
-        who = f"uid {uid} ({_user_name(uid)}), pid {pid}"
+        who = f"uid {uid} ({user_name(uid)}), pid {pid}"
         if uid not in (0, os.getuid()) and self.gid not in groups:
             self._refuse(conn, who, f"not in group {self._group_name()}")
             return
@@ -217,7 +185,7 @@ class ControlSocketServer:
             self._refuse(conn, who, f"busy: {MAX_PER_UID} requests of this uid (or {MAX_CONNECTIONS} in all) "
                                     "are being served", kind="conflict")
             return
-        identity = Identity(f"uid {uid} ({_user_name(uid)})", None, None, self.allow)
+        identity = Identity(f"uid {uid} ({user_name(uid)})", None, None, self.allow)
         threading.Thread(target=self._serve, args=(conn, uid, identity), name=f"control-socket-{uid}",
                          daemon=True).start()
 
@@ -311,10 +279,13 @@ def _read_request(conn: socket.socket) -> tuple[str, bytes | None]:
 class SocketClient:
     """The client of the control socket: ``call(op, request)`` returns the reply body or raises
     the ControlError of the reply; Refused when the OS refuses the connection (not in the
-    group), NoReply when no daemon serves the socket."""
+    group), NoReply when no daemon serves the socket, Unverified (before anything is sent) when
+    the process listening there is not one of ``trusted`` uids (default ``trusted_uids()``: root,
+    this user, the daemon's account)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, trusted: frozenset[int] | None = None) -> None:
         self.path = Path(path)
+        self.trusted = trusted_uids() if trusted is None else trusted
 
     def call(self, op: str, request: dict[str, Any] | None = None, *, timeout: float = 10.0) -> dict:
         if op not in OPERATIONS:
@@ -329,6 +300,10 @@ class SocketClient:
             except (FileNotFoundError, ConnectionRefusedError) as exc:
                 raise NoReply(f"no daemon serves the control socket {self.path} ({exc.strerror}): is it running, "
                               "with control_socket: in its configuration?") from None
+            try:
+                check_listener(sock, self.path, self.trusted)
+            except UntrustedPeer as exc:
+                raise Unverified(str(exc)) from None
             try:
                 try:
                     sock.sendall(_line({"op": op, "request": request or None}))
@@ -356,6 +331,6 @@ class SocketClient:
 def _owner_text(path: Path) -> str:
     try:
         st = os.stat(path)
-        return f"group {grp.getgrgid(st.st_gid).gr_name}"
-    except (OSError, KeyError):
+        return f"group {group_name(st.st_gid)}"
+    except OSError:
         return "see ls -l"

@@ -3,7 +3,9 @@
 Start-up (``Daemon.run``):
 
 1. open the Zenoh session (``acquire.live.bus.Bus``) — by default the cell's *router*, listening on
-   loopback only; remote listeners need mTLS or access control (``acquire.daemon.config``);
+   loopback only; remote listeners need mTLS or access control (``acquire.daemon.config``); its
+   Unix-socket listeners (``unixsock-stream/…``) go to ``zenoh.socket_group``, mode 0660
+   (``acquire.daemon.local_sockets``);
    with ``live.enabled``, start the Foxglove live view (``acquire.live.foxglove_server.LiveServer``), which then
    serves every run's log channels as they are written;
 2. bring up the cell's devices (``DeviceHost``): the configured commander and sensors, or with
@@ -245,6 +247,7 @@ class Daemon:
             self._shutdown()
 
     def _startup(self) -> None:
+        from acquire.daemon.local_sockets import check_socket_folder, hand_to_group, resolve_group
         from acquire.live.bus import Bus
 
         cfg = self.cfg
@@ -259,12 +262,17 @@ class Daemon:
         remote = bool(zc.remote_endpoints)
         if remote and zc.multicast_scouting:
             overrides["scouting/multicast/enabled"] = True
+        gid = None if zc.socket_group is None else resolve_group(zc.socket_group, "zenoh.socket_group")
+        for path in zc.socket_paths:
+            check_socket_folder(path)
         self.bus = Bus(
             cfg.cell,
             config={"mode": zc.mode, "listen": list(zc.listen), "connect": list(zc.connect), "zenoh": overrides},
             listen_loopback_only=not remote,
             site=cfg.site,
         )
+        for path in zc.socket_paths:  # Zenoh made it with our umask: nobody else could connect yet
+            hand_to_group(path, gid)
         log.info("Zenoh %s for cell %s listening on %s%s", zc.mode, cfg.cell, ", ".join(zc.listen),
                  " (mTLS)" if zc.tls and zc.tls.enable_mtls else "")
         if cfg.live.enabled:

@@ -8,14 +8,18 @@ arrival time, as systemd would receive them.
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -105,6 +109,39 @@ class NotifySocket:
         self._run = False
         self._thread.join(2)
         self.sock.close()
+
+
+#: Throw-away ids (no account needs to exist): the operators' group, a member, a neighbour.
+OPERATORS_GID = 65531
+MEMBER_UID = 65532
+NEIGHBOUR_UID = 65533
+
+needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as other uids (setuid in a child)")
+
+
+def as_account(uid: int, groups: list[int], fn) -> dict:
+    """``fn()``'s JSON-able result, computed in a forked child that runs as ``uid`` (gid ``uid``)
+    with supplementary ``groups`` — system calls and already-imported modules only."""
+    read_fd, write_fd = os.pipe()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # fork() with threads: the child only makes syscalls
+        pid = os.fork()
+    if pid == 0:  # the child
+        try:
+            os.close(read_fd)
+            os.setgroups(groups)
+            os.setgid(uid)
+            os.setuid(uid)
+            result = fn()
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent
+            result = {"error": f"{type(exc).__name__}: {exc}"}
+        os.write(write_fd, json.dumps(result).encode())
+        os._exit(0)
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as pipe:
+        data = pipe.read()
+    os.waitpid(pid, 0)
+    return json.loads(data)
 
 
 def copy_example_plan(folder: Path) -> Path:
@@ -327,6 +364,17 @@ def notify():
     n = NotifySocket()
     yield n
     n.close()
+
+
+@pytest.fixture
+def socket_dir():
+    """A short folder every account may traverse but not write, as systemd makes /run/remaster
+    (RuntimeDirectoryMode=0755): tmp_path's ancestors are private to root, and its path can be
+    longer than a Unix socket's 107 bytes."""
+    folder = Path(tempfile.mkdtemp(prefix="remaster-ctl-", dir="/tmp"))
+    folder.chmod(0o755)
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 @pytest.fixture

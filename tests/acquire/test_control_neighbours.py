@@ -21,12 +21,9 @@ import json
 import os
 import re
 import secrets
-import shutil
 import stat
-import tempfile
 import threading
 import time
-import warnings
 from pathlib import Path
 
 import pytest
@@ -38,57 +35,19 @@ from acquire.daemon.control_socket import SocketClient
 
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
+    MEMBER_UID,
+    NEIGHBOUR_UID,
     OPERATOR_TOKEN,
+    OPERATORS_GID,
     DaemonProcess,
+    as_account,
     control,
     free_port,
+    needs_root,
     open_client,
     wait_until,
     write_config,
 )
-
-#: Throw-away ids (no account needs to exist): the operators' group, a member, a neighbour.
-OPERATORS_GID = 65531
-MEMBER_UID = 65532
-NEIGHBOUR_UID = 65533
-
-needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as other uids (setuid in a child)")
-
-
-@pytest.fixture
-def socket_dir():
-    """A folder every account may traverse but not write, as systemd makes /run/remaster
-    (RuntimeDirectoryMode=0755): tmp_path's ancestors are private to root."""
-    folder = Path(tempfile.mkdtemp(prefix="remaster-ctl-", dir="/tmp"))
-    folder.chmod(0o755)
-    yield folder
-    shutil.rmtree(folder, ignore_errors=True)
-
-
-def as_account(uid: int, groups: list[int], fn) -> dict:
-    """``fn()``'s JSON-able result, computed in a forked child that runs as ``uid`` (gid ``uid``)
-    with supplementary ``groups`` — system calls and already-imported modules only."""
-    read_fd, write_fd = os.pipe()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", DeprecationWarning)  # fork() with threads: the child only makes syscalls
-        pid = os.fork()
-    if pid == 0:  # the child
-        try:
-            os.close(read_fd)
-            os.setgroups(groups)
-            os.setgid(uid)
-            os.setuid(uid)
-            result = fn()
-        except BaseException as exc:  # noqa: BLE001 - reported to the parent
-            result = {"error": f"{type(exc).__name__}: {exc}"}
-        os.write(write_fd, json.dumps(result).encode())
-        os._exit(0)
-    os.close(write_fd)
-    with os.fdopen(read_fd, "rb") as pipe:
-        data = pipe.read()
-    os.waitpid(pid, 0)
-    return json.loads(data)
-
 
 def socket_call(path: Path, op: str = "status", request: dict | None = None):
     """A function for ``as_account``: the control socket's answer to ``op``, or the refusal."""

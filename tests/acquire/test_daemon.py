@@ -98,6 +98,10 @@ def test_shipped_example_configuration_is_valid_and_loopback_only(tmp_path):
     installed.chmod(0o640)  # as systemd/README.md installs it
     cfg = load_daemon_config(installed)
     assert cfg.zenoh.mode == "router" and cfg.zenoh.remote_endpoints == []
+    # On the cell PC: the Unix socket a client sends credentials to, given to the operators only.
+    assert cfg.zenoh.socket_paths == [Path("/run/remaster/zenoh.sock")]
+    assert cfg.zenoh.socket_group == cfg.control_socket.group == "remaster-operators"
+    assert not any(ep.startswith("tcp/") for ep in cfg.zenoh.listen)
     assert cfg.auth.anonymous == ["observe"] and cfg.fake_cell is None and cfg.commander.driver == "fri"
 
 
@@ -352,11 +356,11 @@ def test_daemon_runs_pauses_resumes_aborts_a_fake_plan_and_stops_on_sigterm(daem
         st = op.call("status")
         assert st["daemon"] == "ready" and st["healthy"] and st["run"] is None
         assert st["memory"]["rss_kb"] > 10_000 and st["memory"]["python_heap_kb"] is None  # no tracemalloc
+        # Over plain TCP the CLI sends no credentials (test_control_local.py): an anonymous status.
         cli = subprocess.run([sys.executable, "-m", "acquire", "status", "--cell", CELL, "--connect",
-                              f"tcp/127.0.0.1:{port}", "--client", "operator"],
-                             capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
-                             env=dict(os.environ, REMASTER_TOKEN=OPERATOR_TOKEN))
-        assert cli.returncode == 0, cli.stderr
+                              f"tcp/127.0.0.1:{port}"],
+                             capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
+        assert cli.returncode == 0 and "reply not authenticated" in cli.stderr, cli.stderr
         lines = cli.stdout.splitlines()
         assert lines[0] == f"cell {CELL}: daemon ready, healthy, devices controller, mocap, tracker (fake)", lines
         assert lines[1].startswith("up ") and "resident memory" in lines[1] and lines[2] == "no run", lines

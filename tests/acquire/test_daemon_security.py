@@ -344,13 +344,15 @@ def test_a_stand_in_daemon_gets_nothing_the_real_one_accepts_and_the_client_does
             assert not op.last_reply_verified
         captured = rec.stages("start")
         assert set(captured) == {"client-first", "client-final"}
-        # The CLI: exit 3, no success printed.
+        # The CLI sends nothing at all over plain TCP, which no one authenticates: exit 2, and the
+        # stand-in saw no query from it (test_control_local.py holds the rest of that claim).
+        seen = len(rec.seen)
         cli = subprocess.run([sys.executable, "-m", "acquire", "start", "example.yaml", "--cell", CELL, "--client",
                               "operator", "--token-file", str(token_file), "--connect", f"tcp/127.0.0.1:{port}",
                               "--timeout", "5"], capture_output=True, text=True, timeout=120, cwd=tmp_path,
                              env=dict(os.environ, PYTHONPATH=str(REPO)))
-        assert cli.returncode == 3, cli.stderr
-        assert "FAKE" not in cli.stdout and "could not be attributed" not in cli.stdout
+        assert cli.returncode == 2 and "not sending credentials" in cli.stderr, cli.stderr
+        assert "FAKE" not in cli.stdout and len(rec.seen) == seen
         rec.close()
         stand_in.close()
 

@@ -216,10 +216,13 @@ def test_run_with_v_shows_device_logs_on_the_terminal(tmp_path):
 
 
 @pytest.mark.timeout(300)
-def test_watch_against_the_daemon_finds_its_cell_follows_its_run_and_never_claims_to_be_disconnected(tmp_path):
+def test_watch_against_the_daemon_finds_its_cell_follows_its_run_and_never_claims_to_be_disconnected(
+        tmp_path, socket_dir):
     notify = NotifySocket()
     port = free_port()
-    daemon = DaemonProcess(write_config(tmp_path, port), notify, watchdog_usec=1_000_000)
+    local = f"unixsock-stream/{socket_dir / 'zenoh.sock'}"  # the endpoint a client sends credentials to
+    daemon = DaemonProcess(write_config(tmp_path, port, zenoh={"listen": [f"tcp/127.0.0.1:{port}", local]}),
+                           notify, watchdog_usec=1_000_000)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     try:
         daemon.wait_ready(90)
@@ -236,7 +239,7 @@ def test_watch_against_the_daemon_finds_its_cell_follows_its_run_and_never_claim
             token.write_text(OPERATOR_TOKEN)
             token.chmod(0o600)  # the CLI refuses a token file others may read
             plan = small_plan(tmp_path, n=4, name="small.yaml")
-            started = subprocess.run(acquire_cmd("start", "--inline", str(plan), "--cell", CELL, "--connect", endpoint,
+            started = subprocess.run(acquire_cmd("start", "--inline", str(plan), "--cell", CELL, "--connect", local,
                                                  "--client", "operator", "--token-file", str(token)),
                                      cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60,
                                      stdin=subprocess.DEVNULL)
