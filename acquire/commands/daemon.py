@@ -215,7 +215,7 @@ def _call_zenoh(op: str, request: dict | None, *, connect: str, cell: Optional[s
               4 if path and not os.path.lexists(path) else 2)
     tls = {}
     if tls_ca is not None:
-        tls = {"root_ca_certificate": str(tls_ca)}
+        tls = {"root_ca_certificate": str(tls_ca), "verify_name_on_connect": True}  # the daemon's name, too
         if (tls_cert is None) != (tls_key is None):
             _fail("give both --tls-cert and --tls-key, or neither", 2)
         if tls_cert is not None:

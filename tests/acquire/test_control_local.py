@@ -24,7 +24,7 @@ import pytest
 from typer.testing import CliRunner
 
 from acquire.cli import app
-from acquire.daemon.local_sockets import UntrustedPeer, check_socket_path, trusted_uids
+from acquire.daemon.local_sockets import UntrustedPeer, check_socket_path, credential_endpoint_problem, trusted_uids
 
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
@@ -171,6 +171,22 @@ def test_a_socket_path_is_trusted_only_when_no_other_account_could_have_made_it(
                 check_socket_path(good, me)
     finally:
         s.close()
+
+
+def test_only_a_checked_socket_or_tls_with_the_daemons_ca_may_carry_credentials(socket_dir, tmp_path):
+    me = trusted_uids()
+    s = _bind(socket_dir / "z.sock")
+    try:
+        assert credential_endpoint_problem(f"unixsock-stream/{socket_dir / 'z.sock'}", tls_ca=None, trusted=me) is None
+        assert "no socket at" in credential_endpoint_problem(f"unixsock-stream/{socket_dir / 'y.sock'}",
+                                                             tls_ca=None, trusted=me)
+    finally:
+        s.close()
+    for ep in ("tls/cellpc:7447", "quic/10.0.0.5:7447"):
+        assert credential_endpoint_problem(ep, tls_ca=tmp_path / "ca.pem", trusted=me) is None
+        assert "give --tls-ca" in credential_endpoint_problem(ep, tls_ca=None, trusted=me)  # else: Mozilla's roots
+    for ep in ("tcp/127.0.0.1:7447", "tcp/[::1]:7447", "udp/127.0.0.1:7447", "ws/127.0.0.1:7447"):
+        assert "nothing authenticates" in credential_endpoint_problem(ep, tls_ca=tmp_path / "ca.pem", trusted=me)
 
 
 @needs_root
