@@ -10,7 +10,8 @@ Examples::
     acquire watch --site plant-a --cell c7 --connect tls/router:7447   # a cell of a plant (daemon `site:`)
 
 Subscribes over Zenoh (loopback only) to the process that runs the cell — the daemon, or an
-``acquire run`` — by default the one listening on tcp/127.0.0.1:7447. Without ``--cell`` the cell
+``acquire run`` — by default the one listening on tcp/127.0.0.1:7447 and, when it is there and
+only the daemon's account can have made it, the daemon's ``/run/remaster/zenoh.sock``. Without ``--cell`` the cell
 is the first one seen there: the daemon's liveliness token ``remaster/<cell>/daemon`` or any
 message under ``remaster/<cell>/``. On a terminal it shows a live panel: daemon and devices,
 the run's progress (state, done/total, measured, skipped, failed, ETA), the configuration being
@@ -63,6 +64,15 @@ def _connected(bus) -> bool:
     return bool(info.peers_zid()) or bool(info.routers_zid())
 
 
+def _default_connect() -> list[str]:
+    """``acquire run``'s endpoint, plus the daemon's Unix socket when it passes the client's check
+    (``acquire.daemon.local_sockets``): the shipped daemon listens there only."""
+    from acquire.daemon.local_sockets import DEFAULT_LOCAL_ENDPOINT, credential_endpoint_problem, trusted_uids
+
+    local = credential_endpoint_problem(DEFAULT_LOCAL_ENDPOINT, tls_ca=None, trusted=trusted_uids()) is None
+    return [DEFAULT_CONNECT, *([DEFAULT_LOCAL_ENDPOINT] if local else [])]
+
+
 def watch(
     key_expr: Optional[str] = typer.Argument(None, metavar="[KEYEXPR]",
                                              help="Key expression (default: everything of the cell)."),
@@ -70,7 +80,9 @@ def watch(
                                        help="Cell id ([a-z0-9_-]+); default: the one found on the bus."),
     site: Optional[str] = typer.Option(None, "--site", envvar="REMASTER_SITE",
                                        help="The cell's plant site (a daemon with `site:`: keys remaster/<site>/<cell>/…)."),
-    connect: list[str] = typer.Option([DEFAULT_CONNECT], "--connect", help="Endpoint of the run or daemon (repeatable)."),
+    connect: Optional[list[str]] = typer.Option(None, "--connect", help=(
+        "Endpoint of the run or daemon (repeatable; default: tcp/127.0.0.1:7447, and the daemon's "
+        "unixsock-stream//run/remaster/zenoh.sock when only its account can have made it).")),
     raw: bool = typer.Option(False, "--raw", help="Print every message as '<key> <JSON>' instead of the status view."),
     until_done: bool = typer.Option(False, "--until-done", help="Exit when the watched run has finished, aborted or failed."),
     count: int = typer.Option(0, "--count", help="Exit after this many messages (0: no limit)."),
@@ -95,9 +107,10 @@ def watch(
         raise typer.BadParameter(str(exc), param_hint="KEYEXPR" if key_expr else "--cell / --site") from exc
     if key_expr and not raw:
         raw = True  # an explicit key expression is a raw stream: the view needs the cell's own keys
+    connect = list(connect or _default_connect())
     inbox: "queue.Queue[tuple[str, str, object]]" = queue.Queue()
     try:
-        bus = Bus(cell or "watch", config={"listen": [], "connect": list(connect)})
+        bus = Bus(cell or "watch", config={"listen": [], "connect": connect})
     except BusConfigError as exc:
         raise typer.BadParameter(str(exc), param_hint="--connect / --cell") from exc
     except BusError as exc:

@@ -273,3 +273,20 @@ def test_operators_start_and_abort_over_the_daemons_zenoh_socket_and_no_one_else
     assert not sock.exists()  # Zenoh removes its socket on close
     log = proc.log()
     assert f"run {run_id} started by operator" in log and "Traceback" not in log
+
+
+def test_watch_reaches_the_daemons_socket_by_default_only_when_the_check_passes(socket_dir, monkeypatch):
+    from acquire.commands.watch import DEFAULT_CONNECT, _default_connect
+    from acquire.daemon import local_sockets
+
+    endpoint = f"unixsock-stream/{socket_dir / 'zenoh.sock'}"
+    monkeypatch.setattr(local_sockets, "DEFAULT_LOCAL_ENDPOINT", endpoint)
+    assert _default_connect() == [DEFAULT_CONNECT]  # no daemon there
+    s = _bind(socket_dir / "zenoh.sock")
+    try:
+        assert _default_connect() == [DEFAULT_CONNECT, endpoint]
+        socket_dir.chmod(0o777)  # anyone could have made it
+        assert _default_connect() == [DEFAULT_CONNECT]
+    finally:
+        socket_dir.chmod(0o755)
+        s.close()
