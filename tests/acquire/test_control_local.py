@@ -5,8 +5,9 @@ TCP on loopback nothing tells a client who listens, so the CLI sends no credenti
 no operation beyond status and runs, whose replies it marks as unauthenticated). On the
 daemon's Unix sockets the kernel does: the control-socket client checks the listener's uid
 (SO_PEERCRED) and the Zenoh client checks that only root or the daemon's account can have put
-the socket at its path; the daemon gives its Zenoh socket to the operators' group (mode 0660),
-so an account outside it cannot connect at all. Accounts are throw-away uids in forked children.
+the socket at its path. (The daemon's side, its Zenoh socket in the operators' group, and the
+operator's start and abort over it are in test_control_neighbours.py and test_daemon_security.py,
+with the daemons those files start anyway.) Accounts are throw-away uids in forked children.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ import json
 import os
 import re
 import socket
-import stat
 import threading
 import time
 from pathlib import Path
@@ -28,18 +28,12 @@ from acquire.daemon.local_sockets import UntrustedPeer, check_socket_path, crede
 
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
-    MEMBER_UID,
     NEIGHBOUR_UID,
     OPERATOR_TOKEN,
-    OPERATORS_GID,
-    DaemonProcess,
     as_account,
-    control,
     free_port,
     needs_root,
-    open_client,
     wait_until,
-    write_config,
 )
 
 FORGED = {"ok": True, "run_id": "FAKE", "state": "aborted", "cell": CELL}
@@ -228,51 +222,6 @@ def test_the_control_socket_client_sends_nothing_to_a_listener_of_another_accoun
     assert re.search(rf"is served by uid {NEIGHBOUR_UID} \(\S+\), pid \d+, not by the daemon's account", res.output)
     assert "FAKE" not in res.output
     assert result == {"received": ""}, result  # not even the operation's name
-
-
-def _raw_connect(path: Path):
-    def call() -> dict:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
-            s.connect(str(path))
-        return {"connected": True}
-
-    return call
-
-
-def test_operators_start_and_abort_over_the_daemons_zenoh_socket_and_no_one_else_connects(
-        tmp_path, notify, socket_dir):
-    port = free_port()
-    sock = socket_dir / "zenoh.sock"
-    local = f"unixsock-stream/{sock}"
-    root = os.geteuid() == 0
-    zenoh = {"listen": [f"tcp/127.0.0.1:{port}", local], **({"socket_group": str(OPERATORS_GID)} if root else {})}
-    proc = DaemonProcess(write_config(tmp_path, port, zenoh=zenoh), notify)
-    try:
-        proc.wait_ready(90)  # a loaded host takes its time; progress shows in the log
-        st = os.stat(sock)
-        assert stat.S_IMODE(st.st_mode) == (0o660 if root else 0o600)
-        if root:  # the kernel turns the neighbour away; a member of the group connects
-            assert st.st_gid == OPERATORS_GID
-            neighbour = as_account(NEIGHBOUR_UID, [], _raw_connect(sock))
-            assert neighbour.get("error", "").startswith("PermissionError"), neighbour
-            assert as_account(MEMBER_UID, [OPERATORS_GID], _raw_connect(sock)) == {"connected": True}
-        creds = ("--cell", CELL, "--client", "operator", "--token-file", str(token_file(tmp_path)), "--connect", local)
-        started = cli("start", "example.yaml", *creds)
-        assert started.exit_code == 0, started.output
-        run_id = re.search(r"run_id (\S+)", started.output).group(1)
-        with open_client(port) as bus:
-            anon = control(bus)
-            wait_until(lambda: (anon.call("status")["run"] or {}).get("state") == "running", 30, "run running")
-            aborted = cli("abort", "--reason", "operator over the Zenoh socket", *creds)
-            assert aborted.exit_code == 0, aborted.output
-            assert "reply not authenticated" not in aborted.output  # the daemon signed it
-            wait_until(lambda: anon.call("status")["run"] is None, 30, "run aborted")
-        assert proc.stop() == 0
-    finally:
-        proc.kill()
-    assert not sock.exists()  # Zenoh removes its socket on close
-    log = proc.log()
-    assert f"run {run_id} started by operator" in log and "Traceback" not in log
 
 
 def test_watch_reaches_the_daemons_socket_by_default_only_when_the_check_passes(socket_dir, monkeypatch):

@@ -3,9 +3,9 @@
 - Abort and pause over the operators' control socket get through while another process floods
   the daemon's Zenoh router with anonymous SCRAM client-firsts (the flood that once evicted an
   operator's pending abort), and a SCRAM client on another source still completes.
-- A local account without the operators' group gets EACCES from the kernel on the socket, and the
-  daemon's own check of the kernel's peer groups refuses it even through a socket opened wider by
-  hand; a member is served and named by its uid. (Accounts are throw-away uids in a forked child.)
+- A local account without the operators' group gets EACCES from the kernel on the control socket
+  and on the daemon's Zenoh socket, and the daemon's own check of the kernel's peer groups refuses
+  it even through a control socket opened wider by hand; a member is served and named by its uid. (Accounts are throw-away uids in a forked child.)
 - Nothing on the Zenoh router besides the daemon receives a control query: a session that
   declares ``**`` sees no client-first and no client-final — so a reader of the daemon's
   configuration (StoredKey, ServerKey) has no client-final to turn into the client's key
@@ -21,6 +21,7 @@ import json
 import os
 import re
 import secrets
+import socket
 import stat
 import threading
 import time
@@ -59,6 +60,17 @@ def socket_call(path: Path, op: str = "status", request: dict | None = None):
             return {"refused": str(exc)}
         except ControlError as exc:
             return {"error": f"{type(exc).__name__}: {exc}"}
+
+    return call
+
+
+def raw_connect(path: Path):
+    """A function for ``as_account``: connect(2) to the Unix socket ``path`` and close."""
+
+    def call() -> dict:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.connect(str(path))
+        return {"connected": True}
 
     return call
 
@@ -180,16 +192,23 @@ def test_a_neighbour_without_the_group_can_neither_use_the_socket_nor_see_a_clie
         tmp_path, notify, socket_dir):
     port = free_port()
     sock = socket_dir / "control.sock"
-    proc = DaemonProcess(socket_config(tmp_path, port, sock, OPERATORS_GID), notify)
+    zsock = socket_dir / "zenoh.sock"  # the daemon's Zenoh listener on the cell PC, for the same group
+    proc = DaemonProcess(write_config(tmp_path, port, control_socket={"path": str(sock), "group": str(OPERATORS_GID)},
+                                      zenoh={"listen": [f"tcp/127.0.0.1:{port}", f"unixsock-stream/{zsock}"],
+                                             "socket_group": str(OPERATORS_GID)}), notify)
     try:
         proc.wait_ready()
-        st = os.stat(sock)
-        assert stat.S_IMODE(st.st_mode) == 0o660 and st.st_gid == OPERATORS_GID
+        for path in (sock, zsock):
+            st = os.stat(path)
+            assert stat.S_IMODE(st.st_mode) == 0o660 and st.st_gid == OPERATORS_GID, path
         # The kernel refuses the neighbour before a byte is exchanged; a member is served.
         neighbour = as_account(NEIGHBOUR_UID, [], socket_call(sock, "abort"))
         assert "permission denied on the control socket" in neighbour.get("refused", ""), neighbour
         member = as_account(MEMBER_UID, [OPERATORS_GID], socket_call(sock))
         assert member.get("reply", {}).get("cell") == CELL, member
+        # The same on the Zenoh socket: connect(2) itself fails for the neighbour.
+        assert as_account(NEIGHBOUR_UID, [], raw_connect(zsock)).get("error", "").startswith("PermissionError")
+        assert as_account(MEMBER_UID, [OPERATORS_GID], raw_connect(zsock)) == {"connected": True}
         # A socket someone opened wider by hand: the daemon's check of the kernel's peer groups.
         os.chmod(sock, 0o666)
         neighbour = as_account(NEIGHBOUR_UID, [], socket_call(sock, "abort"))

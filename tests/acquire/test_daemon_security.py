@@ -9,11 +9,8 @@ presented over another subject's TLS link. Certificates are made with ``openssl`
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
-import subprocess
-import sys
 import threading
 
 import pytest
@@ -24,7 +21,6 @@ from acquire.daemon.control import BadRequest, Conflict, ControlClient, NoReply,
 from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under pytest
     CELL,
     OPERATOR_TOKEN,
-    REPO,
     VIEWER_TOKEN,
     DaemonProcess,
     NotifySocket,
@@ -323,11 +319,16 @@ def _stand_in_answer(key: str, payload: bytes | None, att: bytes | None) -> dict
     return {"ok": True, "run_id": "FAKE", "state": "running", "cell": CELL, "daemon": "ready", "run": None}
 
 
-def test_a_stand_in_daemon_gets_nothing_the_real_one_accepts_and_the_client_does_not_believe_it(tmp_path, notify):
+def test_a_stand_in_daemon_gets_nothing_the_real_one_accepts_and_the_client_does_not_believe_it(
+        tmp_path, notify, socket_dir):
+    from typer.testing import CliRunner
+
+    from acquire.cli import app
     from acquire.live.bus import Bus
 
     port = free_port()
-    config = write_config(tmp_path, port)
+    local = f"unixsock-stream/{socket_dir / 'zenoh.sock'}"  # where the CLI sends a token on the cell PC
+    config = write_config(tmp_path, port, zenoh={"listen": [f"tcp/127.0.0.1:{port}", local]})
     token_file = tmp_path / "token"
     token_file.write_text(OPERATOR_TOKEN + "\n")
     token_file.chmod(0o600)
@@ -347,12 +348,12 @@ def test_a_stand_in_daemon_gets_nothing_the_real_one_accepts_and_the_client_does
         # The CLI sends nothing at all over plain TCP, which no one authenticates: exit 2, and the
         # stand-in saw no query from it (test_control_local.py holds the rest of that claim).
         seen = len(rec.seen)
-        cli = subprocess.run([sys.executable, "-m", "acquire", "start", "example.yaml", "--cell", CELL, "--client",
-                              "operator", "--token-file", str(token_file), "--connect", f"tcp/127.0.0.1:{port}",
-                              "--timeout", "5"], capture_output=True, text=True, timeout=120, cwd=tmp_path,
-                             env=dict(os.environ, PYTHONPATH=str(REPO)))
-        assert cli.returncode == 2 and "not sending credentials" in cli.stderr, cli.stderr
-        assert "FAKE" not in cli.stdout and len(rec.seen) == seen
+        creds = ["--cell", CELL, "--client", "operator", "--token-file", str(token_file)]
+        cli = CliRunner().invoke(app, ["start", "example.yaml", *creds, "--connect", f"tcp/127.0.0.1:{port}"])
+        assert cli.exit_code == 2 and "not sending credentials" in cli.output, cli.output
+        assert "FAKE" not in cli.output and len(rec.seen) == seen
+        cli = CliRunner().invoke(app, ["start", "example.yaml", *creds, "--connect", local])  # the daemon's socket
+        assert cli.exit_code == 4 and "no socket at" in cli.output, cli.output
         rec.close()
         stand_in.close()
 
@@ -364,9 +365,13 @@ def test_a_stand_in_daemon_gets_nothing_the_real_one_accepts_and_the_client_does
                 assert "not issued by this daemon instance" in replies[0]["message"]
             anon = control(bus)
             assert anon.call("status")["run"] is None and " started by " not in proc.log()
-            # The operator retries once: exactly one run.
-            run_id = control(bus, "operator", OPERATOR_TOKEN).call("start", {"plan": "example.yaml"})["run_id"]
-            control(bus, "operator", OPERATOR_TOKEN).call("abort", {"reason": "test"})
+            # The operator retries once over the daemon's socket: exactly one run, signed replies.
+            started = CliRunner().invoke(app, ["start", "example.yaml", *creds, "--connect", local])
+            assert started.exit_code == 0, started.output
+            run_id = re.search(r"run_id (\S+)", started.output).group(1)
+            wait_until(lambda: (anon.call("status")["run"] or {}).get("state") == "running", 30, "run running")
+            aborted = CliRunner().invoke(app, ["abort", "--reason", "test", *creds, "--connect", local])
+            assert aborted.exit_code == 0 and "reply not authenticated" not in aborted.output, aborted.output
             wait_until(lambda: anon.call("status")["run"] is None, 30, "run aborted")
         assert proc.stop() == 0
     finally:
