@@ -28,8 +28,8 @@ Sections:
   ``unixsock-stream//run/remaster/zenoh.sock``, the one endpoint a client on the cell PC sends
   credentials to, after checking that only the daemon's account can listen there:
   ``acquire.daemon.local_sockets``); ``socket_group``: the group whose members may connect to
-  those Unix sockets (mode 0660; none: the daemon's user only); ``connect``; ``tls`` (server certificate, client
-  CA, ``enable_mtls``); ``access_control`` (Zenoh's own ACL block: rules, subjects with
+  those Unix sockets (mode 0660; none: the daemon's user only); ``connect``; ``tls`` (server
+  certificate, client CA, ``enable_mtls``); ``access_control`` (Zenoh's own ACL block: rules, subjects with
   ``cert_common_names`` or ``usernames``, policies) passed through, plus one rule the daemon
   always adds (``control_guard``): the router forwards no query on the control keys to any
   other session, so only the daemon ever sees a client's SCRAM messages. Listening on
