@@ -155,38 +155,35 @@ def check_listener(conn: socket.socket, path: Path, trusted: frozenset[int]) -> 
 
 def check_socket_path(path: str | Path, trusted: frozenset[int]) -> None:
     """UntrustedPeer unless only ``trusted`` accounts can have put a socket at ``path``: it is a
-    socket owned by one of them, and every folder above it (as written and with links resolved)
-    belongs to one of them and is writable by nobody else (a sticky folder such as /tmp counts
-    as unwritable: its entries can be replaced only by their owners)."""
+    socket, and it, every folder above it and every link on the way (as written and with links
+    resolved) belong to one of them, and no folder is writable by anybody else (a sticky folder
+    such as /tmp counts as unwritable: its entries can be replaced only by their owners)."""
     given = Path(os.path.abspath(path))
     real = Path(os.path.realpath(given))
     if not os.path.lexists(real):
         raise UntrustedPeer(f"no socket at {path}: is the daemon running, with {UNIXSOCK}/{path} among its "
                             "zenoh.listen endpoints?")
     for chain in dict.fromkeys((given, real)):  # a link in the path: both its folders and its target's
-        for folder in reversed(chain.parents):
+        for entry in (*reversed(chain.parents), chain):
             try:
-                st = os.lstat(folder)
+                st = os.lstat(entry)
             except OSError as exc:
-                raise UntrustedPeer(f"cannot check {folder} on the way to {path}: {exc.strerror or exc}") from None
-            if stat.S_ISLNK(st.st_mode):
-                continue  # its own folder was checked; its target is checked with the resolved chain
+                raise UntrustedPeer(f"cannot check {entry} on the way to {path}: {exc.strerror or exc}") from None
             mode = stat.S_IMODE(st.st_mode)
+            if st.st_uid not in trusted and entry == chain and not stat.S_ISLNK(st.st_mode):
+                raise UntrustedPeer(f"the socket {path} belongs to uid {st.st_uid} ({user_name(st.st_uid)}), not to "
+                                    f"the daemon's account (allowed: {_trusted_text(trusted)}). If the daemon runs "
+                                    "as another user, set REMASTER_DAEMON_USER")
             if st.st_uid not in trusted:
-                raise UntrustedPeer(f"{folder} (on the way to {path}) belongs to uid {st.st_uid} "
+                raise UntrustedPeer(f"{entry} (on the way to {path}) belongs to uid {st.st_uid} "
                                     f"({user_name(st.st_uid)}), who could put a socket there; allowed owners: "
                                     f"{_trusted_text(trusted)}")
-            if mode & (stat.S_IWGRP | stat.S_IWOTH) and not mode & stat.S_ISVTX:
-                raise UntrustedPeer(f"{folder} (on the way to {path}) has mode {mode:04o}: other accounts may "
+            if stat.S_ISDIR(st.st_mode) and mode & (stat.S_IWGRP | stat.S_IWOTH) and not mode & stat.S_ISVTX:
+                raise UntrustedPeer(f"{entry} (on the way to {path}) has mode {mode:04o}: other accounts may "
                                     "write it and put a socket there. Allowed: folders that "
                                     "only their owner may write (the daemon's is /run/remaster, mode 0755)")
-    st = os.lstat(real)
-    if not stat.S_ISSOCK(st.st_mode):
+    if not stat.S_ISSOCK(os.lstat(real).st_mode):
         raise UntrustedPeer(f"{path} is not a socket")
-    if st.st_uid not in trusted:
-        raise UntrustedPeer(f"the socket {path} belongs to uid {st.st_uid} ({user_name(st.st_uid)}), not to the "
-                            f"daemon's account (allowed: {_trusted_text(trusted)}). If the daemon runs as another user, "
-                            "set REMASTER_DAEMON_USER")
 
 
 def socket_path_of(endpoint: str) -> str | None:

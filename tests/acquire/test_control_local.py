@@ -160,6 +160,10 @@ def test_a_socket_path_is_trusted_only_when_no_other_account_could_have_made_it(
             with pytest.raises(UntrustedPeer, match=rf"theirs \(on the way to .*\) belongs to uid {NEIGHBOUR_UID}"):
                 check_socket_path(theirs / "x.sock", me)
             t.close()
+            # Their link to our socket in a sticky folder: they could point it elsewhere after the check.
+            os.lchown(shared / "link.sock", NEIGHBOUR_UID, NEIGHBOUR_UID)
+            with pytest.raises(UntrustedPeer, match=rf"link.sock \(on the way to .*\) belongs to uid {NEIGHBOUR_UID}"):
+                check_socket_path(shared / "link.sock", me)
             os.chown(good, NEIGHBOUR_UID, NEIGHBOUR_UID)
             with pytest.raises(UntrustedPeer, match=rf"the socket .*ok.sock belongs to uid {NEIGHBOUR_UID}"):
                 check_socket_path(good, me)
