@@ -268,11 +268,17 @@ class _QueueLog(logging.Handler):
             self.handleError(record)
 
 
-def _log_to_parent(logs_send, level: int) -> threading.Thread:
+def _log_to_queue(level: int) -> queue.SimpleQueue:
+    """Every log record of this process onto a queue (``_forward``'s thread sends them on)."""
     q: queue.SimpleQueue = queue.SimpleQueue()
     root = logging.getLogger()
     root.handlers[:] = [_QueueLog(q)]
     root.setLevel(level)
+    return q
+
+
+def _forward(q: queue.SimpleQueue, logs_send) -> threading.Thread:
+    """A thread that sends the queued records to the parent until it gets None."""
 
     def forward() -> None:
         while True:
@@ -286,7 +292,6 @@ def _log_to_parent(logs_send, level: int) -> threading.Thread:
 
     thread = threading.Thread(target=forward, name="sim-cell-log-forward", daemon=True)
     thread.start()
-    thread.q = q  # type: ignore[attr-defined]
     return thread
 
 
@@ -301,8 +306,11 @@ def serve(conn, logs_send, parent_pid: int, cell_file: str, seed: int | None, cl
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    forwarder = _log_to_parent(logs_send, log_level)
-    realtime = enter_realtime(rt_priority)  # before any fake starts: every thread of the cell inherits it
+    records = _log_to_queue(log_level)
+    # before any thread starts: every thread of the cell inherits it (a normal-priority thread
+    # preempted while it holds the interpreter lock would hold up the real-time ones)
+    realtime = enter_realtime(rt_priority)
+    forwarder = _forward(records, logs_send)
     launch = None
     try:
         try:
@@ -320,7 +328,7 @@ def serve(conn, logs_send, parent_pid: int, cell_file: str, seed: int | None, cl
     finally:
         if launch is not None:
             launch.close()
-        forwarder.q.put(None)
+        records.put(None)
         forwarder.join(5.0)
         try:
             conn.send((True, None))  # (close's answer; nobody reads it when the parent is gone)
