@@ -125,7 +125,7 @@ def sim(
         launch = CellProcess(config, clock=cell.clock, seed=cell.config.seed, launch_options=dict(
             fri_port=fri_port, rsi_port=rsi_port, mocap_rate_hz=rate, max_runtime_s=duration, fri_version=fri_version,
             natnet_version=natnet_version, mocap_asset=mocap_asset, tracker_protocols=trackers,
-            fault_timeline=not no_faults))
+            fault_timeline=not no_faults), start_method="fork")  # (this process has the fakes imported)
         launch.start()
     except (ValueError, OSError, CellProcessError) as exc:
         typer.echo(f"error: cannot start the simulated cell ({config}): {exc}", err=True)

@@ -26,8 +26,11 @@ the parent's loggers (same names) through a queue and one forwarding thread, so 
 waits for the parent to log.
 
 The child is forked from a ``multiprocessing`` fork server that has the cell's modules imported
-(``PRELOAD``): a cell starts in milliseconds instead of an interpreter importing numpy and the
-fakes (about one CPU-second each time); where there is no fork server, it is spawned. A script
+(``PRELOAD``): after the first, a cell starts without an interpreter importing numpy and the
+fakes (about 1.5 CPU-seconds each time); where there is no fork server, it is spawned. A
+single-threaded process that has the cell's modules imported already (``acquire sim`` as it
+starts) may ask for ``start_method="fork"``: it is refused (the fork server is used) once the
+process has a second thread, since a fork copies only the calling thread. A script
 that starts a cell process must do so under ``if __name__ == "__main__":`` (the ``acquire``
 entry point, pytest and ``python -c`` need nothing).
 """
@@ -62,8 +65,11 @@ PRELOAD = ["drivers.sim.process", "drivers.sim.launch", "drivers.sim.cell", "dri
            "drivers.emscon.fake", "drivers.sim.socket_operator"]
 
 
-def _context():
-    """The fork server with ``PRELOAD`` imported (spawn where the OS has none)."""
+def _context(start_method: str | None = None):
+    """``"fork"`` if asked for and this process has one thread; else the fork server with
+    ``PRELOAD`` imported (spawn where the OS has none)."""
+    if start_method == "fork" and threading.active_count() == 1 and "fork" in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("fork")
     try:
         ctx = multiprocessing.get_context("forkserver")
     except ValueError:
@@ -104,12 +110,14 @@ class CellProcess:
     ``clock``, started in a child process at SCHED_FIFO ``rt_priority`` where permitted.
 
     launch_options: keyword arguments of ``SimLaunch`` (ports, send period, tracker protocols,
-    max_runtime_s, …; picklable). After ``start()``: ``addresses`` (device name →
+    max_runtime_s, …; picklable). start_method: None (the fork server) or ``"fork"`` (see the
+    module's docstring). After ``start()``: ``addresses`` (device name →
     ``DeviceAddress``), ``realtime`` (what the child got, in words) and ``pid``.
     """
 
     def __init__(self, cell_file: str | Path, *, clock: SimClock, seed: int | None = None,
-                 launch_options: dict[str, Any] | None = None, rt_priority: int = CONTROLLER_RT_PRIORITY) -> None:
+                 launch_options: dict[str, Any] | None = None, rt_priority: int = CONTROLLER_RT_PRIORITY,
+                 start_method: str | None = None) -> None:
         if not (isinstance(rt_priority, int) and 0 <= rt_priority <= 99):
             raise ValueError(f"rt_priority must be an integer in [0, 99], got {rt_priority!r}")
         self.cell_file = Path(cell_file)
@@ -117,6 +125,7 @@ class CellProcess:
         self.seed = seed  # (the cell's own once started)
         self.launch_options = dict(launch_options or {})
         self.rt_priority = rt_priority
+        self.start_method = start_method
         self.addresses: dict[str, DeviceAddress] = {}
         self.realtime = ""
         #: The cell file's ``faults:`` timeline the child fires: (at wall s, ``Fault``) each.
@@ -134,7 +143,7 @@ class CellProcess:
         in the child (ValueError, OSError), or ``CellProcessError``."""
         if self._proc is not None:
             raise RuntimeError("the cell process is already started")
-        ctx = _context()
+        ctx = _context(self.start_method)
         parent_conn, child_conn = ctx.Pipe()
         logs_recv, logs_send = ctx.Pipe(duplex=False)
         level = logging.getLogger().getEffectiveLevel()
