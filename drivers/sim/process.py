@@ -136,6 +136,7 @@ class CellProcess:
         self._logs = None
         self._log_thread: threading.Thread | None = None
         self._lock = threading.Lock()
+        self._seq = 0  # requests so far: a late answer to one that timed out is told apart
 
     # --- lifecycle ------------------------------------------------------------------------
     def start(self) -> "CellProcess":
@@ -160,7 +161,7 @@ class CellProcess:
         self._log_thread = threading.Thread(target=self._forward_logs, name="sim-cell-logs", daemon=True)
         self._log_thread.start()
         try:
-            ready = self._reply(START_TIMEOUT_S, "start")
+            ready = self._reply(self._proc, 0, START_TIMEOUT_S, "start")
         except BaseException:
             self.close()
             raise
@@ -179,7 +180,7 @@ class CellProcess:
         with self._lock:
             try:
                 if proc.is_alive():
-                    conn.send(("close", ()))
+                    conn.send((-1, "close", ()))
                     if conn.poll(30.0):
                         conn.recv()
             except (OSError, EOFError, BrokenPipeError):
@@ -206,28 +207,35 @@ class CellProcess:
 
     # --- requests -------------------------------------------------------------------------
     def _call(self, op: str, *args):
-        if self._proc is None:
+        proc = self._proc
+        if proc is None:
             raise RuntimeError("the cell process is not started")
         with self._lock:
+            self._seq += 1
             try:
-                self._conn.send((op, args))
+                self._conn.send((self._seq, op, args))
             except (OSError, BrokenPipeError) as exc:
                 raise CellProcessError(f"the simulated cell's process is gone ({exc})") from None
-            return self._reply(REQUEST_TIMEOUT_S, op)
+            return self._reply(proc, self._seq, REQUEST_TIMEOUT_S, op)
 
-    def _reply(self, timeout_s: float, op: str):
-        conn, proc = self._conn, self._proc
+    def _reply(self, proc, seq: int, timeout_s: float, op: str):
+        """The child's answer to request ``seq`` (answers to earlier ones are dropped)."""
+        conn = self._conn
         waited = 0.0
-        while not conn.poll(0.5):
-            waited += 0.5
-            if not proc.is_alive():
-                raise CellProcessError(f"the simulated cell's process ended (exit code {proc.exitcode}) during {op}")
-            if waited >= timeout_s:
-                raise CellProcessError(f"the simulated cell's process did not answer {op} within {timeout_s:g} s")
-        try:
-            ok, value = conn.recv()
-        except EOFError:
-            raise CellProcessError(f"the simulated cell's process ended during {op}") from None
+        while True:
+            while not conn.poll(0.5):
+                waited += 0.5
+                if not proc.is_alive():
+                    raise CellProcessError(f"the simulated cell's process ended (exit code {proc.exitcode}) "
+                                           f"during {op}")
+                if waited >= timeout_s:
+                    raise CellProcessError(f"the simulated cell's process did not answer {op} within {timeout_s:g} s")
+            try:
+                got, ok, value = conn.recv()
+            except EOFError:
+                raise CellProcessError(f"the simulated cell's process ended during {op}") from None
+            if got == seq:
+                break
         if not ok:
             raise value
         return value
@@ -342,9 +350,9 @@ def serve(conn, logs_send, cell_file: str, seed: int | None, clock: SimClock,
             cell = SimCell.from_yaml(cell_file, seed=seed, clock=clock)
             launch = SimLaunch(cell, controller_rt_priority=rt_priority, **launch_options).start()
         except Exception as exc:  # noqa: BLE001 - handed to the parent, which raises it
-            conn.send((False, _picklable(exc)))
+            conn.send((0, False, _picklable(exc)))
             return
-        conn.send((True, {"addresses": dict(launch.addresses), "realtime": realtime, "seed": launch.seed,
+        conn.send((0, True, {"addresses": dict(launch.addresses), "realtime": realtime, "seed": launch.seed,
                           "timeline": list(launch.timeline.steps) if launch.timeline is not None else []}))
         _serve_requests(conn, launch, parent_pid, stop)
     finally:
@@ -353,7 +361,7 @@ def serve(conn, logs_send, cell_file: str, seed: int | None, clock: SimClock,
         records.put(None)
         forwarder.join(5.0)
         try:
-            conn.send((True, None))  # (close's answer; nobody reads it when the parent is gone)
+            conn.send((-1, True, None))  # (close's answer; nobody reads it when the parent is gone)
         except (OSError, BrokenPipeError):
             pass
 
@@ -366,15 +374,15 @@ def _serve_requests(conn, launch, parent_pid: int, stop: threading.Event) -> Non
                     log.warning("simulated cell: the process that started it is gone; stopping every fake")
                     return
                 continue
-            op, args = conn.recv()
+            seq, op, args = conn.recv()
         except (EOFError, OSError):
             return
         if op == "close":
             return
         try:
-            reply = (True, _REQUESTS[op](launch, *args))
+            reply = (seq, True, _REQUESTS[op](launch, *args))
         except Exception as exc:  # noqa: BLE001 - the parent raises it
-            reply = (False, _picklable(exc))
+            reply = (seq, False, _picklable(exc))
         try:
             conn.send(reply)
         except (OSError, BrokenPipeError):
