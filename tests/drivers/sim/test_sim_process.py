@@ -99,3 +99,23 @@ def test_enter_realtime_says_normal_priority_when_asked_for_none(caplog):
     assert enter_realtime(0, "probe") == "normal priority (rt priority 0)"
     assert os.sched_getscheduler(0) == os.SCHED_OTHER
     assert any("probe: process" in r.getMessage() for r in caplog.records)
+
+
+def test_the_simulated_cell_of_a_fake_run_lives_in_its_own_process():
+    """``acquire run --fake`` / the daemon's ``fake`` cell (``SimulatedCell``): its devices in a
+    cell process, described to the run like any cell; the truth for the after-run summary is
+    the cell process's (built from the same file and seed as this process's description)."""
+    from drivers.sim.running import SimulatedCell
+
+    sim = SimulatedCell(time_scale=4.0, seed=3).start()
+    try:
+        assert isinstance(sim.launch, CellProcess) and sim.launch.pid != os.getpid()
+        cell = sim.describe("fri", [("mocap", "natnet", ""), ("tracker", "emscon", "")])
+        assert cell.commander_url.startswith(f"fri://127.0.0.1:{sim.port}?timeout_ms=")
+        assert cell.sensor_urls == {"mocap": sim.launch.addresses["mocap"].url,
+                                    "tracker": sim.launch.addresses["tracker-emscon"].url}
+        assert any("fake Sunrise" in line for line in cell.notes)
+        assert sim.truth_offsets_deg() == pytest.approx([float(v) for v in sim.cell.truth.offsets_deg], abs=0)
+    finally:
+        sim.close()
+    assert sim.launch is None
