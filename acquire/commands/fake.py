@@ -60,14 +60,15 @@ def check_fake_section(lp) -> None:
         raise ConfigError("\n".join(msg for _, msg in located))
 
 
-def simulated_cell(lp, *, max_runtime_s: float = 3600.0) -> SimulatedCell:
+def simulated_cell(lp, *, max_runtime_s: float = 3600.0, process: bool = True) -> SimulatedCell:
     """The (not yet started) simulated cell of ``lp``'s ``fake`` section (the packaged default
-    cell at ``DEFAULT_TIME_SCALE`` without one). ValueError when its robot is not the plan's."""
+    cell at ``DEFAULT_TIME_SCALE`` without one), its devices in a real-time process of their own
+    (``process=False``: threads of this one). ValueError when its robot is not the plan's."""
     fake = lp.plan.fake
     scale = fake.time_scale if fake is not None else DEFAULT_TIME_SCALE
     seed = fake.seed if fake is not None else None
     sim = SimulatedCell(lp.sim_config_path, seed=seed, time_scale=scale, max_runtime_s=max_runtime_s,
-                        sensors=[(s.name, s.driver) for s in lp.plan.sensors])
+                        sensors=[(s.name, s.driver) for s in lp.plan.sensors], process=process)
     problem = sim.robot_mismatch(lp.model.n_joints, lp.model.controller, f"the plan's robot {lp.model.name}")
     if problem:
         raise ValueError(problem + " (fake.sim_config)")

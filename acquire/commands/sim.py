@@ -15,6 +15,10 @@ What each device speaks comes from the cell file (``drivers/sim/config.py``: a m
 ``natnet:`` version/asset, a tracker's ``protocols:``, ``controller.fri_version``); the options
 here override it for every device of that kind.
 
+The devices run in a process of their own at SCHED_FIFO where the host permits it
+(``drivers/sim/process.py``), as a real cell's controller and sensors are machines of their own:
+this process only reads the keys or lines and prints.
+
 Prints where each fake listens (NatNet command port, tracker ``socket://`` / ``emscon://`` URL)
 or sends (the robot controller, to the commander's port), then runs until Ctrl-C, ``q`` or
 ``--duration`` wall seconds. ``--show-truth`` also prints the hidden zero-offsets.
@@ -53,7 +57,8 @@ from drivers.sim.cell import SimCell
 from drivers.sim.clock import SimClock
 from drivers.sim.config import DEFAULT_CONFIG_PATH
 from drivers.sim.faults import DEFAULT_DURATION_S, DEFAULT_LOSS, KEY_HELP, KEYS, FaultError, parse_command
-from drivers.sim.launch import FRI_CLIENT_PORT, RSI_CLIENT_PORT, SimLaunch
+from drivers.sim.launch import FRI_CLIENT_PORT, RSI_CLIENT_PORT
+from drivers.sim.process import CellProcess, CellProcessError
 
 #: Wall seconds between checks of the fakes (and of Ctrl-C).
 POLL_S = 0.2
@@ -111,28 +116,29 @@ def sim(
             from calib.io.resources import find
 
             config = find("sim", str(config)) or config  # a packaged cell by name, e.g. "default"
-        cell = SimCell.from_yaml(config, seed=seed, clock=SimClock(time_scale))
+        cell = SimCell.from_yaml(config, seed=seed, clock=SimClock(time_scale))  # (checks the file here)
     except ConfigError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     trackers = {s.name: protos for s in cell.config.sensors if s.kind == "tracker"} if protos else None
     try:
-        launch = SimLaunch(cell, fri_port=fri_port, rsi_port=rsi_port, mocap_rate_hz=rate, max_runtime_s=duration,
-                           fri_version=fri_version, natnet_version=natnet_version, mocap_asset=mocap_asset,
-                           tracker_protocols=trackers, fault_timeline=not no_faults)
+        launch = CellProcess(config, clock=cell.clock, seed=cell.config.seed, launch_options=dict(
+            fri_port=fri_port, rsi_port=rsi_port, mocap_rate_hz=rate, max_runtime_s=duration, fri_version=fri_version,
+            natnet_version=natnet_version, mocap_asset=mocap_asset, tracker_protocols=trackers,
+            fault_timeline=not no_faults), start_method="fork")  # (this process has the fakes imported)
         launch.start()
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, CellProcessError) as exc:
         typer.echo(f"error: cannot start the simulated cell ({config}): {exc}", err=True)
         raise typer.Exit(2) from None
     try:
         for line in launch.describe():
             typer.echo(line)
         if show_truth:
-            offsets = ", ".join(f"{a} {v:+.4f}" for a, v in zip(cell.truth.axis_names, cell.truth.offsets_deg))
+            offsets = ", ".join(f"{a} {v:+.4f}" for a, v in zip(cell.truth.axis_names, launch.truth_offsets_deg()))
             typer.echo(f"truth: zero-offsets (deg, controller convention): {offsets}")
-        if launch.timeline is not None:
+        if launch.timeline_steps:
             typer.echo("fault timeline: " + "; ".join(
-                f"{f.fault} on {f.device or 'all'} at {at:g} s" for at, f in launch.timeline.steps))
+                f"{f.fault} on {f.device or 'all'} at {at:g} s" for at, f in launch.timeline_steps))
         interactive = sys.stdin is not None and sys.stdin.isatty()
         typer.echo(KEY_HELP + "; m: enter mastering" if interactive else
                    "faults: one line on stdin 'FAULT [DEVICE|all] [DURATION_S] [PROBABILITY]'; mastering: "
@@ -142,9 +148,9 @@ def sim(
                 (_keys if interactive else _lines)(launch, time.monotonic() + duration, Path(config))
         except KeyboardInterrupt:
             typer.echo("stopping")
+        q = np.degrees(launch.joint_positions())
     finally:
         launch.close()
-    q = np.degrees(launch.robot_view.joint_positions())
     typer.echo(f"stopped; final joints as the controller reports them (deg) {np.round(q, 3).tolist()}")
 
 
@@ -164,7 +170,7 @@ class _sigterm_as_interrupt:
             signal.signal(signal.SIGTERM, self._old)
 
 
-def _inject(launch: SimLaunch, fault: str, device: str | None, duration_s: float | None, probability: float) -> str:
+def _inject(launch: CellProcess, fault: str, device: str | None, duration_s: float | None, probability: float) -> str:
     try:
         hit = launch.inject(fault, device, duration_s, probability)
     except FaultError as exc:
@@ -182,7 +188,7 @@ def _running(deadline: float) -> None:
 MASTERING_WORDS = ("master", "enter", "mastering", "save")
 
 
-def _mastering(launch: SimLaunch, line: str, source: Path | None = None) -> str:
+def _mastering(launch: CellProcess, line: str, source: Path | None = None) -> str:
     """Do one mastering line (``master AXIS C``, ``$MAMES[i] = $MAMES[i] ±C``, ``enter RESULT.json``,
     ``mastering``, ``save CELL.yaml`` — a copy of the cell file ``source`` with the mastering); the
     answer to print: the table after it, or ``error: …``."""
@@ -193,11 +199,11 @@ def _mastering(launch: SimLaunch, line: str, source: Path | None = None) -> str:
     words = line.split()
     try:
         if words == ["mastering"]:
-            return "\n".join(["mastering:"] + launch.mastering.lines())
+            return "\n".join(["mastering:"] + launch.mastering_lines())
         if words[0] == "save":
             if len(words) != 2:
                 raise MasteringError(f"give 'save CELL.yaml'; given {line.strip()!r}")
-            path = save_with_mastering(source, words[1], launch.mastering.corrections_deg, seed=launch.cell.config.seed)
+            path = save_with_mastering(source, words[1], launch.mastering_corrections_deg(), seed=launch.seed)
             return f"saved {path}: this cell with the controller's mastering (--config it, or a plan's fake.sim_config)"
         if words[0] == "enter":
             if len(words) != 2:
@@ -215,10 +221,10 @@ def _mastering(launch: SimLaunch, line: str, source: Path | None = None) -> str:
         launch.enter_mastering(entries)
     except (ValueError, OSError) as exc:  # MasteringError, ConfigError, a file that cannot be read or written
         return f"error: {exc}"
-    return "\n".join([what, "mastering (the controller restarted with it):"] + launch.mastering.lines())
+    return "\n".join([what, "mastering (the controller restarted with it):"] + launch.mastering_lines())
 
 
-def _answer(launch: SimLaunch, line: str, source: Path | None = None) -> str:
+def _answer(launch: CellProcess, line: str, source: Path | None = None) -> str:
     """What one stdin line does: a mastering entry (``source``: the cell file) or a fault."""
     if line.split()[0] in MASTERING_WORDS or line.lstrip().startswith("$MAMES"):
         return _mastering(launch, line, source)
@@ -229,7 +235,7 @@ def _answer(launch: SimLaunch, line: str, source: Path | None = None) -> str:
     return _inject(launch, f.fault, f.device, f.duration_s, f.probability)
 
 
-def _lines(launch: SimLaunch, deadline: float, source: Path | None = None) -> None:
+def _lines(launch: CellProcess, deadline: float, source: Path | None = None) -> None:
     """stdin is a pipe (or closed): one fault or mastering line at a time until the deadline (EOF: just wait)."""
     done = threading.Event()
 
@@ -250,7 +256,7 @@ def _lines(launch: SimLaunch, deadline: float, source: Path | None = None) -> No
         done.set()
 
 
-def _keys(launch: SimLaunch, deadline: float, source: Path | None = None) -> None:
+def _keys(launch: CellProcess, deadline: float, source: Path | None = None) -> None:
     """stdin is a terminal: single keys (no Enter) inject faults; ``q`` quits."""
     import termios
     import tty

@@ -121,7 +121,6 @@ class FaultInjector:
         self._lock = threading.Lock()
         self._timers: list[threading.Timer] = []
         self._undo: dict[int, object] = {}
-        self._loss_stops: list[threading.Event] = []
         self.history: list[tuple[float, str, str, str]] = []
 
     # --- which devices --------------------------------------------------------------------
@@ -221,25 +220,13 @@ class FaultInjector:
             out.append(self.launch.emscon[device][1])
         return out
 
-    def _fri_loss(self, fake, p: float):
-        """The fake Sunrise loses messages one at a time (``drop_next``): decide once per send
-        period whether the next one is lost."""
-        stop = threading.Event()
-        period_s = fake.send_period_ms / 1000.0
-        clock = getattr(fake, "clock", None)
-        wall_period = clock.wall_duration(period_s) if clock is not None else period_s
-
-        def lose() -> None:
-            while not stop.wait(wall_period):
-                with self._lock:
-                    u = self._rng.random()
-                if u < p:
-                    fake.drop_next(1)
-
-        threading.Thread(target=lose, name="sim-fri-loss", daemon=True).start()
-        with self._lock:
-            self._loss_stops.append(stop)
-        return stop.set
+    @staticmethod
+    def _fri_loss(fake, p: float):
+        """The fake Sunrise loses each monitoring message with probability ``p`` (its own
+        ``loss_out``; 1: every one, the controller falls silent); the undo restores what it lost before."""
+        before = fake.loss_out
+        fake.loss_out = p
+        return lambda: setattr(fake, "loss_out", before)
 
     def _later(self, duration: float, name: str, device: str, undo) -> None:
         key = id(object())
@@ -272,11 +259,8 @@ class FaultInjector:
         with self._lock:
             timers, self._timers = self._timers, []
             undo, self._undo = list(self._undo.values()), {}
-            stops, self._loss_stops = self._loss_stops, []
         for t in timers:
             t.cancel()
-        for s in stops:
-            s.set()
         for fn in undo:
             if fn is not None:
                 try:

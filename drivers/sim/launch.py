@@ -25,7 +25,9 @@ controller moves the markers the fake sensors see. ``addresses`` says where each
 ``close()`` (or leaving the ``with`` block) stops them all. Controllers stop by themselves
 after ``max_runtime_s``. A real controller never starves: the fake controller's cycle runs at
 SCHED_FIFO ``controller_rt_priority`` where the host permits it (as the commander's exchange
-does; one log line says which), so a loaded host does not stretch its send period.
+does; one log line says which). Threads of a busy process still share its interpreter lock:
+``drivers.sim.process.CellProcess`` runs a ``SimLaunch`` in a real-time process of its own, as
+``acquire run --fake``, ``acquire daemon`` (``fake``) and ``acquire sim`` do.
 
 The cell has the people and programs a real cell has: the fake Sunrise runs the robot
 application we ship (``drivers/kuka_fri/controller/``: it starts its FRI overlay motion when
@@ -487,6 +489,23 @@ class SimLaunch:
                     self.socket_operator.controller = self.controller
         log.info("mastering entered; the controller restarted: %s", "; ".join(self.mastering.lines()))
         return self.mastering.corrections_deg
+
+    def mastering_lines(self) -> list[str]:
+        """The controller's mastering table, one line per axis."""
+        return self.mastering.lines()
+
+    def mastering_corrections_deg(self) -> np.ndarray:
+        """The controller's zero corrections (n,) deg."""
+        return self.mastering.corrections_deg
+
+    def joint_positions(self) -> np.ndarray:
+        """The joints as the controller reports them (n,) rad."""
+        return self.robot_view.joint_positions()
+
+    @property
+    def seed(self) -> int:
+        """The cell's seed."""
+        return self.cell.config.seed
 
     def describe(self) -> list[str]:
         """One line per device, for a person."""

@@ -10,7 +10,11 @@ What only a simulation has — the hidden truth — is asked of this object afte
 (``truth_offsets_deg``, ``mean_sag_deg``), by whoever wants to print it beside the fit.
 
 ``acquire run --fake`` is "start this, then run"; ``acquire daemon`` with ``fake`` starts one
-for its whole life and describes it to every run. Units: ms and s as named; angles deg.
+for its whole life and describes it to every run. The devices run in a process of their own, at
+SCHED_FIFO where the host permits it (``drivers.sim.process.CellProcess``), as a real cell's
+controller and sensors are machines of their own: the run's fit, recorder and bus cannot make
+the simulated controller late. ``process=False`` keeps them as threads of this process (for a
+test that reaches into a fake device). Units: ms and s as named; angles deg.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ from drivers.sim.cell import SimCell
 from drivers.sim.clock import SimClock
 from drivers.sim.config import DEFAULT_CONFIG_PATH
 from drivers.sim.launch import SimLaunch
+from drivers.sim.process import CellProcess
 
 log = logging.getLogger(__name__)
 
@@ -58,20 +63,23 @@ class SimulatedCell:
     overrides the file's. time_scale: simulated seconds per wall second (> 0). sensors: the
     (name, driver) of the plan sensors it will be described for — decides which protocols its
     trackers speak; empty: every tracker speaks both (line and emScon). max_runtime_s: wall
-    seconds after which the fake controller stops sending by itself.
+    seconds after which the fake controller stops sending by itself. process: run the devices
+    in a process of their own (``CellProcess``, real-time where permitted); False: as threads of
+    this one (``SimLaunch``: a test can reach into a fake device through ``launch``).
     """
 
     def __init__(self, cell_file: str | Path | None = None, *, seed: int | None = None,
                  time_scale: float = DEFAULT_TIME_SCALE, sensors: Sequence[tuple[str, str]] = (),
-                 max_runtime_s: float = 3600.0) -> None:
+                 max_runtime_s: float = 3600.0, process: bool = True) -> None:
         self.cell_file = Path(cell_file) if cell_file is not None else DEFAULT_CONFIG_PATH
         self.time_scale = float(time_scale)
         self.clock = SimClock(self.time_scale)
         self.cell = SimCell.from_yaml(self.cell_file, seed=seed, clock=self.clock)
         self.sensors = [(str(n), str(d)) for n, d in sensors]
         self.max_runtime_s = float(max_runtime_s)
+        self.process = bool(process)
         self.port: int | None = None
-        self.launch: SimLaunch | None = None
+        self.launch: SimLaunch | CellProcess | None = None
 
     # --- what the cell is --------------------------------------------------------------------
     @property
@@ -115,10 +123,14 @@ class SimulatedCell:
         if self.launch is not None:
             raise RuntimeError("the simulated cell is already started")
         self.port = free_udp_port()
-        self.launch = SimLaunch(
-            self.cell, fri_port=self.port, rsi_port=self.port, fri_send_period_ms=self.fri_send_period_ms(),
-            tracker_protocols=self._tracker_protocols(), max_runtime_s=self.max_runtime_s,
-        ).start()  # (``describe()`` carries ``launch.describe()`` lines as notes: whoever opens the devices logs them)
+        options = dict(fri_port=self.port, rsi_port=self.port, fri_send_period_ms=self.fri_send_period_ms(),
+                       tracker_protocols=self._tracker_protocols(), max_runtime_s=self.max_runtime_s)
+        if self.process:  # the cell file and seed again in the child: its own SimCell, on this clock
+            self.launch = CellProcess(self.cell_file, clock=self.clock, seed=self.cell.config.seed,
+                                      launch_options=options).start()
+        else:
+            self.launch = SimLaunch(self.cell, **options).start()
+        # (``describe()`` carries ``launch.describe()`` lines as notes: whoever opens the devices logs them)
         return self
 
     def close(self) -> None:
@@ -204,12 +216,17 @@ class SimulatedCell:
         return out
 
     # --- what only a simulation knows ----------------------------------------------------------
+    # (asked of the cell the devices ran around: the cell process's while it runs)
     def truth_offsets_deg(self) -> list[float]:
         """The cell's hidden zero-offsets (deg, controller convention), one per joint."""
+        if isinstance(self.launch, CellProcess):
+            return self.launch.truth_offsets_deg()
         return [float(v) for v in self.cell.truth.offsets_deg]
 
     def mean_sag_deg(self, q_rad) -> list[float]:
         """The cell's gravity sag of each joint averaged over configurations ``q_rad`` (k, n)
         rad, deg: a zero-offset fit cannot tell its mean from an offset."""
         q = np.atleast_2d(np.asarray(q_rad, dtype=float))
+        if isinstance(self.launch, CellProcess):
+            return self.launch.mean_sag_deg(q)
         return np.degrees(self.cell.deflection(q).mean(axis=0)).tolist()

@@ -48,14 +48,15 @@ def run_logs(folder: Path) -> list[Path]:
 
 
 @contextmanager
-def simulated_run(lp, **kwargs):
+def simulated_run(lp, *, process: bool = True, **kwargs):
     """``(RunController, SimulatedCell)``: the plan's simulated cell started as ``acquire run
     --fake`` starts it, and a run handed its description (``kwargs`` go to the controller).
-    The cell is closed on leaving."""
+    ``process=False``: the cell's devices as threads of this process, for a test that reaches
+    into one (``sim.launch.trackers``…). The cell is closed on leaving."""
     from acquire.commands.fake import describe_for, simulated_cell
     from acquire.run import RunController
 
-    sim = simulated_cell(lp).start()
+    sim = simulated_cell(lp, process=process).start()
     try:
         yield RunController(lp, cell=describe_for(sim, lp), **kwargs), sim
     finally:
@@ -133,7 +134,7 @@ def resumed_run(lp, log_path):
 def faulted_run(lp, fault: str, device: str | None = None, duration_s: float | None = None,
                 probability: float | None = None, *, at: str = "moved", nth: int = 1):
     """A fake run of ``lp`` (no fit) with one fault injected through the simulated cell's fault
-    API (``SimLaunch.inject``, as ``acquire sim``'s stdin does) the ``nth`` time the run logs an
+    API (``CellProcess.inject``, as ``acquire sim``'s stdin does) the ``nth`` time the run logs an
     event of kind ``at`` (``moved``: the robot has just arrived, settling starts). Returns
     ``(summary, contents of the run log, devices hit)``."""
     from acquire.record.recorder import read_run

@@ -205,7 +205,7 @@ def test_watchdog_pings_stop_when_the_controller_stops_sending(tmp_path):
     try:
         notify.wait_for(lambda f: f.get("READY") == "1", 30)
         wait_until(lambda: notify.count("WATCHDOG", "1") >= 3, 10, "three watchdog pings")
-        sim.launch.controller.stop()  # the controller falls silent
+        sim.launch.inject("packet_loss", "controller", 60.0, 1.0)  # the controller falls silent
         # (a loaded machine may add a late-answer complaint first; the silence must follow)
         unhealthy = notify.wait_for(lambda f: "UNHEALTHY" in f.get("STATUS", "") and (
             "old" in f["STATUS"] or "no monitoring" in f["STATUS"]), 10)

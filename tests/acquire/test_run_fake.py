@@ -148,7 +148,7 @@ def test_tracker_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
             device = sim.launch.trackers["tracker"][0]
             device.handle(device.codec.encode_request(1, Aim(0.0, 3000.0, 0.0)))
 
-    with simulated_run(lp, on_progress=break_beam, fit=False) as (rc, sim):
+    with simulated_run(lp, on_progress=break_beam, fit=False, process=False) as (rc, sim):
         rc.start()
         summary = wait_for_run(rc)
     assert summary.state == "finished", summary.reason
@@ -220,7 +220,7 @@ def test_emscon_run_with_beam_breaks_suspends_reacquires_and_resumes(tmp_path):
             away = es.Request(es.Cmd.GoPosition, {"dVal1": 0.0, "dVal2": 3000.0, "dVal3": 0.0, "bUseADM": 1})
             assert es.decode(server.handle(es.encode(away))[:16]).status == es.Status.AllOK
 
-    with simulated_run(lp, on_progress=break_beam, fit=False) as (rc, sim):
+    with simulated_run(lp, on_progress=break_beam, fit=False, process=False) as (rc, sim):
         seen["launch"] = sim.launch
         rc.start()
         summary = wait_for_run(rc)  # time_scale 3: slower than the line-protocol test, kinder to a loaded machine

@@ -136,13 +136,12 @@ def test_an_fri_drop_is_waited_out_and_failed_configurations_are_measured_again_
         cell = rc.sim
         if cell.launch is None:
             return  # before the devices are up, or after they closed
-        ctl = cell.launch.controller
         if status["measured"] >= 2 and "drop" not in injected:
             injected.append("drop")
-            ctl.inject_fault("session_drop")
+            cell.launch.inject("session_drop", "controller")
         elif status["measured"] >= 4 and "drives" not in injected:
             injected.append("drives")
-            ctl.inject_fault("drives_off")
+            cell.launch.inject("drives_off", "controller", 3600.0)  # for good (this cell closes after the run)
 
     rc = fake_controller(lp, on_progress=faults, fit=False)
     rc.start()
