@@ -351,10 +351,10 @@ class Daemon:
                 for name in list(self._tokens):
                     if name != "daemon":
                         self._tokens.pop(name).undeclare()
-        with self._lock:
-            self.controller = None
         self.run_text_log.open_beside(ctl)  # a run that ended between two ticks still gets its text log
         self.run_text_log.close()
+        with self._lock:  # only now is the run listed as not current: its files no longer grow
+            self.controller = None
         announce_run_end(self.bus, st)
 
     def _status(self, text: str) -> None:
@@ -548,9 +548,11 @@ class Daemon:
 
     # The plant's station (acquire.daemon.archive): finished runs, their bytes, confirmation.
     def _active_run_id(self) -> str | None:
+        """The run whose files may still grow, never offered to the station: the daemon's run until
+        ``_after_run`` has closed its text log and let it go (an ended run's log takes lines until then)."""
         with self._lock:
             ctl = self.controller
-        return ctl.run_id if ctl is not None and ctl.status()["state"] in ACTIVE_STATES else None
+        return ctl.run_id if ctl is not None else None
 
     def archive_list(self) -> dict:
         return self.cell_runs.pending(self._active_run_id())

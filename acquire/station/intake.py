@@ -1,11 +1,13 @@
-"""What the station does with a run once its files are archived: its robot's history entry,
-every verdict recomputed against the references."""
+"""What the station does with a run once its files are archived: its robot's history entry (the
+robot's accuracy as it runs scored from the archived log, ``acquire.station.accuracy``), every
+verdict recomputed against the references."""
 
 from __future__ import annotations
 
 import json
 import logging
 
+from acquire.station.accuracy import run_accuracy, run_log_of
 from acquire.station.archive import Archive
 from acquire.station.history import add_entry, entry_from_result, load_history, recompute, write_history
 from acquire.station.states import Policy
@@ -21,10 +23,13 @@ def record_run(archive: Archive, manifest: dict, policy: Policy = Policy()) -> d
     serial = manifest["robot_serial"]
     path = archive.folder(manifest) / "result.json"
     try:
-        entry = entry_from_result(json.loads(path.read_text()), run_id=manifest["run_id"],
+        result = json.loads(path.read_text())
+        folder = archive.folder(manifest)
+        entry = entry_from_result(result, run_id=manifest["run_id"],
                                   finished=manifest["finished"], site=manifest["site"], cell=manifest["cell"],
                                   check_max_configurations=policy.check_max_configurations,
-                                  auto_enter=policy.auto_enter)
+                                  auto_enter=policy.auto_enter,
+                                  accuracy=run_accuracy(run_log_of(folder, manifest["run_id"]), result))
     except (OSError, ValueError, TypeError, AttributeError) as exc:   # archived as sent; no history entry
         log.warning("run %s (robot %s): %s is not a result the history can use (%s); archived without a "
                     "history entry", manifest["run_id"], serial, path, exc)
