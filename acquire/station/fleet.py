@@ -244,7 +244,7 @@ def robot_page(archive_root: Path, serial: str, policy: Policy | None = None, no
             + "<ul id='reasons'>" + "".join(f"<li>{esc(x)}</li>" for x in st["reasons"]) + "</ul>"
             + f"<h2>Offsets</h2>{offsets_svg}"
             + ("<ul id='notes'>" + "".join(f"<li>{n}</li>" for n in notes) + "</ul>" if notes else "")
-            + f"<h2>Accuracy</h2>{afig.svg('mean error held out, as the robot ran and with the values entered, over time')}"
+            + f"<h2>Accuracy</h2>{afig.svg('mean error held out, as it ran and with the values entered')}"
             + "<h2>Runs</h2><table id='runs'><tr><th>finished (UTC)</th><th>run</th><th>kind</th><th>entered</th>"
             + f"<th>as it ran (mm)</th><th>values entered (mm)</th><th>verdict</th>{head}</tr>{''.join(body)}</table>"
             + f"<p>page written {datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z')}</p></body></html>")

@@ -286,6 +286,31 @@ def main() -> None:
         print(f"archived result.json of {c.name}/{c.run_id} corrupted (a digit changed) at {victim['t']:.0f} s",
               flush=True)
 
+    def start_run(c: Cell) -> str | None:
+        """Start ``c``'s run (retried for 2 minutes: a starved daemon answers late, and a start it
+        acted on after the client gave up shows as its current run); None when it did not start."""
+        op = ControlClient(bus.session, c.name, site=SITE, client="operator", token=OPERATOR)
+        text = plan_text.replace("cell: example", f"cell: {c.name}", 1)
+        deadline, last = time.monotonic() + 120, None
+        while time.monotonic() < deadline:
+            try:
+                return op.call("start", {"plan_text": text}, timeout=10)["run_id"]
+            except (BadRequest, Refused) as exc:
+                last = exc
+                break
+            except ControlError as exc:   # no reply, or none that could be attributed (an expired exchange)
+                last = exc
+                try:
+                    run = (op.call("status", timeout=10).get("run") or {}).get("run_id")
+                    if run:
+                        return run
+                except ControlError:
+                    pass
+                time.sleep(1)
+        print(f"{c.name}: run not started at {time.monotonic() - t0:.0f} s: {last}", flush=True)
+        failed_start.append(c.name)
+        return None
+
     def waves() -> None:
         nonlocal station, killed_station, cut_done
         for w in range(n_waves):
@@ -306,27 +331,19 @@ def main() -> None:
                 time.sleep(0.2)
             for c in [c for c in wave if not c.ready()]:
                 why = [ln for ln in (c.folder / "daemon.log").read_text(errors="replace").splitlines() if "ERROR" in ln]
-                print(f"daemon {c.name} not ready at {time.monotonic() - t0:.0f} s: {why[-1] if why else 'no error logged'}",
-                      flush=True)
+                print(f"daemon {c.name} not ready at {time.monotonic() - t0:.0f} s: "
+                      f"{why[-1] if why else 'no error logged'}", flush=True)
                 failed_start.append(c.name)
                 c.stop()
                 wave.remove(c)
             cells.extend(wave)
             print(f"wave {w + 1}/{n_waves}: {len(wave)} daemons ready at {time.monotonic() - t0:.0f} s", flush=True)
-            for c in wave:
-                op = ControlClient(bus.session, c.name, site=SITE, client="operator", token=OPERATOR)
-                text = plan_text.replace("cell: example", f"cell: {c.name}", 1)
-                for attempt in range(10):
-                    try:
-                        c.run_id = op.call("start", {"plan_text": text}, timeout=10)["run_id"]
-                        break
-                    except (BadRequest, Refused) as exc:
-                        raise SystemExit(f"{c.name}: could not start a run: {exc}") from None
-                    except ControlError as exc:
-                        last = exc
-                        time.sleep(1)
-                else:
-                    raise SystemExit(f"{c.name}: could not start a run: {last}")
+            for c in list(wave):
+                c.run_id = start_run(c)
+                if c.run_id is None:
+                    wave.remove(c)
+                    cells.remove(c)
+                    c.stop()
             print(f"wave {w + 1}/{n_waves}: runs started at {time.monotonic() - t0:.0f} s", flush=True)
             middle = w == n_waves // 2
             cut = wave[0] if middle and not cut_done else None
@@ -375,6 +392,7 @@ def main() -> None:
             for proc in (station, router_proc):
                 if proc.poll() is None:
                     proc.kill()
+            bus.close()   # an open Zenoh session would keep the interpreter from exiting
     elapsed = time.monotonic() - t0
     load_end = subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     for proc in (station, router_proc):

@@ -73,7 +73,8 @@ def test_a_result_json_becomes_a_history_entry():
               "metrics": {"absolute": {"before": {"mean": 1.2}, "after": {"mean": 0.2}}}}
     e = entry_from_result(result, run_id="r", finished="2026-01-01T00:00:00", site="s", cell="c")
     assert e["kind"] == "calibration" and e["entered"] is False  # an undetermined offset: not entered
-    assert e["offsets_deg"] == [0.1, None] and e["entered_deg"] == [0.1, 0.0]  # an older result: its fitted offsets
+    assert e["offsets_deg"] == [0.1, None]
+    assert e["entered_deg"] == pytest.approx([0.1, 0.0])  # an older result enters its fitted offsets
     # the fit's own metrics describe its model, not the robot: without the run's log nothing is scored
     assert e["accuracy_mm"]["before"] is None and e["accuracy_mm"]["how"].startswith("not scored")
     with pytest.raises(ValueError, match="no joint_offsets"):
