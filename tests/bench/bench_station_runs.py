@@ -10,8 +10,10 @@ station listed with ``allow: [archive]``, ``WATCHDOG_USEC`` of the unit's ``Watc
 The bench is an operator client of the same router: it starts each daemon's run with a short
 inline plan (``--poses`` generated poses: 8 → 14 configurations, enough for the ``fast`` fit and
 a reference; ``--poses 1`` measures the archive alone, without a result) and follows the runs'
-status keys. Cells start in waves of ``--wave`` (a wave's daemons start together, run together,
-and each is stopped once its run is confirmed); ``--wave`` = ``--cells`` runs them all at once.
+status keys. Cells start in waves of ``--wave`` (a wave's daemons start one after another, each
+once the previous is ready — ``--no-stagger``: together —, run together, and each is stopped once
+its run is confirmed); ``--wave`` = ``--cells`` runs them all at once. A daemon that does not come
+up, or a run that does not start within 2 minutes, is counted and left out.
 
 Injected mid-way (in the middle wave): the station is SIGKILLed once the first run of the wave is
 confirmed and restarted; one daemon is SIGSTOPped as its run ends, for ``--freeze-s`` (past
