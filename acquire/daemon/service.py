@@ -213,6 +213,7 @@ class Daemon:
         self._last_status = ""
         self.runs_dir = cfg.state_dir / "runs"
         self.run_text_log = RunTextLog()
+        self._released: str | None = None   # the ended run whose text log is closed (offered to the station)
         self.cell_runs = CellRuns(self.runs_dir, cfg.robot_serial or cfg.cell, cfg.archive_keep_days)
 
     # ------------------------------------------------------------------ lifecycle
@@ -340,14 +341,17 @@ class Daemon:
         return self.health.check(self.devices.commander, expect_stream=self.devices.expect_stream, run_status=None)
 
     def _after_run(self) -> None:
-        """When the current run has ended: take the devices back, then forget the run (until
-        then ``status`` still shows the ended run and ``start`` is refused)."""
+        """When the current run has ended: close its text log and offer it to the station, take the
+        devices back, then forget the run (until then ``status`` still shows the ended run and
+        ``start`` is refused)."""
         with self._lock:
             ctl = self.controller
         if ctl is None or ctl.status()["state"] not in ("finished", "aborted", "failed"):
             return
         st = ctl.status()
         log.info("run %s ended: %s%s", st["run_id"], st["state"], f" ({st['reason']})" if st.get("reason") else "")
+        self._release(ctl)
+        announce_run_end(self.bus, st)
         self.health.forget(getattr(ctl, "commander", None))
         _collect_garbage()
         if not self._stop.is_set():
@@ -361,9 +365,13 @@ class Daemon:
                         self._tokens.pop(name).undeclare()
         with self._lock:
             self.controller = None
+
+    def _release(self, ctl) -> None:
+        """An ended run's files are complete: close its text log; from now on it is offered to the station."""
         self.run_text_log.open_beside(ctl)  # a run that ended between two ticks still gets its text log
         self.run_text_log.close()
-        announce_run_end(self.bus, st)
+        with self._lock:
+            self._released = ctl.run_id
 
     def _status(self, text: str) -> None:
         self.notifier.status(text)
@@ -556,9 +564,11 @@ class Daemon:
 
     # The plant's station (acquire.daemon.archive): finished runs, their bytes, confirmation.
     def _active_run_id(self) -> str | None:
+        """The run whose files may still grow, never offered to the station: the daemon's run until
+        its text log is closed (``_release``; an ended run's log takes lines until then)."""
         with self._lock:
-            ctl = self.controller
-        return ctl.run_id if ctl is not None and ctl.status()["state"] in ACTIVE_STATES else None
+            ctl, released = self.controller, self._released
+        return ctl.run_id if ctl is not None and ctl.run_id != released else None
 
     def archive_list(self) -> dict:
         return self.cell_runs.pending(self._active_run_id())

@@ -121,8 +121,9 @@ class StationZenoh(_Strict):
 
 class DriftSection(_Strict):
     alpha: float = Field(0.01, gt=0, lt=0.5, description="false-alarm rate of the offset test")
-    accuracy_limit_mm: float | None = Field(None, gt=0, description="absolute limit of the error before correction")
-    accuracy_factor: float = Field(1.5, ge=1.0, description="else: limit = factor × what the reference reached")
+    accuracy_limit_mm: float | None = Field(None, gt=0,
+                                             description="absolute limit of the error as the robot runs (mm, held out)")
+    accuracy_factor: float = Field(1.5, ge=1.0, description="else: limit = factor × what the robot runs with its reference entered")
     check_interval_days: float | None = Field(30.0, gt=0)
     check_max_configurations: int = Field(12, ge=0)
     auto_enter: bool = True

@@ -3,8 +3,10 @@
 After a calibration is entered, the controller's zeros are that calibration's
    estimate, so a later measurement (a short check or a full run) should find offsets of zero
    up to the uncertainty of both: the entered values' error (σ_ref, per joint) and the new
-   measurement's (σ_new). With Δ the new offsets (or, for a reference *not* in the controller,
-   new − reference), over the k joints determined in both::
+   measurement's (σ_new). With Δ the new offsets less what the reference leaves expected
+   (``expected_deg``: 0 on an axis whose value was entered, the reference's offset on an axis
+   left unchanged; for a reference *not* in the controller, the reference's offset), over the
+   k joints determined in both::
 
        D = Σ_j Δ_j² / (σ_ref,j² + σ_new,j²)   ~ χ²(k) when nothing moved
 
@@ -46,6 +48,17 @@ class DriftVerdict:
         return asdict(self)
 
 
+def expected_deg(reference: dict, j: int, reference_in_controller: bool = True) -> float:
+    """The offset of joint ``j`` (deg) a later run finds if nothing moved since ``reference``: with
+    its values in the controller, its offset less what it entered (``entered_deg``; an entry
+    without it is taken as having entered every offset); otherwise its offset."""
+    value = reference["offsets_deg"][j]
+    if not reference_in_controller:
+        return value
+    entered = reference.get("entered_deg")
+    return 0.0 if entered is None else value - (entered[j] or 0.0)
+
+
 def check_drift(reference: dict | None, new: dict, *, alpha: float = FALSE_ALARM,
                 reference_in_controller: bool = True) -> DriftVerdict:
     """The drift verdict of history entry ``new`` against ``reference`` (see the module docstring).
@@ -64,7 +77,7 @@ def check_drift(reference: dict | None, new: dict, *, alpha: float = FALSE_ALARM
             vals = (new["offsets_deg"][j], new["std_deg"][j], reference["offsets_deg"][j], reference["std_deg"][j])
             if any(v is None for v in vals) or vals[1] <= 0 or vals[3] <= 0:
                 continue
-            delta = vals[0] - (0.0 if reference_in_controller else vals[2])
+            delta = vals[0] - expected_deg(reference, j, reference_in_controller)
             z2 = delta * delta / (vals[1] ** 2 + vals[3] ** 2)
             stat += z2
             verdict.dof += 1

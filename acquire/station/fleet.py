@@ -8,8 +8,9 @@ damaged and not yet repaired.
 
 Pages (``write_pages``): ``index.html`` — every robot with its state and why; ``<serial>.html`` —
 per axis the offsets as Δ from the entered reference (the reference itself at 0 with its ± 2σ,
-each later run's Δ ± 2σ and its drift threshold, ± 3 combined σ), the error before and after
-correction over time, and every run with its verdict. Axes a run left undetermined are said in
+each later run's Δ ± 2σ and its drift threshold, ± 3 combined σ), the error held out as the robot
+ran and with each run's values entered (``acquire.station.accuracy``) over time, and every run
+with its verdict. Axes a run left undetermined are said in
 words. Plain HTML with inline SVG (``calib.report.svg``), readable on a phone.
 """
 
@@ -22,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from acquire.station.drift import expected_deg
 from acquire.station.history import load_history, recompute, reference_for, robots
 from acquire.station.states import Policy, robot_state
 from calib.report.svg import TAB10, Figure, data_limits, esc
@@ -131,7 +133,8 @@ def deltas(hist: list[dict]) -> list[dict]:
                 row["reference"] = e["run_id"]
             elif ref is not None and ref["offsets_deg"][j] is not None and ref["std_deg"][j] is not None:
                 thr = 3.0 * math.hypot(s, ref["std_deg"][j])
-                row["axes"][name] = {"delta": v, "sigma": s, "threshold": thr, "beyond": abs(v) > thr}
+                d = v - expected_deg(ref, j)
+                row["axes"][name] = {"delta": d, "sigma": s, "threshold": thr, "beyond": abs(d) > thr}
                 row["reference"] = ref["run_id"]
             else:
                 row["axes"][name] = {"delta": None, "sigma": s, "threshold": None, "beyond": False}
@@ -200,11 +203,11 @@ def robot_page(archive_root: Path, serial: str, policy: Policy | None = None, no
     values = np.concatenate([acc_b, acc_a] + ([[st["accuracy_limit_mm"]]] if st["accuracy_limit_mm"] else []))
     top = float(np.nanmax(values)) if np.isfinite(values).any() else 1.0
     ax = afig.axes((70, 25, 660, 150), xlim, (0.0, 1.4 * top))   # headroom: the legend sits above the data
-    ax.scatter(days, acc_b, color=TAB10[3], size=6, label="before correction (as it runs)")
-    ax.scatter(days, acc_a, color=TAB10[2], size=6, label="after correction")
+    ax.scatter(days, acc_b, color=TAB10[3], size=6, label="as it ran (the controller's nominal arm)")
+    ax.scatter(days, acc_a, color=TAB10[2], size=6, label="with the run's values entered")
     if st["accuracy_limit_mm"]:
         ax.hline(st["accuracy_limit_mm"], color=TAB10[3])
-    ax.frame(title="mean absolute error" + (f" (line: limit {st['accuracy_limit_mm']:.3f} mm)"
+    ax.frame(title="mean error held out" + (f" (line: limit {st['accuracy_limit_mm']:.3f} mm)"
                                             if st["accuracy_limit_mm"] else ""),
              xlabel=since, ylabel="mm")
     ax.legend("upper left")
@@ -241,9 +244,9 @@ def robot_page(archive_root: Path, serial: str, policy: Policy | None = None, no
             + "<ul id='reasons'>" + "".join(f"<li>{esc(x)}</li>" for x in st["reasons"]) + "</ul>"
             + f"<h2>Offsets</h2>{offsets_svg}"
             + ("<ul id='notes'>" + "".join(f"<li>{n}</li>" for n in notes) + "</ul>" if notes else "")
-            + f"<h2>Accuracy</h2>{afig.svg('mean absolute error before and after correction over time')}"
+            + f"<h2>Accuracy</h2>{afig.svg('mean error held out, as it ran and with the values entered')}"
             + "<h2>Runs</h2><table id='runs'><tr><th>finished (UTC)</th><th>run</th><th>kind</th><th>entered</th>"
-            + f"<th>error before (mm)</th><th>error after (mm)</th><th>verdict</th>{head}</tr>{''.join(body)}</table>"
+            + f"<th>as it ran (mm)</th><th>values entered (mm)</th><th>verdict</th>{head}</tr>{''.join(body)}</table>"
             + f"<p>page written {datetime.now().astimezone().strftime('%Y-%m-%d %H:%M %Z')}</p></body></html>")
 
 

@@ -5,9 +5,16 @@
     {"run_id", "finished" (ISO 8601 UTC), "site", "cell", "kind": "calibration" | "check",
      "entered": bool, "joints": [names], "offsets_deg": [value or null per joint],
      "std_deg": [σ or null], "ci95_deg": [[lo, hi] or null],
-     "accuracy_mm": {"before": mean absolute error or null, "after": … },
+     "entered_deg": [what this run tells the operator to enter per joint (calib.robot.entered:
+                    the offsets fitted for the controller), 0 where nothing],
+     "accuracy_mm": {"before", "after", "n", "how"} (acquire.station.accuracy: the robot as it
+                    runs, scored held out on the controller's nominal arm; null when not scored),
      "do_not_enter": [the fit's reasons not to enter its offsets], "n_configurations",
      "drift": the drift verdict against the reference (acquire.station.drift) or null}
+
+``offsets_deg`` are the fit's best estimate of the zeros (``joint_offsets``); what is typed into the
+controller (``entered_deg``) may differ from them (fitted with the links at nominal), and the
+drift test expects a later run to find the difference (``acquire.station.drift.expected_deg``).
 
 ``kind``: a run with at most ``check_max_configurations`` measured configurations is a *check*
 (a short plan that only looks), otherwise a *calibration*. ``entered``: the offsets were typed
@@ -25,32 +32,42 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from acquire.station.accuracy import not_scored
 from acquire.station.drift import check_drift
 from acquire.station.states import CHECK_MAX_CONFIGURATIONS, Policy, reference_problem
+from calib.robot.entered import entered_values
 
 
 def entry_from_result(result: dict, *, run_id: str, finished: str, site: str, cell: str,
-                      check_max_configurations: int = CHECK_MAX_CONFIGURATIONS, auto_enter: bool = True) -> dict:
-    """A history entry from a ``result.json`` (``calib.fit.result``, format remaster.fit/1)."""
+                      check_max_configurations: int = CHECK_MAX_CONFIGURATIONS, auto_enter: bool = True,
+                      accuracy: dict | None = None) -> dict:
+    """A history entry from a ``result.json`` (``calib.fit.result``, format remaster.fit/1);
+    ``accuracy``: the run's ``acquire.station.accuracy.run_accuracy`` (None: not scored)."""
     offsets = result.get("joint_offsets")
     if not isinstance(offsets, list) or not offsets:
         raise ValueError(f"run {run_id}: result.json has no joint_offsets list; is it a remaster.fit/1 result?")
-    n_conf = int((result.get("data") or {}).get("n_configurations") or 0)
-    kind = "check" if n_conf <= check_max_configurations else "calibration"
     fitted = [bool(o.get("identifiable")) and o.get("value_deg") is not None and o.get("std_deg") is not None
               and o.get("status", "fitted") == "fitted" for o in offsets]
-    absolute = ((result.get("metrics") or {}).get("absolute") or {})
+    joints = [str(o.get("joint")) for o in offsets]
+    n_conf = int((result.get("data") or {}).get("n_configurations") or 0)
+    kind = "check" if n_conf <= check_max_configurations else "calibration"
+    refused = [str(r) for r in result.get("do_not_enter") or []]
+    try:
+        values = entered_values(result)
+        to_enter = [0.0] * len(joints) if values.refused else values.delta_deg(joints)
+    except ValueError:
+        to_enter = [0.0] * len(joints)
     return {
         "run_id": run_id, "finished": finished, "site": site, "cell": cell, "kind": kind,
         "n_configurations": n_conf,
         "entered": bool(auto_enter and kind == "calibration" and all(fitted)),
-        "joints": [str(o.get("joint")) for o in offsets],
+        "joints": joints,
         "offsets_deg": [o.get("value_deg") if f else None for o, f in zip(offsets, fitted)],
         "std_deg": [o.get("std_deg") if f else None for o, f in zip(offsets, fitted)],
         "ci95_deg": [o.get("ci95_deg") if f else None for o, f in zip(offsets, fitted)],
-        "accuracy_mm": {"before": (absolute.get("before") or {}).get("mean"),
-                        "after": (absolute.get("after") or {}).get("mean")},
-        "do_not_enter": [str(r) for r in result.get("do_not_enter") or []],
+        "entered_deg": to_enter,
+        "accuracy_mm": accuracy or not_scored("the run's log was not scored"),
+        "do_not_enter": refused,
         "drift": None,
     }
 

@@ -44,7 +44,7 @@ from acquire.station.alerts import Alerter
 from acquire.station.archive import Archive, ArchiveError, ArchiveFull, ArchiveRefused, RunRef, Transfer
 from acquire.station.config import StationConfig
 from acquire.station.history import load_history, robots
-from acquire.station.intake import record_run
+from acquire.station.intake import catch_up, record_run
 from acquire.station.scrub import ScrubReport, scrub
 from acquire.station.states import robot_state
 from acquire.daemon.tokens import read_token_file
@@ -142,6 +142,7 @@ class Station:
                        listen_loopback_only=all(_loopback(e) for e in [*z.listen, *z.connect]))
         self._states = self._read_states()
         self._write_station_file("policy.json", self.policy.to_dict())
+        catch_up(self.archive, self.policy)   # runs stored just before a stop, not yet in their history
         for expr in DAEMON_TOKENS:
             self.bus.watch_liveliness(expr, self._on_liveliness)
         for expr in ANNOUNCEMENTS:

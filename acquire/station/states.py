@@ -7,9 +7,12 @@
 ``drifted``            the last measurement after the entered calibration (the *reference*) finds
                        offsets beyond their combined uncertainty (χ² test, ``acquire.station.drift``);
                        the axes beyond 3 combined σ are named.
-``out of tolerance``   that measurement's mean absolute error before correction (the robot as it
-                       runs) is over the limit: ``accuracy_limit_mm`` when set, else
-                       ``accuracy_factor`` × the error after correction its reference reached.
+``out of tolerance``   that measurement's error as the robot runs is over the limit:
+                       ``accuracy_limit_mm`` when set, else ``accuracy_factor`` × the error its
+                       reference's values reach once entered. Both are what the controller runs
+                       (its nominal arm at the reported angles, plus what is entered), scored
+                       held out from the archived log (``acquire.station.accuracy``), never the
+                       fit's model.
 ``check due``          nothing was measured for ``check_interval_days``.
 ``calibrated``         none of the above.
 
@@ -76,10 +79,11 @@ def accuracy_limit(reference: dict, policy: Policy) -> tuple[float | None, str]:
         return policy.accuracy_limit_mm, f"the plant's limit {policy.accuracy_limit_mm:g} mm"
     after = (reference.get("accuracy_mm") or {}).get("after")
     if after is None or not math.isfinite(after):
-        return None, "no limit: the reference has no accuracy after correction"
+        return None, ("no limit: the reference's accuracy with its values entered is unknown ("
+                      + str((reference.get("accuracy_mm") or {}).get("how") or "not scored") + ")")
     limit = policy.accuracy_factor * after
-    return limit, (f"{policy.accuracy_factor:g} × the {after:.3f} mm this robot's calibration "
-                   f"{reference['run_id']} reached")
+    return limit, (f"{policy.accuracy_factor:g} × the {after:.3f} mm this robot runs with calibration "
+                   f"{reference['run_id']} entered")
 
 
 def _age_days(entry: dict, now: datetime) -> float:
@@ -123,7 +127,7 @@ def robot_state(entries: list[dict], policy: Policy = Policy(), now: datetime | 
         out["accuracy_mm"], out["accuracy_limit_mm"] = acc, limit
         if acc is not None and limit is not None and math.isfinite(acc) and acc > limit:
             states.append("out of tolerance")
-            out["reasons"].append(f"run {last['run_id']}: mean absolute error {acc:.3f} mm before correction, over "
+            out["reasons"].append(f"run {last['run_id']}: mean error {acc:.3f} mm as the robot runs, over "
                                   f"{limit:.3f} mm ({how})")
     newest = last or ref
     if policy.check_interval_days is not None and _age_days(newest, now) > policy.check_interval_days:

@@ -166,3 +166,26 @@ def test_a_run_whose_result_is_not_a_fit_is_archived_without_a_history_entry(tmp
     assert record_run(archive, manifest) is None
     assert load_history(tmp_path, "KR6-0815") == [] and archive.verify(manifest) == []
     assert "is not a result the history can use" in caplog.text
+
+
+def test_a_run_stored_but_not_recorded_is_added_to_its_history_at_start(tmp_path):
+    """A station killed between storing a run and recording it: the cell has its confirmation and
+    never sends it again, so the next start adds it from the archive (once)."""
+    from acquire.station.history import load_history
+    from acquire.station.intake import catch_up
+
+    archive = Archive(tmp_path)
+    result = {"format": "remaster.fit/1", "data": {"n_configurations": 20},
+              "joint_offsets": [{"joint": "A1", "value_deg": 0.1, "std_deg": 0.01, "identifiable": True}]}
+    run = {"r1.mcap": b"log", "result.json": json.dumps(result).encode()}
+    t = archive.begin(REF, _files(run), "2026-11-26T10:00:00+00:00")
+    _send(t, run)
+    t.finish()   # … and the station dies before record_run
+    plain = RunRef("plant-a", "c1", "r2", "KR6-0815")
+    t = archive.begin(plain, _files({"r2.mcap": b"log"}), "2026-11-27T10:00:00+00:00")
+    _send(t, {"r2.mcap": b"log"})
+    t.finish()   # a run without a result has no history entry to catch up
+    assert load_history(tmp_path, "KR6-0815") == []
+    assert catch_up(archive) == ["r1"]
+    assert [e["run_id"] for e in load_history(tmp_path, "KR6-0815")] == ["r1"]
+    assert catch_up(archive) == []

@@ -63,3 +63,25 @@ def test_retention_deletes_a_run_only_once_the_station_re_verified_it_and_it_is_
     with pytest.raises(Conflict, match="was not confirmed with these files"):
         cell.confirm({"run_id": "changed", "files": cell.files(tmp_path / "changed"), "verified": True}, "station")
     assert CellRuns(tmp_path, "R1").prune(now=later) == []     # no retention configured: keep everything
+
+
+def test_a_daemon_offers_its_ended_run_only_once_it_has_let_it_go(tmp_path):
+    """An ended run's text log still takes lines until the daemon closes it: the run is listed as
+    current (not offered) until then, and offered as soon as it is closed."""
+    from acquire.daemon.config import DaemonConfig
+    from acquire.daemon.service import Daemon
+
+    daemon = Daemon(DaemonConfig(cell="c1", robot_serial="R1", fake=True, state_dir=tmp_path))
+    _run(daemon.runs_dir, "r1")
+
+    class Ended:
+        run_id = "r1"
+
+        @staticmethod
+        def status() -> dict:
+            return {"state": "finished", "run_id": "r1"}
+
+    daemon.controller = Ended()
+    assert daemon.archive_list()["runs"] == []
+    daemon._release(daemon.controller)   # its text log closed: offered while the devices come back
+    assert [r["run_id"] for r in daemon.archive_list()["runs"]] == ["r1"]

@@ -73,6 +73,25 @@ def test_a_result_json_becomes_a_history_entry():
               "metrics": {"absolute": {"before": {"mean": 1.2}, "after": {"mean": 0.2}}}}
     e = entry_from_result(result, run_id="r", finished="2026-01-01T00:00:00", site="s", cell="c")
     assert e["kind"] == "calibration" and e["entered"] is False  # an undetermined offset: not entered
-    assert e["offsets_deg"] == [0.1, None] and e["accuracy_mm"] == {"before": 1.2, "after": 0.2}
+    assert e["offsets_deg"] == [0.1, None]
+    assert e["entered_deg"] == pytest.approx([0.1, 0.0])  # an older result enters its fitted offsets
+    # the fit's own metrics describe its model, not the robot: without the run's log nothing is scored
+    assert e["accuracy_mm"]["before"] is None and e["accuracy_mm"]["how"].startswith("not scored")
     with pytest.raises(ValueError, match="no joint_offsets"):
         entry_from_result({}, run_id="r", finished="x", site="", cell="c")
+
+
+def test_a_later_run_is_expected_to_find_what_the_entry_left():
+    """What was typed in (the offsets fitted for the nominal arm, ``entered_deg``) differs from the
+    fit's best estimate of the zeros (``offsets_deg``): a stable robot's later run finds the
+    difference on an entered axis and the reference's own offset on an axis left unchanged."""
+    offsets = [0.30, -0.20, 0.10, 0.0, 0.0, 0.0]
+    ref = _entry("ref", "2026-01-01T00:00:00", offsets, [0.005] * 6)
+    ref["entered_deg"] = [0.26, -0.20, 0.0, 0.0, 0.0, 0.0]   # A1 entered as fitted for the nominal arm; A3 left
+    stable = _entry("k", "2026-02-01T00:00:00", [0.04, 0.0, 0.10, 0, 0, 0], [0.005] * 6, kind="check")
+    assert not check_drift(ref, stable).drifted
+    assumed = dict(ref, entered_deg=None)   # an entry without entered_deg: every offset taken as entered
+    v = check_drift(assumed, stable)
+    assert v.drifted and v.joints == ["A1", "A3"]
+    moved = _entry("m", "2026-02-01T00:00:00", [0.04, 0.08, 0.10, 0, 0, 0], [0.005] * 6, kind="check")
+    assert check_drift(ref, moved).joints == ["A2"]

@@ -46,8 +46,8 @@ def test_accuracy_over_the_relative_or_the_absolute_limit_is_out_of_tolerance():
     hist = [_entry("cal", 1, after=0.6), _entry("chk", 5, std=[0.01] * 6, n_conf=8, before=1.0)]
     st = robot_state(hist, now=NOW)
     assert st["state"] == "out of tolerance" and st["accuracy_limit_mm"] == pytest.approx(0.9)
-    assert "1.000 mm before correction, over 0.900 mm (1.5 × the 0.600 mm this robot's calibration cal reached)" \
-        in st["reasons"][0]
+    assert "1.000 mm as the robot runs, over 0.900 mm (1.5 × the 0.600 mm this robot runs with calibration cal " \
+        "entered)" in st["reasons"][0]
     assert robot_state(hist, Policy(accuracy_limit_mm=1.2), now=NOW)["state"] == "calibrated"
     assert robot_state(hist, Policy(accuracy_factor=2.0), now=NOW)["state"] == "calibrated"
     st = robot_state(hist, Policy(accuracy_limit_mm=0.5), now=NOW)
