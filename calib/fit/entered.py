@@ -50,7 +50,7 @@ from calib.robot.canonical import wrap_deg
 from calib.robot.gravity import gravity_torques
 from calib.robot.kinematics import Chain
 from calib.robot.model import RobotModel
-from calib.robot.transforms import exp_so3
+from calib.robot.transforms import exp_so3, skew, so3_left_jacobian
 
 #: z of the two-sided 95 % interval, and the significance an offset needs to be entered.
 Z95 = 1.96
@@ -110,7 +110,8 @@ def _rows(chain: Chain, data: Dataset) -> tuple[list[str], np.ndarray, list[str]
 def place(chain: Chain, arm: Arm, data: Dataset, *, free_tool: bool = True) -> Placement:
     """Least-squares registration per sensor and (``free_tool``) marker positions on the flange for
     ``arm``, its kinematics held fixed: min Σ |T_s·(R_f·m + p_f) − y|² over the rows of ``data``.
-    Starts from the arm's markers and the SVD registration; Levenberg–Marquardt on the rest."""
+    Starts from the arm's markers and the SVD registration; Levenberg–Marquardt on the rest, with the
+    analytic Jacobian."""
     rot, pos = arm.flange(chain, data.q_rad)
     sensors, s_idx, markers, m_idx = _rows(chain, data)
     start = chain.marker_slice().start
@@ -136,9 +137,26 @@ def place(chain: Chain, arm: Arm, data: Dataset, *, free_tool: bool = True) -> P
         pb = np.einsum("kij,kj->ki", rot, m[m_idx]) + pos
         return (np.einsum("kij,kj->ki", t[:, :3, :3], pb) + t[:, :3, 3] - data.xyz_mm).ravel()
 
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        """∂ residuals / ∂ x (3k, len(x)): a sensor's turn w moves R_s·p by −[R_s·p]× J_l(w)
+        (``so3_left_jacobian``), its shift by I, a marker by R_s·R_f."""
+        regs, m = unpack(x)
+        r_s = np.stack(regs)[s_idx, :3, :3]  # (k, 3, 3)
+        turned = np.einsum("kij,kj->ki", r_s, np.einsum("kij,kj->ki", rot, m[m_idx]) + pos)
+        j = np.zeros((len(data), 3, x.size))
+        for i in range(n_s):
+            rows = s_idx == i
+            j[rows, :, 6 * i: 6 * i + 3] = -skew(turned[rows]) @ so3_left_jacobian(x[6 * i: 6 * i + 3])
+            j[rows, :, 6 * i + 3: 6 * i + 6] = np.eye(3)
+        if free_tool:
+            moved = r_s @ rot  # (k, 3, 3)
+            for c in range(len(markers)):
+                j[m_idx == c, :, 6 * n_s + 3 * c: 6 * n_s + 3 * c + 3] = moved[m_idx == c]
+        return j.reshape(-1, x.size)
+
     x0 = np.zeros(6 * n_s + (3 * len(markers) if free_tool else 0))
-    sol = least_squares(residuals, x0, method="lm", x_scale=np.r_[np.tile([1e-3] * 3 + [1.0] * 3, n_s),
-                                                                np.ones(x0.size - 6 * n_s)], xtol=1e-12, ftol=1e-12)
+    sol = least_squares(residuals, x0, jac=jacobian, method="lm", xtol=1e-12, ftol=1e-12,
+                        x_scale=np.r_[np.tile([1e-3] * 3 + [1.0] * 3, n_s), np.ones(x0.size - 6 * n_s)])
     regs, m = unpack(sol.x)
     return Placement(dict(zip(sensors, regs)), dict(zip(markers, m)))
 
