@@ -455,8 +455,8 @@ def fold_scores(job: FoldJob, fold: int, skip: frozenset[int] = frozenset(), pro
     tol, why = job.link_tolerance, None
     if tol is None and any(c.kind == "offsets+tool+links" for c in cands):
         try:  # the fold's own scale: its held-out configurations never inform it
-            found = empirical_link_scale(model, train, replace(base, compliance=False),
-                                         start=job.starts.get("offsets+tool+links"))
+            found = empirical_link_scale(model, train, replace(base, compliance=False), start=next(
+                (job.starts[n] for n in ("offsets+tool+links", "offsets+tool+links+compliance") if n in job.starts), None))
             tol = (found["length_mm"], found["angle_deg"])
         except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
             why = f"fold {fold + 1}: the link scale could not be estimated on its training configurations: {exc}"
