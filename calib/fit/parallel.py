@@ -116,7 +116,10 @@ def map_in_order(fn: Callable[[C, T], R], context: C, tasks: Iterable[T], jobs: 
 
 
 def _in_pool(fn, context, tasks, jobs, done):
-    ctx = multiprocessing.get_context(_start_method())
+    method = _start_method()
+    ctx = multiprocessing.get_context(method)
+    if method == "forkserver":  # the server imports fn's module once; each worker forks from it
+        ctx.set_forkserver_preload([fn.__module__])
     results: dict[int, object] = {}
     with ProcessPoolExecutor(max_workers=min(jobs, len(tasks)), mp_context=ctx, initializer=_set_context,
                              initargs=(context,)) as pool:

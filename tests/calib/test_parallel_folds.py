@@ -8,6 +8,7 @@ plate, offsets of N(0, 0.1°), a tool 2 mm off its drawing, 0.02 mm noise).
 
 from __future__ import annotations
 
+import operator
 import os
 
 import numpy as np
@@ -50,6 +51,23 @@ def test_pieces_come_back_in_order_and_a_broken_pool_runs_them_here():
     assert map_in_order(_square, 1, [3, 1, 2], 2, done=lambda t, r: seen.append((t, r))) == [10, 2, 5]
     assert sorted(seen) == [(1, 2), (2, 5), (3, 10)]
     assert map_in_order(_square_or_die, os.getpid(), [1, 2, 3], 2) == [1, 4, 9]
+
+
+def test_beside_another_thread_the_workers_come_from_a_fork_server():
+    """A process with another Python thread (the run's end-of-run fit, the daemon) does not fork it."""
+    import threading
+
+    from calib.fit import parallel
+
+    stop = threading.Event()
+    other = threading.Thread(target=stop.wait, daemon=True)
+    other.start()
+    try:
+        assert parallel._start_method() in ("forkserver", "spawn")
+        assert map_in_order(operator.mul, 3, [4, 5], 2) == [12, 15]  # (a function whose module is light to import)
+    finally:
+        stop.set()
+        other.join()
 
 
 def test_parallel_folds_give_the_serial_scores_exactly():
