@@ -17,6 +17,78 @@ def _link_tolerance(fit) -> tuple[float, float] | None:
     return None if mm is None or deg is None else (float(mm), float(deg))
 
 
+def fit_run_log_apart(log_path: Path, lp, *, n_random: int = 500, progress_sink=None,
+                      every_s: float = 1.0) -> tuple[dict, Path, Path | None]:
+    """``fit_run_log`` in a process of its own: the end-of-run fit of ``acquire run`` and the daemon.
+
+    The run's process still runs the cell's threads when it fits (its devices' receivers, the bus,
+    the status; a simulated cell's controller and sensors): a CPU-bound fit beside them contends
+    for the interpreter lock, and on a busy machine the lock's hand-overs wait for the scheduler.
+    Measured on the README's main job at load 36 on 2 cores: the fit's thread got 4.0 CPU-s in
+    233 s of wall while the process's other threads used 15 CPU-s; the same fit alone took 67 s
+    (``tests/bench/README.md``). In a process of its own it has the lock to itself, for about one
+    CPU-second of imports (a fork server's: the run's process has threads, so it is not forked).
+
+    ``progress_sink(text, eta_s)``: the fit's progress lines (``calib.fit.progress.Progress``, at
+    most one every ``every_s``), delivered here. The fit's errors (ValueError, RuntimeError,
+    ArithmeticError) are raised here as there; a fit process that ends without a result raises
+    RuntimeError with its exit code — the log is kept (``acquire fit LOG`` fits it later)."""
+    import multiprocessing
+    import queue as queues
+
+    methods = multiprocessing.get_all_start_methods()
+    ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
+    messages = ctx.Queue()
+    proc = ctx.Process(target=_fit_apart, args=(Path(log_path), lp, n_random, every_s, messages), daemon=True,
+                       name="end-of-run fit")
+    proc.start()
+    try:
+        while True:
+            try:
+                kind, *rest = messages.get(timeout=0.5)
+            except queues.Empty:
+                if proc.is_alive():
+                    continue
+                try:  # its last message may still be on its way
+                    kind, *rest = messages.get(timeout=2.0)
+                except queues.Empty:
+                    raise RuntimeError(f"the end-of-run fit's process ended (exit code {proc.exitcode}) without a "
+                                       f"result; the log is kept: acquire fit {log_path}") from None
+            if kind == "progress":
+                if progress_sink is not None:
+                    progress_sink(*rest)
+            elif kind == "done":
+                return rest[0]
+            else:
+                raise rest[0]
+    finally:
+        proc.join(timeout=10.0)
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(timeout=5.0)
+        messages.close()
+
+
+def _fit_apart(log_path: Path, lp, n_random: int, every_s: float, messages) -> None:
+    """The fit process of ``fit_run_log_apart``: its progress, then its result or its error, on ``messages``."""
+    import signal
+
+    from calib.fit.progress import Progress
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the run (its process), not a fit already begun
+    progress = Progress(lambda text, eta: messages.put(("progress", text, eta)), every_s=every_s)
+    try:
+        messages.put(("done", fit_run_log(log_path, lp, n_random=n_random, progress=progress)))
+    except (ValueError, RuntimeError, ArithmeticError) as exc:
+        import pickle
+
+        try:
+            pickle.loads(pickle.dumps(exc))
+        except Exception:  # noqa: BLE001 (an exception that does not pickle: its type and text)
+            exc = RuntimeError(f"{type(exc).__name__}: {exc}")
+        messages.put(("error", exc))
+
+
 def fit_run_log(log_path: Path, lp, *, n_random: int = 500, progress=None) -> tuple[dict, Path, Path | None]:
     """Fit the zero-offsets from a run log; write ``result.json`` and ``report.html`` beside it.
 
