@@ -36,14 +36,8 @@ def fit_run_log_apart(log_path: Path, lp, *, n_random: int = 500, progress_sink=
     import multiprocessing
     import queue as queues
 
-    from dataclasses import replace
-
-    from calib.robot.model import robot_model_from_dict
-
     methods = multiprocessing.get_all_start_methods()
     ctx = multiprocessing.get_context("forkserver" if "forkserver" in methods else "spawn")
-    # The robot model as its fields say (what it caches on the way, e.g. its IK solvers, stays here).
-    lp = replace(lp, model=robot_model_from_dict(lp.model.model_dump())) if lp is not None and hasattr(lp, "model") else lp
     messages = ctx.Queue()
     proc = ctx.Process(target=_fit_apart, args=(Path(log_path), lp, n_random, every_s, messages), daemon=True,
                        name="end-of-run fit")
