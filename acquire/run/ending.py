@@ -1,6 +1,5 @@
 """The end of a run: stop the robot on an abort, the link's figures and the last event into the
-log, close the devices and the log, then hand the log to the fitter (``fitting.fit_run_log``, in a
-process of its own: ``fitting.fit_run_log_apart``).
+log, close the devices and the log, then hand the log to the fitter (``fitting.fit_run_log``).
 
 A run asked for a result that has none (nothing measured, the fit failed) ends ``failed`` with
 the reason, not ``finished``: the operator must not read "finished" as "calibrated".
@@ -41,7 +40,7 @@ def log_link(commander, event) -> None:
 def finish(ctl, cell_seconds: float):
     """End the run of ``ctl`` (a ``RunController`` whose loop has stopped); returns its
     ``RunSummary`` with the fit when one was asked for and made."""
-    from acquire.run.fitting import fit_run_log_apart
+    from acquire.run.fitting import fit_run_log
 
     state, pub = ctl.state, ctl.pub
     aborted = state.aborting.is_set()
@@ -69,9 +68,11 @@ def finish(ctl, cell_seconds: float):
             reason = (f"no result: none of the {state.total} configurations was measured "
                       f"({state.skipped} skipped, {state.failed} failed)")
         else:
-            try:  # in a process of its own: the cell's threads here would slow it (``fit_run_log_apart``)
-                summary.fit, summary.result_path, summary.report_path = fit_run_log_apart(
-                    state.log_path, ctl.lp, progress_sink=state.fitting)
+            try:
+                from calib.fit.progress import Progress
+
+                summary.fit, summary.result_path, summary.report_path = fit_run_log(
+                    state.log_path, ctl.lp, progress=Progress(state.fitting, every_s=1.0))
             except (ValueError, RuntimeError, ArithmeticError) as exc:
                 reason = f"no result: the fit of {state.measured} measured configuration(s) failed: {exc}"
             if summary.fit is not None and summary.adaptive is not None:
