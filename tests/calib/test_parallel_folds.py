@@ -26,9 +26,11 @@ QUICK = FitOptions(method="laplace", n_draws=250)
 def test_the_processes_follow_the_environment_the_cores_and_the_blas_threads():
     assert fit_jobs(5, {JOBS_ENV: "1"}) == fit_jobs(5, {JOBS_ENV: "serial"}) == 1
     assert fit_jobs(5, {JOBS_ENV: "3"}) == 3 and fit_jobs(2, {JOBS_ENV: "3"}) == 2  # never more than the pieces
-    assert fit_jobs(5, {}, cpus=4) == 4 and fit_jobs(5, {JOBS_ENV: "auto"}, cpus=8) == 5
-    assert fit_jobs(5, {"OPENBLAS_NUM_THREADS": "2"}, cpus=4) == 2  # processes × BLAS threads ≤ cores
-    assert fit_jobs(5, {"OMP_NUM_THREADS": "8"}, cpus=4) == 1
+    assert fit_jobs(5, {}, cpus=4, load=0.5) == 4 and fit_jobs(5, {JOBS_ENV: "auto"}, cpus=8, load=0.0) == 5
+    assert fit_jobs(5, {"OPENBLAS_NUM_THREADS": "2"}, cpus=4, load=0.0) == 2  # processes × BLAS threads ≤ cores
+    assert fit_jobs(5, {"OMP_NUM_THREADS": "8"}, cpus=4, load=0.0) == 1
+    assert fit_jobs(5, {}, cpus=4, load=2.2) == 2 and fit_jobs(5, {}, cpus=2, load=7.0) == 1  # the busy cores left out
+    assert fit_jobs(5, {JOBS_ENV: "2"}, cpus=2, load=7.0) == 2  # (a number is the user's: taken as said)
     assert fit_jobs(5, {}) <= len(os.sched_getaffinity(0))
     with pytest.raises(ValueError, match=f"{JOBS_ENV}='two'.*'auto'.*'serial'"):
         fit_jobs(5, {JOBS_ENV: "two"})
