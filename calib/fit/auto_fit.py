@@ -22,9 +22,14 @@ from calib.robot.controller import apply_guards, earned_reasons
 from calib.measure.dataset import Dataset
 from calib.fit.offsets import FitOptions, FitResult, fit_offsets
 from calib.robot.model import RobotModel
-from calib.fit.model_choice import ModelChoice, choose_model, interval_factor, options_for, parse_candidate
+from calib.fit.model_choice import ENTERED, ModelChoice, choose_model, interval_factor, options_for, parse_candidate
 from calib.fit.heldout_misfit import scale_offset_intervals
 from calib.fit.entered import as_found_markers, attach, fitted_arm, for_controller, identified_arm, refused_document
+
+
+#: Where the controller's offsets (``ENTERED``: offsets+tool) start: that candidate's mode on all the
+#: data, else the nearest candidate's (by name, ``fit_mode``: their common terms, the rest at nominal).
+ENTERED_STARTS = ("offsets+tool", "offsets+tool+compliance", "offsets", "offsets+compliance")
 
 
 def ident_joint_offsets(doc: dict, model: RobotModel) -> list[dict]:
@@ -102,7 +107,7 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
         ident.do_not_use.extend(refused)
         doc["do_not_use"] = list(ident.do_not_use)
         doc["joint_offsets"] = ident_joint_offsets(doc, model)
-        refused, text = _enter_for_controller(model, cal, val, base, choice, doc, identified_arm(ident), k)
+        refused, text = _enter_for_controller(model, cal, val, base, choice, doc, identified_arm(ident), k, progress)
         return AutoFit(choice, doc, refused, ident=ident, controller_text=text, model_refused=list(ident.do_not_use))
     scale = choice.link_scale
     tolerance = (scale["length_mm"], scale["angle_deg"]) if scale else None
@@ -128,21 +133,32 @@ def auto_fit(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOpti
     factor = interval_factor(choice.score(choice.chosen).misfit)
     if factor > 1.0:  # the intervals as wide as the held-out configurations say (calib.fit.heldout_misfit)
         scale_offset_intervals(doc, factor)
-    refused, text = _enter_for_controller(model, cal, val, base, choice, doc, fitted_arm(result.posterior, result.mode[: result.posterior.dim]), k)
+    refused, text = _enter_for_controller(model, cal, val, base, choice, doc, fitted_arm(result.posterior, result.mode[: result.posterior.dim]), k,
+                                          progress, result if choice.chosen == ENTERED.name else None)
     return AutoFit(choice, doc, refused, result=result, controller_text=text, model_refused=apply_guards(doc))
 
 
 def _enter_for_controller(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOptions, choice: ModelChoice,
-                          doc: dict, full_arm, k: int) -> tuple[list[str], str]:
+                          doc: dict, full_arm, k: int, progress=None,
+                          chosen_fit: FitResult | None = None) -> tuple[list[str], str]:
     """``doc["entered"]`` (``calib.fit.entered``: the offsets fitted for the controller's nominal arm and the
-    three robots held out) and ``doc["controller"]`` from it; returns (why not to enter, the values' text)."""
+    three robots held out) and ``doc["controller"]`` from it; returns (why not to enter, the values' text).
+
+    Nothing the model choice fitted is fitted again: the controller's offsets start from its fit of
+    offsets+tool on all the data (or, where that was no candidate, of the nearest one: the same mode,
+    fewer steps), are that fit's posterior itself where offsets+tool was chosen (``chosen_fit``), and
+    its folds' offsets are the model choice's where the same axes are fitted."""
     chosen = choice.score(choice.chosen)
     names = {s.name for s in choice.scores}
     misfit = choice.score("offsets+tool").misfit if "offsets+tool" in names else None
     full_cv = None if chosen.failed else dict(zip(chosen.configs.tolist(), chosen.errors_mm.tolist()))
+    start = next((choice.starts[n] for n in ENTERED_STARTS if n in choice.starts), None)
+    if progress is not None:
+        progress.begin("the controller's offsets (links at nominal) and their held-out check")
     try:
         entered, _ = for_controller(model, cal, val, base, full_arm=full_arm, full_folds=full_cv,
-                                    fitted_model=choice.chosen, std_factor=interval_factor(misfit), k=k)
+                                    fitted_model=choice.chosen, std_factor=interval_factor(misfit), k=k,
+                                    start=start, reuse=chosen_fit, fold_offsets=choice.entered_folds)
     except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:  # e.g. too few configurations for offsets+tool
         entered = refused_document(model, str(exc), "validation" if val is not None else "cross-validation")
     if full_cv is None and val is None:

@@ -43,14 +43,14 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from calib.fit.model_choice import CV_TOL, config_errors, fold_labels
-from calib.fit.offsets import FitOptions, FitResult, fit_mode, fit_offsets
+from calib.fit.offsets import FitOptions, FitResult, ModeFit, fit_mode, fit_offsets
 from calib.fit.registration import register_least_squares
 from calib.measure.dataset import Dataset
 from calib.robot.canonical import wrap_deg
 from calib.robot.gravity import gravity_torques
 from calib.robot.kinematics import Chain
 from calib.robot.model import RobotModel
-from calib.robot.transforms import exp_so3
+from calib.robot.transforms import exp_so3, skew, so3_left_jacobian
 
 #: z of the two-sided 95 % interval, and the significance an offset needs to be entered.
 Z95 = 1.96
@@ -110,7 +110,8 @@ def _rows(chain: Chain, data: Dataset) -> tuple[list[str], np.ndarray, list[str]
 def place(chain: Chain, arm: Arm, data: Dataset, *, free_tool: bool = True) -> Placement:
     """Least-squares registration per sensor and (``free_tool``) marker positions on the flange for
     ``arm``, its kinematics held fixed: min Σ |T_s·(R_f·m + p_f) − y|² over the rows of ``data``.
-    Starts from the arm's markers and the SVD registration; Levenberg–Marquardt on the rest."""
+    Starts from the arm's markers and the SVD registration; Levenberg–Marquardt on the rest, with the
+    analytic Jacobian."""
     rot, pos = arm.flange(chain, data.q_rad)
     sensors, s_idx, markers, m_idx = _rows(chain, data)
     start = chain.marker_slice().start
@@ -136,9 +137,26 @@ def place(chain: Chain, arm: Arm, data: Dataset, *, free_tool: bool = True) -> P
         pb = np.einsum("kij,kj->ki", rot, m[m_idx]) + pos
         return (np.einsum("kij,kj->ki", t[:, :3, :3], pb) + t[:, :3, 3] - data.xyz_mm).ravel()
 
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        """∂ residuals / ∂ x (3k, len(x)): a sensor's turn w moves R_s·p by −[R_s·p]× J_l(w)
+        (``so3_left_jacobian``), its shift by I, a marker by R_s·R_f."""
+        regs, m = unpack(x)
+        r_s = np.stack(regs)[s_idx, :3, :3]  # (k, 3, 3)
+        turned = np.einsum("kij,kj->ki", r_s, np.einsum("kij,kj->ki", rot, m[m_idx]) + pos)
+        j = np.zeros((len(data), 3, x.size))
+        for i in range(n_s):
+            rows = s_idx == i
+            j[rows, :, 6 * i: 6 * i + 3] = -skew(turned[rows]) @ so3_left_jacobian(x[6 * i: 6 * i + 3])
+            j[rows, :, 6 * i + 3: 6 * i + 6] = np.eye(3)
+        if free_tool:
+            moved = r_s @ rot  # (k, 3, 3)
+            for c in range(len(markers)):
+                j[m_idx == c, :, 6 * n_s + 3 * c: 6 * n_s + 3 * c + 3] = moved[m_idx == c]
+        return j.reshape(-1, x.size)
+
     x0 = np.zeros(6 * n_s + (3 * len(markers) if free_tool else 0))
-    sol = least_squares(residuals, x0, method="lm", x_scale=np.r_[np.tile([1e-3] * 3 + [1.0] * 3, n_s),
-                                                                np.ones(x0.size - 6 * n_s)], xtol=1e-12, ftol=1e-12)
+    sol = least_squares(residuals, x0, jac=jacobian, method="lm", xtol=1e-12, ftol=1e-12,
+                        x_scale=np.r_[np.tile([1e-3] * 3 + [1.0] * 3, n_s), np.ones(x0.size - 6 * n_s)])
     regs, m = unpack(sol.x)
     return Placement(dict(zip(sensors, regs)), dict(zip(markers, m)))
 
@@ -202,16 +220,21 @@ def _axis_entries(result: FitResult, factor: float, dropped: dict[int, str]) -> 
     return out
 
 
-def fit_entered(model: RobotModel, cal: Dataset, base: FitOptions, *, std_factor: float = 1.0) -> EnteredFit:
-    """The offsets to enter (module text, step 1). ``std_factor``: widen the stds by this (≥ 1)."""
+def fit_entered(model: RobotModel, cal: Dataset, base: FitOptions, *, std_factor: float = 1.0,
+                start: ModeFit | None = None, reuse: FitResult | None = None) -> EnteredFit:
+    """The offsets to enter (module text, step 1). ``std_factor``: widen the stds by this (≥ 1).
+    ``start``: a mode on ``cal`` where the solves start (``fit_mode``; the model choice's fit of
+    ``offsets+tool``, or of a neighbour of it: the mode is the same, reached in fewer steps);
+    ``reuse``: the fit of ``entered_options(base)`` on ``cal`` already made (the model choice chose
+    ``offsets+tool``: the default fit's own posterior), used instead of fitting it again."""
     options = entered_options(base)
-    result = fit_offsets(model, cal, options)
+    result = reuse if reuse is not None else fit_offsets(model, cal, options, start=start)
     offsets = _axis_entries(result, std_factor, {})
     joints = tuple(o["index"] for o in offsets if o["significant"])
     fitted = tuple(o["index"] for o in offsets if o["value_deg"] is not None)
     if joints and joints != fitted:  # fit again with the axes left unchanged held at zero
         dropped = {o["index"] - 1: o["reason"] for o in offsets if not o["significant"]}
-        result = fit_offsets(model, cal, replace(options, joints=joints))
+        result = fit_offsets(model, cal, replace(options, joints=joints), start=start)
         again = _axis_entries(result, std_factor, dropped)
         for o, first in zip(again, offsets):
             if o["index"] - 1 in dropped:  # left unchanged: its value and std as first fitted, for the record
@@ -281,17 +304,23 @@ def heldout_on_validation(chain: Chain, arms: dict[str, Arm], val: Dataset, *, f
 
 def heldout_by_folds(model: RobotModel, data: Dataset, options: FitOptions, entered_joints: tuple[int, ...], *,
                      k: int = 5, full_model: Callable[[Dataset], Arm] | dict[str, float] | None = None,
-                     free_tool: bool = True) -> Heldout:
+                     free_tool: bool = True, start: ModeFit | None = None,
+                     fold_offsets: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> Heldout:
     """K-fold scores (the folds of ``fold_labels(data, k, options.seed)``): per fold the offsets of
     ``entered_joints`` fitted on the other folds by the posterior mode of ``options`` (``entered_options``
     of the user's, or an offsets-only fit's own; none: the entered robot is the robot as found), every
     robot placed on the other folds and scored on the held-out one.
     ``full_model``: per fold the arm of the full model (a function of the training data), or the
     held-out errors the model choice already scored for it (configuration → mm, the same folds); None:
-    the full model is the entered robot (an offsets-only fit)."""
+    the full model is the entered robot (an offsets-only fit).
+    ``start``: a mode on ``data`` where the folds' solves start (``fit_mode``); ``fold_offsets``: fold →
+    (offsets (n,) rad, fitted axes (n,) bool) of this model already fitted on that fold's other
+    folds (``calib.fit.model_choice.ModelChoice.entered_folds``, the same folds): used instead of
+    fitting the fold again where its fitted axes are ``entered_joints``."""
     chain = Chain(model)
     labels, grouping = fold_labels(data, k, options.seed)
     options = replace(options, joints=entered_joints)
+    wanted = np.isin(np.arange(1, chain.n + 1), entered_joints)
     names, errors = [], {r: [] for r in ROBOTS}
     for f in range(int(labels.max()) + 1):
         train, test = data.subset(labels != f), data.subset(labels == f)
@@ -300,9 +329,12 @@ def heldout_by_folds(model: RobotModel, data: Dataset, options: FitOptions, ente
             continue
         test = test.subset(ok)
         arms = {"as_found": nominal_arm(chain)}
-        if entered_joints:
+        known = (fold_offsets or {}).get(f)
+        if entered_joints and known is not None and np.array_equal(known[1], wanted):
+            arms["entered"] = nominal_arm(chain, known[0])
+        elif entered_joints:
             try:
-                mf = fit_mode(model, train, options, tol=CV_TOL)
+                mf = fit_mode(model, train, options, tol=CV_TOL, start=start)
             except (ValueError, np.linalg.LinAlgError) as exc:
                 raise HeldoutError(f"fold {f + 1}: the offsets could not be fitted on the other folds: {exc}") from exc
             arms["entered"] = nominal_arm(chain, mf.post.full_vector(mf.theta)[: chain.n])
@@ -413,19 +445,24 @@ def guards(entered: EnteredFit, cal: Dataset) -> list[str]:
 def for_controller(model: RobotModel, cal: Dataset, val: Dataset | None, base: FitOptions, *,
                    full_arm: Arm | None, full_folds: Callable[[Dataset], Arm] | dict[str, float] | None,
                    fitted_model: str, std_factor: float = 1.0, k: int = 5,
-                   own: FitResult | None = None, more_guards: list[str] = ()) -> tuple[dict, EnteredFit]:
+                   own: FitResult | None = None, more_guards: list[str] = (), start: ModeFit | None = None,
+                   reuse: FitResult | None = None,
+                   fold_offsets: dict[int, tuple[np.ndarray, np.ndarray]] | None = None) -> tuple[dict, EnteredFit]:
     """The offsets to enter and their held-out verdict: (the ``"entered"`` document, the fit).
     ``full_arm``: the full model fitted on ``cal`` (None: an offsets-only fit, the entered robot);
     ``full_folds``: its cross-validated scores or per-fold fit (``heldout_by_folds``), used without
     ``val``; ``own``: an offsets-only fit (``--method fast`` / ``paper``, fitted with ``base``) whose
     offsets are the controller's as they are — the folds then refit that fit's model; ``more_guards``:
-    further reasons not to enter (that fit's own guards)."""
+    further reasons not to enter (that fit's own guards). What the default fit already has, so that
+    nothing is fitted twice: ``start``, ``reuse`` (``fit_entered``) and ``fold_offsets``
+    (``heldout_by_folds``)."""
     chain = Chain(model)
     free_tool = base.tool_prior_mm > 0
     if own is not None:
         entered, fold_options = EnteredFit(own, _axis_entries(own, std_factor, {}), std_factor), base
     else:
-        entered, fold_options = fit_entered(model, cal, base, std_factor=std_factor), entered_options(base)
+        entered = fit_entered(model, cal, base, std_factor=std_factor, start=start, reuse=reuse)
+        fold_options = entered_options(base)
     if val is not None and len(val):
         arms = {"as_found": nominal_arm(chain), "entered": nominal_arm(chain, entered.offsets_rad)}
         arms["full_model"] = full_arm if full_arm is not None else arms["entered"]
@@ -433,7 +470,8 @@ def for_controller(model: RobotModel, cal: Dataset, val: Dataset | None, base: F
     else:
         try:
             heldout = heldout_by_folds(model, cal, fold_options, entered.joints, k=k, full_model=full_folds,
-                                       free_tool=free_tool)
+                                       free_tool=free_tool, start=start if own is None else None,
+                                       fold_offsets=fold_offsets if own is None else None)
         except HeldoutError as exc:
             heldout = Heldout("cross-validation", f"not scored: {exc}", np.zeros(0, dtype=str), {})
     refusals = guards(entered, cal)

@@ -275,6 +275,9 @@ class ModelChoice:
     excluded: str | None = None
     #: Candidate name → its mode on all the data (``choose_model``), where the chosen one's fit starts.
     starts: dict[str, ModeFit] = field(default_factory=dict, repr=False)
+    #: Fold → the offsets (n,) rad and fitted axes (n,) bool of ``ENTERED`` fitted on the other
+    #: folds (``FoldResult.entered``), where it was a candidate: ``calib.fit.entered`` reuses them.
+    entered_folds: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)
 
     def score(self, name: str) -> Score:
         return next(s for s in self.scores if s.name == name)
@@ -395,73 +398,158 @@ def _full_fit(model: RobotModel, train: Dataset, base: FitOptions):
 
 
 def _candidate_distances(candidate: Candidate, model: RobotModel, train: Dataset, test: Dataset, base: FitOptions,
-                         link_tolerance, start: ModeFit | None = None) -> tuple[np.ndarray, int, tuple[float, int]]:
+                         link_tolerance, start: ModeFit | None = None
+                         ) -> tuple[np.ndarray, int, tuple[float, int], ModeFit | None]:
     """(held-out distances (rows of ``test``,) mm, free parameters, (Σ r²/v, coordinates) of the
-    held-out misfit — (0, 0) for full identification) of ``candidate`` fitted on ``train``, its
-    solves started at ``start`` (``fit_mode``)."""
+    held-out misfit — (0, 0) for full identification —, the mode fit or None for full
+    identification) of ``candidate`` fitted on ``train``, its solves started at ``start`` (``fit_mode``)."""
     if candidate.kind == "full":
         from calib.fit.identification import pose_errors
 
         res = _full_fit(model, train, base)
-        return pose_errors(model, res.params, test, res.base2sensor), len(res.free_names), (0.0, 0)
+        return pose_errors(model, res.params, test, res.base2sensor), len(res.free_names), (0.0, 0), None
     mf = fit_mode(model, train, options_for(candidate, base, link_tolerance), tol=CV_TOL, start=start)
-    return np.linalg.norm(mf.predict_residuals(test), axis=1), mf.post.dim, heldout_chi2(mf, test)
+    return np.linalg.norm(mf.predict_residuals(test), axis=1), mf.post.dim, heldout_chi2(mf, test), mf
+
+
+@dataclass
+class FoldJob:
+    """What every fold of ``cross_validate`` shares (given once to each worker process)."""
+
+    model: RobotModel
+    data: Dataset
+    labels: np.ndarray
+    cands: list[Candidate]
+    base: FitOptions
+    link_tolerance: tuple[float, float] | None
+    starts: dict[str, ModeFit]
+
+
+@dataclass
+class FoldResult:
+    """One fold's scores: ``configs`` (the held-out configurations, ``config_errors``' order),
+    ``nominal`` (their errors, mm), ``scale`` (the fold's link scale (mm, deg) or None) and why it
+    is missing, and per candidate either (per-configuration errors, free parameters, Σ r²/v,
+    coordinates) or the reason it failed (None: not fitted). ``entered``: the offsets (n,) rad and
+    the fitted axes (n,) bool of the controller's model (``ENTERED``) on the other folds, where
+    it was a candidate (``calib.fit.entered.heldout_by_folds`` scores that robot with them)."""
+
+    configs: np.ndarray
+    nominal: np.ndarray
+    scale: tuple[float, float] | None
+    scale_failed: str | None
+    per: list[tuple[np.ndarray, int, float, int] | str | None]
+    entered: tuple[np.ndarray, np.ndarray] | None = None
+
+
+def fold_scores(job: FoldJob, fold: int, skip: frozenset[int] = frozenset(), progress=None) -> FoldResult | None:
+    """Fold ``fold`` of ``cross_validate``: every candidate (but those of ``skip``, by index)
+    fitted on the other folds and scored on this one; None where the fold has no row to score."""
+    model, data, cands, base = job.model, job.data, job.cands, job.base
+    train, test = data.subset(job.labels != fold), data.subset(job.labels == fold)
+    ok = np.isin(test.marker, np.unique(train.marker)) & np.isin(test.sensor, np.unique(train.sensor))
+    if not ok.any():
+        return None
+    test = test.subset(ok)
+    nominal = config_errors(test, _nominal_distances(model, train, test))
+    tol, why = job.link_tolerance, None
+    if tol is None and any(c.kind == "offsets+tool+links" for c in cands):
+        try:  # the fold's own scale: its held-out configurations never inform it
+            found = empirical_link_scale(model, train, replace(base, compliance=False), start=next(
+                (job.starts[n] for n in ("offsets+tool+links", "offsets+tool+links+compliance") if n in job.starts), None))
+            tol = (found["length_mm"], found["angle_deg"])
+        except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+            why = f"fold {fold + 1}: the link scale could not be estimated on its training configurations: {exc}"
+    out = FoldResult(np.unique(test.config), nominal, tol, why, [None] * len(cands))
+    n_folds = int(job.labels.max()) + 1
+    for i, c in enumerate(cands):
+        if i in skip:
+            continue
+        if c.kind == "offsets+tool+links" and tol is None:
+            out.per[i] = why
+            continue
+        if progress is not None:
+            progress.step(f"cross-validation: fold {fold + 1} of {n_folds}, model {i + 1} of {len(cands)} ({c.name})")
+        try:
+            dist, n_params, (chi2, n_chi2), mf = _candidate_distances(c, model, train, test, base, tol, job.starts.get(c.name))
+        except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+            out.per[i] = f"fold {fold + 1}: {exc}"
+            continue
+        if not np.all(np.isfinite(dist)):
+            out.per[i] = f"fold {fold + 1}: the fit did not converge (non-finite predictions)"
+            continue
+        out.per[i] = (config_errors(test, dist), n_params, chi2, n_chi2)
+        if c == ENTERED and mf is not None:
+            out.entered = (mf.post.full_vector(mf.theta)[: model.n_joints].copy(), mf.mask.offsets.copy())
+    return out
+
+
+def _fold_in_worker(job: FoldJob, fold: int) -> FoldResult | None:
+    return fold_scores(job, fold)
+
+
+#: Data of this many rows or more cross-validate their folds in parallel processes (``calib.fit.parallel``);
+#: below, the fold fits are short (the README's run of 39 configurations: about 0.4 CPU-s per fold)
+#: and the workers' start would take much of what they save; the tests' small cells stay serial.
+PARALLEL_MIN_ROWS = 100
 
 
 def cross_validate(model: RobotModel, data: Dataset, cands: list[Candidate], base: FitOptions,
                    link_tolerance: tuple[float, float] | None, *, k: int = 5, seed: int = 0,
                    fold_scales: list | None = None, starts: dict[str, ModeFit] | None = None,
-                   progress: Progress | None = None) -> tuple[list[Score], Score, int, str]:
+                   progress: Progress | None = None, entered_folds: dict | None = None,
+                   jobs: int | None = None) -> tuple[list[Score], Score, int, str]:
     """K-fold scores of ``cands`` and of the nominal model on ``data`` (see the module's docstring).
     ``link_tolerance`` None with a links candidate: each fold's link scale by empirical Bayes on its
     training configurations, appended to ``fold_scales`` (a list, when given) as (mm, deg) or None
     where it could not be estimated. ``starts``: candidate name → its mode on all the data, where
-    that candidate's fold fits start (``fit_mode``); ``progress``: told of each fold fit."""
-    starts = starts or {}
+    that candidate's fold fits start (``fit_mode``); ``progress``: told of each fold fit;
+    ``entered_folds`` (a dict, when given): fold → ``FoldResult.entered``, where ``ENTERED`` was fitted.
+    ``jobs``: processes for the folds (None: ``calib.fit.parallel.fit_jobs``, with data of at least
+    ``PARALLEL_MIN_ROWS`` rows); the scores are the same either way."""
+    from calib.fit.parallel import fit_jobs, map_in_order
+
     labels, grouping = fold_labels(data, k, seed)
     n_folds = int(labels.max()) + 1
+    job = FoldJob(model, data, labels, cands, base, link_tolerance, starts or {})
+    if jobs is None:
+        jobs = fit_jobs(n_folds) if len(data) >= PARALLEL_MIN_ROWS else 1
+    if jobs > 1:
+        def finished(fold: int, result) -> None:
+            for c in cands:
+                if progress is not None:
+                    progress.step(f"cross-validation: fold {fold + 1} of {n_folds} done in a worker ({c.name})")
+
+        folds = map_in_order(_fold_in_worker, job, range(n_folds), jobs, done=finished)
+    else:  # in turn: a candidate that failed in one fold is not fitted in the next
+        folds, failed = [], set()
+        for f in range(n_folds):
+            folds.append(fold_scores(job, f, frozenset(failed), progress))
+            if folds[-1] is not None:
+                failed |= {i for i, r in enumerate(folds[-1].per) if isinstance(r, str)}
     scores = [Score(c.name, c.rank, None) for c in cands]
     per = [[] for _ in cands]
     nominal_parts, names = [], []
-    for f in range(n_folds):
-        train = data.subset(labels != f)
-        test = data.subset(labels == f)
-        ok = np.isin(test.marker, np.unique(train.marker)) & np.isin(test.sensor, np.unique(train.sensor))
-        if not ok.any():
+    for f, fold in enumerate(folds):
+        if fold is None:
             continue
-        test = test.subset(ok)
-        names.append(np.unique(test.config))  # the order of config_errors
-        nominal_parts.append(config_errors(test, _nominal_distances(model, train, test)))
-        tol, why = link_tolerance, None
-        if tol is None and any(c.kind == "offsets+tool+links" for c in cands):
-            try:  # the fold's own scale: its held-out configurations never inform it
-                found = empirical_link_scale(model, train, replace(base, compliance=False),
-                                             start=starts.get("offsets+tool+links"))
-                tol = (found["length_mm"], found["angle_deg"])
-            except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
-                why = f"fold {f + 1}: the link scale could not be estimated on its training configurations: {exc}"
+        names.append(fold.configs)
+        nominal_parts.append(fold.nominal)
         if fold_scales is not None:
-            fold_scales.append(tol)
-        for i, c in enumerate(cands):
-            if scores[i].failed:
+            fold_scales.append(fold.scale)
+        if entered_folds is not None and fold.entered is not None:
+            entered_folds[f] = fold.entered
+        for i, r in enumerate(fold.per):
+            if scores[i].failed or r is None:
                 continue
-            if c.kind == "offsets+tool+links" and tol is None:
-                scores[i].failed = why
+            if isinstance(r, str):
+                scores[i].failed = r
                 continue
-            if progress is not None:
-                progress.step(f"cross-validation: fold {f + 1} of {n_folds}, model {i + 1} of {len(cands)} ({c.name})")
-            try:
-                dist, n_params, (chi2, n_chi2) = _candidate_distances(c, model, train, test, base, tol, starts.get(c.name))
-            except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
-                scores[i].failed = f"fold {f + 1}: {exc}"
-                continue
-            if not np.all(np.isfinite(dist)):
-                scores[i].failed = f"fold {f + 1}: the fit did not converge (non-finite predictions)"
-                continue
+            errors, n_params, chi2, n_chi2 = r
             scores[i].n_params = n_params if scores[i].n_params is None else max(scores[i].n_params, n_params)
             scores[i].chi2 += chi2
             scores[i].n_chi2 += n_chi2
-            per[i].append(config_errors(test, dist))
+            per[i].append(errors)
     all_names = np.concatenate(names) if names else np.zeros(0, dtype=str)
     for s, parts in zip(scores, per):
         if parts and not s.failed:
@@ -484,11 +572,12 @@ def one_se_choice(scores: list[Score]) -> str:
 
 def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions(), *, force: str | None = None,
                  k: int = 5, include_full: bool = True, link_tolerance: tuple[float, float] | None = None,
-                 compliance_only: bool = False, progress: Progress | None = None) -> ModelChoice:
+                 compliance_only: bool = False, progress: Progress | None = None, jobs: int | None = None) -> ModelChoice:
     """Score every candidate and choose; ``force`` (``--model NAME``): that candidate — it is
     fitted on the folds and scored against the nominal model (its held-out misfit still widens its
     intervals, ``interval_factor``), and no other candidate is fitted. ``link_tolerance`` given:
-    that link scale instead of the empirical Bayes one. ``progress``: told of each fit. A forced model
+    that link scale instead of the empirical Bayes one. ``progress``: told of each fit; ``jobs``:
+    processes for the folds (``cross_validate``; None: as many as the machine has cores for). A forced model
     other than offsets+tool is scored beside offsets+tool, the model of the offsets to enter
     (``calib.fit.entered``), whose held-out misfit widens their intervals.
 
@@ -523,9 +612,11 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
     if progress is not None:
         progress.begin("cross-validation", n_folds_max * len(cands))
     fold_scales: list = []
+    entered_folds: dict = {}
     scores, nominal, n_folds, grouping = cross_validate(model, data, cands, base, None if scale and not scale.get("given")
                                                         else link_tolerance, k=k, seed=base.seed, fold_scales=fold_scales,
-                                                        starts=starts, progress=progress)
+                                                        starts=starts, progress=progress, entered_folds=entered_folds,
+                                                        jobs=jobs)
     if scale is not None and not scale.get("given"):
         scale["per_fold"] = [list(t) if t else None for t in fold_scales]
     try:
@@ -541,4 +632,5 @@ def choose_model(model: RobotModel, data: Dataset, base: FitOptions = FitOptions
     elif compliance_only:
         excluded = ("full: full identification is compared without compliance, and only the compliance models "
                     "were asked for (--compliance / fit.compliance)")
-    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale, excluded, starts)
+    return ModelChoice(scores, nominal, chosen, force is not None, n_folds, grouping, scale, excluded, starts,
+                       entered_folds)

@@ -285,12 +285,21 @@ class OffsetPosterior:
         self.linearise_links(theta)
         if theta is None:
             self._expansion = None
+            if self.attitude is not None:
+                self.attitude.expand(self, None)
             return
         full = self.full_vector(np.asarray(theta, dtype=float))
+        if self.attitude is not None:  # the attitude rows' flange rotations alike (``AttitudeRows.expand``)
+            self.attitude.expand(self, full)
         self._expansion_offsets = np.flatnonzero(self.mask.offsets)
         self._expansion_ref = full[self._expansion_offsets].copy()
         self._expansion = expand_offsets(self.chain, self.data.q_rad, self.marker_index, self.chain_params(full),
                                          self._expansion_offsets, self.link_idx[~self.is_tool], self.link_idx[self.is_tool])
+
+    @property
+    def expanding(self) -> bool:
+        """Whether positions are predicted by the offset expansion (``expand``; not within ``exact``)."""
+        return self._expansion is not None
 
     @property
     def expanded(self) -> bool:

@@ -76,3 +76,35 @@ def test_pose_metrics_of_a_zero_offset_fit_score_held_out_attitude_without_refit
         b, a = m[part]["before"], m[part]["after"]
         assert a["EACPE"] < 0.1 < b["EACPE"] and a["EACAE"] < 0.02 < b["EACAE"], m[part]
         assert a["EMCAE"] >= a["EACAE"] and a["EMCPE"] >= a["EACPE"]
+
+
+def test_the_expansion_predicts_the_attitude_rows_as_the_walk_does_and_walks_a_batch_beyond_it():
+    """While the posterior predicts by its expansion (the sampler), the attitude rows' flange
+    rotations come from their first-order expansion about the mode: within the predictor's
+    tolerance of the walked residuals at proposals 5 posterior stds out (a few 1e-4 rad), and a batch
+    with a proposal far beyond that (0.1 rad) is walked instead."""
+    from calib.fit.posterior import EXPANSION_TOLERANCE_MM
+
+    data, _ = cell_data(TX60, exp_so3(np.radians([3.0, -2.0, 40.0])), 40, 1)
+    mf = fit_mode(TX60, data, FitOptions(link_tolerance=None))
+    post, theta = mf.post, mf.theta
+    with np.errstate(all="ignore"):
+        std = np.sqrt(np.diag(np.linalg.pinv(post.jacobian(theta).T @ post.jacobian(theta)))) * np.exp(mf.log_sigma[0])
+    rng = np.random.default_rng(0)
+    near = theta + 5.0 * std * rng.choice([-1.0, 1.0], (8, theta.size))
+    post.expand(theta)
+    try:
+        expanded = post.residuals(near)[:, post.k_pos:]  # (first: a walk at the same vectors would be reused)
+        check = dict(post.expansion_check)
+        with post.exact():
+            exact = post.residuals(near)[:, post.k_pos:]
+        far = near.copy()
+        far[0, :post.n] += 0.1  # 6° on every axis: far outside any expansion
+        walked = post.residuals(far)[:, post.k_pos:]
+        check_far = dict(post.expansion_check)
+    finally:
+        post.expand(None)
+    assert np.abs(expanded - exact).max() < EXPANSION_TOLERANCE_MM
+    assert 0.0 < check["attitude_max_error_mm"] < EXPANSION_TOLERANCE_MM and "attitude_walked_batches" not in check
+    assert check_far["attitude_walked_batches"] == 1
+    assert np.allclose(walked, post.residuals(far)[:, post.k_pos:], atol=1e-12)  # the walk's, exactly
