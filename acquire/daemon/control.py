@@ -56,7 +56,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable, Protocol
 
 from acquire.daemon import control_auth
-from acquire.live.bus import control_key
+from acquire.live.bus import control_key, key as bus_key
 from acquire.live.logthrottle import Throttle, clip
 from acquire.daemon.tokens import check_token
 
@@ -439,6 +439,17 @@ def _opt_str(req: dict, name: str) -> str | None:
     return value
 
 
+def _unverified_hint(said: str, keys: str) -> str:
+    """What to do about replies that could not be attributed to the daemon, from what the first
+    one ``said`` (the daemon's ProofError text when it was the daemon refusing our proof)."""
+    if "expired" in said:
+        return ("the daemon answered, but our login exchange outlived its allowance: the host was busy "
+                "between the two round trips; try again")
+    if "wrong token" in said:
+        return "the daemon refused the token: check the client name and its token file"
+    return f"is the token right? is another process answering on {keys}?"
+
+
 class ControlClient:
     """A thin client of the control queries over an open Zenoh session.
 
@@ -501,10 +512,11 @@ class ControlClient:
         if unverified:
             self.rejected_replies += len(unverified)
             first = unverified[0]
+            said = str(first.get("message", first))
             raise Unverified(
                 f"no reply to control/{op} could be attributed to the daemon of cell {self.cell!r} "
-                f"({len(unverified)} unauthenticated; is the token right? is another process answering "
-                f"on remaster/{self.cell}/control/**?); the first said: {first.get('message', first)}")
+                f"({len(unverified)} unauthenticated; {_unverified_hint(said, bus_key(self.cell, 'control', site=self.site) + '/**')}); "
+                f"the first said: {said}")
         raise NoReply(
             f"no reply to control/{op} for cell {self.cell!r} within {timeout:g} s "
             f"(is the daemon running, and are you allowed by its access control?)"

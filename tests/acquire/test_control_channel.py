@@ -285,3 +285,68 @@ def test_with_a_stand_in_answering_too_the_client_completes_with_the_daemon_only
     finally:
         stand_in.close()
         server.close()
+
+
+def test_an_exchange_that_outlived_its_allowance_is_told_as_such_not_as_a_wrong_token(cell):
+    """A busy host: the daemon's clock moves past the exchange's allowance between the client's
+    two round trips. The client refuses the daemon's error reply (it carries no proof), and its
+    message says what happened and what to do, with the site in the key — not "is the token right?"."""
+    daemon_bus, _, client_bus = cell
+    now = [0.0]
+
+    def clock() -> float:  # every look at the clock is 11 s later: each exchange has expired when answered
+        now[0] += 11.0
+        return now[0]
+
+    section = AuthSection.model_validate({
+        "anonymous": ["observe"],
+        "clients": [{"name": "operator", "scram": CREDS.config(), "allow": ["observe", "read", "control", "motion"]}],
+    })
+    authorizer = Authorizer(section)
+    authorizer.exchanges = auth.ExchangeTable(authorizer._credentials, ttl_s=10.0, clock=clock)
+    server = ControlServer(daemon_bus.session, CELL, Backend(), authorizer, site="plant-a")
+    try:
+        import time
+
+        import zenoh
+
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:  # the routes are up once an anonymous status is answered
+            q = client_bus.session.declare_querier(f"remaster/plant-a/{CELL}/control/status",
+                                                   target=zenoh.QueryTarget.ALL, timeout=2.0)
+            try:
+                if list(q.get()):
+                    break
+            finally:
+                q.undeclare()
+        op = ControlClient(client_bus.session, CELL, client="operator", token=TOKEN, site="plant-a")
+        with pytest.raises(Unverified) as err:
+            op.call("pause", timeout=5)
+        text = str(err.value)
+        assert "outlived its allowance" in text and "try again" in text and "expired" in text
+        assert "is the token right" not in text
+    finally:
+        server.close()
+
+
+def test_a_reply_from_another_responder_names_the_key_with_the_site(cell):
+    _, rogue_bus, client_bus = cell
+    q = rogue_bus.session.declare_queryable(
+        f"remaster/plant-a/{CELL}/control/**",
+        lambda query: query.reply(query.key_expr, json.dumps({"ok": True, "run": None})))
+    try:
+        import time
+
+        deadline = time.monotonic() + 20
+        op = ControlClient(client_bus.session, CELL, client="operator", token=TOKEN, site="plant-a")
+        while True:
+            try:
+                op.call("status", timeout=2)
+            except Unverified as exc:
+                assert f"remaster/plant-a/{CELL}/control/**" in str(exc) and "is the token right" in str(exc)
+                break
+            except Exception:
+                if time.monotonic() > deadline:
+                    raise
+    finally:
+        q.undeclare()
