@@ -7,6 +7,7 @@ import contextlib
 from urllib.parse import parse_qsl, urlencode
 
 import numpy as np
+from fri_fake_process import FakeSunriseProcess
 
 from drivers.kuka_fri.commander import FriCommander
 from drivers.kuka_fri.fake import FakeSunrise
@@ -53,15 +54,17 @@ PATIENCE = {"timeout_ms": "1000", "max_state_age_ms": "1000"}
 
 @contextlib.contextmanager
 def fri_pair(limits: JointLimits, *, commanding: bool = True, url_query: str = "rt_priority=0",
-             commander_kwargs=None, **fake_kwargs):
+             commander_kwargs=None, own_process: bool = False, **fake_kwargs):
     """A connected ``FriCommander`` and a started ``FakeSunrise``; with ``commanding`` the
-    session is brought to COMMANDING_ACTIVE. Both are closed on exit."""
+    session is brought to COMMANDING_ACTIVE. Both are closed on exit. ``own_process``: the fake
+    runs in a process of its own (``fri_fake_process.FakeSunriseProcess``), for tests that
+    judge the commander's timing on a loaded host."""
     query = {**PATIENCE, **dict(parse_qsl(url_query))}
     commander = FriCommander.from_url(f"fri://127.0.0.1:0?{urlencode(query)}", limits=limits,
                                       **(commander_kwargs or {}))
     commander.connect()
     fake_kwargs.setdefault("limits", limits)
-    fake = FakeSunrise(commander.address, **fake_kwargs)
+    fake = (FakeSunriseProcess if own_process else FakeSunrise)(commander.address, **fake_kwargs)
     try:
         fake.start()
         if commanding:
