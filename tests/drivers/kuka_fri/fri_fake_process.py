@@ -12,7 +12,7 @@ starts, so its threads inherit it); the child serves the test's requests on a pi
 options (picklable: ``scene`` is pickled over and lives in the child). Requests: ``stats``
 (a copy of ``FakeSunriseStats``), ``scene`` (a copy of the child's scene), ``overruns``,
 ``actual_position()``, ``wait_state(state, timeout)``, ``start_commanding()``,
-``stop_commanding()``; ``stop()`` ends the child.
+``stop_commanding()``, ``send_malformed(n, kind)``, ``inject_fault(kind)``; ``stop()`` ends the child.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ START_TIMEOUT_S = 120.0
 #: Wall seconds a request may take beyond its own timeout.
 REQUEST_SLACK_S = 30.0
 
-_CALLS = ("actual_position", "wait_state", "start_commanding", "stop_commanding")
+_CALLS = ("actual_position", "wait_state", "start_commanding", "stop_commanding", "send_malformed", "inject_fault")
 _VALUES = ("stats", "scene", "overruns")
 
 

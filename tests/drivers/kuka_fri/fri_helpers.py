@@ -51,6 +51,11 @@ class RecordingScene:
 #: limits give them in ``url_query``.
 PATIENCE = {"timeout_ms": "1000", "max_state_age_ms": "1000"}
 
+#: Wall seconds ``fri_pair`` waits for the session to reach COMMANDING_ACTIVE: on a quiet host
+#: it takes ~0.1 s (ten answered windows, twice); the bound is only for a host so busy that a
+#: normal-priority exchange keeps missing windows, where a few seconds were not enough.
+SESSION_START_S = 60.0
+
 
 @contextlib.contextmanager
 def fri_pair(limits: JointLimits, *, commanding: bool = True, url_query: str = "rt_priority=0",
@@ -68,10 +73,10 @@ def fri_pair(limits: JointLimits, *, commanding: bool = True, url_query: str = "
     try:
         fake.start()
         if commanding:
-            fake.wait_state(SessionState.MONITORING_READY, 5.0)
+            fake.wait_state(SessionState.MONITORING_READY, SESSION_START_S)
             fake.start_commanding()
-            fake.wait_state(SessionState.COMMANDING_ACTIVE, 5.0)
-            commander.wait_session(SessionState.COMMANDING_ACTIVE, 5.0)
+            fake.wait_state(SessionState.COMMANDING_ACTIVE, SESSION_START_S)
+            commander.wait_session(SessionState.COMMANDING_ACTIVE, SESSION_START_S)
         yield commander, fake
     finally:
         commander.close()
