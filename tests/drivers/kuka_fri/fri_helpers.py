@@ -7,6 +7,7 @@ import contextlib
 from urllib.parse import parse_qsl, urlencode
 
 import numpy as np
+from fri_fake_process import FakeSunriseProcess
 
 from drivers.kuka_fri.commander import FriCommander
 from drivers.kuka_fri.fake import FakeSunrise
@@ -50,25 +51,32 @@ class RecordingScene:
 #: limits give them in ``url_query``.
 PATIENCE = {"timeout_ms": "1000", "max_state_age_ms": "1000"}
 
+#: Wall seconds ``fri_pair`` waits for the session to reach COMMANDING_ACTIVE: on a quiet host
+#: it takes ~0.1 s (ten answered windows, twice); the bound is only for a host so busy that a
+#: normal-priority exchange keeps missing windows, where a few seconds were not enough.
+SESSION_START_S = 60.0
+
 
 @contextlib.contextmanager
 def fri_pair(limits: JointLimits, *, commanding: bool = True, url_query: str = "rt_priority=0",
-             commander_kwargs=None, **fake_kwargs):
+             commander_kwargs=None, own_process: bool = False, **fake_kwargs):
     """A connected ``FriCommander`` and a started ``FakeSunrise``; with ``commanding`` the
-    session is brought to COMMANDING_ACTIVE. Both are closed on exit."""
+    session is brought to COMMANDING_ACTIVE. Both are closed on exit. ``own_process``: the fake
+    runs in a process of its own (``fri_fake_process.FakeSunriseProcess``), for tests that
+    judge the commander's timing on a loaded host."""
     query = {**PATIENCE, **dict(parse_qsl(url_query))}
     commander = FriCommander.from_url(f"fri://127.0.0.1:0?{urlencode(query)}", limits=limits,
                                       **(commander_kwargs or {}))
     commander.connect()
     fake_kwargs.setdefault("limits", limits)
-    fake = FakeSunrise(commander.address, **fake_kwargs)
+    fake = (FakeSunriseProcess if own_process else FakeSunrise)(commander.address, **fake_kwargs)
     try:
         fake.start()
         if commanding:
-            fake.wait_state(SessionState.MONITORING_READY, 5.0)
+            fake.wait_state(SessionState.MONITORING_READY, SESSION_START_S)
             fake.start_commanding()
-            fake.wait_state(SessionState.COMMANDING_ACTIVE, 5.0)
-            commander.wait_session(SessionState.COMMANDING_ACTIVE, 5.0)
+            fake.wait_state(SessionState.COMMANDING_ACTIVE, SESSION_START_S)
+            commander.wait_session(SessionState.COMMANDING_ACTIVE, SESSION_START_S)
         yield commander, fake
     finally:
         commander.close()

@@ -53,7 +53,10 @@ def test_url_options_are_parsed_and_unknown_ones_refused(limits):
 
 def test_a_sequence_of_moves_reaches_every_target_and_answers_in_time(limits):
     scene = RecordingScene(Q0)
-    with fri_pair(limits, scene=scene, send_period_ms=5, rt_priority=60,
+    # The fake controller runs in a real-time process of its own, as a cabinet is a machine of
+    # its own (a thread of this process waits for the interpreter lock behind the test's threads:
+    # beside four CPU hogs its 5 ms send period stretched to 0.75 s). The scene lives there too.
+    with fri_pair(limits, scene=scene, send_period_ms=5, rt_priority=60, own_process=True,
                   url_query="rt_priority=70") as (commander, fake):
         assert fake.stats.answers_in_idle == 0
         for target_deg in TARGETS_DEG:
@@ -61,8 +64,10 @@ def test_a_sequence_of_moves_reaches_every_target_and_answers_in_time(limits):
             commander.move_to(target, 0.8, timeout=10.0)
             state = commander.wait_settled(tolerance_rad=1e-5, window_s=0.05, timeout=5.0)
             np.testing.assert_allclose(state.position_rad, target, atol=1e-4)
-            np.testing.assert_allclose(scene.q, fake.actual_position())
+            # the controller shows the scene where its joints are (read a few cycles apart, settled)
+            np.testing.assert_allclose(fake.scene.q, fake.actual_position(), rtol=0, atol=1e-6)
         stats = fake.stats
+        updates = fake.scene.updates
         link = commander.link_stats()
     # The exchange answers every message, typically far within the cycle: a systematic fault (an
     # answer to a stale message, one answer in two) makes most answers late. How many may be late
@@ -74,7 +79,7 @@ def test_a_sequence_of_moves_reaches_every_target_and_answers_in_time(limits):
     assert stats.session_drops == 0
     assert stats.bad_reflections == 0 and stats.malformed_answers == 0
     assert stats.violations == []
-    assert scene.updates > 100
+    assert updates > 100
     assert_timed_commands_within_limits(stats.commands, limits, 0.005, speed=0.8)
 
 
@@ -92,7 +97,9 @@ def test_refused_moves_leave_the_robot_where_it_is(limits):
         fake.wait_state(SessionState.MONITORING_READY, 2.0)
         c.wait_session(SessionState.MONITORING_READY, 2.0)
         # a session that does not come back within session_wait_s: a device fault the run waits out
-        with pytest.raises(DeviceFaultError, match="session is MONITORING_READY, not COMMANDING_ACTIVE"):
+        # (READY; or WAIT if this normal-priority exchange missed enough answer windows on a loaded
+        # host that the controller dropped the session)
+        with pytest.raises(DeviceFaultError, match="session is MONITORING_(READY|WAIT), not COMMANDING_ACTIVE"):
             c.move_to(Q0 + 0.1, 0.3, timeout=5.0)
         np.testing.assert_allclose(fake.actual_position(), Q0, atol=1e-9)
         assert all(np.array_equal(cmd, Q0) for _, cmd in fake.stats.commands)
