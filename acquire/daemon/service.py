@@ -285,7 +285,7 @@ class Daemon:
         self._status("bringing up devices")
         self._bring_up_devices()
         self._tokens["daemon"] = self.bus.liveliness_token(self.bus.key("daemon"))
-        authorizer = Authorizer(cfg.auth, self._link_subject)
+        authorizer = Authorizer(cfg.auth, lambda zid: link_subject(self.bus, zid))
         self.control = ControlServer(self.bus.session, cfg.cell, self, authorizer, site=cfg.site)
         self.control_socket = open_control_socket(cfg.control_socket, self.control, authorizer)
         with self._lock:
@@ -421,15 +421,6 @@ class Daemon:
         self.notifier.status("stopped")
         self.notifier.close()
 
-    def _link_subject(self, zid: str) -> str | None:
-        bus = self.bus
-        if bus is None:
-            return None
-        for link in bus.session.info.links():
-            if str(link.zid) == zid:
-                return link.auth_identifier or None
-        return None
-
     # ------------------------------------------------------------------ control backend
     def status(self, *, include_plan: bool) -> dict:
         with self._lock:
@@ -467,14 +458,8 @@ class Daemon:
             return {"run_id": ctl.run_id, "plan_text": ctl.lp.text}
         from acquire.record.recorder import read_run
 
-        path = self._run_log(run_id)
+        path = run_log(self.runs_dir, run_id)
         return {"run_id": run_id, "plan_text": read_run(path).plan_text}
-
-    def _run_log(self, run_id: str) -> Path:
-        return run_log(self.runs_dir, run_id)
-
-    def _plan_path(self, request: dict) -> Path:
-        return plan_path(self.cfg, request)
 
     def start(self, request: dict, identity: Identity) -> dict:
         from acquire.plan.schema import load_plan
@@ -489,7 +474,7 @@ class Daemon:
                     raise Conflict(f"run {st['run_id']} has just ended ({st['state']}); the devices are being "
                                    "taken back — try again in a few seconds")
                 raise Conflict(f"run {st['run_id']} is {st['state']}; abort it or wait for it to end")
-            path = self._plan_path(request)
+            path = plan_path(self.cfg, request)
             try:
                 lp = load_plan(path)
             except ConfigError as exc:
@@ -501,7 +486,7 @@ class Daemon:
             resume = request.get("resume")
             if resume is not None and not isinstance(resume, str):
                 raise BadRequest(f"resume must be a run id string, given {resume!r}")
-            resume_path = self._run_log(resume) if resume else None
+            resume_path = run_log(self.runs_dir, resume) if resume else None
             try:
                 cell = cell_for_plan(self.cell, lp)
             except ValueError as exc:
@@ -578,6 +563,17 @@ class Daemon:
 
     def archive_confirm(self, request: dict, identity: Identity) -> dict:
         return self.cell_runs.confirm(request, identity.describe(), self._active_run_id())
+
+
+def link_subject(bus, zid: str) -> str | None:
+    """The TLS certificate name of the link to Zenoh peer ``zid`` (hex) on ``bus``, or None (no bus
+    yet, no such link, or a link without a certificate)."""
+    if bus is None:
+        return None
+    for link in bus.session.info.links():
+        if str(link.zid) == zid:
+            return link.auth_identifier or None
+    return None
 
 
 def init_zenoh_log() -> None:

@@ -30,6 +30,7 @@ import math
 
 import numpy as np
 
+from calib.fit.offset_expansion import EXPANSION_TOLERANCE_MM
 from calib.measure.dataset import Dataset
 from calib.robot.kinematics import Chain
 from calib.robot.transforms import euler_zyx_to_matrix, exp_so3, log_so3, so3_left_jacobian_inv
@@ -115,8 +116,6 @@ class AttitudeRows:
         """Flange rotations (..., ko, 3, 3) by the expansion; where the two proposals of the batch
         farthest from the mode differ from the walk by more than ``EXPANSION_TOLERANCE_MM`` (weighted
         as the residuals are), the batch is walked instead."""
-        from calib.fit.posterior import EXPANSION_TOLERANCE_MM
-
         cols, ref, jw, r0 = self._expansion
         lead = full.shape[:-1]
         flat = full.reshape(-1, full.shape[-1])

@@ -26,6 +26,12 @@ from calib.robot.kinematics import Chain
 from calib.robot.transforms import cross
 
 
+#: The expanded predictor (``calib.fit.posterior.OffsetPosterior.expand``, and the attitude rows' flange rotations) must agree with the chain walk it stands for
+#: to this (mm) at the proposals farthest from the mode, or the batch is walked instead: the
+#: accuracy of the link terms' own first-order form, 1/1000 of a typical σ.
+EXPANSION_TOLERANCE_MM = 1e-4
+
+
 @dataclass(frozen=True)
 class OffsetExpansion:
     """The polynomial above for k rows, with F = f + f(f+1)/2 + Λ + T + f·T terms.

@@ -58,14 +58,10 @@ import numpy as np
 
 from calib.measure.dataset import Dataset
 from calib.robot.kinematics import Chain, offset_kinematics
-from calib.fit.offset_expansion import OffsetExpansion, expand_offsets
+from calib.fit.offset_expansion import EXPANSION_TOLERANCE_MM, OffsetExpansion, expand_offsets
 from calib.robot.transforms import apply, cross, euler_zyx_to_matrix
 
 REG_NAMES = ("x", "y", "z", "alpha", "beta", "gamma")
-#: The expanded predictor (``OffsetPosterior.expand``) must agree with the chain walk it stands for
-#: to this (mm) at the proposals farthest from the mode, or the batch is walked instead: the
-#: accuracy of the link terms' own first-order form, 1/1000 of a typical σ.
-EXPANSION_TOLERANCE_MM = 1e-4
 
 
 @dataclass(frozen=True)

@@ -381,6 +381,7 @@ def test_a_stand_in_daemon_gets_nothing_the_real_one_accepts_and_the_client_does
     assert re.findall(r"run (\S+) started by", proc.log()) == [run_id]  # exactly the retry's run
 
 
+@pytest.mark.slow  # ~30 s: a daemon flooded; abort under a flood is test_control_neighbours.py's (default)
 def test_a_flood_of_malformed_queries_makes_a_bounded_log_without_tracebacks(tmp_path, notify):
     port = free_port()
     proc = DaemonProcess(write_config(tmp_path, port), notify)

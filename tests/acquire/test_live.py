@@ -274,6 +274,7 @@ def test_daemon_config_live_section_binds_loopback_unless_remote_is_allowed(tmp_
         DaemonConfig(cell="c1", fake=True, live={"enabled": True, "port": 70000})
 
 
+@pytest.mark.slow  # a daemon and a run; the live server itself is test_acquire_run_live_serves_… (default)
 @pytest.mark.timeout(170)
 def test_daemon_serves_its_runs_live_when_configured(tmp_path):
     from daemon_harness import OPERATOR_TOKEN, DaemonProcess, NotifySocket, control, free_port, open_client, write_config

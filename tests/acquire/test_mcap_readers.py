@@ -143,7 +143,10 @@ def doctor(path: Path) -> dict:
     return {"rc": proc.returncode, "summary": summary[-1], "findings": findings}
 
 
-@pytest.mark.parametrize("killed", [False, True], ids=["closed", "killed-and-finished"])
+@pytest.mark.parametrize("killed", [
+    pytest.param(False, id="closed", marks=pytest.mark.slow),  # ~25 s; the killed log (default) is the harder case
+    pytest.param(True, id="killed-and-finished"),
+])
 def test_pymcap_cli_doctor_finds_no_error_and_no_warning(tmp_path, killed):
     path = tmp_path / "run.mcap"
     write_log(path)
@@ -184,7 +187,10 @@ def read_with_ts(path: Path) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.parametrize("killed", [False, True], ids=["closed", "killed-and-finished"])
+@pytest.mark.parametrize("killed", [
+    pytest.param(False, id="closed", marks=pytest.mark.slow),  # ~25 s; the killed log (default) is the harder case
+    pytest.param(True, id="killed-and-finished"),
+])
 def test_typescript_indexed_and_stream_readers_see_every_message(tmp_path, killed):
     path = tmp_path / "run.mcap"
     expected = write_log(path)

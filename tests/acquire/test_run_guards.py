@@ -102,6 +102,7 @@ def test_a_plan_too_small_for_the_fit_exits_2_before_any_device(tmp_path, no_dev
     assert "warning: " in dry.output and "the fit of 1 offset(s) with 1 sensor registration(s) needs at least 3" in dry.output
 
 
+@pytest.mark.slow  # a whole fake run; test_run_fake.py's complete run (default) takes the same path and fits
 def test_the_same_plan_with_no_fit_measures_and_finishes_with_exit_0(tmp_path):
     plan = two_configuration_plan(tmp_path)
     result = CliRunner().invoke(app, ["run", str(plan), "--fake", "--no-bus", "--no-fit"])

@@ -204,7 +204,10 @@ def test_malformed_packets_are_skipped_and_the_move_completes(limits):
 
 
 def test_packet_loss_is_survived_within_limits_and_counted(limits):
-    with rig(limits, fake_kwargs={"seed": 7}) as (c, f):
+    # 5 % loss alone spends about 9 of the default Delay allowance (20 in the window); on a busy
+    # test host the fake's thread (not the exchange) can add a dozen more. This test is about loss
+    # being survived and counted; the Delay guard's own tests keep the default.
+    with rig(limits, fake_kwargs={"seed": 7}, delay_limit=40) as (c, f):
         f.drop_outgoing(probability=0.05)
         for target in SEQUENCE_DEG[:2]:
             c.move_to(deg(target), speed=1.0, timeout=5.0)
