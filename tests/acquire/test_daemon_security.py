@@ -34,6 +34,7 @@ from daemon_harness import (  # noqa: E402 - tests/acquire is on sys.path under 
 )
 
 
+@pytest.mark.slow  # ~40 s: a daemon and a run; anonymous refusals are test_control_channel.py's and the stand-in test's (default)
 def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tmp_path, notify):
     port = free_port()
     proc = DaemonProcess(write_config(tmp_path, port), notify)

@@ -18,6 +18,7 @@ pytestmark = pytest.mark.timeout(RUN_TIMEOUT_S)
 CONFIGS = [[5, 20, 0, -90, 0, -30, 0], [0, 25, 0, -85, 0, -30, 10], [-5, 20, 5, -90, 0, -35, 0]]
 
 
+@pytest.mark.slow  # a whole fake run; a fault waited out in a whole run is test_run_faults.py's drives-off run (default)
 def test_scripted_beam_breaks_in_the_cell_file_are_seen_by_a_fake_run(tmp_path):
     cell = yaml.safe_load((ROOT / "fixtures" / "sim" / "default.yaml").read_text())
     cell["robot"] = str((ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml").resolve())

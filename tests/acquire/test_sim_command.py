@@ -101,6 +101,7 @@ def port(url: str) -> tuple[str, int]:
 
 
 
+@pytest.mark.slow  # ~30 s; a separately started acquire sim driven by a fake run is test_cell_is_a_cell.py's (default)
 def test_acquire_sim_serves_every_device_to_independent_clients(tmp_path):
     cell = yaml.safe_load((ROOT / "fixtures" / "sim" / "default.yaml").read_text())
     cell["robot"] = str((ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml").resolve())

@@ -169,6 +169,7 @@ def _wait_for_line(stream, pattern: str, timeout: float) -> list[str]:
     raise AssertionError(f"{pattern!r} not seen in {seen}")
 
 
+@pytest.mark.slow  # a whole fake run; following a run to its end is test_watch_against_the_daemon_… (default)
 @pytest.mark.timeout(240)
 def test_watch_finds_a_real_run_by_itself_and_follows_it_to_the_end(tmp_path):
     plan = small_plan(tmp_path, n=4)
