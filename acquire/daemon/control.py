@@ -557,6 +557,8 @@ class ControlClient:
             for reply in querier.get(**kwargs):
                 sample = reply.ok if reply.ok is not None else reply.err
                 body = _reply_body(sample.payload.to_bytes())
+                if body is None and reply.ok is None:
+                    continue  # Zenoh's own error (the query's timeout), not a responder's: no reply
                 bodies.append(body if body is not None else {"ok": False, "error": "failed",
                                                              "message": "reply is not a JSON object"})
         finally:

@@ -270,7 +270,7 @@ def start_abort_cycles(proc: DaemonProcess, op, cycles: int) -> list[tuple]:
     ``PYTHONTRACEMALLOC=1``)."""
     rows = []
     for cycle in range(cycles):
-        run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
+        run_id = op.call("start", {"plan": "example.yaml"}, timeout=60)["run_id"]
         wait_until(lambda: (op.call("status")["run"] or {}).get("state") == "running", 30, f"run {run_id} running")
         op.call("abort", {"reason": f"soak cycle {cycle}"})
         st = wait_until(lambda: (s := op.call("status"))["run"] is None and s, 30, f"run {run_id} ended")

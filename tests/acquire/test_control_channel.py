@@ -350,3 +350,24 @@ def test_a_reply_from_another_responder_names_the_key_with_the_site(cell):
                     raise
     finally:
         q.undeclare()
+
+
+def test_a_responder_too_slow_for_the_timeout_is_no_reply_not_an_unauthenticated_one(cell):
+    """Zenoh answers a query that outlives its timeout with an error of its own ("Timeout"): that is
+    no reply (is the daemon running? busy?), not a reply to refuse ("is the token right?")."""
+    import time
+
+    from acquire.daemon.control import NoReply
+
+    _, rogue_bus, client_bus = cell
+    slow = rogue_bus.session.declare_queryable(f"remaster/{CELL}/control/**", lambda query: time.sleep(1.5))
+    try:
+        deadline = time.monotonic() + 20
+        while not list(client_bus.session.get(f"remaster/{CELL}/control/status", timeout=0.3)):
+            assert time.monotonic() < deadline, "the slow responder is not reachable"  # (its route is up once Zenoh times it out)
+        op = ControlClient(client_bus.session, CELL, client="operator", token=TOKEN)
+        with pytest.raises(NoReply, match="no reply to control/status"):
+            op.call("status", timeout=0.5)
+        assert op.rejected_replies == 0
+    finally:
+        slow.undeclare()

@@ -143,7 +143,7 @@ def test_abort_and_pause_get_through_a_flood_of_unauthenticated_client_firsts(tm
     try:
         proc.wait_ready()
         ops = SocketClient(sock)
-        run_id = ops.call("start", {"plan": "example.yaml"})["run_id"]
+        run_id = ops.call("start", {"plan": "example.yaml"}, timeout=60)["run_id"]
         wait_until(lambda: (ops.call("status")["run"] or {}).get("state") == "running", 30, "run running")
         flood.start()
         # Past the daemon's whole table of pending exchanges (MAX_PENDING = 256), the rate sustained.

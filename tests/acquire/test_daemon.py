@@ -367,7 +367,7 @@ def test_daemon_runs_pauses_resumes_aborts_a_fake_plan_and_stops_on_sigterm(daem
         wait_until(lambda: notify.count("WATCHDOG", "1") >= 2, 5, "watchdog pings after READY")
         assert all(m.t >= ready.t for m in notify.messages if m.fields.get("WATCHDOG"))
 
-        started = op.call("start", {"plan": "example.yaml"})
+        started = op.call("start", {"plan": "example.yaml"}, timeout=60)
         run_id = started["run_id"]
         assert run_id.startswith(f"{CELL}-")
         wait_until(lambda: _run_state(op).get("done", 0) >= 2, 60, "two configurations measured")
@@ -426,7 +426,7 @@ def test_sigterm_during_a_run_finishes_the_configuration_and_closes_the_log(daem
     proc.wait_ready()
     with open_client(port) as bus:
         op = control(bus, "operator", OPERATOR_TOKEN)
-        run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
+        run_id = op.call("start", {"plan": "example.yaml"}, timeout=60)["run_id"]
         wait_until(lambda: _run_state(op).get("done", 0) >= 1, 60, "one configuration measured")
     assert proc.stop(signal.SIGTERM) == 0
     log = proc.log()

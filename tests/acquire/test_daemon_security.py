@@ -66,7 +66,7 @@ def test_unauthorised_loopback_client_can_neither_start_motion_nor_read_plans(tm
 
             # A run the operator started: the others see its progress but not its plan.
             op = control(bus, "operator", OPERATOR_TOKEN)
-            run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
+            run_id = op.call("start", {"plan": "example.yaml"}, timeout=60)["run_id"]
             run = anon.call("status")["run"]
             assert run["run_id"] == run_id and "plan" not in run
             assert op.call("status")["run"]["plan"] == str(tmp_path / "plans" / "example.yaml")
@@ -274,7 +274,7 @@ def test_a_captured_start_is_refused_after_a_restart_and_by_the_same_daemon(tmp_
             # test_control_neighbours.py): the bytes are captured where they leave the client, as
             # on a link whose TLS was broken.
             op = CapturingClient(bus.session, CELL, client="operator", token=OPERATOR_TOKEN)
-            run_id = op.call("start", {"plan": "example.yaml"})["run_id"]
+            run_id = op.call("start", {"plan": "example.yaml"}, timeout=60)["run_id"]
             captured = op.stages("start")
             assert set(captured) == {"client-first", "client-final"}
             op.call("abort", {"reason": "test"})

@@ -292,7 +292,7 @@ def test_daemon_serves_its_runs_live_when_configured(tmp_path):
             client.recv(0.2)
         assert client.server_info["name"].startswith("remaster ")
         with open_client(port) as bus:
-            control(bus, "operator", OPERATOR_TOKEN).call("start", {"plan": "example.yaml"})
+            control(bus, "operator", OPERATOR_TOKEN).call("start", {"plan": "example.yaml"}, timeout=60)
             client.wait_channels({"/tf", "/joint_state", "/log"}, timeout_s=90)
             client.subscribe("/log")
             deadline = time.monotonic() + 120
