@@ -122,6 +122,7 @@ class FakeMotive:
         self._frame_no = 0
         self._t0 = time.monotonic()
         self._stalled = False
+        self._emitting = threading.Lock()  # held from the stall check to the frame's last send
         self._last_frame: codec.FrameOfData | None = None
         #: Counters for tests: frames sent (after faults), commands answered, bad packets,
         #: keep-alives received, and the text of every REQUEST.
@@ -204,8 +205,9 @@ class FakeMotive:
         self._faults.set(drop=drop, duplicate=duplicate, reorder=reorder)
 
     def stall(self) -> None:
-        """Stop sending frames (commands are still answered) until ``resume()``."""
-        with self._lock:
+        """Stop sending frames (commands are still answered) until ``resume()``. On return no
+        frame is on its way: one the stream thread had already begun has been sent."""
+        with self._emitting, self._lock:
             self._stalled = True
 
     def resume(self) -> None:
@@ -347,14 +349,15 @@ class FakeMotive:
             next_t += period
             if next_t < time.monotonic() - period:  # fell behind (busy host): resync
                 next_t = time.monotonic() + period
-            with self._lock:
-                stalled = self._stalled
-                version = self.stream_version
-            if stalled:
-                continue
-            packet = codec.encode_packet(self.make_frame(), version)
-            for p in self._faults.apply(packet):
-                self._emit(p)
+            with self._emitting:
+                with self._lock:
+                    stalled = self._stalled
+                    version = self.stream_version
+                if stalled:
+                    continue
+                packet = codec.encode_packet(self.make_frame(), version)
+                for p in self._faults.apply(packet):
+                    self._emit(p)
 
     def _emit(self, packet: bytes) -> None:
         self.frames_sent += 1

@@ -60,6 +60,36 @@ def test_client_without_options_stays_unicast_when_the_server_announces_unicast(
             assert wait_until(lambda: fake.keepalives >= 2)
 
 
+def test_a_frame_begun_before_stall_is_sent_before_stall_returns(still_scene):
+    """A test stalls the fake before a client joins so the client's first frame comes after
+    SERVERINFO. A frame the stream thread had already begun (the host busy between its stall
+    check and its send) must not reach the socket after ``stall()`` has returned."""
+    begun, release = threading.Event(), threading.Event()
+    observe = still_scene.observe
+    test_thread = threading.current_thread()
+
+    def slow_observe(sensor):  # the stream thread pauses inside its first frame
+        if threading.current_thread() is not test_thread and not release.is_set():
+            begun.set()
+            release.wait(10.0)
+        return observe(sensor)
+
+    still_scene.observe = slow_observe
+    with FakeMotive(still_scene, multicast=True, rate_hz=240) as fake:
+        assert begun.wait(10.0), "the fake never began a frame"
+        stalled = threading.Event()
+        staller = threading.Thread(target=lambda: (fake.stall(), stalled.set()))
+        staller.start()
+        assert not stalled.wait(0.2), "stall() returned while a frame was still on its way"
+        release.set()
+        staller.join(10.0)
+        assert stalled.is_set()
+        sent = fake.frames_sent
+        assert sent >= 1  # the begun frame went out before stall() returned
+        still_scene.observe = observe
+        assert not wait_until(lambda: fake.frames_sent > sent, timeout=0.1)  # 24 periods: nothing more
+
+
 def test_options_that_contradict_the_announcement_fail_saying_what_to_change(still_scene):
     need_loopback_multicast()
     with FakeMotive(still_scene, multicast=True) as fake:
