@@ -34,6 +34,7 @@ import pwd
 import socket
 import stat
 import struct
+from dataclasses import dataclass
 from pathlib import Path
 
 #: The daemon's account when ``REMASTER_DAEMON_USER`` is not set (the systemd unit's ``User=``).
@@ -51,6 +52,29 @@ _SO_PEERGROUPS = getattr(socket, "SO_PEERGROUPS", 59)
 
 class UntrustedPeer(PermissionError):
     """The listener could be another account than the daemon's; the message says why and what to do."""
+
+
+@dataclass(frozen=True)
+class Listener:
+    """Whom a client expects at a Zenoh endpoint, as the checks' messages name it and say what to set."""
+
+    name: str            # "the daemon"
+    socket: str          # its Unix socket, e.g. /run/remaster/zenoh.sock (its folder: systemd's RuntimeDirectory)
+    listen_field: str    # where its listen endpoints are configured
+    account_hint: str    # what to set when it runs as another account
+    ca_hint: str         # where the client names the CA that signed its certificate
+    instead: str         # what a client uses instead of an endpoint nothing authenticates
+
+    @property
+    def folder(self) -> str:
+        return os.path.dirname(self.socket)
+
+
+#: The cell's daemon, seen from the CLI on the cell PC (``acquire.commands.daemon``).
+DAEMON = Listener(
+    "the daemon", DEFAULT_ZENOH_SOCKET, "zenoh.listen", "set REMASTER_DAEMON_USER", "--tls-ca",
+    f"On the cell PC use the control socket (no --connect, no --client) or the daemon's {DEFAULT_LOCAL_ENDPOINT}; "
+    "from elsewhere tls/HOST:PORT with --tls-ca")
 
 
 # ------------------------------------------------------------------------- the daemon's side
@@ -72,12 +96,13 @@ def group_name(gid: int) -> str:
         return str(gid)
 
 
-def check_socket_folder(path: Path) -> None:
+def check_socket_folder(path: Path, runtime_directory: str = "remaster") -> None:
     """OSError unless the folder of the socket ``path`` exists and others may not write it (else
-    anyone could put their own socket in the daemon's place)."""
+    anyone could put their own socket in the listener's place); ``runtime_directory``: the
+    systemd unit's ``RuntimeDirectory=`` that makes it."""
     folder = Path(path).parent
     if not folder.is_dir():
-        raise OSError(f"socket folder {folder} does not exist (systemd makes it: RuntimeDirectory=remaster)")
+        raise OSError(f"socket folder {folder} does not exist (systemd makes it: RuntimeDirectory={runtime_directory})")
     if stat.S_IMODE(folder.stat().st_mode) & stat.S_IWOTH:
         raise OSError(f"socket folder {folder} is writable by others: anyone could replace the socket; "
                       f"chmod o-w {folder}")
@@ -93,7 +118,7 @@ def hand_to_group(path: Path, gid: int | None) -> None:
         os.chmod(path, 0o600 if gid is None else 0o660)
     except OSError as exc:
         raise OSError(f"cannot give socket {path} to group {group_name(gid) if gid is not None else '-'}: "
-                      f"{exc.strerror or exc} (the daemon's user must be in that group: SupplementaryGroups=)") from exc
+                      f"{exc.strerror or exc} (the service's user must be in that group: SupplementaryGroups= of its unit)") from exc
 
 
 def peer_credentials(conn: socket.socket) -> tuple[int, int, int, frozenset[int]]:
@@ -153,16 +178,18 @@ def check_listener(conn: socket.socket, path: Path, trusted: frozenset[int]) -> 
                             "another user, set REMASTER_DAEMON_USER")
 
 
-def check_socket_path(path: str | Path, trusted: frozenset[int]) -> None:
+def check_socket_path(path: str | Path, trusted: frozenset[int], listener: Listener = DAEMON) -> None:
     """UntrustedPeer unless only ``trusted`` accounts can have put a socket at ``path``: it is a
     socket, and it, every folder above it and every link on the way (as written and with links
     resolved) belong to one of them, and no folder is writable by anybody else (a sticky folder
-    such as /tmp counts as unwritable: its entries can be replaced only by their owners)."""
+    such as /tmp counts as unwritable: its entries can be replaced only by their owners).
+    ``listener``: whom the messages name."""
     given = Path(os.path.abspath(path))
     real = Path(os.path.realpath(given))
+    who = listener.name
     if not os.path.lexists(real):
-        raise UntrustedPeer(f"no socket at {path}: is the daemon running, with {UNIXSOCK}/{path} among its "
-                            "zenoh.listen endpoints?")
+        raise UntrustedPeer(f"no socket at {path}: is {who} running, with {UNIXSOCK}/{path} among its "
+                            f"{listener.listen_field} endpoints?")
     for chain in dict.fromkeys((given, real)):  # a link in the path: both its folders and its target's
         for entry in (*reversed(chain.parents), chain):
             try:
@@ -172,8 +199,8 @@ def check_socket_path(path: str | Path, trusted: frozenset[int]) -> None:
             mode = stat.S_IMODE(st.st_mode)
             if st.st_uid not in trusted and entry == chain and not stat.S_ISLNK(st.st_mode):
                 raise UntrustedPeer(f"the socket {path} belongs to uid {st.st_uid} ({user_name(st.st_uid)}), not to "
-                                    f"the daemon's account (allowed: {_trusted_text(trusted)}). If the daemon runs "
-                                    "as another user, set REMASTER_DAEMON_USER")
+                                    f"{who}'s account (allowed: {_trusted_text(trusted)}). If {who} runs "
+                                    f"as another user, {listener.account_hint}")
             if st.st_uid not in trusted:
                 raise UntrustedPeer(f"{entry} (on the way to {path}) belongs to uid {st.st_uid} "
                                     f"({user_name(st.st_uid)}), who could put a socket there; allowed owners: "
@@ -181,7 +208,7 @@ def check_socket_path(path: str | Path, trusted: frozenset[int]) -> None:
             if stat.S_ISDIR(st.st_mode) and mode & (stat.S_IWGRP | stat.S_IWOTH) and not mode & stat.S_ISVTX:
                 raise UntrustedPeer(f"{entry} (on the way to {path}) has mode {mode:04o}: other accounts may "
                                     "write it and put a socket there. Allowed: folders that "
-                                    "only their owner may write (the daemon's is /run/remaster, mode 0755)")
+                                    f"only their owner may write ({who}'s is {listener.folder}, mode 0755)")
     if not stat.S_ISSOCK(os.lstat(real).st_mode):
         raise UntrustedPeer(f"{path} is not a socket")
 
@@ -194,23 +221,24 @@ def socket_path_of(endpoint: str) -> str | None:
     return rest.split("#", 1)[0].split("?", 1)[0]
 
 
-def credential_endpoint_problem(endpoint: str, *, tls_ca: Path | None, trusted: frozenset[int]) -> str | None:
+def credential_endpoint_problem(endpoint: str, *, tls_ca: Path | str | None, trusted: frozenset[int],
+                                listener: Listener = DAEMON) -> str | None:
     """Why a client must not send a credential to (or believe an unsigned reply from) Zenoh
     ``endpoint``, or None when the listener there is authenticated: a ``unixsock-stream`` socket
     that passes ``check_socket_path``, or ``tls/``/``quic/`` with the CA ``tls_ca`` that signed
-    the daemon's certificate."""
+    the listener's certificate. ``listener``: whom the messages name, and what they advise."""
     path = socket_path_of(endpoint)
     if path is not None:
         try:
-            check_socket_path(path, trusted)
+            check_socket_path(path, trusted, listener)
         except UntrustedPeer as exc:
             return str(exc)
         return None
     proto = endpoint.partition("/")[0]
     if proto in _CERTIFIED:
         if tls_ca is None:
-            return "give --tls-ca (the CA that signed the daemon's certificate), or nothing authenticates the listener"
+            return (f"give {listener.ca_hint} (the CA that signed {listener.name}'s certificate), or nothing "
+                    "authenticates the listener")
         return None
-    return (f"nothing authenticates a {proto}/ listener: while the daemon is down any local "
-            "process can listen there. On the cell PC use the control socket (no --connect, no --client) or "
-            f"the daemon's {DEFAULT_LOCAL_ENDPOINT}; from elsewhere tls/HOST:PORT with --tls-ca")
+    return (f"nothing authenticates a {proto}/ listener: while {listener.name} is down any local "
+            f"process can listen there. {listener.instead}")

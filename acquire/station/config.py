@@ -11,8 +11,10 @@
     zenoh:
       mode: client                     # a client of the site's router (zenohd or `acquire router`)
       listen: []
-      connect: [tcp/127.0.0.1:7447]
+      connect: [unixsock-stream//run/remaster-router/zenoh.sock]   # the router on this host
+      router_user: remaster-router     # the account the router runs as (owner of that socket)
       zenoh: {}                        # TLS / access control / user-password, Zenoh config paths → values
+      socket_group: null               # a station that listens on a Unix socket itself: who may connect
       allow_unauthenticated_listen: false   # see below
     poll_s: 60                         # how often each cell is asked (cells also announce their runs)
     sync_workers: 8                    # cells synced at once
@@ -33,8 +35,28 @@ any other (the station warns at start).
 
 Each cell's daemon lists the station in ``auth.clients`` with permission ``archive``.
 
-**A listener other hosts can reach is protected by Zenoh itself** (``StationZenoh.security_problems``,
-reported at the endpoint's line): every non-loopback ``listen`` endpoint needs one of
+**The station sends its SCRAM messages only to a router it has authenticated**
+(``StationZenoh.connect_problems``, reported at the endpoint's line, before anything is sent):
+each ``connect`` endpoint must be
+
+- ``unixsock-stream/<absolute path>`` whose socket, folders and links only root, the station's own
+  account or ``router_user`` can have made (``acquire.daemon.local_sockets.check_socket_path``:
+  the router's ``/run/remaster-router``, systemd's ``RuntimeDirectory``, mode 0755) — the router
+  on the station's host; or
+- ``tls/`` or ``quic/`` with ``transport/link/tls/root_ca_certificate`` in ``zenoh`` (the CA that
+  signed the router's certificate) — a router on another host.
+
+Never plain ``tcp/`` (or ``udp/``, ``ws/``), loopback included: nothing tells the station who
+listens there, and while the router is down any local process can, receive the station's
+client-finals and answer in the router's place. A socket that does not exist yet (the router is
+starting) passes the file check and is checked again when the station opens its session.
+
+**A listener other accounts or hosts can reach is protected by Zenoh itself**
+(``ZenohLinks.security_problems``, reported at the endpoint's line): a ``unixsock-stream``
+listener is protected by its file's permissions (``socket_group``: its members may connect, mode
+0660; none: this account only, mode 0600; its folder must not be writable by others); every
+other ``listen`` endpoint — a loopback one too: any local account could join and receive the
+station's queries — needs one of
 
 - a ``tls/`` or ``quic/`` endpoint with ``transport/link/tls`` holding ``listen_certificate``,
   ``listen_private_key``, ``root_ca_certificate`` and ``enable_mtls: true`` (mutual TLS: only
@@ -50,14 +72,15 @@ Zenoh paths may be given nested or as ``a/b/c`` keys (``transport/link/tls: {ena
 
 from __future__ import annotations
 
+import os
+import re
 from pathlib import Path
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-import re
-
 from acquire.daemon.archive import MAX_CHUNK_BYTES
+from acquire.daemon.local_sockets import Listener, UNIXSOCK, credential_endpoint_problem, socket_path_of, trusted_uids
 from acquire.station.archive import Limits
 from acquire.station.states import Policy
 from calib.io.yamlfile import load_validated
@@ -70,6 +93,19 @@ class _Strict(BaseModel):
 _SECURE_PROTOCOLS = ("tls", "quic")
 _CELL_ID = re.compile(r"^[A-Za-z0-9_.-]+$")
 _TLS = "transport/link/tls/"
+
+#: Where the site's router (``acquire router``, systemd/remaster-router.service) listens for the
+#: station on the station's host, and the account it runs as.
+ROUTER_SOCKET = "/run/remaster-router/zenoh.sock"
+ROUTER_ENDPOINT = f"{UNIXSOCK}/{ROUTER_SOCKET}"
+ROUTER_USER = "remaster-router"
+#: The router, as the station's checks of its ``connect`` endpoints name it.
+ROUTER = Listener(
+    "the router", ROUTER_SOCKET, "listen", "set zenoh.router_user (the account the router runs as)",
+    f"zenoh.zenoh {_TLS}root_ca_certificate",
+    f"On the router's host set zenoh.connect to [{ROUTER_ENDPOINT}]; for a router on another host "
+    f"tls/HOST:7447 with zenoh.zenoh {_TLS}{{root_ca_certificate, connect_certificate, connect_private_key, "
+    "enable_mtls: true}")
 
 
 def flat_paths(tree: dict, prefix: str = "") -> dict[str, object]:
@@ -84,20 +120,30 @@ def flat_paths(tree: dict, prefix: str = "") -> dict[str, object]:
     return out
 
 
-class StationZenoh(_Strict):
+class ZenohLinks(_Strict):
+    """A Zenoh session's endpoints and settings, and what protects each listener (the station's
+    ``zenoh:`` section; the router's whole file, ``acquire.station.router``)."""
+
     mode: Literal["router", "peer", "client"] = "client"
     listen: list[str] = Field(default_factory=list)
-    connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    connect: list[str] = Field(default_factory=list)
     zenoh: dict = Field(default_factory=dict)
+    socket_group: str | None = Field(None, min_length=1, description=(
+        "the group (name or number) of the unixsock-stream listeners' sockets, mode 0660: its members and root "
+        "may connect; none: mode 0600, this service's account only"))
     allow_unauthenticated_listen: bool = Field(
-        False, description="let a non-loopback listener run without mTLS, access control or user-password auth")
+        False, description="let a listener other than a Unix socket run without mTLS, access control or "
+                           "user-password auth (anyone who can reach it may join: on loopback, any local account)")
+
+    @property
+    def socket_paths(self) -> list[Path]:
+        """The socket files of the ``unixsock-stream`` listen endpoints."""
+        return [Path(p) for p in map(socket_path_of, self.listen) if p is not None]
 
     def security_problems(self) -> list[tuple[tuple, str]]:
-        """(field path, message) per non-loopback listen endpoint that Zenoh would serve to anyone."""
+        """(field path, message) per listen endpoint that Zenoh would serve to another account or host."""
         from acquire.live.bus import is_loopback_endpoint
 
-        if self.allow_unauthenticated_listen:
-            return []
         flat = flat_paths(self.zenoh)
         mtls = all(flat.get(_TLS + k) for k in ("listen_certificate", "listen_private_key", "root_ca_certificate")) \
             and flat.get(_TLS + "enable_mtls") is True
@@ -105,18 +151,58 @@ class StationZenoh(_Strict):
         usrpwd = bool(flat.get("transport/auth/usrpwd/dictionary_file"))
         problems = []
         for i, ep in enumerate(self.listen):
+            loc = ("zenoh", "listen", i)
             if not isinstance(ep, str) or "/" not in ep:
-                problems.append((("zenoh", "listen", i), f"{ep!r} is not a Zenoh endpoint like 'tls/0.0.0.0:7447'"))
+                problems.append((loc, f"{ep!r} is not a Zenoh endpoint like 'tls/0.0.0.0:7447'"))
                 continue
-            if is_loopback_endpoint(ep) or acl or usrpwd or (ep.split("/", 1)[0] in _SECURE_PROTOCOLS and mtls):
+            path = socket_path_of(ep)
+            if path is not None:   # the kernel checks who connects: the file's owner, group and mode
+                if not os.path.isabs(path):
+                    problems.append((loc, f"the socket of {ep!r} must be an absolute path, e.g. {ROUTER_ENDPOINT}"))
                 continue
-            problems.append((("zenoh", "listen", i), (
-                f"endpoint {ep!r} is reachable from other hosts without authentication; allowed: loopback "
-                "endpoints, tls/ or quic/ endpoints with zenoh.zenoh transport/link/tls {listen_certificate, "
-                "listen_private_key, root_ca_certificate, enable_mtls: true}, access_control {enabled: true, "
-                "default_permission: deny}, transport/auth/usrpwd {dictionary_file}, or (knowingly) "
-                "zenoh.allow_unauthenticated_listen: true")))
+            if self.allow_unauthenticated_listen or acl or usrpwd or (ep.split("/", 1)[0] in _SECURE_PROTOCOLS and mtls):
+                continue
+            who = "any account on this host" if is_loopback_endpoint(ep) else "other hosts"
+            problems.append((loc, (
+                f"endpoint {ep!r} is reachable from {who} without authentication (whoever joins receives the "
+                "station's queries); allowed: unixsock-stream/<absolute path> (socket_group: who may connect), "
+                "tls/ or quic/ endpoints with zenoh transport/link/tls {listen_certificate, listen_private_key, "
+                "root_ca_certificate, enable_mtls: true}, access_control {enabled: true, default_permission: deny}, "
+                "transport/auth/usrpwd {dictionary_file}, or (knowingly) allow_unauthenticated_listen: true")))
         return problems
+
+
+class StationZenoh(ZenohLinks):
+    """The station's session: by default a client of the router on its host, over its Unix socket."""
+
+    connect: list[str] = Field(default_factory=lambda: [ROUTER_ENDPOINT])
+    router_user: str = Field(ROUTER_USER, min_length=1, description=(
+        "the account the router runs as: a unixsock-stream connect endpoint's socket and folders must belong to "
+        "it, to root or to the station's own account"))
+
+    def connect_problems(self, *, socket_up: bool) -> list[tuple[tuple, str]]:
+        """(field path, message) per ``connect`` endpoint the station must not send a SCRAM message
+        to (``acquire.daemon.local_sockets.credential_endpoint_problem``). ``socket_up``: a Unix
+        socket must exist (when opening the session); else a missing one passes (the router may be
+        starting) and is checked then."""
+        ca = flat_paths(self.zenoh).get(_TLS + "root_ca_certificate")
+        trusted = trusted_uids(self.router_user)
+        problems = []
+        for i, ep in enumerate(self.connect):
+            path = socket_path_of(ep)
+            if path is not None and not os.path.isabs(path):
+                problem = f"the socket must be an absolute path, e.g. {ROUTER_ENDPOINT}"
+            elif path is not None and not socket_up and not os.path.lexists(path):
+                continue
+            else:
+                problem = credential_endpoint_problem(ep, tls_ca=ca, trusted=trusted, listener=ROUTER)
+            if problem:
+                problems.append((("zenoh", "connect", i), f"the station sends no credentials to {ep!r}: {problem}"))
+        return problems
+
+    def security_problems(self, *, socket_up: bool = False) -> list[tuple[tuple, str]]:
+        """The listeners' problems (``ZenohLinks.security_problems``) and the ``connect`` endpoints'."""
+        return super().security_problems() + self.connect_problems(socket_up=socket_up)
 
 
 class DriftSection(_Strict):

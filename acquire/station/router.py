@@ -8,12 +8,17 @@ this is a Zenoh session in router mode and nothing more — no plugins, no stora
 
 Configuration (``/etc/remaster/router.yaml``)::
 
-    listen: [tcp/127.0.0.1:7447]       # other hosts: tls/0.0.0.0:7447 with mTLS (zenoh: below)
+    listen: [unixsock-stream//run/remaster-router/zenoh.sock]   # the station on this host
+    socket_group: remaster-router-clients   # who may connect to that socket (mode 0660): the station's account
     zenoh: {}                          # Zenoh config paths → values (transport/link/tls/…, access_control, …)
     allow_unauthenticated_listen: false
 
-A listener other hosts can reach needs mutual TLS, Zenoh access control or user-password
-authentication, under the same rule as the station's (``acquire.station.config.StationZenoh``).
+The station on the router's host connects to the Unix socket: the kernel lets only
+``socket_group`` in, and the station checks that only the router's account can have made the
+socket before it sends anything (``acquire.station.config.StationZenoh.connect_problems``).
+Cells on other hosts reach the router over ``tls/0.0.0.0:7447`` with mutual TLS. Every listener
+but a Unix socket needs mutual TLS, Zenoh access control or user-password authentication — a
+loopback one too (``acquire.station.config.ZenohLinks.security_problems``).
 """
 
 from __future__ import annotations
@@ -25,19 +30,18 @@ from typing import Callable, Literal
 
 from pydantic import Field
 
-from acquire.live.bus import Bus, is_loopback_endpoint
-from acquire.station.config import StationZenoh
+from acquire.live.bus import Bus, BusConfigError, is_loopback_endpoint
+from acquire.station.config import ROUTER_ENDPOINT, ZenohLinks
 from calib.io.yamlfile import load_validated
 
 log = logging.getLogger(__name__)
 
 
-class RouterConfig(StationZenoh):
+class RouterConfig(ZenohLinks):
     """The router's endpoints and Zenoh settings (see the module docstring)."""
 
     mode: Literal["router"] = "router"
-    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
-    connect: list[str] = Field(default_factory=list)
+    listen: list[str] = Field(default_factory=lambda: [ROUTER_ENDPOINT])
 
     def deferred_errors(self) -> list[tuple[tuple, str]]:
         return [(loc[1:], msg) for loc, msg in self.security_problems()]
@@ -48,12 +52,37 @@ def load_router_config(path: Path) -> RouterConfig:
     return load_validated(Path(path), RouterConfig)
 
 
+def open_session(name: str, z: ZenohLinks, runtime_directory: str) -> Bus:
+    """A Zenoh session on ``z``'s endpoints (closed by the caller). Its Unix-socket listeners must
+    be in folders nobody else may write (``runtime_directory``: the unit's ``RuntimeDirectory=``
+    that makes them) and are handed to ``z.socket_group`` (mode 0660; none: 0600) before anyone
+    else could connect (Zenoh makes them with the service's umask). BusConfigError saying what
+    to do when a folder or the group is wrong."""
+    from acquire.daemon.local_sockets import check_socket_folder, hand_to_group, resolve_group
+
+    try:
+        gid = None if z.socket_group is None else resolve_group(z.socket_group, "socket_group")
+        for path in z.socket_paths:
+            check_socket_folder(path, runtime_directory)
+    except (OSError, ValueError) as exc:
+        raise BusConfigError(str(exc)) from exc
+    # Zenoh's shared-memory transport maps a segment per local peer that sends large payloads
+    # (~15 MB each, measured with 50 cells on one host); cells are remote: off unless asked.
+    overrides = {"transport/shared_memory/enabled": False, **z.zenoh}
+    bus = Bus(name, config={"mode": z.mode, "listen": list(z.listen), "connect": list(z.connect), "zenoh": overrides},
+              listen_loopback_only=all(is_loopback_endpoint(e) for e in [*z.listen, *z.connect]))
+    try:
+        for path in z.socket_paths:
+            hand_to_group(path, gid)
+    except OSError as exc:
+        bus.close()
+        raise BusConfigError(str(exc)) from exc
+    return bus
+
+
 def open_router(cfg: RouterConfig) -> Bus:
     """The router's session (closed by the caller)."""
-    overrides = {"transport/shared_memory/enabled": False, **cfg.zenoh}
-    bus = Bus("router", config={"mode": "router", "listen": list(cfg.listen), "connect": list(cfg.connect),
-                                "zenoh": overrides},
-              listen_loopback_only=all(is_loopback_endpoint(e) for e in [*cfg.listen, *cfg.connect]))
+    bus = open_session("router", cfg, "remaster-router")
     log.info("router listening on %s", ", ".join(bus.locators))
     return bus
 

@@ -128,18 +128,17 @@ class Station:
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> "Station":
-        z = self.cfg.zenoh
-        problems = z.security_problems()
-        if problems:
-            from acquire.live.bus import BusConfigError
+        """Check every endpoint (``StationZenoh.security_problems``: the router's socket must exist
+        and only its account can have made it, or TLS with its CA) before the session sends anything,
+        then join the router and watch the cells."""
+        from acquire.live.bus import BusConfigError
+        from acquire.station.router import open_session
 
+        z = self.cfg.zenoh
+        problems = z.security_problems(socket_up=True)
+        if problems:
             raise BusConfigError("; ".join(f"zenoh.{'.'.join(map(str, loc[1:]))}: {msg}" for loc, msg in problems))
-        # Zenoh's shared-memory transport maps a segment per local peer that sends large payloads
-        # (~15 MB each, measured with 50 cells on one host); cells are remote: off unless asked.
-        overrides = {"transport/shared_memory/enabled": False, **z.zenoh}
-        self.bus = Bus("station", config={"mode": z.mode, "listen": list(z.listen), "connect": list(z.connect),
-                                          "zenoh": overrides},
-                       listen_loopback_only=all(_loopback(e) for e in [*z.listen, *z.connect]))
+        self.bus = open_session("station", z, "remaster-station")
         self._states = self._read_states()
         self._write_station_file("policy.json", self.policy.to_dict())
         catch_up(self.archive, self.policy)   # runs stored just before a stop, not yet in their history
@@ -450,8 +449,3 @@ class Station:
         with self._lock:
             return sorted(self.cells.values(), key=lambda c: (c.site, c.cell))
 
-
-def _loopback(endpoint: str) -> bool:
-    from acquire.live.bus import is_loopback_endpoint
-
-    return is_loopback_endpoint(endpoint)

@@ -21,7 +21,6 @@ import argparse
 import json
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -32,12 +31,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _result(rng) -> dict:
@@ -132,8 +125,7 @@ def main() -> None:
     token = new_token()
     write_token_file(tmp / "station.token", token)
     creds = control_auth.derive_credentials(token, iterations=args.iterations)
-    port = _free_port()
-    router = f"tcp/127.0.0.1:{port}"
+    router = f"unixsock-stream/{tmp / 'router.sock'}"   # the station's link: never tcp/ (docs/how-to/station.md)
     (tmp / "router.yaml").write_text(f"listen: ['{router}']\n")
     cells_cfg = "".join(f"  bench/c{i:03d}: {{robot_serial: R{i:03d}}}\n" for i in range(args.cells))
     (tmp / "station.yaml").write_text(

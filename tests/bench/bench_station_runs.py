@@ -4,7 +4,7 @@ running a short plan on its simulated cell to a fitted result, one station archi
     nice -n 10 python tests/bench/bench_station_runs.py --cells 20 --wave 20 [--poses 8] [--time-scale 3]
 
 The site's router (``acquire router``) and the station (``acquire station``, a client of the
-router) run as processes of their own on loopback ports. Each cell is a real ``acquire daemon``
+router) run as processes of their own, linked by the router's Unix socket. Each cell is a real ``acquire daemon``
 process (``fake:`` its simulated cell, ``site: bench``, Zenoh peer connected to the router, the
 station listed with ``allow: [archive]``, ``WATCHDOG_USEC`` of the unit's ``WatchdogSec=10s``).
 The bench is an operator client of the same router: it starts each daemon's run with a short
@@ -51,7 +51,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from tests.acquire.daemon_harness import (NotifySocket, free_port, scram)  # noqa: E402
+from tests.acquire.daemon_harness import (NotifySocket, scram)  # noqa: E402
 from tests.acquire.run_helpers import small_plan  # noqa: E402
 
 SITE = "bench"
@@ -203,7 +203,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="bench-station-runs-"))
     token = new_token()
     write_token_file(tmp / "station.token", token)
-    router = f"tcp/127.0.0.1:{free_port()}"
+    router = f"unixsock-stream/{tmp / 'router.sock'}"   # the station's link: never tcp/ (docs/how-to/station.md)
     (tmp / "router.yaml").write_text(f"listen: ['{router}']\n")
     cells_cfg = "".join(f"  {SITE}/c{i:03d}: {{robot_serial: R{i:03d}}}\n" for i in range(args.cells))
     (tmp / "station.yaml").write_text(

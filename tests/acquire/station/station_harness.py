@@ -1,11 +1,14 @@
 """What the station tests share: cells as peer sessions with their daemon's control queries (not
-started: no devices), a station as the router of the test, runs written as folders."""
+started: no devices), a station as the router of the test on a Unix socket, runs written as folders."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -82,10 +85,36 @@ CELLS = {"plant-a/c1": {"robot_serial": "KR6-0001"}, "plant-b/c1": {"robot_seria
          "plant-a/c9": {"robot_serial": "TX60-9"}, "plant-a/rogue": {"robot_serial": "KR6-0666"}}
 
 
+#: A Unix socket's path holds at most 107 bytes (sun_path); pytest's tmp_path may be longer.
+_SUN_PATH_MAX = 107
+#: Short socket folders made for tests whose tmp_path is too long; removed after each test (conftest.py).
+SHORT_FOLDERS: list[Path] = []
+
+
+def socket_endpoint(tmp_path: Path, name: str = "zenoh.sock") -> str:
+    """``unixsock-stream/<path>`` of a socket only this account can make: in ``tmp_path`` (pytest
+    makes it and its parents mode 0700) when the path fits in sun_path, else in a short folder
+    ``/tmp/rms-<hash>`` of mode 0700 (/tmp is sticky: its entries stay their owners')."""
+    path = Path(tmp_path) / name
+    if len(str(path)) > _SUN_PATH_MAX:
+        folder = Path("/tmp") / f"rms-{hashlib.sha256(str(tmp_path).encode()).hexdigest()[:12]}"
+        folder.mkdir(mode=0o700, exist_ok=True)
+        if folder not in SHORT_FOLDERS:
+            SHORT_FOLDERS.append(folder)
+        path = folder / name
+    return f"unixsock-stream/{path}"
+
+
+def remove_short_folders() -> None:
+    while SHORT_FOLDERS:
+        shutil.rmtree(SHORT_FOLDERS.pop(), ignore_errors=True)
+
+
 def station_config(tmp_path, **overrides) -> StationConfig:
-    """The station as the router of the test (cells connect to it), knowing the cells of ``CELLS``."""
+    """The station as the router of the test on a Unix socket (cells connect to it), knowing the
+    cells of ``CELLS``."""
     kw = dict(archive=tmp_path / "archive", token_file=tmp_path / "unused", cells=CELLS,
-              zenoh={"mode": "router", "listen": ["tcp/127.0.0.1:0"], "connect": []}, chunk_bytes=64 * 1024,
+              zenoh={"mode": "router", "listen": [socket_endpoint(tmp_path)], "connect": []}, chunk_bytes=64 * 1024,
               poll_s=0.2)
     return StationConfig(**{**kw, **overrides})
 

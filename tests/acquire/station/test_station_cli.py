@@ -1,5 +1,5 @@
 """``acquire station``: a bad configuration names file, line and field (exit 2); ``--once`` archives a
-cell's run end to end (the station a peer connecting to the cell's session: no fixed port)."""
+cell's run end to end (the station a peer connecting to the cell's session on a Unix socket)."""
 
 import json
 import os
@@ -14,6 +14,7 @@ from acquire.daemon import control_auth
 from acquire.station.config import load_station_config
 from acquire.daemon.tokens import new_token, write_token_file
 from calib.io.yamlfile import ConfigError
+from station_harness import socket_endpoint
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -46,7 +47,7 @@ def test_station_once_archives_a_cells_run_end_to_end(tmp_path):
     run = tmp_path / "cell" / "runs" / "r1"
     run.mkdir(parents=True)
     (run / "r1.mcap").write_bytes(np.random.default_rng(0).bytes(100_000))
-    with Bus("c1", site="s1", config={"listen": ["tcp/127.0.0.1:0"]}) as bus:
+    with Bus("c1", site="s1", config={"listen": [socket_endpoint(tmp_path)]}) as bus:
         auth = AuthSection.model_validate({"clients": [{"name": "station", "scram": creds.config(), "allow": ["archive"]}]})
         server = ControlServer(bus.session, "c1", daemon, Authorizer(auth), site="s1")
         bus.liveliness_token(bus.key("daemon"))
@@ -100,10 +101,10 @@ def test_the_station_and_the_router_tell_systemd_they_are_ready_and_alive_and_st
     STOPPING=1 and exit 0 on SIGTERM (a NOTIFY_SOCKET stand-in; the station as its own router here)."""
     import signal
 
-    from daemon_harness import NotifySocket, free_port
+    from daemon_harness import NotifySocket
 
     write_token_file(tmp_path / "station.token", new_token())
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    endpoint = socket_endpoint(tmp_path)
     if service == "station":
         (tmp_path / "cfg.yaml").write_text(
             f"archive: archive\ntoken_file: station.token\nzenoh: {{mode: router, listen: ['{endpoint}'], connect: []}}\n")

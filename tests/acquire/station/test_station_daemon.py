@@ -14,6 +14,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from daemon_harness import (CELL, OPERATOR_TOKEN, DaemonProcess, NotifySocket, free_port,  # noqa: E402
                             scram, wait_until, write_config)
+from station_harness import socket_endpoint  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(480)]  # a whole run of the example plan
 
@@ -28,7 +29,9 @@ def test_a_sited_daemons_run_is_archived_by_the_station(tmp_path):
 
     token = new_token()
     port = free_port()
-    config = write_config(tmp_path, port, site="plant-a", robot_serial="IIWA-42")
+    link = socket_endpoint(tmp_path)   # the station's link to the daemon's router (never tcp/)
+    config = write_config(tmp_path, port, site="plant-a", robot_serial="IIWA-42",
+                          zenoh={"listen": [f"tcp/127.0.0.1:{port}", link]})
     import yaml
 
     cfg = yaml.safe_load(config.read_text())
@@ -38,7 +41,7 @@ def test_a_sited_daemons_run_is_archived_by_the_station(tmp_path):
     proc = DaemonProcess(config, notify)
     scfg = StationConfig(archive=tmp_path / "archive", token_file=tmp_path / "unused", poll_s=600,
                          cells={f"plant-a/{CELL}": {"robot_serial": "IIWA-42"}},
-                         zenoh={"mode": "peer", "listen": [], "connect": [f"tcp/127.0.0.1:{port}"]})
+                         zenoh={"mode": "peer", "listen": [], "connect": [link]})
     try:
         proc.wait_ready(60)
         with Station(scfg, token=token) as station, \

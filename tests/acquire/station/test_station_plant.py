@@ -18,7 +18,8 @@ import threading
 import time
 
 import numpy as np
-from station_harness import TOKEN, Cell, result_doc, station, station_config, sync_until, wait_cells, write_run  # noqa: F401
+from station_harness import (TOKEN, Cell, result_doc, socket_endpoint, station, station_config,  # noqa: F401
+                             sync_until, wait_cells, write_run)
 
 from acquire.daemon.service import Daemon
 from acquire.station.archive import RunRef
@@ -221,17 +222,14 @@ def test_the_station_is_a_client_of_the_sites_router_and_its_restart_leaves_the_
     import subprocess
     from pathlib import Path
 
-    from daemon_harness import free_port
-
     from acquire.live.bus import Bus
     from acquire.daemon.control import ControlClient
 
-    port = free_port()
-    (tmp_path / "router.yaml").write_text(f"listen: [tcp/127.0.0.1:{port}]\n")
+    endpoint = [socket_endpoint(tmp_path, "router.sock")]
+    (tmp_path / "router.yaml").write_text(f"listen: ['{endpoint[0]}']\n")
     root = Path(__file__).resolve().parents[3]
     router = subprocess.Popen([sys.executable, "-m", "acquire", "router", "--config", str(tmp_path / "router.yaml")],
                               env=dict(os.environ, PYTHONPATH=str(root)), stderr=subprocess.PIPE, text=True)
-    endpoint = [f"tcp/127.0.0.1:{port}"]
     cfg = station_config(tmp_path, zenoh={"mode": "client", "listen": [], "connect": endpoint})
     try:
         _until(lambda: _router_up(endpoint), 60, "the router to accept a client", poll=0.2)
