@@ -1,7 +1,10 @@
 """``acquire station``: find the cells, pull every finished run, verify, store, confirm.
 
 The station's Zenoh session is a *client* of the site's router (``zenohd``, or ``acquire router``)
-— restarting the station never takes the cells' control planes down. It watches the daemons'
+— restarting the station never takes the cells' control planes down. It reaches the router over
+the router's Unix socket (``unixsock-stream//run/remaster-router/zenoh.sock``) or over TLS with the
+router's CA, and checks that endpoint before its session sends anything
+(``acquire.station.config.StationZenoh.connect_problems``): never over plain ``tcp/``. It watches the daemons'
 liveliness tokens ``remaster/<site>/<cell>/daemon`` (and ``remaster/<cell>/daemon`` of a cell
 without a site) and the announcements ``…/archive/ready`` a daemon puts when a run ends. A cell is
 synced (``sync_cell``) when it appears, when it announces a run, and every ``poll_s`` as a sweep:
