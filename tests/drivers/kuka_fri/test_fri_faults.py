@@ -180,6 +180,21 @@ def test_a_move_timed_out_on_a_late_controller_is_over_when_reported_and_the_nex
         assert fake.stats.violations == []
 
 
+def test_a_stop_while_the_controller_is_silent_returns_once_the_silence_allowance_ended_the_move(limits):
+    """At a 1500 ms silence allowance a stop asked for while the controller is silent cannot
+    advance, and the exchange ends the motion only once the allowance is over: ``stop()`` waited
+    a fixed ~1 s and raised while the move still ran (the next one refused "already in
+    progress"); it returns once the move is over."""
+    query = "rt_priority=0&timeout_ms=1500&max_state_age_ms=1500"
+    with fri_pair(limits, initial_position_rad=Q0, url_query=query) as (c, fake):
+        mover = MoveInThread(c, FAR)
+        wait_commands(fake, 30)
+        fake.stop_sending()
+        c.stop()
+        assert not c.session.motion_active()
+        assert "controller stopped sending" in str(mover.join())
+
+
 def test_a_stale_state_refuses_the_move(limits):
     with fri_pair(limits, initial_position_rad=Q0, url_query="rt_priority=0&max_state_age_ms=100") as (c, fake):
         fake.stop_sending()
