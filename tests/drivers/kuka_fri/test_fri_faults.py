@@ -25,6 +25,8 @@ FAR = np.radians([80.0, 70.0, -60.0, -100.0, 90.0, 80.0, 120.0])
 #: complete, or end by the injected fault and no other): the exchange at its default real-time
 #: priority and the fake controller in a real-time process of its own (``fri_fake_process``).
 ON_TIME = dict(own_process=True, rt_priority=40, url_query="rt_priority=50")
+#: ``ON_TIME`` with the commander's silence and state-age allowances at 1500 ms (issue 32).
+AT_1500_MS = dict(ON_TIME, url_query="rt_priority=50&timeout_ms=1500&max_state_age_ms=1500")
 
 
 class MoveInThread:
@@ -166,8 +168,7 @@ def test_a_move_timed_out_on_a_late_controller_is_over_when_reported_and_the_nex
     streamed the stop, so the next move was refused. Here the fake's messages come 10× late
     (its clock at 0.1× real time): the stop from full speed takes ~2–3 s of wall time; the move is reported only
     once it is over, and the next move starts."""
-    query = "rt_priority=0&timeout_ms=1500&max_state_age_ms=1500"
-    with fri_pair(limits, initial_position_rad=Q0, url_query=query, clock=SimClock(0.1)) as (c, fake):
+    with fri_pair(limits, initial_position_rad=Q0, clock=SimClock(0.1), **AT_1500_MS) as (c, fake):
         # 3 s of wall time are 0.3 s of the controller's: the arm at full speed when it times out
         with pytest.raises(DeviceTimeoutError, match=r"move not finished within 3 s \(planned 1.\d+ s\); stopped$"):
             c.move_to(FAR, 1.0, timeout=3.0)
@@ -185,8 +186,7 @@ def test_a_stop_while_the_controller_is_silent_returns_once_the_silence_allowanc
     advance, and the exchange ends the motion only once the allowance is over: ``stop()`` waited
     a fixed ~1 s and raised while the move still ran (the next one refused "already in
     progress"); it returns once the move is over."""
-    query = "rt_priority=0&timeout_ms=1500&max_state_age_ms=1500"
-    with fri_pair(limits, initial_position_rad=Q0, url_query=query) as (c, fake):
+    with fri_pair(limits, initial_position_rad=Q0, rt_priority=40, url_query=AT_1500_MS["url_query"]) as (c, fake):
         mover = MoveInThread(c, FAR)
         wait_commands(fake, 30)
         fake.stop_sending()
