@@ -56,6 +56,9 @@ __all__ = ["FriCommander", "MotionStoppedError", "SessionView"]
 DEFAULT_PORT = 30200
 #: Seconds a move waits for COMMANDING_ACTIVE before the wait is worth a warning.
 QUIET_SESSION_WAIT_S = 3.0
+#: Longest wall time a stop is waited for (``FriCommander._await_end``), however late the controller.
+STOP_WAIT_CAP_S = 30.0
+STOP_NOT_OVER = "the stop has not ended yet; is the controller sending?"
 _URL_OPTIONS = ("controller", "rt_priority", "timeout_ms", "max_speed", "start_tolerance_deg",
                 "max_state_age_ms", "fri_version", "session_wait_s", "name")
 #: FRI versions whose message tables the session knows (1.11–1.16 share 1.x's layout).
@@ -360,30 +363,55 @@ class FriCommander(CommanderBase):
         while not motion.done.wait(0.005):
             if self.clock() > deadline:
                 self.session.request_stop()
-                motion.done.wait(self._stop_wait_s(motion))
+                how = "stopped"
+                if not self._await_end(motion):
+                    how = STOP_NOT_OVER
+                elif motion.error is not None and not isinstance(motion.error, MotionStoppedError):
+                    how = f"ended: {motion.error}"  # (a fault ended it first)
                 raise DeviceTimeoutError(
                     f"{self.name}: move not finished within {timeout:.3g} s "
-                    f"(planned {motion.planned_s:.3g} s); stopped"
+                    f"(planned {motion.planned_s:.3g} s); {how}"
                 )
         if motion.error is not None:
             raise motion.error
 
-    def _stop_wait_s(self, motion) -> float:
-        """Wall time to wait for a stop to finish: the worst stop time plus slack."""
+    def _await_end(self, motion) -> bool:
+        """Wait until the exchange reports ``motion`` ended after a stop was asked for; False
+        when it still runs. A stop advances one step per monitoring message, so the wait is
+        counted in the controller's cycles, not in wall time: a controller whose messages come
+        late (a starved one) stops late but stops, and a move reported over *is* over (the next
+        one is not refused as "already in progress"). The worst stop, ``2 v/a + 0.5 s`` of the
+        controller's time plus 10 cycles, bounds the cycles; a silence bounds the wait too: past
+        ``receive_timeout_s`` the exchange ends the motion itself, and one second of wall time
+        more without that means the exchange is not working. ``STOP_WAIT_CAP_S`` of wall time
+        caps it all (a caller, an operator's abort, gets its answer; the stop goes on)."""
         v, a, _ = motion.limits_scaled
-        return float(np.max(v / a)) * 2.0 + 10 * motion.dt + 0.5
-
-    def stop(self) -> None:
-        """Decelerate the current motion within the limits and hold (no-op when idle).
-        A ``move_to`` waiting on it raises ``MotionStoppedError``."""
-        motion = self.session.request_stop()
-        if motion is None:
-            return
-        if not motion.done.wait(self._stop_wait_s(motion)):
-            raise DeviceTimeoutError(f"{self.name}: stop did not complete; is the controller sending?")
+        cycles = math.ceil((2.0 * float(np.max(v / a)) + 0.5) / motion.dt) + 10
+        first = self.session.counters.received
+        cap = time.monotonic() + STOP_WAIT_CAP_S
+        silent_since: Optional[float] = None
+        while not motion.done.wait(0.005):
+            if self.session.counters.received - first > cycles or time.monotonic() > cap:
+                return False
+            snap = self.session.snapshot()
+            if snap is not None and self.clock() - snap.host_time <= self.receive_timeout_s:
+                silent_since = None
+            elif silent_since is None:
+                silent_since = time.monotonic()
+            elif time.monotonic() - silent_since > 1.0:
+                return False
         deadline = time.monotonic() + 1.0  # the exchange publishes the end right before it reports it
         while self.session.motion_active() and time.monotonic() < deadline:
             time.sleep(0.002)
+        return True
+
+    def stop(self) -> None:
+        """Decelerate the current motion within the limits and hold (no-op when idle); returns
+        once the robot stopped (``_await_end``). A ``move_to`` waiting on it raises
+        ``MotionStoppedError``."""
+        motion = self.session.request_stop()
+        if motion is not None and not self._await_end(motion):
+            raise DeviceTimeoutError(f"{self.name}: {STOP_NOT_OVER}")
 
     def _sleep(self, dt: float) -> None:
         self._sleep_fn(dt)

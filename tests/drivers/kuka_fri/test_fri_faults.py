@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 
 from drivers.errors import DeviceFaultError, DeviceTimeoutError, NotReadyError
 from drivers.kuka_fri.messages import SessionState
+from drivers.sim.clock import SimClock
 
 Q0 = np.radians([0.0, 30.0, 0.0, -45.0, 0.0, 30.0, 0.0])
 FAR = np.radians([80.0, 70.0, -60.0, -100.0, 90.0, 80.0, 120.0])
@@ -24,6 +25,8 @@ FAR = np.radians([80.0, 70.0, -60.0, -100.0, 90.0, 80.0, 120.0])
 #: complete, or end by the injected fault and no other): the exchange at its default real-time
 #: priority and the fake controller in a real-time process of its own (``fri_fake_process``).
 ON_TIME = dict(own_process=True, rt_priority=40, url_query="rt_priority=50")
+#: ``ON_TIME`` with the commander's silence and state-age allowances at 1500 ms (issue 32).
+AT_1500_MS = dict(ON_TIME, url_query="rt_priority=50&timeout_ms=1500&max_state_age_ms=1500")
 
 
 class MoveInThread:
@@ -154,6 +157,42 @@ def test_a_move_over_its_timeout_is_stopped_within_limits(limits):
         assert np.all(np.abs(held - FAR) > math.radians(5))
         assert fake.stats.violations == []
         assert_timed_commands_within_limits(fake.stats.commands, limits, 0.005)
+
+
+def test_a_move_timed_out_on_a_late_controller_is_over_when_reported_and_the_next_one_starts(limits):
+    """Issue 32: with the cell's allowances at 1500 ms, runs failed at the start with "move
+    refused: a move is already in progress". A starved controller sends late (the fake Sunrise
+    on a loaded host: 14–22 ms for a 5 ms period) while every message still reports 5 ms: the
+    move, stepped per message, outlasts its timeout, and so does its stop. The commander waited
+    for that stop a fixed wall time and reported the move "stopped" while the exchange still
+    streamed the stop, so the next move was refused. Here the fake's messages come 10× late
+    (its clock at 0.1× real time): the stop from full speed takes ~2–3 s of wall time; the move is reported only
+    once it is over, and the next move starts."""
+    with fri_pair(limits, initial_position_rad=Q0, clock=SimClock(0.1), **AT_1500_MS) as (c, fake):
+        # 3 s of wall time are 0.3 s of the controller's: the arm at full speed when it times out
+        with pytest.raises(DeviceTimeoutError, match=r"move not finished within 3 s \(planned 1.\d+ s\); stopped$"):
+            c.move_to(FAR, 1.0, timeout=3.0)
+        assert not c.session.motion_active()
+        held = c.session.held_position()
+        assert np.all(np.abs(held - FAR) > math.radians(5))  # stopped on the way, not arrived
+        step = held + math.radians(0.2)
+        c.move_to(step, 1.0, timeout=30.0)  # not refused: nothing is still moving
+        np.testing.assert_allclose(c.session.held_position(), step, atol=1e-9)
+        assert fake.stats.violations == []
+
+
+def test_a_stop_while_the_controller_is_silent_returns_once_the_silence_allowance_ended_the_move(limits):
+    """At a 1500 ms silence allowance a stop asked for while the controller is silent cannot
+    advance, and the exchange ends the motion only once the allowance is over: ``stop()`` waited
+    a fixed ~1 s and raised while the move still ran (the next one refused "already in
+    progress"); it returns once the move is over."""
+    with fri_pair(limits, initial_position_rad=Q0, rt_priority=40, url_query=AT_1500_MS["url_query"]) as (c, fake):
+        mover = MoveInThread(c, FAR)
+        wait_commands(fake, 30)
+        fake.stop_sending()
+        c.stop()
+        assert not c.session.motion_active()
+        assert "controller stopped sending" in str(mover.join())
 
 
 def test_a_stale_state_refuses_the_move(limits):
