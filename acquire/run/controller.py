@@ -41,6 +41,7 @@ from acquire.record.logstorage import StorageError
 from acquire.run import prepare
 from acquire.run.devices import RunDevices, plan_cell
 from acquire.run.ending import finish
+from acquire.run.fitting import preload_fit
 from acquire.run.procedure import ConfigurationRunner, make_predictor
 from acquire.run.publish import RunPublisher
 from acquire.run.state import RunState
@@ -103,6 +104,8 @@ class RunController:
         self._done_evt = threading.Event()
         self._summary: Optional[RunSummary] = None
         self.adaptive_summary: Optional[dict] = None  # an adaptive run's stop reason, history, time saved
+        #: The end-of-run fit's imports, made while the robot moves (``fitting.preload_fit``); None without a fit.
+        self.fit_preload: Optional[threading.Thread] = None
 
     # ------------------------------------------------------------------ what callers read and set
     bus = property(lambda self: self.pub.bus, lambda self, v: setattr(self.pub, "bus", v))
@@ -271,6 +274,8 @@ class RunController:
         if adaptive is not None:
             self.pub.event("adaptive_started", **adaptive.started_fields())
         st.set("running")
+        if self.fit_enabled:
+            self.fit_preload = preload_fit(lp)
         t_cell0 = cell.clock()
         st.loop_wall0 = time.monotonic()
         try:

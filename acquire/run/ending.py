@@ -68,6 +68,8 @@ def finish(ctl, cell_seconds: float):
             reason = (f"no result: none of the {state.total} configurations was measured "
                       f"({state.skipped} skipped, {state.failed} failed)")
         else:
+            if ctl.fit_preload is not None:  # its imports done (no two threads import one module)
+                ctl.fit_preload.join()
             try:
                 from calib.fit.progress import Progress
 
