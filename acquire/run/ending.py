@@ -8,6 +8,7 @@ the reason, not ``finished``: the operator must not read "finished" as "calibrat
 from __future__ import annotations
 
 import logging
+import time
 
 from drivers.errors import DriverError
 
@@ -73,8 +74,11 @@ def finish(ctl, cell_seconds: float):
             try:
                 from calib.fit.progress import Progress
 
+                wall0, cpu0 = time.monotonic(), time.thread_time()
                 summary.fit, summary.result_path, summary.report_path = fit_run_log(
                     state.log_path, ctl.lp, progress=Progress(state.fitting, every_s=1.0))
+                log.info("run %s: fitted in %.2f s (%.2f CPU-s in this thread)", state.run_id,
+                         time.monotonic() - wall0, time.thread_time() - cpu0)
             except (ValueError, RuntimeError, ArithmeticError) as exc:
                 reason = f"no result: the fit of {state.measured} measured configuration(s) failed: {exc}"
             if summary.fit is not None and summary.adaptive is not None:
