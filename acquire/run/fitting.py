@@ -1,10 +1,11 @@
 """Handing a closed run log to the fitter: ``result.json`` and ``report.html`` (and the socket
 fit's corrected ``model.yaml``) beside the log.
 
-``preload_fit(lp)`` imports what that fit needs (scipy's optimisers and statistics, the fit, the
-reports: about 0.7 CPU-s, 2 s of wall on a busy 2-core host) in a thread while the robot moves,
-so that none of it falls between the last measurement and the result; the run joins it before it
-fits (``acquire.run.ending.finish``). Nothing is fitted ahead: the fit is the same.
+``preload_fit(lp)`` imports what that fit needs (the fit's modules and the reports', and scipy's
+optimisers and statistics where the run has not loaded them yet: up to about 1 CPU-s, seconds of
+wall on a busy host) in a thread while the robot moves, so that none of it falls between the last
+measurement and the result; the run joins it before it fits (``acquire.run.ending.finish``).
+Nothing is fitted ahead: the fit is the same.
 """
 
 from __future__ import annotations
