@@ -106,6 +106,9 @@ class RunController:
         self.adaptive_summary: Optional[dict] = None  # an adaptive run's stop reason, history, time saved
         #: The end-of-run fit's imports, made while the robot moves (``fitting.preload_fit``); None without a fit.
         self.fit_preload: Optional[threading.Thread] = None
+        #: Set once the run measures no more (its devices and log closed), before its fit: whoever
+        #: started the cell's simulation may stop it then (``acquire run --fake``).
+        self.measurements_over = threading.Event()
 
     # ------------------------------------------------------------------ what callers read and set
     bus = property(lambda self: self.pub.bus, lambda self, v: setattr(self.pub, "bus", v))
@@ -213,6 +216,7 @@ class RunController:
             self.state.fail(f"{type(exc).__name__}: {exc}")
         finally:
             self.teardown()
+            self.measurements_over.set()
             self.pub.release_bus()
             if summary is None:
                 summary = self.state.summary()

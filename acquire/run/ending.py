@@ -59,6 +59,7 @@ def finish(ctl, cell_seconds: float):
         log_link(commander, pub.event)
         pub.event("run_finished", measured=state.measured, skipped=state.skipped, failed=state.failed)
     ctl.teardown()
+    ctl.measurements_over.set()
     end = "aborted" if aborted else "finished"
     summary = state.summary()
     summary.cell_seconds = cell_seconds

@@ -20,7 +20,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 #: The modules the default fit of a run imports where it needs them (its lazy imports, and theirs:
-#: scipy.optimize, scipy.stats, scipy.linalg), for ``preload_fit``. ``tests/acquire/test_run_fit_preload.py``
+#: scipy.optimize, scipy.stats, scipy.linalg), for ``preload_fit``. ``tests/acquire/test_run_fit_wall.py``
 #: checks that a fit after them imports nothing more.
 FIT_MODULES = (
     "acquire.record.recorder", "calib.fit.auto_fit", "calib.fit.entered", "calib.fit.offsets",
@@ -40,7 +40,9 @@ SOCKET_FIT_MODULES = (
 def preload_fit(lp) -> threading.Thread:
     """Start importing the modules the end-of-run fit of ``lp``'s plan needs (``FIT_MODULES``, or
     ``SOCKET_FIT_MODULES``) in a daemon thread; returns it (join it before fitting: an import
-    that fails is only logged here, the fit meets it again and says so)."""
+    that fails is only logged here, the fit meets it again and says so). The run's own thread may
+    import meanwhile: calib's modules import one another without a cycle at their top level, so
+    two threads importing them wait at most for each other's module, never for each other."""
     names = SOCKET_FIT_MODULES if getattr(lp.plan, "socket", None) is not None else FIT_MODULES
 
     def load() -> None:

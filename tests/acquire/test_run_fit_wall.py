@@ -1,13 +1,16 @@
-"""The end-of-run fit's imports are made while the robot moves (``acquire.run.fitting.preload_fit``):
-after them, the fit the run makes at its end imports nothing more, so none of their time falls
-between the last measurement and the result."""
+"""Between the last measurement and the result only the fit runs: its imports are made while the
+robot moves (``acquire.run.fitting.preload_fit``), and ``acquire run --fake`` stops the simulated
+cell as soon as the run measures no more (``wait_for_end``'s ``on_measured``)."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 import sys
+import threading
 from pathlib import Path
+
+from acquire.commands.run import wait_for_end
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -46,3 +49,27 @@ def test_after_the_preload_the_end_of_run_fit_imports_nothing(tmp_path):
     assert "compliance" in got["chosen"]  # the path the example's run takes (fit.compliance)
     fit_modules = [m for m in got["new"] if m.split(".")[0] in ("calib", "acquire", "scipy")]
     assert fit_modules == [], f"the fit imported these after preload_fit: add them to FIT_MODULES: {fit_modules}"
+
+
+class _Run:
+    """A run's control surface as ``wait_for_end`` sees it: it measures no more after two waits
+    and ends after four."""
+
+    def __init__(self) -> None:
+        self.measurements_over = threading.Event()
+        self.waits = 0
+
+    def wait(self, timeout: float):
+        self.waits += 1
+        if self.waits == 2:
+            self.measurements_over.set()
+        if self.waits < 4:
+            raise TimeoutError
+        return "summary"
+
+
+def test_the_simulation_ends_once_as_soon_as_the_run_measures_no_more():
+    run, calls = _Run(), []
+    assert wait_for_end(run, on_measured=lambda: calls.append(run.waits)) == "summary"
+    assert calls == [2]  # at the first look after the measurements, while the run still fitted; once
+    assert wait_for_end(_Run()) == "summary"  # (nothing to stop: acquire verify)
