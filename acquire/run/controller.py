@@ -41,6 +41,7 @@ from acquire.record.logstorage import StorageError
 from acquire.run import prepare
 from acquire.run.devices import RunDevices, plan_cell
 from acquire.run.ending import finish
+from acquire.run.fitting import preload_fit
 from acquire.run.procedure import ConfigurationRunner, make_predictor
 from acquire.run.publish import RunPublisher
 from acquire.run.state import RunState
@@ -103,6 +104,11 @@ class RunController:
         self._done_evt = threading.Event()
         self._summary: Optional[RunSummary] = None
         self.adaptive_summary: Optional[dict] = None  # an adaptive run's stop reason, history, time saved
+        #: The end-of-run fit's imports, made while the robot moves (``fitting.preload_fit``); None without a fit.
+        self.fit_preload: Optional[threading.Thread] = None
+        #: Set once the run measures no more (its devices and log closed), before its fit: whoever
+        #: started the cell's simulation may stop it then (``acquire run --fake``).
+        self.measurements_over = threading.Event()
 
     # ------------------------------------------------------------------ what callers read and set
     bus = property(lambda self: self.pub.bus, lambda self, v: setattr(self.pub, "bus", v))
@@ -210,6 +216,7 @@ class RunController:
             self.state.fail(f"{type(exc).__name__}: {exc}")
         finally:
             self.teardown()
+            self.measurements_over.set()
             self.pub.release_bus()
             if summary is None:
                 summary = self.state.summary()
@@ -271,6 +278,8 @@ class RunController:
         if adaptive is not None:
             self.pub.event("adaptive_started", **adaptive.started_fields())
         st.set("running")
+        if self.fit_enabled:
+            self.fit_preload = preload_fit(lp)
         t_cell0 = cell.clock()
         st.loop_wall0 = time.monotonic()
         try:

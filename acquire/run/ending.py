@@ -8,6 +8,7 @@ the reason, not ``finished``: the operator must not read "finished" as "calibrat
 from __future__ import annotations
 
 import logging
+import time
 
 from drivers.errors import DriverError
 
@@ -58,6 +59,7 @@ def finish(ctl, cell_seconds: float):
         log_link(commander, pub.event)
         pub.event("run_finished", measured=state.measured, skipped=state.skipped, failed=state.failed)
     ctl.teardown()
+    ctl.measurements_over.set()
     end = "aborted" if aborted else "finished"
     summary = state.summary()
     summary.cell_seconds = cell_seconds
@@ -68,11 +70,16 @@ def finish(ctl, cell_seconds: float):
             reason = (f"no result: none of the {state.total} configurations was measured "
                       f"({state.skipped} skipped, {state.failed} failed)")
         else:
+            if ctl.fit_preload is not None:  # its imports done (no two threads import one module)
+                ctl.fit_preload.join()
             try:
                 from calib.fit.progress import Progress
 
+                wall0, cpu0 = time.monotonic(), time.thread_time()
                 summary.fit, summary.result_path, summary.report_path = fit_run_log(
                     state.log_path, ctl.lp, progress=Progress(state.fitting, every_s=1.0))
+                log.info("run %s: fitted in %.2f s (%.2f CPU-s in this thread)", state.run_id,
+                         time.monotonic() - wall0, time.thread_time() - cpu0)
             except (ValueError, RuntimeError, ArithmeticError) as exc:
                 reason = f"no result: the fit of {state.measured} measured configuration(s) failed: {exc}"
             if summary.fit is not None and summary.adaptive is not None:

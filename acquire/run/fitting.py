@@ -1,14 +1,60 @@
 """Handing a closed run log to the fitter: ``result.json`` and ``report.html`` (and the socket
-fit's corrected ``model.yaml``) beside the log."""
+fit's corrected ``model.yaml``) beside the log.
+
+``preload_fit(lp)`` imports what that fit needs (the fit's modules and the reports', and scipy's
+optimisers and statistics where the run has not loaded them yet: up to about 1 CPU-s, seconds of
+wall on a busy host) in a thread while the robot moves, so that none of it falls between the last
+measurement and the result; the run joins it before it fits (``acquire.run.ending.finish``).
+Nothing is fitted ahead: the fit is the same.
+"""
 
 from __future__ import annotations
 
+import importlib
 import logging
+import threading
 from pathlib import Path
 
 import numpy as np
 
 log = logging.getLogger(__name__)
+
+#: The modules the default fit of a run imports where it needs them (its lazy imports, and theirs:
+#: scipy.optimize, scipy.stats, scipy.linalg), for ``preload_fit``. ``tests/acquire/test_run_fit_wall.py``
+#: checks that a fit after them imports nothing more.
+FIT_MODULES = (
+    "acquire.record.recorder", "calib.fit.auto_fit", "calib.fit.entered", "calib.fit.offsets",
+    "calib.fit.model_choice", "calib.fit.parallel", "calib.fit.posterior", "calib.fit.attitude",
+    "calib.fit.laplace_sampling", "calib.fit.sampling", "calib.fit.metrics", "calib.fit.result",
+    "calib.fit.regstats", "calib.fit.pose_scoring", "calib.fit.identification", "calib.fit.progress",
+    "calib.robot.controller", "calib.robot.gravity", "calib.plan.identifiability", "calib.report.html",
+    "calib.report.report_figures", "calib.report.report_ident", "scipy.optimize", "scipy.stats",
+)
+#: A socket run's fit (``fit_socket_run_log``).
+SOCKET_FIT_MODULES = (
+    "acquire.run.socket_fit", "calib.fit.socket_choice", "calib.fit.model_choice", "calib.fit.identification",
+    "calib.robot.controller", "calib.report.report_socket", "scipy.optimize", "scipy.stats",
+)
+
+
+def preload_fit(lp) -> threading.Thread:
+    """Start importing the modules the end-of-run fit of ``lp``'s plan needs (``FIT_MODULES``, or
+    ``SOCKET_FIT_MODULES``) in a daemon thread; returns it (join it before fitting: an import
+    that fails is only logged here, the fit meets it again and says so). The run's own thread may
+    import meanwhile: calib's modules import one another without a cycle at their top level, so
+    two threads importing them wait at most for each other's module, never for each other."""
+    names = SOCKET_FIT_MODULES if getattr(lp.plan, "socket", None) is not None else FIT_MODULES
+
+    def load() -> None:
+        for name in names:
+            try:
+                importlib.import_module(name)
+            except Exception as exc:  # noqa: BLE001 - the fit imports it again and reports it
+                log.debug("preloading the fit: %s: %s", name, exc)
+
+    thread = threading.Thread(target=load, name="fit-preload", daemon=True)
+    thread.start()
+    return thread
 
 
 def _link_tolerance(fit) -> tuple[float, float] | None:

@@ -53,9 +53,11 @@ class AttitudeRows:
     """The attitude rows of one dataset. ``sensors``: sorted sensor names; ``b2s0``: (S, 4, 4)."""
 
     def __init__(self, chain: Chain, data: Dataset, sensors: list[str], b2s0: np.ndarray,
-                 sag_gain: np.ndarray | None = None, sag_params: np.ndarray | None = None) -> None:
+                 sag_gain: np.ndarray | None = None, sag_params: np.ndarray | None = None, *,
+                 shared: dict | None = None) -> None:
         """``sag_gain``: (k, n) joint-angle change per µrad/(N·m) (sign·τ·1e-6) when compliance is
-        fitted; ``sag_params``: the chain vector (P,) the sag is taken at (None: nominal)."""
+        fitted; ``sag_params``: the chain vector (P,) the sag is taken at (None: nominal);
+        ``shared``: the posteriors' shared dict (``OffsetPosterior``): the sag levers computed once."""
         self.chain = chain
         rot = np.asarray(data.rot, dtype=float)
         self.rows = np.flatnonzero(np.isfinite(rot).all(axis=(1, 2)))  # dataset rows with an orientation
@@ -89,9 +91,14 @@ class AttitudeRows:
         self._expansion = None  # (``expand``)
         self.sag_w = None
         if sag_gain is not None:
-            ref = chain.nominal if sag_params is None else sag_params
-            jw = chain.flange_jacobian(self.q, ref).jw[..., : chain.n]  # (ko, 3, n)
-            self.sag_w = jw * sag_gain[self.rows][:, None, :]  # rad per µrad/(N·m)
+            if shared is not None and "attitude_sag_w" in shared:
+                self.sag_w = shared["attitude_sag_w"]
+            else:
+                ref = chain.nominal if sag_params is None else sag_params
+                jw = chain.flange_jacobian(self.q, ref).jw[..., : chain.n]  # (ko, 3, n)
+                self.sag_w = jw * sag_gain[self.rows][:, None, :]  # rad per µrad/(N·m)
+                if shared is not None:
+                    shared["attitude_sag_w"] = self.sag_w
 
     # --- the expansion (``OffsetPosterior.expand``) ------------------------------------------
     def expand(self, post, full: np.ndarray | None) -> None:

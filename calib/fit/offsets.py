@@ -699,12 +699,12 @@ def fit_mode(model: RobotModel, data: Dataset, options: FitOptions = FitOptions(
             f"measure at least {min_measurements(n_free)} configurations (more is much better)"
         )
 
-    zero_jacobian: dict = {}  # the Jacobian at the nominal model, shared by the masks tried below
+    shared: dict = {}  # what the masks tried below compute alike (``OffsetPosterior``'s ``shared``)
 
     def factory(m: ParamMask, sag_params: np.ndarray | None = None) -> OffsetPosterior:
         return OffsetPosterior(chain, data, b2s0, m, error=options.error, nu=options.nu, link_prior=link_prior,
                                compliance=options.compliance, sag_params=sag_params,
-                               zero_jacobian=zero_jacobian if sag_params is None else None)
+                               shared=shared if sag_params is None else None)
 
     p_base = chain.marker_positions(data.q_rad)
     lever = float(np.sqrt(np.mean(np.sum(p_base**2, axis=-1))))

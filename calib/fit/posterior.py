@@ -109,12 +109,14 @@ class OffsetPosterior:
         compliance: bool = False,
         sag_params: np.ndarray | None = None,
         orientation: bool = True,
-        zero_jacobian: dict | None = None,
+        shared: dict | None = None,
     ) -> None:
-        """``zero_jacobian``: a dict shared by posteriors of the same data, registration, priors and
-        sag that differ only in their masks (``calib.fit.offsets.fit_mode`` tries several): the
-        Jacobian of every entry at the nominal model is the same for all of them, computed once."""
-        self._zero_jacobian = zero_jacobian
+        """``shared``: a dict shared by posteriors of the same data, registration, priors and sag
+        that differ only in their masks (``calib.fit.offsets.fit_mode`` tries several): what depends
+        on the data and not on the mask — the chain folded at every row, the gravity torques and
+        the sag's levers, the attitude rows' sag levers, the Jacobian of every entry at the nominal
+        model — is computed by the first and reused by the others, the same arrays (never written)."""
+        self._shared = shared
         if error not in ("gaussian", "student"):
             raise ValueError(f"error model {error!r} not known; use 'gaussian' or 'student'")
         if error == "student" and not nu > 2:
@@ -156,7 +158,8 @@ class OffsetPosterior:
         self._rows_of_sensor = [np.flatnonzero(self.sensor_index == k_s) for k_s in range(self.S)]
         # Only the offsets move inside the fit: fold the rest of the kinematics once.
         markers_flange = np.array([mk.xyz for mk in chain.model.tool.markers], dtype=float)
-        self._offset_fk = offset_kinematics(chain, data.q_rad, markers_flange[self.marker_index])
+        self._offset_fk = self._once("offset_fk", lambda: offset_kinematics(chain, data.q_rad,
+                                                                             markers_flange[self.marker_index]))
         self._link_jac: np.ndarray | None = None  # (k, 3, L_links) when the link terms are linearised
         self._linearised = False
         self._link_ref = np.zeros(0)  # the link deviations the linear terms are taken about (``linearise_links``)
@@ -178,11 +181,15 @@ class OffsetPosterior:
 
             #: The chain vector (P,) the sag's torques and lever arms are taken at (nominal: None).
             self.sag_params = chain.nominal if sag_params is None else np.asarray(sag_params, dtype=float)
-            self.torques = gravity_torques(chain, data.q_rad, self.sag_params)  # (k, n) N·m at that arm
-            _, jac = chain.marker_jacobian(data.q_rad, self.sag_params)
-            j_off = jac[np.arange(self.n_rows), self.marker_index][..., : self.n]  # (k, 3, n)
-            #: ∂ p_base / ∂ k (k, 3, n), mm per µrad/(N·m).
-            self._sag = j_off * (chain.sign * self.torques * 1e-6)[:, None, :]
+
+            def sag() -> tuple[np.ndarray, np.ndarray]:
+                torques = gravity_torques(chain, data.q_rad, self.sag_params)  # (k, n) N·m at that arm
+                _, jac = chain.marker_jacobian(data.q_rad, self.sag_params)
+                j_off = jac[np.arange(self.n_rows), self.marker_index][..., : self.n]  # (k, 3, n)
+                return torques, j_off * (chain.sign * torques * 1e-6)[:, None, :]
+
+            #: the torques (k, n) N·m; ∂ p_base / ∂ k (k, 3, n), mm per µrad/(N·m).
+            self.torques, self._sag = self._once("sag", sag)
         #: Position rows (the dataset's) and their sensors; ``n_rows``/``sensor_index`` count every
         #: residual row of three coordinates: the positions, then the attitude rows (``calib.fit.attitude``).
         self.k_pos = self.n_rows
@@ -195,11 +202,19 @@ class OffsetPosterior:
 
             self.attitude = AttitudeRows(chain, data, self.sensors, self.b2s0,
                                          chain.sign * self.torques * 1e-6 if self.C else None,
-                                         self.sag_params if self.C else None)
+                                         self.sag_params if self.C else None, shared=self._shared)
             self.n_rows = self.k_pos + self.attitude.k
             self.sensor_index = np.concatenate([self._pos_sensor, self.attitude.sensor_index])
             self.rows_per_sensor = np.bincount(self.sensor_index, minlength=self.S)
             self.row_source = np.concatenate([self.row_source, self.attitude.rows])
+
+    def _once(self, key: str, make):
+        """``make()``, or what the first posterior sharing ``shared`` made for ``key``."""
+        if self._shared is None:
+            return make()
+        if key not in self._shared:
+            self._shared[key] = make()
+        return self._shared[key]
 
     # --- parameter packing -----------------------------------------------------------
     @property
@@ -404,10 +419,8 @@ class OffsetPosterior:
     def jacobian(self, theta: np.ndarray) -> np.ndarray:
         """∂ predicted / ∂ θ_free for one θ: (n_rows·3, dim), positions then attitude rows."""
         theta = np.asarray(theta, dtype=float)
-        if self._zero_jacobian is not None and not theta.any():  # the nominal model: shared between masks
-            if "full" not in self._zero_jacobian:
-                self._zero_jacobian["full"] = self._jacobian_full(self.full_vector(theta))
-            return self._zero_jacobian["full"][:, self.free]
+        if self._shared is not None and not theta.any():  # the nominal model: shared between masks
+            return self._once("zero_jacobian", lambda: self._jacobian_full(self.full_vector(theta)))[:, self.free]
         return self._jacobian_full(self.full_vector(theta))[:, self.free]
 
     def _jacobian_full(self, full: np.ndarray) -> np.ndarray:
