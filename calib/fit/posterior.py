@@ -88,6 +88,15 @@ class ParamMask:
                          full[n + r + ln :])
 
 
+def _once(shared: dict | None, key: str, make):
+    """``make()``, or what the first posterior sharing the dict ``shared`` made for ``key``."""
+    if shared is None:
+        return make()
+    if key not in shared:
+        shared[key] = make()
+    return shared[key]
+
+
 class OffsetPosterior:
     """Log posterior of zero-offsets, registration corrections and σ for one dataset.
 
@@ -158,7 +167,7 @@ class OffsetPosterior:
         self._rows_of_sensor = [np.flatnonzero(self.sensor_index == k_s) for k_s in range(self.S)]
         # Only the offsets move inside the fit: fold the rest of the kinematics once.
         markers_flange = np.array([mk.xyz for mk in chain.model.tool.markers], dtype=float)
-        self._offset_fk = self._once("offset_fk", lambda: offset_kinematics(chain, data.q_rad,
+        self._offset_fk = _once(self._shared, "offset_fk", lambda: offset_kinematics(chain, data.q_rad,
                                                                              markers_flange[self.marker_index]))
         self._link_jac: np.ndarray | None = None  # (k, 3, L_links) when the link terms are linearised
         self._linearised = False
@@ -189,7 +198,7 @@ class OffsetPosterior:
                 return torques, j_off * (chain.sign * torques * 1e-6)[:, None, :]
 
             #: the torques (k, n) N·m; ∂ p_base / ∂ k (k, 3, n), mm per µrad/(N·m).
-            self.torques, self._sag = self._once("sag", sag)
+            self.torques, self._sag = _once(self._shared, "sag", sag)
         #: Position rows (the dataset's) and their sensors; ``n_rows``/``sensor_index`` count every
         #: residual row of three coordinates: the positions, then the attitude rows (``calib.fit.attitude``).
         self.k_pos = self.n_rows
@@ -207,14 +216,6 @@ class OffsetPosterior:
             self.sensor_index = np.concatenate([self._pos_sensor, self.attitude.sensor_index])
             self.rows_per_sensor = np.bincount(self.sensor_index, minlength=self.S)
             self.row_source = np.concatenate([self.row_source, self.attitude.rows])
-
-    def _once(self, key: str, make):
-        """``make()``, or what the first posterior sharing ``shared`` made for ``key``."""
-        if self._shared is None:
-            return make()
-        if key not in self._shared:
-            self._shared[key] = make()
-        return self._shared[key]
 
     # --- parameter packing -----------------------------------------------------------
     @property
@@ -420,7 +421,7 @@ class OffsetPosterior:
         """∂ predicted / ∂ θ_free for one θ: (n_rows·3, dim), positions then attitude rows."""
         theta = np.asarray(theta, dtype=float)
         if self._shared is not None and not theta.any():  # the nominal model: shared between masks
-            return self._once("zero_jacobian", lambda: self._jacobian_full(self.full_vector(theta)))[:, self.free]
+            return _once(self._shared, "zero_jacobian", lambda: self._jacobian_full(self.full_vector(theta)))[:, self.free]
         return self._jacobian_full(self.full_vector(theta))[:, self.free]
 
     def _jacobian_full(self, full: np.ndarray) -> np.ndarray:

@@ -65,6 +65,7 @@ def test_acquire_fit_takes_socket_data_and_scores_held_out_placements(tmp_path, 
     assert abs(model.tool.markers[0].xyz[2] - doc["ball_mm"]["value"][2]) < 1e-6
 
 
+@pytest.mark.slow  # 6 CPU-s; the socket default fit's choice: test_run_fit_choice.py (a socket run) and test_socket_choice.py (real sockets)
 def test_default_chooses_the_socket_model_by_held_out_placements_and_says_so(tmp_path, socket_csv):
     """``acquire fit`` without --method on socket data: the candidates' table (held-out placements),
     the chosen model named in the summary and result.json, its link prior from the evidence."""

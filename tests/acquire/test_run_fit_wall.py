@@ -10,6 +10,8 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
+
 from acquire.commands.run import wait_for_end
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,6 +43,7 @@ print(json.dumps({"chosen": doc["model_choice"]["chosen"], "new": sorted(set(sys
 """
 
 
+@pytest.mark.slow  # a guard of the main job's fit share (a fresh interpreter and a whole fit): tests/bench/README.md
 def test_after_the_preload_the_end_of_run_fit_imports_nothing(tmp_path):
     out = subprocess.run([sys.executable, "-c", SCRIPT, str(ROOT / "fixtures/plans/example.yaml"), str(tmp_path)],
                          cwd=ROOT, capture_output=True, text=True, timeout=300)

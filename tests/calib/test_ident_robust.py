@@ -188,6 +188,7 @@ def test_noise_free_data_do_not_make_rounding_level_costs_disagree():
     assert not [w for w in result.warnings if "starts disagree" in w] and all(s["same_minimum"] for s in result.starts)
 
 
+@pytest.mark.slow  # a multi-start search over data no model describes (11 CPU-s); the verdict's path: test_fit.py's far marker
 def test_a_minimum_that_does_not_describe_the_data_is_refused_with_exit_status_1(tmp_path):
     """The data's J2 and J3 columns exchanged (a robot model that is not this arm's: no parameter
     set describes it; a zero 120°–180° off is now reached by the flipped-zero starts): no start
