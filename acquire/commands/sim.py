@@ -245,7 +245,9 @@ def _lines(launch: CellProcess, deadline: float, source: Path | None = None) -> 
                 return
             if not line.strip():
                 continue
-            print(_answer(launch, line, source), flush=True)
+            # one write with its newline: unbuffered (PYTHONUNBUFFERED), print() writes the text and
+            # the newline apart, and a log line on the same pipe can land between them
+            typer.echo(_answer(launch, line, source))
 
     threading.Thread(target=read, name="sim-stdin", daemon=True).start()
     _running(deadline)
