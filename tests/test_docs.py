@@ -19,6 +19,10 @@ DOCS = ROOT / "docs"
 TUTORIALS = sorted((DOCS / "tutorials").glob("*.md"))
 QUIET = {"NO_MKDOCS_2_WARNING": "1"}  # Material's end-of-life banner, not a build warning
 
+# One xdist worker runs this file (./test --dist loadgroup): the site (5 CPU-s) is built once, not
+# once per worker that happens to get one of its tests.
+pytestmark = pytest.mark.xdist_group("docs-site")
+
 
 def shell_blocks(page: Path) -> list[str]:
     """The command lines of the page's ```sh blocks, in order (comments and blank lines dropped)."""

@@ -15,6 +15,9 @@ from calib.robot.kinematics import Chain
 from run_helpers import small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 from test_adaptive_order import StandingRobot, record  # noqa: E402
 
+# One xdist worker runs this file: its module fixture (a designed plan) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("acquire/test_adaptive_lookahead")
+
 
 @pytest.fixture(scope="module")
 def plan(tmp_path_factory):

@@ -19,6 +19,9 @@ from drivers.protocols import JointLimits
 from run_helpers import small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 from test_adaptive_order import StandingRobot  # noqa: E402
 
+# One xdist worker runs this file: its module fixture (a designed plan and its cells) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("acquire/test_adaptive_noise")
+
 RULE = {"interval_deg": 0.015, "region_error_mm": 0.05}
 
 

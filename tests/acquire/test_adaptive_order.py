@@ -17,6 +17,9 @@ from drivers.protocols import JointLimits
 
 from run_helpers import small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 
+# One xdist worker runs this file: its module fixture (a designed plan) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("acquire/test_adaptive_order")
+
 
 class StandingRobot:
     """What AdaptiveRun asks of the commander: its limits and where it stands."""

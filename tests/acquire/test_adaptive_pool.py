@@ -20,6 +20,9 @@ from drivers.protocols import JointLimits
 from run_helpers import small_plan  # noqa: E402 - tests/acquire is on sys.path under pytest
 from test_adaptive_order import StandingRobot, record  # noqa: E402
 
+# One xdist worker runs this file: its module fixture (a pooled design) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("acquire/test_adaptive_pool")
+
 RULE = {"stop_when": {"held_out_within_pct": 10}, "min_configurations": 12}
 
 

@@ -16,6 +16,9 @@ from calib.robot.kinematics import Chain
 from calib.robot.model import load_robot_model
 from calib.robot.urdf import fk_difference, load_urdf, random_configurations, urdf_fk
 
+# One xdist worker runs this file: its module fixture (a full fit) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("acquire/test_cli_model")
+
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml"
 CAL = ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv"

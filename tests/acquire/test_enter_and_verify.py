@@ -23,6 +23,9 @@ from drivers.sim.launch import SimLaunch
 
 from run_helpers import ROOT  # noqa: E402 - tests/acquire is on sys.path under pytest
 
+# One xdist worker runs this file: its module fixture (a fit) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("acquire/test_enter_and_verify")
+
 
 @pytest.fixture(scope="module")
 def result_json(tmp_path_factory):

@@ -14,6 +14,9 @@ from calib.measure.dataset import DatasetError, read_csv
 from calib.robot.model import load_robot_model
 from calib.fit.socket import SocketDataError, read_socket_csv
 
+# One xdist worker runs this file: its module fixture (the reference fit) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("calib/test_csv_dialects")
+
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
 CAL = ROOT / "fixtures" / "datasets" / "iiwa14_sim_cal.csv"

@@ -12,6 +12,9 @@ from calib.robot.model import load_robot_model
 from calib.plan.observability import INDICES, indices_from_eigenvalues, ioops, observability
 from tests.calib.test_identification import measure, perturbed_truth
 
+# One xdist worker runs this file: its module fixture (the candidate poses) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("calib/test_observability")
+
 ROBOTS = Path(__file__).resolve().parents[2] / "fixtures" / "robots"
 
 

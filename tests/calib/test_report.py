@@ -30,6 +30,9 @@ from calib.report.report_format import num
 from calib.fit.result import result_dict
 from svgread import axes, svgs, texts  # tests/calib is on sys.path under pytest
 
+# One xdist worker runs this file: its module fixture (a fit) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("calib/test_report")
+
 ROOT = Path(__file__).resolve().parents[2]
 IIWA = load_robot_model(ROOT / "fixtures" / "robots" / "kuka_iiwa14_r820.yaml")
 DATA = ROOT / "fixtures" / "datasets"

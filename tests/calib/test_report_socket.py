@@ -24,6 +24,9 @@ from calib.robot.model import load_robot_model
 from tests.calib import svgread
 from tests.calib.socket_sim import simulate, true_params
 
+# One xdist worker runs this file: its module fixture (a socket fit) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("calib/test_report_socket")
+
 PANDA = Path(__file__).resolve().parents[2] / "fixtures" / "robots" / "franka_panda.yaml"
 
 

@@ -19,6 +19,9 @@ from drivers.sim.cell import SimCell
 from drivers.sim.config import DEFAULT_CONFIG_PATH
 from drivers.sim.mastering import Mastering
 
+# One xdist worker runs this file: its module fixture (a calibrated cell) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("calib/test_verification")
+
 SENSOR = "tracker"
 NOISE_MM = 0.01
 

@@ -26,6 +26,9 @@ from drivers.sim.cell import SimCell
 from drivers.sim.config import DEFAULT_CONFIG_PATH, load_sim_config
 from drivers.sim.mastering import Mastering
 
+# One xdist worker runs this file: its module fixture (a calibrated cell) is computed once, not once per worker.
+pytestmark = pytest.mark.xdist_group("station/test_accuracy")
+
 SENSOR = "tracker"
 NOISE_MM = 0.01
 #: What a full model (offsets, links, sag) claims in-sample on such data: the result's metrics.
